@@ -1,0 +1,334 @@
+"""Fine-tune a pretrained 3DGS model into a CLoD-GS model (the paper's robustness setting).
+
+A per-Gaussian distance decay ``sigma_d`` is attached and trained with virtual distance scaling
+(CLoD-GS, Cheng et al. ICLR 2026, Sec. 3); the other attributes are "lightly updated" with the
+official 3DGS learning rates times ``other_lr_scale`` (0 freezes them). No densification.
+
+Public entry points: :class:`AdaptConfig`, :func:`prepare`, :func:`adapt`, :func:`save_state`,
+:func:`load_state`.
+"""
+from __future__ import annotations
+
+import json
+import math
+import os
+import signal
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Callable, Optional
+
+import torch
+from torch import Tensor
+
+from . import __version__, lod
+from .gaussians import Gaussians
+from .io.atomic import atomic_save
+from .losses import clod_loss, render_loss
+from .lod_render import render_lod
+from .metrics import psnr
+
+#: official 3DGS learning rates (arguments/__init__.py, OptimizationParams); means are scaled by
+#: the scene extent and decay log-linearly from init to final over the run.
+OFFICIAL_LR = {
+    "means": (1.6e-4, 1.6e-6),
+    "sh0": 2.5e-3,
+    "shN": 2.5e-3 / 20.0,
+    "opacity_logits": 5e-2,
+    "log_scales": 5e-3,
+    "quats": 1e-3,
+}
+PARAM_NAMES = ("means", "quats", "log_scales", "opacity_logits", "sh0", "shN", "sigma_d")
+
+
+@dataclass
+class AdaptConfig:
+    """Settings of one adaptation run (defaults: the paper's where it gives them).
+
+    Attributes:
+        max_sv: largest virtual distance scale trained (s_v ~ U(1, max_sv)).
+        iterations: optimisation steps (one training view each).
+        sigma_d_lr: Adam learning rate of sigma_d (paper: 1e-2).
+        other_lr_scale: factor on the official 3DGS learning rates of the other attributes.
+        lambda_reg: weight of L_reg (paper: 1).
+        tau: LoD threshold (mask alpha'' > tau s_v).
+        eps: Eq. 2's epsilon.
+        eta_estimator: "ste" (default), "sigmoid" or "paper" (no gradient, ablation).
+        temperature: width of the eta relaxation, log-opacity units.
+        init_attenuation: Eq. 2's factor at s_v = 1 is at least this at initialisation.
+        seed: seed of view order and s_v sampling.
+        background: RGB behind the scene.
+    """
+
+    max_sv: float = 5.0
+    iterations: int = 1000
+    sigma_d_lr: float = 1e-2
+    other_lr_scale: float = 0.1
+    lambda_reg: float = 1.0
+    tau: float = lod.DEFAULT_TAU
+    eps: float = lod.DEFAULT_EPS
+    eta_estimator: str = "ste"
+    temperature: float = 1.0
+    init_attenuation: float = 0.995
+    seed: int = 0
+    background: tuple = (0.0, 0.0, 0.0)
+
+    def __post_init__(self) -> None:
+        if not self.max_sv >= 1.0:
+            raise ValueError(f"max_sv must be >= 1, got {self.max_sv}")
+        if self.iterations < 0:
+            raise ValueError(f"iterations must be >= 0, got {self.iterations}")
+        if self.other_lr_scale < 0:
+            raise ValueError(f"other_lr_scale must be >= 0, got {self.other_lr_scale}")
+        if self.eta_estimator not in lod.ETA_ESTIMATORS:
+            raise ValueError(f"eta_estimator must be one of {lod.ETA_ESTIMATORS}")
+        self.background = tuple(float(x) for x in self.background)
+
+
+@dataclass
+class AdaptState:
+    """Everything needed to continue a run: parameters, Adam moments, RNG, view order."""
+
+    params: dict
+    optimizer: torch.optim.Optimizer
+    generator: torch.Generator
+    iteration: int = 0
+    order: list = field(default_factory=list)
+    extent: float = 1.0
+    history: dict = field(default_factory=lambda: {"s_v": [], "eta": [], "loss": [], "psnr": []})
+
+    def gaussians(self) -> Gaussians:
+        return Gaussians(**{k: v for k, v in self.params.items()})
+
+
+def scene_extent(cameras) -> float:
+    """3DGS ``getNerfppNorm`` radius: 1.1 x max distance of a camera centre from their mean."""
+    centers = torch.stack([lod.camera_center(c.viewmat.double()) for c in cameras])
+    return float(1.1 * (centers - centers.mean(0)).norm(dim=1).max().clamp_min(1e-6))
+
+
+@torch.no_grad()
+def max_normalized_distance(gaussians: Gaussians, cameras) -> Tensor:
+    """[N] largest frustum-normalised distance d' of each Gaussian over ``cameras``."""
+    dmax = torch.zeros(len(gaussians), dtype=torch.float32, device=gaussians.means.device)
+    for cam in cameras:
+        vm = cam.viewmat.to(gaussians.means)
+        fr = lod.in_frustum(gaussians.means, vm, cam.K.to(gaussians.means), cam.width, cam.height)
+        d = lod.normalized_distances(gaussians.means, lod.camera_center(vm), fr)
+        dmax = torch.maximum(dmax, d.float())
+    return dmax
+
+
+def _lr_groups(params: dict, cfg: AdaptConfig, extent: float) -> list:
+    groups = [{"params": [params["sigma_d"]], "lr": cfg.sigma_d_lr, "name": "sigma_d"}]
+    if cfg.other_lr_scale > 0:
+        for name in ("means", "quats", "log_scales", "opacity_logits", "sh0", "shN"):
+            if params[name].numel() == 0:
+                continue
+            lr = OFFICIAL_LR[name]
+            lr = lr[0] * extent if name == "means" else lr
+            groups.append({"params": [params[name]], "lr": lr * cfg.other_lr_scale, "name": name})
+    return groups
+
+
+def means_lr(cfg: AdaptConfig, extent: float, it: int) -> float:
+    """Official 3DGS position schedule (log-linear init -> final) times ``other_lr_scale``."""
+    init, final = OFFICIAL_LR["means"]
+    t = min(max(it / max(cfg.iterations, 1), 0.0), 1.0)
+    return math.exp(math.log(init) * (1 - t) + math.log(final) * t) * extent * cfg.other_lr_scale
+
+
+def prepare(gaussians: Gaussians, train_cameras, cfg: AdaptConfig) -> AdaptState:
+    """Attach ``sigma_d`` (:func:`clod_adapter.lod.init_sigma_d` over the training views, unless
+    the model already has one) and build the optimiser state for :func:`adapt`."""
+    g = gaussians.clone()
+    if g.sigma_d is None:
+        g = g.with_sigma_d(lod.init_sigma_d(max_normalized_distance(g, train_cameras),
+                                            cfg.init_attenuation).to(g.means))
+    train_others = cfg.other_lr_scale > 0
+    params = {}
+    for name in PARAM_NAMES:
+        t = getattr(g, name).detach().clone().contiguous()
+        params[name] = torch.nn.Parameter(t, requires_grad=(name == "sigma_d") or train_others)
+    extent = scene_extent(train_cameras)
+    opt = torch.optim.Adam(_lr_groups(params, cfg, extent), eps=1e-15)
+    gen = torch.Generator().manual_seed(cfg.seed)
+    return AdaptState(params=params, optimizer=opt, generator=gen, extent=extent)
+
+
+class _StopFlag:
+    """Turns SIGINT/SIGTERM into a flag checked between iterations (state is then saved)."""
+
+    def __init__(self) -> None:
+        self.stop = False
+        self._old = {}
+
+    def __enter__(self):
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            try:
+                self._old[sig] = signal.signal(sig, self._handle)
+            except ValueError:  # not in the main thread
+                pass
+        return self
+
+    def _handle(self, signum, frame) -> None:
+        self.stop = True
+
+    def __exit__(self, *exc) -> None:
+        for sig, h in self._old.items():
+            signal.signal(sig, h)
+
+
+def adapt(
+    state: AdaptState,
+    train_cameras,
+    train_images,
+    cfg: AdaptConfig,
+    *,
+    backend: str = "auto",
+    progress: bool = True,
+    on_interrupt: Optional[Callable[[AdaptState], None]] = None,
+) -> bool:
+    """Run (or continue) the fine-tuning from ``state.iteration`` to ``cfg.iterations``.
+
+    Each step: one training view (shuffled, without replacement per epoch), ``s_v ~ U(1,
+    max_sv)``, render at ``s_v``, ``L = w_s (L_render + lambda_reg L_reg)``, one Adam step.
+
+    Args:
+        state: from :func:`prepare` or :func:`load_state`; updated in place.
+        train_cameras, train_images: training views and their [H, W, 3] float images in [0, 1].
+        cfg: the run's settings.
+        backend: rasteriser backend.
+        progress: show a tqdm bar with loss, PSNR and rendered fraction.
+        on_interrupt: called with the state when SIGINT/SIGTERM stops the run early.
+
+    Returns:
+        True when all iterations ran, False when interrupted (state holds the progress).
+    """
+    from tqdm import tqdm
+
+    params = state.params
+    bar = tqdm(total=cfg.iterations, initial=state.iteration, disable=not progress,
+               desc="clod-adapt", unit="it", dynamic_ncols=True)
+    ema = {"loss": None, "psnr": None}
+    with _StopFlag() as flag:
+        while state.iteration < cfg.iterations:
+            if flag.stop:
+                bar.close()
+                if on_interrupt is not None:
+                    on_interrupt(state)
+                return False
+            it = state.iteration
+            if not state.order:
+                state.order = torch.randperm(len(train_cameras), generator=state.generator).tolist()
+            vi = state.order.pop()
+            s_v = lod.sample_s_v(cfg.max_sv, state.generator)
+            for grp in state.optimizer.param_groups:
+                if grp["name"] == "means":
+                    grp["lr"] = means_lr(cfg, state.extent, it)
+            g = state.gaussians()
+            out = render_lod(g, train_cameras[vi], s_v, tau=cfg.tau, eps=cfg.eps,
+                             estimator=cfg.eta_estimator, temperature=cfg.temperature,
+                             background=cfg.background, backend=backend)
+            gt = train_images[vi]
+            l_render = render_loss(out.image, gt)
+            loss, _ = clod_loss(l_render, out.eta, s_v, cfg.max_sv, cfg.lambda_reg)
+            state.optimizer.zero_grad(set_to_none=True)
+            if loss.requires_grad:
+                loss.backward()
+            state.optimizer.step()
+            state.iteration += 1
+            p = psnr(out.image, gt)
+            eta = float(out.eta)
+            h = state.history
+            h["s_v"].append(round(s_v, 4))
+            h["eta"].append(round(eta, 5))
+            h["loss"].append(round(float(loss), 6))
+            h["psnr"].append(round(p, 3))
+            for k, v in (("loss", float(loss)), ("psnr", p)):
+                ema[k] = v if ema[k] is None else 0.9 * ema[k] + 0.1 * v
+            bar.set_postfix(loss=f"{ema['loss']:.4f}", psnr=f"{ema['psnr']:.2f}",
+                            s_v=f"{s_v:.2f}", eta=f"{eta:.3f}", refresh=False)
+            bar.update(1)
+    bar.close()
+    return True
+
+
+# --- resumable state -------------------------------------------------------------------------
+def save_state(path: os.PathLike, state: AdaptState, cfg: AdaptConfig, extra_meta: Optional[dict] = None) -> None:
+    """Write ``state`` to a safetensors file atomically.
+
+    Tensors: ``param/<name>`` (raw parameters), ``adam/<name>/{exp_avg,exp_avg_sq,step}``,
+    ``rng`` (torch generator state, uint8), ``order`` (remaining view order, int64).
+    Metadata (strings): ``format`` = "clod-adapter-state/1", ``version``, ``iteration``,
+    ``extent``, ``config`` (JSON of :class:`AdaptConfig`), ``history`` (JSON), plus
+    ``extra_meta``.
+    """
+    from safetensors.torch import save_file
+
+    tensors = {f"param/{k}": v.detach().cpu().contiguous() for k, v in state.params.items()}
+    for grp in state.optimizer.param_groups:
+        p = grp["params"][0]
+        st = state.optimizer.state.get(p, {})
+        for key in ("exp_avg", "exp_avg_sq", "step"):
+            if key in st:
+                tensors[f"adam/{grp['name']}/{key}"] = torch.as_tensor(st[key]).detach().cpu().reshape(-1).contiguous()
+    tensors["rng"] = state.generator.get_state().contiguous()
+    tensors["order"] = torch.tensor(state.order, dtype=torch.int64)
+    meta = {
+        "format": "clod-adapter-state/1",
+        "version": __version__,
+        "iteration": str(state.iteration),
+        "extent": repr(state.extent),
+        "config": json.dumps(asdict(cfg)),
+        "history": json.dumps(state.history),
+    }
+    meta.update({k: str(v) for k, v in (extra_meta or {}).items()})
+    atomic_save(path, lambda tmp: save_file(tensors, str(tmp), metadata=meta))
+
+
+def load_state(path: os.PathLike, device: str | torch.device = "cpu") -> tuple[AdaptState, AdaptConfig, dict]:
+    """Read a state written by :func:`save_state`.
+
+    Returns:
+        (state, config, metadata).
+
+    Raises:
+        ValueError: the file is not a clod-adapter state (message names the file).
+    """
+    from safetensors import safe_open
+
+    path = Path(path)
+    try:
+        with safe_open(str(path), framework="pt", device="cpu") as f:
+            meta = f.metadata() or {}
+            tensors = {k: f.get_tensor(k) for k in f.keys()}
+    except Exception as e:  # safetensors raises several types
+        raise ValueError(f"{path}: not a readable safetensors state ({e})") from None
+    if meta.get("format") != "clod-adapter-state/1":
+        raise ValueError(f"{path}: not a clod-adapter state (format {meta.get('format')!r})")
+    cfg_d = json.loads(meta["config"])
+    cfg_d["background"] = tuple(cfg_d.get("background", (0, 0, 0)))
+    cfg = AdaptConfig(**cfg_d)
+    train_others = cfg.other_lr_scale > 0
+    params = {}
+    for name in PARAM_NAMES:
+        t = tensors[f"param/{name}"].to(device)
+        params[name] = torch.nn.Parameter(t, requires_grad=(name == "sigma_d") or train_others)
+    extent = float(meta["extent"])
+    opt = torch.optim.Adam(_lr_groups(params, cfg, extent), eps=1e-15)
+    for grp in opt.param_groups:
+        p = grp["params"][0]
+        key = f"adam/{grp['name']}/"
+        if key + "exp_avg" in tensors:
+            opt.state[p] = {
+                "step": tensors[key + "step"].reshape(()).clone(),
+                "exp_avg": tensors[key + "exp_avg"].reshape(p.shape).to(device),
+                "exp_avg_sq": tensors[key + "exp_avg_sq"].reshape(p.shape).to(device),
+            }
+    gen = torch.Generator()
+    gen.set_state(tensors["rng"])
+    st = AdaptState(params=params, optimizer=opt, generator=gen, iteration=int(meta["iteration"]),
+                    order=tensors["order"].tolist(), extent=extent,
+                    history=json.loads(meta.get("history", "{}")) or {"s_v": [], "eta": [], "loss": [], "psnr": []})
+    return st, cfg, meta

@@ -1,0 +1,120 @@
+"""The Gaussian model: raw (optimised) parameters and their activated views.
+
+Conventions follow the official 3DGS code and gsplat 1.5.3:
+``means`` world units, ``quats`` wxyz (unnormalised, normalised on use), ``log_scales`` (raw,
+``scales = exp(log_scales)``), ``opacity_logits`` (raw, ``opacities = sigmoid(opacity_logits)``),
+SH coefficients split as ``sh0`` [N, 1, 3] and ``shN`` [N, K-1, 3] with K = (degree + 1)^2
+(gsplat's ``colors`` layout [N, K, 3]), and the CLoD-GS distance decay ``sigma_d`` [N]
+(Cheng et al., ICLR 2026, Eq. 2; ``None`` for a model that has not been adapted).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, fields, replace
+from typing import Optional
+
+import torch
+from torch import Tensor
+
+SH_C0 = 0.28209479177387814  # Y_0^0, as in the official 3DGS utils/sh_utils.py
+
+
+def sh_degree_from_coeffs(num_coeffs: int) -> int:
+    """SH degree for K = (degree + 1)^2 coefficients per channel.
+
+    Raises:
+        ValueError: K is not 1, 4, 9 or 16.
+    """
+    for deg in range(4):
+        if (deg + 1) ** 2 == num_coeffs:
+            return deg
+    raise ValueError(f"{num_coeffs} SH coefficients per channel match no SH degree 0..3")
+
+
+@dataclass
+class Gaussians:
+    """A 3DGS model with N Gaussians (all tensors on one device, float32 unless noted).
+
+    Attributes:
+        means: [N, 3] centres, world units.
+        quats: [N, 4] rotations, wxyz, unnormalised.
+        log_scales: [N, 3] log of the per-axis standard deviations (world units).
+        opacity_logits: [N] logit of the opacity.
+        sh0: [N, 1, 3] degree-0 SH coefficient (the INRIA ``f_dc``).
+        shN: [N, K-1, 3] higher-order SH coefficients (the INRIA ``f_rest``, reordered from
+            channel-major); K-1 = 0 for degree 0.
+        sigma_d: [N] CLoD-GS distance decay (raw; Eq. 2 uses ReLU(sigma_d)), or None.
+    """
+
+    means: Tensor
+    quats: Tensor
+    log_scales: Tensor
+    opacity_logits: Tensor
+    sh0: Tensor
+    shN: Tensor
+    sigma_d: Optional[Tensor] = None
+
+    def __post_init__(self) -> None:
+        n = self.means.shape[0]
+        checks = {
+            "means": (self.means, (n, 3)),
+            "quats": (self.quats, (n, 4)),
+            "log_scales": (self.log_scales, (n, 3)),
+            "opacity_logits": (self.opacity_logits, (n,)),
+            "sh0": (self.sh0, (n, 1, 3)),
+        }
+        for name, (t, shape) in checks.items():
+            if tuple(t.shape) != shape:
+                raise ValueError(f"Gaussians.{name} has shape {tuple(t.shape)}, expected {shape}")
+        if self.shN.ndim != 3 or self.shN.shape[0] != n or self.shN.shape[2] != 3:
+            raise ValueError(f"Gaussians.shN has shape {tuple(self.shN.shape)}, expected ({n}, K-1, 3)")
+        sh_degree_from_coeffs(self.shN.shape[1] + 1)
+        if self.sigma_d is not None and tuple(self.sigma_d.shape) != (n,):
+            raise ValueError(f"Gaussians.sigma_d has shape {tuple(self.sigma_d.shape)}, expected ({n},)")
+
+    # --- activated views -------------------------------------------------------------------
+    def __len__(self) -> int:
+        return self.means.shape[0]
+
+    @property
+    def num_gaussians(self) -> int:
+        return self.means.shape[0]
+
+    @property
+    def sh_degree(self) -> int:
+        return sh_degree_from_coeffs(self.shN.shape[1] + 1)
+
+    @property
+    def scales(self) -> Tensor:
+        """[N, 3] activated scales, exp(log_scales)."""
+        return torch.exp(self.log_scales)
+
+    @property
+    def opacities(self) -> Tensor:
+        """[N] activated opacities, sigmoid(opacity_logits)."""
+        return torch.sigmoid(self.opacity_logits)
+
+    @property
+    def colors(self) -> Tensor:
+        """[N, K, 3] SH coefficients in gsplat's ``colors`` layout (sh0 then shN)."""
+        return torch.cat([self.sh0, self.shN], dim=1)
+
+    # --- utilities --------------------------------------------------------------------------
+    def tensors(self) -> dict[str, Tensor]:
+        """The non-None parameter tensors by field name."""
+        return {f.name: getattr(self, f.name) for f in fields(self) if getattr(self, f.name) is not None}
+
+    def to(self, device: torch.device | str) -> "Gaussians":
+        return replace(self, **{k: v.to(device) for k, v in self.tensors().items()})
+
+    def detach(self) -> "Gaussians":
+        return replace(self, **{k: v.detach() for k, v in self.tensors().items()})
+
+    def clone(self) -> "Gaussians":
+        return replace(self, **{k: v.detach().clone() for k, v in self.tensors().items()})
+
+    def subset(self, index: Tensor) -> "Gaussians":
+        """Gaussians selected by a boolean mask [N] or an index tensor [M] (int64)."""
+        return replace(self, **{k: v[index] for k, v in self.tensors().items()})
+
+    def with_sigma_d(self, sigma_d: Optional[Tensor]) -> "Gaussians":
+        return replace(self, sigma_d=sigma_d)

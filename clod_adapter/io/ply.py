@@ -1,0 +1,273 @@
+"""Read and write 3DGS checkpoints in the INRIA .ply layout (plus the CLoD ``sigma_d`` extension).
+
+Layout (graphdeco-inria/gaussian-splatting, ``scene/gaussian_model.py`` ``save_ply`` /
+``construct_list_of_attributes``), one ``vertex`` element of float32 properties in this order::
+
+    x y z  nx ny nz  f_dc_0..2  f_rest_0..f_rest_{3(K-1)-1}  opacity  scale_0..2  rot_0..3
+
+``f_rest`` is channel-major: property ``f_rest_{c*(K-1)+k}`` holds SH coefficient k+1 of colour
+channel c (the official code saves ``features_rest.transpose(1, 2).flatten(1)``), ``opacity`` is
+the logit, ``scale_*`` the log of the standard deviations, ``rot_*`` the quaternion w, x, y, z
+(unnormalised). The extended file of this project appends one float property ``sigma_d``
+(CLoD-GS distance decay, Cheng et al., ICLR 2026, Eq. 2).
+
+Reading selects the properties by name (order and extra properties do not matter; ASCII and
+big-endian files are read as plyfile parses them); writing always produces the exact INRIA
+order, binary little endian.
+"""
+from __future__ import annotations
+
+import os
+from pathlib import Path
+from typing import Union
+
+import numpy as np
+import plyfile
+import torch
+from numpy.lib import recfunctions as rfn
+
+from clod_adapter.gaussians import Gaussians
+from clod_adapter.io.atomic import atomic_write
+
+__all__ = ["PlyFormatError", "read_ply", "write_ply", "ply_property_names"]
+
+PathLike = Union[str, "os.PathLike[str]"]
+
+_F_REST_COUNTS = {0: 0, 9: 1, 24: 2, 45: 3}  # number of f_rest properties -> SH degree
+
+
+class PlyFormatError(ValueError):
+    """A .ply file is not a readable 3DGS checkpoint; the message is ``"<path>: <problem>"``."""
+
+    def __init__(self, path: PathLike, problem: str) -> None:
+        self.path = Path(path)
+        self.problem = problem
+        super().__init__(f"{path}: {problem}")
+
+
+def ply_property_names(sh_degree: int, *, with_normals: bool = True, with_sigma_d: bool = False) -> list[str]:
+    """The vertex property names, in the INRIA order, for a model of SH degree ``sh_degree``.
+
+    Raises:
+        ValueError: ``sh_degree`` is not 0..3.
+    """
+    if sh_degree not in (0, 1, 2, 3):
+        raise ValueError(f"SH degree must be 0..3, got {sh_degree}")
+    n_rest = 3 * ((sh_degree + 1) ** 2 - 1)
+    names = ["x", "y", "z"]
+    if with_normals:
+        names += ["nx", "ny", "nz"]
+    names += [f"f_dc_{i}" for i in range(3)]
+    names += [f"f_rest_{i}" for i in range(n_rest)]
+    names += ["opacity"]
+    names += [f"scale_{i}" for i in range(3)]
+    names += [f"rot_{i}" for i in range(4)]
+    if with_sigma_d:
+        names += ["sigma_d"]
+    return names
+
+
+def read_ply(path: PathLike, *, allow_nonfinite: bool = False) -> Gaussians:
+    """Read a 3DGS checkpoint .ply (INRIA layout, optionally with ``sigma_d``) into ``Gaussians``.
+
+    Required vertex properties: x y z, f_dc_0..2, f_rest_0..M-1 with M in {0, 9, 24, 45}
+    (SH degree 0..3), opacity, scale_0..2, rot_0..3. Optional: nx ny nz (ignored), ``sigma_d``.
+    Any numeric property type is accepted and converted to float32 (float32 input is copied
+    bit-exactly). The file is memory-mapped (plyfile's default) and converted in one vectorised
+    pass; the input is never modified.
+
+    Args:
+        path: the .ply file.
+        allow_nonfinite: keep NaN/Inf values instead of raising.
+
+    Returns:
+        ``Gaussians`` with contiguous float32 CPU tensors: means [N,3], quats [N,4] (wxyz, raw),
+        log_scales [N,3], opacity_logits [N], sh0 [N,1,3], shN [N,K-1,3] (reordered from the
+        channel-major f_rest), sigma_d [N] or None.
+
+    Raises:
+        FileNotFoundError: ``path`` does not exist.
+        PlyFormatError: not a parseable .ply (empty, bad header, truncated data), no ``vertex``
+            element, a required property missing, an f_rest count that is no SH degree, or a
+            NaN/Inf value (unless ``allow_nonfinite``).
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"{path}: no such file")
+    if path.stat().st_size == 0:
+        raise PlyFormatError(path, "file is empty")
+    try:
+        ply = plyfile.PlyData.read(str(path))
+    except plyfile.PlyElementParseError as e:
+        raise PlyFormatError(path, f"cannot read element data (truncated or corrupt file?): {e}") from None
+    except (plyfile.PlyParseError, ValueError, EOFError, UnicodeDecodeError, IndexError) as e:
+        raise PlyFormatError(path, f"not a valid PLY file: {e}") from None
+
+    names = [el.name for el in ply.elements]
+    if "vertex" not in names:
+        raise PlyFormatError(path, f"no 'vertex' element (elements: {', '.join(names) or 'none'})")
+    vertex = ply["vertex"]
+    data = vertex.data  # numpy structured array (a memmap for binary files)
+    scalar_fields = {
+        p.name for p in vertex.properties if not isinstance(p, plyfile.PlyListProperty)
+    }
+
+    n_rest = sum(1 for f in scalar_fields if f.startswith("f_rest_"))
+    if n_rest not in _F_REST_COUNTS:
+        raise PlyFormatError(
+            path, f"{n_rest} f_rest_* properties match no SH degree (expected 0, 9, 24 or 45 for degree 0..3)"
+        )
+    degree = _F_REST_COUNTS[n_rest]
+    with_sigma_d = "sigma_d" in scalar_fields
+    wanted = ply_property_names(degree, with_normals=False, with_sigma_d=with_sigma_d)
+    missing = [f for f in wanted if f not in scalar_fields]
+    if missing:
+        shown = ", ".join(missing[:8]) + (", ..." if len(missing) > 8 else "")
+        raise PlyFormatError(path, f"vertex element lacks required propert{'y' if len(missing) == 1 else 'ies'} {shown}")
+
+    n = len(data)
+    src, where = _as_2d(data, wanted)  # [N, F'] view (or one converted copy) + column of each name
+    del data, vertex, ply  # the memory map stays alive only through ``src`` until we are done
+    km1 = n_rest // 3
+
+    def block(first: str, count: int) -> np.ndarray:
+        """[N, count] columns ``first``.. as a view of ``src`` where possible (never returned)."""
+        start = wanted.index(first)
+        idx = [where[name] for name in wanted[start : start + count]]
+        if idx == list(range(idx[0], idx[0] + count)):
+            return src[:, idx[0] : idx[0] + count]
+        return src[:, idx]
+
+    def own(a: np.ndarray) -> np.ndarray:  # a fresh C-contiguous float32 copy (never the memmap)
+        return np.array(a, dtype=np.float32, order="C", copy=True)
+
+    means = own(block("x", 3))
+    sh0 = own(block("f_dc_0", 3)).reshape(n, 1, 3)
+    if km1:
+        shN = own(block("f_rest_0", n_rest).reshape(n, 3, km1).transpose(0, 2, 1))
+    else:
+        shN = np.zeros((n, 0, 3), dtype=np.float32)
+    opacity = own(block("opacity", 1)).reshape(n)
+    log_scales = own(block("scale_0", 3))
+    quats = own(block("rot_0", 4))
+    sigma_d = own(block("sigma_d", 1)).reshape(n) if with_sigma_d else None
+    del src
+
+    if not allow_nonfinite:
+        named = {"means (x y z)": means, "sh0 (f_dc_*)": sh0, "shN (f_rest_*)": shN, "opacity": opacity,
+                 "log_scales (scale_*)": log_scales, "quats (rot_*)": quats}
+        if sigma_d is not None:
+            named["sigma_d"] = sigma_d
+        bad = {k: a for k, a in named.items() if not np.isfinite(a).all()}
+        if bad:
+            counts = {"NaN": 0, "+Inf": 0, "-Inf": 0}
+            for a in bad.values():
+                counts["NaN"] += int(np.isnan(a).sum())
+                counts["+Inf"] += int(np.isposinf(a).sum())
+                counts["-Inf"] += int(np.isneginf(a).sum())
+            what = ", ".join(f"{c} {k}" for k, c in counts.items() if c)
+            raise PlyFormatError(
+                path, f"non-finite values ({what}) in {', '.join(bad)}; pass allow_nonfinite=True to keep them"
+            )
+
+    t = torch.from_numpy
+    return Gaussians(
+        means=t(means),
+        quats=t(quats),
+        log_scales=t(log_scales),
+        opacity_logits=t(opacity),
+        sh0=t(sh0),
+        shN=t(shN),
+        sigma_d=t(sigma_d) if sigma_d is not None else None,
+    )
+
+
+def _as_2d(data: np.ndarray, wanted: list[str]) -> tuple[np.ndarray, dict[str, int]]:
+    """A 2D array holding the ``wanted`` fields of structured ``data`` and each name's column.
+
+    When every field of the record has one scalar dtype and the records are packed (the usual
+    all-float32 checkpoint, either byte order), this is a zero-copy [N, F] view of the whole
+    record; otherwise the wanted fields are converted once with ``structured_to_unstructured``.
+    """
+    dt = data.dtype
+    n = len(data)
+    fields = dt.names or ()
+    first = dt.fields[fields[0]][0] if fields else None
+    uniform = (
+        first is not None
+        and first.shape == ()
+        and first.kind in "fiu"
+        and all(dt.fields[f][0] == first for f in fields)
+        and all(dt.fields[f][1] == i * first.itemsize for i, f in enumerate(fields))
+        and dt.itemsize == len(fields) * first.itemsize
+        and data.ndim == 1
+        and (n == 0 or data.strides[0] == dt.itemsize)
+    )
+    if uniform:
+        flat = np.ndarray(shape=(n, len(fields)), dtype=first, buffer=data, offset=0) if n else np.zeros(
+            (0, len(fields)), dtype=first
+        )
+        return flat, {f: i for i, f in enumerate(fields)}
+    if n == 0:
+        return np.zeros((0, len(wanted)), dtype=np.float32), {f: i for i, f in enumerate(wanted)}
+    arr = rfn.structured_to_unstructured(data[wanted], dtype=np.float32, copy=True)
+    return arr, {f: i for i, f in enumerate(wanted)}
+
+def _as_f32(x: torch.Tensor) -> np.ndarray:
+    return x.detach().to(device="cpu", dtype=torch.float32).numpy()
+
+
+def write_ply(path: PathLike, gaussians: Gaussians, *, with_normals: bool = True) -> Path:
+    """Write ``gaussians`` as an INRIA-layout .ply, binary little endian, atomically.
+
+    Property order: x y z [nx ny nz] f_dc_0..2 f_rest_0.. opacity scale_0..2 rot_0..3, then
+    ``sigma_d`` when ``gaussians.sigma_d`` is not None (the extended file). Normals are written
+    as zeros (as the official ``save_ply``). ``shN`` [N,K-1,3] is written channel-major
+    (``f_rest_{c*(K-1)+k}``). Tensors on any device / dtype are converted to float32 CPU; the
+    vertex block is one contiguous structured array, so read -> write -> read is bit-exact.
+
+    Args:
+        path: output file (parent directory must exist); replaced atomically.
+        gaussians: the model.
+        with_normals: include the (zero) nx ny nz properties, as the INRIA trainer does.
+
+    Returns:
+        ``Path(path)``.
+
+    Raises:
+        FileNotFoundError: the parent directory does not exist.
+    """
+    path = Path(path)
+    g = gaussians
+    n = g.num_gaussians
+    km1 = g.shN.shape[1]
+    names = ply_property_names(g.sh_degree, with_normals=with_normals, with_sigma_d=g.sigma_d is not None)
+    vertex = np.empty(n, dtype=[(name, "<f4") for name in names])
+    flat = vertex.view("<f4").reshape(n, len(names))  # a view: filling it fills ``vertex``
+
+    i = 0
+
+    def put(block: np.ndarray) -> None:
+        nonlocal i
+        w = block.shape[1]
+        flat[:, i : i + w] = block
+        i += w
+
+    put(_as_f32(g.means))
+    if with_normals:
+        put(np.zeros((n, 3), dtype=np.float32))
+    put(_as_f32(g.sh0).reshape(n, 3))
+    if km1:
+        put(_as_f32(g.shN).transpose(0, 2, 1).reshape(n, 3 * km1))
+    put(_as_f32(g.opacity_logits).reshape(n, 1))
+    put(_as_f32(g.log_scales))
+    put(_as_f32(g.quats))
+    if g.sigma_d is not None:
+        put(_as_f32(g.sigma_d).reshape(n, 1))
+    assert i == len(names)
+
+    element = plyfile.PlyElement.describe(vertex, "vertex")
+    ply = plyfile.PlyData([element], text=False, byte_order="<")
+    with atomic_write(path, "wb") as f:
+        ply.write(f)
+    return path

@@ -1,0 +1,409 @@
+"""COLMAP scenes: cameras (gsplat conventions), the LLFF train/test split, images; and a writer.
+
+Conventions:
+    * ``Camera.viewmat`` is world-to-camera [4, 4] with OpenCV axes (x right, y down, z forward),
+      i.e. COLMAP's ``cam_from_world`` and gsplat's ``viewmats`` (gsplat 1.5.3 ``rasterization``).
+    * ``Camera.K`` is the pinhole intrinsic matrix in pixels at the camera's width/height, COLMAP's
+      (fx, fy, cx, cy) scaled by width_ratio / height_ratio, as gsplat's COLMAP parser
+      (examples/datasets/colmap.py) and the fern checkpoint's training (TRAINING.md) do.
+    * Test split as the official 3DGS ``readColmapSceneInfo`` with ``eval``: images sorted by
+      name, index % llffhold == 0 is a test view.
+
+pycolmap 4.x API (verified on 4.2.1): ``Image.cam_from_world()`` is a method returning a
+``Rigid3d`` whose ``.matrix()`` is the 3x4 [R | t]; a Reconstruction needs a rig and a frame per
+image (``add_camera_with_trivial_rig`` / ``add_image_with_trivial_frame``).
+"""
+from __future__ import annotations
+
+import os
+import shutil
+import tempfile
+from collections import OrderedDict
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Optional, Sequence, Union
+
+import numpy as np
+import pycolmap
+import torch
+from PIL import Image
+from torch import Tensor
+
+from clod_adapter.io.atomic import atomic_save
+
+__all__ = ["Camera", "Scene", "SceneError", "load_colmap_scene", "write_colmap_scene"]
+
+PathLike = Union[str, "os.PathLike[str]"]
+
+_UNDISTORTED_MODELS = ("PINHOLE", "SIMPLE_PINHOLE")
+_RESOLUTIONS = (1, 2, 4, 8)
+_MODEL_FILES = ("cameras", "images")
+
+
+class SceneError(ValueError):
+    """A scene folder cannot be used; the message is one line ``"<path>: <problem>"``."""
+
+    def __init__(self, path: PathLike, problem: str) -> None:
+        self.path = Path(path)
+        self.problem = problem
+        super().__init__(f"{path}: {problem}")
+
+
+@dataclass
+class Camera:
+    """One posed pinhole view.
+
+    Attributes:
+        name: image file name as listed in the COLMAP model (e.g. ``image000.jpg``).
+        image_path: the file this view's pixels are read from.
+        viewmat: [4, 4] float32 world-to-camera, OpenCV axes (x right, y down, z forward);
+            gsplat's ``viewmats`` entry.
+        K: [3, 3] float32 intrinsics in pixels at ``width`` x ``height``.
+        width, height: image size in pixels.
+    """
+
+    name: str
+    image_path: Path
+    viewmat: Tensor
+    K: Tensor
+    width: int
+    height: int
+
+    @property
+    def center(self) -> Tensor:
+        """[3] float32 camera centre in world units, ``-R^T t``."""
+        R = self.viewmat[:3, :3]
+        t = self.viewmat[:3, 3]
+        return -(R.T @ t)
+
+
+@dataclass
+class Scene:
+    """A posed image set split into train and test views.
+
+    Attributes:
+        root: the scene folder.
+        train: training cameras, sorted by name.
+        test: held-out cameras (every ``llffhold``-th by sorted name), sorted by name.
+        resolution: the downsampling factor the cameras were built for (1, 2, 4, 8).
+        cache_size: how many decoded images ``load_image`` keeps (LRU).
+    """
+
+    root: Path
+    train: list[Camera]
+    test: list[Camera]
+    resolution: int = 1
+    cache_size: int = 32
+    _cache: "OrderedDict[tuple, Tensor]" = field(default_factory=OrderedDict, init=False, repr=False, compare=False)
+
+    @property
+    def cameras(self) -> list[Camera]:
+        """All cameras (train then test)."""
+        return list(self.train) + list(self.test)
+
+    def load_image(self, cam: Camera) -> Tensor:
+        """The view's image as [H, W, 3] float32 in [0, 1], H = cam.height, W = cam.width.
+
+        8-bit images are divided by 255, 16-bit (``I;16`` / ``I`` PNG) by 65535; grayscale is
+        repeated to 3 channels, RGBA / LA / transparent palette images are composited over black
+        (``rgb * alpha``), other modes converted by PIL to RGB. Note that Pillow decodes 48-bit
+        RGB PNGs to 8 bits per channel. An image whose size differs from (cam.width, cam.height)
+        is resized with PIL LANCZOS (in 8 bits for 8-bit RGB, as ``images_N`` folders are made;
+        per channel in float otherwise). Results are cached (LRU, ``cache_size`` entries); a
+        fresh copy is returned each call.
+
+        Raises:
+            SceneError: the file is missing or cannot be decoded.
+        """
+        key = (str(cam.image_path), int(cam.width), int(cam.height))
+        hit = self._cache.get(key)
+        if hit is not None:
+            self._cache.move_to_end(key)
+            return hit.clone()
+        img = _read_image(Path(cam.image_path), int(cam.width), int(cam.height))
+        if self.cache_size > 0:
+            self._cache[key] = img
+            while len(self._cache) > self.cache_size:
+                self._cache.popitem(last=False)
+        return img.clone()
+
+    def load_images(self, cams: Sequence[Camera]) -> Tensor:
+        """[B, H, W, 3] float32 in [0, 1] for cameras of one size (see ``load_image``).
+
+        Raises:
+            SceneError: an image cannot be read.
+            ValueError: the cameras do not all have the same width and height.
+        """
+        sizes = {(c.width, c.height) for c in cams}
+        if len(sizes) > 1:
+            raise ValueError(f"load_images needs cameras of one size, got {sorted(sizes)}; use load_image per view")
+        if not cams:
+            return torch.zeros((0, 0, 0, 3), dtype=torch.float32)
+        return torch.stack([self.load_image(c) for c in cams])
+
+
+def _read_image(path: Path, width: int, height: int) -> Tensor:
+    """Decode ``path`` to [height, width, 3] float32 in [0, 1] (see ``Scene.load_image``)."""
+    if not path.is_file():
+        raise SceneError(path, "image file does not exist")
+    try:
+        with Image.open(path) as im:
+            im.load()
+            arr = _to_rgb_float(im, width, height)
+    except SceneError:
+        raise
+    except (OSError, ValueError, SyntaxError) as e:
+        raise SceneError(path, f"cannot decode image: {e}") from None
+    return torch.from_numpy(np.ascontiguousarray(arr, dtype=np.float32))
+
+
+def _to_rgb_float(im: Image.Image, width: int, height: int) -> np.ndarray:
+    size = (width, height)
+    mode = im.mode
+    if mode == "P":
+        im = im.convert("RGBA" if "transparency" in im.info else "RGB")
+    elif mode == "PA":
+        im = im.convert("RGBA")
+    elif mode == "1":
+        im = im.convert("L")
+    elif mode in ("CMYK", "YCbCr", "LAB", "HSV"):
+        im = im.convert("RGB")
+    mode = im.mode
+
+    if mode == "RGB":  # the common 8-bit case: resize like images_N were made, then scale
+        if im.size != size:
+            im = im.resize(size, Image.Resampling.LANCZOS)
+        return np.asarray(im, dtype=np.float32) / 255.0
+
+    if mode in ("RGBA", "LA", "La", "RGBa"):
+        a = np.asarray(im, dtype=np.float32) / 255.0
+        premultiplied = mode in ("La", "RGBa")
+        color, alpha = a[..., :-1], a[..., -1:]
+        rgb = color if premultiplied else color * alpha  # composite over black
+        if rgb.shape[-1] == 1:
+            rgb = np.repeat(rgb, 3, axis=-1)
+    elif mode == "L":
+        rgb = np.repeat((np.asarray(im, dtype=np.float32) / 255.0)[..., None], 3, axis=-1)
+    elif mode.startswith("I;16") or mode == "I":
+        v = np.asarray(im).astype(np.float32) / 65535.0
+        rgb = np.repeat(v[..., None], 3, axis=-1)
+    elif mode == "F":
+        rgb = np.repeat(np.asarray(im, dtype=np.float32)[..., None], 3, axis=-1)
+    else:
+        rgb = np.asarray(im.convert("RGB"), dtype=np.float32) / 255.0
+
+    if (rgb.shape[1], rgb.shape[0]) != size:
+        rgb = np.stack(
+            [
+                np.asarray(Image.fromarray(np.ascontiguousarray(rgb[..., c], dtype=np.float32)).resize(size, Image.Resampling.LANCZOS))
+                for c in range(3)
+            ],
+            axis=-1,
+        )
+    return np.clip(rgb, 0.0, 1.0)
+
+
+def _find_model_dir(root: Path) -> Path:
+    for cand in (root / "sparse" / "0", root / "sparse"):
+        if cand.is_dir() and all(
+            (cand / f"{f}.bin").is_file() or (cand / f"{f}.txt").is_file() for f in _MODEL_FILES
+        ):
+            return cand
+    raise SceneError(root, "no COLMAP model found in sparse/0 or sparse (need cameras and images .bin or .txt)")
+
+
+def _intrinsics(cam: pycolmap.Camera, model_dir: Path, image_name: str) -> tuple[float, float, float, float]:
+    name = cam.model.name
+    p = [float(x) for x in cam.params]
+    if name == "PINHOLE":
+        return p[0], p[1], p[2], p[3]
+    if name == "SIMPLE_PINHOLE":
+        return p[0], p[0], p[1], p[2]
+    raise SceneError(
+        model_dir,
+        f"camera {cam.camera_id} (image {image_name}) uses the distorted model {name}; only PINHOLE and "
+        "SIMPLE_PINHOLE are supported: undistort first with pycolmap.undistort_images(output_path, "
+        "input_path, image_path) or `colmap image_undistorter`",
+    )
+
+
+def _image_size(path: Path) -> tuple[int, int]:
+    try:
+        with Image.open(path) as im:  # lazy: reads the header only
+            return im.size
+    except (OSError, ValueError, SyntaxError) as e:
+        raise SceneError(path, f"cannot read image header: {e}") from None
+
+
+def load_colmap_scene(root: PathLike, resolution: int = 1, llffhold: int = 8) -> Scene:
+    """Load a COLMAP scene folder (``images/``, optional ``images_R/``, ``sparse/0``) as a ``Scene``.
+
+    The model is read from ``root/sparse/0`` (or ``root/sparse`` when it holds the model
+    directly) with ``pycolmap.Reconstruction``; only registered images are used. With
+    resolution R > 1, ``root/images_R/`` is used when it exists (its real image size is read from
+    each file and K is scaled by actual_w / colmap_w and actual_h / colmap_h, e.g. fern 994x745 ->
+    497x372); otherwise ``root/images/`` with size (round(w / R), round(h / R)) and
+    ``Scene.load_image`` resizes on load.
+
+    Args:
+        root: the scene folder.
+        resolution: downsampling factor, one of 1, 2, 4, 8.
+        llffhold: every ``llffhold``-th image by sorted name (indices 0, llffhold, ...) is a test
+            view; 0 puts every image in ``train``.
+
+    Returns:
+        ``Scene`` with ``train`` / ``test`` cameras sorted by image name.
+
+    Raises:
+        SceneError: missing folder or model, unreadable model, a distorted camera model
+            (anything but PINHOLE / SIMPLE_PINHOLE: undistort first), an image listed in the
+            model but absent from disk, no registered images, or a bad ``resolution`` /
+            ``llffhold``.
+    """
+    root = Path(root)
+    if not root.is_dir():
+        raise SceneError(root, "scene folder does not exist")
+    if resolution not in _RESOLUTIONS:
+        raise SceneError(root, f"resolution must be one of {_RESOLUTIONS}, got {resolution!r}")
+    if not isinstance(llffhold, int) or llffhold < 0:
+        raise SceneError(root, f"llffhold must be an integer >= 0, got {llffhold!r}")
+    model_dir = _find_model_dir(root)
+    try:
+        rec = pycolmap.Reconstruction(str(model_dir))
+    except Exception as e:  # pycolmap raises ValueError / IndexError / RuntimeError on bad files
+        raise SceneError(model_dir, f"cannot read COLMAP model ({type(e).__name__}: {e})") from None
+
+    scaled_dir = root / f"images_{resolution}"
+    use_scaled = resolution > 1 and scaled_dir.is_dir()
+    image_dir = scaled_dir if use_scaled else root / "images"
+    if not image_dir.is_dir():
+        raise SceneError(image_dir, "image folder does not exist")
+
+    images = sorted((im for im in rec.images.values() if im.has_pose), key=lambda im: im.name)
+    if not images:
+        raise SceneError(model_dir, "the COLMAP model has no registered images")
+    missing = [im.name for im in images if not (image_dir / im.name).is_file()]
+    if missing:
+        more = f" and {len(missing) - 1} more" if len(missing) > 1 else ""
+        raise SceneError(image_dir, f"image {missing[0]}{more} listed in {model_dir} is missing on disk")
+
+    cams: list[Camera] = []
+    for im in images:
+        ccam = rec.cameras[im.camera_id]
+        fx, fy, cx, cy = _intrinsics(ccam, model_dir, im.name)
+        w0, h0 = int(ccam.width), int(ccam.height)
+        path = image_dir / im.name
+        if use_scaled:
+            w, h = _image_size(path)
+        else:
+            w, h = int(round(w0 / resolution)), int(round(h0 / resolution))
+        sx, sy = w / w0, h / h0
+        K = torch.tensor([[fx * sx, 0.0, cx * sx], [0.0, fy * sy, cy * sy], [0.0, 0.0, 1.0]], dtype=torch.float64)
+        viewmat = np.eye(4)
+        viewmat[:3, :4] = np.asarray(im.cam_from_world().matrix(), dtype=np.float64)
+        cams.append(
+            Camera(
+                name=im.name,
+                image_path=path,
+                viewmat=torch.from_numpy(viewmat).to(torch.float32),
+                K=K.to(torch.float32),
+                width=w,
+                height=h,
+            )
+        )
+    if llffhold > 0:
+        test = [c for i, c in enumerate(cams) if i % llffhold == 0]
+        train = [c for i, c in enumerate(cams) if i % llffhold != 0]
+    else:
+        test, train = [], cams
+    return Scene(root=root, train=train, test=test, resolution=resolution)
+
+
+def write_colmap_scene(
+    root: PathLike,
+    cameras: Sequence[Camera],
+    images: Sequence[np.ndarray],
+    points3D: Optional[np.ndarray] = None,
+    colors: Optional[np.ndarray] = None,
+) -> Path:
+    """Write a PINHOLE COLMAP scene that ``load_colmap_scene(root, llffhold=...)`` reads back.
+
+    Writes ``root/images/<cam.name>`` (PNG pixels; the name is used as given) and
+    ``root/sparse/0/{cameras,images,points3D,rigs,frames}.bin`` via ``pycolmap.Reconstruction``
+    (one trivial rig / frame per camera). Cameras with identical (width, height, K) share one
+    COLMAP camera. Every file is written atomically (temp file in its folder, then os.replace).
+
+    Args:
+        root: output scene folder (created if needed).
+        cameras: views; ``viewmat`` world-to-camera [4,4] (OpenCV axes), ``K`` [3,3] pixels
+            (skew must be 0), ``width`` / ``height``; ``image_path`` is ignored.
+        images: one uint8 [height, width, 3] array per camera.
+        points3D: optional [P, 3] float world points (SfM-like initialisation); default none.
+        colors: optional [P, 3] uint8 colours for ``points3D``; default grey.
+
+    Returns:
+        ``Path(root)``.
+
+    Raises:
+        ValueError: mismatched lengths, duplicate names, bad image dtype/shape, bad points.
+    """
+    root = Path(root)
+    if len(cameras) != len(images):
+        raise ValueError(f"{root}: {len(cameras)} cameras but {len(images)} images")
+    names = [c.name for c in cameras]
+    if len(set(names)) != len(names):
+        raise ValueError(f"{root}: duplicate image names among the cameras")
+    for c, img in zip(cameras, images):
+        img = np.asarray(img)
+        if img.dtype != np.uint8 or img.shape != (c.height, c.width, 3):
+            raise ValueError(
+                f"{root}: image for {c.name} must be uint8 ({c.height}, {c.width}, 3), got {img.dtype} {img.shape}"
+            )
+        if Path(c.name).suffix.lower() != ".png":
+            raise ValueError(f"{root}: image name {c.name} must end in .png (pixels are written as PNG)")
+    if points3D is not None:
+        points3D = np.asarray(points3D, dtype=np.float64).reshape(-1, 3)
+        if colors is None:
+            colors = np.full((len(points3D), 3), 128, dtype=np.uint8)
+        colors = np.asarray(colors, dtype=np.uint8).reshape(-1, 3)
+        if len(colors) != len(points3D):
+            raise ValueError(f"{root}: {len(points3D)} points3D but {len(colors)} colors")
+
+    rec = pycolmap.Reconstruction()
+    cam_ids: dict[tuple, int] = {}
+    for i, c in enumerate(cameras):
+        K = c.K.detach().to("cpu", torch.float64).numpy()
+        if abs(K[0, 1]) > 0:
+            raise ValueError(f"{root}: camera {c.name} has skew K[0,1]={K[0, 1]}; PINHOLE has none")
+        key = (int(c.width), int(c.height), float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2]))
+        if key not in cam_ids:
+            cam_ids[key] = len(cam_ids) + 1
+            rec.add_camera_with_trivial_rig(
+                pycolmap.Camera(
+                    model="PINHOLE", width=key[0], height=key[1], params=list(key[2:]), camera_id=cam_ids[key]
+                )
+            )
+        pose = pycolmap.Rigid3d(c.viewmat.detach().to("cpu", torch.float64).numpy()[:3, :4])
+        rec.add_image_with_trivial_frame(pycolmap.Image(name=c.name, camera_id=cam_ids[key], image_id=i + 1), pose)
+    if points3D is not None:
+        for xyz, rgb in zip(points3D, colors):
+            rec.add_point3D(xyz, pycolmap.Track(), rgb)
+
+    image_dir = root / "images"
+    model_dir = root / "sparse" / "0"
+    model_dir.mkdir(parents=True, exist_ok=True)
+    for c, img in zip(cameras, images):
+        out = image_dir / c.name
+        out.parent.mkdir(parents=True, exist_ok=True)
+        pil = Image.fromarray(np.ascontiguousarray(img))
+        atomic_save(out, lambda tmp, pil=pil: pil.save(tmp, format="PNG"))
+
+    # pycolmap writes a whole folder: write into a temp folder beside sparse/0, then move each file.
+    tmp_dir = Path(tempfile.mkdtemp(dir=model_dir, prefix=".write."))
+    try:
+        rec.write_binary(str(tmp_dir))
+        for f in sorted(tmp_dir.iterdir()):
+            os.replace(f, model_dir / f.name)
+    finally:
+        shutil.rmtree(tmp_dir, ignore_errors=True)
+    return root

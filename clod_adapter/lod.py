@@ -1,0 +1,230 @@
+"""The CLoD-GS mechanism (Cheng et al., "CLoD-GS: Continuous Level-of-Detail via 3D Gaussian
+Splatting", ICLR 2026), in one place.
+
+For a camera centred at ``c`` and a virtual distance scale ``s_v >= 1``:
+
+* ``d_i = ||mu_i - c||`` and ``d'_i = d_i / max_{j in frustum} d_j``  (frustum-normalised distance)
+* ``alpha''_i = alpha_i * exp(-(d'_i s_v)^2 / (2 ReLU(sigma_d_i)^2 + eps))``            (Eq. 2)
+* only Gaussians with ``alpha''_i > tau * s_v`` are rasterised                        (the LoD mask)
+* training draws ``s_v ~ U(1, max_sv)``, adds
+  ``L_reg = (s_v - 1)^2 ReLU(eta - s_v^-1.5)^2`` (eta = rendered fraction) and weights the total
+  ``L = w_s (L_render + lambda_reg L_reg)`` with ``w_s = (1 - 0.5 s_v / max_sv)^2``.
+
+The hard 0/1 mask has no gradient, so ``L_reg`` as written never reaches ``sigma_d``. We work in
+log space with the *margin* ``m_i = log alpha''_i - log(tau s_v)`` (``m_i > 0`` <=> rendered) and
+offer three estimators of ``eta`` (:data:`ETA_ESTIMATORS`):
+
+* ``"paper"``: the hard fraction, as written (zero gradient; kept for the ablation);
+* ``"sigmoid"``: the relaxation ``mean(sigmoid(m_i / T))`` (value and gradient soft);
+* ``"ste"`` (default): straight-through, value of the hard fraction, gradient of the relaxation.
+
+All functions work on any float dtype; the exponent is evaluated in float32 at least, so
+float16/bfloat16 inputs do not overflow.
+"""
+from __future__ import annotations
+
+import math
+from typing import Optional
+
+import torch
+from torch import Tensor
+
+#: default LoD threshold: 3DGS prunes opacities below 0.005, so at s_v = 1 every Gaussian of a
+#: pretrained model passes (``alpha > tau``) when ``sigma_d`` is initialised large.
+DEFAULT_TAU = 0.005
+#: eps of Eq. 2 (denominator guard).
+DEFAULT_EPS = 1e-8
+ETA_ESTIMATORS = ("ste", "sigmoid", "paper")
+
+
+def _work_dtype(*ts: Tensor) -> torch.dtype:
+    dt = torch.promote_types(ts[0].dtype, torch.float32)
+    for t in ts[1:]:
+        dt = torch.promote_types(dt, t.dtype)
+    return dt
+
+
+def in_frustum(means: Tensor, viewmat: Tensor, K: Tensor, width: int, height: int,
+               near_plane: float = 0.01) -> Tensor:
+    """Which Gaussian centres lie inside a pinhole camera's view frustum.
+
+    Args:
+        means: [N, 3] centres, world units.
+        viewmat: [4, 4] world-to-camera (OpenCV axes, z forward; gsplat ``viewmats``).
+        K: [3, 3] intrinsics in pixels.
+        width, height: image size in pixels.
+        near_plane: minimum camera-space depth (gsplat's default 0.01).
+
+    Returns:
+        [N] bool: ``z > near_plane`` and the projected centre inside ``[0, width) x [0, height)``.
+    """
+    dt = _work_dtype(means, viewmat)
+    R = viewmat[:3, :3].to(dt)
+    t = viewmat[:3, 3].to(dt)
+    pc = means.detach().to(dt) @ R.T + t
+    z = pc[:, 2]
+    front = z > near_plane
+    zs = torch.where(front, z, torch.ones_like(z))
+    u = K[0, 0].to(dt) * pc[:, 0] / zs + K[0, 2].to(dt)
+    v = K[1, 1].to(dt) * pc[:, 1] / zs + K[1, 2].to(dt)
+    inside = (u >= 0) & (u < width) & (v >= 0) & (v < height)
+    return front & inside & torch.isfinite(u) & torch.isfinite(v)
+
+
+def camera_center(viewmat: Tensor) -> Tensor:
+    """[3] camera centre in world units from a [4, 4] world-to-camera matrix (c = -R^T t)."""
+    R = viewmat[:3, :3]
+    t = viewmat[:3, 3]
+    return -(R.T @ t)
+
+
+def normalized_distances(means: Tensor, center: Tensor, frustum: Tensor) -> Tensor:
+    """Frustum-normalised distance ``d'_i = d_i / max_{j in frustum} d_j`` (CLoD-GS, Sec. 3).
+
+    Args:
+        means: [N, 3] centres, world units.
+        center: [3] camera centre, world units.
+        frustum: [N] bool, Gaussians inside the view frustum (see :func:`in_frustum`).
+
+    Returns:
+        [N] d' (dimensionless, >= 0; <= 1 inside the frustum). The normaliser is treated as a
+        constant (detached). With an empty frustum the maximum over all Gaussians is used; with
+        zero Gaussians an empty tensor is returned. The normaliser is clamped to >= 1e-12 so a
+        camera sitting on every Gaussian gives d' = 0, never NaN.
+    """
+    d = torch.linalg.vector_norm(means - center.to(means.dtype), dim=-1)
+    if d.numel() == 0:
+        return d
+    dd = d.detach()
+    dmax = dd[frustum].max() if bool(frustum.any()) else dd.max()
+    dmax = torch.nan_to_num(dmax, nan=1.0, posinf=torch.finfo(dd.dtype).max)
+    return d / dmax.clamp_min(1e-12)
+
+
+def lod_log_attenuation(d_norm: Tensor, sigma_d: Tensor, s_v: float | Tensor,
+                        eps: float = DEFAULT_EPS) -> Tensor:
+    """Log of Eq. 2's factor: ``-(d' s_v)^2 / (2 ReLU(sigma_d)^2 + eps)``; [N], <= 0.
+
+    Evaluated in at least float32. ``eps`` must be > 0 (a dead Gaussian, ``sigma_d <= 0``, then
+    gets a large negative value rather than -inf/NaN unless ``d' = 0``).
+    """
+    dt = _work_dtype(d_norm, sigma_d)
+    x = d_norm.to(dt) * torch.as_tensor(s_v, dtype=dt, device=d_norm.device)
+    sd = torch.relu(sigma_d.to(dt))
+    return -(x * x) / (2.0 * sd * sd + eps)
+
+
+def lod_opacities(opacities: Tensor, d_norm: Tensor, sigma_d: Tensor, s_v: float | Tensor,
+                  eps: float = DEFAULT_EPS) -> Tensor:
+    """Eq. 2: ``alpha''_i = alpha_i exp(-(d'_i s_v)^2 / (2 ReLU(sigma_d_i)^2 + eps))``.
+
+    Args:
+        opacities: [N] activated opacities alpha in [0, 1].
+        d_norm: [N] frustum-normalised distances d' (:func:`normalized_distances`).
+        sigma_d: [N] raw distance decay.
+        s_v: virtual distance scale (>= 1), scalar.
+        eps: Eq. 2's epsilon.
+
+    Returns:
+        [N] attenuated opacities in [0, alpha], dtype of ``opacities``.
+    """
+    att = torch.exp(lod_log_attenuation(d_norm, sigma_d, s_v, eps))
+    return (opacities.to(att.dtype) * att).to(opacities.dtype)
+
+
+def lod_margin(opacities: Tensor, d_norm: Tensor, sigma_d: Tensor, s_v: float | Tensor,
+               tau: float = DEFAULT_TAU, eps: float = DEFAULT_EPS) -> Tensor:
+    """Log-space margin ``m_i = log alpha''_i - log(tau s_v)``; rendered iff ``m_i > 0``. [N].
+
+    Computed as ``log alpha + log-attenuation - log(tau s_v)`` so it stays finite where
+    ``alpha''`` underflows (large s_v, tiny sigma_d). ``opacities`` of exactly 0 give -inf
+    (never rendered, zero gradient).
+    """
+    la = lod_log_attenuation(d_norm, sigma_d, s_v, eps)
+    log_alpha = torch.log(opacities.to(la.dtype))
+    s = torch.as_tensor(s_v, dtype=la.dtype, device=la.device)
+    return log_alpha + la - torch.log(tau * s)
+
+
+def lod_mask(opacities: Tensor, d_norm: Tensor, sigma_d: Tensor, s_v: float | Tensor,
+             tau: float = DEFAULT_TAU, eps: float = DEFAULT_EPS,
+             frustum: Optional[Tensor] = None) -> Tensor:
+    """[N] bool: ``alpha''_i > tau * s_v`` (and inside ``frustum`` when given)."""
+    m = lod_margin(opacities, d_norm, sigma_d, s_v, tau, eps) > 0
+    return m & frustum if frustum is not None else m
+
+
+def rendered_fraction(margin: Tensor, frustum: Optional[Tensor] = None, estimator: str = "ste",
+                      temperature: float = 1.0) -> Tensor:
+    """Rendered fraction ``eta`` of the Gaussians in the frustum, with a chosen gradient.
+
+    Args:
+        margin: [N] log-space margins (:func:`lod_margin`).
+        frustum: [N] bool or None (all Gaussians count).
+        estimator: ``"paper"`` (hard count, no gradient), ``"sigmoid"`` (relaxation
+            ``mean(sigmoid(m / temperature))``) or ``"ste"`` (hard value, relaxation gradient).
+        temperature: relaxation width in log-opacity units (> 0).
+
+    Returns:
+        scalar tensor in [0, 1] (0 when the frustum is empty).
+
+    Raises:
+        ValueError: unknown estimator or temperature <= 0.
+    """
+    if estimator not in ETA_ESTIMATORS:
+        raise ValueError(f"unknown eta estimator {estimator!r}; choose one of {ETA_ESTIMATORS}")
+    if not temperature > 0:
+        raise ValueError(f"temperature must be > 0, got {temperature}")
+    m = margin if frustum is None else margin[frustum]
+    if m.numel() == 0:
+        return margin.sum() * 0.0
+    hard = (m > 0).to(m.dtype).mean()
+    if estimator == "paper":
+        return hard.detach()
+    soft = torch.sigmoid(torch.nan_to_num(m, neginf=-1e4, posinf=1e4) / temperature).mean()
+    if estimator == "sigmoid":
+        return soft
+    return hard.detach() + (soft - soft.detach())
+
+
+def sample_s_v(max_sv: float, generator: Optional[torch.Generator] = None) -> float:
+    """Draw ``s_v ~ U(1, max_sv)`` (virtual distance scaling; CLoD-GS Sec. 3.2)."""
+    if max_sv < 1:
+        raise ValueError(f"max_sv must be >= 1, got {max_sv}")
+    u = torch.rand((), generator=generator).item()
+    return 1.0 + u * (max_sv - 1.0)
+
+
+def target_fraction(s_v: float) -> float:
+    """The regulariser's target rendered fraction ``s_v^-1.5``."""
+    return float(s_v) ** -1.5
+
+
+def reg_loss(s_v: float, eta: Tensor) -> Tensor:
+    """Rendered-count regulariser ``L_reg = (s_v - 1)^2 ReLU(eta - s_v^-1.5)^2`` (scalar)."""
+    return (s_v - 1.0) ** 2 * torch.relu(eta - target_fraction(s_v)) ** 2
+
+
+def scale_weight(s_v: float, max_sv: float) -> float:
+    """Loss weight ``w_s = (1 - 0.5 s_v / max_sv)^2``: near views count more."""
+    return (1.0 - 0.5 * s_v / max_sv) ** 2
+
+
+def init_sigma_d(d_norm_max: Tensor, attenuation: float = 0.995) -> Tensor:
+    """Initial ``sigma_d`` so that at ``s_v = 1`` every Gaussian keeps >= ``attenuation`` of its
+    opacity in every training view: ``sigma_d_i = d'_max,i / sqrt(-2 ln attenuation)``.
+
+    Args:
+        d_norm_max: [N] largest d' of each Gaussian over the training views.
+        attenuation: the smallest allowed factor of Eq. 2 at s_v = 1, in (0, 1).
+
+    Returns:
+        [N] float32 sigma_d (> 0; Gaussians with d'_max = 0 get the median value).
+    """
+    if not 0.0 < attenuation < 1.0:
+        raise ValueError(f"attenuation must be in (0, 1), got {attenuation}")
+    c = 1.0 / math.sqrt(-2.0 * math.log(attenuation))
+    sd = d_norm_max.float() * c
+    pos = sd > 0
+    fill = sd[pos].median() if bool(pos.any()) else torch.tensor(c)
+    return torch.where(pos, sd, fill)

@@ -1,0 +1,522 @@
+// CPU per-pixel compositor for 3D Gaussian Splatting (classic mode).
+//
+// Semantics follow gsplat 1.5.3 rasterize_to_pixels (RasterizeToPixels3DGS
+// Fwd/Bwd .cu) for a single camera:
+//   pixel centre (x + 0.5, y + 0.5); delta = mean - centre;
+//   sigma = 0.5 * (a dx^2 + c dy^2) + b dx dy;
+//   alpha = min(0.999, opacity * exp(-sigma));
+//   skip if sigma < 0 or alpha < 1/255;
+//   next_T = T * (1 - alpha); if next_T <= 1e-4 the pixel is done and this
+//   Gaussian is NOT added (exclusive rule); else accumulate and T = next_T.
+// The backward walks each pixel back to front starting from its last
+// contributing index, recovering T by division (T /= 1 - alpha).
+//
+// CPU organisation: OpenMP over tiles (dynamic schedule). Within a tile we
+// iterate Gaussian-major (front to back in the forward, back to front in the
+// backward) and, for each Gaussian, only over the pixels inside the
+// conservative bounding box of its alpha >= 1/255 ellipse. Per pixel the
+// order of Gaussians is unchanged, so the result is identical to the
+// per-pixel loop. Pixel state lives in small per-tile arrays. Per-Gaussian
+// gradients are summed over a tile in registers and added into a per-thread
+// buffer ([N, 6 + D] per thread), reduced at the end (no atomics).
+#include <torch/extension.h>
+
+#include <omp.h>
+
+#include <algorithm>
+#include <cmath>
+#include <cstdint>
+#include <limits>
+#include <vector>
+
+namespace {
+
+template <typename S>
+struct Consts;
+template <>
+struct Consts<float> {
+    static constexpr float max_alpha = 0.999f;
+    static constexpr float alpha_thr = 1.0f / 255.0f;
+    static constexpr float trans_thr = 1e-4f;
+};
+template <>
+struct Consts<double> {
+    static constexpr double max_alpha = 0.999;
+    static constexpr double alpha_thr = 1.0 / 255.0;
+    static constexpr double trans_thr = 1e-4;
+};
+
+// Per-Gaussian packed parameters + conservative pixel bounding box.
+template <typename S>
+struct GParam {
+    S mx, my, a, b, c, op;
+    S sthr;          // sigma > sthr  =>  alpha < 1/255 for sure (skips exp)
+    int32_t x0, x1;  // inclusive pixel range (image coordinates)
+    int32_t y0, y1;
+};
+
+inline int32_t clamp_to_int(double v, int32_t lo, int32_t hi) {
+    if (!(v >= lo)) return lo;  // also NaN -> lo
+    if (v > hi) return hi;
+    return static_cast<int32_t>(v);
+}
+
+template <typename S>
+void precompute_params(
+    int64_t N,
+    const S* means2d,
+    const S* conics,
+    const S* opac,
+    int32_t W,
+    int32_t H,
+    int nthreads,
+    std::vector<GParam<S>>& out) {
+    out.resize(N);
+    GParam<S>* P = out.data();
+#pragma omp parallel for schedule(static) num_threads(nthreads)
+    for (int64_t g = 0; g < N; ++g) {
+        GParam<S> q;
+        q.mx = means2d[2 * g];
+        q.my = means2d[2 * g + 1];
+        q.a = conics[3 * g];
+        q.b = conics[3 * g + 1];
+        q.c = conics[3 * g + 2];
+        q.op = opac[g];
+        // full image by default (always correct, just slower)
+        q.x0 = 0;
+        q.x1 = W - 1;
+        q.y0 = 0;
+        q.y1 = H - 1;
+        q.sthr = std::numeric_limits<S>::quiet_NaN();  // never skip early
+        const double op = q.op;
+        if (op < static_cast<double>(Consts<S>::alpha_thr)) {
+            // alpha <= opacity < 1/255 everywhere sigma >= 0: invisible.
+            q.x0 = 0;
+            q.x1 = -1;
+            q.y0 = 0;
+            q.y1 = -1;
+        } else if (std::isfinite(op)) {
+            const double s = std::log(255.0 * op);  // alpha >= 1/255 <=> sigma <= s
+            const double sm = s + 1e-3 * (1.0 + std::fabs(s));
+            q.sthr = static_cast<S>(sm);
+            const double a = q.a, b = q.b, c = q.c;
+            const double mx = q.mx, my = q.my;
+            const double det = a * c - b * b;
+            if (a > 0 && c > 0 && det > 1e-7 * a * c && std::isfinite(det) &&
+                std::isfinite(mx) && std::isfinite(my)) {
+                const double rx = std::sqrt(2.0 * sm * c / det);
+                const double ry = std::sqrt(2.0 * sm * a / det);
+                // pixel x is inside iff |mx - (x + 0.5)| <= rx; one pixel margin
+                q.x0 = clamp_to_int(std::ceil(mx - rx - 0.5) - 1.0, 0, W);
+                q.x1 = clamp_to_int(std::floor(mx + rx - 0.5) + 1.0, -1, W - 1);
+                q.y0 = clamp_to_int(std::ceil(my - ry - 0.5) - 1.0, 0, H);
+                q.y1 = clamp_to_int(std::floor(my + ry - 0.5) + 1.0, -1, H - 1);
+            }
+        }
+        P[g] = q;
+    }
+}
+
+inline void tile_range(
+    const int64_t* offsets, int64_t ntiles, int64_t M, int64_t t,
+    int64_t& start, int64_t& end) {
+    start = offsets[t];
+    end = (t == ntiles - 1) ? M : offsets[t + 1];
+    if (start < 0) start = 0;
+    if (end > M) end = M;
+}
+
+// ----------------------------------------------------------------------------
+// Forward
+// ----------------------------------------------------------------------------
+template <typename S, int CD>
+void forward_impl(
+    int64_t N, int Ddyn,
+    const S* means2d, const S* conics, const S* colors, const S* opac,
+    const S* bg, int32_t W, int32_t H, int32_t ts, int32_t th, int32_t tw,
+    const int64_t* offsets, const int64_t* ids, int64_t M,
+    S* out_col, S* out_alpha, S* out_T, int32_t* out_last, int nthreads) {
+    const int D = CD > 0 ? CD : Ddyn;
+    std::vector<GParam<S>> params;
+    precompute_params<S>(N, means2d, conics, opac, W, H, nthreads, params);
+    const GParam<S>* P = params.data();
+    const int64_t ntiles = static_cast<int64_t>(th) * tw;
+    constexpr S maxA = Consts<S>::max_alpha;
+    constexpr S athr = Consts<S>::alpha_thr;
+    constexpr S tthr = Consts<S>::trans_thr;
+
+#pragma omp parallel num_threads(nthreads)
+    {
+        const int npix_max = ts * ts;
+        std::vector<S> Tv(npix_max), colv(static_cast<size_t>(npix_max) * D);
+        std::vector<int32_t> lastv(npix_max);
+        std::vector<uint8_t> donev(npix_max);
+#pragma omp for schedule(dynamic, 1)
+        for (int64_t t = 0; t < ntiles; ++t) {
+            const int32_t ty = static_cast<int32_t>(t / tw);
+            const int32_t tx = static_cast<int32_t>(t % tw);
+            const int32_t px0 = tx * ts, py0 = ty * ts;
+            const int32_t pw = std::min(ts, W - px0), ph = std::min(ts, H - py0);
+            if (pw <= 0 || ph <= 0) continue;
+            const int npix = pw * ph;
+            S* T = Tv.data();
+            S* col = colv.data();
+            int32_t* last = lastv.data();
+            uint8_t* done = donev.data();
+            std::fill(T, T + npix, S(1));
+            std::fill(col, col + static_cast<size_t>(npix) * D, S(0));
+            std::fill(last, last + npix, -1);
+            std::fill(done, done + npix, 0);
+            int ndone = 0;
+            int64_t start, end;
+            tile_range(offsets, ntiles, M, t, start, end);
+            for (int64_t idx = start; idx < end; ++idx) {
+                const int64_t g = ids[idx];
+                const GParam<S>& q = P[g];
+                const int32_t x0 = std::max(q.x0, px0), x1 = std::min(q.x1, px0 + pw - 1);
+                const int32_t y0 = std::max(q.y0, py0), y1 = std::min(q.y1, py0 + ph - 1);
+                if (x0 > x1 || y0 > y1) continue;
+                const S mx = q.mx, my = q.my, a = q.a, b = q.b, c = q.c, op = q.op;
+                const S sthr = q.sthr;
+                const S* cg = colors + g * D;
+                for (int32_t y = y0; y <= y1; ++y) {
+                    const S dy = my - (static_cast<S>(y) + S(0.5));
+                    const S cdy2 = c * dy * dy;
+                    const int rowoff = (y - py0) * pw - px0;
+                    for (int32_t x = x0; x <= x1; ++x) {
+                        const int p = rowoff + x;
+                        if (done[p]) continue;
+                        const S dx = mx - (static_cast<S>(x) + S(0.5));
+                        const S sigma = S(0.5) * (a * dx * dx + cdy2) + b * dx * dy;
+                        if (sigma > sthr) continue;
+                        const S alpha = std::min(maxA, op * std::exp(-sigma));
+                        if (sigma < S(0) || alpha < athr) continue;
+                        const S Tp = T[p];
+                        const S nT = Tp * (S(1) - alpha);
+                        if (nT <= tthr) {
+                            done[p] = 1;
+                            ++ndone;
+                            continue;
+                        }
+                        const S vis = alpha * Tp;
+                        S* cp = col + static_cast<size_t>(p) * D;
+                        for (int k = 0; k < D; ++k) cp[k] += cg[k] * vis;
+                        last[p] = static_cast<int32_t>(idx);
+                        T[p] = nT;
+                    }
+                }
+                if (ndone == npix) break;
+            }
+            // write out
+            for (int ly = 0; ly < ph; ++ly) {
+                for (int lx = 0; lx < pw; ++lx) {
+                    const int p = ly * pw + lx;
+                    const int64_t pix = static_cast<int64_t>(py0 + ly) * W + (px0 + lx);
+                    const S Tp = T[p];
+                    out_alpha[pix] = S(1) - Tp;
+                    out_T[pix] = Tp;
+                    out_last[pix] = last[p];
+                    S* oc = out_col + pix * D;
+                    const S* cp = col + static_cast<size_t>(p) * D;
+                    if (bg != nullptr) {
+                        for (int k = 0; k < D; ++k) oc[k] = cp[k] + Tp * bg[k];
+                    } else {
+                        for (int k = 0; k < D; ++k) oc[k] = cp[k];
+                    }
+                }
+            }
+        }
+    }
+}
+
+// ----------------------------------------------------------------------------
+// Backward
+// ----------------------------------------------------------------------------
+template <typename S, int CD>
+void backward_impl(
+    int64_t N, int Ddyn,
+    const S* means2d, const S* conics, const S* colors, const S* opac,
+    const S* bg, int32_t W, int32_t H, int32_t ts, int32_t th, int32_t tw,
+    const int64_t* offsets, const int64_t* ids, int64_t M,
+    const S* Tfinal, const int32_t* lastids, const S* v_col, const S* v_alpha_img,
+    S* g_means, S* g_conics, S* g_colors, S* g_opac, int nthreads) {
+    const int D = CD > 0 ? CD : Ddyn;
+    const int G = 6 + D;  // packed gradient stride: mx my a b c op colors...
+    std::vector<GParam<S>> params;
+    precompute_params<S>(N, means2d, conics, opac, W, H, nthreads, params);
+    const GParam<S>* P = params.data();
+    const int64_t ntiles = static_cast<int64_t>(th) * tw;
+    constexpr S maxA = Consts<S>::max_alpha;
+    constexpr S athr = Consts<S>::alpha_thr;
+
+    // per-thread gradient buffers
+    std::vector<std::vector<S>> bufs(nthreads);
+
+#pragma omp parallel num_threads(nthreads)
+    {
+        const int tid = omp_get_thread_num();
+        std::vector<S>& gb = bufs[tid];
+        gb.assign(static_cast<size_t>(N) * G, S(0));
+        const int npix_max = ts * ts;
+        std::vector<double> Tv(npix_max), bufv(static_cast<size_t>(npix_max) * D);
+        std::vector<double> wv(npix_max);  // T_final * (v_alpha - bg . v_col)
+        std::vector<S> vcv(static_cast<size_t>(npix_max) * D);
+        std::vector<int32_t> lastv(npix_max);
+        std::vector<double> acc_col(D);
+#pragma omp for schedule(dynamic, 1)
+        for (int64_t t = 0; t < ntiles; ++t) {
+            const int32_t ty = static_cast<int32_t>(t / tw);
+            const int32_t tx = static_cast<int32_t>(t % tw);
+            const int32_t px0 = tx * ts, py0 = ty * ts;
+            const int32_t pw = std::min(ts, W - px0), ph = std::min(ts, H - py0);
+            if (pw <= 0 || ph <= 0) continue;
+            int64_t start, end;
+            tile_range(offsets, ntiles, M, t, start, end);
+            if (end <= start) continue;
+            double* T = Tv.data();
+            double* buf = bufv.data();
+            double* w = wv.data();
+            S* vc = vcv.data();
+            int32_t* last = lastv.data();
+            int64_t maxlast = -1;
+            for (int ly = 0; ly < ph; ++ly) {
+                for (int lx = 0; lx < pw; ++lx) {
+                    const int p = ly * pw + lx;
+                    const int64_t pix = static_cast<int64_t>(py0 + ly) * W + (px0 + lx);
+                    const double Tf = Tfinal[pix];
+                    T[p] = Tf;
+                    last[p] = lastids[pix];
+                    if (last[p] > maxlast) maxlast = last[p];
+                    double acc_bg = 0.0;
+                    for (int k = 0; k < D; ++k) {
+                        const S v = v_col[pix * D + k];
+                        vc[static_cast<size_t>(p) * D + k] = v;
+                        buf[static_cast<size_t>(p) * D + k] = 0.0;
+                        if (bg != nullptr) acc_bg += static_cast<double>(bg[k]) * v;
+                    }
+                    const double va = v_alpha_img != nullptr ? static_cast<double>(v_alpha_img[pix]) : 0.0;
+                    w[p] = Tf * (va - acc_bg);
+                }
+            }
+            if (maxlast >= end) maxlast = end - 1;
+            for (int64_t idx = maxlast; idx >= start; --idx) {
+                const int64_t g = ids[idx];
+                const GParam<S>& q = P[g];
+                const int32_t x0 = std::max(q.x0, px0), x1 = std::min(q.x1, px0 + pw - 1);
+                const int32_t y0 = std::max(q.y0, py0), y1 = std::min(q.y1, py0 + ph - 1);
+                if (x0 > x1 || y0 > y1) continue;
+                const S mx = q.mx, my = q.my, a = q.a, b = q.b, c = q.c, op = q.op;
+                const S sthr = q.sthr;
+                const S* cg = colors + g * D;
+                double vmx = 0, vmy = 0, va = 0, vb = 0, vcc = 0, vop = 0;
+                for (int k = 0; k < D; ++k) acc_col[k] = 0.0;
+                bool any = false;
+                for (int32_t y = y0; y <= y1; ++y) {
+                    const S dy = my - (static_cast<S>(y) + S(0.5));
+                    const S cdy2 = c * dy * dy;
+                    const int rowoff = (y - py0) * pw - px0;
+                    for (int32_t x = x0; x <= x1; ++x) {
+                        const int p = rowoff + x;
+                        if (idx > last[p]) continue;
+                        const S dx = mx - (static_cast<S>(x) + S(0.5));
+                        const S sigma = S(0.5) * (a * dx * dx + cdy2) + b * dx * dy;
+                        if (sigma > sthr) continue;
+                        const S vis = std::exp(-sigma);
+                        const S alpha = std::min(maxA, op * vis);
+                        if (sigma < S(0) || alpha < athr) continue;
+                        any = true;
+                        const double ra = 1.0 / (1.0 - static_cast<double>(alpha));
+                        const double Tp = T[p] * ra;
+                        T[p] = Tp;
+                        const double fac = alpha * Tp;
+                        const S* vcp = vc + static_cast<size_t>(p) * D;
+                        double* bp = buf + static_cast<size_t>(p) * D;
+                        double v_alpha = ra * w[p];
+                        for (int k = 0; k < D; ++k) {
+                            const double v = vcp[k];
+                            acc_col[k] += fac * v;
+                            v_alpha += (cg[k] * Tp - bp[k] * ra) * v;
+                            bp[k] += cg[k] * fac;
+                        }
+                        if (op * vis <= maxA) {
+                            const double v_sigma = -static_cast<double>(op * vis) * v_alpha;
+                            const double ddx = dx, ddy = dy;
+                            va += 0.5 * v_sigma * ddx * ddx;
+                            vb += v_sigma * ddx * ddy;
+                            vcc += 0.5 * v_sigma * ddy * ddy;
+                            vmx += v_sigma * (a * ddx + b * ddy);
+                            vmy += v_sigma * (b * ddx + c * ddy);
+                            vop += vis * v_alpha;
+                        }
+                    }
+                }
+                if (any) {
+                    S* o = gb.data() + static_cast<size_t>(g) * G;
+                    o[0] += static_cast<S>(vmx);
+                    o[1] += static_cast<S>(vmy);
+                    o[2] += static_cast<S>(va);
+                    o[3] += static_cast<S>(vb);
+                    o[4] += static_cast<S>(vcc);
+                    o[5] += static_cast<S>(vop);
+                    for (int k = 0; k < D; ++k) o[6 + k] += static_cast<S>(acc_col[k]);
+                }
+            }
+        }
+        // reduction over threads (all buffers are complete after the barrier)
+#pragma omp barrier
+#pragma omp for schedule(static)
+        for (int64_t g = 0; g < N; ++g) {
+            S s[64];
+            const int GG = std::min(G, 64);
+            for (int j = 0; j < GG; ++j) s[j] = 0;
+            for (int th_ = 0; th_ < nthreads; ++th_) {
+                const S* src = bufs[th_].data() + static_cast<size_t>(g) * G;
+                for (int j = 0; j < GG; ++j) s[j] += src[j];
+            }
+            g_means[2 * g] = s[0];
+            g_means[2 * g + 1] = s[1];
+            g_conics[3 * g] = s[2];
+            g_conics[3 * g + 1] = s[3];
+            g_conics[3 * g + 2] = s[4];
+            g_opac[g] = s[5];
+            for (int k = 0; k < D; ++k) {
+                if (6 + k < 64) {
+                    g_colors[g * D + k] = s[6 + k];
+                } else {
+                    S v = 0;
+                    for (int th_ = 0; th_ < nthreads; ++th_)
+                        v += bufs[th_][static_cast<size_t>(g) * G + 6 + k];
+                    g_colors[g * D + k] = v;
+                }
+            }
+        }
+    }
+}
+
+void check_inputs(
+    const torch::Tensor& means2d, const torch::Tensor& conics,
+    const torch::Tensor& colors, const torch::Tensor& opacities,
+    const torch::Tensor& offsets, const torch::Tensor& ids) {
+    TORCH_CHECK(means2d.dim() == 2 && means2d.size(1) == 2, "means2d must be [N,2]");
+    const auto N = means2d.size(0);
+    TORCH_CHECK(conics.dim() == 2 && conics.size(0) == N && conics.size(1) == 3, "conics must be [N,3]");
+    TORCH_CHECK(colors.dim() == 2 && colors.size(0) == N && colors.size(1) >= 1, "colors must be [N,D]");
+    TORCH_CHECK(opacities.dim() == 1 && opacities.size(0) == N, "opacities must be [N]");
+    TORCH_CHECK(offsets.dim() == 2 && offsets.scalar_type() == torch::kInt64, "isect_offsets must be [th,tw] int64 (internal)");
+    TORCH_CHECK(ids.dim() == 1 && ids.scalar_type() == torch::kInt64, "flatten_ids must be [M] int64 (internal)");
+    for (auto* t : {&means2d, &conics, &colors, &opacities, &offsets, &ids}) {
+        TORCH_CHECK(t->is_contiguous() && t->device().is_cpu(), "inputs must be contiguous CPU tensors");
+    }
+    TORCH_CHECK(conics.scalar_type() == means2d.scalar_type() &&
+                    colors.scalar_type() == means2d.scalar_type() &&
+                    opacities.scalar_type() == means2d.scalar_type(),
+                "all float inputs must share a dtype");
+}
+
+std::vector<torch::Tensor> composite_forward(
+    torch::Tensor means2d, torch::Tensor conics, torch::Tensor colors,
+    torch::Tensor opacities, c10::optional<torch::Tensor> backgrounds,
+    int64_t width, int64_t height, int64_t tile_size,
+    torch::Tensor isect_offsets, torch::Tensor flatten_ids, int64_t num_threads) {
+    check_inputs(means2d, conics, colors, opacities, isect_offsets, flatten_ids);
+    const int64_t N = means2d.size(0);
+    const int D = static_cast<int>(colors.size(1));
+    const int32_t th = static_cast<int32_t>(isect_offsets.size(0));
+    const int32_t tw = static_cast<int32_t>(isect_offsets.size(1));
+    const auto opts = means2d.options();
+    auto out_col = torch::empty({height, width, D}, opts);
+    auto out_alpha = torch::empty({height, width, 1}, opts);
+    auto out_T = torch::empty({height, width}, opts);
+    auto out_last = torch::empty({height, width}, opts.dtype(torch::kInt32));
+    torch::Tensor bg;
+    if (backgrounds.has_value() && backgrounds->defined()) {
+        bg = backgrounds->contiguous();
+        TORCH_CHECK(bg.numel() == D && bg.scalar_type() == means2d.scalar_type(), "backgrounds must be [D]");
+    }
+    const int nt = static_cast<int>(std::max<int64_t>(1, num_threads));
+    AT_DISPATCH_FLOATING_TYPES(means2d.scalar_type(), "composite_forward", [&] {
+        using S = scalar_t;
+        auto run = [&](auto cd_tag) {
+            constexpr int CDv = decltype(cd_tag)::value;
+            forward_impl<S, CDv>(
+                N, D, means2d.data_ptr<S>(), conics.data_ptr<S>(), colors.data_ptr<S>(),
+                opacities.data_ptr<S>(), bg.defined() ? bg.data_ptr<S>() : nullptr,
+                (int32_t)width, (int32_t)height, (int32_t)tile_size, th, tw,
+                isect_offsets.data_ptr<int64_t>(), flatten_ids.data_ptr<int64_t>(), flatten_ids.numel(),
+                out_col.data_ptr<S>(), out_alpha.data_ptr<S>(), out_T.data_ptr<S>(),
+                out_last.data_ptr<int32_t>(), nt);
+        };
+        switch (D) {
+            case 1: run(std::integral_constant<int, 1>()); break;
+            case 2: run(std::integral_constant<int, 2>()); break;
+            case 3: run(std::integral_constant<int, 3>()); break;
+            case 4: run(std::integral_constant<int, 4>()); break;
+            default: run(std::integral_constant<int, 0>()); break;
+        }
+    });
+    return {out_col, out_alpha, out_T, out_last};
+}
+
+std::vector<torch::Tensor> composite_backward(
+    torch::Tensor means2d, torch::Tensor conics, torch::Tensor colors,
+    torch::Tensor opacities, c10::optional<torch::Tensor> backgrounds,
+    int64_t width, int64_t height, int64_t tile_size,
+    torch::Tensor isect_offsets, torch::Tensor flatten_ids,
+    torch::Tensor T_final, torch::Tensor last_ids,
+    torch::Tensor v_render_colors, c10::optional<torch::Tensor> v_render_alphas,
+    int64_t num_threads) {
+    check_inputs(means2d, conics, colors, opacities, isect_offsets, flatten_ids);
+    const int64_t N = means2d.size(0);
+    const int D = static_cast<int>(colors.size(1));
+    const int32_t th = static_cast<int32_t>(isect_offsets.size(0));
+    const int32_t tw = static_cast<int32_t>(isect_offsets.size(1));
+    TORCH_CHECK(T_final.is_contiguous() && T_final.numel() == width * height, "T_final shape");
+    TORCH_CHECK(last_ids.is_contiguous() && last_ids.scalar_type() == torch::kInt32, "last_ids");
+    auto vcol = v_render_colors.contiguous();
+    TORCH_CHECK(vcol.numel() == width * height * D && vcol.scalar_type() == means2d.scalar_type(), "v_render_colors");
+    torch::Tensor valpha;
+    if (v_render_alphas.has_value() && v_render_alphas->defined()) {
+        valpha = v_render_alphas->contiguous();
+        TORCH_CHECK(valpha.numel() == width * height && valpha.scalar_type() == means2d.scalar_type(), "v_render_alphas");
+    }
+    torch::Tensor bg;
+    if (backgrounds.has_value() && backgrounds->defined()) {
+        bg = backgrounds->contiguous();
+        TORCH_CHECK(bg.numel() == D && bg.scalar_type() == means2d.scalar_type(), "backgrounds must be [D]");
+    }
+    auto g_means = torch::empty_like(means2d);
+    auto g_conics = torch::empty_like(conics);
+    auto g_colors = torch::empty_like(colors);
+    auto g_opac = torch::empty_like(opacities);
+    const int nt = static_cast<int>(std::max<int64_t>(1, num_threads));
+    AT_DISPATCH_FLOATING_TYPES(means2d.scalar_type(), "composite_backward", [&] {
+        using S = scalar_t;
+        auto run = [&](auto cd_tag) {
+            constexpr int CDv = decltype(cd_tag)::value;
+            backward_impl<S, CDv>(
+                N, D, means2d.data_ptr<S>(), conics.data_ptr<S>(), colors.data_ptr<S>(),
+                opacities.data_ptr<S>(), bg.defined() ? bg.data_ptr<S>() : nullptr,
+                (int32_t)width, (int32_t)height, (int32_t)tile_size, th, tw,
+                isect_offsets.data_ptr<int64_t>(), flatten_ids.data_ptr<int64_t>(), flatten_ids.numel(),
+                T_final.data_ptr<S>(), last_ids.data_ptr<int32_t>(), vcol.data_ptr<S>(),
+                valpha.defined() ? valpha.data_ptr<S>() : nullptr,
+                g_means.data_ptr<S>(), g_conics.data_ptr<S>(), g_colors.data_ptr<S>(),
+                g_opac.data_ptr<S>(), nt);
+        };
+        switch (D) {
+            case 1: run(std::integral_constant<int, 1>()); break;
+            case 2: run(std::integral_constant<int, 2>()); break;
+            case 3: run(std::integral_constant<int, 3>()); break;
+            case 4: run(std::integral_constant<int, 4>()); break;
+            default: run(std::integral_constant<int, 0>()); break;
+        }
+    });
+    return {g_means, g_conics, g_colors, g_opac};
+}
+
+}  // namespace
+
+PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
+    m.def("forward", &composite_forward, "CPU Gaussian compositor forward");
+    m.def("backward", &composite_backward, "CPU Gaussian compositor backward");
+}

@@ -1,0 +1,65 @@
+"""Backend dispatch: gsplat (CUDA) when the tensors live on CUDA and gsplat imports,
+else the CPU rasterizer."""
+from __future__ import annotations
+
+from typing import Any, Dict, Optional, Tuple
+
+from torch import Tensor
+
+from .cpu import rasterization_cpu
+from .gsplat_backend import gsplat_unavailable_reason, rasterization_gsplat
+
+__all__ = ["rasterization"]
+
+_BACKENDS = ("auto", "cpu", "gsplat")
+
+
+def rasterization(
+    means: Tensor,
+    quats: Tensor,
+    scales: Tensor,
+    opacities: Tensor,
+    colors: Tensor,
+    viewmats: Tensor,
+    Ks: Tensor,
+    width: int,
+    height: int,
+    near_plane: float = 0.01,
+    far_plane: float = 1e10,
+    radius_clip: float = 0.0,
+    eps2d: float = 0.3,
+    sh_degree: Optional[int] = None,
+    tile_size: int = 16,
+    backgrounds: Optional[Tensor] = None,
+    backend: str = "auto",
+    impl: str = "auto",
+) -> Tuple[Tensor, Tensor, Dict[str, Any]]:
+    """gsplat.rasterization-compatible renderer (classic mode, unpacked, pinhole).
+
+    backend: "auto" (gsplat if the tensors are on CUDA and gsplat imports, else CPU),
+    "cpu", or "gsplat". impl selects the CPU compositor ("auto" | "cpp" | "torch").
+
+    Raises:
+        RuntimeError: backend="gsplat" without CUDA/gsplat, backend="cpu" with CUDA tensors,
+            or tensors on CUDA with backend="auto" but gsplat missing.
+        ValueError: unknown backend.
+    """
+    if backend not in _BACKENDS:
+        raise ValueError(f"backend must be one of {_BACKENDS}, got {backend!r}")
+    on_cuda = means.is_cuda
+    kw = dict(near_plane=near_plane, far_plane=far_plane, radius_clip=radius_clip, eps2d=eps2d,
+              sh_degree=sh_degree, tile_size=tile_size, backgrounds=backgrounds, impl=impl)
+    args = (means, quats, scales, opacities, colors, viewmats, Ks, width, height)
+    if backend == "gsplat" or (backend == "auto" and on_cuda):
+        reason = gsplat_unavailable_reason()
+        if reason is not None:
+            raise RuntimeError(
+                f"gsplat backend requested (backend={backend!r}, tensors on {means.device}) but {reason}. "
+                "Move the tensors to the CPU or use backend='cpu'."
+            )
+        if not on_cuda:
+            raise RuntimeError(f"gsplat backend needs CUDA tensors, got tensors on {means.device}")
+        return rasterization_gsplat(*args, **kw)
+    if on_cuda:
+        raise RuntimeError("backend='cpu' needs CPU tensors; got CUDA tensors (call .cpu()).")
+    return rasterization_cpu(*args, **kw)

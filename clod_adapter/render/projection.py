@@ -1,0 +1,218 @@
+"""EWA projection of 3D Gaussians (pinhole), matching gsplat 1.5.3's
+``fully_fused_projection`` (``ProjectionEWA3DGSFused.cu``, classic mode, no compensation).
+
+Per Gaussian (gsplat order of operations):
+  1. camera-space mean ``t = R m + T``; cull if ``t.z < near_plane or t.z > far_plane``;
+  2. cull if ``opacity < 1/255`` (only when ``opacities`` is given);
+  3. ``cov2d = J R Sigma R^T J^T`` with the Jacobian evaluated at x/z, y/z clamped to
+     ``[-(cx/fx + 0.3 tan_fovx), (W - cx)/fx + 0.3 tan_fovx]`` (same for y), tan_fovx = 0.5 W / fx;
+     ``means2d = (fx x/z + cx, fy y/z + cy)`` from the unclamped mean;
+  4. ``cov2d += eps2d I``; cull if ``det <= 0``; ``conics = inverse(cov2d)`` upper triangle;
+  5. ``extend = 3.33``, or ``min(3.33, sqrt(2 log(opacity * 255)))`` with opacities
+     (gsplat 1.5.3 uses 3.33, not 3); ``radius_{x,y} = ceil(extend sqrt(cov2d_{xx,yy}))``;
+  6. cull if both radii ``<= radius_clip``, or the box ``mean2d +- radius`` misses the image.
+
+Everything is plain torch (autograd). The heavy math runs only on the Gaussians that survive
+the cheap depth/opacity tests.
+"""
+from __future__ import annotations
+
+import math
+from typing import NamedTuple, Optional, Tuple
+
+import torch
+from torch import Tensor
+
+__all__ = ["fully_fused_projection", "project_visible", "VisibleProjection", "ALPHA_THRESHOLD"]
+
+ALPHA_THRESHOLD = 1.0 / 255.0
+GAUSSIAN_EXTEND = 3.33
+
+
+class VisibleProjection(NamedTuple):
+    """Projection restricted to the Gaussians with radii > 0 (``ids`` into the inputs)."""
+
+    ids: Tensor  # [V] int64
+    radii: Tensor  # [V, 2] int32
+    means2d: Tensor  # [V, 2]
+    depths: Tensor  # [V]
+    conics: Tensor  # [V, 3]
+
+
+def _quat_to_rotmat_rows(quats: Tensor) -> Tuple[Tensor, ...]:
+    """Nine [n] entries (row-major) of the rotation of the normalised wxyz quaternions."""
+    q = quats / torch.linalg.vector_norm(quats, dim=-1, keepdim=True).clamp_min(1e-12)
+    w, x, y, z = q.unbind(-1)
+    xx, yy, zz = x * x, y * y, z * z
+    xy, xz, yz = x * y, x * z, y * z
+    wx, wy, wz = w * x, w * y, w * z
+    return (
+        1 - 2 * (yy + zz), 2 * (xy - wz), 2 * (xz + wy),
+        2 * (xy + wz), 1 - 2 * (xx + zz), 2 * (yz - wx),
+        2 * (xz - wy), 2 * (yz + wx), 1 - 2 * (xx + yy),
+    )
+
+
+def _check(means: Tensor, quats: Tensor, scales: Tensor, opacities: Optional[Tensor],
+           viewmat: Tensor, K: Tensor) -> None:
+    n = means.shape[0]
+    if means.ndim != 2 or means.shape[1] != 3:
+        raise ValueError(f"means must be [N, 3], got {tuple(means.shape)}")
+    if tuple(quats.shape) != (n, 4):
+        raise ValueError(f"quats must be [{n}, 4], got {tuple(quats.shape)}")
+    if tuple(scales.shape) != (n, 3):
+        raise ValueError(f"scales must be [{n}, 3], got {tuple(scales.shape)}")
+    if opacities is not None and tuple(opacities.shape) != (n,):
+        raise ValueError(f"opacities must be [{n}], got {tuple(opacities.shape)}")
+    if tuple(viewmat.shape) != (4, 4):
+        raise ValueError(f"viewmat must be [4, 4], got {tuple(viewmat.shape)}")
+    if tuple(K.shape) != (3, 3):
+        raise ValueError(f"K must be [3, 3], got {tuple(K.shape)}")
+
+
+def project_visible(
+    means: Tensor,
+    quats: Tensor,
+    scales: Tensor,
+    opacities: Optional[Tensor],
+    viewmat: Tensor,
+    K: Tensor,
+    width: int,
+    height: int,
+    eps2d: float = 0.3,
+    near_plane: float = 0.01,
+    far_plane: float = 1e10,
+    radius_clip: float = 0.0,
+) -> VisibleProjection:
+    """Project and keep only the Gaussians gsplat would not cull (radii > 0)."""
+    _check(means, quats, scales, opacities, viewmat, K)
+    dt = means.dtype
+    viewmat = viewmat.to(dt)
+    K = K.to(dt)
+    R = viewmat[:3, :3]
+    T = viewmat[:3, 3]
+
+    # --- cheap culling on depth (and opacity) without autograd -----------------------------
+    with torch.no_grad():
+        z_all = means.detach() @ R[2].detach() + T[2].detach()
+        keep = (z_all >= near_plane) & (z_all <= far_plane)
+        if opacities is not None:
+            keep &= opacities.detach() >= ALPHA_THRESHOLD
+        ids = keep.nonzero().squeeze(1)
+
+    m = means.index_select(0, ids)
+    q = quats.index_select(0, ids)
+    s = scales.index_select(0, ids)
+
+    # camera-space mean
+    mc = m @ R.T + T
+    tx, ty, tz = mc.unbind(-1)
+
+    # intrinsics as python floats when possible (fast scalar broadcast); keep tensors when
+    # K requires grad (never in practice)
+    if K.requires_grad:
+        fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
+    else:
+        fx, fy, cx, cy = (float(v) for v in (K[0, 0], K[1, 1], K[0, 2], K[1, 2]))
+
+    rz = 1.0 / tz
+    means2d = torch.stack([fx * tx * rz + cx, fy * ty * rz + cy], dim=-1)
+
+    # Jacobian with gsplat's FOV clamping (x/z, y/z clamped to 1.3x the FOV limits)
+    tan_fovx = 0.5 * width / fx
+    tan_fovy = 0.5 * height / fy
+    lim_x_pos = (width - cx) / fx + 0.3 * tan_fovx
+    lim_x_neg = cx / fx + 0.3 * tan_fovx
+    lim_y_pos = (height - cy) / fy + 0.3 * tan_fovy
+    lim_y_neg = cy / fy + 0.3 * tan_fovy
+    if isinstance(fx, float):
+        u = torch.clamp(tx * rz, min=-lim_x_neg, max=lim_x_pos)  # = clamped tx / tz
+        v = torch.clamp(ty * rz, min=-lim_y_neg, max=lim_y_pos)
+    else:
+        u = torch.minimum(torch.maximum(tx * rz, -lim_x_neg), lim_x_pos)
+        v = torch.minimum(torch.maximum(ty * rz, -lim_y_neg), lim_y_pos)
+    # J = [[fx/z, 0, -fx u/z], [0, fy/z, -fy v/z]] ; JR = J @ R_view  ([n,3] per row)
+    a0 = fx * rz
+    a2 = -fx * u * rz
+    b1 = fy * rz
+    b2 = -fy * v * rz
+    JR0 = a0[:, None] * R[0] + a2[:, None] * R[2]  # [n, 3]
+    JR1 = b1[:, None] * R[1] + b2[:, None] * R[2]  # [n, 3]
+
+    # (J R_view R_q) S  -> rows A, B; cov2d = [A.A, A.B; A.B, B.B]
+    r = _quat_to_rotmat_rows(q)
+    rq = torch.stack(r, dim=-1).view(-1, 3, 3)  # [n, 3, 3]
+    JRQ = torch.bmm(torch.stack([JR0, JR1], dim=1), rq)  # [n, 2, 3]
+    Ms = JRQ * s[:, None, :]
+    A, B = Ms.unbind(1)
+    c00 = (A * A).sum(-1) + eps2d
+    c01 = (A * B).sum(-1)
+    c11 = (B * B).sum(-1) + eps2d
+    det = c00 * c11 - c01 * c01
+
+    with torch.no_grad():
+        det_ok = det > 0
+        if opacities is not None:
+            op = opacities.detach().index_select(0, ids)
+            extend = torch.sqrt(2.0 * torch.log(op / ALPHA_THRESHOLD)).clamp_max(GAUSSIAN_EXTEND)
+        else:
+            extend = GAUSSIAN_EXTEND
+        rad_x = torch.ceil(extend * torch.sqrt(c00.detach()))
+        rad_y = torch.ceil(extend * torch.sqrt(c11.detach()))
+        mx, my = means2d.detach().unbind(-1)
+        ok = det_ok & ~((rad_x <= radius_clip) & (rad_y <= radius_clip))
+        ok &= ~((mx + rad_x <= 0) | (mx - rad_x >= width) | (my + rad_y <= 0) | (my - rad_y >= height))
+        sel = ok.nonzero().squeeze(1)
+        radii = torch.stack([rad_x, rad_y], dim=-1).index_select(0, sel).to(torch.int32)
+
+    means2d = means2d.index_select(0, sel)
+    depths = tz.index_select(0, sel)
+    c00 = c00.index_select(0, sel)
+    c01 = c01.index_select(0, sel)
+    c11 = c11.index_select(0, sel)
+    inv_det = 1.0 / det.index_select(0, sel)
+    conics = torch.stack([c11 * inv_det, -c01 * inv_det, c00 * inv_det], dim=-1)
+    return VisibleProjection(ids.index_select(0, sel), radii, means2d, depths, conics)
+
+
+def fully_fused_projection(
+    means: Tensor,
+    quats: Tensor,
+    scales: Tensor,
+    opacities: Optional[Tensor],
+    viewmat: Tensor,
+    K: Tensor,
+    width: int,
+    height: int,
+    eps2d: float = 0.3,
+    near_plane: float = 0.01,
+    far_plane: float = 1e10,
+    radius_clip: float = 0.0,
+) -> Tuple[Tensor, Tensor, Tensor, Tensor]:
+    """Project N 3D Gaussians into one pinhole camera (gsplat 1.5.3 semantics, CPU autograd).
+
+    Args:
+        means: [N, 3] world-space centres.
+        quats: [N, 4] wxyz rotations (normalised inside).
+        scales: [N, 3] activated scales (standard deviations).
+        opacities: [N] activated opacities for the opacity-aware extent, or None (extent 3.33).
+        viewmat: [4, 4] world-to-camera.
+        K: [3, 3] intrinsics.
+        width, height: image size in pixels.
+
+    Returns:
+        radii [N, 2] int32 (0 = culled), means2d [N, 2], depths [N], conics [N, 3]
+        (upper triangle of the inverse 2D covariance). Culled Gaussians get zeros (finite
+        gradients: nothing flows into them).
+    """
+    n = means.shape[0]
+    vis = project_visible(means, quats, scales, opacities, viewmat, K, width, height,
+                          eps2d, near_plane, far_plane, radius_clip)
+    dt = means.dtype
+    dev = means.device
+    radii = torch.zeros(n, 2, dtype=torch.int32, device=dev)
+    radii[vis.ids] = vis.radii
+    means2d = torch.zeros(n, 2, dtype=dt, device=dev).index_copy(0, vis.ids, vis.means2d)
+    depths = torch.zeros(n, dtype=dt, device=dev).index_copy(0, vis.ids, vis.depths)
+    conics = torch.zeros(n, 3, dtype=dt, device=dev).index_copy(0, vis.ids, vis.conics)
+    return radii, means2d, depths, conics

@@ -55,7 +55,8 @@ class AdaptConfig:
         eps: Eq. 2's epsilon.
         eta_estimator: "ste" (default), "sigmoid" or "paper" (no gradient, ablation).
         temperature: width of the eta relaxation, log-opacity units.
-        init_attenuation: Eq. 2's factor at s_v = 1 is at least this at initialisation.
+        init_attenuation: Eq. 2's factor at s_v = 1 is at least this at initialisation; None:
+            calibrated per scene (:func:`calibrate_init`).
         seed: seed of view order and s_v sampling.
         background: RGB behind the scene.
     """
@@ -69,7 +70,7 @@ class AdaptConfig:
     eps: float = lod.DEFAULT_EPS
     eta_estimator: str = "ste"
     temperature: float = 1.0
-    init_attenuation: float = 0.995
+    init_attenuation: Optional[float] = None
     seed: int = 0
     background: tuple = (0.0, 0.0, 0.0)
 
@@ -96,6 +97,7 @@ class AdaptState:
     order: list = field(default_factory=list)
     extent: float = 1.0
     history: dict = field(default_factory=lambda: {"s_v": [], "eta": [], "loss": [], "psnr": []})
+    init: dict = field(default_factory=dict)
 
     def gaussians(self) -> Gaussians:
         return Gaussians(**{k: v for k, v in self.params.items()})
@@ -138,13 +140,56 @@ def means_lr(cfg: AdaptConfig, extent: float, it: int) -> float:
     return math.exp(math.log(init) * (1 - t) + math.log(final) * t) * extent * cfg.other_lr_scale
 
 
-def prepare(gaussians: Gaussians, train_cameras, cfg: AdaptConfig) -> AdaptState:
+#: candidate init attenuations, most aggressive first (:func:`calibrate_init`).
+INIT_CANDIDATES = (0.8, 0.9, 0.95, 0.98, 0.99, 0.995, 0.999)
+
+
+@torch.no_grad()
+def calibrate_init(gaussians: Gaussians, d_norm_max: Tensor, cameras, images, cfg: AdaptConfig,
+                   max_drop_db: float = 0.02, views: int = 3, backend: str = "auto") -> tuple[float, float]:
+    """Pick the smallest attenuation of :data:`INIT_CANDIDATES` whose s_v = 1 render loses at
+    most ``max_drop_db`` PSNR against the input on up to ``views`` training views.
+
+    A smaller attenuation starts ``sigma_d`` closer to where it cuts Gaussians at large s_v, so
+    fewer steps are spent just getting there; the check keeps step 0 rendering like the input.
+
+    Returns:
+        (attenuation, measured PSNR drop in dB).
+    """
+    idx = torch.linspace(0, len(cameras) - 1, min(views, len(cameras))).round().long().tolist()
+    base = [psnr(render_lod(gaussians, cameras[i], None, background=cfg.background,
+                            backend=backend).image, images[i]) for i in idx]
+    drop = 0.0
+    for a in INIT_CANDIDATES:
+        g = gaussians.with_sigma_d(lod.init_sigma_d(d_norm_max, a).to(gaussians.means))
+        p = [psnr(render_lod(g, cameras[i], 1.0, tau=cfg.tau, eps=cfg.eps, background=cfg.background,
+                             backend=backend).image, images[i]) for i in idx]
+        drop = max(b - q for b, q in zip(base, p))
+        if drop <= max_drop_db:
+            return a, drop
+    return INIT_CANDIDATES[-1], drop
+
+
+def prepare(gaussians: Gaussians, train_cameras, cfg: AdaptConfig, train_images=None,
+            backend: str = "auto") -> AdaptState:
     """Attach ``sigma_d`` (:func:`clod_adapter.lod.init_sigma_d` over the training views, unless
-    the model already has one) and build the optimiser state for :func:`adapt`."""
+    the model already has one) and build the optimiser state for :func:`adapt`.
+
+    With ``cfg.init_attenuation`` None the attenuation is calibrated on ``train_images``
+    (:func:`calibrate_init`; 0.995 when no images are given). The value used is stored in
+    ``state.init``."""
     g = gaussians.clone()
+    init = {}
     if g.sigma_d is None:
-        g = g.with_sigma_d(lod.init_sigma_d(max_normalized_distance(g, train_cameras),
-                                            cfg.init_attenuation).to(g.means))
+        dmax = max_normalized_distance(g, train_cameras)
+        att = cfg.init_attenuation
+        if att is None and train_images is not None:
+            att, drop = calibrate_init(g, dmax, train_cameras, train_images, cfg, backend=backend)
+            init = {"attenuation": att, "train_psnr_drop_db": drop}
+        elif att is None:
+            att = 0.995
+        init.setdefault("attenuation", att)
+        g = g.with_sigma_d(lod.init_sigma_d(dmax, att).to(g.means))
     train_others = cfg.other_lr_scale > 0
     params = {}
     for name in PARAM_NAMES:
@@ -153,7 +198,7 @@ def prepare(gaussians: Gaussians, train_cameras, cfg: AdaptConfig) -> AdaptState
     extent = scene_extent(train_cameras)
     opt = torch.optim.Adam(_lr_groups(params, cfg, extent), eps=1e-15)
     gen = torch.Generator().manual_seed(cfg.seed)
-    return AdaptState(params=params, optimizer=opt, generator=gen, extent=extent)
+    return AdaptState(params=params, optimizer=opt, generator=gen, extent=extent, init=init)
 
 
 class _StopFlag:
@@ -188,6 +233,7 @@ def adapt(
     backend: str = "auto",
     progress: bool = True,
     on_interrupt: Optional[Callable[[AdaptState], None]] = None,
+    max_steps: Optional[int] = None,
 ) -> bool:
     """Run (or continue) the fine-tuning from ``state.iteration`` to ``cfg.iterations``.
 
@@ -201,9 +247,12 @@ def adapt(
         backend: rasteriser backend.
         progress: show a tqdm bar with loss, PSNR and rendered fraction.
         on_interrupt: called with the state when SIGINT/SIGTERM stops the run early.
+        max_steps: run at most this many steps in this call (the schedule still spans
+            ``cfg.iterations``); None: run to the end.
 
     Returns:
-        True when all iterations ran, False when interrupted (state holds the progress).
+        True when all iterations ran, False when interrupted or stopped by ``max_steps``
+        (state holds the progress).
     """
     from tqdm import tqdm
 
@@ -211,8 +260,9 @@ def adapt(
     bar = tqdm(total=cfg.iterations, initial=state.iteration, disable=not progress,
                desc="clod-adapt", unit="it", dynamic_ncols=True)
     ema = {"loss": None, "psnr": None}
+    stop_at = cfg.iterations if max_steps is None else min(cfg.iterations, state.iteration + max_steps)
     with _StopFlag() as flag:
-        while state.iteration < cfg.iterations:
+        while state.iteration < stop_at:
             if flag.stop:
                 bar.close()
                 if on_interrupt is not None:
@@ -239,19 +289,19 @@ def adapt(
             state.optimizer.step()
             state.iteration += 1
             p = psnr(out.image, gt)
-            eta = float(out.eta)
+            eta = float(out.eta.detach())
             h = state.history
             h["s_v"].append(round(s_v, 4))
             h["eta"].append(round(eta, 5))
-            h["loss"].append(round(float(loss), 6))
+            h["loss"].append(round(float(loss.detach()), 6))
             h["psnr"].append(round(p, 3))
-            for k, v in (("loss", float(loss)), ("psnr", p)):
+            for k, v in (("loss", h["loss"][-1]), ("psnr", p)):
                 ema[k] = v if ema[k] is None else 0.9 * ema[k] + 0.1 * v
             bar.set_postfix(loss=f"{ema['loss']:.4f}", psnr=f"{ema['psnr']:.2f}",
                             s_v=f"{s_v:.2f}", eta=f"{eta:.3f}", refresh=False)
             bar.update(1)
     bar.close()
-    return True
+    return state.iteration >= cfg.iterations
 
 
 # --- resumable state -------------------------------------------------------------------------

@@ -25,8 +25,9 @@ class LodRender:
     Attributes:
         image: [H, W, 3] rendered colours (float32, not clamped).
         alpha: [H, W, 1] accumulated opacity.
-        mask: [N] bool, Gaussians handed to the rasteriser.
-        n_rendered: number of Gaussians handed to the rasteriser.
+        mask: [N] bool, Gaussians handed to the rasteriser (those passing the LoD mask).
+        n_rendered: number of Gaussians the rasteriser actually drew (passed the mask and
+            projected onto the image, gsplat's ``radii > 0``): the render cost.
         n_frustum: number of Gaussian centres inside the view frustum.
         eta: scalar tensor, rendered fraction of the frustum (gradient per the estimator;
             1.0 without LoD).
@@ -100,7 +101,10 @@ def render_lod(
         center = lod.camera_center(viewmat)
         d_norm = lod.normalized_distances(means, center, frustum)
         margin = lod.lod_margin(opac, d_norm, gaussians.sigma_d, s_v, tau, eps)
-        mask = (margin > 0) & frustum
+        # The mask covers every Gaussian: one whose centre lies just outside the image can
+        # still cover pixels (the rasteriser culls by footprint). The frustum only defines
+        # the normaliser of d' and the population of eta.
+        mask = margin > 0
         eta = lod.rendered_fraction(margin, frustum, estimator, temperature)
         opac_used = lod.lod_opacities(opac, d_norm, gaussians.sigma_d, s_v, eps)
     idx = torch.nonzero(mask, as_tuple=False).squeeze(1)
@@ -115,8 +119,10 @@ def render_lod(
         backgrounds=bg, backend=backend, impl=impl,
     )
     t2 = time.perf_counter()
+    n_vis = meta.get("n_visible")
+    n_rendered = int(n_vis.reshape(-1)[0]) if n_vis is not None else int(idx.numel())
     return LodRender(
-        image=colors[0], alpha=alphas[0], mask=mask, n_rendered=int(idx.numel()),
+        image=colors[0], alpha=alphas[0], mask=mask, n_rendered=n_rendered,
         n_frustum=int(frustum.sum()), eta=eta, select_ms=(t1 - t0) * 1e3,
         raster_ms=(t2 - t1) * 1e3, meta=meta,
     )

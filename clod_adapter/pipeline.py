@@ -168,7 +168,8 @@ def run(
         log(f"clod-adapt: resuming {state_path} at iteration {state.iteration}/{cfg.iterations}")
         init_eval = None
     else:
-        state = prepare(gaussians, scene.train, cfg)
+        state = prepare(gaussians, scene.train, cfg, train_imgs, backend=backend)
+        log(f"clod-adapt: sigma_d initialised with attenuation {state.init.get('attenuation')} at s_v = 1")
         init_eval = evaluate_level(state.gaussians().detach(), test_cams, test_imgs, 1.0,
                                    tau=cfg.tau, background=bg, backend=backend)
 
@@ -206,7 +207,8 @@ def run(
         "input_model": {"psnr": input_eval.psnr, "ssim": input_eval.ssim,
                         "gaussians": input_eval.gaussians, "ms_per_frame": input_eval.ms_per_frame},
         "init_s_v1": None if init_eval is None else {"psnr": init_eval.psnr, "ssim": init_eval.ssim,
-                                                     "psnr_drop_db": input_eval.psnr - init_eval.psnr},
+                                                     "psnr_drop_db": input_eval.psnr - init_eval.psnr,
+                                                     **state.init},
         "levels": [m.to_dict() for m in evals],
         "dead_sigma_d": int((model.sigma_d <= 0).sum()),
     }

@@ -157,7 +157,7 @@ def assert_close(a, b, tol=1e-5, name=""):
 # (a) C++ vs twin, float32
 # ----------------------------------------------------------------------------
 @needs_cpp
-@pytest.mark.parametrize("seed,N,W,H,ts", [(0, 400, 70, 50, 16), (3, 900, 64, 64, 16), (7, 250, 45, 37, 8)])
+@pytest.mark.parametrize("seed,N,W,H,ts", [(0, 1200, 70, 50, 16), (3, 1500, 64, 64, 16), (7, 600, 45, 37, 8)])
 def test_cpp_matches_torch_float32(seed, N, W, H, ts, monkeypatch):
     scene = make_scene(N, W, H, tile_size=ts, seed=seed, opacity=(0.3, 0.995))
     # several tiles, non-trivial lists
@@ -174,7 +174,7 @@ def test_cpp_matches_torch_float32(seed, N, W, H, ts, monkeypatch):
     # the T <= 1e-4 early stop did trigger: without it the image changes
     monkeypatch.setattr(composite, "TRANSMITTANCE_THRESHOLD", 0.0)
     img_ns, a_ns, *_ = render(scene, "torch")
-    assert (a_ns.detach() - a_t).abs().max() > 1e-6
+    assert (a_ns.detach() - a_t).abs().max() > 1e-4
     assert (img_ns.detach() - img_t).abs().max() > 1e-4
     # the 1/255 skip and the 0.999 clamp matter too
     monkeypatch.setattr(composite, "TRANSMITTANCE_THRESHOLD", 1e-4)
@@ -217,20 +217,22 @@ def test_gradcheck_float64(impl):
     sig = 0.5 * (conics[:, 0, None, None] * dx * dx + conics[:, 2, None, None] * dy * dy) \
         + conics[:, 1, None, None] * dx * dy
     alpha = opac[:, None, None] * torch.exp(-sig)
-    assert ((alpha - 1 / 255).abs() > 1e-4).all() and (alpha < 0.99).all()
+    # an eps=1e-6 perturbation moves alpha by << 1e-5
+    assert ((alpha - 1 / 255).abs() > 1e-5).all() and (alpha < 0.99).all()
 
     def fn(m, cn, cl, op, b):
         return rasterize_to_pixels(m, cn, cl, op, 16, 16, 16, offsets, ids, backgrounds=b, impl=impl)
 
     inputs = tuple(t.clone().requires_grad_(True) for t in (means, conics, colors, opac, bg))
-    assert torch.autograd.gradcheck(fn, inputs, eps=1e-6, atol=1e-6, rtol=1e-4)
+    assert torch.autograd.gradcheck(fn, inputs, eps=1e-6, atol=1e-6, rtol=1e-4,
+                                    fast_mode=True)
 
 
 # ----------------------------------------------------------------------------
 # (c) brute-force per-pixel loop
 # ----------------------------------------------------------------------------
 def test_brute_force_agrees():
-    scene = make_scene(40, 21, 18, tile_size=8, seed=5, dtype=torch.float64,
+    scene = make_scene(200, 21, 18, tile_size=8, seed=5, dtype=torch.float64,
                        scale=(0.8, 4.0), opacity=(0.5, 0.999))
     bg = torch.tensor([0.2, 0.4, 0.9], dtype=torch.float64)
     ref_img, ref_a, stopped = brute_force(scene, bg)

@@ -20,7 +20,9 @@ def sh_bases(degree: int, dirs: Tensor) -> Tensor:
     """[..., (degree+1)^2] real SH bases at UNIT directions ``dirs`` [..., 3] (gsplat order)."""
     if not 0 <= degree <= 3:
         raise ValueError(f"SH degree must be in 0..3, got {degree}")
-    x, y, z = dirs.unbind(-1)
+    # contiguous [n] rows make the ~40 elementwise ops below cheap
+    x, y, z = dirs.reshape(-1, 3).t().contiguous().unbind(0)
+    lead = dirs.shape[:-1]
     cols = [torch.full_like(x, _C0)]
     if degree >= 1:
         cols += [-_C1 * y, _C1 * z, -_C1 * x]
@@ -50,7 +52,7 @@ def sh_bases(degree: int, dirs: Tensor) -> Tensor:
             fTmpB3 * fC1,  # 14
             -0.5900435899266435 * fC2,  # 15
         ]
-    return torch.stack(cols, dim=-1)
+    return torch.stack(cols, dim=-1).reshape(*lead, len(cols))
 
 
 def spherical_harmonics(degree: int, dirs: Tensor, coeffs: Tensor) -> Tensor:

@@ -53,7 +53,56 @@ struct GParam {
     S sthr;          // sigma > sthr  =>  alpha < 1/255 for sure (skips exp)
     int32_t x0, x1;  // inclusive pixel range (image coordinates)
     int32_t y0, y1;
+    // exact per-row span of the (margin-inflated) alpha >= 1/255 ellipse:
+    // px in [mx + ba*dy - hw, mx + ba*dy + hw], hw = sqrt(two_a_sm - det*dy^2) * inv_a
+    bool span_ok;
+    double ba, inv_a, two_a_sm, det;
 };
+
+// Local (tile) x range [xa, xb] of row with centre offset dy (= my - py).
+template <typename S>
+inline bool row_span(const GParam<S>& q, double dy, int32_t px0, int32_t pw,
+                     int32_t& xa, int32_t& xb) {
+    if (!q.span_ok) {
+        xa = std::max(q.x0 - px0, 0);
+        xb = std::min(q.x1 - px0, pw - 1);
+        return xa <= xb;
+    }
+    const double disc = q.two_a_sm - q.det * dy * dy;
+    if (disc < 0) return false;
+    const double hw = std::sqrt(disc) * q.inv_a + 1e-3;
+    const double c = static_cast<double>(q.mx) + q.ba * dy - 0.5 - px0;
+    // ceil/floor without libm calls (no SSE4.1 at baseline -O3); values are
+    // clamped to the tile first so the int conversion cannot overflow
+    double lo = c - hw, hi = c + hw;
+    if (!(lo <= hi)) return false;  // NaN guard
+    if (lo < -1.0) lo = -1.0;
+    if (hi > pw) hi = pw;
+    int32_t il = static_cast<int32_t>(lo);
+    if (il < lo) ++il;  // ceil
+    int32_t ih = static_cast<int32_t>(hi);
+    if (ih > hi) --ih;  // floor
+    xa = il < 0 ? 0 : il;
+    xb = ih > pw - 1 ? pw - 1 : ih;
+    return xa <= xb;
+}
+
+// Iterate the set bits of a row bitmask restricted to [xa, xb].
+template <typename F>
+inline void for_bits(const uint64_t* row, int32_t xa, int32_t xb, F&& f) {
+    const int w0 = xa >> 6, w1 = xb >> 6;
+    for (int w = w0; w <= w1; ++w) {
+        const int lo = std::max(xa - (w << 6), 0);
+        const int hi = std::min(xb - (w << 6), 63);
+        uint64_t m = (hi == 63 ? ~0ULL : ((1ULL << (hi + 1)) - 1)) & ~((1ULL << lo) - 1);
+        m &= row[w];
+        while (m) {
+            const int bit = __builtin_ctzll(m);
+            m &= m - 1;
+            f((w << 6) + bit);
+        }
+    }
+}
 
 inline int32_t clamp_to_int(double v, int32_t lo, int32_t hi) {
     if (!(v >= lo)) return lo;  // also NaN -> lo
@@ -88,6 +137,8 @@ void precompute_params(
         q.y0 = 0;
         q.y1 = H - 1;
         q.sthr = std::numeric_limits<S>::quiet_NaN();  // never skip early
+        q.span_ok = false;
+        q.ba = q.inv_a = q.two_a_sm = q.det = 0.0;
         const double op = q.op;
         if (op < static_cast<double>(Consts<S>::alpha_thr)) {
             // alpha <= opacity < 1/255 everywhere sigma >= 0: invisible.
@@ -102,7 +153,9 @@ void precompute_params(
             const double a = q.a, b = q.b, c = q.c;
             const double mx = q.mx, my = q.my;
             const double det = a * c - b * b;
-            if (a > 0 && c > 0 && det > 1e-7 * a * c && std::isfinite(det) &&
+            // well-conditioned only (|rho| < ~0.995): keeps float rounding of
+            // sigma far below the 1e-3 relative margin in sm
+            if (a > 0 && c > 0 && det > 1e-2 * a * c && std::isfinite(det) &&
                 std::isfinite(mx) && std::isfinite(my)) {
                 const double rx = std::sqrt(2.0 * sm * c / det);
                 const double ry = std::sqrt(2.0 * sm * a / det);
@@ -111,6 +164,11 @@ void precompute_params(
                 q.x1 = clamp_to_int(std::floor(mx + rx - 0.5) + 1.0, -1, W - 1);
                 q.y0 = clamp_to_int(std::ceil(my - ry - 0.5) - 1.0, 0, H);
                 q.y1 = clamp_to_int(std::floor(my + ry - 0.5) + 1.0, -1, H - 1);
+                q.span_ok = true;
+                q.ba = b / a;
+                q.inv_a = 1.0 / a;
+                q.two_a_sm = 2.0 * a * sm;
+                q.det = det;
             }
         }
         P[g] = q;
@@ -150,7 +208,8 @@ void forward_impl(
         const int npix_max = ts * ts;
         std::vector<S> Tv(npix_max), colv(static_cast<size_t>(npix_max) * D);
         std::vector<int32_t> lastv(npix_max);
-        std::vector<uint8_t> donev(npix_max);
+        const int nw_max = (ts + 63) / 64;
+        std::vector<uint64_t> actv(static_cast<size_t>(ts) * nw_max);
 #pragma omp for schedule(dynamic, 1)
         for (int64_t t = 0; t < ntiles; ++t) {
             const int32_t ty = static_cast<int32_t>(t / tw);
@@ -159,51 +218,60 @@ void forward_impl(
             const int32_t pw = std::min(ts, W - px0), ph = std::min(ts, H - py0);
             if (pw <= 0 || ph <= 0) continue;
             const int npix = pw * ph;
+            const int nw = (pw + 63) / 64;
             S* T = Tv.data();
             S* col = colv.data();
             int32_t* last = lastv.data();
-            uint8_t* done = donev.data();
+            uint64_t* act = actv.data();  // active (not done) pixels, per row
             std::fill(T, T + npix, S(1));
             std::fill(col, col + static_cast<size_t>(npix) * D, S(0));
             std::fill(last, last + npix, -1);
-            std::fill(done, done + npix, 0);
+            for (int ly = 0; ly < ph; ++ly) {
+                for (int w = 0; w < nw; ++w) {
+                    const int nb = std::min(64, pw - 64 * w);
+                    act[ly * nw + w] = nb == 64 ? ~0ULL : ((1ULL << nb) - 1);
+                }
+            }
             int ndone = 0;
             int64_t start, end;
             tile_range(offsets, ntiles, M, t, start, end);
             for (int64_t idx = start; idx < end; ++idx) {
                 const int64_t g = ids[idx];
                 const GParam<S>& q = P[g];
-                const int32_t x0 = std::max(q.x0, px0), x1 = std::min(q.x1, px0 + pw - 1);
                 const int32_t y0 = std::max(q.y0, py0), y1 = std::min(q.y1, py0 + ph - 1);
-                if (x0 > x1 || y0 > y1) continue;
+                if (y0 > y1 || q.x0 > px0 + pw - 1 || q.x1 < px0) continue;
                 const S mx = q.mx, my = q.my, a = q.a, b = q.b, c = q.c, op = q.op;
                 const S sthr = q.sthr;
                 const S* cg = colors + g * D;
                 for (int32_t y = y0; y <= y1; ++y) {
+                    const int ly = y - py0;
+                    const uint64_t* row = act + ly * nw;
+                    if (nw == 1 && row[0] == 0) continue;
                     const S dy = my - (static_cast<S>(y) + S(0.5));
+                    int32_t xa, xb;
+                    if (!row_span(q, static_cast<double>(dy), px0, pw, xa, xb)) continue;
                     const S cdy2 = c * dy * dy;
-                    const int rowoff = (y - py0) * pw - px0;
-                    for (int32_t x = x0; x <= x1; ++x) {
-                        const int p = rowoff + x;
-                        if (done[p]) continue;
-                        const S dx = mx - (static_cast<S>(x) + S(0.5));
+                    uint64_t* wrow = act + ly * nw;
+                    for_bits(row, xa, xb, [&](int lx) {
+                        const int p = ly * pw + lx;
+                        const S dx = mx - (static_cast<S>(px0 + lx) + S(0.5));
                         const S sigma = S(0.5) * (a * dx * dx + cdy2) + b * dx * dy;
-                        if (sigma > sthr) continue;
+                        if (sigma > sthr) return;
                         const S alpha = std::min(maxA, op * std::exp(-sigma));
-                        if (sigma < S(0) || alpha < athr) continue;
+                        if (sigma < S(0) || alpha < athr) return;
                         const S Tp = T[p];
                         const S nT = Tp * (S(1) - alpha);
                         if (nT <= tthr) {
-                            done[p] = 1;
+                            wrow[lx >> 6] &= ~(1ULL << (lx & 63));
                             ++ndone;
-                            continue;
+                            return;
                         }
                         const S vis = alpha * Tp;
                         S* cp = col + static_cast<size_t>(p) * D;
                         for (int k = 0; k < D; ++k) cp[k] += cg[k] * vis;
                         last[p] = static_cast<int32_t>(idx);
                         T[p] = nT;
-                    }
+                    });
                 }
                 if (ndone == npix) break;
             }
@@ -263,6 +331,9 @@ void backward_impl(
         std::vector<S> vcv(static_cast<size_t>(npix_max) * D);
         std::vector<int32_t> lastv(npix_max);
         std::vector<double> acc_col(D);
+        const int nw_max = (ts + 63) / 64;
+        std::vector<uint64_t> actv(static_cast<size_t>(ts) * nw_max);
+        std::vector<std::pair<int32_t, int32_t>> order(npix_max);
 #pragma omp for schedule(dynamic, 1)
         for (int64_t t = 0; t < ntiles; ++t) {
             const int32_t ty = static_cast<int32_t>(t / tw);
@@ -273,12 +344,15 @@ void backward_impl(
             int64_t start, end;
             tile_range(offsets, ntiles, M, t, start, end);
             if (end <= start) continue;
+            const int npix = pw * ph;
+            const int nw = (pw + 63) / 64;
             double* T = Tv.data();
             double* buf = bufv.data();
             double* w = wv.data();
             S* vc = vcv.data();
             int32_t* last = lastv.data();
-            int64_t maxlast = -1;
+            uint64_t* act = actv.data();  // pixels with last >= idx, per row
+            std::fill(act, act + static_cast<size_t>(ph) * nw, 0ULL);
             for (int ly = 0; ly < ph; ++ly) {
                 for (int lx = 0; lx < pw; ++lx) {
                     const int p = ly * pw + lx;
@@ -286,7 +360,7 @@ void backward_impl(
                     const double Tf = Tfinal[pix];
                     T[p] = Tf;
                     last[p] = lastids[pix];
-                    if (last[p] > maxlast) maxlast = last[p];
+                    order[p] = {last[p], p};
                     double acc_bg = 0.0;
                     for (int k = 0; k < D; ++k) {
                         const S v = v_col[pix * D + k];
@@ -298,13 +372,24 @@ void backward_impl(
                     w[p] = Tf * (va - acc_bg);
                 }
             }
+            std::sort(order.begin(), order.begin() + npix,
+                      [](const std::pair<int32_t, int32_t>& u, const std::pair<int32_t, int32_t>& v) {
+                          return u.first > v.first;
+                      });
+            int nact = 0;
+            int64_t maxlast = order[0].first;
             if (maxlast >= end) maxlast = end - 1;
             for (int64_t idx = maxlast; idx >= start; --idx) {
+                while (nact < npix && order[nact].first >= idx) {
+                    const int p = order[nact].second;
+                    const int ly = p / pw, lx = p - ly * pw;
+                    act[ly * nw + (lx >> 6)] |= 1ULL << (lx & 63);
+                    ++nact;
+                }
                 const int64_t g = ids[idx];
                 const GParam<S>& q = P[g];
-                const int32_t x0 = std::max(q.x0, px0), x1 = std::min(q.x1, px0 + pw - 1);
                 const int32_t y0 = std::max(q.y0, py0), y1 = std::min(q.y1, py0 + ph - 1);
-                if (x0 > x1 || y0 > y1) continue;
+                if (y0 > y1 || q.x0 > px0 + pw - 1 || q.x1 < px0) continue;
                 const S mx = q.mx, my = q.my, a = q.a, b = q.b, c = q.c, op = q.op;
                 const S sthr = q.sthr;
                 const S* cg = colors + g * D;
@@ -312,18 +397,21 @@ void backward_impl(
                 for (int k = 0; k < D; ++k) acc_col[k] = 0.0;
                 bool any = false;
                 for (int32_t y = y0; y <= y1; ++y) {
+                    const int ly = y - py0;
+                    const uint64_t* row = act + ly * nw;
+                    if (nw == 1 && row[0] == 0) continue;
                     const S dy = my - (static_cast<S>(y) + S(0.5));
+                    int32_t xa, xb;
+                    if (!row_span(q, static_cast<double>(dy), px0, pw, xa, xb)) continue;
                     const S cdy2 = c * dy * dy;
-                    const int rowoff = (y - py0) * pw - px0;
-                    for (int32_t x = x0; x <= x1; ++x) {
-                        const int p = rowoff + x;
-                        if (idx > last[p]) continue;
-                        const S dx = mx - (static_cast<S>(x) + S(0.5));
+                    for_bits(row, xa, xb, [&](int lx) {
+                        const int p = ly * pw + lx;
+                        const S dx = mx - (static_cast<S>(px0 + lx) + S(0.5));
                         const S sigma = S(0.5) * (a * dx * dx + cdy2) + b * dx * dy;
-                        if (sigma > sthr) continue;
+                        if (sigma > sthr) return;
                         const S vis = std::exp(-sigma);
                         const S alpha = std::min(maxA, op * vis);
-                        if (sigma < S(0) || alpha < athr) continue;
+                        if (sigma < S(0) || alpha < athr) return;
                         any = true;
                         const double ra = 1.0 / (1.0 - static_cast<double>(alpha));
                         const double Tp = T[p] * ra;
@@ -348,7 +436,7 @@ void backward_impl(
                             vmy += v_sigma * (b * ddx + c * ddy);
                             vop += vis * v_alpha;
                         }
-                    }
+                    });
                 }
                 if (any) {
                     S* o = gb.data() + static_cast<size_t>(g) * G;

@@ -1,0 +1,121 @@
+"""Fine-tuning: L_reg acts with our estimator and not with the paper's; state round trip; the
+pipeline's outputs on a tiny synthetic COLMAP scene."""
+import json
+
+import pytest
+import torch
+
+from clod_adapter import lod
+from clod_adapter.adapt import AdaptConfig, adapt, load_state, prepare, save_state
+from clod_adapter.io.ply import read_ply
+from clod_adapter.lod_render import render_lod
+from clod_adapter.render import rasterization
+from clod_adapter.synthetic import make_cameras, make_ground_truth, perturb
+
+
+@pytest.fixture(scope="module")
+def tiny():
+    gt = make_ground_truth(900, seed=3)
+    cams = make_cameras(2, 3, width=64, height=48)
+    imgs = []
+    with torch.no_grad():
+        for c in cams:
+            col, _, _ = rasterization(gt.means, gt.quats, gt.scales, gt.opacities, gt.colors,
+                                      c.viewmat[None], c.K[None], c.width, c.height,
+                                      sh_degree=gt.sh_degree, backend="cpu")
+            imgs.append(col[0].clamp(0, 1))
+    return perturb(gt, 5), cams, imgs
+
+
+@torch.no_grad()
+def _fraction(g, cams, s_v):
+    return sum(render_lod(g, c, s_v).n_rendered for c in cams) / (len(cams) * len(g))
+
+
+def test_lreg_acts_with_ste_and_not_with_paper(tiny):
+    model, cams, imgs = tiny
+    fractions = {}
+    for est in ("ste", "paper"):
+        cfg = AdaptConfig(max_sv=5.0, iterations=60, other_lr_scale=0.0, eta_estimator=est,
+                          init_attenuation=0.9, seed=0)
+        st = prepare(model, cams, cfg)
+        f0 = _fraction(st.gaussians().detach(), cams, 5.0)
+        assert adapt(st, cams, imgs, cfg, progress=False)
+        fractions[est] = (f0, _fraction(st.gaussians().detach(), cams, 5.0))
+    f0, f_ste = fractions["ste"]
+    _, f_paper = fractions["paper"]
+    assert f_ste < f0 - 0.2, f"L_reg with the STE estimator should cut Gaussians: {fractions}"
+    assert f_paper >= f0 - 0.02, f"the paper's hard mask gives L_reg no gradient: {fractions}"
+
+
+def test_frozen_attributes_do_not_move(tiny):
+    model, cams, imgs = tiny
+    cfg = AdaptConfig(iterations=5, other_lr_scale=0.0, init_attenuation=0.9)
+    st = prepare(model, cams, cfg)
+    adapt(st, cams, imgs, cfg, progress=False)
+    g = st.gaussians()
+    assert torch.equal(g.means, model.means) and torch.equal(g.sh0, model.sh0)
+    assert not torch.equal(g.sigma_d, prepare(model, cams, cfg).params["sigma_d"])
+
+
+def test_state_round_trip_and_resume(tiny, tmp_path):
+    model, cams, imgs = tiny
+    cfg = AdaptConfig(iterations=12, init_attenuation=0.9, seed=7)
+    full = prepare(model, cams, cfg)
+    adapt(full, cams, imgs, cfg, progress=False)
+
+    part = prepare(model, cams, cfg)
+    assert not adapt(part, cams, imgs, cfg, progress=False, max_steps=6)
+    save_state(tmp_path / "s.safetensors", part, cfg)
+    st, cfg_l, meta = load_state(tmp_path / "s.safetensors")
+    assert st.iteration == 6 and meta["format"] == "clod-adapter-state/1"
+    assert cfg_l.seed == 7
+    for k, v in part.params.items():
+        assert torch.equal(st.params[k].detach(), v.detach())
+    assert adapt(st, cams, imgs, cfg_l, progress=False)
+    for k in full.params:
+        torch.testing.assert_close(st.params[k].detach(), full.params[k].detach(), rtol=0, atol=1e-6)
+
+
+def test_load_state_rejects_other_files(tmp_path):
+    p = tmp_path / "x.safetensors"
+    p.write_bytes(b"not a safetensors file")
+    with pytest.raises(ValueError, match="x.safetensors"):
+        load_state(p)
+
+
+def test_pipeline_outputs(tmp_path):
+    from clod_adapter.io.scene import write_colmap_scene
+    from clod_adapter.io.ply import write_ply
+    from clod_adapter.pipeline import run
+    import numpy as np
+
+    gt = make_ground_truth(900, seed=4)
+    cams = make_cameras(2, 5, width=64, height=48)
+    imgs = []
+    with torch.no_grad():
+        for c in cams:
+            col, _, _ = rasterization(gt.means, gt.quats, gt.scales, gt.opacities, gt.colors,
+                                      c.viewmat[None], c.K[None], c.width, c.height,
+                                      sh_degree=gt.sh_degree, backend="cpu")
+            imgs.append((col[0].clamp(0, 1).numpy() * 255 + 0.5).astype(np.uint8))
+    write_colmap_scene(tmp_path / "scene", cams, imgs)
+    write_ply(tmp_path / "in.ply", perturb(gt, 2))
+    before = (tmp_path / "in.ply").read_bytes()
+    out = tmp_path / "out"
+    m = run(tmp_path / "in.ply", tmp_path / "scene", out, AdaptConfig(max_sv=3.0, iterations=30),
+            progress=False, log=lambda *a: None)
+    assert (tmp_path / "in.ply").read_bytes() == before  # input untouched
+    for name in ("point_cloud.ply", "adapt_state.safetensors", "metrics.json", "lod_strip.png"):
+        assert (out / name).is_file()
+    assert not [p for p in out.iterdir() if p.name.startswith(".")]  # no temp files left
+    g = read_ply(out / "point_cloud.ply")
+    assert g.sigma_d is not None and len(g) == 900
+    mj = json.loads((out / "metrics.json").read_text())
+    assert [lv["s_v"] for lv in mj["levels"]] == [1.0, 2.0, 3.0]
+    for key in ("psnr", "ssim", "gaussians", "ms_per_frame"):
+        assert all(key in lv for lv in mj["levels"])
+    assert mj["test_views"] == ["view000.png", "view008.png"]
+    counts = [lv["gaussians"] for lv in mj["levels"]]
+    assert counts[0] >= counts[-1]
+    assert abs(mj["init_s_v1"]["psnr_drop_db"]) <= 0.05

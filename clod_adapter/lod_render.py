@@ -14,8 +14,24 @@ import torch
 from torch import Tensor
 
 from . import lod
+from .budget import budget_count, critical_s_v, select_budget
 from .gaussians import Gaussians
 from .render import rasterization
+from .render.projection import project_visible
+
+
+@torch.no_grad()
+def in_view(gaussians: Gaussians, viewmat: Tensor, K: Tensor, width: int, height: int) -> Tensor:
+    """[N] bool: Gaussians whose footprint reaches the image (gsplat 1.5.3 culling with the
+    opacity-free 3.33-sigma extent, near plane 0.01). A superset of what the rasteriser draws for
+    any opacity <= alpha; the population LoD counts and budgets refer to."""
+    vis = torch.zeros(len(gaussians), dtype=torch.bool, device=gaussians.means.device)
+    if len(gaussians) == 0:
+        return vis
+    pv = project_visible(gaussians.means.detach(), gaussians.quats.detach(),
+                         gaussians.scales.detach(), None, viewmat, K, width, height)
+    vis[pv.ids] = True
+    return vis
 
 
 @dataclass
@@ -25,9 +41,11 @@ class LodRender:
     Attributes:
         image: [H, W, 3] rendered colours (float32, not clamped).
         alpha: [H, W, 1] accumulated opacity.
-        mask: [N] bool, Gaussians handed to the rasteriser (those passing the LoD mask).
-        n_rendered: number of Gaussians the rasteriser actually drew (passed the mask and
-            projected onto the image, gsplat's ``radii > 0``): the render cost.
+        mask: [N] bool, Gaussians handed to the rasteriser: in view (:func:`in_view`) and
+            passing the LoD mask (or the budget selection).
+        n_rendered: ``mask.sum()``, the render cost. With tau * s_v >= 1/255 every one of them
+            is drawn (none falls under gsplat's alpha threshold).
+        s_v: the virtual distance scale used (the solved one in budget mode; None: no LoD).
         n_frustum: number of Gaussian centres inside the view frustum.
         eta: scalar tensor, rendered fraction of the frustum (gradient per the estimator;
             1.0 without LoD).
@@ -42,6 +60,7 @@ class LodRender:
     n_rendered: int
     n_frustum: int
     eta: Tensor
+    s_v: Optional[float] = None
     select_ms: float = 0.0
     raster_ms: float = 0.0
     meta: dict = field(default_factory=dict)
@@ -60,6 +79,8 @@ def render_lod(
     sh_degree: Optional[int] = None,
     backend: str = "auto",
     impl: str = "auto",
+    eta_grad_sigma_only: bool = True,
+    budget: Optional[float | int] = None,
 ) -> LodRender:
     """Render ``gaussians`` from ``camera`` at virtual distance scale ``s_v``.
 
@@ -74,12 +95,19 @@ def render_lod(
         background: [3] colour behind the scene (default black, as 3DGS on LLFF).
         sh_degree: SH degree to evaluate (default: the model's).
         backend, impl: rasteriser backend (``"auto"``, ``"cpu"``, ``"gsplat"``) and CPU compositor.
+        budget: render exactly this many Gaussians (int) or this fraction of the model (float
+            in [0, 1]) instead of a given ``s_v``: the ``s_v`` is solved exactly per view
+            (:mod:`clod_adapter.budget`), capped by the Gaussians in view.
+        eta_grad_sigma_only: ``eta``'s gradient reaches ``sigma_d`` only (opacities and positions
+            detached in its margin), so the count regulariser cuts Gaussians through their decay
+            instead of eroding their opacity at every level of detail.
 
     Returns:
         :class:`LodRender`.
 
     Raises:
-        ValueError: ``s_v`` given but the model has no ``sigma_d``, or ``s_v < 1``.
+        ValueError: ``s_v`` or ``budget`` given but the model has no ``sigma_d``; ``s_v < 1``;
+            both ``s_v`` and ``budget`` given.
     """
     means = gaussians.means
     dev = means.device
@@ -88,24 +116,40 @@ def render_lod(
     w, h = int(camera.width), int(camera.height)
     t0 = time.perf_counter()
     frustum = lod.in_frustum(means, viewmat, K, w, h)
+    visible = in_view(gaussians, viewmat, K, w, h)
     opac = gaussians.opacities
-    if s_v is None:
-        mask = torch.ones_like(frustum)
+    if budget is not None and s_v is not None:
+        raise ValueError("render_lod: give s_v or budget, not both")
+    if (s_v is not None or budget is not None) and gaussians.sigma_d is None:
+        raise ValueError("render_lod: s_v/budget given but the model has no sigma_d")
+    if s_v is None and budget is None:
+        mask = visible
         eta = torch.ones((), dtype=means.dtype, device=dev)
         opac_used = opac
+    elif budget is not None:
+        center = lod.camera_center(viewmat)
+        d_norm = lod.normalized_distances(means, center, frustum)
+        with torch.no_grad():
+            crit = critical_s_v(opac.detach(), d_norm.detach(), gaussians.sigma_d.detach(), tau, eps)
+            idx_b, s_v = select_budget(crit, budget_count(budget, len(gaussians)), visible)
+        mask = torch.zeros_like(visible)
+        mask[idx_b] = True
+        eta = mask[frustum].float().mean() if bool(frustum.any()) else torch.zeros(())
+        opac_used = lod.lod_opacities(opac, d_norm, gaussians.sigma_d, s_v, eps)
     else:
-        if gaussians.sigma_d is None:
-            raise ValueError("render_lod: s_v given but the model has no sigma_d")
         if not s_v >= 1.0:
             raise ValueError(f"render_lod: s_v must be >= 1, got {s_v}")
         center = lod.camera_center(viewmat)
         d_norm = lod.normalized_distances(means, center, frustum)
         margin = lod.lod_margin(opac, d_norm, gaussians.sigma_d, s_v, tau, eps)
+        m_eta = margin
+        if eta_grad_sigma_only:
+            m_eta = lod.lod_margin(opac.detach(), d_norm.detach(), gaussians.sigma_d, s_v, tau, eps)
         # The mask covers every Gaussian: one whose centre lies just outside the image can
         # still cover pixels (the rasteriser culls by footprint). The frustum only defines
         # the normaliser of d' and the population of eta.
-        mask = margin > 0
-        eta = lod.rendered_fraction(margin, frustum, estimator, temperature)
+        mask = (margin > 0) & visible
+        eta = lod.rendered_fraction(m_eta, frustum, estimator, temperature)
         opac_used = lod.lod_opacities(opac, d_norm, gaussians.sigma_d, s_v, eps)
     idx = torch.nonzero(mask, as_tuple=False).squeeze(1)
     t1 = time.perf_counter()
@@ -119,10 +163,8 @@ def render_lod(
         backgrounds=bg, backend=backend, impl=impl,
     )
     t2 = time.perf_counter()
-    n_vis = meta.get("n_visible")
-    n_rendered = int(n_vis.reshape(-1)[0]) if n_vis is not None else int(idx.numel())
     return LodRender(
-        image=colors[0], alpha=alphas[0], mask=mask, n_rendered=n_rendered,
-        n_frustum=int(frustum.sum()), eta=eta, select_ms=(t1 - t0) * 1e3,
+        image=colors[0], alpha=alphas[0], mask=mask, n_rendered=int(idx.numel()),
+        n_frustum=int(frustum.sum()), eta=eta, s_v=s_v, select_ms=(t1 - t0) * 1e3,
         raster_ms=(t2 - t1) * 1e3, meta=meta,
     )

@@ -1,0 +1,101 @@
+"""Exact Gaussian budgets: per-Gaussian critical s_v and a k-th-largest selection.
+
+A Gaussian is rendered at ``s_v`` iff its margin (CLoD-GS Eq. 2 against the ``tau s_v`` mask)
+
+    h(s) = log alpha - log tau - a s^2 - log s,    a = d'^2 / (2 ReLU(sigma_d)^2 + eps)
+
+is positive. ``h`` is strictly decreasing in ``s > 0`` (from +inf to -inf), so each Gaussian has
+exactly one *critical* scale ``s*`` with ``h(s*) = 0`` and is rendered iff ``s_v < s*``. The
+rendered count is therefore non-increasing in ``s_v``, and rendering exactly ``k`` Gaussians
+means keeping the ``k`` largest ``s*`` (ties broken by index) at any ``s_v`` in
+``[s*_(k+1), s*_(k))``.
+"""
+from __future__ import annotations
+
+from typing import Optional
+
+import torch
+from torch import Tensor
+
+from . import lod
+
+_NEWTON_STEPS = 80
+
+
+def critical_s_v(opacities: Tensor, d_norm: Tensor, sigma_d: Tensor, tau: float = lod.DEFAULT_TAU,
+                 eps: float = lod.DEFAULT_EPS) -> Tensor:
+    """Per-Gaussian critical scale ``s*`` (rendered iff ``s_v < s*``).
+
+    Solves ``log alpha - log tau - a s^2 - log s = 0`` for ``u = log s`` by Newton's method in
+    float64, started at ``u0 = log(alpha / tau)`` (>= the root; the function is concave and
+    decreasing in u, so the iterates decrease monotonically onto the root).
+
+    Args:
+        opacities: [N] activated opacities.
+        d_norm: [N] frustum-normalised distances d'.
+        sigma_d: [N] raw distance decays.
+        tau, eps: the LoD threshold and Eq. 2's epsilon.
+
+    Returns:
+        [N] float64 ``s*`` (> 0; 0 for alpha = 0; ``alpha / tau`` where d' = 0).
+    """
+    a = d_norm.double() ** 2 / (2.0 * torch.relu(sigma_d.double()) ** 2 + eps)
+    A = torch.log(opacities.double()) - torch.log(torch.tensor(tau, dtype=torch.float64))
+    u = A.clone()
+    finite = torch.isfinite(u)
+    u = torch.where(finite, u, torch.zeros_like(u))
+    for _ in range(_NEWTON_STEPS):
+        e = a * torch.exp(2.0 * u)
+        h = A.where(finite, torch.zeros_like(A)) - e - u
+        step = h / (2.0 * e + 1.0)
+        u = u + step  # h <= 0 and h' < 0: u moves left
+        if bool((step.abs() < 1e-13).all()):
+            break
+    s = torch.exp(u)
+    return torch.where(finite, s, torch.zeros_like(s))
+
+
+def budget_count(budget: float | int, n: int) -> int:
+    """A budget as a count: an int (or integral float > 1) is a count, a float in [0, 1] a
+    fraction of ``n``. Raises ValueError for negative budgets."""
+    if budget < 0:
+        raise ValueError(f"budget must be >= 0, got {budget}")
+    if isinstance(budget, float) and budget <= 1.0:
+        return int(round(budget * n))
+    return min(int(budget), n)
+
+
+def select_budget(critical: Tensor, k: int, candidates: Optional[Tensor] = None) -> tuple[Tensor, float]:
+    """The ``k`` Gaussians with the largest critical scale, and an ``s_v`` that renders them.
+
+    Args:
+        critical: [N] critical scales (:func:`critical_s_v`).
+        k: number of Gaussians to render (clamped to the number of candidates).
+        candidates: [N] bool, the Gaussians that may be chosen (e.g. those in view); None: all.
+
+    Returns:
+        (indices [k] int64 sorted ascending, s_v). ``s_v`` is the geometric mean of the k-th and
+        (k+1)-th largest critical values, so the mask ``s_v < s*`` over the candidates selects
+        exactly these k unless those two values tie (then the tie is broken by index and
+        ``s_v`` equals the tied value). k = 0 gives the largest value; k = all gives half the
+        smallest.
+    """
+    pool = torch.arange(critical.numel(), device=critical.device)
+    if candidates is not None:
+        pool = pool[candidates]
+    vals = critical[pool]
+    m = vals.numel()
+    k = max(0, min(int(k), m))
+    if m == 0:
+        return pool, 1.0
+    order = torch.sort(-vals, stable=True).indices  # descending, ties by index
+    chosen = torch.sort(pool[order[:k]]).values
+    sv = vals[order]
+    if k == 0:
+        s_v = float(sv[0])
+    elif k == m:
+        s_v = float(sv[-1]) * 0.5
+    else:
+        hi, lo = float(sv[k - 1]), float(sv[k])
+        s_v = hi if hi == lo else (hi * lo) ** 0.5 if lo > 0 else hi * 0.5
+    return chosen, max(s_v, 1e-12)

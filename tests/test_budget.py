@@ -1,0 +1,85 @@
+"""Exact budgets: critical s_v per Gaussian and the k-th-largest selection."""
+import pytest
+import torch
+
+from clod_adapter import lod
+from clod_adapter.budget import budget_count, critical_s_v, select_budget
+
+
+def _rand(n=400, seed=0):
+    g = torch.Generator().manual_seed(seed)
+    opac = torch.rand(n, generator=g, dtype=torch.float64) * 0.99 + 0.005
+    d = torch.rand(n, generator=g, dtype=torch.float64)
+    sigma = torch.rand(n, generator=g, dtype=torch.float64) * 1.5 - 0.1  # some dead (<= 0)
+    return opac, d, sigma
+
+
+def test_critical_is_the_root_of_the_margin():
+    opac, d, sigma = _rand()
+    crit = critical_s_v(opac, d, sigma)
+    assert bool((crit > 0).all()) and torch.isfinite(crit).all()
+    below = lod.lod_margin(opac, d, sigma, crit * (1 - 1e-7))
+    above = lod.lod_margin(opac, d, sigma, crit * (1 + 1e-7))
+    assert bool((below > 0).all()) and bool((above < 0).all())
+
+
+def test_count_at_s_v_matches_critical():
+    opac, d, sigma = _rand(seed=1)
+    crit = critical_s_v(opac, d, sigma)
+    for s in torch.linspace(0.5, 30, 50).tolist():
+        mask = lod.lod_mask(opac, d, sigma, s)
+        assert int(mask.sum()) == int((crit > s).sum())
+
+
+def test_no_attenuation_closed_form():
+    opac = torch.tensor([0.5, 0.9], dtype=torch.float64)
+    crit = critical_s_v(opac, torch.zeros(2, dtype=torch.float64), torch.ones(2, dtype=torch.float64), tau=0.01)
+    torch.testing.assert_close(crit, opac / 0.01)
+
+
+@pytest.mark.parametrize("k", [0, 1, 7, 199, 200])
+def test_select_budget_exact_k(k):
+    opac, d, sigma = _rand(200, seed=2)
+    crit = critical_s_v(opac, d, sigma)
+    idx, s_v = select_budget(crit, k)
+    assert idx.numel() == k
+    assert int((crit > s_v).sum()) == k
+    if 0 < k < 200:
+        assert crit[idx].min() >= crit[~torch.isin(torch.arange(200), idx)].max()
+
+
+def test_select_budget_ties_and_candidates():
+    crit = torch.tensor([3.0, 2.0, 2.0, 2.0, 1.0], dtype=torch.float64)
+    idx, s_v = select_budget(crit, 2)
+    assert idx.tolist() == [0, 1]  # tie broken by index
+    assert s_v == 2.0
+    cand = torch.tensor([False, True, True, False, True])
+    idx, s_v = select_budget(crit, 2, cand)
+    assert idx.tolist() == [1, 2]
+    idx, _ = select_budget(crit, 10, cand)
+    assert idx.tolist() == [1, 2, 4]
+
+
+def test_budget_count():
+    assert budget_count(0.25, 100) == 25
+    assert budget_count(1.0, 100) == 100
+    assert budget_count(30, 100) == 30
+    assert budget_count(300, 100) == 100
+    with pytest.raises(ValueError):
+        budget_count(-1, 10)
+
+
+def test_render_lod_budget_renders_exactly_k():
+    from clod_adapter.lod_render import render_lod
+    from clod_adapter.synthetic import make_cameras, make_ground_truth
+
+    gt = make_ground_truth(600, seed=1)
+    g = gt.with_sigma_d(torch.rand(600, generator=torch.Generator().manual_seed(0)) * 0.5 + 0.05)
+    cam = make_cameras(1, 1, 64, 48)[0]
+    full = render_lod(g, cam, None).n_rendered
+    for k in (0, 1, 50, 300, full, 10_000):
+        out = render_lod(g, cam, budget=k)
+        assert out.n_rendered == min(k, full)
+        assert torch.isfinite(out.image).all()
+    out = render_lod(g, cam, budget=0.5)
+    assert out.n_rendered == min(300, full)

@@ -1,0 +1,240 @@
+"""Baselines for fixed Gaussian budgets: which ``k`` Gaussians of a pretrained model to render.
+
+Every selection picks among the same population as :func:`clod_adapter.lod_render.render_lod`
+(:func:`clod_adapter.lod_render.in_view`: Gaussians whose footprint reaches the image), so a
+budget of ``k`` means the same thing for every method, and returns the indices plus the
+opacities to draw them with. :func:`render_subset` then hands exactly those Gaussians to the
+rasteriser, the way ``render_lod`` does.
+
+* :func:`constant_sigma_selection`: CLoD-GS Eq. 2 with one constant ``sigma_d = c`` for every
+  Gaussian (the paper's "fair comparison" of opacity ranking without a learned decay). The
+  ``k`` Gaussians with the largest critical ``s_v`` are kept (:mod:`clod_adapter.budget`) and
+  drawn with Eq. 2's attenuated opacities at the solved ``s_v``. Default ``c``: the median of
+  the adapted model's ``ReLU(sigma_d)`` (:func:`default_sigma_c`).
+* :func:`lightgaussian_significance`: LightGaussian's global significance (Fan et al., NeurIPS
+  2024, Sec. 3.1; code ``VITA-Group/LightGaussian``, ``prune.py: calculate_v_imp_score`` and the
+  ``count_render`` rasteriser): ``score_i = (sum over training views of opacity_i x pixels hit)
+  x (V_i / V_ref)^0.1``, ranked once globally; per view the ``k`` best in view are drawn.
+* :func:`random_scores`: a seeded random global ranking (same top-k-in-view rule).
+
+All baselines except the constant-sigma one render the original opacities.
+"""
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass
+from typing import Optional, Sequence
+
+import torch
+from torch import Tensor
+
+from . import lod
+from .budget import critical_s_v, select_budget
+from .gaussians import Gaussians
+from .lod_render import in_view
+from .render import rasterization
+from .render.projection import ALPHA_THRESHOLD, GAUSSIAN_EXTEND, project_visible
+
+#: LightGaussian's volume exponent (``--v_pow 0.1`` in their prune scripts).
+LIGHTGAUSSIAN_V_POW = 0.1
+
+
+@dataclass
+class Selection:
+    """The Gaussians one baseline renders for one camera.
+
+    Attributes:
+        indices: [k] int64 indices into the model, sorted ascending.
+        opacities: [k] float32 opacities to draw them with.
+        s_v: the solved virtual distance scale (constant-sigma baseline), else None.
+        select_ms: wall time of the selection for this camera (in-view test + ranking), ms.
+    """
+
+    indices: Tensor
+    opacities: Tensor
+    s_v: Optional[float] = None
+    select_ms: float = 0.0
+
+
+@dataclass
+class SubsetRender:
+    """Result of :func:`render_subset`: ``image`` [H, W, 3] float32 (not clamped), ``alpha``
+    [H, W, 1], ``n_rendered`` (Gaussians handed to the rasteriser), ``raster_ms`` (ms)."""
+
+    image: Tensor
+    alpha: Tensor
+    n_rendered: int
+    raster_ms: float
+
+
+def _cam(gaussians: Gaussians, camera):
+    dev, dt = gaussians.means.device, gaussians.means.dtype
+    return (camera.viewmat.to(dev, dt), camera.K.to(dev, dt), int(camera.width), int(camera.height))
+
+
+@torch.no_grad()
+def render_subset(gaussians: Gaussians, camera, indices: Tensor, opacities: Optional[Tensor] = None,
+                  *, background=None, sh_degree: Optional[int] = None, backend: str = "auto",
+                  impl: str = "auto") -> SubsetRender:
+    """Rasterise exactly the Gaussians ``indices`` of ``gaussians`` (as ``render_lod`` does).
+
+    Args:
+        gaussians: the model (N Gaussians).
+        camera: object with ``viewmat`` [4, 4], ``K`` [3, 3], ``width``, ``height``.
+        indices: [k] int64 indices to render.
+        opacities: [k] opacities for them (default: the model's activated opacities).
+        background: [3] RGB behind the scene (default black).
+        sh_degree, backend, impl: as :func:`clod_adapter.render.rasterization`.
+    """
+    viewmat, K, w, h = _cam(gaussians, camera)
+    dev = gaussians.means.device
+    idx = indices.to(dev)
+    op = gaussians.opacities[idx] if opacities is None else opacities.to(dev, gaussians.means.dtype)
+    bg = None
+    if background is not None:
+        bg = torch.as_tensor(background, dtype=gaussians.means.dtype, device=dev).reshape(1, 3)
+    t0 = time.perf_counter()
+    colors, alphas, _ = rasterization(
+        gaussians.means[idx], gaussians.quats[idx], gaussians.scales[idx], op,
+        gaussians.colors[idx], viewmat[None], K[None], w, h,
+        sh_degree=gaussians.sh_degree if sh_degree is None else sh_degree,
+        backgrounds=bg, backend=backend, impl=impl,
+    )
+    t1 = time.perf_counter()
+    return SubsetRender(colors[0], alphas[0], int(idx.numel()), (t1 - t0) * 1e3)
+
+
+def topk_in_view(scores: Tensor, visible: Tensor, k: int) -> Tensor:
+    """[min(k, visible.sum())] int64 indices of the ``k`` highest ``scores`` among ``visible``
+    Gaussians (ties broken by lower index), sorted ascending."""
+    pool = torch.nonzero(visible, as_tuple=False).squeeze(1)
+    k = max(0, min(int(k), pool.numel()))
+    order = torch.sort(-scores[pool].double(), stable=True).indices[:k]
+    return torch.sort(pool[order]).values
+
+
+@torch.no_grad()
+def ranking_selection(gaussians: Gaussians, camera, scores: Tensor, k: int) -> Selection:
+    """Global-ranking baseline for one camera: the ``k`` best-scored Gaussians in view, drawn
+    with their original opacities. ``scores`` [N] (higher = kept first), e.g. from
+    :func:`lightgaussian_significance` or :func:`random_scores`."""
+    viewmat, K, w, h = _cam(gaussians, camera)
+    t0 = time.perf_counter()
+    vis = in_view(gaussians, viewmat, K, w, h)
+    idx = topk_in_view(scores.to(vis.device), vis, k)
+    op = gaussians.opacities[idx]
+    return Selection(idx, op, None, (time.perf_counter() - t0) * 1e3)
+
+
+def default_sigma_c(adapted: Gaussians) -> float:
+    """Default constant decay for :func:`constant_sigma_selection`: the median of the adapted
+    model's ``ReLU(sigma_d)`` (the decay a "typical" adapted Gaussian has)."""
+    if adapted.sigma_d is None:
+        raise ValueError("default_sigma_c: the model has no sigma_d")
+    return float(torch.relu(adapted.sigma_d.detach().float()).median())
+
+
+@torch.no_grad()
+def constant_sigma_selection(gaussians: Gaussians, camera, k: int, sigma_c: float, *,
+                             tau: float = lod.DEFAULT_TAU, eps: float = lod.DEFAULT_EPS,
+                             fade: bool = False) -> Selection:
+    """Opacity ranking by CLoD-GS Eq. 2 with ``sigma_d = sigma_c`` for every Gaussian.
+
+    For one constant decay the critical ``s*`` of each Gaussian (rendered iff ``s_v < s*``)
+    grows with its opacity and shrinks with its frustum-normalised distance ``d'``; the ``k``
+    largest among the Gaussians in view are kept (:func:`clod_adapter.budget.select_budget`,
+    ties by index). They are drawn with their original opacities (a pure selection baseline);
+    ``fade=True`` draws them with Eq. 2's ``alpha''`` at the solved ``s_v`` instead, which with
+    one shared small decay fades almost every kept Gaussian (on fern: ~5 dB at 50 %).
+
+    Args:
+        gaussians: the pretrained model (its own ``sigma_d``, if any, is ignored).
+        camera: the view.
+        k: number of Gaussians (clamped to those in view).
+        sigma_c: the constant decay (> 0).
+        tau, eps: the LoD threshold and Eq. 2's epsilon.
+        fade: draw with Eq. 2's attenuated opacities instead of the original ones.
+    """
+    if not sigma_c > 0:
+        raise ValueError(f"sigma_c must be > 0, got {sigma_c}")
+    viewmat, K, w, h = _cam(gaussians, camera)
+    means = gaussians.means
+    t0 = time.perf_counter()
+    frustum = lod.in_frustum(means, viewmat, K, w, h)
+    vis = in_view(gaussians, viewmat, K, w, h)
+    d_norm = lod.normalized_distances(means, lod.camera_center(viewmat), frustum)
+    sig = torch.full_like(d_norm, float(sigma_c))
+    opac = gaussians.opacities
+    crit = critical_s_v(opac, d_norm, sig, tau, eps)
+    idx, s_v = select_budget(crit, k, vis)
+    op = lod.lod_opacities(opac[idx], d_norm[idx], sig[idx], s_v, eps) if fade else opac[idx]
+    return Selection(idx, op, s_v, (time.perf_counter() - t0) * 1e3)
+
+
+@torch.no_grad()
+def pixels_hit(gaussians: Gaussians, camera) -> Tensor:
+    """[N] float32 estimate of the pixels each Gaussian touches in one view.
+
+    The 3DGS/LightGaussian rasteriser counts a pixel when ``alpha = o exp(-q/2) >= 1/255``, with
+    ``q`` the conic's quadratic form: the ellipse ``q <= 2 ln(255 o)``, whose area is
+    ``pi 2 ln(255 o) sqrt(det Sigma_2D)``. We use that area with the extent capped at gsplat
+    1.5.3's 3.33 sigma, times the fraction of the bounding box ``mean2d +- radius`` that lies
+    inside the image (clipping). Transmittance early-out (pixels behind an opaque surface) is
+    ignored, so occluded Gaussians are over-counted relative to ``count_render``.
+    """
+    viewmat, K, w, h = _cam(gaussians, camera)
+    n = len(gaussians)
+    out = torch.zeros(n, dtype=torch.float32, device=gaussians.means.device)
+    if n == 0:
+        return out
+    op = gaussians.opacities
+    pv = project_visible(gaussians.means, gaussians.quats, gaussians.scales, op, viewmat, K, w, h)
+    a, b, c = pv.conics.unbind(-1)
+    det_conic = (a * c - b * b).clamp_min(1e-30)
+    o = op[pv.ids].clamp_min(ALPHA_THRESHOLD)
+    e2 = (2.0 * torch.log(o / ALPHA_THRESHOLD)).clamp(0.0, GAUSSIAN_EXTEND ** 2)
+    area = math.pi * e2 / torch.sqrt(det_conic)
+    r = pv.radii.to(torch.float32)
+    mx, my = pv.means2d.unbind(-1)
+    fx = ((mx + r[:, 0]).clamp(0, w) - (mx - r[:, 0]).clamp(0, w)) / (2 * r[:, 0]).clamp_min(1)
+    fy = ((my + r[:, 1]).clamp(0, h) - (my - r[:, 1]).clamp(0, h)) / (2 * r[:, 1]).clamp_min(1)
+    out[pv.ids] = (area * fx.clamp(0, 1) * fy.clamp(0, 1)).float()
+    return out
+
+
+def volume_factor(gaussians: Gaussians, v_pow: float = LIGHTGAUSSIAN_V_POW) -> Tensor:
+    """[N] LightGaussian's normalised volume term ``(V_i / V_ref)^v_pow``.
+
+    As in ``calculate_v_imp_score``: ``V = prod(scales)``; ``V_ref`` is the element at position
+    ``int(0.9 N)`` of the volumes sorted in *descending* order (the code calls it
+    "kth_percent_largest"; it is the 10th percentile from below).
+    """
+    vol = torch.prod(gaussians.scales.detach().double(), dim=1)
+    if vol.numel() == 0:
+        return vol.float()
+    ref = torch.sort(vol, descending=True).values[int(vol.numel() * 0.9)].clamp_min(1e-300)
+    return torch.pow(vol / ref, v_pow).float()
+
+
+@torch.no_grad()
+def lightgaussian_significance(gaussians: Gaussians, train_cameras: Sequence,
+                               v_pow: float = LIGHTGAUSSIAN_V_POW) -> Tensor:
+    """[N] float32 LightGaussian global significance (higher = more important).
+
+    ``score_i = (sum_views opacity_i x pixels_hit_i(view)) x (V_i / V_ref)^v_pow``, the
+    ``important_score`` of LightGaussian's ``count_render`` (opacity accumulated once per pixel
+    hit) times :func:`volume_factor`. Pixels hit are estimated from the projected footprint
+    (:func:`pixels_hit`), not counted by a rasteriser pass.
+    """
+    imp = torch.zeros(len(gaussians), dtype=torch.float32, device=gaussians.means.device)
+    op = gaussians.opacities.float()
+    for cam in train_cameras:
+        imp += op * pixels_hit(gaussians, cam)
+    return imp * volume_factor(gaussians, v_pow).to(imp.device)
+
+
+def random_scores(n: int, seed: int = 0, device="cpu") -> Tensor:
+    """[N] float32 seeded uniform scores: a random global ranking (the random baseline)."""
+    g = torch.Generator().manual_seed(int(seed))
+    return torch.rand(n, generator=g).to(device)

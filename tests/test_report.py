@@ -1,0 +1,209 @@
+"""clod-eval: baselines render exactly k Gaussians, the popping measurement, the report's CSV
+schema and outputs on a tiny synthetic scene, and the CLI's bad-input handling."""
+import csv
+import json
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from cli.eval import main
+from clod_adapter.baselines import (constant_sigma_selection, lightgaussian_significance, random_scores,
+                                    ranking_selection, render_subset, volume_factor)
+from clod_adapter.io.ply import write_ply
+from clod_adapter.io.scene import load_colmap_scene, write_colmap_scene
+from clod_adapter.lod_render import in_view, render_lod
+from clod_adapter.render import rasterization
+from clod_adapter.report import (BASELINES, CSV_COLUMNS, OUTPUT_NAMES, PER_VIEW_COLUMNS, evaluate_report,
+                                 popping_curve)
+from clod_adapter.synthetic import make_cameras, make_ground_truth, perturb
+
+
+@pytest.fixture(scope="module")
+def tiny(tmp_path_factory):
+    """Pretrained stand-in, an "adapted" copy with a random sigma_d, a written COLMAP scene."""
+    root = tmp_path_factory.mktemp("eval")
+    gt = make_ground_truth(600, seed=3)
+    cams = make_cameras(2, 5, width=48, height=36)  # llffhold 8: 2 test views, 8 train
+    imgs = []
+    with torch.no_grad():
+        for c in cams:
+            col, _, _ = rasterization(gt.means, gt.quats, gt.scales, gt.opacities, gt.colors,
+                                      c.viewmat[None], c.K[None], c.width, c.height,
+                                      sh_degree=gt.sh_degree, backend="cpu")
+            imgs.append((col[0].clamp(0, 1).numpy() * 255 + 0.5).astype(np.uint8))
+    write_colmap_scene(root / "scene", cams, imgs)
+    pre = perturb(gt, 5)
+    g = torch.Generator().manual_seed(0)
+    ad = pre.with_sigma_d(0.2 + 0.6 * torch.rand(len(pre), generator=g))
+    write_ply(root / "pre.ply", pre)
+    (root / "ad").mkdir()
+    write_ply(root / "ad" / "point_cloud.ply", ad)
+    return {"root": root, "pre": pre, "ad": ad, "cams": cams, "scene": load_colmap_scene(root / "scene")}
+
+
+@pytest.fixture(scope="module")
+def report(tiny):
+    out = tiny["root"] / "report"
+    out.mkdir()
+    rep = evaluate_report(tiny["root"] / "ad" / "point_cloud.ply", tiny["scene"], out,
+                          pretrained=tiny["root"] / "pre.ply", budgets=[1.0, 0.5, 0.1, 50], sv_steps=6,
+                          max_sv=3.0, popping_steps=9, lpips=None, progress=False, log=None)
+    return rep, out
+
+
+# --- baselines -------------------------------------------------------------------------------
+@pytest.mark.parametrize("k", [0, 1, 37, 10**6])
+def test_baselines_render_exactly_k(tiny, k):
+    pre, cam = tiny["pre"], tiny["cams"][0]
+    vis = in_view(pre, cam.viewmat, cam.K, cam.width, cam.height)
+    n_vis = int(vis.sum())
+    want = min(k, n_vis)
+    sels = {
+        "constant_sigma": constant_sigma_selection(pre, cam, k, 0.3),
+        "lightgaussian": ranking_selection(pre, cam, lightgaussian_significance(pre, tiny["cams"][1:]), k),
+        "random": ranking_selection(pre, cam, random_scores(len(pre), 0), k),
+    }
+    for name, sel in sels.items():
+        assert sel.indices.numel() == want, name
+        assert bool(vis[sel.indices].all()), name  # the same in-view population as render_lod
+        assert sel.indices.unique().numel() == want, name
+        assert sel.opacities.shape == (want,)
+        assert render_subset(pre, cam, sel.indices, sel.opacities, backend="cpu").n_rendered == want
+    # baselines except constant sigma keep the original opacities
+    assert torch.equal(sels["random"].opacities, pre.opacities[sels["random"].indices])
+
+
+def test_constant_sigma_matches_render_lod_budget(tiny):
+    """Baseline (a) is render_lod's exact budget on the model with sigma_d = c everywhere."""
+    pre, cam = tiny["pre"], tiny["cams"][1]
+    c = 0.25
+    sel = constant_sigma_selection(pre, cam, 100, c, fade=True)
+    ref = render_lod(pre.with_sigma_d(torch.full((len(pre),), c)), cam, budget=100, backend="cpu")
+    assert torch.equal(sel.indices, torch.nonzero(ref.mask).squeeze(1))
+    assert sel.s_v == pytest.approx(ref.s_v)
+    img = render_subset(pre, cam, sel.indices, sel.opacities, backend="cpu").image
+    assert torch.allclose(img, ref.image, atol=1e-5)
+    # default: the same selection drawn with the original opacities
+    plain = constant_sigma_selection(pre, cam, 100, c)
+    assert torch.equal(plain.indices, sel.indices)
+    assert torch.equal(plain.opacities, pre.opacities[sel.indices])
+
+
+def test_ties_and_random_seed(tiny):
+    pre, cam = tiny["pre"], tiny["cams"][0]
+    flat = torch.ones(len(pre))  # all tied: lowest indices in view win
+    sel = ranking_selection(pre, cam, flat, 5)
+    vis = torch.nonzero(in_view(pre, cam.viewmat, cam.K, cam.width, cam.height)).squeeze(1)
+    assert torch.equal(sel.indices, vis[:5])
+    assert torch.equal(random_scores(50, 3), random_scores(50, 3))
+    assert not torch.equal(random_scores(50, 3), random_scores(50, 4))
+
+
+def test_lightgaussian_volume_and_score(tiny):
+    pre = tiny["pre"]
+    vf = volume_factor(pre)
+    vol = torch.prod(pre.scales.double(), 1)
+    ref = torch.sort(vol, descending=True).values[int(0.9 * len(vol))]
+    assert torch.allclose(vf.double(), (vol / ref) ** 0.1, rtol=1e-5)
+    s = lightgaussian_significance(pre, tiny["cams"])
+    assert s.shape == (len(pre),) and bool((s >= 0).all()) and float(s.max()) > 0
+
+
+# --- popping ---------------------------------------------------------------------------------
+def test_popping_ratio_finite(tiny):
+    pop = popping_curve(tiny["ad"], tiny["cams"][0], np.linspace(1, 3, 9), backend="cpu")
+    assert len(pop["continuous_step"]) == len(pop["discrete_step"]) == 8
+    assert sum(1 for d in pop["discrete_step"] if d > 0) == 1
+    assert pop["continuous_max"] > 0 and math.isfinite(pop["ratio"]) and pop["ratio"] > 0
+    assert pop["ratio"] == pytest.approx(pop["discrete_max"] / pop["continuous_max"])
+    assert pop["gaussians"][0] >= pop["gaussians"][-1]
+
+
+# --- report ----------------------------------------------------------------------------------
+def _read_csv(path):
+    with open(path, newline="") as f:
+        r = csv.DictReader(f)
+        return r.fieldnames, list(r)
+
+
+def test_report_outputs_and_csv_schema(report, tiny):
+    rep, out = report
+    for n in OUTPUT_NAMES:
+        assert (out / n).is_file() and (out / n).stat().st_size > 0, n
+    assert not [p for p in out.iterdir() if p.name.startswith(".")]  # no temp files left
+    cols, rows = _read_csv(out / "report.csv")
+    assert tuple(cols) == CSV_COLUMNS
+    keys = [(r["method"], r["setting"]) for r in rows]
+    assert len(keys) == len(set(keys))  # one row per method x setting
+    budgets = ["budget=1", "budget=0.5", "budget=0.1", "budget=50"]
+    expected = {("pretrained", "full")} | {("clod", f"s_v={s:g}") for s in np.linspace(1, 3.6, 6)}
+    expected |= {(m, b) for m in ("clod_budget",) + BASELINES for b in budgets}
+    assert set(keys) == expected
+    pcols, prow = _read_csv(out / "report_per_view.csv")
+    assert tuple(pcols) == PER_VIEW_COLUMNS
+    n_views = len(tiny["scene"].test)
+    assert n_views == 2 and len(prow) == n_views * len(rows)
+    assert all(r["views"] == str(n_views) for r in rows)
+    assert all(r["lpips"] == "" for r in rows)  # lpips=None: skipped, empty cells
+    js = json.loads((out / "report.json").read_text())
+    assert js["columns"] == list(CSV_COLUMNS) and len(js["rows"]) == len(rows)
+    assert any("LPIPS skipped" in n for n in js["notes"])
+
+
+def test_report_baselines_match_clod_counts(report):
+    rep, _ = report
+    pv = rep["per_view"]
+    for r in pv:
+        if r["method"] in BASELINES:
+            twin = [q for q in pv if q["method"] == "clod_budget" and q["setting"] == r["setting"]
+                    and q["view"] == r["view"]]
+            assert twin and twin[0]["gaussians"] == r["gaussians"]
+    b50 = [r for r in rep["rows"] if r["setting"] == "budget=50"]
+    assert all(r["gaussians"] == 50 for r in b50)
+    bpg = rep["bytes_per_gaussian"]
+    assert bpg == {"adapted": 4 * (3 + 3 + 3 + 9 + 1 + 3 + 4 + 1), "pretrained": 4 * 26}  # SH degree 1 (62 props at degree 3)
+    for r in rep["rows"]:
+        per = bpg["adapted"] if r["method"].startswith("clod") else bpg["pretrained"]
+        assert r["bytes"] == pytest.approx(r["gaussians"] * per)
+        assert math.isfinite(r["psnr"]) and 0 < r["ssim"] <= 1
+    assert math.isfinite(rep["popping"]["ratio"])
+
+
+# --- CLI -------------------------------------------------------------------------------------
+def _bad(args, capsys, out, must):
+    code = main([str(a) for a in args] + ["--quiet", "-o", str(out)])
+    err = capsys.readouterr().err.strip()
+    assert code == 2, err
+    assert len(err.splitlines()) == 1 and "Traceback" not in err
+    assert must in err, err
+    assert not out.exists()
+
+
+def test_cli_bad_inputs(tiny, tmp_path, capsys):
+    r = tiny["root"]
+    ad, scene, pre = r / "ad" / "point_cloud.ply", r / "scene", r / "pre.ply"
+    out = tmp_path / "rep"
+    _bad([tmp_path / "missing.ply", "--images", scene], capsys, out, "missing.ply")
+    _bad([ad, "--images", tmp_path / "noscene"], capsys, out, "noscene")
+    _bad([pre, "--images", scene], capsys, out, "sigma_d")  # not an adapted model
+    _bad([ad, "--images", scene, "--pretrained", tmp_path / "nopre.ply"], capsys, out, "nopre.ply")
+    _bad([ad, "--images", scene, "--budgets", "0.5,2.5"], capsys, out, "--budgets")
+    _bad([ad, "--images", scene, "--lpips-weights", tmp_path / "w.safetensors"], capsys, out, "w.safetensors")
+    junk = tmp_path / "junk.ply"
+    junk.write_bytes(b"not a ply")
+    _bad([junk, "--images", scene], capsys, out, "junk.ply")
+    _bad([ad], capsys, out, "--images")
+
+
+def test_cli_runs(tiny, tmp_path, capsys):
+    out = tmp_path / "rep"
+    r = tiny["root"]
+    code = main([str(r / "ad" / "point_cloud.ply"), "--images", str(r / "scene"), "--pretrained",
+                 str(r / "pre.ply"), "--budgets", "1,0.25", "--sv-steps", "3", "--popping-steps", "3",
+                 "--max-sv", "2", "--no-lpips", "--quiet", "-o", str(out)])
+    assert code == 0, capsys.readouterr().err
+    _, rows = _read_csv(out / "report.csv")
+    assert len(rows) == 1 + 3 + 2 * 4
+    assert "popping" in capsys.readouterr().out

@@ -35,7 +35,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--other-lr-scale", type=float, default=0.1,
                    help="factor on the official 3DGS learning rates of the other attributes; 0 freezes them")
-    p.add_argument("--lambda-reg", type=float, default=1.0, help="weight of the rendered-count regulariser")
+    p.add_argument("--lambda-reg", type=float, default=0.05,
+                   help="weight of the rendered-count regulariser (default 0.05; the paper's 1 is for training from scratch)")
     p.add_argument("--tau", type=float, default=None, help="LoD threshold: render iff alpha'' > tau*s_v (default 0.005)")
     p.add_argument("--eta-estimator", default="ste", choices=("ste", "sigmoid", "paper"),
                    help="gradient of the rendered fraction in L_reg; 'paper' = hard count, no gradient")

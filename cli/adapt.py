@@ -1,7 +1,8 @@
 """``clod-adapt``: give a trained 3DGS checkpoint a continuous level of detail (CLoD-GS).
 
     clod-adapt PLY --images SCENE --max-sv 5 [-o OUT] [--iterations N] [--resolution R]
-               [--device auto|cpu|cuda] [--seed S] [--resume]
+               [--device auto|cpu|cuda] [--seed S] [--resume] [--sanitize]
+               [--deterministic]
     clod-adapt --demo [-o OUT]
 
 Exit status: 0 done, 2 bad input (one line on stderr, nothing written), 130 interrupted (the
@@ -40,11 +41,25 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--tau", type=float, default=None, help="LoD threshold: render iff alpha'' > tau*s_v (default 0.005)")
     p.add_argument("--eta-estimator", default="ste", choices=("ste", "sigmoid", "paper"),
                    help="gradient of the rendered fraction in L_reg; 'paper' = hard count, no gradient")
-    p.add_argument("--resume", action="store_true", help="continue from OUT/adapt_state.safetensors")
+    p.add_argument("--sanitize", action="store_true",
+                   help="drop Gaussians with NaN/Inf values (and clamp +Inf opacity logits to "
+                        "logit(1 - 1e-7)) instead of stopping; says how many")
+    p.add_argument("--resume", action="store_true",
+                   help="continue from OUT/adapt_state.safetensors (give the same PLY, scene and flags; "
+                        "--iterations defaults to the saved run's)")
+    p.add_argument("--deterministic", action="store_true",
+                   help="bit-reproducible CPU gradients (static tile schedule, fixed reduction order; "
+                        "somewhat slower): a resumed run then ends identical to an uninterrupted one "
+                        "(same seed and thread count). Also CLOD_DETERMINISTIC=1")
     p.add_argument("--demo", action="store_true",
                    help="build the embedded synthetic scene and pretrained model in OUT/demo and adapt it")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     return p
+
+
+def _one_line(e: object) -> str:
+    """The message of ``e`` on one line (bad-input errors promise exactly one stderr line)."""
+    return " ".join(str(e).split("\n")).strip()
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -74,12 +89,18 @@ def main(argv: list[str] | None = None) -> int:
                           other_lr_scale=args.other_lr_scale, lambda_reg=args.lambda_reg,
                           eta_estimator=args.eta_estimator, **kw)
         run(ply, scene, out, cfg, resolution=args.resolution, device=args.device,
-            resume=args.resume, progress=not args.quiet)
+            resume=args.resume, progress=not args.quiet, sanitize=args.sanitize,
+            deterministic=args.deterministic,
+            iterations_from_state=args.resume and args.iterations is None)
     except (InputError, PlyFormatError, SceneError) as e:
-        print(f"clod-adapt: error: {e}", file=sys.stderr)
+        print(f"clod-adapt: error: {_one_line(e)}", file=sys.stderr)
         return EXIT_BAD_INPUT
     except ValueError as e:  # config validation
-        print(f"clod-adapt: error: {e}", file=sys.stderr)
+        print(f"clod-adapt: error: {_one_line(e)}", file=sys.stderr)
+        return EXIT_BAD_INPUT
+    except OSError as e:  # an unreadable input or unwritable output the checks above missed
+        name = e.filename if e.filename is not None else "clod-adapt"
+        print(f"clod-adapt: error: {name}: {e.strerror or e}", file=sys.stderr)
         return EXIT_BAD_INPUT
     except KeyboardInterrupt:
         return EXIT_INTERRUPTED

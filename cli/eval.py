@@ -126,7 +126,9 @@ def main(argv: list[str] | None = None) -> int:
                         seed=args.seed, sigma_c=args.sigma_c, device=dev, progress=not args.quiet)
         print(f"clod-eval: wrote the report to {out}")
     except (InputError, PlyFormatError, SceneError) as e:
-        return bad(str(e))
+        return bad(" ".join(str(e).split("\n")))
+    except OSError as e:  # an unreadable input or unwritable output the checks above missed
+        return bad(f"{e.filename if e.filename is not None else 'clod-eval'}: {e.strerror or e}")
     except KeyboardInterrupt:
         return EXIT_INTERRUPTED
     return 0

@@ -203,11 +203,20 @@ def prepare(gaussians: Gaussians, train_cameras, cfg: AdaptConfig, train_images=
     return AdaptState(params=params, optimizer=opt, generator=gen, extent=extent, init=init)
 
 
-class _StopFlag:
-    """Turns SIGINT/SIGTERM into a flag checked between iterations (state is then saved)."""
+class StopFlag:
+    """Turns SIGINT/SIGTERM into a flag checked at safe points (between iterations; the
+    pipeline also checks it between phases), so the state is saved, never half-written.
 
-    def __init__(self) -> None:
+    The handler only sets ``stop`` while ``abortable`` is False (a second signal during a
+    state save changes nothing). While ``abortable`` is True (phases that write nothing), it
+    also raises KeyboardInterrupt at once. Outside the main thread no handler is installed.
+    """
+
+    def __init__(self, abortable: bool = False) -> None:
         self.stop = False
+        self.signum: Optional[int] = None
+        self.state_saved = False  # set by callers once a resumable state is on disk
+        self._abortable = abortable
         self._old = {}
 
     def __enter__(self):
@@ -220,10 +229,27 @@ class _StopFlag:
 
     def _handle(self, signum, frame) -> None:
         self.stop = True
+        self.signum = signum
+        if self._abortable:
+            raise KeyboardInterrupt
+
+    @property
+    def abortable(self) -> bool:
+        return self._abortable
+
+    def set_abortable(self, value: bool) -> None:
+        """Enter/leave an abortable phase; entering one after a signal raises KeyboardInterrupt."""
+        self._abortable = bool(value)
+        if self._abortable and self.stop:
+            raise KeyboardInterrupt
 
     def __exit__(self, *exc) -> None:
         for sig, h in self._old.items():
             signal.signal(sig, h)
+        self._old = {}
+
+
+_StopFlag = StopFlag  # old name
 
 
 def adapt(
@@ -236,6 +262,8 @@ def adapt(
     progress: bool = True,
     on_interrupt: Optional[Callable[[AdaptState], None]] = None,
     max_steps: Optional[int] = None,
+    stop: Optional[StopFlag] = None,
+    on_step: Optional[Callable[[AdaptState], None]] = None,
 ) -> bool:
     """Run (or continue) the fine-tuning from ``state.iteration`` to ``cfg.iterations``.
 
@@ -251,6 +279,9 @@ def adapt(
         on_interrupt: called with the state when SIGINT/SIGTERM stops the run early.
         max_steps: run at most this many steps in this call (the schedule still spans
             ``cfg.iterations``); None: run to the end.
+        stop: an entered :class:`StopFlag` to use (the caller's signal handling, put in its
+            non-abortable mode for the loop); None: install one for the duration of the call.
+        on_step: called with the state after each completed step.
 
     Returns:
         True when all iterations ran, False when interrupted or stopped by ``max_steps``
@@ -263,7 +294,14 @@ def adapt(
                desc="clod-adapt", unit="it", dynamic_ncols=True)
     ema = {"loss": None, "psnr": None}
     stop_at = cfg.iterations if max_steps is None else min(cfg.iterations, state.iteration + max_steps)
-    with _StopFlag() as flag:
+    import contextlib
+
+    if stop is None:
+        ctx = StopFlag()
+    else:
+        stop.set_abortable(False)
+        ctx = contextlib.nullcontext(stop)
+    with ctx as flag:
         while state.iteration < stop_at:
             if flag.stop:
                 bar.close()
@@ -302,6 +340,14 @@ def adapt(
             bar.set_postfix(loss=f"{ema['loss']:.4f}", psnr=f"{ema['psnr']:.2f}",
                             s_v=f"{s_v:.2f}", eta=f"{eta:.3f}", refresh=False)
             bar.update(1)
+            if on_step is not None:
+                on_step(state)
+        if flag.stop and state.iteration >= stop_at:
+            # a signal during the last step: the loop is done, report it all the same
+            bar.close()
+            if on_interrupt is not None:
+                on_interrupt(state)
+            return False
     bar.close()
     return state.iteration >= cfg.iterations
 

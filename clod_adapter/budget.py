@@ -27,8 +27,12 @@ def critical_s_v(opacities: Tensor, d_norm: Tensor, sigma_d: Tensor, tau: float 
     """Per-Gaussian critical scale ``s*`` (rendered iff ``s_v < s*``).
 
     Solves ``log alpha - log tau - a s^2 - log s = 0`` for ``u = log s`` by Newton's method in
-    float64, started at ``u0 = log(alpha / tau)`` (>= the root; the function is concave and
-    decreasing in u, so the iterates decrease monotonically onto the root).
+    float64, started at ``u0 = min(log(alpha / tau), (log(|log(alpha / tau)| + 1) - log a) / 2)``
+    (the second term is within a log factor of the root when ``a s^2`` dominates, e.g. a dead
+    Gaussian with a tiny eps; from ``log(alpha / tau)`` alone Newton only moves -0.5 per step
+    there). The function is concave and decreasing in u, so after at most one step the iterates
+    decrease monotonically onto the root. ``eps`` is floored at :data:`lod.EPS_FLOOR`, as in
+    :func:`lod.lod_log_attenuation`.
 
     Args:
         opacities: [N] activated opacities.
@@ -39,16 +43,19 @@ def critical_s_v(opacities: Tensor, d_norm: Tensor, sigma_d: Tensor, tau: float 
     Returns:
         [N] float64 ``s*`` (> 0; 0 for alpha = 0; ``alpha / tau`` where d' = 0).
     """
-    a = d_norm.double() ** 2 / (2.0 * torch.relu(sigma_d.double()) ** 2 + eps)
+    d = d_norm.double()
+    a = d ** 2 / (2.0 * torch.relu(sigma_d.double()) ** 2 + max(float(eps), lod.EPS_FLOOR))
+    a = torch.where(d == 0, torch.zeros_like(a), a)  # d' = 0: no attenuation
     A = torch.log(opacities.double()) - torch.log(torch.tensor(tau, dtype=torch.float64))
-    u = A.clone()
-    finite = torch.isfinite(u)
-    u = torch.where(finite, u, torch.zeros_like(u))
+    finite = torch.isfinite(A) & torch.isfinite(a)  # a = inf: attenuated to 0, never rendered
+    u = torch.where(finite, A, torch.zeros_like(A))
+    a = torch.where(finite, a, torch.zeros_like(a))
+    u = torch.minimum(u, 0.5 * (torch.log(u.abs() + 1.0) - torch.log(a)))  # log(0) = -inf: u
     for _ in range(_NEWTON_STEPS):
         e = a * torch.exp(2.0 * u)
         h = A.where(finite, torch.zeros_like(A)) - e - u
         step = h / (2.0 * e + 1.0)
-        u = u + step  # h <= 0 and h' < 0: u moves left
+        u = u + step  # concave, decreasing h: right of the root after one step, then leftwards
         if bool((step.abs() < 1e-13).all()):
             break
     s = torch.exp(u)

@@ -34,6 +34,11 @@ from torch import Tensor
 DEFAULT_TAU = 0.005
 #: eps of Eq. 2 (denominator guard).
 DEFAULT_EPS = 1e-8
+#: smallest eps used: below it a dead Gaussian's exponent ``(d' s_v)^2 / eps`` and its
+#: gradients overflow float32 (eps = 1e-45 gave NaN gradients at d' = 0).
+EPS_FLOOR = 1e-20
+#: log-attenuations below ``-LOG_ATT_FLOOR`` are clamped there, with zero gradient.
+LOG_ATT_FLOOR = 1e4
 ETA_ESTIMATORS = ("ste", "sigmoid", "paper")
 
 
@@ -105,13 +110,21 @@ def lod_log_attenuation(d_norm: Tensor, sigma_d: Tensor, s_v: float | Tensor,
                         eps: float = DEFAULT_EPS) -> Tensor:
     """Log of Eq. 2's factor: ``-(d' s_v)^2 / (2 ReLU(sigma_d)^2 + eps)``; [N], <= 0.
 
-    Evaluated in at least float32. ``eps`` must be > 0 (a dead Gaussian, ``sigma_d <= 0``, then
-    gets a large negative value rather than -inf/NaN unless ``d' = 0``).
+    Evaluated in at least float32. ``eps`` is floored at :data:`EPS_FLOOR` (a dead Gaussian,
+    ``sigma_d <= 0``, then gets a large negative value rather than -inf/NaN, also for
+    ``d' = 0``), and values below ``-LOG_ATT_FLOOR`` are clamped there with zero gradient
+    (``exp`` has long underflowed to 0; the clamp keeps the backward pass free of
+    ``inf * 0 = NaN`` for stiff decays).
     """
     dt = _work_dtype(d_norm, sigma_d)
     x = d_norm.to(dt) * torch.as_tensor(s_v, dtype=dt, device=d_norm.device)
     sd = torch.relu(sigma_d.to(dt))
-    return -(x * x) / (2.0 * sd * sd + eps)
+    den = 2.0 * sd * sd + max(float(eps), EPS_FLOOR)
+    with torch.no_grad():
+        stiff = x * x > LOG_ATT_FLOOR * den  # NaN inputs stay NaN (comparison is False)
+    zero = torch.zeros((), dtype=dt, device=x.device)
+    x = torch.where(stiff, zero, x)  # double-where: no gradient, no inf, on stiff entries
+    return torch.where(stiff, zero - LOG_ATT_FLOOR, -(x * x) / den)
 
 
 def lod_opacities(opacities: Tensor, d_norm: Tensor, sigma_d: Tensor, s_v: float | Tensor,
@@ -138,10 +151,14 @@ def lod_margin(opacities: Tensor, d_norm: Tensor, sigma_d: Tensor, s_v: float | 
 
     Computed as ``log alpha + log-attenuation - log(tau s_v)`` so it stays finite where
     ``alpha''`` underflows (large s_v, tiny sigma_d). ``opacities`` of exactly 0 give -inf
-    (never rendered, zero gradient).
+    (never rendered, zero gradient: the log is taken through a double ``where``, so the
+    backward pass never forms ``0 / 0``).
     """
     la = lod_log_attenuation(d_norm, sigma_d, s_v, eps)
-    log_alpha = torch.log(opacities.to(la.dtype))
+    o = opacities.to(la.dtype)
+    pos = o > 0
+    log_alpha = torch.where(pos, torch.log(torch.where(pos, o, torch.ones_like(o))),
+                            torch.full_like(o, -math.inf))
     s = torch.as_tensor(s_v, dtype=la.dtype, device=la.device)
     return log_alpha + la - torch.log(tau * s)
 

@@ -81,6 +81,7 @@ def render_lod(
     impl: str = "auto",
     eta_grad_sigma_only: bool = True,
     budget: Optional[float | int] = None,
+    min_s_v: float = 1.0,
 ) -> LodRender:
     """Render ``gaussians`` from ``camera`` at virtual distance scale ``s_v``.
 
@@ -98,6 +99,9 @@ def render_lod(
         budget: render exactly this many Gaussians (int) or this fraction of the model (float
             in [0, 1]) instead of a given ``s_v``: the ``s_v`` is solved exactly per view
             (:mod:`clod_adapter.budget`), capped by the Gaussians in view.
+        min_s_v: budget mode only: the solved ``s_v`` is raised to at least this (default 1,
+            the full-detail level, so a budget acts as a cap: larger budgets than the s_v = 1
+            count render that level). 0 renders exactly ``budget`` Gaussians whatever ``s_v``.
         eta_grad_sigma_only: ``eta``'s gradient reaches ``sigma_d`` only (opacities and positions
             detached in its margin), so the count regulariser cuts Gaussians through their decay
             instead of eroding their opacity at every level of detail.
@@ -133,7 +137,11 @@ def render_lod(
             crit = critical_s_v(opac.detach(), d_norm.detach(), gaussians.sigma_d.detach(), tau, eps)
             idx_b, s_v = select_budget(crit, budget_count(budget, len(gaussians)), visible)
         mask = torch.zeros_like(visible)
-        mask[idx_b] = True
+        if s_v < min_s_v:
+            s_v = float(min_s_v)
+            mask = (crit > s_v) & visible
+        else:
+            mask[idx_b] = True
         eta = mask[frustum].float().mean() if bool(frustum.any()) else torch.zeros(())
         opac_used = lod.lod_opacities(opac, d_norm, gaussians.sigma_d, s_v, eps)
     else:

@@ -18,3 +18,41 @@ def shared_path(*parts: str) -> Path:
     if not p.exists():
         pytest.skip(f"shared data not available: {p} (clone with ../shared beside the repo)")
     return p
+
+
+def render_views(gaussians, cameras):
+    """[H, W, 3] float images in [0, 1] of ``gaussians`` from each camera (CPU rasteriser)."""
+    from clod_adapter.render import rasterization
+
+    imgs = []
+    with torch.no_grad():
+        for c in cameras:
+            col, _, _ = rasterization(gaussians.means, gaussians.quats, gaussians.scales,
+                                      gaussians.opacities, gaussians.colors, c.viewmat[None],
+                                      c.K[None], c.width, c.height,
+                                      sh_degree=gaussians.sh_degree, backend="cpu")
+            imgs.append(col[0].clamp(0, 1))
+    return imgs
+
+
+def write_tiny_scene(root: Path, n: int = 400, rows: int = 2, cols: int = 5, width: int = 64,
+                     height: int = 48, seed: int = 4):
+    """A tiny synthetic COLMAP scene under ``root``: returns (scene folder, pretrained .ply).
+
+    Ground truth from :func:`clod_adapter.synthetic.make_ground_truth` rendered from a
+    ``rows x cols`` camera grid; the .ply is a perturbed copy (the "pretrained" stand-in).
+    """
+    import numpy as np
+
+    from clod_adapter.io.ply import write_ply
+    from clod_adapter.io.scene import write_colmap_scene
+    from clod_adapter.synthetic import make_cameras, make_ground_truth, perturb
+
+    gt = make_ground_truth(n, seed=seed)
+    cams = make_cameras(rows, cols, width=width, height=height)
+    imgs = [(im.numpy() * 255 + 0.5).astype(np.uint8) for im in render_views(gt, cams)]
+    scene = Path(root) / "scene"
+    write_colmap_scene(scene, cams, imgs)
+    ply = Path(root) / "in.ply"
+    write_ply(ply, perturb(gt, seed + 1))
+    return scene, ply

@@ -9,22 +9,15 @@ from clod_adapter import lod
 from clod_adapter.adapt import AdaptConfig, adapt, load_state, prepare, save_state
 from clod_adapter.io.ply import read_ply
 from clod_adapter.lod_render import render_lod
-from clod_adapter.render import rasterization
 from clod_adapter.synthetic import make_cameras, make_ground_truth, perturb
+from conftest import render_views, write_tiny_scene
 
 
 @pytest.fixture(scope="module")
 def tiny():
     gt = make_ground_truth(900, seed=3)
     cams = make_cameras(2, 3, width=64, height=48)
-    imgs = []
-    with torch.no_grad():
-        for c in cams:
-            col, _, _ = rasterization(gt.means, gt.quats, gt.scales, gt.opacities, gt.colors,
-                                      c.viewmat[None], c.K[None], c.width, c.height,
-                                      sh_degree=gt.sh_degree, backend="cpu")
-            imgs.append(col[0].clamp(0, 1))
-    return perturb(gt, 5), cams, imgs
+    return perturb(gt, 5), cams, render_views(gt, cams)
 
 
 @torch.no_grad()
@@ -85,27 +78,14 @@ def test_load_state_rejects_other_files(tmp_path):
 
 
 def test_pipeline_outputs(tmp_path):
-    from clod_adapter.io.scene import write_colmap_scene
-    from clod_adapter.io.ply import write_ply
     from clod_adapter.pipeline import run
-    import numpy as np
 
-    gt = make_ground_truth(900, seed=4)
-    cams = make_cameras(2, 5, width=64, height=48)
-    imgs = []
-    with torch.no_grad():
-        for c in cams:
-            col, _, _ = rasterization(gt.means, gt.quats, gt.scales, gt.opacities, gt.colors,
-                                      c.viewmat[None], c.K[None], c.width, c.height,
-                                      sh_degree=gt.sh_degree, backend="cpu")
-            imgs.append((col[0].clamp(0, 1).numpy() * 255 + 0.5).astype(np.uint8))
-    write_colmap_scene(tmp_path / "scene", cams, imgs)
-    write_ply(tmp_path / "in.ply", perturb(gt, 2))
-    before = (tmp_path / "in.ply").read_bytes()
+    scene, ply = write_tiny_scene(tmp_path, n=900)
+    before = ply.read_bytes()
     out = tmp_path / "out"
-    m = run(tmp_path / "in.ply", tmp_path / "scene", out, AdaptConfig(max_sv=3.0, iterations=30),
-            progress=False, log=lambda *a: None)
-    assert (tmp_path / "in.ply").read_bytes() == before  # input untouched
+    m = run(ply, scene, out, AdaptConfig(max_sv=3.0, iterations=30), progress=False,
+            log=lambda *a: None)
+    assert ply.read_bytes() == before  # input untouched
     for name in ("point_cloud.ply", "adapt_state.safetensors", "metrics.json", "lod_strip.png"):
         assert (out / name).is_file()
     assert not [p for p in out.iterdir() if p.name.startswith(".")]  # no temp files left

@@ -78,8 +78,23 @@ def test_render_lod_budget_renders_exactly_k():
     cam = make_cameras(1, 1, 64, 48)[0]
     full = render_lod(g, cam, None).n_rendered
     for k in (0, 1, 50, 300, full, 10_000):
-        out = render_lod(g, cam, budget=k)
+        out = render_lod(g, cam, budget=k, min_s_v=0.0)
         assert out.n_rendered == min(k, full)
         assert torch.isfinite(out.image).all()
-    out = render_lod(g, cam, budget=0.5)
+    out = render_lod(g, cam, budget=0.5, min_s_v=0.0)
     assert out.n_rendered == min(300, full)
+
+
+def test_render_lod_budget_is_a_cap_at_s_v_1():
+    from clod_adapter.lod_render import render_lod
+    from clod_adapter.synthetic import make_cameras, make_ground_truth
+
+    gt = make_ground_truth(600, seed=1)
+    g = gt.with_sigma_d(torch.rand(600, generator=torch.Generator().manual_seed(0)) * 0.5 + 0.05)
+    cam = make_cameras(1, 1, 64, 48)[0]
+    at1 = render_lod(g, cam, 1.0).n_rendered
+    assert 0 < at1 < render_lod(g, cam, None).n_rendered  # the decay cuts some at s_v = 1
+    big = render_lod(g, cam, budget=10_000)
+    assert big.s_v == 1.0 and big.n_rendered == at1  # capped at the full-detail level
+    small = render_lod(g, cam, budget=at1 // 2)
+    assert small.n_rendered == at1 // 2 and small.s_v > 1.0

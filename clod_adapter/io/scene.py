@@ -235,6 +235,89 @@ def _image_size(path: Path) -> tuple[int, int]:
         raise SceneError(path, f"cannot read image header: {e}") from None
 
 
+def _check_binary_model(model_dir: Path) -> None:
+    """Walk the records of ``cameras.bin`` / ``images.bin`` and check they end exactly at EOF.
+
+    pycolmap (4.2.1) reads a truncated binary model without complaint, filling the missing
+    values with garbage (a camera of 1x1 pixels with zero focal length, say), so a cut-short file
+    must be caught here. Layout (COLMAP ``colmap/scene/reconstruction_io_binary.cc``):
+    cameras.bin: u64 n, then n x (i32 id, i32 model, u64 width, u64 height, f64 params[k]);
+    images.bin: u64 n, then n x (u32 id, f64 q[4], f64 t[3], u32 camera, name NUL-terminated,
+    u64 m, m x (f64 x, f64 y, u64 point3D id)).
+
+    Raises:
+        SceneError: a file ends inside a record, has bytes after the last record, or names an
+            unknown camera model.
+    """
+    import struct
+
+    def walk(path: Path, record) -> None:
+        if not path.is_file():
+            return
+        size = path.stat().st_size
+        with open(path, "rb") as f:
+            def read(fmt: str):
+                n = struct.calcsize(fmt)
+                b = f.read(n)
+                if len(b) != n:
+                    raise SceneError(model_dir, f"cannot read COLMAP model ({path.name} is truncated: it ends inside a record)")
+                return struct.unpack(fmt, b)
+
+            (num,) = read("<Q")
+            for _ in range(num):
+                record(f, read)
+                if f.tell() > size:
+                    break
+            end = f.tell()
+        if end > size:
+            raise SceneError(model_dir, f"cannot read COLMAP model ({path.name} is truncated: it ends inside a record)")
+        if end < size:
+            raise SceneError(model_dir, f"cannot read COLMAP model ({path.name} is corrupt: {size - end} bytes after the last record)")
+
+    n_params: dict[int, int] = {}
+
+    def camera(f, read) -> None:
+        _, model_id, _, _ = read("<iiQQ")
+        if model_id not in n_params:
+            try:
+                n_params[model_id] = len(pycolmap.Camera.create_from_model_id(0, model_id, 1.0, 1, 1).params)
+            except Exception:
+                raise SceneError(model_dir, f"cannot read COLMAP model (cameras.bin is corrupt: unknown "
+                                            f"camera model id {model_id})") from None
+        f.seek(8 * n_params[model_id], os.SEEK_CUR)
+
+    def image(f, read) -> None:
+        read("<I7dI")
+        while read("<c")[0] != b"\0":
+            pass
+        (m,) = read("<Q")
+        f.seek(24 * m, os.SEEK_CUR)
+
+    walk(model_dir / "cameras.bin", camera)
+    walk(model_dir / "images.bin", image)
+
+
+def _check_image_size(path: Path, w0: int, h0: int, camera_id: int, model_dir: Path) -> None:
+    """An image in ``images/`` must have its camera's size, or an exact integer multiple of it
+    (then ``Scene.load_image`` downscales it by that factor, the camera's K being for the smaller
+    size); anything else means the images and the model do not belong together.
+
+    Raises:
+        SceneError: naming the image and both sizes.
+    """
+    iw, ih = _image_size(path)
+    if (iw, ih) == (w0, h0):
+        return
+    k = iw // w0 if w0 > 0 else 0
+    if k >= 2 and (iw, ih) == (k * w0, k * h0):
+        return
+    raise SceneError(
+        path,
+        f"image is {iw}x{ih} but camera {camera_id} in {model_dir} is {w0}x{h0} (neither equal nor an "
+        "exact integer multiple); the images do not match the COLMAP model",
+    )
+
+
 def load_colmap_scene(root: PathLike, resolution: int = 1, llffhold: int = 8) -> Scene:
     """Load a COLMAP scene folder (``images/``, optional ``images_R/``, ``sparse/0``) as a ``Scene``.
 
@@ -257,7 +340,8 @@ def load_colmap_scene(root: PathLike, resolution: int = 1, llffhold: int = 8) ->
     Raises:
         SceneError: missing folder or model, unreadable model, a distorted camera model
             (anything but PINHOLE / SIMPLE_PINHOLE: undistort first), an image listed in the
-            model but absent from disk, no registered images, or a bad ``resolution`` /
+            model but absent from disk, an image in ``images/`` whose size is neither its
+            camera's nor an exact integer multiple of it, no registered images, or a bad ``resolution`` /
             ``llffhold``.
     """
     root = Path(root)
@@ -268,6 +352,7 @@ def load_colmap_scene(root: PathLike, resolution: int = 1, llffhold: int = 8) ->
     if not isinstance(llffhold, int) or llffhold < 0:
         raise SceneError(root, f"llffhold must be an integer >= 0, got {llffhold!r}")
     model_dir = _find_model_dir(root)
+    _check_binary_model(model_dir)
     try:
         rec = pycolmap.Reconstruction(str(model_dir))
     except Exception as e:  # pycolmap raises ValueError / IndexError / RuntimeError on bad files
@@ -292,10 +377,14 @@ def load_colmap_scene(root: PathLike, resolution: int = 1, llffhold: int = 8) ->
         ccam = rec.cameras[im.camera_id]
         fx, fy, cx, cy = _intrinsics(ccam, model_dir, im.name)
         w0, h0 = int(ccam.width), int(ccam.height)
+        if not (w0 > 0 and h0 > 0 and fx > 0 and fy > 0 and np.isfinite([fx, fy, cx, cy]).all()):
+            raise SceneError(model_dir, f"camera {ccam.camera_id} (image {im.name}) is invalid: {w0}x{h0}, "
+                                        f"fx={fx:g} fy={fy:g} cx={cx:g} cy={cy:g}")
         path = image_dir / im.name
         if use_scaled:
             w, h = _image_size(path)
         else:
+            _check_image_size(path, w0, h0, ccam.camera_id, model_dir)
             w, h = int(round(w0 / resolution)), int(round(h0 / resolution))
         sx, sy = w / w0, h / h0
         K = torch.tensor([[fx * sx, 0.0, cx * sx], [0.0, fy * sy, cy * sy], [0.0, 0.0, 1.0]], dtype=torch.float64)

@@ -32,6 +32,8 @@ __all__ = [
     "rasterize_to_pixels",
     "rasterize_to_pixels_torch",
     "cpp_extension_available",
+    "deterministic_enabled",
+    "set_deterministic",
 ]
 
 MAX_ALPHA = 0.999
@@ -72,6 +74,31 @@ def _load_extension():
 def cpp_extension_available() -> bool:
     """True when the C++ compositor builds/loads on this machine."""
     return _load_extension() is not None
+
+
+#: None: follow the ``CLOD_DETERMINISTIC`` environment variable; True/False: override it.
+_DETERMINISTIC: Optional[bool] = None
+
+
+def set_deterministic(flag: Optional[bool]) -> None:
+    """Force the C++ backward's deterministic mode on or off (None: follow the environment).
+
+    Deterministic mode gives each per-thread gradient buffer a fixed set of tiles (static
+    schedule, increasing tile order) and reduces the buffers in a fixed order, so gradients
+    are bit-identical from run to run for a given thread count (``torch.get_num_threads()``).
+    The default dynamic schedule balances load better but its float sums vary in the last
+    bits. The forward and the PyTorch twin are deterministic either way."""
+    global _DETERMINISTIC
+    _DETERMINISTIC = None if flag is None else bool(flag)
+
+
+def deterministic_enabled() -> bool:
+    """True when :func:`set_deterministic` or ``CLOD_DETERMINISTIC`` (any value but empty,
+    0, false, no, off) asks for the deterministic backward."""
+    if _DETERMINISTIC is not None:
+        return _DETERMINISTIC
+    v = os.environ.get("CLOD_DETERMINISTIC", "").strip().lower()
+    return v not in ("", "0", "false", "no", "off")
 
 
 def _num_threads() -> int:
@@ -119,7 +146,7 @@ class _CompositeCpp(torch.autograd.Function):
             means2d, conics, colors, opacities, bg_opt,
             width, height, tile_size, offsets, ids, T_final, last_ids,
             v_col.contiguous(), None if v_alpha is None else v_alpha.contiguous(),
-            _num_threads())
+            _num_threads(), deterministic_enabled())
         g_bg = None
         if ctx.has_bg and ctx.needs_input_grad[4]:
             g_bg = (v_col * T_final.unsqueeze(-1)).sum(dim=(0, 1))

@@ -27,6 +27,8 @@ __all__ = ["fully_fused_projection", "project_visible", "VisibleProjection", "AL
 
 ALPHA_THRESHOLD = 1.0 / 255.0
 GAUSSIAN_EXTEND = 3.33
+#: cap of the int32 radii (pixels); larger footprints cover any image anyway
+MAX_RADIUS = float(2 ** 30)
 
 
 class VisibleProjection(NamedTuple):
@@ -145,10 +147,17 @@ def project_visible(
     JRQ = torch.bmm(torch.stack([JR0, JR1], dim=1), rq)  # [n, 2, 3]
     Ms = JRQ * s[:, None, :]
     A, B = Ms.unbind(1)
-    c00 = (A * A).sum(-1) + eps2d
+    AA = (A * A).sum(-1)
+    BB = (B * B).sum(-1)
+    c00 = AA + eps2d
     c01 = (A * B).sum(-1)
-    c11 = (B * B).sum(-1) + eps2d
-    det = c00 * c11 - c01 * c01
+    c11 = BB + eps2d
+    # det = c00 c11 - c01^2 without cancellation: for M = [A; B], det(M M^T + e I) =
+    # |A x B|^2 + e (|A|^2 + |B|^2) + e^2 (Lagrange's identity). The naive product loses every
+    # digit in float32 for long needle/flat Gaussians (scale ratio 1e6) and culls them or
+    # yields a non-positive-definite conic.
+    AxB = torch.linalg.cross(A, B, dim=-1)
+    det = (AxB * AxB).sum(-1) + eps2d * (AA + BB) + eps2d * eps2d
 
     with torch.no_grad():
         det_ok = det > 0
@@ -163,7 +172,10 @@ def project_visible(
         ok = det_ok & ~((rad_x <= radius_clip) & (rad_y <= radius_clip))
         ok &= ~((mx + rad_x <= 0) | (mx - rad_x >= width) | (my + rad_y <= 0) | (my - rad_y >= height))
         sel = ok.nonzero().squeeze(1)
-        radii = torch.stack([rad_x, rad_y], dim=-1).index_select(0, sel).to(torch.int32)
+        # culling above uses the float radii; the stored int32 ones are capped so a huge
+        # footprint (huge focal length, huge scale) cannot wrap to a negative radius
+        radii = torch.stack([rad_x, rad_y], dim=-1).index_select(0, sel)
+        radii = radii.clamp_max(MAX_RADIUS).to(torch.int32)
 
     means2d = means2d.index_select(0, sel)
     depths = tz.index_select(0, sel)

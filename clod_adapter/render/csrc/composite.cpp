@@ -11,14 +11,20 @@
 // The backward walks each pixel back to front starting from its last
 // contributing index, recovering T by division (T /= 1 - alpha).
 //
-// CPU organisation: OpenMP over tiles (dynamic schedule). Within a tile we
+// CPU organisation: OpenMP over tiles (dynamic schedule; the backward's
+// deterministic mode, see below, uses a fixed tile -> buffer mapping). Within a tile we
 // iterate Gaussian-major (front to back in the forward, back to front in the
 // backward) and, for each Gaussian, only over the pixels inside the
 // conservative bounding box of its alpha >= 1/255 ellipse. Per pixel the
 // order of Gaussians is unchanged, so the result is identical to the
 // per-pixel loop. Pixel state lives in small per-tile arrays. Per-Gaussian
 // gradients are summed over a tile in registers and added into a per-thread
-// buffer ([N, 6 + D] per thread), reduced at the end (no atomics).
+// buffer ([N, 6 + D] per thread), reduced at the end (no atomics), in thread
+// order. With dynamic scheduling which tiles land in which buffer varies from
+// run to run, so float sums differ in the last bits; deterministic=true gives
+// buffer b the tiles b, b + nthreads, ... (static schedule, increasing order)
+// and the backward is then bit-reproducible for a given nthreads. The forward
+// is always deterministic (each pixel is written by one thread).
 #include <torch/extension.h>
 
 #include <omp.h>
@@ -307,7 +313,7 @@ void backward_impl(
     const S* bg, int32_t W, int32_t H, int32_t ts, int32_t th, int32_t tw,
     const int64_t* offsets, const int64_t* ids, int64_t M,
     const S* Tfinal, const int32_t* lastids, const S* v_col, const S* v_alpha_img,
-    S* g_means, S* g_conics, S* g_colors, S* g_opac, int nthreads) {
+    S* g_means, S* g_conics, S* g_colors, S* g_opac, int nthreads, bool deterministic) {
     const int D = CD > 0 ? CD : Ddyn;
     const int G = 6 + D;  // packed gradient stride: mx my a b c op colors...
     std::vector<GParam<S>> params;
@@ -323,8 +329,9 @@ void backward_impl(
 #pragma omp parallel num_threads(nthreads)
     {
         const int tid = omp_get_thread_num();
-        std::vector<S>& gb = bufs[tid];
-        gb.assign(static_cast<size_t>(N) * G, S(0));
+        // dynamic mode: one buffer per thread; deterministic mode: buffer b belongs to the
+        // fixed tile set {b, b + nthreads, ...} whichever thread runs it (allocated there)
+        if (!deterministic) bufs[tid].assign(static_cast<size_t>(N) * G, S(0));
         const int npix_max = ts * ts;
         std::vector<double> Tv(npix_max), bufv(static_cast<size_t>(npix_max) * D);
         std::vector<double> wv(npix_max);  // T_final * (v_alpha - bg . v_col)
@@ -334,16 +341,16 @@ void backward_impl(
         const int nw_max = (ts + 63) / 64;
         std::vector<uint64_t> actv(static_cast<size_t>(ts) * nw_max);
         std::vector<std::pair<int32_t, int32_t>> order(npix_max);
-#pragma omp for schedule(dynamic, 1)
-        for (int64_t t = 0; t < ntiles; ++t) {
+        // one tile's gradients, summed over the tile and added into gout ([N, G])
+        auto tile_body = [&](int64_t t, S* gout) {
             const int32_t ty = static_cast<int32_t>(t / tw);
             const int32_t tx = static_cast<int32_t>(t % tw);
             const int32_t px0 = tx * ts, py0 = ty * ts;
             const int32_t pw = std::min(ts, W - px0), ph = std::min(ts, H - py0);
-            if (pw <= 0 || ph <= 0) continue;
+            if (pw <= 0 || ph <= 0) return;
             int64_t start, end;
             tile_range(offsets, ntiles, M, t, start, end);
-            if (end <= start) continue;
+            if (end <= start) return;
             const int npix = pw * ph;
             const int nw = (pw + 63) / 64;
             double* T = Tv.data();
@@ -439,7 +446,7 @@ void backward_impl(
                     });
                 }
                 if (any) {
-                    S* o = gb.data() + static_cast<size_t>(g) * G;
+                    S* o = gout + static_cast<size_t>(g) * G;
                     o[0] += static_cast<S>(vmx);
                     o[1] += static_cast<S>(vmy);
                     o[2] += static_cast<S>(va);
@@ -449,6 +456,19 @@ void backward_impl(
                     for (int k = 0; k < D; ++k) o[6 + k] += static_cast<S>(acc_col[k]);
                 }
             }
+        };
+        if (!deterministic) {
+#pragma omp for schedule(dynamic, 1)
+            for (int64_t t = 0; t < ntiles; ++t) tile_body(t, bufs[tid].data());
+        } else {
+            // fixed tile -> buffer mapping, tiles in increasing order within a buffer:
+            // the sums do not depend on which thread runs what, or when
+#pragma omp for schedule(static, 1)
+            for (int b = 0; b < nthreads; ++b) {
+                std::vector<S>& db = bufs[b];
+                db.assign(static_cast<size_t>(N) * G, S(0));
+                for (int64_t t = b; t < ntiles; t += nthreads) tile_body(t, db.data());
+            }
         }
         // reduction over threads (all buffers are complete after the barrier)
 #pragma omp barrier
@@ -457,7 +477,8 @@ void backward_impl(
             S s[64];
             const int GG = std::min(G, 64);
             for (int j = 0; j < GG; ++j) s[j] = 0;
-            for (int th_ = 0; th_ < nthreads; ++th_) {
+            for (int th_ = 0; th_ < nthreads; ++th_) {  // fixed order
+                if (bufs[th_].empty()) continue;  // fewer threads than asked for
                 const S* src = bufs[th_].data() + static_cast<size_t>(g) * G;
                 for (int j = 0; j < GG; ++j) s[j] += src[j];
             }
@@ -473,7 +494,7 @@ void backward_impl(
                 } else {
                     S v = 0;
                     for (int th_ = 0; th_ < nthreads; ++th_)
-                        v += bufs[th_][static_cast<size_t>(g) * G + 6 + k];
+                        if (!bufs[th_].empty()) v += bufs[th_][static_cast<size_t>(g) * G + 6 + k];
                     g_colors[g * D + k] = v;
                 }
             }
@@ -552,7 +573,7 @@ std::vector<torch::Tensor> composite_backward(
     torch::Tensor isect_offsets, torch::Tensor flatten_ids,
     torch::Tensor T_final, torch::Tensor last_ids,
     torch::Tensor v_render_colors, c10::optional<torch::Tensor> v_render_alphas,
-    int64_t num_threads) {
+    int64_t num_threads, bool deterministic) {
     check_inputs(means2d, conics, colors, opacities, isect_offsets, flatten_ids);
     const int64_t N = means2d.size(0);
     const int D = static_cast<int>(colors.size(1));
@@ -589,7 +610,7 @@ std::vector<torch::Tensor> composite_backward(
                 T_final.data_ptr<S>(), last_ids.data_ptr<int32_t>(), vcol.data_ptr<S>(),
                 valpha.defined() ? valpha.data_ptr<S>() : nullptr,
                 g_means.data_ptr<S>(), g_conics.data_ptr<S>(), g_colors.data_ptr<S>(),
-                g_opac.data_ptr<S>(), nt);
+                g_opac.data_ptr<S>(), nt, deterministic);
         };
         switch (D) {
             case 1: run(std::integral_constant<int, 1>()); break;

@@ -1,0 +1,225 @@
+"""Interrupting ``clod-adapt`` (SIGINT / SIGTERM) and resuming it.
+
+* a signal during training: exit 130, OUT holds only a valid ``adapt_state.safetensors`` (no
+  .ply, metrics, strip or temp files); ``--resume`` ends bit-identical (the .ply bytes and every
+  state tensor) to an uninterrupted run with the same seed, in deterministic mode;
+* a signal during the final evaluation leaves a resumable state too (same final result);
+* a second signal while the state is being saved does not corrupt it;
+* ``--resume`` refuses a state saved for another input .ply or other settings (exit 2, one line).
+
+The CLI runs in a subprocess (real signals, real exit codes); the test waits for iteration >= 5
+through the ``CLOD_PROGRESS_FILE`` hook instead of sleeping.
+"""
+from __future__ import annotations
+
+import os
+import shutil
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from clod_adapter.adapt import load_state
+from clod_adapter.io.ply import write_ply
+from clod_adapter.io.scene import write_colmap_scene
+from clod_adapter.render import rasterization
+from clod_adapter.synthetic import make_cameras, make_ground_truth, perturb
+from conftest import REPO
+
+ITERATIONS = 60
+MAX_SV = 3.0
+SEED = 5
+THREADS = 2
+STATE = "adapt_state.safetensors"
+OUTPUTS = ("point_cloud.ply", "metrics.json", "lod_strip.png")
+
+
+def _env(**extra) -> dict:
+    env = dict(os.environ)
+    env.update({"OMP_NUM_THREADS": str(THREADS), "PYTHONPATH": str(REPO)}, **extra)
+    env.pop("CLOD_DETERMINISTIC", None)
+    return env
+
+
+def _cli(ply, scene, out, *extra) -> list[str]:
+    return [sys.executable, "-m", "cli.adapt", str(ply), "--images", str(scene), "-o", str(out),
+            "--max-sv", str(MAX_SV), "--seed", str(SEED), "--deterministic", "--quiet", *extra]
+
+
+@pytest.fixture(scope="module")
+def scene(tmp_path_factory):
+    from clod_adapter.render.composite import cpp_extension_available
+
+    cpp_extension_available()  # build/load the compositor once, before the subprocesses use it
+    root = tmp_path_factory.mktemp("resume")
+    gt = make_ground_truth(400)
+    cams = make_cameras(2, 5, 64, 48)
+    imgs = []
+    with torch.no_grad():
+        for c in cams:
+            col, _, _ = rasterization(gt.means, gt.quats, gt.scales, gt.opacities, gt.colors,
+                                      c.viewmat[None], c.K[None], c.width, c.height,
+                                      sh_degree=gt.sh_degree, backend="cpu")
+            imgs.append((col[0].clamp(0, 1).numpy() * 255 + 0.5).astype(np.uint8))
+    write_colmap_scene(root / "scene", cams, imgs)
+    write_ply(root / "in.ply", perturb(gt, 2))
+    write_ply(root / "other.ply", perturb(gt, 3))
+    ref = root / "ref"
+    r = subprocess.run(_cli(root / "in.ply", root / "scene", ref, "--iterations", str(ITERATIONS)),
+                       cwd=REPO, env=_env(), capture_output=True, text=True, timeout=120)
+    assert r.returncode == 0, r.stderr[-2000:]
+    return root
+
+
+def _assert_same_result(out: Path, ref: Path) -> None:
+    assert (out / "point_cloud.ply").read_bytes() == (ref / "point_cloud.ply").read_bytes()
+    a, _, ma = load_state(out / STATE)
+    b, _, mb = load_state(ref / STATE)
+    assert a.iteration == b.iteration == ITERATIONS
+    for k in b.params:
+        assert torch.equal(a.params[k], b.params[k]), k
+    assert a.generator.get_state().equal(b.generator.get_state())
+    assert a.order == b.order
+    assert ma["history"] == mb["history"]
+
+
+def _only_state(out: Path) -> None:
+    names = sorted(p.name for p in out.iterdir())
+    assert names == [STATE], names  # no outputs, no temp files
+
+
+def _wait_for_iteration(proc, progress: Path, at_least: int, timeout: float = 60.0) -> int:
+    t0 = time.monotonic()
+    while time.monotonic() - t0 < timeout:
+        if proc.poll() is not None:
+            raise AssertionError(f"clod-adapt ended (exit {proc.returncode}) before iteration {at_least}: "
+                                 f"{proc.stderr.read()[-2000:]}")
+        try:
+            it = int(progress.read_text().strip() or 0)
+        except (OSError, ValueError):
+            it = 0
+        if it >= at_least:
+            return it
+        time.sleep(0.005)
+    proc.kill()
+    raise AssertionError(f"no iteration {at_least} within {timeout} s")
+
+
+@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM], ids=["SIGINT", "SIGTERM"])
+def test_signal_then_resume_is_bit_exact(scene, tmp_path, sig):
+    out, progress = tmp_path / "out", tmp_path / "progress"
+    cmd = _cli(scene / "in.ply", scene / "scene", out, "--iterations", str(ITERATIONS))
+    proc = subprocess.Popen(cmd, cwd=REPO, env=_env(CLOD_PROGRESS_FILE=str(progress)),
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        _wait_for_iteration(proc, progress, 5)
+        proc.send_signal(sig)
+        _, err = proc.communicate(timeout=60)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    assert proc.returncode == 130, err[-2000:]
+    assert "Traceback" not in err
+    _only_state(out)
+    st, cfg, meta = load_state(out / STATE)
+    assert 5 <= st.iteration < ITERATIONS
+    assert cfg.seed == SEED and cfg.iterations == ITERATIONS and meta["deterministic"] == "1"
+
+    # resume: --iterations comes from the state
+    r = subprocess.run(_cli(scene / "in.ply", scene / "scene", out, "--resume"), cwd=REPO, env=_env(),
+                       capture_output=True, text=True, timeout=120)
+    assert r.returncode == 0, r.stderr[-2000:]
+    _assert_same_result(out, scene / "ref")
+
+
+def _inprocess_run(scene: Path, out: Path, **kw):
+    from clod_adapter.adapt import AdaptConfig
+    from clod_adapter.pipeline import run
+
+    cfg = AdaptConfig(max_sv=MAX_SV, iterations=ITERATIONS, seed=SEED)
+    return run(scene / "in.ply", scene / "scene", out, cfg, device="cpu", progress=False,
+               log=lambda *a: None, deterministic=True, **kw)
+
+
+def test_interrupt_during_final_evaluation_resumes(scene, tmp_path, monkeypatch):
+    import clod_adapter.pipeline as pl
+
+    real = pl.evaluate_levels
+
+    def interrupted(*a, **k):
+        os.kill(os.getpid(), signal.SIGINT)  # arrives while evaluating
+        return real(*a, **k)
+
+    out = tmp_path / "out"
+    with monkeypatch.context() as m:
+        m.setattr(pl, "evaluate_levels", interrupted)
+        with pytest.raises(KeyboardInterrupt):
+            _inprocess_run(scene, out)
+    _only_state(out)
+    assert load_state(out / STATE)[0].iteration == ITERATIONS
+    assert torch.get_num_threads() == THREADS  # same thread count as the reference subprocess
+    _inprocess_run(scene, out, resume=True)
+    _assert_same_result(out, scene / "ref")
+
+
+def test_second_signal_during_state_save(scene, tmp_path, monkeypatch):
+    import safetensors.torch
+
+    import clod_adapter.pipeline as pl
+
+    real_adapt, real_save = pl.adapt, safetensors.torch.save_file
+    saves = []
+
+    def adapt_with_signal(*a, **k):
+        def on_step(st):
+            if st.iteration == 3:
+                os.kill(os.getpid(), signal.SIGINT)
+        k["on_step"] = on_step
+        return real_adapt(*a, **k)
+
+    def save_with_signals(*a, **k):
+        os.kill(os.getpid(), signal.SIGTERM)  # a second (and third) signal while saving
+        real_save(*a, **k)
+        os.kill(os.getpid(), signal.SIGINT)
+        saves.append(a[1])
+
+    out = tmp_path / "out"
+    with monkeypatch.context() as m:
+        m.setattr(pl, "adapt", adapt_with_signal)
+        m.setattr(safetensors.torch, "save_file", save_with_signals)
+        with pytest.raises(KeyboardInterrupt):
+            _inprocess_run(scene, out)
+    assert len(saves) == 1
+    _only_state(out)
+    assert load_state(out / STATE)[0].iteration == 3
+    _inprocess_run(scene, out, resume=True)
+    _assert_same_result(out, scene / "ref")
+
+
+def test_resume_refuses_other_input_or_settings(scene, tmp_path, capsys):
+    from cli.adapt import main
+
+    out = tmp_path / "out"
+    out.mkdir()
+    shutil.copy(scene / "ref" / STATE, out / STATE)
+    before = (out / STATE).read_bytes()
+    base = [str(scene / "scene"), "-o", str(out), "--resume", "--quiet", "--seed", str(SEED)]
+    cases = [
+        ([str(scene / "other.ply"), "--images", *base, "--max-sv", str(MAX_SV)], "another input model"),
+        ([str(scene / "in.ply"), "--images", *base, "--max-sv", "4"], "max_sv"),
+        ([str(scene / "in.ply"), "--images", *base[:-2], "--max-sv", str(MAX_SV)], "seed"),
+        ([str(scene / "in.ply"), "--images", *base, "--max-sv", str(MAX_SV), "--lambda-reg", "0.5"],
+         "lambda_reg"),
+    ]
+    for argv, must in cases:
+        code = main(argv)
+        err = capsys.readouterr().err.strip()
+        assert code == 2, (argv, err)
+        assert len(err.splitlines()) == 1 and must in err and STATE in err, err
+        assert sorted(p.name for p in out.iterdir()) == [STATE]
+        assert (out / STATE).read_bytes() == before

@@ -35,10 +35,8 @@ DEFAULT_TAU = 0.005
 #: eps of Eq. 2 (denominator guard).
 DEFAULT_EPS = 1e-8
 #: smallest eps used: below it a dead Gaussian's exponent ``(d' s_v)^2 / eps`` and its
-#: gradients overflow float32 (eps = 1e-45 gave NaN gradients at d' = 0).
+#: gradients overflow float32 (eps = 1e-45 gave NaN gradients at d' = 0, eps = 0 NaN values).
 EPS_FLOOR = 1e-20
-#: log-attenuations below ``-LOG_ATT_FLOOR`` are clamped there, with zero gradient.
-LOG_ATT_FLOOR = 1e4
 ETA_ESTIMATORS = ("ste", "sigmoid", "paper")
 
 
@@ -112,19 +110,15 @@ def lod_log_attenuation(d_norm: Tensor, sigma_d: Tensor, s_v: float | Tensor,
 
     Evaluated in at least float32. ``eps`` is floored at :data:`EPS_FLOOR` (a dead Gaussian,
     ``sigma_d <= 0``, then gets a large negative value rather than -inf/NaN, also for
-    ``d' = 0``), and values below ``-LOG_ATT_FLOOR`` are clamped there with zero gradient
-    (``exp`` has long underflowed to 0; the clamp keeps the backward pass free of
-    ``inf * 0 = NaN`` for stiff decays).
+    ``d' = 0``). Computed as ``-r^2`` with ``r = d' s_v / sqrt(den)``: the backward pass then
+    only forms ``1 / sqrt(den)`` (<= 1e10), never ``x^2 / den^2``, so a stiff decay whose
+    attenuation underflows to 0 gets a zero gradient instead of ``0 * inf = NaN``.
     """
     dt = _work_dtype(d_norm, sigma_d)
     x = d_norm.to(dt) * torch.as_tensor(s_v, dtype=dt, device=d_norm.device)
     sd = torch.relu(sigma_d.to(dt))
-    den = 2.0 * sd * sd + max(float(eps), EPS_FLOOR)
-    with torch.no_grad():
-        stiff = x * x > LOG_ATT_FLOOR * den  # NaN inputs stay NaN (comparison is False)
-    zero = torch.zeros((), dtype=dt, device=x.device)
-    x = torch.where(stiff, zero, x)  # double-where: no gradient, no inf, on stiff entries
-    return torch.where(stiff, zero - LOG_ATT_FLOOR, -(x * x) / den)
+    r = x / torch.sqrt(2.0 * sd * sd + max(float(eps), EPS_FLOOR))
+    return -(r * r)
 
 
 def lod_opacities(opacities: Tensor, d_norm: Tensor, sigma_d: Tensor, s_v: float | Tensor,

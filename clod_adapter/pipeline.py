@@ -135,6 +135,10 @@ def check_output_dir(out_dir: Path, inputs: list[Path], *, create: bool = True) 
 SANITIZE_OPACITY_LOGIT = float(math.log((1.0 - 1e-7) / 1e-7))
 
 
+_PLY_FIELD = {"means": "x/y/z", "quats": "rot_*", "log_scales": "scale_*", "opacity_logits": "opacity",
+              "sh0": "f_dc_*", "shN": "f_rest_*", "sigma_d": "sigma_d"}  # the .ply property names
+
+
 def check_finite(gaussians, ply_path: Path, sanitize: bool = False, log=print):
     """Reject (default) or repair (``sanitize``) Gaussians with NaN/Inf values.
 
@@ -159,7 +163,7 @@ def check_finite(gaussians, ply_path: Path, sanitize: bool = False, log=print):
         nonfin = ~torch.isfinite(v)
         if not bool(nonfin.any()):
             continue
-        bad_fields.append(name)
+        bad_fields.append(_PLY_FIELD.get(name, name))
         counts["NaN"] += int(torch.isnan(v).sum())
         counts["+Inf"] += int(torch.isposinf(v).sum())
         counts["-Inf"] += int(torch.isneginf(v).sum())

@@ -58,7 +58,8 @@ import torch
 from torch import Tensor
 
 from . import __version__, lod
-from .baselines import (Selection, constant_sigma_selection, default_sigma_c, lightgaussian_significance,
+from .baselines import (SIGMA_C_CANDIDATES, Selection, constant_sigma_selection, default_sigma_c,
+                        lightgaussian_significance, tune_sigma_c,
                         random_scores, ranking_selection, render_subset)
 from .gaussians import Gaussians
 from .io.atomic import atomic_save, atomic_write
@@ -387,6 +388,47 @@ def format_table(rows: list[dict]) -> str:
     return "\n".join(lines)
 
 
+def format_markdown(report: dict) -> str:
+    """The report's headline tables as Markdown (``report.md``): quality per method at each
+    budget, the adapted model's s_v sweep with render times, and the popping ratio."""
+    rows = report["rows"]
+    fmt = lambda v, f: "-" if v is None or (isinstance(v, float) and v != v) else format(v, f)  # noqa: E731
+    budgets = [r["setting"] for r in rows if r["method"] == "clod_budget"]
+    methods = [m for m in ("clod_budget",) + BASELINES if any(r["method"] == m for r in rows)]
+    out = [f"{report['num_gaussians']['adapted']:,} Gaussians; views: {', '.join(report['views'])} "
+           f"at {report['image_size'][0]}x{report['image_size'][1]}; {report['device']}, "
+           f"{report['threads']} threads; constant-sigma c = {report['settings']['sigma_c']:g} "
+           f"({report['settings']['sigma_c_rule']}).", "",
+           "PSNR / SSIM / LPIPS (mean Gaussians rendered per view):", "",
+           "| method | " + " | ".join(b.replace("budget=", "budget ") for b in budgets) + " |",
+           "|---|" + "---|" * len(budgets)]
+    for m in methods:
+        cells = []
+        for b in budgets:
+            r = next((r for r in rows if r["method"] == m and r["setting"] == b), None)
+            cells.append("-" if r is None else f"{fmt(r['psnr'], '.2f')} / {fmt(r['ssim'], '.3f')} / "
+                         f"{fmt(r['lpips'], '.3f')} ({r['gaussians']:,.0f})")
+        out.append(f"| {m} | " + " | ".join(cells) + " |")
+    ref = next((r for r in rows if r["method"] == "pretrained"), None)
+    if ref is not None:
+        out += ["", f"Pretrained, full: {fmt(ref['psnr'], '.2f')} / {fmt(ref['ssim'], '.3f')} / "
+                f"{fmt(ref['lpips'], '.3f')} ({ref['gaussians']:,.0f} Gaussians, {fmt(ref['ms_total'], '.0f')} ms)."]
+    out += ["", "Adapted model over s_v (median ms per frame = LoD selection + rasterisation):", "",
+            "| s_v | Gaussians | % | PSNR | SSIM | LPIPS | ms | ms select | ms raster | MB rendered |",
+            "|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
+    for r in rows:
+        if r["method"] == "clod":
+            out.append(f"| {r['s_v']:.2f} | {r['gaussians']:,.0f} | {100 * r['fraction']:.1f} | "
+                       f"{fmt(r['psnr'], '.2f')} | {fmt(r['ssim'], '.4f')} | {fmt(r['lpips'], '.4f')} | "
+                       f"{fmt(r['ms_total'], '.1f')} | {fmt(r['ms_select'], '.1f')} | "
+                       f"{fmt(r['ms_raster'], '.1f')} | {r['bytes'] / 1e6:.2f} |")
+    pop = report["popping"]
+    out += ["", f"Popping (camera {pop['camera']}, mean |dI| per step): continuous max "
+            f"{pop['continuous_max']:.3g}, median {pop['continuous_median']:.3g}; discrete switch "
+            f"{pop['discrete_max']:.3g}; ratio {pop['ratio']:.1f}."]
+    return "\n".join(out) + "\n"
+
+
 def check_report_dir(out_dir: Path, inputs: Sequence[Path]) -> None:
     """Create ``out_dir`` (after inputs are checked) and refuse outputs overwriting an input.
 
@@ -446,8 +488,8 @@ def evaluate_report(
             else 5).
         popping_steps: frames of the popping sweep, s_v from 1 to the sweep's end.
         lpips: see :func:`resolve_lpips`.
-        sigma_c: the constant decay of the constant-sigma baseline (default: median of the
-            adapted ``ReLU(sigma_d)``, :func:`clod_adapter.baselines.default_sigma_c`).
+        sigma_c: the constant decay of the constant-sigma baseline (default: the
+            best on training views, :func:`clod_adapter.baselines.tune_sigma_c`).
         seed: seed of the random baseline.
         tau: the LoD threshold.
         background: [3] RGB behind the scene.
@@ -484,8 +526,7 @@ def evaluate_report(
         base = base.with_sigma_d(None)
     budgets = normalize_budgets(budgets)
     s_vs = sv_grid(max_sv, sv_steps) if s_vs is None else [float(s) for s in s_vs]
-    if sigma_c is None:
-        sigma_c = default_sigma_c(adapted)
+    sigma_c_rule = "given"
     lpips_fn, lpips_note = resolve_lpips(lpips)
     if lpips_fn is not None and hasattr(lpips_fn, "to"):
         lpips_fn = lpips_fn.to(dev)
@@ -495,6 +536,10 @@ def evaluate_report(
     cams = list(scene.test) or list(scene.train[:1])
     train_cams = list(scene.train) or cams
     gts = [scene.load_image(c).to(dev) for c in cams]
+    if sigma_c is None:
+        sigma_c = tune_sigma_c(base, train_cams, [scene.load_image(c).to(dev) for c in train_cams],
+                               background=list(background), backend=backend)
+        sigma_c_rule = "best training-view PSNR at 50 % over " + ", ".join(f"{c:g}" for c in SIGMA_C_CANDIDATES)
     bg = list(background)
     pop_svs = [float(x) for x in np.linspace(1.0, s_vs[-1], popping_steps)]
     strip_svs = sv_levels(max_sv)
@@ -560,7 +605,7 @@ def evaluate_report(
         "num_gaussians": {"adapted": na, "pretrained": nb},
         "bytes_per_gaussian": {"adapted": bpg_a, "pretrained": bpg_b},
         "settings": {"max_sv": max_sv, "s_vs": s_vs, "budgets": budgets, "sigma_c": sigma_c,
-                     "sigma_c_rule": "median of the adapted ReLU(sigma_d)", "seed": seed, "tau": tau,
+                     "sigma_c_rule": sigma_c_rule, "seed": seed, "tau": tau,
                      "background": bg, "popping_steps": popping_steps,
                      "lightgaussian": {"v_pow": 0.1, "volume_ref": "sorted-descending volume at int(0.9 N)",
                                        "pixels_hit": "projected ellipse area (alpha >= 1/255, <= 3.33 sigma), "
@@ -585,6 +630,8 @@ def evaluate_report(
     report["wall_seconds"] = round(time.perf_counter() - t_start, 1)
     with atomic_write(out_dir / "report.json", "w") as f:
         json.dump(_jsonable(report), f, indent=1)
+    with atomic_write(out_dir / "report.md", "w") as f:
+        f.write(format_markdown(report))
     if log is not None:
         log(format_table(R.rows))
         log(f"popping (camera {pop['camera']}): continuous max {pop['continuous_max']:.4g} / median "

@@ -150,6 +150,8 @@ def test_report_outputs_and_csv_schema(report, tiny):
     js = json.loads((out / "report.json").read_text())
     assert js["columns"] == list(CSV_COLUMNS) and len(js["rows"]) == len(rows)
     assert any("LPIPS skipped" in n for n in js["notes"])
+    md = (out / "report.md").read_text()
+    assert "| clod_budget |" in md and "Popping" in md and md.count("\n| 1.00 |") == 1
 
 
 def test_report_baselines_match_clod_counts(report):

@@ -94,14 +94,17 @@ def read_ply(path: PathLike, *, allow_nonfinite: bool = False) -> Gaussians:
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"{path}: no such file")
-    if path.stat().st_size == 0:
+    size = path.stat().st_size
+    if size == 0:
         raise PlyFormatError(path, "file is empty")
+    _check_element_counts(path, size)
     try:
         ply = plyfile.PlyData.read(str(path))
     except plyfile.PlyElementParseError as e:
         raise PlyFormatError(path, f"cannot read element data (truncated or corrupt file?): {e}") from None
-    except (plyfile.PlyParseError, ValueError, EOFError, UnicodeDecodeError, IndexError) as e:
-        raise PlyFormatError(path, f"not a valid PLY file: {e}") from None
+    except (plyfile.PlyParseError, ValueError, EOFError, UnicodeDecodeError, IndexError,
+            OverflowError, MemoryError, TypeError, KeyError) as e:
+        raise PlyFormatError(path, f"not a valid PLY file: {e or type(e).__name__}") from None
 
     names = [el.name for el in ply.elements]
     if "vertex" not in names:
@@ -139,7 +142,8 @@ def read_ply(path: PathLike, *, allow_nonfinite: bool = False) -> Gaussians:
         return src[:, idx]
 
     def own(a: np.ndarray) -> np.ndarray:  # a fresh C-contiguous float32 copy (never the memmap)
-        return np.array(a, dtype=np.float32, order="C", copy=True)
+        with np.errstate(over="ignore"):  # float64 beyond float32 -> inf, reported below
+            return np.array(a, dtype=np.float32, order="C", copy=True)
 
     means = own(block("x", 3))
     sh0 = own(block("f_dc_0", 3)).reshape(n, 1, 3)
@@ -180,6 +184,41 @@ def read_ply(path: PathLike, *, allow_nonfinite: bool = False) -> Gaussians:
         shN=t(shN),
         sigma_d=t(sigma_d) if sigma_d is not None else None,
     )
+
+
+def _check_element_counts(path: Path, size: int) -> None:
+    """Reject element counts plyfile would choke on before it sees them: a negative count (numpy
+    dies with SIGFPE on a property-less element of count -1) or more rows than the file has bytes
+    (each row of an element with properties takes at least one byte in every format; plyfile
+    would otherwise allocate the claimed rows first, e.g. 8 bytes x 10^12 for a list property).
+    Anything else malformed is left to plyfile's own header parser."""
+    with open(path, "rb") as f:
+        head = f.read(1 << 20)
+    end = head.find(b"end_header")
+    if end < 0:
+        return
+    current = None  # [name, count, number of properties]
+    elements = []
+    for line in head[:end].split(b"\n"):
+        tok = line.split()
+        if not tok:
+            continue
+        if tok[0] == b"element" and len(tok) == 3:
+            try:
+                count = int(tok[2])
+            except ValueError:
+                current = None
+                continue
+            current = [tok[1].decode("latin-1"), count, 0]
+            elements.append(current)
+        elif tok[0] == b"property" and current is not None:
+            current[2] += 1
+    for name, count, nprops in elements:
+        if count < 0:
+            raise PlyFormatError(path, f"element {name!r} has a negative count ({count})")
+        if count > (size if nprops else 1 << 62):
+            raise PlyFormatError(path, f"element {name!r} claims {count} rows, more than the file "
+                                       f"({size} bytes) can hold (truncated or corrupt header?)")
 
 
 def _as_2d(data: np.ndarray, wanted: list[str]) -> tuple[np.ndarray, dict[str, int]]:

@@ -4,7 +4,7 @@
               [--budgets 1,0.5,0.25,0.1] [--sv-steps 25] [--max-sv X] [--lpips-weights PATH]
               [--sigma-c C] [--device auto|cpu|cuda] -o REPORT
 
-Writes REPORT/{report.csv, report_per_view.csv, report.json, quality_vs_gaussians.png,
+Writes REPORT/{report.csv, report_per_view.csv, report.json, report.md, quality_vs_gaussians.png,
 quality_vs_time.png, popping.png, lod_strip.png} (see :mod:`clod_adapter.report`).
 
 Exit status: 0 done, 2 bad input (one line on stderr naming the file or flag, nothing written),
@@ -45,8 +45,8 @@ def build_parser() -> argparse.ArgumentParser:
                         "../shared/data/lpips/; LPIPS is skipped with a note when none exists")
     p.add_argument("--no-lpips", action="store_true", help="skip LPIPS")
     p.add_argument("--sigma-c", type=float, default=None,
-                   help="constant sigma_d of the constant-sigma baseline (default: median of the adapted "
-                        "ReLU(sigma_d))")
+                   help="constant sigma_d of the constant-sigma baseline (default: the best of a grid on "
+                        "training views at 50 %% of the Gaussians)")
     p.add_argument("--seed", type=int, default=0, help="seed of the random baseline")
     p.add_argument("--device", default="auto", choices=("auto", "cpu", "cuda"))
     p.add_argument("-o", "--output", metavar="REPORT", help="report folder (default: ./clod_report)")

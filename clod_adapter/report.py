@@ -58,7 +58,7 @@ import torch
 from torch import Tensor
 
 from . import __version__, lod
-from .baselines import (SIGMA_C_CANDIDATES, Selection, constant_sigma_selection, default_sigma_c,
+from .baselines import (SIGMA_C_CANDIDATES, Selection, constant_sigma_selection,
                         lightgaussian_significance, tune_sigma_c,
                         random_scores, ranking_selection, render_subset)
 from .gaussians import Gaussians

@@ -8,7 +8,6 @@ real reconstruction error to lose or keep at each level of detail.
 """
 from __future__ import annotations
 
-import math
 from pathlib import Path
 
 import numpy as np

@@ -35,6 +35,13 @@ def render_views(gaussians, cameras):
     return imgs
 
 
+def uint8_views(gaussians, cameras):
+    """:func:`render_views` as 8-bit images (H, W, 3), as written to a scene folder."""
+    import numpy as np
+
+    return [(im.numpy() * 255 + 0.5).astype(np.uint8) for im in render_views(gaussians, cameras)]
+
+
 def write_tiny_scene(root: Path, n: int = 400, rows: int = 2, cols: int = 5, width: int = 64,
                      height: int = 48, seed: int = 4):
     """A tiny synthetic COLMAP scene under ``root``: returns (scene folder, pretrained .ply).
@@ -42,15 +49,13 @@ def write_tiny_scene(root: Path, n: int = 400, rows: int = 2, cols: int = 5, wid
     Ground truth from :func:`clod_adapter.synthetic.make_ground_truth` rendered from a
     ``rows x cols`` camera grid; the .ply is a perturbed copy (the "pretrained" stand-in).
     """
-    import numpy as np
-
     from clod_adapter.io.ply import write_ply
     from clod_adapter.io.scene import write_colmap_scene
     from clod_adapter.synthetic import make_cameras, make_ground_truth, perturb
 
     gt = make_ground_truth(n, seed=seed)
     cams = make_cameras(rows, cols, width=width, height=height)
-    imgs = [(im.numpy() * 255 + 0.5).astype(np.uint8) for im in render_views(gt, cams)]
+    imgs = uint8_views(gt, cams)
     scene = Path(root) / "scene"
     write_colmap_scene(scene, cams, imgs)
     ply = Path(root) / "in.ply"

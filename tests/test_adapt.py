@@ -5,7 +5,6 @@ import json
 import pytest
 import torch
 
-from clod_adapter import lod
 from clod_adapter.adapt import AdaptConfig, adapt, load_state, prepare, save_state
 from clod_adapter.io.ply import read_ply
 from clod_adapter.lod_render import render_lod
@@ -83,7 +82,7 @@ def test_pipeline_outputs(tmp_path):
     scene, ply = write_tiny_scene(tmp_path, n=900)
     before = ply.read_bytes()
     out = tmp_path / "out"
-    m = run(ply, scene, out, AdaptConfig(max_sv=3.0, iterations=30), progress=False,
+    run(ply, scene, out, AdaptConfig(max_sv=3.0, iterations=30), progress=False,
             log=lambda *a: None)
     assert ply.read_bytes() == before  # input untouched
     for name in ("point_cloud.ply", "adapt_state.safetensors", "metrics.json", "lod_strip.png"):

@@ -25,8 +25,8 @@ from PIL import Image
 
 from cli.adapt import main as adapt_main
 from cli.eval import main as eval_main
-from clod_adapter.io.ply import ply_property_names, read_ply, write_ply
-from conftest import shared_path
+from clod_adapter.io.ply import read_ply, write_ply
+from conftest import shared_path, uint8_views
 
 IS_ROOT = hasattr(os, "geteuid") and os.geteuid() == 0
 RUN_FAST = ["--iterations", "2", "--max-sv", "2"]
@@ -36,19 +36,12 @@ RUN_FAST = ["--iterations", "2", "--max-sv", "2"]
 @pytest.fixture(scope="module")
 def tiny_src(tmp_path_factory) -> Path:
     from clod_adapter.io.scene import write_colmap_scene
-    from clod_adapter.render import rasterization
     from clod_adapter.synthetic import make_cameras, make_ground_truth, perturb
 
     root = tmp_path_factory.mktemp("tiny")
     gt = make_ground_truth(300, seed=4)
     cams = make_cameras(2, 5, width=64, height=48)
-    imgs = []
-    with torch.no_grad():
-        for c in cams:
-            col, _, _ = rasterization(gt.means, gt.quats, gt.scales, gt.opacities, gt.colors,
-                                      c.viewmat[None], c.K[None], c.width, c.height,
-                                      sh_degree=gt.sh_degree, backend="cpu")
-            imgs.append((col[0].clamp(0, 1).numpy() * 255 + 0.5).astype(np.uint8))
+    imgs = uint8_views(gt, cams)
     write_colmap_scene(root / "scene", cams, imgs)
     write_ply(root / "in.ply", perturb(gt, 2))
     return root

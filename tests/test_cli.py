@@ -4,7 +4,6 @@ import subprocess
 import sys
 from pathlib import Path
 
-import pytest
 
 from cli.adapt import main
 from conftest import REPO, shared_path

@@ -1,5 +1,4 @@
 """The CLoD-GS mechanism (clod_adapter.lod): Eq. 2, the mask, eta estimators, L_reg, w_s."""
-import math
 
 import pytest
 import torch

@@ -14,10 +14,10 @@ from clod_adapter.baselines import (constant_sigma_selection, lightgaussian_sign
 from clod_adapter.io.ply import write_ply
 from clod_adapter.io.scene import load_colmap_scene, write_colmap_scene
 from clod_adapter.lod_render import in_view, render_lod
-from clod_adapter.render import rasterization
 from clod_adapter.report import (BASELINES, CSV_COLUMNS, OUTPUT_NAMES, PER_VIEW_COLUMNS, evaluate_report,
                                  popping_curve)
 from clod_adapter.synthetic import make_cameras, make_ground_truth, perturb
+from conftest import uint8_views
 
 
 @pytest.fixture(scope="module")
@@ -26,13 +26,7 @@ def tiny(tmp_path_factory):
     root = tmp_path_factory.mktemp("eval")
     gt = make_ground_truth(600, seed=3)
     cams = make_cameras(2, 5, width=48, height=36)  # llffhold 8: 2 test views, 8 train
-    imgs = []
-    with torch.no_grad():
-        for c in cams:
-            col, _, _ = rasterization(gt.means, gt.quats, gt.scales, gt.opacities, gt.colors,
-                                      c.viewmat[None], c.K[None], c.width, c.height,
-                                      sh_degree=gt.sh_degree, backend="cpu")
-            imgs.append((col[0].clamp(0, 1).numpy() * 255 + 0.5).astype(np.uint8))
+    imgs = uint8_views(gt, cams)
     write_colmap_scene(root / "scene", cams, imgs)
     pre = perturb(gt, 5)
     g = torch.Generator().manual_seed(0)

@@ -8,7 +8,9 @@
 * ``--resume`` refuses a state saved for another input .ply or other settings (exit 2, one line).
 
 The CLI runs in a subprocess (real signals, real exit codes); the test waits for iteration >= 5
-through the ``CLOD_PROGRESS_FILE`` hook instead of sleeping.
+through the ``CLOD_PROGRESS_FILE`` hook instead of sleeping. The uninterrupted reference runs
+in-process (faster; the subprocesses use the same thread count, and their results must equal it
+bit for bit, which also shows the CLI and ``pipeline.run`` agree).
 """
 from __future__ import annotations
 
@@ -20,18 +22,16 @@ import sys
 import time
 from pathlib import Path
 
-import numpy as np
 import pytest
 import torch
 
 from clod_adapter.adapt import load_state
 from clod_adapter.io.ply import write_ply
 from clod_adapter.io.scene import write_colmap_scene
-from clod_adapter.render import rasterization
 from clod_adapter.synthetic import make_cameras, make_ground_truth, perturb
-from conftest import REPO
+from conftest import REPO, uint8_views
 
-ITERATIONS = 60
+ITERATIONS = 24
 MAX_SV = 3.0
 SEED = 5
 THREADS = 2
@@ -59,20 +59,14 @@ def scene(tmp_path_factory):
     root = tmp_path_factory.mktemp("resume")
     gt = make_ground_truth(400)
     cams = make_cameras(2, 5, 64, 48)
-    imgs = []
-    with torch.no_grad():
-        for c in cams:
-            col, _, _ = rasterization(gt.means, gt.quats, gt.scales, gt.opacities, gt.colors,
-                                      c.viewmat[None], c.K[None], c.width, c.height,
-                                      sh_degree=gt.sh_degree, backend="cpu")
-            imgs.append((col[0].clamp(0, 1).numpy() * 255 + 0.5).astype(np.uint8))
+    imgs = uint8_views(gt, cams)
     write_colmap_scene(root / "scene", cams, imgs)
     write_ply(root / "in.ply", perturb(gt, 2))
     write_ply(root / "other.ply", perturb(gt, 3))
-    ref = root / "ref"
-    r = subprocess.run(_cli(root / "in.ply", root / "scene", ref, "--iterations", str(ITERATIONS)),
-                       cwd=REPO, env=_env(), capture_output=True, text=True, timeout=120)
-    assert r.returncode == 0, r.stderr[-2000:]
+    # the uninterrupted reference, in-process (same code, seed, thread count and deterministic
+    # mode as the CLI subprocesses below; their results must match it bit for bit)
+    assert torch.get_num_threads() == THREADS
+    _inprocess_run(root, root / "ref")
     return root
 
 
@@ -162,7 +156,6 @@ def test_interrupt_during_final_evaluation_resumes(scene, tmp_path, monkeypatch)
             _inprocess_run(scene, out)
     _only_state(out)
     assert load_state(out / STATE)[0].iteration == ITERATIONS
-    assert torch.get_num_threads() == THREADS  # same thread count as the reference subprocess
     _inprocess_run(scene, out, resume=True)
     _assert_same_result(out, scene / "ref")
 
@@ -223,3 +216,31 @@ def test_resume_refuses_other_input_or_settings(scene, tmp_path, capsys):
         assert len(err.splitlines()) == 1 and must in err and STATE in err, err
         assert sorted(p.name for p in out.iterdir()) == [STATE]
         assert (out / STATE).read_bytes() == before
+
+
+@pytest.mark.parametrize("threads", [2, 4])
+def test_deterministic_backward_is_bit_reproducible(threads):
+    """The C++ backward in deterministic mode gives bit-identical gradients call after call (the
+    dynamic schedule may not), and the same gradients as the dynamic mode up to rounding."""
+    from test_composite import grads_of, make_scene
+
+    from clod_adapter.render import composite
+
+    if not composite.cpp_extension_available():
+        pytest.skip("C++ compositor did not build")
+    scene = make_scene(3000, 96, 80, seed=3)
+    old = torch.get_num_threads()
+    torch.set_num_threads(threads)
+    try:
+        composite.set_deterministic(True)
+        runs = [grads_of(scene, "cpp")[2] for _ in range(4)]
+        composite.set_deterministic(False)
+        dyn = grads_of(scene, "cpp")[2]
+    finally:
+        composite.set_deterministic(None)
+        torch.set_num_threads(old)
+    for r in runs[1:]:
+        for k in r:
+            assert torch.equal(r[k], runs[0][k]), k
+    for k in dyn:
+        torch.testing.assert_close(runs[0][k], dyn[k], rtol=1e-4, atol=1e-6)

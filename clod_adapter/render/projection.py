@@ -160,7 +160,7 @@ def project_visible(
     det = (AxB * AxB).sum(-1) + eps2d * (AA + BB) + eps2d * eps2d
 
     with torch.no_grad():
-        det_ok = det > 0
+        det_ok = (det > 0) & torch.isfinite(det)  # an overflowing footprint is culled
         if opacities is not None:
             op = opacities.detach().index_select(0, ids)
             extend = torch.sqrt(2.0 * torch.log(op / ALPHA_THRESHOLD)).clamp_max(GAUSSIAN_EXTEND)

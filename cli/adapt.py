@@ -25,7 +25,8 @@ def build_parser() -> argparse.ArgumentParser:
                     "on a pretrained 3DGS .ply so one model renders from full detail down to a small "
                     "fraction of its Gaussians.",
     )
-    p.add_argument("ply", nargs="?", help="pretrained 3DGS .ply (INRIA layout)")
+    p.add_argument("ply", nargs="?", help="pretrained 3DGS model: .ply (INRIA layout, MaskGaussian, "
+                                          "PlayCanvas/SuperSplat compressed) or a gsplat ckpt_*.pt")
     p.add_argument("--images", metavar="SCENE", help="scene folder (COLMAP: images/, sparse/0)")
     p.add_argument("--max-sv", type=float, default=5.0, help="largest virtual distance scale trained (default 5)")
     p.add_argument("-o", "--output", metavar="OUT", help="output folder (default: ./clod_out)")

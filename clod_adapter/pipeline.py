@@ -26,7 +26,8 @@ from . import __version__, lod
 from .adapt import AdaptConfig, StopFlag, adapt, load_state, prepare, save_state
 from .evaluate import evaluate_level, evaluate_levels
 from .io.atomic import atomic_save, atomic_write
-from .io.ply import read_ply, write_ply
+from .io.load import load_model
+from .io.ply import write_ply
 from .io.scene import load_colmap_scene
 from .lod_render import render_lod
 
@@ -368,7 +369,7 @@ def _run(ply_path, scene_root, out_dir, cfg: AdaptConfig, *, stop: StopFlag, res
         raise InputError(f"{scene_root}: no such scene folder")
     dev = pick_device(device)
     backend = "gsplat" if dev.type == "cuda" else "cpu"
-    gaussians = read_ply(ply_path, allow_nonfinite=True)
+    gaussians = load_model(ply_path, allow_nonfinite=True)
     if len(gaussians) == 0:
         raise InputError(f"{ply_path}: the model has no Gaussians")
     gaussians, sanitized = check_finite(gaussians, ply_path, sanitize, log=log)

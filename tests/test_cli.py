@@ -99,3 +99,22 @@ def test_demo_end_to_end(tmp_path):
     assert len(m["levels"]) == 5 and m["num_gaussians"] == 6000
     assert "s_v=5" in r.stdout  # summary table printed
     assert (out / "point_cloud.ply").stat().st_size > 0
+
+
+def test_adapt_from_gsplat_checkpoint(tmp_path, capsys):
+    """clod-adapt takes a gsplat ckpt_*.pt (its `splats` dict) as the pretrained model."""
+    import torch
+
+    from clod_adapter.io.ply import read_ply
+    from conftest import write_tiny_scene
+
+    scene, ply = write_tiny_scene(tmp_path, n=300)
+    g = read_ply(ply)
+    ckpt = tmp_path / "ckpt_6999.pt"
+    torch.save({"step": 6999, "splats": {"means": g.means, "quats": g.quats, "scales": g.log_scales,
+                                         "opacities": g.opacity_logits, "sh0": g.sh0, "shN": g.shN}}, ckpt)
+    out = tmp_path / "out"
+    code, err = _run([ckpt, "--images", scene, "-o", out, "--iterations", "2", "--max-sv", "2"], capsys)
+    assert code == 0, err
+    adapted = read_ply(out / "point_cloud.ply")
+    assert len(adapted) == 300 and adapted.sigma_d is not None

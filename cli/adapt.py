@@ -27,13 +27,16 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument("ply", nargs="?", help="pretrained 3DGS model: .ply (INRIA layout, MaskGaussian, "
                                           "PlayCanvas/SuperSplat compressed) or a gsplat ckpt_*.pt")
-    p.add_argument("--images", metavar="SCENE", help="scene folder (COLMAP: images/, sparse/0)")
+    p.add_argument("--images", metavar="SCENE",
+                   help="scene folder: COLMAP (images/, sparse/0) or NeRF-synthetic (transforms_*.json)")
     p.add_argument("--max-sv", type=float, default=5.0, help="largest virtual distance scale trained (default 5)")
     p.add_argument("-o", "--output", metavar="OUT", help="output folder (default: ./clod_out)")
     p.add_argument("--iterations", type=int, default=None, help="optimisation steps (default 1000; demo 400)")
     p.add_argument("--resolution", type=int, default=1, choices=(1, 2, 4, 8),
                    help="use images_R/ when present, else downsample by R (default 1)")
     p.add_argument("--device", default="auto", choices=("auto", "cpu", "cuda"))
+    p.add_argument("--background", default="black", choices=("black", "white"),
+                   help="colour behind the scene (NeRF-synthetic RGBA images are composited over it)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--other-lr-scale", type=float, default=0.1,
                    help="factor on the official 3DGS learning rates of the other attributes; 0 freezes them")
@@ -88,7 +91,8 @@ def main(argv: list[str] | None = None) -> int:
         kw = {} if args.tau is None else {"tau": args.tau}
         cfg = AdaptConfig(max_sv=args.max_sv, iterations=iterations, seed=args.seed,
                           other_lr_scale=args.other_lr_scale, lambda_reg=args.lambda_reg,
-                          eta_estimator=args.eta_estimator, **kw)
+                          eta_estimator=args.eta_estimator,
+                          background=(1.0, 1.0, 1.0) if args.background == "white" else (0.0, 0.0, 0.0), **kw)
         run(ply, scene, out, cfg, resolution=args.resolution, device=args.device,
             resume=args.resume, progress=not args.quiet, sanitize=args.sanitize,
             deterministic=args.deterministic,

@@ -28,7 +28,8 @@ def build_parser() -> argparse.ArgumentParser:
                     "and write a report (CSV, JSON, plots).",
     )
     p.add_argument("ply", nargs="?", help="adapted model .ply (with sigma_d; from clod-adapt)")
-    p.add_argument("--images", metavar="SCENE", help="scene folder (COLMAP: images/, sparse/0)")
+    p.add_argument("--images", metavar="SCENE",
+                   help="scene folder: COLMAP (images/, sparse/0) or NeRF-synthetic (transforms_*.json)")
     p.add_argument("--pretrained", metavar="PRE.ply",
                    help="pretrained .ply the baselines cut (default: the adapted model without sigma_d)")
     p.add_argument("--resolution", type=int, default=1, choices=(1, 2, 4, 8),
@@ -49,6 +50,8 @@ def build_parser() -> argparse.ArgumentParser:
                         "training views at 50 %% of the Gaussians)")
     p.add_argument("--seed", type=int, default=0, help="seed of the random baseline")
     p.add_argument("--device", default="auto", choices=("auto", "cpu", "cuda"))
+    p.add_argument("--background", default="black", choices=("black", "white"),
+                   help="colour behind the scene (NeRF-synthetic RGBA images are composited over it)")
     p.add_argument("-o", "--output", metavar="REPORT", help="report folder (default: ./clod_report)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     return p
@@ -57,7 +60,8 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     from clod_adapter.io.ply import PlyFormatError, read_ply
-    from clod_adapter.io.scene import SceneError, load_colmap_scene
+    from clod_adapter.io.scene import SceneError
+    from clod_adapter.io.scenes import load_scene
     from clod_adapter.pipeline import InputError, pick_device
     from clod_adapter.report import check_report_dir, evaluate_report, max_sv_from_state, normalize_budgets
 
@@ -106,7 +110,8 @@ def main(argv: list[str] | None = None) -> int:
             if len(pretrained) == 0:
                 raise InputError(f"{pre}: the model has no Gaussians")
             inputs.append(pre)
-        scene = load_colmap_scene(scene_root, resolution=args.resolution)
+        bg = (1.0, 1.0, 1.0) if args.background == "white" else (0.0, 0.0, 0.0)
+        scene = load_scene(scene_root, resolution=args.resolution, background=bg)
         if not scene.cameras:
             raise InputError(f"{scene_root}: the scene has no views")
         lpips = None
@@ -123,7 +128,8 @@ def main(argv: list[str] | None = None) -> int:
         check_report_dir(out, inputs)
         evaluate_report(ply, scene, out, pretrained=args.pretrained, budgets=budgets, max_sv=max_sv,
                         sv_steps=args.sv_steps, popping_steps=args.popping_steps, lpips=lpips,
-                        seed=args.seed, sigma_c=args.sigma_c, device=dev, progress=not args.quiet)
+                        seed=args.seed, sigma_c=args.sigma_c, device=dev, progress=not args.quiet,
+                        background=bg)
         print(f"clod-eval: wrote the report to {out}")
     except (InputError, PlyFormatError, SceneError) as e:
         return bad(" ".join(str(e).split("\n")))

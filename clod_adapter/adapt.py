@@ -226,6 +226,13 @@ class StopFlag:
                 pass
         return self
 
+    def reinstall(self) -> None:
+        """Put our handlers back after a library replaced them (pycolmap's glog installs a
+        failure-signal handler for SIGTERM when it is first imported, which the lazy COLMAP
+        import does in the middle of a run)."""
+        for sig in list(self._old):
+            signal.signal(sig, self._handle)
+
     def _handle(self, signum, frame) -> None:
         self.stop = True
         self.signum = signum

@@ -25,11 +25,19 @@ def in_view(gaussians: Gaussians, viewmat: Tensor, K: Tensor, width: int, height
     """[N] bool: Gaussians whose footprint reaches the image (gsplat 1.5.3 culling with the
     opacity-free 3.33-sigma extent, near plane 0.01). A superset of what the rasteriser draws for
     any opacity <= alpha; the population LoD counts and budgets refer to."""
-    vis = torch.zeros(len(gaussians), dtype=torch.bool, device=gaussians.means.device)
-    if len(gaussians) == 0:
+    return in_view_tensors(gaussians.means, gaussians.quats, gaussians.scales, viewmat, K,
+                           width, height)
+
+
+@torch.no_grad()
+def in_view_tensors(means: Tensor, quats: Tensor, scales: Tensor, viewmat: Tensor, K: Tensor,
+                    width: int, height: int, near_plane: float = 0.01) -> Tensor:
+    """:func:`in_view` on raw tensors (means [N, 3], quats [N, 4], activated scales [N, 3])."""
+    vis = torch.zeros(means.shape[0], dtype=torch.bool, device=means.device)
+    if means.shape[0] == 0:
         return vis
-    pv = project_visible(gaussians.means.detach(), gaussians.quats.detach(),
-                         gaussians.scales.detach(), None, viewmat, K, width, height)
+    pv = project_visible(means.detach(), quats.detach(), scales.detach(), None, viewmat, K,
+                         width, height, near_plane=near_plane)
     vis[pv.ids] = True
     return vis
 

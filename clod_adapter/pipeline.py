@@ -28,7 +28,7 @@ from .evaluate import evaluate_level, evaluate_levels
 from .io.atomic import atomic_save, atomic_write
 from .io.load import load_model
 from .io.ply import write_ply
-from .io.scene import load_colmap_scene
+from .io.scenes import load_scene
 from .lod_render import render_lod
 
 PLY_NAME = "point_cloud.ply"
@@ -373,7 +373,8 @@ def _run(ply_path, scene_root, out_dir, cfg: AdaptConfig, *, stop: StopFlag, res
     if len(gaussians) == 0:
         raise InputError(f"{ply_path}: the model has no Gaussians")
     gaussians, sanitized = check_finite(gaussians, ply_path, sanitize, log=log)
-    scene = load_colmap_scene(scene_root, resolution=resolution)
+    scene = load_scene(scene_root, resolution=resolution, background=cfg.background)
+    stop.reinstall()  # importing pycolmap (COLMAP scenes only) replaces the SIGTERM handler
     if not scene.train:
         raise InputError(f"{scene_root}: no training views (every image is a test view)")
     state_path = out_dir / STATE_NAME

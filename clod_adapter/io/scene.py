@@ -9,6 +9,8 @@ Conventions:
     * Test split as the official 3DGS ``readColmapSceneInfo`` with ``eval``: images sorted by
       name, index % llffhold == 0 is a test view.
 
+``pycolmap`` is imported only by the COLMAP functions (NeRF-synthetic scenes never load it).
+
 pycolmap 4.x API (verified on 4.2.1): ``Image.cam_from_world()`` is a method returning a
 ``Rigid3d`` whose ``.matrix()`` is the 3x4 [R | t]; a Reconstruction needs a rig and a frame per
 image (``add_camera_with_trivial_rig`` / ``add_image_with_trivial_frame``).
@@ -24,7 +26,6 @@ from pathlib import Path
 from typing import Optional, Sequence, Union
 
 import numpy as np
-import pycolmap
 import torch
 from PIL import Image
 from torch import Tensor
@@ -87,6 +88,8 @@ class Scene:
         test: held-out cameras (every ``llffhold``-th by sorted name), sorted by name.
         resolution: the downsampling factor the cameras were built for (1, 2, 4, 8).
         cache_size: how many decoded images ``load_image`` keeps (LRU).
+        background: RGB in [0, 1] that images with an alpha channel are composited over
+            (default black).
     """
 
     root: Path
@@ -94,6 +97,7 @@ class Scene:
     test: list[Camera]
     resolution: int = 1
     cache_size: int = 32
+    background: tuple = (0.0, 0.0, 0.0)
     _cache: "OrderedDict[tuple, Tensor]" = field(default_factory=OrderedDict, init=False, repr=False, compare=False)
 
     @property
@@ -105,9 +109,9 @@ class Scene:
         """The view's image as [H, W, 3] float32 in [0, 1], H = cam.height, W = cam.width.
 
         8-bit images are divided by 255, 16-bit (``I;16`` / ``I`` PNG) by 65535; grayscale is
-        repeated to 3 channels, RGBA / LA / transparent palette images are composited over black
-        (``rgb * alpha``), other modes converted by PIL to RGB. Note that Pillow decodes 48-bit
-        RGB PNGs to 8 bits per channel. An image whose size differs from (cam.width, cam.height)
+        repeated to 3 channels, RGBA / LA / transparent palette images are composited over
+        ``self.background`` (default black: ``rgb * alpha``), other modes converted by PIL to
+        RGB. Note that Pillow decodes 48-bit RGB PNGs to 8 bits per channel. An image whose size differs from (cam.width, cam.height)
         is resized with PIL LANCZOS (in 8 bits for 8-bit RGB, as ``images_N`` folders are made;
         per channel in float otherwise). Results are cached (LRU, ``cache_size`` entries); a
         fresh copy is returned each call.
@@ -115,12 +119,12 @@ class Scene:
         Raises:
             SceneError: the file is missing or cannot be decoded.
         """
-        key = (str(cam.image_path), int(cam.width), int(cam.height))
+        key = (str(cam.image_path), int(cam.width), int(cam.height), tuple(self.background))
         hit = self._cache.get(key)
         if hit is not None:
             self._cache.move_to_end(key)
             return hit.clone()
-        img = _read_image(Path(cam.image_path), int(cam.width), int(cam.height))
+        img = _read_image(Path(cam.image_path), int(cam.width), int(cam.height), self.background)
         if self.cache_size > 0:
             self._cache[key] = img
             while len(self._cache) > self.cache_size:
@@ -142,14 +146,14 @@ class Scene:
         return torch.stack([self.load_image(c) for c in cams])
 
 
-def _read_image(path: Path, width: int, height: int) -> Tensor:
+def _read_image(path: Path, width: int, height: int, background: Sequence[float] = (0.0, 0.0, 0.0)) -> Tensor:
     """Decode ``path`` to [height, width, 3] float32 in [0, 1] (see ``Scene.load_image``)."""
     if not path.is_file():
         raise SceneError(path, "image file does not exist")
     try:
         with Image.open(path) as im:
             im.load()
-            arr = _to_rgb_float(im, width, height)
+            arr = _to_rgb_float(im, width, height, background)
     except SceneError:
         raise
     except (OSError, ValueError, SyntaxError) as e:
@@ -157,7 +161,8 @@ def _read_image(path: Path, width: int, height: int) -> Tensor:
     return torch.from_numpy(np.ascontiguousarray(arr, dtype=np.float32))
 
 
-def _to_rgb_float(im: Image.Image, width: int, height: int) -> np.ndarray:
+def _to_rgb_float(im: Image.Image, width: int, height: int,
+                  background: Sequence[float] = (0.0, 0.0, 0.0)) -> np.ndarray:
     size = (width, height)
     mode = im.mode
     if mode == "P":
@@ -182,6 +187,9 @@ def _to_rgb_float(im: Image.Image, width: int, height: int) -> np.ndarray:
         rgb = color if premultiplied else color * alpha  # composite over black
         if rgb.shape[-1] == 1:
             rgb = np.repeat(rgb, 3, axis=-1)
+        bg = np.asarray(background, dtype=np.float32).reshape(3)
+        if bg.any():  # ... or over the scene's background
+            rgb = rgb + bg * (1.0 - alpha)
     elif mode == "L":
         rgb = np.repeat((np.asarray(im, dtype=np.float32) / 255.0)[..., None], 3, axis=-1)
     elif mode.startswith("I;16") or mode == "I":
@@ -250,6 +258,8 @@ def _check_binary_model(model_dir: Path) -> None:
             unknown camera model.
     """
     import struct
+
+    import pycolmap
 
     def walk(path: Path, record) -> None:
         if not path.is_file():
@@ -351,6 +361,8 @@ def load_colmap_scene(root: PathLike, resolution: int = 1, llffhold: int = 8) ->
         raise SceneError(root, f"resolution must be one of {_RESOLUTIONS}, got {resolution!r}")
     if not isinstance(llffhold, int) or llffhold < 0:
         raise SceneError(root, f"llffhold must be an integer >= 0, got {llffhold!r}")
+    import pycolmap
+
     model_dir = _find_model_dir(root)
     _check_binary_model(model_dir)
     try:
@@ -457,6 +469,8 @@ def write_colmap_scene(
         colors = np.asarray(colors, dtype=np.uint8).reshape(-1, 3)
         if len(colors) != len(points3D):
             raise ValueError(f"{root}: {len(points3D)} points3D but {len(colors)} colors")
+
+    import pycolmap
 
     rec = pycolmap.Reconstruction()
     cam_ids: dict[tuple, int] = {}

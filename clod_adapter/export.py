@@ -1,0 +1,309 @@
+"""Export an adapted CLoD-GS model for renderers that know nothing of ``sigma_d``.
+
+* :func:`persistence` / :func:`importance_order`: one global order in which every prefix is a
+  level of detail (for prefix / budget renderers).
+* :func:`bake`: the Gaussians one setting (``s_v`` or a budget) renders from a camera set, as a
+  standard INRIA model (no decay).
+* :func:`prune_never_rendered`: drop Gaussians no training view renders at any ``s_v >= 1``.
+* :func:`reduce_sh`: drop SH bands whose removal costs less than a set PSNR on training views.
+
+Persistence (the choice made here). A Gaussian is rendered from a view iff it is in view
+(:func:`clod_adapter.lod_render.in_view`) and ``s_v < s*`` (:func:`clod_adapter.budget.critical_s_v`,
+which folds opacity, ``sigma_d`` and the view's normalised distance into one number). Its
+persistence is the largest ``s*`` over the views that see it, i.e. the coarsest level at which
+*some* view still draws it; 0 for a Gaussian no view sees. The maximum (not the mean) is used so
+that a Gaussian that matters from one view is not ranked below one that is weak everywhere.
+Ties (e.g. the zeros) are broken by opacity, then index.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field, replace
+from typing import Optional, Sequence
+
+import torch
+from torch import Tensor
+
+from . import lod
+from .budget import budget_count, critical_s_v, select_budget
+from .gaussians import Gaussians
+from .lod_render import in_view, render_lod
+
+__all__ = ["persistence", "importance_order", "bake", "prune_never_rendered", "reduce_sh",
+           "view_selection", "truncate_sh", "capped_psnr", "BakeInfo"]
+
+PSNR_CAP_DB = 100.0  # identical images score this instead of +inf (keeps differences finite)
+
+
+def _require_sigma(g: Gaussians, what: str) -> None:
+    if g.sigma_d is None:
+        raise ValueError(f"{what}: the model has no sigma_d (not an adapted model)")
+
+
+def capped_psnr(img: Tensor, gt: Tensor) -> float:
+    """PSNR (dB) of ``img`` (clamped to [0, 1]) against ``gt``, capped at :data:`PSNR_CAP_DB`."""
+    mse = torch.mean((img.detach().clamp(0, 1).float() - gt.to(img.device).float()) ** 2).item()
+    return min(PSNR_CAP_DB, -10.0 * math.log10(max(mse, 1e-10)))
+
+
+@torch.no_grad()
+def _view_terms(g: Gaussians, cam, tau: float, eps: float):
+    """(in-view mask [N], critical s* [N] float64, d' [N], frustum [N]) for one camera."""
+    dev = g.means.device
+    viewmat = cam.viewmat.to(dev, g.means.dtype)
+    K = cam.K.to(dev, g.means.dtype)
+    w, h = int(cam.width), int(cam.height)
+    frustum = lod.in_frustum(g.means, viewmat, K, w, h)
+    vis = in_view(g, viewmat, K, w, h)
+    d_norm = lod.normalized_distances(g.means, lod.camera_center(viewmat), frustum)
+    crit = critical_s_v(g.opacities, d_norm, g.sigma_d, tau, eps)
+    return vis, crit, d_norm, frustum
+
+
+@torch.no_grad()
+def persistence(gaussians: Gaussians, cameras: Sequence, *, tau: float = lod.DEFAULT_TAU,
+                eps: float = lod.DEFAULT_EPS) -> Tensor:
+    """[N] float64 persistence: max over ``cameras`` that see a Gaussian of its critical scale
+    ``s*`` (rendered from that view iff ``s_v < s*``); 0 when no camera sees it.
+
+    Raises:
+        ValueError: the model has no ``sigma_d``.
+    """
+    _require_sigma(gaussians, "persistence")
+    p = torch.zeros(len(gaussians), dtype=torch.float64, device=gaussians.means.device)
+    for cam in cameras:
+        vis, crit, _, _ = _view_terms(gaussians, cam, tau, eps)
+        p = torch.maximum(p, torch.where(vis, crit, torch.zeros_like(crit)))
+    return p
+
+
+@torch.no_grad()
+def importance_order(gaussians: Gaussians, cameras: Sequence, *, tau: float = lod.DEFAULT_TAU,
+                     eps: float = lod.DEFAULT_EPS, persist: Optional[Tensor] = None) -> Tensor:
+    """[N] int64 permutation: descending :func:`persistence`, ties by descending opacity, then
+    ascending index. ``gaussians.subset(perm)[:k]`` is the k-Gaussian level of detail."""
+    p = persistence(gaussians, cameras, tau=tau, eps=eps) if persist is None else persist
+    n = len(gaussians)
+    idx = torch.arange(n, device=p.device)
+    # lexicographic sort by stable sorts, least significant key first
+    order = idx
+    op = gaussians.opacities.detach().to(p.device).double()
+    order = order[torch.sort(-op[order], stable=True).indices]
+    order = order[torch.sort(-p[order], stable=True).indices]
+    return order
+
+
+@torch.no_grad()
+def view_selection(gaussians: Gaussians, cam, s_v: Optional[float] = None, budget=None, *,
+                   tau: float = lod.DEFAULT_TAU, eps: float = lod.DEFAULT_EPS,
+                   min_s_v: float = 1.0) -> tuple[Tensor, Tensor, float]:
+    """What :func:`render_lod` draws from ``cam``, without rasterising.
+
+    Returns:
+        (mask [N] bool, attenuation [N] = alpha''/alpha (Eq. 2's factor), s_v used).
+    """
+    _require_sigma(gaussians, "view_selection")
+    if (s_v is None) == (budget is None):
+        raise ValueError("view_selection: give exactly one of s_v and budget")
+    vis, crit, d_norm, _ = _view_terms(gaussians, cam, tau, eps)
+    if budget is not None:
+        idx, s = select_budget(crit, budget_count(budget, len(gaussians)), vis)
+        if s < min_s_v:
+            s = float(min_s_v)
+            mask = (crit > s) & vis
+        else:
+            mask = torch.zeros_like(vis)
+            mask[idx] = True
+    else:
+        if not s_v >= 1.0:
+            raise ValueError(f"s_v must be >= 1, got {s_v}")
+        s = float(s_v)
+        mask = (lod.lod_margin(gaussians.opacities, d_norm, gaussians.sigma_d, s, tau, eps) > 0) & vis
+    att = torch.exp(lod.lod_log_attenuation(d_norm, gaussians.sigma_d, s, eps))
+    return mask, att, s
+
+
+@dataclass
+class BakeInfo:
+    """How :func:`bake` chose the opacities: PSNR (dB) of each candidate against ``render_lod``
+    at the setting, mean over the cameras; ``chosen`` is ``"original"`` or ``"mean"``."""
+
+    chosen: str
+    psnr_vs_lod: dict = field(default_factory=dict)
+    n_kept: int = 0
+    per_view_rendered: float = 0.0
+
+
+def _logit(a: Tensor) -> Tensor:
+    a = a.clamp(1e-7, 1 - 1e-7)
+    return torch.log(a) - torch.log1p(-a)
+
+
+@torch.no_grad()
+def bake(gaussians: Gaussians, cameras: Sequence, s_v: Optional[float] = None, budget=None, *,
+         opacity: str = "auto", tau: float = lod.DEFAULT_TAU, eps: float = lod.DEFAULT_EPS,
+         background=None, backend: str = "auto", return_info: bool = False):
+    """A standard model (``sigma_d = None``) of the Gaussians one setting renders.
+
+    The kept set is the union over ``cameras`` of what :func:`render_lod` draws at ``s_v`` (or,
+    with ``budget``, at each view's solved ``s_v``, never below 1): a superset of each view's
+    selection, so its count can exceed a budget. A standard file has no decay, so opacities are:
+
+    * ``"original"``: the unattenuated alpha of each kept Gaussian;
+    * ``"mean"``: alpha times the mean over the views that keep it of Eq. 2's attenuation;
+    * ``"auto"`` (default): both are rendered from ``cameras`` and the one closer (PSNR) to
+      ``render_lod`` at the setting is kept (measured on fern: see docs/export_fern.md).
+
+    Returns:
+        The baked ``Gaussians``, or ``(Gaussians, BakeInfo)`` with ``return_info``.
+    """
+    _require_sigma(gaussians, "bake")
+    if opacity not in ("auto", "original", "mean"):
+        raise ValueError(f"bake: opacity must be auto, original or mean, got {opacity!r}")
+    n = len(gaussians)
+    dev = gaussians.means.device
+    keep = torch.zeros(n, dtype=torch.bool, device=dev)
+    att_sum = torch.zeros(n, dtype=torch.float64, device=dev)
+    cnt = torch.zeros(n, dtype=torch.float64, device=dev)
+    settings, rendered = [], []
+    for cam in cameras:
+        mask, att, s = view_selection(gaussians, cam, s_v, budget, tau=tau, eps=eps)
+        keep |= mask
+        att_sum += torch.where(mask, att.double(), torch.zeros_like(att_sum))
+        cnt += mask.double()
+        settings.append(s)
+        rendered.append(int(mask.sum()))
+    idx = torch.nonzero(keep, as_tuple=False).squeeze(1)
+    alpha = gaussians.opacities.detach()
+    mean_att = (att_sum / cnt.clamp_min(1)).to(alpha.dtype)
+    cands = {"original": gaussians.opacity_logits.detach().clone(),
+             "mean": _logit(alpha * mean_att)}
+    names = list(cands) if opacity == "auto" else [opacity]
+    scores = {}
+    if opacity == "auto" or return_info:
+        refs = [render_lod(gaussians, cam, s, background=background, backend=backend,
+                           estimator="paper").image for cam, s in zip(cameras, settings)]
+        for name in cands:
+            if opacity != "auto" and name != opacity:
+                continue
+            g = replace(gaussians, opacity_logits=cands[name], sigma_d=None).subset(idx)
+            ps = [capped_psnr(render_lod(g, cam, background=background, backend=backend).image,
+                              ref.clamp(0, 1)) for cam, ref in zip(cameras, refs)]
+            scores[name] = sum(ps) / max(len(ps), 1)
+        if opacity == "auto":
+            names = [max(scores, key=lambda k: (scores[k], k == "original"))]
+    chosen = names[0]
+    out = replace(gaussians, opacity_logits=cands[chosen], sigma_d=None).subset(idx).clone()
+    if return_info:
+        return out, BakeInfo(chosen=chosen, psnr_vs_lod=scores, n_kept=int(idx.numel()),
+                             per_view_rendered=sum(rendered) / max(len(rendered), 1))
+    return out
+
+
+@torch.no_grad()
+def prune_never_rendered(gaussians: Gaussians, cameras: Sequence, *,
+                         anchor_cameras: Optional[Sequence] = None, tau: float = lod.DEFAULT_TAU,
+                         eps: float = lod.DEFAULT_EPS) -> tuple[Gaussians, int]:
+    """Drop the Gaussians that no camera in ``cameras`` renders at any ``s_v >= 1``.
+
+    The rendered set shrinks as ``s_v`` grows, so "rendered at some s_v >= 1" is "rendered at
+    s_v = 1": in view and ``s* > 1``. One exception keeps LoD unchanged: ``d'`` is normalised by
+    the farthest Gaussian inside each view's frustum, so for every camera of ``anchor_cameras``
+    (default ``cameras``) that farthest Gaussian is kept too (at most one per camera); every
+    other Gaussian's ``d'``, hence every LoD decision on those cameras, is then exactly the same.
+
+    Returns:
+        (pruned model, number dropped).
+    """
+    _require_sigma(gaussians, "prune_never_rendered")
+    keep = torch.zeros(len(gaussians), dtype=torch.bool, device=gaussians.means.device)
+    for cam in cameras:
+        vis, crit, _, _ = _view_terms(gaussians, cam, tau, eps)
+        keep |= vis & (crit > 1.0)
+    for cam in (cameras if anchor_cameras is None else anchor_cameras):
+        viewmat = cam.viewmat.to(gaussians.means.device, gaussians.means.dtype)
+        fr = lod.in_frustum(gaussians.means, viewmat, cam.K.to(viewmat), int(cam.width), int(cam.height))
+        if bool(fr.any()):
+            d = torch.linalg.vector_norm(gaussians.means - lod.camera_center(viewmat), dim=-1)
+            d = torch.where(fr, d, torch.full_like(d, -1.0))
+            keep[int(torch.argmax(d))] = True
+    n_drop = int((~keep).sum())
+    return gaussians.subset(keep).clone(), n_drop
+
+
+def truncate_sh(gaussians: Gaussians, degree: int) -> Gaussians:
+    """The model with SH bands above ``degree`` removed (``degree`` <= the model's)."""
+    if not 0 <= degree <= gaussians.sh_degree:
+        raise ValueError(f"truncate_sh: degree must be 0..{gaussians.sh_degree}, got {degree}")
+    return replace(gaussians, shN=gaussians.shN[:, : (degree + 1) ** 2 - 1].contiguous())
+
+
+@torch.no_grad()
+def reduce_sh(gaussians: Gaussians, cameras: Sequence, images: Sequence[Tensor],
+              max_drop_db: float = 0.05, *, s_v: Optional[float] = 1.0, background=None,
+              backend: str = "auto") -> tuple[Gaussians, dict]:
+    """Lower the SH degree as far as the PSNR on ``cameras`` allows.
+
+    Every degree below the model's is tried (3, 2, 1, 0); the lowest whose PSNR drop against the
+    full model (rendered at ``s_v``, None: no LoD; PSNR against ``images``, capped at 100 dB) is
+    ``<= max_drop_db`` is kept (the model's own degree when none passes).
+
+    Returns:
+        (model, info): info = {"degree_in", "degree_out", "max_drop_db", "psnr_full",
+        "per_degree": [{"degree", "psnr", "drop_db", "bytes_saved"}], "bytes_saved"}; bytes are
+        those of the .ply (4 bytes x 3 channels x coefficients removed x N).
+    """
+    if s_v is not None:
+        _require_sigma(gaussians, "reduce_sh")
+
+    def score(g: Gaussians) -> float:
+        ps = [capped_psnr(render_lod(g, cam, s_v, background=background, backend=backend,
+                                     estimator="paper").image, gt) for cam, gt in zip(cameras, images)]
+        return sum(ps) / max(len(ps), 1)
+
+    d0 = gaussians.sh_degree
+    n = len(gaussians)
+    full = score(gaussians)
+    per, best = [], d0
+    for d in range(d0 - 1, -1, -1):
+        p = score(truncate_sh(gaussians, d))
+        saved = 4 * 3 * ((d0 + 1) ** 2 - (d + 1) ** 2) * n
+        per.append({"degree": d, "psnr": p, "drop_db": full - p, "bytes_saved": saved})
+        if full - p <= max_drop_db:
+            best = d
+    info = {"degree_in": d0, "degree_out": best, "max_drop_db": max_drop_db, "psnr_full": full,
+            "per_degree": per, "bytes_saved": 4 * 3 * ((d0 + 1) ** 2 - (best + 1) ** 2) * n,
+            "psnr_cost_db": next((r["drop_db"] for r in per if r["degree"] == best), 0.0)}
+    return truncate_sh(gaussians, best).clone(), info
+
+
+@torch.no_grad()
+def prefix_vs_selection(gaussians: Gaussians, perm: Tensor, cameras: Sequence, images: Sequence[Tensor],
+                        fractions: Sequence[float] = (1.0, 0.5, 0.25, 0.1), *, background=None,
+                        backend: str = "auto") -> list[dict]:
+    """PSNR of prefixes of the importance order against the per-view ``s_v`` selection.
+
+    For each fraction f the prefix is the first ``round(f N)`` Gaussians of ``perm`` rendered
+    as a standard model (original opacities, no decay); the selection renders, per view, the
+    same number of Gaussians the prefix has in view, chosen by :func:`render_lod`'s exact budget
+    (``min_s_v = 0``, Eq. 2 opacities). Rows: fraction, count, mean in-view count per view,
+    psnr_prefix, psnr_selection (means over views).
+    """
+    rows = []
+    n = len(gaussians)
+    plain = gaussians.with_sigma_d(None)
+    for f in fractions:
+        k = int(round(f * n))
+        sub = plain.subset(perm[:k])
+        pp, ps, cnt = [], [], []
+        for cam, gt in zip(cameras, images):
+            r = render_lod(sub, cam, background=background, backend=backend)
+            pp.append(capped_psnr(r.image, gt))
+            cnt.append(r.n_rendered)
+            s = render_lod(gaussians, cam, budget=int(r.n_rendered), min_s_v=0.0, background=background,
+                           backend=backend, estimator="paper")
+            ps.append(capped_psnr(s.image, gt))
+        m = max(len(pp), 1)
+        rows.append({"fraction": f, "count": k, "rendered_per_view": sum(cnt) / m,
+                     "psnr_prefix": sum(pp) / m, "psnr_selection": sum(ps) / m})
+    return rows

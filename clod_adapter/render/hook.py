@@ -1,0 +1,175 @@
+"""A drop-in for ``gsplat.rasterization`` with CLoD-GS level of detail.
+
+:func:`clod_rasterization` takes ``gsplat.rasterization``'s arguments (activated scales and
+opacities, ``viewmats`` [C, 4, 4], ``Ks`` [C, 3, 3], ...) plus the per-Gaussian distance decay
+``sigma_d`` and either a virtual distance scale ``s_v`` or a Gaussian ``budget``. Per camera it
+applies Eq. 2 (``alpha'' = alpha exp(-(d' s_v)^2 / (2 ReLU(sigma_d)^2 + eps))``) and the
+``alpha'' > tau s_v`` mask (or the exact budget selection of :mod:`clod_adapter.budget`), and hands
+the selected Gaussians to :func:`clod_adapter.render.rasterization` (gsplat on CUDA, CPU
+otherwise). The selection is the one :func:`clod_adapter.lod_render.render_lod` makes, so both
+give the same image.
+
+Without ``sigma_d``, or with neither ``s_v`` nor ``budget``, it is exactly ``rasterization``.
+"""
+from __future__ import annotations
+
+from typing import Any, Dict, Optional, Tuple
+
+import torch
+from torch import Tensor
+
+from .. import lod
+from ..budget import budget_count, critical_s_v, select_budget
+from .dispatch import rasterization
+
+__all__ = ["clod_rasterization"]
+
+# gsplat.rasterization keyword arguments accepted when they hold gsplat's default (no effect here).
+_NOOP_DEFAULTS = {
+    "absgrad": False, "sparse_grad": False, "distributed": False, "camera_model": "pinhole",
+    "covars": None, "segmented": False, "channel_chunk": 32, "with_ut": False, "with_eval3d": False,
+    "rolling_shutter": None, "radial_coeffs": None, "tangential_coeffs": None,
+    "thin_prism_coeffs": None, "ortho": False,
+}
+
+
+def _check_kwargs(packed: bool, render_mode: str, rasterize_mode: str, kwargs: dict) -> dict:
+    if render_mode != "RGB":
+        raise ValueError(f"clod_rasterization: only render_mode='RGB' is supported, got {render_mode!r}")
+    if rasterize_mode != "classic":
+        raise ValueError(f"clod_rasterization: only rasterize_mode='classic' is supported, got {rasterize_mode!r}")
+    del packed  # packed / unpacked give the same image; the backends render unpacked
+    out = {}
+    for k, v in kwargs.items():
+        if k == "impl":
+            out[k] = v
+        elif k in _NOOP_DEFAULTS:
+            if v != _NOOP_DEFAULTS[k]:
+                raise ValueError(f"clod_rasterization: {k}={v!r} is not supported "
+                                 f"(only gsplat's default {_NOOP_DEFAULTS[k]!r})")
+        else:
+            raise TypeError(f"clod_rasterization: unexpected keyword argument {k!r}")
+    return out
+
+
+@torch.no_grad()
+def _select(means, quats, scales, opacities, sigma_d, d_norm, viewmat, K, width, height,
+            near_plane, s_v, budget, tau, eps, min_s_v) -> Tuple[Tensor, float]:
+    """(indices of the Gaussians to render [k] int64 ascending, s_v used) for one camera."""
+    from ..lod_render import in_view_tensors  # lazy: lod_render imports this package
+
+    visible = in_view_tensors(means, quats, scales, viewmat, K, width, height, near_plane)
+    d_norm = d_norm.detach()
+    if budget is not None:
+        crit = critical_s_v(opacities.detach(), d_norm, sigma_d.detach(), tau, eps)
+        idx, sv = select_budget(crit, budget_count(budget, means.shape[0]), visible)
+        if sv < min_s_v:
+            sv = float(min_s_v)
+            idx = torch.nonzero((crit > sv) & visible, as_tuple=False).squeeze(1)
+        return idx, sv
+    margin = lod.lod_margin(opacities.detach(), d_norm, sigma_d.detach(), s_v, tau, eps)
+    return torch.nonzero((margin > 0) & visible, as_tuple=False).squeeze(1), float(s_v)
+
+
+def clod_rasterization(
+    means: Tensor,
+    quats: Tensor,
+    scales: Tensor,
+    opacities: Tensor,
+    colors: Tensor,
+    viewmats: Tensor,
+    Ks: Tensor,
+    width: int,
+    height: int,
+    near_plane: float = 0.01,
+    far_plane: float = 1e10,
+    radius_clip: float = 0.0,
+    eps2d: float = 0.3,
+    sh_degree: Optional[int] = None,
+    packed: bool = True,
+    tile_size: int = 16,
+    backgrounds: Optional[Tensor] = None,
+    render_mode: str = "RGB",
+    rasterize_mode: str = "classic",
+    *,
+    sigma_d: Optional[Tensor] = None,
+    s_v: Optional[float] = None,
+    budget: Optional[float | int] = None,
+    tau: float = lod.DEFAULT_TAU,
+    eps: float = lod.DEFAULT_EPS,
+    min_s_v: float = 1.0,
+    backend: str = "auto",
+    **kwargs: Any,
+) -> Tuple[Tensor, Tensor, Dict[str, Any]]:
+    """``gsplat.rasterization`` with CLoD-GS level of detail (Eq. 2 and the ``tau s_v`` mask).
+
+    Args:
+        means, quats, scales, opacities, colors, viewmats, Ks, width, height, near_plane,
+        far_plane, radius_clip, eps2d, sh_degree, tile_size, backgrounds: as
+            ``gsplat.rasterization`` (activated ``scales`` [N, 3] and ``opacities`` [N];
+            ``colors`` [N, D], [C, N, D] or SH [N, K, 3]; ``backgrounds`` [C, D]).
+        packed: accepted for compatibility (the image does not depend on it).
+        render_mode, rasterize_mode: only ``"RGB"`` and ``"classic"``.
+        sigma_d: [N] raw per-Gaussian distance decay (the adapted model's ``sigma_d``).
+        s_v: virtual distance scale (>= 1); render the Gaussians with ``alpha'' > tau s_v``.
+        budget: instead of ``s_v``: render exactly this many Gaussians (int) or this fraction
+            of N (float in [0, 1]) per camera, ``s_v`` solved per camera (capped by the
+            Gaussians in view; raised to at least ``min_s_v``, see ``render_lod``).
+        tau, eps: LoD threshold and Eq. 2's epsilon.
+        min_s_v: budget mode: lowest ``s_v`` used (1 = full detail; 0: exactly ``budget``).
+        backend: ``"auto"`` | ``"cpu"`` | ``"gsplat"`` (see ``clod_adapter.render.rasterization``).
+        **kwargs: ``impl`` (CPU compositor); other gsplat keywords only at their defaults.
+
+    Returns:
+        (render_colors [C, H, W, D], render_alphas [C, H, W, 1], meta). Without LoD, meta is
+        the rasteriser's. With LoD, each camera is rasterised with its own subset: for C = 1
+        meta is that call's meta (its per-Gaussian arrays index ``lod_indices[0]``), for C > 1
+        ``meta["cameras"]`` lists the per-camera metas; in both cases meta also has
+        ``lod_s_v`` (list of C floats), ``lod_n_rendered`` (list of C ints) and
+        ``lod_indices`` (list of C [k_c] int64 tensors into the N input Gaussians).
+
+    Raises:
+        ValueError: ``s_v`` and ``budget`` both given, ``s_v < 1``, ``sigma_d`` of the wrong
+            shape, an unsupported mode or keyword value.
+    """
+    extra = _check_kwargs(packed, render_mode, rasterize_mode, kwargs)
+    common = dict(near_plane=near_plane, far_plane=far_plane, radius_clip=radius_clip, eps2d=eps2d,
+                  sh_degree=sh_degree, tile_size=tile_size, backend=backend, **extra)
+    if s_v is not None and budget is not None:
+        raise ValueError("clod_rasterization: give s_v or budget, not both")
+    if sigma_d is None or (s_v is None and budget is None):
+        return rasterization(means, quats, scales, opacities, colors, viewmats, Ks, width, height,
+                             backgrounds=backgrounds, **common)
+    N = means.shape[0]
+    if tuple(sigma_d.shape) != (N,):
+        raise ValueError(f"clod_rasterization: sigma_d must be [{N}], got {tuple(sigma_d.shape)}")
+    if s_v is not None and not s_v >= 1.0:
+        raise ValueError(f"clod_rasterization: s_v must be >= 1, got {s_v}")
+    if viewmats.ndim != 3 or Ks.ndim != 3 or viewmats.shape[0] != Ks.shape[0]:
+        raise ValueError(f"clod_rasterization: viewmats [C, 4, 4] and Ks [C, 3, 3] expected, got "
+                         f"{tuple(viewmats.shape)} and {tuple(Ks.shape)}")
+    C = viewmats.shape[0]
+    per_cam_colors = sh_degree is None and colors.ndim == 3
+    w, h = int(width), int(height)
+    imgs, alphas, metas, svs, counts, indices = [], [], [], [], [], []
+    for c in range(C):
+        vm = viewmats[c].to(means.dtype)
+        K = Ks[c].to(means.dtype)
+        frustum = lod.in_frustum(means, vm, K, w, h, near_plane)
+        d_norm = lod.normalized_distances(means, lod.camera_center(vm), frustum)
+        idx, sv = _select(means, quats, scales, opacities, sigma_d, d_norm, vm, K, w, h,
+                          near_plane, s_v, budget, tau, eps, min_s_v)
+        opac = lod.lod_opacities(opacities, d_norm, sigma_d, sv, eps)
+        col = colors[c][idx] if per_cam_colors else colors[idx]
+        bg = None if backgrounds is None else backgrounds[c:c + 1]
+        rc, ra, meta = rasterization(means[idx], quats[idx], scales[idx], opac[idx], col,
+                                     viewmats[c:c + 1], Ks[c:c + 1], w, h, backgrounds=bg, **common)
+        imgs.append(rc)
+        alphas.append(ra)
+        metas.append(meta)
+        svs.append(sv)
+        counts.append(int(idx.numel()))
+        indices.append(idx)
+    out_meta: Dict[str, Any] = dict(metas[0]) if C == 1 else {"cameras": metas, "n_cameras": C}
+    out_meta.update(lod_s_v=svs, lod_n_rendered=counts, lod_indices=indices)
+    return torch.cat(imgs, 0), torch.cat(alphas, 0), out_meta

@@ -31,7 +31,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--images", metavar="SCENE",
                    help="scene folder: COLMAP (images/, sparse/0) or NeRF-synthetic (transforms_*.json)")
     p.add_argument("--pretrained", metavar="PRE.ply",
-                   help="pretrained .ply the baselines cut (default: the adapted model without sigma_d)")
+                   help="pretrained model the baselines cut: .ply (INRIA, compressed) or gsplat ckpt .pt "
+                        "(default: the adapted model without sigma_d)")
     p.add_argument("--resolution", type=int, default=1, choices=(1, 2, 4, 8),
                    help="use images_R/ when present, else downsample by R (default 1)")
     p.add_argument("--budgets", default="1,0.5,0.25,0.1",
@@ -106,7 +107,9 @@ def main(argv: list[str] | None = None) -> int:
             pre = Path(args.pretrained)
             if not pre.is_file():
                 raise InputError(f"{pre}: no such file (--pretrained)")
-            pretrained = read_ply(pre)
+            from clod_adapter.io.load import load_model
+
+            pretrained = load_model(pre)
             if len(pretrained) == 0:
                 raise InputError(f"{pre}: the model has no Gaussians")
             inputs.append(pre)
@@ -126,7 +129,7 @@ def main(argv: list[str] | None = None) -> int:
                     raise InputError(str(e).splitlines()[0]) from None
         max_sv = args.max_sv if args.max_sv is not None else (max_sv_from_state(ply) or 5.0)
         check_report_dir(out, inputs)
-        evaluate_report(ply, scene, out, pretrained=args.pretrained, budgets=budgets, max_sv=max_sv,
+        evaluate_report(ply, scene, out, pretrained=pretrained, pretrained_label=args.pretrained, budgets=budgets, max_sv=max_sv,
                         sv_steps=args.sv_steps, popping_steps=args.popping_steps, lpips=lpips,
                         seed=args.seed, sigma_c=args.sigma_c, device=dev, progress=not args.quiet,
                         background=bg)

@@ -466,6 +466,7 @@ def evaluate_report(
     popping_steps: int = 61,
     lpips: LpipsSpec = "auto",
     sigma_c: Optional[float] = None,
+    pretrained_label: Optional[str] = None,
     seed: int = 0,
     tau: float = lod.DEFAULT_TAU,
     background=(0.0, 0.0, 0.0),
@@ -598,7 +599,8 @@ def evaluate_report(
     report = {
         "version": __version__,
         "adapted": str(ply_path) if ply_path is not None else None,
-        "pretrained": None if pretrained is None else (str(pretrained) if not isinstance(pretrained, Gaussians) else "<Gaussians>"),
+        "pretrained": None if pretrained is None else (str(pretrained) if not isinstance(pretrained, Gaussians)
+                                                       else (pretrained_label or "<Gaussians>")),
         "scene": str(getattr(scene, "root", "")),
         "device": str(dev), "threads": torch.get_num_threads(),
         "views": [c.name for c in cams], "image_size": [cams[0].width, cams[0].height],

@@ -35,11 +35,10 @@ from pathlib import Path
 from typing import Union
 
 import numpy as np
-import plyfile
 import torch
 
 from clod_adapter.gaussians import SH_C0, Gaussians
-from clod_adapter.io.ply import PlyFormatError, _check_element_counts
+from clod_adapter.io.ply import PlyFormatError, open_ply
 
 __all__ = ["read_compressed_ply", "is_compressed_ply", "CHUNK_SIZE"]
 
@@ -114,19 +113,7 @@ def read_compressed_ply(path: PathLike) -> Gaussians:
             other than N or an f_rest count that is no SH degree, or non-finite chunk bounds.
     """
     path = Path(path)
-    if not path.is_file():
-        raise FileNotFoundError(f"{path}: no such file")
-    size = path.stat().st_size
-    if size == 0:
-        raise PlyFormatError(path, "file is empty")
-    _check_element_counts(path, size)  # negative / impossible counts, before plyfile allocates
-    try:
-        ply = plyfile.PlyData.read(str(path))
-    except plyfile.PlyElementParseError as e:
-        raise PlyFormatError(path, f"cannot read element data (truncated or corrupt file?): {e}") from None
-    except (plyfile.PlyParseError, ValueError, EOFError, UnicodeDecodeError, IndexError,
-            OverflowError, MemoryError, TypeError, KeyError) as e:
-        raise PlyFormatError(path, f"not a valid PLY file: {e or type(e).__name__}") from None
+    ply = open_ply(path)
 
     elements = {el.name: el for el in ply.elements}
     for name in ("chunk", "vertex"):

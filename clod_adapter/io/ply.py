@@ -67,6 +67,30 @@ def ply_property_names(sh_degree: int, *, with_normals: bool = True, with_sigma_
     return names
 
 
+def open_ply(path: Path) -> "plyfile.PlyData":
+    """``plyfile.PlyData.read`` (memory-mapped) with every failure turned into one
+    :class:`PlyFormatError` naming the file; counts are checked against the file size first, so a
+    hostile header cannot make plyfile allocate or divide by zero.
+
+    Raises:
+        FileNotFoundError: ``path`` does not exist.
+        PlyFormatError: empty, impossible element counts, bad header, truncated data.
+    """
+    if not path.is_file():
+        raise FileNotFoundError(f"{path}: no such file")
+    size = path.stat().st_size
+    if size == 0:
+        raise PlyFormatError(path, "file is empty")
+    _check_element_counts(path, size)
+    try:
+        return plyfile.PlyData.read(str(path))
+    except plyfile.PlyElementParseError as e:
+        raise PlyFormatError(path, f"cannot read element data (truncated or corrupt file?): {e}") from None
+    except (plyfile.PlyParseError, ValueError, EOFError, UnicodeDecodeError, IndexError,
+            OverflowError, MemoryError, TypeError, KeyError) as e:
+        raise PlyFormatError(path, f"not a valid PLY file: {e or type(e).__name__}") from None
+
+
 def read_ply(path: PathLike, *, allow_nonfinite: bool = False) -> Gaussians:
     """Read a 3DGS checkpoint .ply (INRIA layout, optionally with ``sigma_d``) into ``Gaussians``.
 
@@ -92,19 +116,7 @@ def read_ply(path: PathLike, *, allow_nonfinite: bool = False) -> Gaussians:
             NaN/Inf value (unless ``allow_nonfinite``).
     """
     path = Path(path)
-    if not path.is_file():
-        raise FileNotFoundError(f"{path}: no such file")
-    size = path.stat().st_size
-    if size == 0:
-        raise PlyFormatError(path, "file is empty")
-    _check_element_counts(path, size)
-    try:
-        ply = plyfile.PlyData.read(str(path))
-    except plyfile.PlyElementParseError as e:
-        raise PlyFormatError(path, f"cannot read element data (truncated or corrupt file?): {e}") from None
-    except (plyfile.PlyParseError, ValueError, EOFError, UnicodeDecodeError, IndexError,
-            OverflowError, MemoryError, TypeError, KeyError) as e:
-        raise PlyFormatError(path, f"not a valid PLY file: {e or type(e).__name__}") from None
+    ply = open_ply(path)
 
     names = [el.name for el in ply.elements]
     if "vertex" not in names:

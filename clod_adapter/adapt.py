@@ -295,7 +295,6 @@ def adapt(
     """
     from tqdm import tqdm
 
-    params = state.params
     bar = tqdm(total=cfg.iterations, initial=state.iteration, disable=not progress,
                desc="clod-adapt", unit="it", dynamic_ncols=True)
     ema = {"loss": None, "psnr": None}

@@ -42,6 +42,38 @@ def in_view_tensors(means: Tensor, quats: Tensor, scales: Tensor, viewmat: Tenso
     return vis
 
 
+@torch.no_grad()
+def select_lod(opacities: Tensor, d_norm: Tensor, sigma_d: Tensor, visible: Tensor, *,
+               s_v: Optional[float] = None, budget: Optional[float | int] = None,
+               tau: float = lod.DEFAULT_TAU, eps: float = lod.DEFAULT_EPS,
+               min_s_v: float = 1.0) -> tuple[Tensor, float]:
+    """Which Gaussians one camera renders at ``s_v``, or within ``budget`` (no gradient).
+
+    Args:
+        opacities: [N] activated opacities.
+        d_norm: [N] frustum-normalised distances d' for this camera.
+        sigma_d: [N] raw distance decays.
+        visible: [N] bool, Gaussians in view (:func:`in_view`).
+        s_v: virtual distance scale: the mask ``alpha'' > tau s_v`` (CLoD-GS Eq. 2).
+        budget: instead of ``s_v``: at most this many Gaussians (int) or this fraction of N
+            (float in [0, 1]); ``s_v`` solved exactly (:mod:`clod_adapter.budget`) and raised to
+            at least ``min_s_v`` (1: a budget is a cap at full detail; 0: exactly ``budget``).
+        tau, eps: LoD threshold and Eq. 2's epsilon.
+
+    Returns:
+        (mask [N] bool, the s_v used).
+    """
+    if budget is not None:
+        crit = critical_s_v(opacities, d_norm, sigma_d, tau, eps)
+        idx, sv = select_budget(crit, budget_count(budget, opacities.shape[0]), visible)
+        if sv < min_s_v:
+            return (crit > min_s_v) & visible, float(min_s_v)
+        mask = torch.zeros_like(visible)
+        mask[idx] = True
+        return mask, sv
+    return (lod.lod_margin(opacities, d_norm, sigma_d, s_v, tau, eps) > 0) & visible, float(s_v)
+
+
 @dataclass
 class LodRender:
     """Result of :func:`render_lod`.
@@ -138,34 +170,21 @@ def render_lod(
         mask = visible
         eta = torch.ones((), dtype=means.dtype, device=dev)
         opac_used = opac
-    elif budget is not None:
-        center = lod.camera_center(viewmat)
-        d_norm = lod.normalized_distances(means, center, frustum)
-        with torch.no_grad():
-            crit = critical_s_v(opac.detach(), d_norm.detach(), gaussians.sigma_d.detach(), tau, eps)
-            idx_b, s_v = select_budget(crit, budget_count(budget, len(gaussians)), visible)
-        mask = torch.zeros_like(visible)
-        if s_v < min_s_v:
-            s_v = float(min_s_v)
-            mask = (crit > s_v) & visible
-        else:
-            mask[idx_b] = True
-        eta = mask[frustum].float().mean() if bool(frustum.any()) else torch.zeros(())
-        opac_used = lod.lod_opacities(opac, d_norm, gaussians.sigma_d, s_v, eps)
     else:
-        if not s_v >= 1.0:
+        if s_v is not None and not s_v >= 1.0:
             raise ValueError(f"render_lod: s_v must be >= 1, got {s_v}")
-        center = lod.camera_center(viewmat)
-        d_norm = lod.normalized_distances(means, center, frustum)
-        margin = lod.lod_margin(opac, d_norm, gaussians.sigma_d, s_v, tau, eps)
-        m_eta = margin
-        if eta_grad_sigma_only:
-            m_eta = lod.lod_margin(opac.detach(), d_norm.detach(), gaussians.sigma_d, s_v, tau, eps)
-        # The mask covers every Gaussian: one whose centre lies just outside the image can
-        # still cover pixels (the rasteriser culls by footprint). The frustum only defines
-        # the normaliser of d' and the population of eta.
-        mask = (margin > 0) & visible
-        eta = lod.rendered_fraction(m_eta, frustum, estimator, temperature)
+        d_norm = lod.normalized_distances(means, lod.camera_center(viewmat), frustum)
+        # The mask covers every Gaussian in view: one whose centre lies just outside the image
+        # can still cover pixels. The frustum only defines d''s normaliser and eta's population.
+        mask, s_v = select_lod(opac.detach(), d_norm.detach(), gaussians.sigma_d.detach(), visible,
+                               s_v=s_v, budget=budget, tau=tau, eps=eps, min_s_v=min_s_v)
+        if budget is not None:
+            eta = mask[frustum].float().mean() if bool(frustum.any()) else torch.zeros(())
+        else:
+            sd = gaussians.sigma_d
+            m_eta = (lod.lod_margin(opac.detach(), d_norm.detach(), sd, s_v, tau, eps) if eta_grad_sigma_only
+                     else lod.lod_margin(opac, d_norm, sd, s_v, tau, eps))
+            eta = lod.rendered_fraction(m_eta, frustum, estimator, temperature)
         opac_used = lod.lod_opacities(opac, d_norm, gaussians.sigma_d, s_v, eps)
     idx = torch.nonzero(mask, as_tuple=False).squeeze(1)
     t1 = time.perf_counter()

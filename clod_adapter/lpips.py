@@ -33,7 +33,6 @@ from pathlib import Path
 from typing import Dict, List, Optional, Tuple, Union
 
 import torch
-import torch.nn.functional as F
 from torch import Tensor, nn
 
 WEIGHTS_ENV = "CLOD_LPIPS_WEIGHTS"

@@ -302,6 +302,8 @@ def deterministic_mode(on: bool = True):
 
 
 def file_sha256(path: os.PathLike) -> str:
+    """Hex SHA-256 of a file's bytes (read in 1 MiB blocks); stored in the state so --resume
+    can refuse another input. Raises OSError when unreadable."""
     h = hashlib.sha256()
     with open(path, "rb") as f:
         for chunk in iter(lambda: f.read(1 << 20), b""):

@@ -117,6 +117,7 @@ def max_sv_from_state(ply_path: os.PathLike) -> Optional[float]:
 
 
 def budget_label(b: float | int) -> str:
+    """The CSV ``setting`` of a budget: ``budget=0.5`` (fraction) or ``budget=5000`` (count)."""
     return f"budget={b:g}" if isinstance(b, float) else f"budget={int(b)}"
 
 

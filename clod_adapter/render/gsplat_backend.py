@@ -45,6 +45,15 @@ def rasterization_gsplat(
     backgrounds: Optional[Tensor] = None,
     impl: str = "auto",  # accepted for signature parity; unused
 ) -> Tuple[Tensor, Tensor, Dict[str, Any]]:
+    """``gsplat.rasterization`` (gsplat 1.5.3, CUDA) with our conventions fixed: unpacked,
+    classic mode, RGB. Shapes as :func:`clod_adapter.render.rasterization`: means [N, 3],
+    quats [N, 4] wxyz, activated scales [N, 3] and opacities [N], colors [N, D] or SH [N, K, 3],
+    viewmats [C, 4, 4], Ks [C, 3, 3] (pixels); returns colours [C, H, W, D], alphas [C, H, W, 1]
+    and gsplat's meta plus ``n_visible`` [C].
+
+    Raises:
+        RuntimeError: no CUDA device or gsplat does not import (the message says which).
+    """
     reason = gsplat_unavailable_reason()
     if reason is not None:
         raise RuntimeError(f"gsplat backend unavailable: {reason}")

@@ -19,7 +19,6 @@ import torch
 from torch import Tensor
 
 from .. import lod
-from ..budget import budget_count, critical_s_v, select_budget
 from .dispatch import rasterization
 
 __all__ = ["clod_rasterization"]
@@ -50,25 +49,6 @@ def _check_kwargs(packed: bool, render_mode: str, rasterize_mode: str, kwargs: d
         else:
             raise TypeError(f"clod_rasterization: unexpected keyword argument {k!r}")
     return out
-
-
-@torch.no_grad()
-def _select(means, quats, scales, opacities, sigma_d, d_norm, viewmat, K, width, height,
-            near_plane, s_v, budget, tau, eps, min_s_v) -> Tuple[Tensor, float]:
-    """(indices of the Gaussians to render [k] int64 ascending, s_v used) for one camera."""
-    from ..lod_render import in_view_tensors  # lazy: lod_render imports this package
-
-    visible = in_view_tensors(means, quats, scales, viewmat, K, width, height, near_plane)
-    d_norm = d_norm.detach()
-    if budget is not None:
-        crit = critical_s_v(opacities.detach(), d_norm, sigma_d.detach(), tau, eps)
-        idx, sv = select_budget(crit, budget_count(budget, means.shape[0]), visible)
-        if sv < min_s_v:
-            sv = float(min_s_v)
-            idx = torch.nonzero((crit > sv) & visible, as_tuple=False).squeeze(1)
-        return idx, sv
-    margin = lod.lod_margin(opacities.detach(), d_norm, sigma_d.detach(), s_v, tau, eps)
-    return torch.nonzero((margin > 0) & visible, as_tuple=False).squeeze(1), float(s_v)
 
 
 def clod_rasterization(
@@ -148,6 +128,8 @@ def clod_rasterization(
     if viewmats.ndim != 3 or Ks.ndim != 3 or viewmats.shape[0] != Ks.shape[0]:
         raise ValueError(f"clod_rasterization: viewmats [C, 4, 4] and Ks [C, 3, 3] expected, got "
                          f"{tuple(viewmats.shape)} and {tuple(Ks.shape)}")
+    from ..lod_render import in_view_tensors, select_lod  # lazy: lod_render imports this package
+
     C = viewmats.shape[0]
     per_cam_colors = sh_degree is None and colors.ndim == 3
     w, h = int(width), int(height)
@@ -157,8 +139,10 @@ def clod_rasterization(
         K = Ks[c].to(means.dtype)
         frustum = lod.in_frustum(means, vm, K, w, h, near_plane)
         d_norm = lod.normalized_distances(means, lod.camera_center(vm), frustum)
-        idx, sv = _select(means, quats, scales, opacities, sigma_d, d_norm, vm, K, w, h,
-                          near_plane, s_v, budget, tau, eps, min_s_v)
+        visible = in_view_tensors(means, quats, scales, vm, K, w, h, near_plane)
+        mask, sv = select_lod(opacities.detach(), d_norm.detach(), sigma_d.detach(), visible,
+                              s_v=s_v, budget=budget, tau=tau, eps=eps, min_s_v=min_s_v)
+        idx = torch.nonzero(mask, as_tuple=False).squeeze(1)
         opac = lod.lod_opacities(opacities, d_norm, sigma_d, sv, eps)
         col = colors[c][idx] if per_cam_colors else colors[idx]
         bg = None if backgrounds is None else backgrounds[c:c + 1]

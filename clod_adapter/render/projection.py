@@ -17,7 +17,6 @@ the cheap depth/opacity tests.
 """
 from __future__ import annotations
 
-import math
 from typing import NamedTuple, Optional, Tuple
 
 import torch

@@ -1,0 +1,61 @@
+"""lambda_reg against quality at full detail and depth of the LoD, on fern.
+
+Fine-tunes the pretrained fern model once per setting (default seed, other settings default)
+and prints test-view PSNR and the rendered fraction at s_v = 1, 2, 3, 5. The README's
+"Choosing lambda_reg" table is
+
+    python benchmarks/lambda_sweep.py 1:500 0.1:500 0.01:500 0.03:1000 0.05:1000
+
+(LAMBDA:STEPS per run; 2.5-5 min each on 2 cores).
+"""
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+import time
+from pathlib import Path
+
+os.environ.setdefault("OMP_NUM_THREADS", "2")
+
+import torch  # noqa: E402
+
+REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO))
+
+from clod_adapter.adapt import AdaptConfig, adapt, prepare  # noqa: E402
+from clod_adapter.evaluate import evaluate_level  # noqa: E402
+from clod_adapter.io.ply import read_ply  # noqa: E402
+from clod_adapter.io.scene import load_colmap_scene  # noqa: E402
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("runs", nargs="+", help="LAMBDA:STEPS, e.g. 0.05:1000")
+    ap.add_argument("--scene", default=str(REPO.parent / "shared" / "data" / "fern"))
+    ap.add_argument("--resolution", type=int, default=2)
+    args = ap.parse_args()
+    torch.set_num_threads(2)
+    root = Path(args.scene)
+    ply = root / "pretrained/point_cloud/iteration_7000/point_cloud.ply"
+    if not ply.is_file():
+        sys.exit(f"lambda_sweep: {ply} not found (needs ../shared/data/fern)")
+    g = read_ply(ply)
+    sc = load_colmap_scene(root, resolution=args.resolution)
+    tr = [sc.load_image(c) for c in sc.train]
+    te = [sc.load_image(c) for c in sc.test]
+    print(f"{'lambda':>8} {'steps':>6} " + " ".join(f"{'s_v=' + str(s):>15}" for s in (1, 2, 3, 5)) + "  seconds")
+    for spec in args.runs:
+        lam, steps = spec.split(":")
+        cfg = AdaptConfig(lambda_reg=float(lam), iterations=int(steps))
+        t = time.perf_counter()
+        st = prepare(g, sc.train, cfg, tr)
+        adapt(st, sc.train, tr, cfg, progress=False)
+        m = st.gaussians().detach()
+        res = [evaluate_level(m, sc.test, te, float(s)) for s in (1, 2, 3, 5)]
+        cells = " ".join(f"{r.psnr:6.2f}dB {100 * r.fraction:4.0f}%" for r in res)
+        print(f"{float(lam):8g} {int(steps):6d} {cells}  {time.perf_counter() - t:.0f}", flush=True)
+
+
+if __name__ == "__main__":
+    main()

@@ -75,6 +75,67 @@ def select_lod(opacities: Tensor, d_norm: Tensor, sigma_d: Tensor, visible: Tens
 
 
 @dataclass
+class LodSubset:
+    """What one camera draws at one level of detail (:func:`lod_subset`), without rasterising.
+
+    Attributes:
+        indices: [k] int64 indices into the model, ascending.
+        means: [k, 3], quats: [k, 4] (wxyz), scales: [k, 3] (activated, world units),
+        opacities: [k] (the opacities the rasteriser is given, after the LoD rule),
+        colors: [k, K, 3] SH coefficients (gsplat ``colors`` layout): the drawn attributes.
+        s_v: the virtual distance scale used (solved in budget mode; None without LoD).
+        n_in_view: Gaussians in view (the population budgets and fractions refer to).
+    """
+
+    indices: Tensor
+    means: Tensor
+    quats: Tensor
+    scales: Tensor
+    opacities: Tensor
+    colors: Tensor
+    s_v: Optional[float]
+    n_in_view: int
+
+
+@torch.no_grad()
+def lod_subset(gaussians: Gaussians, camera, s_v: Optional[float] = None, *,
+               budget: Optional[float | int] = None, tau: float = lod.DEFAULT_TAU,
+               eps: float = lod.DEFAULT_EPS, min_s_v: float = 1.0) -> LodSubset:
+    """The Gaussians :func:`render_lod` hands to the rasteriser for ``camera`` and their drawn
+    attributes (same arguments; no gradient). For viewers and exporters that rasterise
+    elsewhere. Neither ``s_v`` nor ``budget``: every Gaussian in view, unchanged.
+
+    Raises:
+        ValueError: as :func:`render_lod`.
+    """
+    means = gaussians.means
+    dev = means.device
+    viewmat = camera.viewmat.to(dev, means.dtype)
+    K = camera.K.to(dev, means.dtype)
+    w, h = int(camera.width), int(camera.height)
+    visible = in_view(gaussians, viewmat, K, w, h)
+    opac = gaussians.opacities
+    if budget is not None and s_v is not None:
+        raise ValueError("lod_subset: give s_v or budget, not both")
+    if s_v is None and budget is None:
+        mask, used, opac_used = visible, None, opac
+    else:
+        if gaussians.sigma_d is None:
+            raise ValueError("lod_subset: s_v/budget given but the model has no sigma_d")
+        if s_v is not None and not s_v >= 1.0:
+            raise ValueError(f"lod_subset: s_v must be >= 1, got {s_v}")
+        frustum = lod.in_frustum(means, viewmat, K, w, h)
+        d_norm = lod.normalized_distances(means, lod.camera_center(viewmat), frustum)
+        mask, used = select_lod(opac, d_norm, gaussians.sigma_d, visible, s_v=s_v, budget=budget,
+                                tau=tau, eps=eps, min_s_v=min_s_v)
+        opac_used = lod.lod_opacities(opac, d_norm, gaussians.sigma_d, used, eps)
+    idx = torch.nonzero(mask, as_tuple=False).squeeze(1)
+    return LodSubset(indices=idx, means=means[idx], quats=gaussians.quats[idx],
+                     scales=gaussians.scales[idx], opacities=opac_used[idx],
+                     colors=gaussians.colors[idx], s_v=used, n_in_view=int(visible.sum()))
+
+
+@dataclass
 class LodRender:
     """Result of :func:`render_lod`.
 

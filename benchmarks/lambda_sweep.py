@@ -47,7 +47,7 @@ def main() -> None:
     print(f"{'lambda':>8} {'steps':>6} " + " ".join(f"{'s_v=' + str(s):>15}" for s in (1, 2, 3, 5)) + "  seconds")
     for spec in args.runs:
         lam, steps = spec.split(":")
-        cfg = AdaptConfig(lambda_reg=float(lam), iterations=int(steps))
+        cfg = AdaptConfig(schedule="paper", lambda_reg=float(lam), iterations=int(steps))
         t = time.perf_counter()
         st = prepare(g, sc.train, cfg, tr)
         adapt(st, sc.train, tr, cfg, progress=False)

@@ -52,7 +52,7 @@ def main() -> None:
           f"{torch.get_num_threads()} threads")
     print(f"{'estimator':>10} {'when':>6} " + " ".join(f"{'s_v=' + format(s, 'g'):>16}" for s in levels))
     for est in args.estimators.split(","):
-        cfg = AdaptConfig(max_sv=args.max_sv, iterations=args.iterations, eta_estimator=est, seed=0)
+        cfg = AdaptConfig(max_sv=args.max_sv, iterations=args.iterations, schedule="paper", eta_estimator=est, seed=0)
         st = prepare(g, sc.train, cfg, tr)
         rows = {}
         rows["before"] = [evaluate_level(st.gaussians().detach(), sc.test, te, s) for s in levels]

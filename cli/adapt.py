@@ -38,10 +38,22 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--background", default="black", choices=("black", "white"),
                    help="colour behind the scene (NeRF-synthetic RGBA images are composited over it)")
     p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--other-lr-scale", type=float, default=0.1,
-                   help="factor on the official 3DGS learning rates of the other attributes; 0 freezes them")
-    p.add_argument("--lambda-reg", type=float, default=0.05,
-                   help="weight of the rendered-count regulariser (default 0.05; the paper's 1 is for training from scratch)")
+    p.add_argument("--schedule", default="calibrated", choices=("calibrated", "paper"),
+                   help="training recipe: 'calibrated' (default; sigma_d mapped from a ranking so s_v draws "
+                        "s_v^-1.5 of the Gaussians, window fade, level gains) or 'paper' (CLoD-GS: Eq. 2 fading, "
+                        "L_reg); README 'How the whole range is kept'")
+    p.add_argument("--other-lr-scale", type=float, default=None,
+                   help="factor on the official 3DGS learning rates of the base attributes; 0 freezes them "
+                        "(default: 0 calibrated, full detail stays the input; 0.1 paper)")
+    p.add_argument("--lambda-reg", type=float, default=None,
+                   help="paper schedule: weight of the rendered-count regulariser (default 0.05; the paper's 1 "
+                        "is for training from scratch)")
+    p.add_argument("--fade", default=None, choices=("window", "eq2"),
+                   help="how survivors are drawn: 'window' (only Gaussians about to leave fade; calibrated "
+                        "default) or 'eq2' (the paper's attenuation; paper default)")
+    p.add_argument("--gains", default=None, metavar="LETTERS",
+                   help="calibrated schedule: level gains to learn, letters of o (opacity), s (scale), "
+                        "c (colour); default 'osc'; '' for none")
     p.add_argument("--tau", type=float, default=None, help="LoD threshold: render iff alpha'' > tau*s_v (default 0.005)")
     p.add_argument("--eta-estimator", default="ste", choices=("ste", "sigmoid", "paper"),
                    help="gradient of the rendered fraction in L_reg; 'paper' = hard count, no gradient")
@@ -89,9 +101,9 @@ def main(argv: list[str] | None = None) -> int:
             scene, ply = Path(args.images), Path(args.ply)
             iterations = 1000 if args.iterations is None else args.iterations
         kw = {} if args.tau is None else {"tau": args.tau}
-        cfg = AdaptConfig(max_sv=args.max_sv, iterations=iterations, seed=args.seed,
+        cfg = AdaptConfig(max_sv=args.max_sv, iterations=iterations, seed=args.seed, schedule=args.schedule,
                           other_lr_scale=args.other_lr_scale, lambda_reg=args.lambda_reg,
-                          eta_estimator=args.eta_estimator,
+                          fade=args.fade, gains=args.gains, eta_estimator=args.eta_estimator,
                           background=(1.0, 1.0, 1.0) if args.background == "white" else (0.0, 0.0, 0.0), **kw)
         run(ply, scene, out, cfg, resolution=args.resolution, device=args.device,
             resume=args.resume, progress=not args.quiet, sanitize=args.sanitize,

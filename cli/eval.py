@@ -35,8 +35,9 @@ def build_parser() -> argparse.ArgumentParser:
                         "(default: the adapted model without sigma_d)")
     p.add_argument("--resolution", type=int, default=1, choices=(1, 2, 4, 8),
                    help="use images_R/ when present, else downsample by R (default 1)")
-    p.add_argument("--budgets", default="1,0.5,0.25,0.1",
-                   help="comma-separated budgets: values <= 1 are fractions, integers > 1 counts")
+    p.add_argument("--budgets", default=None,
+                   help="comma-separated budgets: values <= 1 are fractions, integers > 1 counts "
+                        "(default 1,0.5,0.25,0.1 down to max_sv^-1.5, and max_sv^-1.5)")
     p.add_argument("--sv-steps", type=int, default=25, help="points of the s_v sweep (default 25)")
     p.add_argument("--max-sv", type=float, default=None,
                    help="trained maximum s_v (default: from adapt_state.safetensors beside PLY, else 5); "
@@ -50,6 +51,13 @@ def build_parser() -> argparse.ArgumentParser:
                    help="constant sigma_d of the constant-sigma baseline (default: the best of a grid on "
                         "training views at 50 %% of the Gaussians)")
     p.add_argument("--seed", type=int, default=0, help="seed of the random baseline")
+    p.add_argument("--dlod-iterations", type=int, default=None,
+                   help="steps of the per-budget ceiling dlod_finetuned (one fine-tuned model per budget; "
+                        "default: the adaptation's iterations from adapt_state.safetensors, else 1000; 0 skips)")
+    p.add_argument("--splat-transform", metavar="EXE", default=None,
+                   help="splat-transform executable for the merging-decimator baseline 'merge' (default: "
+                        "$CLOD_SPLAT_TRANSFORM or splat-transform on PATH; skipped with a note when absent)")
+    p.add_argument("--no-merge", action="store_true", help="skip the merging-decimator baseline")
     p.add_argument("--device", default="auto", choices=("auto", "cpu", "cuda"))
     p.add_argument("--background", default="black", choices=("black", "white"),
                    help="colour behind the scene (NeRF-synthetic RGBA images are composited over it)")
@@ -64,7 +72,8 @@ def main(argv: list[str] | None = None) -> int:
     from clod_adapter.io.scene import SceneError
     from clod_adapter.io.scenes import load_scene
     from clod_adapter.pipeline import InputError, pick_device
-    from clod_adapter.report import check_report_dir, evaluate_report, max_sv_from_state, normalize_budgets
+    from clod_adapter.report import (check_report_dir, evaluate_report, iterations_from_state, max_sv_from_state,
+                                     normalize_budgets)
 
     def bad(msg: str) -> int:
         print(f"clod-eval: error: {msg}", file=sys.stderr)
@@ -79,12 +88,17 @@ def main(argv: list[str] | None = None) -> int:
             raise InputError(f"{ply}: no such file")
         if not scene_root.is_dir():
             raise InputError(f"{scene_root}: no such scene folder")
-        try:
-            budgets = normalize_budgets([float(x) for x in args.budgets.split(",") if x.strip()])
-        except ValueError as e:
-            raise InputError(f"--budgets {args.budgets!r}: {e}") from None
-        if not budgets:
-            raise InputError("--budgets: give at least one budget")
+        if args.budgets is not None:
+            try:
+                budgets = normalize_budgets([float(x) for x in args.budgets.split(",") if x.strip()])
+            except ValueError as e:
+                raise InputError(f"--budgets {args.budgets!r}: {e}") from None
+            if not budgets:
+                raise InputError("--budgets: give at least one budget")
+        if args.dlod_iterations is not None and args.dlod_iterations < 0:
+            raise InputError(f"--dlod-iterations must be >= 0, got {args.dlod_iterations}")
+        if args.splat_transform is not None and not Path(args.splat_transform).is_file():
+            raise InputError(f"{args.splat_transform}: no such file (--splat-transform)")
         if args.sv_steps < 2:
             raise InputError(f"--sv-steps must be >= 2, got {args.sv_steps}")
         if args.popping_steps < 2:
@@ -127,12 +141,28 @@ def main(argv: list[str] | None = None) -> int:
                     load_lpips(lpips)
                 except ValueError as e:
                     raise InputError(str(e).splitlines()[0]) from None
-        max_sv = args.max_sv if args.max_sv is not None else (max_sv_from_state(ply) or 5.0)
+        max_sv = args.max_sv if args.max_sv is not None else (adapted.lod.max_sv if adapted.lod else None) \
+            or max_sv_from_state(ply) or 5.0
+        if args.budgets is None:
+            from clod_adapter.pipeline import budget_levels
+
+            budgets = budget_levels(max_sv)
+        dlod_it = args.dlod_iterations
+        if dlod_it is None:
+            dlod_it = iterations_from_state(ply) or 1000
+        merge_tool = None
+        if not args.no_merge:
+            from clod_adapter.baselines import find_splat_transform
+
+            merge_tool = args.splat_transform or find_splat_transform()
+            if merge_tool is None:
+                print("clod-eval: note: splat-transform not found; the 'merge' baseline is skipped "
+                      "(npm install -g @playcanvas/splat-transform)", file=sys.stderr)
         check_report_dir(out, inputs)
         evaluate_report(ply, scene, out, pretrained=pretrained, pretrained_label=args.pretrained, budgets=budgets, max_sv=max_sv,
                         sv_steps=args.sv_steps, popping_steps=args.popping_steps, lpips=lpips,
                         seed=args.seed, sigma_c=args.sigma_c, device=dev, progress=not args.quiet,
-                        background=bg)
+                        background=bg, dlod_iterations=dlod_it, merge_tool=merge_tool)
         print(f"clod-eval: wrote the report to {out}")
     except (InputError, PlyFormatError, SceneError) as e:
         return bad(" ".join(str(e).split("\n")))

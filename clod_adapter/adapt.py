@@ -1,8 +1,22 @@
 """Fine-tune a pretrained 3DGS model into a CLoD-GS model (the paper's robustness setting).
 
 A per-Gaussian distance decay ``sigma_d`` is attached and trained with virtual distance scaling
-(CLoD-GS, Cheng et al. ICLR 2026, Sec. 3); the other attributes are "lightly updated" with the
-official 3DGS learning rates times ``other_lr_scale`` (0 freezes them). No densification.
+(CLoD-GS, Cheng et al. ICLR 2026, Sec. 3). Two schedules (:data:`SCHEDULES`):
+
+* ``"calibrated"`` (default): ``sigma_d`` starts from a static ranking (LightGaussian
+  significance) mapped through Eq. 2 so that the top ``s_v^-1.5`` of the ranking is drawn at
+  ``s_v`` (:func:`clod_adapter.lod.calibrate_sigma_d`); each step draws ``s_v ~ U(1, max_sv)``,
+  renders exactly ``s_v^-1.5`` of the Gaussians in view (the Eq. 2 mask at the solved ``s_v``,
+  :mod:`clod_adapter.budget`) with the window fade and the level gains at ``s_v``
+  (:class:`clod_adapter.lod.LodSettings`), and takes a step on the rendering loss; every
+  ``recalibrate_every`` steps and at the end ``sigma_d`` is re-mapped from the order it has
+  learned, so the count keeps following ``s_v^-1.5``. The base attributes are frozen by default
+  (``other_lr_scale = 0``): full detail is the input model.
+* ``"paper"``: the paper's recipe: ``sigma_d`` initialised large, ``s_v ~ U(1, max_sv)``, Eq. 2
+  fading, ``L = w_s (L_render + lambda_reg L_reg)`` with a straight-through ``eta``; the other
+  attributes at ``other_lr_scale`` (0.1) of the official 3DGS learning rates.
+
+No densification.
 
 Public entry points: :class:`AdaptConfig`, :func:`prepare`, :func:`adapt`, :func:`save_state`,
 :func:`load_state`.
@@ -21,7 +35,8 @@ import torch
 from torch import Tensor
 
 from . import __version__, lod
-from .gaussians import Gaussians
+from .budget import critical_s_v
+from .gaussians import GAIN_NAMES, Gaussians
 from .io.atomic import atomic_save
 from .losses import clod_loss, render_loss
 from .lod_render import render_lod
@@ -38,35 +53,58 @@ OFFICIAL_LR = {
     "quats": 1e-3,
 }
 PARAM_NAMES = ("means", "quats", "log_scales", "opacity_logits", "sh0", "shN", "sigma_d")
+SCHEDULES = ("calibrated", "paper")
+#: level gains by letter of :attr:`AdaptConfig.gains`, and the official learning rate each uses
+#: (that of the attribute it offsets).
+GAIN_LETTERS = {"o": "opacity_logit_gain", "s": "log_scale_gain", "c": "sh0_gain"}
+GAIN_LR = {"opacity_logit_gain": OFFICIAL_LR["opacity_logits"], "log_scale_gain": OFFICIAL_LR["log_scales"],
+           "sh0_gain": OFFICIAL_LR["sh0"]}
+RANKINGS = ("lightgaussian", "opacity")
 
 
 @dataclass
 class AdaptConfig:
-    """Settings of one adaptation run (defaults: the paper's where it gives them).
+    """Settings of one adaptation run (``None``: the schedule's default, resolved on creation).
 
     Attributes:
-        max_sv: largest virtual distance scale trained (s_v ~ U(1, max_sv)).
+        max_sv: largest virtual distance scale trained (s_v ~ U(1, max_sv)); the coarsest
+            trained level draws ``max_sv^-1.5`` of the Gaussians in view.
         iterations: optimisation steps (one training view each).
+        schedule: ``"calibrated"`` (default) or ``"paper"`` (module docstring).
         sigma_d_lr: Adam learning rate of sigma_d (paper: 1e-2).
-        other_lr_scale: factor on the official 3DGS learning rates of the other attributes.
-        lambda_reg: weight of L_reg. The paper's 1 is for training from scratch; fine-tuning a
-            finished model with it cost fern 2.8 dB at s_v = 1, so the default is 0.05 (README,
-            "Choosing lambda_reg").
+        other_lr_scale: factor on the official 3DGS learning rates of the base attributes
+            (calibrated: 0, frozen, so full detail stays the input; paper: 0.1).
+        lambda_reg: weight of L_reg (paper schedule; default 0.05, README "Choosing
+            lambda_reg"; the paper's 1 is for training from scratch). The calibrated schedule
+            has no count regulariser (0): its count follows s_v^-1.5 by calibration.
         tau: LoD threshold (mask alpha'' > tau s_v).
         eps: Eq. 2's epsilon.
         eta_estimator: "ste" (default), "sigmoid" or "paper" (no gradient, ablation).
         temperature: width of the eta relaxation, log-opacity units.
-        init_attenuation: Eq. 2's factor at s_v = 1 is at least this at initialisation; None:
-            calibrated per scene (:func:`calibrate_init`).
+        init_attenuation: paper schedule: Eq. 2's factor at s_v = 1 is at least this at
+            initialisation; None: calibrated per scene (:func:`calibrate_init`).
         seed: seed of view order and s_v sampling.
         background: RGB behind the scene.
+        fade: how survivors are drawn, ``"window"`` or ``"eq2"`` (calibrated: window, paper:
+            eq2; :mod:`clod_adapter.lod`).
+        fade_width: width of the window fade, log-opacity units.
+        gains: which level gains to learn (calibrated schedule): letters of ``o`` (opacity),
+            ``s`` (scale), ``c`` (colour, sh0); "" for none.
+        gain_lr_scale: factor on the official learning rate of the attribute each gain offsets.
+        ranking: the static ranking ``sigma_d`` starts from (calibrated): ``"lightgaussian"``
+            or ``"opacity"``.
+        recalibrate_every: calibrated: re-map ``sigma_d`` from its learned order every this
+            many steps (and after the last); 0: only after the last.
+        level_weighting: ``"paper"`` (w_s = (1 - 0.5 s_v / max_sv)^2) or ``"uniform"``
+            (calibrated default: every level counts alike).
     """
 
     max_sv: float = 5.0
     iterations: int = 1000
+    schedule: str = "calibrated"
     sigma_d_lr: float = 1e-2
-    other_lr_scale: float = 0.1
-    lambda_reg: float = 0.05
+    other_lr_scale: Optional[float] = None
+    lambda_reg: Optional[float] = None
     tau: float = lod.DEFAULT_TAU
     eps: float = lod.DEFAULT_EPS
     eta_estimator: str = "ste"
@@ -74,8 +112,28 @@ class AdaptConfig:
     init_attenuation: Optional[float] = None
     seed: int = 0
     background: tuple = (0.0, 0.0, 0.0)
+    fade: Optional[str] = None
+    fade_width: float = lod.DEFAULT_FADE_WIDTH
+    gains: Optional[str] = None
+    gain_lr_scale: float = 1.0
+    ranking: str = "lightgaussian"
+    recalibrate_every: int = 100
+    level_weighting: Optional[str] = None
 
     def __post_init__(self) -> None:
+        if self.schedule not in SCHEDULES:
+            raise ValueError(f"schedule must be one of {SCHEDULES}, got {self.schedule!r}")
+        cal = self.schedule == "calibrated"
+        if self.other_lr_scale is None:
+            self.other_lr_scale = 0.0 if cal else 0.1
+        if self.lambda_reg is None:
+            self.lambda_reg = 0.0 if cal else 0.05
+        if self.fade is None:
+            self.fade = "window" if cal else "eq2"
+        if self.gains is None:
+            self.gains = "osc" if cal else ""
+        if self.level_weighting is None:
+            self.level_weighting = "uniform" if cal else "paper"
         if not self.max_sv >= 1.0:
             raise ValueError(f"max_sv must be >= 1, got {self.max_sv}")
         if self.iterations < 0:
@@ -84,7 +142,32 @@ class AdaptConfig:
             raise ValueError(f"other_lr_scale must be >= 0, got {self.other_lr_scale}")
         if self.eta_estimator not in lod.ETA_ESTIMATORS:
             raise ValueError(f"eta_estimator must be one of {lod.ETA_ESTIMATORS}")
+        if self.fade not in lod.FADES:
+            raise ValueError(f"fade must be one of {lod.FADES}, got {self.fade!r}")
+        if not self.fade_width > 0:
+            raise ValueError(f"fade_width must be > 0, got {self.fade_width}")
+        bad = set(self.gains) - set(GAIN_LETTERS)
+        if bad:
+            raise ValueError(f"gains takes letters of 'osc' (opacity, scale, colour), got {self.gains!r}")
+        if self.gains and not cal:
+            raise ValueError("level gains need the calibrated schedule")
+        if self.ranking not in RANKINGS:
+            raise ValueError(f"ranking must be one of {RANKINGS}, got {self.ranking!r}")
+        if self.recalibrate_every < 0:
+            raise ValueError(f"recalibrate_every must be >= 0, got {self.recalibrate_every}")
+        if self.level_weighting not in ("paper", "uniform"):
+            raise ValueError(f"level_weighting must be 'paper' or 'uniform', got {self.level_weighting!r}")
         self.background = tuple(float(x) for x in self.background)
+
+    @property
+    def gain_names(self) -> tuple:
+        """The Gaussians fields of the learned level gains, in :data:`GAIN_NAMES` order."""
+        return tuple(n for n in GAIN_NAMES if n in {GAIN_LETTERS[c] for c in self.gains})
+
+    def lod_settings(self) -> lod.LodSettings:
+        """The :class:`clod_adapter.lod.LodSettings` the adapted model is drawn with."""
+        return lod.LodSettings(max_sv=self.max_sv, tau=self.tau, eps=self.eps, fade=self.fade,
+                               fade_width=self.fade_width)
 
 
 @dataclass
@@ -99,9 +182,11 @@ class AdaptState:
     extent: float = 1.0
     history: dict = field(default_factory=lambda: {"s_v": [], "eta": [], "loss": [], "psnr": []})
     init: dict = field(default_factory=dict)
+    lod: Optional[lod.LodSettings] = None
 
     def gaussians(self) -> Gaussians:
-        return Gaussians(**{k: v for k, v in self.params.items()})
+        """The model as it stands (parameters, not copies; ``lod`` settings attached)."""
+        return Gaussians(**{k: v for k, v in self.params.items()}, lod=self.lod)
 
 
 def scene_extent(cameras) -> float:
@@ -122,8 +207,55 @@ def max_normalized_distance(gaussians: Gaussians, cameras) -> Tensor:
     return dmax
 
 
+@torch.no_grad()
+def reference_distances(gaussians: Gaussians, cameras) -> Tensor:
+    """[N] float32 reference d' of each Gaussian for :func:`lod.calibrate_sigma_d`: its largest
+    frustum-normalised distance over the views whose frustum holds its centre (over all views
+    when none does). The largest, so that at ``s_v = 1`` no Gaussian is in its fade window in
+    any of these views (full detail stays the input: with the mean, 0.11 dB was lost at
+    s_v = 1 on the synthetic test scene). Streaming: O(N) memory whatever the number of views."""
+    n = len(gaussians)
+    dev = gaussians.means.device
+    d_in = torch.zeros(n, dtype=torch.float32, device=dev)
+    d_all = torch.zeros(n, dtype=torch.float32, device=dev)
+    seen = torch.zeros(n, dtype=torch.bool, device=dev)
+    for cam in cameras:
+        vm = cam.viewmat.to(gaussians.means)
+        fr = lod.in_frustum(gaussians.means, vm, cam.K.to(gaussians.means), cam.width, cam.height)
+        d = lod.normalized_distances(gaussians.means, lod.camera_center(vm), fr).float()
+        d_all = torch.maximum(d_all, d)
+        d_in = torch.where(fr, torch.maximum(d_in, d), d_in)
+        seen |= fr
+    return torch.where(seen, d_in, d_all)
+
+
+@torch.no_grad()
+def ranking_scores(gaussians: Gaussians, cameras, ranking: str = "lightgaussian") -> Tensor:
+    """[N] the static ranking the calibrated schedule starts from (higher = kept longer):
+    LightGaussian global significance over ``cameras`` or the opacity."""
+    if ranking == "opacity":
+        return gaussians.opacities.detach().float()
+    from .baselines import lightgaussian_significance
+
+    return lightgaussian_significance(gaussians.detach(), cameras)
+
+
+@torch.no_grad()
+def recalibrate(state: "AdaptState", cameras, cfg: AdaptConfig) -> None:
+    """Re-map ``sigma_d`` from the order it has learned (the reference critical s_v at each
+    Gaussian's reference distance), in place: the learned order at the reference distance is
+    kept and the drawn fraction at ``s_v`` is again ``s_v^-1.5`` (:func:`lod.calibrate_sigma_d`)."""
+    g = state.gaussians().detach()
+    d_ref = reference_distances(g, cameras)
+    s_ref = critical_s_v(g.opacities, d_ref, g.sigma_d, cfg.tau, cfg.eps)
+    new = lod.calibrate_sigma_d(s_ref, g.opacities, d_ref, tau=cfg.tau, eps=cfg.eps, fade_width=cfg.fade_width)
+    state.params["sigma_d"].data.copy_(new.to(state.params["sigma_d"]))
+
+
 def _lr_groups(params: dict, cfg: AdaptConfig, extent: float) -> list:
     groups = [{"params": [params["sigma_d"]], "lr": cfg.sigma_d_lr, "name": "sigma_d"}]
+    for name in cfg.gain_names:
+        groups.append({"params": [params[name]], "lr": GAIN_LR[name] * cfg.gain_lr_scale, "name": name})
     if cfg.other_lr_scale > 0:
         for name in ("means", "quats", "log_scales", "opacity_logits", "sh0", "shN"):
             if params[name].numel() == 0:
@@ -173,15 +305,23 @@ def calibrate_init(gaussians: Gaussians, d_norm_max: Tensor, cameras, images, cf
 
 def prepare(gaussians: Gaussians, train_cameras, cfg: AdaptConfig, train_images=None,
             backend: str = "auto") -> AdaptState:
-    """Attach ``sigma_d`` (:func:`clod_adapter.lod.init_sigma_d` over the training views, unless
-    the model already has one) and build the optimiser state for :func:`adapt`.
+    """Attach ``sigma_d`` (and zero level gains) and build the optimiser state for :func:`adapt`.
 
-    With ``cfg.init_attenuation`` None the attenuation is calibrated on ``train_images``
-    (:func:`calibrate_init`; 0.995 when no images are given). The value used is stored in
-    ``state.init``."""
+    Calibrated schedule: ``sigma_d`` from :func:`ranking_scores` through
+    :func:`lod.calibrate_sigma_d` at :func:`reference_distances`. Paper schedule:
+    :func:`clod_adapter.lod.init_sigma_d` over the training views; with
+    ``cfg.init_attenuation`` None the attenuation is calibrated on ``train_images``
+    (:func:`calibrate_init`; 0.995 when no images are given). A model that already has
+    ``sigma_d`` (and gains) keeps them. What was done is stored in ``state.init``."""
     g = gaussians.clone()
     init = {}
-    if g.sigma_d is None:
+    if g.sigma_d is None and cfg.schedule == "calibrated":
+        scores = ranking_scores(g, train_cameras, cfg.ranking)
+        d_ref = reference_distances(g, train_cameras)
+        g = g.with_sigma_d(lod.calibrate_sigma_d(scores, g.opacities, d_ref, tau=cfg.tau, eps=cfg.eps,
+                                                 fade_width=cfg.fade_width).to(g.means))
+        init = {"ranking": cfg.ranking}
+    elif g.sigma_d is None:
         dmax = max_normalized_distance(g, train_cameras)
         att = cfg.init_attenuation
         if att is None and train_images is not None:
@@ -196,10 +336,16 @@ def prepare(gaussians: Gaussians, train_cameras, cfg: AdaptConfig, train_images=
     for name in PARAM_NAMES:
         t = getattr(g, name).detach().clone().contiguous()
         params[name] = torch.nn.Parameter(t, requires_grad=(name == "sigma_d") or train_others)
+    for name in cfg.gain_names:
+        have = getattr(g, name)
+        shape = (len(g), 1, 3) if name == "sh0_gain" else (len(g),)
+        t = have.detach().clone() if have is not None else torch.zeros(shape, dtype=g.means.dtype, device=g.means.device)
+        params[name] = torch.nn.Parameter(t.contiguous())
     extent = scene_extent(train_cameras)
     opt = torch.optim.Adam(_lr_groups(params, cfg, extent), eps=1e-15)
     gen = torch.Generator().manual_seed(cfg.seed)
-    return AdaptState(params=params, optimizer=opt, generator=gen, extent=extent, init=init)
+    return AdaptState(params=params, optimizer=opt, generator=gen, extent=extent, init=init,
+                      lod=cfg.lod_settings())
 
 
 class StopFlag:
@@ -274,7 +420,9 @@ def adapt(
     """Run (or continue) the fine-tuning from ``state.iteration`` to ``cfg.iterations``.
 
     Each step: one training view (shuffled, without replacement per epoch), ``s_v ~ U(1,
-    max_sv)``, render at ``s_v``, ``L = w_s (L_render + lambda_reg L_reg)``, one Adam step.
+    max_sv)``, render at ``s_v``, ``L = w (L_render + lambda_reg L_reg)`` (``w``: the level
+    weighting), one Adam step; calibrated schedule: :func:`recalibrate` every
+    ``cfg.recalibrate_every`` steps and after the last.
 
     Args:
         state: from :func:`prepare` or :func:`load_state`; updated in place.
@@ -322,17 +470,29 @@ def adapt(
                 if grp["name"] == "means":
                     grp["lr"] = means_lr(cfg, state.extent, it)
             g = state.gaussians()
-            out = render_lod(g, train_cameras[vi], s_v, tau=cfg.tau, eps=cfg.eps,
-                             estimator=cfg.eta_estimator, temperature=cfg.temperature,
-                             background=cfg.background, backend=backend)
+            if cfg.schedule == "calibrated":
+                # the level's exact share of the Gaussians in view, drawn with the level's gains
+                out = render_lod(g, train_cameras[vi], budget=lod.target_fraction(s_v), budget_in_view=True,
+                                 min_s_v=0.0, level=lod.level(s_v, cfg.max_sv), tau=cfg.tau, eps=cfg.eps,
+                                 background=cfg.background, backend=backend)
+            else:
+                out = render_lod(g, train_cameras[vi], s_v, tau=cfg.tau, eps=cfg.eps,
+                                 estimator=cfg.eta_estimator, temperature=cfg.temperature,
+                                 background=cfg.background, backend=backend)
             gt = train_images[vi]
             l_render = render_loss(out.image, gt)
             loss, _ = clod_loss(l_render, out.eta, s_v, cfg.max_sv, cfg.lambda_reg)
+            if cfg.level_weighting == "uniform":
+                loss = loss / lod.scale_weight(s_v, cfg.max_sv)
             state.optimizer.zero_grad(set_to_none=True)
             if loss.requires_grad:
                 loss.backward()
             state.optimizer.step()
             state.iteration += 1
+            if cfg.schedule == "calibrated" and (
+                    state.iteration == cfg.iterations
+                    or (cfg.recalibrate_every and state.iteration % cfg.recalibrate_every == 0)):
+                recalibrate(state, train_cameras, cfg)
             p = psnr(out.image, gt)
             eta = float(out.eta.detach())
             h = state.history
@@ -412,12 +572,19 @@ def load_state(path: os.PathLike, device: str | torch.device = "cpu") -> tuple[A
         raise ValueError(f"{path}: not a clod-adapter state (format {meta.get('format')!r})")
     cfg_d = json.loads(meta["config"])
     cfg_d["background"] = tuple(cfg_d.get("background", (0, 0, 0)))
-    cfg = AdaptConfig(**cfg_d)
+    cfg_d.setdefault("schedule", "paper")  # states written before the calibrated schedule
+    try:
+        cfg = AdaptConfig(**cfg_d)
+    except (TypeError, ValueError) as e:
+        raise ValueError(f"{path}: unusable config in state ({e})") from None
     train_others = cfg.other_lr_scale > 0
     params = {}
-    for name in PARAM_NAMES:
-        t = tensors[f"param/{name}"].to(device)
-        params[name] = torch.nn.Parameter(t, requires_grad=(name == "sigma_d") or train_others)
+    for name in PARAM_NAMES + cfg.gain_names:
+        key = f"param/{name}"
+        if key not in tensors:
+            raise ValueError(f"{path}: state lacks {key}")
+        t = tensors[key].to(device)
+        params[name] = torch.nn.Parameter(t, requires_grad=(name == "sigma_d") or (name in cfg.gain_names) or train_others)
     extent = float(meta["extent"])
     opt = torch.optim.Adam(_lr_groups(params, cfg, extent), eps=1e-15)
     for grp in opt.param_groups:
@@ -432,6 +599,6 @@ def load_state(path: os.PathLike, device: str | torch.device = "cpu") -> tuple[A
     gen = torch.Generator()
     gen.set_state(tensors["rng"])
     st = AdaptState(params=params, optimizer=opt, generator=gen, iteration=int(meta["iteration"]),
-                    order=tensors["order"].tolist(), extent=extent,
+                    order=tensors["order"].tolist(), extent=extent, lod=cfg.lod_settings(),
                     history=json.loads(meta.get("history", "{}")) or {"s_v": [], "eta": [], "loss": [], "psnr": []})
     return st, cfg, meta

@@ -274,3 +274,64 @@ def random_scores(n: int, seed: int = 0, device="cpu") -> Tensor:
     """[N] float32 seeded uniform scores: a random global ranking (the random baseline)."""
     g = torch.Generator().manual_seed(int(seed))
     return torch.rand(n, generator=g).to(device)
+
+
+# --- merging decimator (splat-transform) -------------------------------------------------------
+#: environment variable naming the splat-transform executable (else it is looked up on PATH).
+SPLAT_TRANSFORM_ENV = "CLOD_SPLAT_TRANSFORM"
+
+
+def find_splat_transform() -> Optional[str]:
+    """Path of PlayCanvas ``splat-transform`` (npm ``@playcanvas/splat-transform``): the
+    ``$CLOD_SPLAT_TRANSFORM`` executable, else ``splat-transform`` on PATH; None when absent."""
+    import os
+    import shutil
+
+    env = os.environ.get(SPLAT_TRANSFORM_ENV)
+    if env:
+        return env if os.path.isfile(env) and os.access(env, os.X_OK) else None
+    return shutil.which("splat-transform")
+
+
+def merge_decimate(gaussians: Gaussians, count: int, *, tool: Optional[str] = None,
+                   timeout: float = 600.0) -> Gaussians:
+    """The model simplified to ``count`` Gaussians by the merging decimator viewers ship:
+    splat-transform's ``--decimate`` (NanoGS progressive pairwise merging with mass-preserving
+    moment matching; PlayCanvas splat-transform, run on the CPU with ``-g cpu``). No training.
+
+    Args:
+        gaussians: the model (``sigma_d`` and gains are not written).
+        count: target number of Gaussians (>= 1).
+        tool: the splat-transform executable (default :func:`find_splat_transform`).
+        timeout: seconds before the run is abandoned.
+
+    Returns:
+        the decimated model (CPU tensors).
+
+    Raises:
+        RuntimeError: splat-transform is not available, fails, or times out (message says which).
+    """
+    import subprocess
+    import tempfile
+    from pathlib import Path
+
+    from .io.load import load_model
+    from .io.ply import write_ply
+
+    exe = tool or find_splat_transform()
+    if exe is None:
+        raise RuntimeError("splat-transform not found (npm install -g @playcanvas/splat-transform, "
+                           f"or set ${SPLAT_TRANSFORM_ENV})")
+    count = max(1, min(int(count), len(gaussians)))
+    with tempfile.TemporaryDirectory(prefix="clod-merge-") as tmp:
+        src, dst = Path(tmp) / "in.ply", Path(tmp) / "out.ply"
+        write_ply(src, gaussians.with_sigma_d(None).to("cpu"))
+        cmd = [exe, "-g", "cpu", "-w", str(src), "-F", str(count), str(dst)]
+        try:
+            res = subprocess.run(cmd, capture_output=True, text=True, timeout=timeout)
+        except (OSError, subprocess.TimeoutExpired) as e:
+            raise RuntimeError(f"splat-transform failed: {e}") from None
+        if res.returncode != 0 or not dst.is_file():
+            tail = (res.stderr or res.stdout).strip().splitlines()[-1:] or ["no output"]
+            raise RuntimeError(f"splat-transform exited {res.returncode}: {tail[0]}")
+        return load_model(dst)

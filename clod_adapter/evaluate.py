@@ -23,8 +23,9 @@ from .metrics import psnr, ssim
 class LevelMetrics:
     """Metrics of one level of detail averaged over views.
 
-    ``s_v`` is None for the plain (non-LoD) model. ``gaussians`` is the mean number of Gaussians
-    rendered per view, ``fraction`` that over the model size; times are medians in ms.
+    ``s_v`` is None for the plain (non-LoD) model (in budget mode: the mean solved ``s_v``).
+    ``budget`` is the requested budget (None in s_v mode). ``gaussians`` is the mean number of
+    Gaussians rendered per view, ``fraction`` that over the model size; times are medians in ms.
     """
 
     s_v: Optional[float]
@@ -36,6 +37,7 @@ class LevelMetrics:
     select_ms: float
     raster_ms: float
     per_view_psnr: list
+    budget: Optional[float] = None
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -48,15 +50,18 @@ def evaluate_level(
     images: Sequence[Tensor],
     s_v: Optional[float],
     *,
-    tau: float = lod.DEFAULT_TAU,
+    tau: Optional[float] = None,
     background=None,
     backend: str = "auto",
+    budget: Optional[float | int] = None,
 ) -> LevelMetrics:
-    """Render every camera at ``s_v`` (None: no LoD) and score against ``images`` ([H, W, 3])."""
-    ps, ss, counts, tms, sel, ras = [], [], [], [], [], []
+    """Render every camera at ``s_v`` (None: no LoD) or within ``budget`` (a count, or a fraction
+    of the model; ``s_v`` solved per view, at least 1) and score against ``images`` ([H, W, 3])."""
+    ps, ss, counts, tms, sel, ras, svs = [], [], [], [], [], [], []
     for cam, gt in zip(cameras, images):
         out = render_lod(gaussians, cam, s_v, tau=tau, background=background, backend=backend,
-                         estimator="paper")
+                         estimator="paper", budget=budget)
+        svs.append(out.s_v)
         img = out.image.clamp(0, 1)
         gt = gt.to(img.device)
         ps.append(psnr(img, gt))
@@ -67,8 +72,10 @@ def evaluate_level(
         tms.append(out.select_ms + out.raster_ms)
     n = max(len(gaussians), 1)
     mean_count = sum(counts) / max(len(counts), 1)
+    if budget is not None and svs and all(v is not None for v in svs):
+        s_v = sum(svs) / len(svs)
     return LevelMetrics(
-        s_v=s_v, psnr=sum(ps) / len(ps), ssim=sum(ss) / len(ss), gaussians=mean_count,
+        budget=budget, s_v=s_v, psnr=sum(ps) / len(ps), ssim=sum(ss) / len(ss), gaussians=mean_count,
         fraction=mean_count / n, ms_per_frame=statistics.median(tms),
         select_ms=statistics.median(sel), raster_ms=statistics.median(ras), per_view_psnr=ps,
     )
@@ -80,7 +87,7 @@ def evaluate_levels(
     images: Sequence[Tensor],
     s_vs: Sequence[float],
     *,
-    tau: float = lod.DEFAULT_TAU,
+    tau: Optional[float] = None,
     background=None,
     backend: str = "auto",
     progress: Optional[Callable[[LevelMetrics], None]] = None,

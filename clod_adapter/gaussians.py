@@ -6,6 +6,12 @@ Conventions follow the official 3DGS code and gsplat 1.5.3:
 SH coefficients split as ``sh0`` [N, 1, 3] and ``shN`` [N, K-1, 3] with K = (degree + 1)^2
 (gsplat's ``colors`` layout [N, K, 3]), and the CLoD-GS distance decay ``sigma_d`` [N]
 (Cheng et al., ICLR 2026, Eq. 2; ``None`` for a model that has not been adapted).
+
+An adapted model may also carry *level gains* (this project's extension, README "How the
+whole range is kept"): raw offsets added at level ``l`` in [0, 1] (:func:`clod_adapter.lod.level`)
+as ``opacity_logits + l * opacity_logit_gain``, ``log_scales + l * log_scale_gain`` (one scalar
+for the three axes) and ``sh0 + l * sh0_gain``. At full detail (``l = 0``) the model is exactly
+its base attributes. ``lod`` holds the settings it is drawn with (:class:`clod_adapter.lod.LodSettings`).
 """
 from __future__ import annotations
 
@@ -14,6 +20,8 @@ from typing import Optional
 
 import torch
 from torch import Tensor
+
+from .lod import LodSettings
 
 SH_C0 = 0.28209479177387814  # Y_0^0, as in the official 3DGS utils/sh_utils.py
 
@@ -43,6 +51,10 @@ class Gaussians:
         shN: [N, K-1, 3] higher-order SH coefficients (the INRIA ``f_rest``, reordered from
             channel-major); K-1 = 0 for degree 0.
         sigma_d: [N] CLoD-GS distance decay (raw; Eq. 2 uses ReLU(sigma_d)), or None.
+        opacity_logit_gain: [N] level gain of the opacity logit, or None (zero).
+        log_scale_gain: [N] level gain of the log-scales (all three axes), or None (zero).
+        sh0_gain: [N, 1, 3] level gain of the degree-0 SH coefficient, or None (zero).
+        lod: how the model is drawn at a level of detail, or None (defaults; the paper's Eq. 2).
     """
 
     means: Tensor
@@ -52,6 +64,10 @@ class Gaussians:
     sh0: Tensor
     shN: Tensor
     sigma_d: Optional[Tensor] = None
+    opacity_logit_gain: Optional[Tensor] = None
+    log_scale_gain: Optional[Tensor] = None
+    sh0_gain: Optional[Tensor] = None
+    lod: Optional[LodSettings] = None
 
     def __post_init__(self) -> None:
         n = self.means.shape[0]
@@ -68,8 +84,11 @@ class Gaussians:
         if self.shN.ndim != 3 or self.shN.shape[0] != n or self.shN.shape[2] != 3:
             raise ValueError(f"Gaussians.shN has shape {tuple(self.shN.shape)}, expected ({n}, K-1, 3)")
         sh_degree_from_coeffs(self.shN.shape[1] + 1)
-        if self.sigma_d is not None and tuple(self.sigma_d.shape) != (n,):
-            raise ValueError(f"Gaussians.sigma_d has shape {tuple(self.sigma_d.shape)}, expected ({n},)")
+        for name, shape in (("sigma_d", (n,)), ("opacity_logit_gain", (n,)), ("log_scale_gain", (n,)),
+                            ("sh0_gain", (n, 1, 3))):
+            t = getattr(self, name)
+            if t is not None and tuple(t.shape) != shape:
+                raise ValueError(f"Gaussians.{name} has shape {tuple(t.shape)}, expected {shape}")
 
     # --- activated views -------------------------------------------------------------------
     def __len__(self) -> int:
@@ -99,9 +118,29 @@ class Gaussians:
         return torch.cat([self.sh0, self.shN], dim=1)
 
     # --- utilities --------------------------------------------------------------------------
+    @property
+    def has_gains(self) -> bool:
+        """True when any level gain is present."""
+        return any(getattr(self, k) is not None for k in GAIN_NAMES)
+
+    def at_level(self, ell: float) -> "Gaussians":
+        """The model's attributes at level ``ell`` in [0, 1]: base attributes plus ``ell`` times
+        the level gains (differentiable in both). ``ell = 0`` or no gains: ``self``."""
+        if ell == 0.0 or not self.has_gains:
+            return self
+        upd = {}
+        if self.opacity_logit_gain is not None:
+            upd["opacity_logits"] = self.opacity_logits + ell * self.opacity_logit_gain
+        if self.log_scale_gain is not None:
+            upd["log_scales"] = self.log_scales + ell * self.log_scale_gain[:, None]
+        if self.sh0_gain is not None:
+            upd["sh0"] = self.sh0 + ell * self.sh0_gain
+        return replace(self, **upd)
+
     def tensors(self) -> dict[str, Tensor]:
         """The non-None parameter tensors by field name."""
-        return {f.name: getattr(self, f.name) for f in fields(self) if getattr(self, f.name) is not None}
+        return {f.name: getattr(self, f.name) for f in fields(self)
+                if isinstance(getattr(self, f.name), Tensor)}
 
     def to(self, device: torch.device | str) -> "Gaussians":
         return replace(self, **{k: v.to(device) for k, v in self.tensors().items()})
@@ -117,4 +156,13 @@ class Gaussians:
         return replace(self, **{k: v[index] for k, v in self.tensors().items()})
 
     def with_sigma_d(self, sigma_d: Optional[Tensor]) -> "Gaussians":
+        """The model with ``sigma_d`` replaced; ``None`` also drops the level gains and settings
+        (the plain 3DGS model)."""
+        if sigma_d is None:
+            return replace(self, sigma_d=None, opacity_logit_gain=None, log_scale_gain=None,
+                           sh0_gain=None, lod=None)
         return replace(self, sigma_d=sigma_d)
+
+
+#: the level-gain fields of :class:`Gaussians`.
+GAIN_NAMES = ("opacity_logit_gain", "log_scale_gain", "sh0_gain")

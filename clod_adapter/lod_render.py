@@ -7,7 +7,7 @@ handed to the rasteriser, with their attenuated opacities ``alpha''``.
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Optional, Sequence
 
 import torch
@@ -74,15 +74,76 @@ def select_lod(opacities: Tensor, d_norm: Tensor, sigma_d: Tensor, visible: Tens
     return (lod.lod_margin(opacities, d_norm, sigma_d, s_v, tau, eps) > 0) & visible, float(s_v)
 
 
+def _settings(gaussians: Gaussians, tau: Optional[float], eps: Optional[float]) -> lod.LodSettings:
+    """The model's LoD settings (defaults when it has none) with ``tau``/``eps`` overrides."""
+    st = gaussians.lod if gaussians.lod is not None else lod.LodSettings()
+    if tau is not None or eps is not None:
+        st = replace(st, tau=st.tau if tau is None else float(tau), eps=st.eps if eps is None else float(eps))
+    return st
+
+
+@dataclass
+class _Draw:
+    """Selection and drawn attributes of one camera at one level (internal)."""
+
+    mask: Tensor            # [N] bool, handed to the rasteriser
+    model: Gaussians        # attributes at the level (gains applied), [N]
+    opacities: Tensor       # [N] drawn opacities
+    visible: Tensor         # [N] bool, in view
+    frustum: Tensor         # [N] bool, centre in the frustum
+    s_v: Optional[float]
+    eta: Tensor             # scalar, rendered fraction of the frustum
+
+
+def _draw(gaussians: Gaussians, viewmat: Tensor, K: Tensor, w: int, h: int, s_v: Optional[float],
+          budget, st: lod.LodSettings, min_s_v: float, estimator: str, temperature: float,
+          eta_grad_sigma_only: bool, budget_in_view: bool = False, ell: Optional[float] = None) -> _Draw:
+    means = gaussians.means
+    frustum = lod.in_frustum(means, viewmat, K, w, h)
+    visible = in_view(gaussians, viewmat, K, w, h)
+    if budget is not None and budget_in_view and isinstance(budget, float) and budget <= 1.0:
+        budget = int(round(budget * int(visible.sum())))
+    opac = gaussians.opacities
+    if budget is not None and s_v is not None:
+        raise ValueError("render_lod: give s_v or budget, not both")
+    if (s_v is not None or budget is not None) and gaussians.sigma_d is None:
+        raise ValueError("render_lod: s_v/budget given but the model has no sigma_d")
+    if s_v is None and budget is None:
+        return _Draw(visible, gaussians, opac, visible, frustum, None,
+                     torch.ones((), dtype=means.dtype, device=means.device))
+    if s_v is not None and not s_v >= 1.0:
+        raise ValueError(f"render_lod: s_v must be >= 1, got {s_v}")
+    d_norm = lod.normalized_distances(means, lod.camera_center(viewmat), frustum)
+    sd = gaussians.sigma_d
+    # The mask covers every Gaussian in view: one whose centre lies just outside the image
+    # can still cover pixels. The frustum only defines d''s normaliser and eta's population.
+    mask, s_used = select_lod(opac.detach(), d_norm.detach(), sd.detach(), visible, s_v=s_v,
+                              budget=budget, tau=st.tau, eps=st.eps, min_s_v=min_s_v)
+    if budget is not None:
+        eta = mask[frustum].float().mean() if bool(frustum.any()) else torch.zeros((), device=means.device)
+    else:
+        m_eta = (lod.lod_margin(opac.detach(), d_norm.detach(), sd, s_used, st.tau, st.eps) if eta_grad_sigma_only
+                 else lod.lod_margin(opac, d_norm, sd, s_used, st.tau, st.eps))
+        eta = lod.rendered_fraction(m_eta, frustum, estimator, temperature)
+    if st.fade == "eq2":
+        return _Draw(mask, gaussians, lod.lod_opacities(opac, d_norm, sd, s_used, st.eps), visible,
+                     frustum, s_used, eta)
+    margin = lod.lod_margin(opac, d_norm.detach(), sd, s_used, st.tau, st.eps)
+    model = gaussians.at_level(lod.level(s_used, st.max_sv) if ell is None else float(ell))
+    drawn = model.opacities * lod.fade_weight(margin, st.fade_width)
+    return _Draw(mask, model, drawn, visible, frustum, s_used, eta)
+
+
 @dataclass
 class LodSubset:
     """What one camera draws at one level of detail (:func:`lod_subset`), without rasterising.
 
     Attributes:
         indices: [k] int64 indices into the model, ascending.
-        means: [k, 3], quats: [k, 4] (wxyz), scales: [k, 3] (activated, world units),
-        opacities: [k] (the opacities the rasteriser is given, after the LoD rule),
-        colors: [k, K, 3] SH coefficients (gsplat ``colors`` layout): the drawn attributes.
+        means: [k, 3], quats: [k, 4] (wxyz), scales: [k, 3] (activated, world units, at the
+        level), opacities: [k] (the opacities the rasteriser is given, after the LoD rule),
+        colors: [k, K, 3] SH coefficients (gsplat ``colors`` layout, at the level): the drawn
+            attributes.
         s_v: the virtual distance scale used (solved in budget mode; None without LoD).
         n_in_view: Gaussians in view (the population budgets and fractions refer to).
     """
@@ -99,8 +160,8 @@ class LodSubset:
 
 @torch.no_grad()
 def lod_subset(gaussians: Gaussians, camera, s_v: Optional[float] = None, *,
-               budget: Optional[float | int] = None, tau: float = lod.DEFAULT_TAU,
-               eps: float = lod.DEFAULT_EPS, min_s_v: float = 1.0) -> LodSubset:
+               budget: Optional[float | int] = None, tau: Optional[float] = None,
+               eps: Optional[float] = None, min_s_v: float = 1.0) -> LodSubset:
     """The Gaussians :func:`render_lod` hands to the rasteriser for ``camera`` and their drawn
     attributes (same arguments; no gradient). For viewers and exporters that rasterise
     elsewhere. Neither ``s_v`` nor ``budget``: every Gaussian in view, unchanged.
@@ -113,26 +174,13 @@ def lod_subset(gaussians: Gaussians, camera, s_v: Optional[float] = None, *,
     viewmat = camera.viewmat.to(dev, means.dtype)
     K = camera.K.to(dev, means.dtype)
     w, h = int(camera.width), int(camera.height)
-    visible = in_view(gaussians, viewmat, K, w, h)
-    opac = gaussians.opacities
-    if budget is not None and s_v is not None:
-        raise ValueError("lod_subset: give s_v or budget, not both")
-    if s_v is None and budget is None:
-        mask, used, opac_used = visible, None, opac
-    else:
-        if gaussians.sigma_d is None:
-            raise ValueError("lod_subset: s_v/budget given but the model has no sigma_d")
-        if s_v is not None and not s_v >= 1.0:
-            raise ValueError(f"lod_subset: s_v must be >= 1, got {s_v}")
-        frustum = lod.in_frustum(means, viewmat, K, w, h)
-        d_norm = lod.normalized_distances(means, lod.camera_center(viewmat), frustum)
-        mask, used = select_lod(opac, d_norm, gaussians.sigma_d, visible, s_v=s_v, budget=budget,
-                                tau=tau, eps=eps, min_s_v=min_s_v)
-        opac_used = lod.lod_opacities(opac, d_norm, gaussians.sigma_d, used, eps)
-    idx = torch.nonzero(mask, as_tuple=False).squeeze(1)
-    return LodSubset(indices=idx, means=means[idx], quats=gaussians.quats[idx],
-                     scales=gaussians.scales[idx], opacities=opac_used[idx],
-                     colors=gaussians.colors[idx], s_v=used, n_in_view=int(visible.sum()))
+    dr = _draw(gaussians, viewmat, K, w, h, s_v, budget, _settings(gaussians, tau, eps), min_s_v,
+               "paper", 1.0, True)
+    idx = torch.nonzero(dr.mask, as_tuple=False).squeeze(1)
+    m = dr.model
+    return LodSubset(indices=idx, means=m.means[idx], quats=m.quats[idx], scales=m.scales[idx],
+                     opacities=dr.opacities[idx], colors=m.colors[idx], s_v=dr.s_v,
+                     n_in_view=int(dr.visible.sum()))
 
 
 @dataclass
@@ -172,8 +220,8 @@ def render_lod(
     camera,
     s_v: Optional[float] = None,
     *,
-    tau: float = lod.DEFAULT_TAU,
-    eps: float = lod.DEFAULT_EPS,
+    tau: Optional[float] = None,
+    eps: Optional[float] = None,
     estimator: str = "ste",
     temperature: float = 1.0,
     background: Optional[Sequence[float] | Tensor] = None,
@@ -183,16 +231,24 @@ def render_lod(
     eta_grad_sigma_only: bool = True,
     budget: Optional[float | int] = None,
     min_s_v: float = 1.0,
+    budget_in_view: bool = False,
+    level: Optional[float] = None,
 ) -> LodRender:
     """Render ``gaussians`` from ``camera`` at virtual distance scale ``s_v``.
+
+    The Gaussians in view that pass the mask ``alpha'' > tau s_v`` (CLoD-GS Eq. 2) are handed to
+    the rasteriser, drawn as the model's :class:`clod_adapter.lod.LodSettings` say: ``"eq2"``
+    with Eq. 2's ``alpha''`` (the paper), ``"window"`` with the attributes at the level
+    (:meth:`Gaussians.at_level`) and only the Gaussians about to leave faded
+    (:func:`clod_adapter.lod.fade_weight`). A model without settings is drawn as the paper does.
 
     Args:
         gaussians: the model (N Gaussians). ``sigma_d`` is required when ``s_v`` is given.
         camera: any object with ``viewmat`` [4, 4] (world-to-camera), ``K`` [3, 3] (pixels),
             ``width``, ``height`` (e.g. :class:`clod_adapter.io.scene.Camera`).
         s_v: virtual distance scale >= 1, or None for the plain model (no LoD, every Gaussian).
-        tau: LoD threshold (mask ``alpha'' > tau s_v``).
-        eps: Eq. 2's epsilon.
+        tau: LoD threshold (mask ``alpha'' > tau s_v``); default the model's (0.005).
+        eps: Eq. 2's epsilon; default the model's (1e-8).
         estimator, temperature: gradient of ``eta`` (see :func:`clod_adapter.lod.rendered_fraction`).
         background: [3] colour behind the scene (default black, as 3DGS on LLFF).
         sh_degree: SH degree to evaluate (default: the model's).
@@ -206,6 +262,11 @@ def render_lod(
         eta_grad_sigma_only: ``eta``'s gradient reaches ``sigma_d`` only (opacities and positions
             detached in its margin), so the count regulariser cuts Gaussians through their decay
             instead of eroding their opacity at every level of detail.
+        budget_in_view: a fractional ``budget`` is a share of the Gaussians in view (the
+            calibrated schedule's training), not of the model.
+        level: window fade only: draw the level gains at this level in [0, 1] instead of
+            :func:`clod_adapter.lod.level` of the ``s_v`` used (training draws ``s_v`` and
+            renders its exact budget).
 
     Returns:
         :class:`LodRender`.
@@ -220,47 +281,23 @@ def render_lod(
     K = camera.K.to(dev, means.dtype)
     w, h = int(camera.width), int(camera.height)
     t0 = time.perf_counter()
-    frustum = lod.in_frustum(means, viewmat, K, w, h)
-    visible = in_view(gaussians, viewmat, K, w, h)
-    opac = gaussians.opacities
-    if budget is not None and s_v is not None:
-        raise ValueError("render_lod: give s_v or budget, not both")
-    if (s_v is not None or budget is not None) and gaussians.sigma_d is None:
-        raise ValueError("render_lod: s_v/budget given but the model has no sigma_d")
-    if s_v is None and budget is None:
-        mask = visible
-        eta = torch.ones((), dtype=means.dtype, device=dev)
-        opac_used = opac
-    else:
-        if s_v is not None and not s_v >= 1.0:
-            raise ValueError(f"render_lod: s_v must be >= 1, got {s_v}")
-        d_norm = lod.normalized_distances(means, lod.camera_center(viewmat), frustum)
-        # The mask covers every Gaussian in view: one whose centre lies just outside the image
-        # can still cover pixels. The frustum only defines d''s normaliser and eta's population.
-        mask, s_v = select_lod(opac.detach(), d_norm.detach(), gaussians.sigma_d.detach(), visible,
-                               s_v=s_v, budget=budget, tau=tau, eps=eps, min_s_v=min_s_v)
-        if budget is not None:
-            eta = mask[frustum].float().mean() if bool(frustum.any()) else torch.zeros(())
-        else:
-            sd = gaussians.sigma_d
-            m_eta = (lod.lod_margin(opac.detach(), d_norm.detach(), sd, s_v, tau, eps) if eta_grad_sigma_only
-                     else lod.lod_margin(opac, d_norm, sd, s_v, tau, eps))
-            eta = lod.rendered_fraction(m_eta, frustum, estimator, temperature)
-        opac_used = lod.lod_opacities(opac, d_norm, gaussians.sigma_d, s_v, eps)
-    idx = torch.nonzero(mask, as_tuple=False).squeeze(1)
+    dr = _draw(gaussians, viewmat, K, w, h, s_v, budget, _settings(gaussians, tau, eps), min_s_v,
+               estimator, temperature, eta_grad_sigma_only, budget_in_view, level)
+    idx = torch.nonzero(dr.mask, as_tuple=False).squeeze(1)
     t1 = time.perf_counter()
     bg = None
     if background is not None:
         bg = torch.as_tensor(background, dtype=means.dtype, device=dev).reshape(1, 3)
+    m = dr.model
     colors, alphas, meta = rasterization(
-        means[idx], gaussians.quats[idx], gaussians.scales[idx], opac_used[idx],
-        gaussians.colors[idx], viewmat[None], K[None], w, h,
+        m.means[idx], m.quats[idx], m.scales[idx], dr.opacities[idx], m.colors[idx],
+        viewmat[None], K[None], w, h,
         sh_degree=gaussians.sh_degree if sh_degree is None else sh_degree,
         backgrounds=bg, backend=backend, impl=impl,
     )
     t2 = time.perf_counter()
     return LodRender(
-        image=colors[0], alpha=alphas[0], mask=mask, n_rendered=int(idx.numel()),
-        n_frustum=int(frustum.sum()), eta=eta, s_v=s_v, select_ms=(t1 - t0) * 1e3,
+        image=colors[0], alpha=alphas[0], mask=dr.mask, n_rendered=int(idx.numel()),
+        n_frustum=int(dr.frustum.sum()), eta=dr.eta, s_v=dr.s_v, select_ms=(t1 - t0) * 1e3,
         raster_ms=(t2 - t1) * 1e3, meta=meta,
     )

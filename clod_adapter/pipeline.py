@@ -4,8 +4,9 @@ Outputs (all written atomically) in ``out_dir``:
 
 * ``point_cloud.ply``: the extended INRIA .ply (the input layout plus a float ``sigma_d``);
 * ``adapt_state.safetensors``: parameters, Adam moments, RNG and view order (resumable);
-* ``metrics.json``: test views at s_v = 1, 2, ..., max_sv (PSNR, SSIM, mean rendered Gaussians,
-  ms per frame) and the input model's PSNR/SSIM;
+* ``metrics.json``: test views at s_v = 1, 2, ..., max_sv and at the budgets 100 / 50 / 25 / 10 %
+  and max_sv^-1.5 of the model (PSNR, SSIM, mean rendered Gaussians, ms per frame) and the input
+  model's PSNR/SSIM;
 * ``lod_strip.png``: one test view rendered at several s_v, side by side.
 """
 from __future__ import annotations
@@ -194,6 +195,16 @@ def check_finite(gaussians, ply_path: Path, sanitize: bool = False, log=print):
     log(f"clod-adapt: --sanitize: dropped {info['dropped']:,} of {n:,} Gaussians with NaN/Inf values; "
         f"set {info['opacity_clamped']:,} +Inf opacity logits to {SANITIZE_OPACITY_LOGIT:.2f} (opacity 1 - 1e-7)")
     return gaussians, info
+
+
+def budget_levels(max_sv: float) -> list[float]:
+    """Fractions evaluated by the job: 1, 0.5, 0.25, 0.1 down to ``max_sv^-1.5`` (the coarsest
+    trained level), plus ``max_sv^-1.5`` itself."""
+    low = max_sv ** -1.5
+    out = [b for b in (1.0, 0.5, 0.25, 0.1) if b >= low - 1e-12]
+    if all(abs(b - low) > 1e-9 for b in out):
+        out.append(float(low))
+    return out
 
 
 def sv_levels(max_sv: float) -> list[float]:
@@ -455,6 +466,8 @@ def _run(ply_path, scene_root, out_dir, cfg: AdaptConfig, *, stop: StopFlag, res
     stop.set_abortable(True)  # the evaluation writes nothing; raises if a signal came meanwhile
     evals = evaluate_levels(model, test_cams, test_imgs, levels, tau=cfg.tau, background=bg,
                             backend=backend)
+    budget_evals = [evaluate_level(model, test_cams, test_imgs, None, tau=cfg.tau, background=bg,
+                                   backend=backend, budget=float(b)) for b in budget_levels(cfg.max_sv)]
     stop.set_abortable(False)
     metrics = {
         "version": __version__,
@@ -474,6 +487,7 @@ def _run(ply_path, scene_root, out_dir, cfg: AdaptConfig, *, stop: StopFlag, res
         "init_s_v1": init_s_v1,
         "deterministic": bool(deterministic_enabled()),
         "levels": [m.to_dict() for m in evals],
+        "budgets": [m.to_dict() for m in budget_evals],
         "dead_sigma_d": int((model.sigma_d <= 0).sum()),
     }
     if stop.stop:  # a signal just after the evaluation: nothing written yet, stop here
@@ -502,5 +516,8 @@ def format_summary(metrics: dict) -> str:
              f"{100 * im['gaussians'] / n:6.1f} {im['ms_per_frame']:9.1f}"]
     for lv in metrics["levels"]:
         lines.append(f"{'s_v=' + format(lv['s_v'], 'g'):>10} {lv['psnr']:7.2f} {lv['ssim']:7.4f} "
+                     f"{lv['gaussians']:10.0f} {100 * lv['fraction']:6.1f} {lv['ms_per_frame']:9.1f}")
+    for lv in metrics.get("budgets", []):
+        lines.append(f"{'b=' + format(100 * lv['budget'], '.3g') + '%':>10} {lv['psnr']:7.2f} {lv['ssim']:7.4f} "
                      f"{lv['gaussians']:10.0f} {100 * lv['fraction']:6.1f} {lv['ms_per_frame']:9.1f}")
     return "\n".join(lines)

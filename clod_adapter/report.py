@@ -7,6 +7,12 @@
   (:mod:`clod_adapter.budget`);
 * ``constant_sigma``, ``lightgaussian``, ``random``: baselines from the pretrained model at the
   *same per-view Gaussian counts* as ``clod_budget`` (:mod:`clod_adapter.baselines`);
+* ``merge`` (when splat-transform is available): the pretrained model simplified to the budget's
+  share of the model by the merging decimator viewers ship (:func:`clod_adapter.baselines.merge_decimate`),
+  every Gaussian in view drawn;
+* ``dlod_finetuned`` (``dlod_iterations > 0``): the per-budget ceiling, one model per level: the
+  pretrained model cut to the budget by the best static ranking of this report, fine-tuned on the
+  training views (:mod:`clod_adapter.dlod`); its storage is the sum of the levels;
 * ``pretrained``: the pretrained model in full (reference);
 
 scores each render (PSNR, SSIM in the 3DGS form, LPIPS-alex when weights exist), times it
@@ -22,7 +28,7 @@ CSV columns (fixed order; empty cell = not applicable / unavailable):
 
 =========== ====================================================================================
 method      ``clod`` | ``clod_budget`` | ``constant_sigma`` | ``lightgaussian`` | ``random`` |
-            ``pretrained``
+            ``merge`` | ``dlod_finetuned`` | ``pretrained``
 setting     ``s_v=<x>``, ``budget=<b>`` (b <= 1: fraction of the model; integer > 1: count) or
             ``full``
 s_v         virtual distance scale (mean over views of the solved one in budget modes)
@@ -72,7 +78,9 @@ CSV_COLUMNS = ("method", "setting", "s_v", "budget", "gaussians", "fraction", "p
 PER_VIEW_COLUMNS = ("method", "setting", "view", "s_v", "budget", "gaussians", "fraction", "psnr", "ssim",
                     "lpips", "ms_total", "ms_select", "ms_raster", "bytes")
 BASELINES = ("constant_sigma", "lightgaussian", "random")
-METHODS = ("clod", "clod_budget") + BASELINES + ("pretrained",)
+#: baselines that are global rankings (the candidates of dlod_finetuned's cut).
+RANKING_BASELINES = ("constant_sigma", "lightgaussian", "random")
+METHODS = ("clod", "clod_budget") + BASELINES + ("merge", "dlod_finetuned", "pretrained")
 OUTPUT_NAMES = ("report.csv", "report_per_view.csv", "report.json", "quality_vs_gaussians.png",
                 "quality_vs_time.png", "popping.png", "lod_strip.png")
 DEFAULT_BUDGETS = (1.0, 0.5, 0.25, 0.1)
@@ -100,9 +108,9 @@ def sv_grid(max_sv: float, steps: int = 25, overshoot: float = 1.2) -> list[floa
     return [float(x) for x in np.linspace(1.0, top, steps)]
 
 
-def max_sv_from_state(ply_path: os.PathLike) -> Optional[float]:
-    """``max_sv`` from ``adapt_state.safetensors`` beside ``ply_path`` (its ``config``
-    metadata, written by :func:`clod_adapter.adapt.save_state`), or None if absent/unreadable."""
+def _state_config(ply_path: os.PathLike) -> Optional[dict]:
+    """The ``config`` metadata of ``adapt_state.safetensors`` beside ``ply_path`` (written by
+    :func:`clod_adapter.adapt.save_state`), or None if absent/unreadable."""
     p = Path(ply_path).parent / STATE_NAME
     if not p.is_file():
         return None
@@ -111,8 +119,26 @@ def max_sv_from_state(ply_path: os.PathLike) -> Optional[float]:
 
         with safe_open(str(p), framework="pt", device="cpu") as f:
             meta = f.metadata() or {}
-        return float(json.loads(meta["config"])["max_sv"])
+        return json.loads(meta["config"])
     except Exception:
+        return None
+
+
+def max_sv_from_state(ply_path: os.PathLike) -> Optional[float]:
+    """``max_sv`` of the adaptation state beside ``ply_path``, or None."""
+    cfg = _state_config(ply_path)
+    try:
+        return float(cfg["max_sv"]) if cfg else None
+    except (KeyError, TypeError, ValueError):
+        return None
+
+
+def iterations_from_state(ply_path: os.PathLike) -> Optional[int]:
+    """``iterations`` of the adaptation state beside ``ply_path``, or None."""
+    cfg = _state_config(ply_path)
+    try:
+        return int(cfg["iterations"]) if cfg else None
+    except (KeyError, TypeError, ValueError):
         return None
 
 
@@ -228,7 +254,7 @@ def _score(rows: _Rows, method: str, setting: str, budget, samples: list[Sample]
 @torch.no_grad()
 def popping_curve(gaussians: Gaussians, camera, s_vs: Sequence[float], *,
                   discrete_model: Optional[Gaussians] = None, discrete_scores: Optional[Tensor] = None,
-                  switch_s_v: Optional[float] = None, tau: float = lod.DEFAULT_TAU, background=None,
+                  switch_s_v: Optional[float] = None, tau: Optional[float] = None, background=None,
                   backend: str = "auto", on_render: Optional[Callable[[], None]] = None) -> dict:
     """Popping of continuous LoD vs a discrete LoD switch, from one fixed camera.
 
@@ -313,10 +339,12 @@ def _save_fig(fig, path: Path) -> None:
 
 
 _STYLE = {"clod": ("C0", "-", "."), "clod_budget": ("C0", "", "o"), "constant_sigma": ("C1", "--", "s"),
-          "lightgaussian": ("C2", "--", "^"), "random": ("C3", ":", "x"), "pretrained": ("k", "", "*")}
+          "lightgaussian": ("C2", "--", "^"), "random": ("C3", ":", "x"), "merge": ("C4", "--", "D"),
+          "dlod_finetuned": ("C5", "-.", "P"), "pretrained": ("k", "", "*")}
 
 
-def _plot_quality(rows: list[dict], x: str, xlabel: str, path: Path, extra=None) -> None:
+def _plot_quality(rows: list[dict], x: str, xlabel: str, path: Path, extra=None,
+                  mark: Optional[tuple] = None) -> None:
     import matplotlib
 
     matplotlib.use("Agg")
@@ -333,6 +361,10 @@ def _plot_quality(rows: list[dict], x: str, xlabel: str, path: Path, extra=None)
             c, ls, mk = _STYLE[method]
             ax.plot([r[x] for r in rs], [r[m] for r in rs], color=c, linestyle=ls or "none", marker=mk,
                     label=method, ms=6 if method != "pretrained" else 11)
+        if mark is not None:
+            ax.axvline(mark[0], color="0.4", linestyle=":", linewidth=1)
+            ax.annotate(mark[1], (mark[0], 0.02), xycoords=("data", "axes fraction"), fontsize=7,
+                        color="0.3", rotation=90, ha="right", va="bottom")
         ax.set_xlabel(xlabel)
         ax.set_ylabel({"psnr": "PSNR (dB)", "ssim": "SSIM", "lpips": "LPIPS-alex (lower is better)"}[m])
         ax.grid(alpha=0.3)
@@ -395,7 +427,8 @@ def format_markdown(report: dict) -> str:
     rows = report["rows"]
     fmt = lambda v, f: "-" if v is None or (isinstance(v, float) and v != v) else format(v, f)  # noqa: E731
     budgets = [r["setting"] for r in rows if r["method"] == "clod_budget"]
-    methods = [m for m in ("clod_budget",) + BASELINES if any(r["method"] == m for r in rows)]
+    methods = [m for m in ("clod_budget",) + BASELINES + ("merge", "dlod_finetuned")
+               if any(r["method"] == m for r in rows)]
     out = [f"{report['num_gaussians']['adapted']:,} Gaussians; views: {', '.join(report['views'])} "
            f"at {report['image_size'][0]}x{report['image_size'][1]}; {report['device']}, "
            f"{report['threads']} threads; constant-sigma c = {report['settings']['sigma_c']:g} "
@@ -423,6 +456,14 @@ def format_markdown(report: dict) -> str:
                        f"{fmt(r['psnr'], '.2f')} | {fmt(r['ssim'], '.4f')} | {fmt(r['lpips'], '.4f')} | "
                        f"{fmt(r['ms_total'], '.1f')} | {fmt(r['ms_select'], '.1f')} | "
                        f"{fmt(r['ms_raster'], '.1f')} | {r['bytes'] / 1e6:.2f} |")
+    st = report.get("storage")
+    if st:
+        out += ["", "Storage (MB): " + ", ".join(f"{k[:-6].replace('_', ' ')} {v / 1e6:.2f}" for k, v in st.items()
+                                               if k.endswith("_bytes")) + "."]
+        if st.get("dlod_levels"):
+            out.append("dlod_finetuned: the full model plus one fine-tuned level per budget ("
+                       + ", ".join(f"{k}: {v:,} Gaussians, cut by {st['dlod_ranking'][k]}" for k, v in st["dlod_levels"].items())
+                       + f"; {st['dlod_iterations']} steps each).")
     pop = report["popping"]
     out += ["", f"Popping (camera {pop['camera']}, mean |dI| per step): continuous max "
             f"{pop['continuous_max']:.3g}, median {pop['continuous_median']:.3g}; discrete switch "
@@ -469,11 +510,13 @@ def evaluate_report(
     sigma_c: Optional[float] = None,
     pretrained_label: Optional[str] = None,
     seed: int = 0,
-    tau: float = lod.DEFAULT_TAU,
+    tau: Optional[float] = None,
     background=(0.0, 0.0, 0.0),
     device: Union[str, torch.device] = "cpu",
     progress: bool = True,
     log: Callable[[str], None] = print,
+    dlod_iterations: int = 0,
+    merge_tool: Optional[str] = None,
 ) -> dict:
     """Evaluate an adapted CLoD model against baselines and write the report to ``out_dir``.
 
@@ -493,8 +536,14 @@ def evaluate_report(
         sigma_c: the constant decay of the constant-sigma baseline (default: the
             best on training views, :func:`clod_adapter.baselines.tune_sigma_c`).
         seed: seed of the random baseline.
-        tau: the LoD threshold.
+        tau: the LoD threshold (default: the adapted model's).
         background: [3] RGB behind the scene.
+        dlod_iterations: > 0 adds ``dlod_finetuned``: for each budget below 1, the pretrained
+            model cut by the best static ranking of this report (highest mean PSNR at that
+            budget among :data:`RANKING_BASELINES`, global top share of the model) and
+            fine-tuned for this many steps (:func:`clod_adapter.dlod.finetune_subset`).
+        merge_tool: a splat-transform executable: adds ``merge``
+            (:func:`clod_adapter.baselines.merge_decimate`); None skips it.
         device: where to render (CUDA renders with gsplat).
         progress: show a tqdm bar.
         log: where the final text table goes (None: nowhere).
@@ -538,14 +587,15 @@ def evaluate_report(
     cams = list(scene.test) or list(scene.train[:1])
     train_cams = list(scene.train) or cams
     gts = [scene.load_image(c).to(dev) for c in cams]
+    train_gts = [scene.load_image(c).to(dev) for c in train_cams] if (sigma_c is None or dlod_iterations > 0) else []
     if sigma_c is None:
-        sigma_c = tune_sigma_c(base, train_cams, [scene.load_image(c).to(dev) for c in train_cams],
-                               background=list(background), backend=backend)
+        sigma_c = tune_sigma_c(base, train_cams, train_gts, background=list(background), backend=backend)
         sigma_c_rule = "best training-view PSNR at 50 % over " + ", ".join(f"{c:g}" for c in SIGMA_C_CANDIDATES)
     bg = list(background)
     pop_svs = [float(x) for x in np.linspace(1.0, s_vs[-1], popping_steps)]
     strip_svs = sv_levels(max_sv)
-    n_renders = len(cams) * (len(s_vs) + 1 + len(budgets) * (1 + len(BASELINES))) + popping_steps + 2
+    extra = len(BASELINES) + (1 if merge_tool else 0) + (1 if dlod_iterations > 0 else 0)
+    n_renders = len(cams) * (len(s_vs) + 1 + len(budgets) * (1 + extra)) + popping_steps + 2
     bar = tqdm(total=n_renders, desc="clod-eval", unit="render", disable=not progress, leave=False)
     tick = lambda: bar.update(1)  # noqa: E731
     R = _Rows()
@@ -572,6 +622,15 @@ def evaluate_report(
     lg_scores = lightgaussian_significance(base, train_cams)
     rnd_scores = random_scores(nb, seed, dev)
     t_sig = time.perf_counter() - t_sig
+    tau_b = lod.DEFAULT_TAU if tau is None else tau
+    global_scores = {"lightgaussian": lg_scores, "random": rnd_scores}
+    if dlod_iterations > 0:
+        from .adapt import reference_distances
+        from .budget import critical_s_v
+
+        d_ref = reference_distances(base, train_cams)
+        global_scores["constant_sigma"] = critical_s_v(base.opacities, d_ref, torch.full_like(d_ref, sigma_c), tau_b).float()
+    dlod_levels, dlod_choice, merge_sizes = {}, {}, {}
     for b in budgets:
         lab = budget_label(b)
         bar.set_postfix_str(lab)
@@ -579,7 +638,7 @@ def evaluate_report(
         _score(R, "clod_budget", lab, b, clod_s, cams, gts, na, bpg_a, lpips_fn)
         ks = [s.n for s in clod_s]  # the baselines render the same per-view counts
         sel_fns = {
-            "constant_sigma": lambda c, k: constant_sigma_selection(base, c, k, sigma_c, tau=tau),
+            "constant_sigma": lambda c, k: constant_sigma_selection(base, c, k, sigma_c, tau=tau_b),
             "lightgaussian": lambda c, k: ranking_selection(base, c, lg_scores, k),
             "random": lambda c, k: ranking_selection(base, c, rnd_scores, k),
         }
@@ -589,6 +648,32 @@ def evaluate_report(
                 samples.append(_render_selection(base, cam, sel_fns[name](cam, k), bg, backend))
                 tick()
             _score(R, name, lab, b, samples, cams, gts, nb, bpg_b, lpips_fn)
+        share = (b if isinstance(b, float) else b / max(nb, 1))
+        if merge_tool and share < 1.0:
+            from .baselines import merge_decimate
+
+            bar.set_postfix_str(f"{lab} merge")
+            try:
+                merged = merge_decimate(base, max(1, int(round(share * nb))), tool=merge_tool).to(dev)
+            except RuntimeError as e:
+                notes.append(f"merge at {lab} skipped: {e}")
+                merged = None
+            if merged is not None:
+                merge_sizes[lab] = len(merged)
+                _score(R, "merge", lab, b, run(lambda c: _render_lod(merged, c, bg, backend, tau)),
+                       cams, gts, nb, bpg_b, lpips_fn)
+        if dlod_iterations > 0 and share < 1.0:
+            from .dlod import finetune_subset, global_cut
+
+            cands = [r for r in R.rows if r["setting"] == lab and r["method"] in RANKING_BASELINES]
+            best = max(cands, key=lambda r: r["psnr"])["method"]
+            keep = global_cut(global_scores[best].to(dev), share)
+            bar.set_postfix_str(f"{lab} dlod ({best}, {dlod_iterations} steps)")
+            level = finetune_subset(base.subset(keep), train_cams, train_gts, iterations=dlod_iterations,
+                                    seed=seed, background=bg, backend=backend)
+            dlod_levels[lab], dlod_choice[lab] = len(level), best
+            _score(R, "dlod_finetuned", lab, b, run(lambda c: _render_lod(level, c, bg, backend, tau)),
+                   cams, gts, nb, bpg_b, lpips_fn)
     bar.set_postfix_str("popping")
     pop = popping_curve(adapted, cams[0], pop_svs, discrete_model=base, discrete_scores=lg_scores, tau=tau,
                         background=bg, backend=backend, on_render=tick)
@@ -607,6 +692,11 @@ def evaluate_report(
         "views": [c.name for c in cams], "image_size": [cams[0].width, cams[0].height],
         "num_gaussians": {"adapted": na, "pretrained": nb},
         "bytes_per_gaussian": {"adapted": bpg_a, "pretrained": bpg_b},
+        "storage": {"adapted_bytes": na * bpg_a, "pretrained_bytes": nb * bpg_b,
+                    **({"dlod_bytes": (nb + sum(dlod_levels.values())) * bpg_b,
+                        "dlod_levels": dlod_levels, "dlod_ranking": dlod_choice,
+                        "dlod_iterations": dlod_iterations} if dlod_levels else {}),
+                    **({"merge_sizes": merge_sizes} if merge_sizes else {})},
         "settings": {"max_sv": max_sv, "s_vs": s_vs, "budgets": budgets, "sigma_c": sigma_c,
                      "sigma_c_rule": sigma_c_rule, "seed": seed, "tau": tau,
                      "background": bg, "popping_steps": popping_steps,
@@ -625,7 +715,8 @@ def evaluate_report(
         f.write(_csv_text(R.rows, CSV_COLUMNS))
     with atomic_write(out_dir / "report_per_view.csv", "w", newline="") as f:
         f.write(_csv_text(R.per_view, PER_VIEW_COLUMNS))
-    _plot_quality(R.rows, "gaussians", "mean Gaussians rendered per view", out_dir / "quality_vs_gaussians.png")
+    _plot_quality(R.rows, "gaussians", "mean Gaussians rendered per view", out_dir / "quality_vs_gaussians.png",
+                  mark=(na * max_sv ** -1.5, f"max_sv^-1.5 = {100 * max_sv ** -1.5:.1f} %"))
     _plot_quality(R.rows, "ms_total", "median ms per frame", out_dir / "quality_vs_time.png",
                   extra=_plot_time_curve(R.rows))
     _plot_popping(pop, out_dir / "popping.png")

@@ -28,7 +28,7 @@ def test_lreg_acts_with_ste_and_not_with_paper(tiny):
     model, cams, imgs = tiny
     fractions = {}
     for est in ("ste", "paper"):
-        cfg = AdaptConfig(max_sv=5.0, iterations=60, other_lr_scale=0.0, eta_estimator=est, lambda_reg=1.0,
+        cfg = AdaptConfig(max_sv=5.0, iterations=60, schedule="paper", other_lr_scale=0.0, eta_estimator=est, lambda_reg=1.0,
                           init_attenuation=0.9, seed=0)
         st = prepare(model, cams, cfg)
         f0 = _fraction(st.gaussians().detach(), cams, 5.0)

@@ -198,8 +198,13 @@ def test_cli_runs(tiny, tmp_path, capsys):
     r = tiny["root"]
     code = main([str(r / "ad" / "point_cloud.ply"), "--images", str(r / "scene"), "--pretrained",
                  str(r / "pre.ply"), "--budgets", "1,0.25", "--sv-steps", "3", "--popping-steps", "3",
-                 "--max-sv", "2", "--no-lpips", "--quiet", "-o", str(out)])
+                 "--max-sv", "2", "--no-lpips", "--quiet", "--no-merge", "--dlod-iterations", "3",
+                 "-o", str(out)])
     assert code == 0, capsys.readouterr().err
     _, rows = _read_csv(out / "report.csv")
-    assert len(rows) == 1 + 3 + 2 * 4
+    assert len(rows) == 1 + 3 + 2 * 4 + 1  # + dlod_finetuned at 25 % (none at 100 %: that is the input)
+    dl = [r for r in rows if r["method"] == "dlod_finetuned"]
+    assert [r["setting"] for r in dl] == ["budget=0.25"]
+    js = json.loads((out / "report.json").read_text())
+    assert js["storage"]["dlod_bytes"] > js["storage"]["pretrained_bytes"]
     assert "popping" in capsys.readouterr().out

@@ -9,7 +9,11 @@ Layout (graphdeco-inria/gaussian-splatting, ``scene/gaussian_model.py`` ``save_p
 channel c (the official code saves ``features_rest.transpose(1, 2).flatten(1)``), ``opacity`` is
 the logit, ``scale_*`` the log of the standard deviations, ``rot_*`` the quaternion w, x, y, z
 (unnormalised). The extended file of this project appends one float property ``sigma_d``
-(CLoD-GS distance decay, Cheng et al., ICLR 2026, Eq. 2).
+(CLoD-GS distance decay, Cheng et al., ICLR 2026, Eq. 2), and, when the model has them, the
+level gains ``opacity_gain``, ``scale_gain``, ``f_dc_gain_0..2`` (only those present; see
+:class:`clod_adapter.gaussians.Gaussians`). The LoD settings travel as one header comment
+``clod_lod max_sv=5 tau=0.005 eps=1e-08 fade=window fade_width=0.5``; viewers that do not know
+them ignore both.
 
 Reading selects the properties by name (order and extra properties do not matter; ASCII and
 big-endian files are read as plyfile parses them); writing always produces the exact INRIA
@@ -28,12 +32,47 @@ from numpy.lib import recfunctions as rfn
 
 from clod_adapter.gaussians import Gaussians
 from clod_adapter.io.atomic import atomic_write
+from clod_adapter.lod import LodSettings
 
 __all__ = ["PlyFormatError", "read_ply", "write_ply", "ply_property_names"]
 
 PathLike = Union[str, "os.PathLike[str]"]
 
 _F_REST_COUNTS = {0: 0, 9: 1, 24: 2, 45: 3}  # number of f_rest properties -> SH degree
+#: .ply properties of the level gains, by Gaussians field.
+GAIN_PROPERTIES = {"opacity_logit_gain": ["opacity_gain"], "log_scale_gain": ["scale_gain"],
+                   "sh0_gain": ["f_dc_gain_0", "f_dc_gain_1", "f_dc_gain_2"]}
+LOD_COMMENT = "clod_lod"
+
+
+def lod_comment(settings: LodSettings) -> str:
+    """The header comment that stores ``settings`` (``clod_lod key=value ...``)."""
+    return LOD_COMMENT + " " + " ".join(f"{k}={v!r}" if isinstance(v, float) else f"{k}={v}"
+                                        for k, v in settings.to_dict().items())
+
+
+def parse_lod_comment(comments, path: PathLike = "<ply>") -> "LodSettings | None":
+    """The :class:`LodSettings` of a ``clod_lod`` header comment, or None when there is none.
+
+    Raises:
+        PlyFormatError: the comment is malformed or holds invalid values.
+    """
+    for c in comments:
+        tok = c.split()
+        if not tok or tok[0] != LOD_COMMENT:
+            continue
+        kw = {}
+        try:
+            for item in tok[1:]:
+                k, v = item.split("=", 1)
+                if k in ("max_sv", "tau", "eps", "fade_width"):
+                    kw[k] = float(v)
+                elif k == "fade":
+                    kw[k] = v
+            return LodSettings(**kw)
+        except (ValueError, TypeError) as e:
+            raise PlyFormatError(path, f"bad '{LOD_COMMENT}' header comment {c!r}: {e}") from None
+    return None
 
 
 class PlyFormatError(ValueError):
@@ -134,7 +173,11 @@ def read_ply(path: PathLike, *, allow_nonfinite: bool = False) -> Gaussians:
         )
     degree = _F_REST_COUNTS[n_rest]
     with_sigma_d = "sigma_d" in scalar_fields
+    gains_present = {k: v for k, v in GAIN_PROPERTIES.items() if v[0] in scalar_fields}
     wanted = ply_property_names(degree, with_normals=False, with_sigma_d=with_sigma_d)
+    for props in gains_present.values():
+        wanted += props
+    lod_settings = parse_lod_comment(getattr(ply, "comments", []), path)
     missing = [f for f in wanted if f not in scalar_fields]
     if missing:
         shown = ", ".join(missing[:8]) + (", ..." if len(missing) > 8 else "")
@@ -167,6 +210,12 @@ def read_ply(path: PathLike, *, allow_nonfinite: bool = False) -> Gaussians:
     log_scales = own(block("scale_0", 3))
     quats = own(block("rot_0", 4))
     sigma_d = own(block("sigma_d", 1)).reshape(n) if with_sigma_d else None
+    gains = {k: own(block(v[0], len(v))) for k, v in gains_present.items()}
+    if "sh0_gain" in gains:
+        gains["sh0_gain"] = gains["sh0_gain"].reshape(n, 1, 3)
+    for k in ("opacity_logit_gain", "log_scale_gain"):
+        if k in gains:
+            gains[k] = gains[k].reshape(n)
     del src
 
     if not allow_nonfinite:
@@ -174,6 +223,7 @@ def read_ply(path: PathLike, *, allow_nonfinite: bool = False) -> Gaussians:
                  "log_scales (scale_*)": log_scales, "quats (rot_*)": quats}
         if sigma_d is not None:
             named["sigma_d"] = sigma_d
+        named.update({f"{k} ({GAIN_PROPERTIES[k][0]})": v for k, v in gains.items()})
         bad = {k: a for k, a in named.items() if not np.isfinite(a).all()}
         if bad:
             counts = {"NaN": 0, "+Inf": 0, "-Inf": 0}
@@ -195,6 +245,8 @@ def read_ply(path: PathLike, *, allow_nonfinite: bool = False) -> Gaussians:
         sh0=t(sh0),
         shN=t(shN),
         sigma_d=t(sigma_d) if sigma_d is not None else None,
+        lod=lod_settings if sigma_d is not None else None,
+        **{k: t(v) for k, v in gains.items()},
     )
 
 
@@ -272,7 +324,9 @@ def write_ply(path: PathLike, gaussians: Gaussians, *, with_normals: bool = True
     """Write ``gaussians`` as an INRIA-layout .ply, binary little endian, atomically.
 
     Property order: x y z [nx ny nz] f_dc_0..2 f_rest_0.. opacity scale_0..2 rot_0..3, then
-    ``sigma_d`` when ``gaussians.sigma_d`` is not None (the extended file). Normals are written
+    ``sigma_d`` when ``gaussians.sigma_d`` is not None (the extended file), then the level gains
+    present (``opacity_gain``, ``scale_gain``, ``f_dc_gain_0..2``); ``gaussians.lod`` is written
+    as the ``clod_lod`` header comment. Normals are written
     as zeros (as the official ``save_ply``). ``shN`` [N,K-1,3] is written channel-major
     (``f_rest_{c*(K-1)+k}``). Tensors on any device / dtype are converted to float32 CPU; the
     vertex block is one contiguous structured array, so read -> write -> read is bit-exact.
@@ -293,6 +347,9 @@ def write_ply(path: PathLike, gaussians: Gaussians, *, with_normals: bool = True
     n = g.num_gaussians
     km1 = g.shN.shape[1]
     names = ply_property_names(g.sh_degree, with_normals=with_normals, with_sigma_d=g.sigma_d is not None)
+    gain_fields = [k for k in GAIN_PROPERTIES if getattr(g, k) is not None]
+    for k in gain_fields:
+        names += GAIN_PROPERTIES[k]
     vertex = np.empty(n, dtype=[(name, "<f4") for name in names])
     flat = vertex.view("<f4").reshape(n, len(names))  # a view: filling it fills ``vertex``
 
@@ -315,10 +372,13 @@ def write_ply(path: PathLike, gaussians: Gaussians, *, with_normals: bool = True
     put(_as_f32(g.quats))
     if g.sigma_d is not None:
         put(_as_f32(g.sigma_d).reshape(n, 1))
+    for k in gain_fields:
+        put(_as_f32(getattr(g, k)).reshape(n, len(GAIN_PROPERTIES[k])))
     assert i == len(names)
 
     element = plyfile.PlyElement.describe(vertex, "vertex")
-    ply = plyfile.PlyData([element], text=False, byte_order="<")
+    comments = [lod_comment(g.lod)] if (g.lod is not None and g.sigma_d is not None) else []
+    ply = plyfile.PlyData([element], text=False, byte_order="<", comments=comments)
     with atomic_write(path, "wb") as f:
         ply.write(f)
     return path

@@ -1,0 +1,115 @@
+"""Shared by the quality benchmarks (whole_range.py, max_sv_sweep.py, robustness.py, ablation.py):
+the inputs, one cached adaptation per (input, settings), and budget evaluations.
+
+Inputs (``INPUTS``):
+
+* ``fern``: the vanilla 3DGS fern checkpoint, ``../shared/data/fern`` at ``images_2``;
+* ``maskgaussian``: the MaskGaussian-pruned fern checkpoint (19,383 Gaussians) on the same scene;
+* ``demo``: the embedded synthetic scene of ``clod-adapt --demo`` (another scene, built here).
+
+Adaptations are cached under ``RUNS/<input>/<tag>/`` (the ``clod-adapt`` output folder): a run
+whose ``metrics.json`` holds the same settings is reused, so the benchmarks share them.
+"""
+from __future__ import annotations
+
+import json
+import os
+import sys
+from dataclasses import asdict
+from pathlib import Path
+from typing import Optional
+
+os.environ.setdefault("OMP_NUM_THREADS", "2")
+os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+
+import torch  # noqa: E402
+
+REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO))
+SHARED = REPO.parent / "shared" / "data"
+RUNS = REPO / "runs" / "bench"
+
+from clod_adapter.adapt import AdaptConfig  # noqa: E402
+from clod_adapter.io.load import load_model  # noqa: E402
+from clod_adapter.io.scenes import load_scene  # noqa: E402
+
+FERN = SHARED / "fern"
+INPUTS = {
+    "fern": (FERN / "pretrained/point_cloud/iteration_7000/point_cloud.ply", FERN, 2),
+    "maskgaussian": (FERN / "maskgaussian/point_cloud/iteration_8500/point_cloud.ply", FERN, 2),
+    "demo": (None, None, 1),
+}
+LABELS = {"fern": "fern (vanilla 3DGS, 39,977 G)", "maskgaussian": "fern, MaskGaussian (19,383 G)",
+          "demo": "synthetic demo scene (6,000 G)"}
+
+
+def setup_threads(n: int = 2) -> None:
+    torch.set_num_threads(n)
+
+
+def resolve_input(name: str) -> tuple[Path, Path, int]:
+    """(pretrained .ply, scene folder, resolution) of an input name or ``PLY:SCENE[:RES]``."""
+    if name in INPUTS:
+        ply, scene, res = INPUTS[name]
+        if name == "demo":
+            from clod_adapter.synthetic import build_demo_scene
+
+            root = RUNS / "demo_input"
+            scene, ply = root / "scene", root / "pretrained" / "point_cloud.ply"
+            if not ply.is_file():
+                build_demo_scene(root)
+        if not Path(ply).is_file():
+            sys.exit(f"benchmark: {ply} not found (needs ../shared/data beside the repository)")
+        return Path(ply), Path(scene), res
+    parts = name.split(":")
+    if len(parts) not in (2, 3):
+        sys.exit(f"benchmark: unknown input {name!r} (fern, maskgaussian, demo or PLY:SCENE[:RES])")
+    return Path(parts[0]), Path(parts[1]), int(parts[2]) if len(parts) == 3 else 1
+
+
+def adapt_cached(name: str, cfg: AdaptConfig, tag: str, *, log=print) -> Path:
+    """The adapted .ply of ``name`` with ``cfg``: runs ``clod-adapt``'s job into
+    ``RUNS/name/tag`` unless a run with the same settings is there. Returns the .ply path."""
+    from clod_adapter.pipeline import run
+
+    ply, scene, res = resolve_input(name)
+    out = RUNS / name / tag
+    mj = out / "metrics.json"
+    if mj.is_file():
+        try:
+            have = json.loads(mj.read_text())
+            if have.get("config") == json.loads(json.dumps(asdict(cfg))) and have.get("input_ply") == str(ply):
+                log(f"[{name}/{tag}] reusing {out} ({have.get('train_seconds')} s of training)")
+                return out / "point_cloud.ply"
+        except (OSError, ValueError):
+            pass
+        for p in out.iterdir():  # stale run with other settings
+            if p.is_file():
+                p.unlink()
+    log(f"[{name}/{tag}] adapting {ply.name} ({cfg.schedule}, max_sv {cfg.max_sv:g}, {cfg.iterations} steps) ...")
+    run(ply, scene, out, cfg, resolution=res, progress=False, log=lambda *a: None)
+    return out / "point_cloud.ply"
+
+
+def metrics_of(ply: Path) -> dict:
+    """The ``metrics.json`` of an adaptation (beside its .ply)."""
+    return json.loads((Path(ply).parent / "metrics.json").read_text())
+
+
+def load_input(name: str):
+    """(pretrained Gaussians, scene, test images) of an input."""
+    ply, scene_root, res = resolve_input(name)
+    scene = load_scene(scene_root, resolution=res)
+    return load_model(ply), scene, [scene.load_image(c) for c in scene.test]
+
+
+def fmt_pct(b: float) -> str:
+    return f"{100 * b:.3g} %"
+
+
+def table(header: list[str], rows: list[list], align: Optional[str] = None) -> str:
+    """A Markdown table."""
+    al = align or ("---|" * len(header))
+    out = ["| " + " | ".join(header) + " |", "|" + al]
+    out += ["| " + " | ".join(str(c) for c in r) + " |" for r in rows]
+    return "\n".join(out)

@@ -1,13 +1,15 @@
 """Shared test fixtures: paths to ../shared/data, skipping with a reason when it is absent."""
 from __future__ import annotations
 
+import os
 from pathlib import Path
 
 import pytest
 import torch
 
 REPO = Path(__file__).resolve().parents[1]
-SHARED_DATA = REPO.parent / "shared" / "data"
+#: ../shared/data beside the clone; CLOD_SHARED_DATA overrides it (e.g. for a git worktree elsewhere)
+SHARED_DATA = Path(os.environ.get("CLOD_SHARED_DATA") or REPO.parent / "shared" / "data")
 
 torch.set_num_threads(2)
 

@@ -71,7 +71,8 @@ def _iteration_dirs(folder: Path) -> dict[int, Path]:
     return out
 
 
-def resolve_model_path(path: PathLike, iteration: Optional[int] = None, flag: str = "") -> Path:
+def resolve_model_path(path: PathLike, iteration: Optional[int] = None, flag: str = "",
+                       prefer: Optional[str] = None) -> Path:
     """The model file a user means by ``path``, as 3DGS users pass it.
 
     * a file: itself;
@@ -81,7 +82,9 @@ def resolve_model_path(path: PathLike, iteration: Optional[int] = None, flag: st
     * a folder holding exactly one model file (.ply, or a gsplat .pt/.pth/.ckpt when there is no
       .ply), e.g. ``point_cloud/iteration_7000`` or a ``clod-adapt`` output folder.
 
-    ``flag`` (e.g. ``"--pretrained"``) is named in errors.
+    ``flag`` (e.g. ``"--pretrained"``) is named in errors. ``prefer``: a file name taken first
+    when the folder holds it (``"point_cloud.ply"`` for a ``clod-adapt`` output folder, whose
+    ``--layout inria`` copy under ``point_cloud/`` has no ``sigma_d``).
 
     Raises:
         PlyFormatError: ``path`` does not exist ("no such file or folder"), a folder that is none of the above ("is a folder, expected ..."), or no
@@ -95,6 +98,8 @@ def resolve_model_path(path: PathLike, iteration: Optional[int] = None, flag: st
         return path
     if not path.exists():
         raise PlyFormatError(path, f"no such file or folder{via}")
+    if prefer is not None and iteration is None and (path / prefer).is_file():
+        return path / prefer
     its = _iteration_dirs(path)
     if its:
         if iteration is None:

@@ -380,7 +380,12 @@ def _plot_quality(rows: list[dict], x: str, xlabel: str, path: Path, extra=None,
                 ax.plot(xs, ys, color=c, linestyle=ls or "none", marker=mk, label=method, ms=ms)
         ax.set_xlabel(xlabel, fontsize=8 if time_axis else None)
         if time_axis:
+            from matplotlib.ticker import LogLocator, ScalarFormatter
+
             ax.set_xscale("log")
+            ax.xaxis.set_major_locator(LogLocator(subs=(1.0, 2.0, 5.0)))
+            ax.xaxis.set_major_formatter(ScalarFormatter())
+            ax.xaxis.set_minor_formatter(matplotlib.ticker.NullFormatter())
         ax.set_ylabel({"psnr": "PSNR (dB)", "ssim": "SSIM", "lpips": "LPIPS-alex (lower is better)"}[m])
         ax.grid(alpha=0.3)
     axes[0][0].legend(fontsize=7)

@@ -56,6 +56,10 @@ def build_parser():
                    help="drop Gaussians no training view renders at any s_v >= 1")
     p.add_argument("--sh-max-drop-db", type=float, default=None, metavar="D",
                    help="drop SH bands while the training-view PSNR at s_v = 1 falls by <= D dB")
+    p.add_argument("--spz", action="store_true",
+                   help="also write each exported model as .spz (Niantic's compressed format, read by Spark, "
+                        "SuperSplat, Scaniverse; no sigma_d: a plain model) through gsply "
+                        "(pip install -e \".[spz]\")")
     jobs.add_common_flags(p, device_default="cpu")
     return p
 
@@ -90,6 +94,11 @@ def _main(args, argv) -> int:
         raise InputError(f"{ply}: no such file")
     if not scene_root.is_dir():
         raise InputError(f"{scene_root}: no such scene folder")
+    if args.spz:
+        try:
+            import gsply  # noqa: F401
+        except ImportError:
+            raise InputError("--spz: needs the gsply package (pip install -e \".[spz]\")") from None
     jobs.set_threads(args.threads)
 
     from clod_adapter.io.load import resolve_model_path
@@ -103,6 +112,8 @@ def _main(args, argv) -> int:
     elif budget is not None:
         baked_name = f"baked_budget{_fmt(budget)}.ply"
     names = [EXTENDED_NAME, JSON_NAME] + ([ORDERED_NAME] if args.ordered else []) + ([baked_name] if baked_name else [])
+    if args.spz:
+        names += [Path(n).with_suffix(".spz").name for n in names if n.endswith(".ply")]
     jobs.check_output_dir(out, [ply], names, create=False, force=args.force)
     dev = jobs.pick_device(args.device)
     model = read_ply(ply)
@@ -118,21 +129,22 @@ def _main(args, argv) -> int:
     test_imgs = [scene.load_image(c) for c in test_cams]
     report = export(model.to(dev), scene, train_imgs, test_cams, test_imgs, out, ply=ply,
                     s_v=args.s_v, budget=budget, baked_name=baked_name, ordered=args.ordered,
-                    prune=args.prune, sh_max_drop_db=args.sh_max_drop_db, argv=argv, progress=not args.quiet)
+                    prune=args.prune, sh_max_drop_db=args.sh_max_drop_db, argv=argv, progress=not args.quiet,
+                    spz=args.spz)
     print(summary(report))
     print(f"clod-export: wrote {', '.join(report['files'])} to {out} in {report['seconds']:.0f} s")
     return 0
 
 
 def export(model, scene, train_imgs, test_cams, test_imgs, out: Path, *, ply: Path, s_v, budget,
-           baked_name, ordered, prune, sh_max_drop_db, argv=None, progress: bool = False) -> dict:
+           baked_name, ordered, prune, sh_max_drop_db, argv=None, progress: bool = False, spz: bool = False) -> dict:
     """Compute everything, then write the files (each atomically); returns the export.json dict.
     ``progress``: one step per phase (a tqdm bar on a terminal, else a line per phase)."""
     import torch
 
     from clod_adapter import export as ex
     from clod_adapter.io.atomic import atomic_write
-    from clod_adapter.io.ply import write_ply
+    from clod_adapter.io.ply import read_ply, write_ply
     from clod_adapter.report import bytes_per_gaussian
 
     t0 = time.perf_counter()
@@ -196,6 +208,9 @@ def export(model, scene, train_imgs, test_cams, test_imgs, out: Path, *, ply: Pa
     if ordered_model is not None:
         write_ply(out / ORDERED_NAME, ordered_model)
         files.append(ORDERED_NAME)
+    if spz:
+        for f in list(files):
+            files.append(write_spz(out / Path(f).with_suffix(".spz").name, read_ply(out / f)))
     rep["bytes"] = {"input": ply.stat().st_size, **{f: (out / f).stat().st_size for f in files}}
     rep["seconds"] = round(time.perf_counter() - t0, 2)
     rep["command"] = "clod-export " + " ".join(sys.argv[1:] if argv is None else argv)
@@ -207,6 +222,28 @@ def export(model, scene, train_imgs, test_cams, test_imgs, out: Path, *, ply: Pa
     step()
     bar.close()
     return rep
+
+
+def write_spz(path: Path, model) -> str:
+    """Write ``model`` (``sigma_d`` dropped: SPZ has no extra attributes) as .spz with gsply
+    (``gsply.write_spz``, SPZ version 3, 12 fractional bits), atomically; returns the file name.
+
+    The plain INRIA .ply goes through ``gsply.plyread`` so gsply's own conventions (log scales,
+    logit opacities) are used."""
+    import os
+    import tempfile
+
+    import gsply
+
+    from clod_adapter.io.ply import write_ply
+
+    with tempfile.TemporaryDirectory(dir=path.parent, prefix=".spz-") as d:
+        plain = write_ply(Path(d) / "plain.ply", model.with_sigma_d(None))
+        tmp = Path(d) / path.name
+        gsply.write_spz(tmp, gsply.plyread(plain))
+        os.chmod(tmp, 0o644)
+        os.replace(tmp, path)
+    return path.name
 
 
 def _mean_psnr(ex, model, cams, imgs) -> float:

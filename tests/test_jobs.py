@@ -348,3 +348,30 @@ def test_clod_render_views_and_video(adapted, tiny_src, tmp_path, capsys):
     rep = json.loads((out / "render.json").read_text())
     assert max(rep["video"]["s_v"]) == pytest.approx(2.0, abs=0.05) and min(rep["video"]["s_v"]) == 1.0
     assert np.isfinite([v["psnr"] for v in rep["views"]]).all()
+
+
+def test_export_spz_round_trip(adapted, tiny_src, tmp_path):
+    """--spz through gsply (optional extra [spz]: numba + llvmlite, ~300 MB, so not in [test])."""
+    gsply = pytest.importorskip("gsply", reason="clod-export --spz needs the [spz] extra (gsply)")
+    out = tmp_path / "exp"
+    assert export_main([str(adapted), "-s", str(tiny_src["scene"]), "-o", str(out), "--spz", "--quiet"]) == 0
+    spz = out / "point_cloud_clod.spz"
+    assert spz.stat().st_size < (out / "point_cloud_clod.ply").stat().st_size / 3
+    back = gsply.read_spz(spz)
+    g = read_ply(out / "point_cloud_clod.ply")
+    assert np.abs(np.asarray(back.means) - g.means.numpy()).max() < 1e-3  # 12 fractional bits
+    assert back.shN.shape[0] == len(g)
+
+
+def test_tensorboard_flag(tiny_src, tmp_path, capfd):
+    out = tmp_path / "out"
+    args = [str(tiny_src["ply"]), "--images", str(tiny_src["scene"]), "-o", str(out), "--tensorboard", *FAST]
+    try:
+        import torch.utils.tensorboard  # noqa: F401
+    except Exception:
+        assert adapt_main(args) == 2
+        assert "--tensorboard: the tensorboard package is not installed" in _err_line(capfd)
+        assert not out.exists()
+        return
+    assert adapt_main(args) == 0
+    assert any((out / "tensorboard").iterdir())

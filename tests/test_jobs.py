@@ -253,11 +253,16 @@ def test_usage_error_is_one_line(main, capfd):
 
 
 def test_help_has_an_example_and_every_flag_has_help(capsys):
-    from cli.adapt import build_parser
+    import cli.adapt
+    import cli.eval
+    import cli.export
+    import cli.render
 
-    p = build_parser()
-    for a in p._actions:
-        assert a.help, a.option_strings
+    for mod in (cli.adapt, cli.eval, cli.export, cli.render):
+        p = mod.build_parser()
+        assert "example:" in p.format_help() and "--version" in p.format_help()
+        for a in p._actions:
+            assert a.help, (mod.__name__, a.option_strings)
     with pytest.raises(SystemExit):
         adapt_main(["--help"])
     out = capsys.readouterr().out

@@ -14,6 +14,15 @@ SHARED_DATA = Path(os.environ.get("CLOD_SHARED_DATA") or REPO.parent / "shared" 
 torch.set_num_threads(2)
 
 
+@pytest.fixture(scope="session", autouse=True)
+def _compositor_built():
+    """Build (or load) the C++ compositor before any test, so its one-time build notice on stderr
+    never lands in a test that counts stderr lines."""
+    from clod_adapter.render.composite import cpp_extension_available
+
+    cpp_extension_available()
+
+
 def shared_path(*parts: str) -> Path:
     """Path under ../shared/data; skips the calling test when it does not exist."""
     p = SHARED_DATA.joinpath(*parts)

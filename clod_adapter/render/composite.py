@@ -58,40 +58,35 @@ def _load_extension():
         try:
             from torch.utils.cpp_extension import load
 
-            announce = _build_needed()
-            if announce:
-                import sys
-                import time
+            import sys
+            import time
 
-                t0 = time.perf_counter()
-                print("clod-adapter: building the C++ compositor (once; about 1-3 min on 2 cores; cached in "
-                      f"{announce})...", file=sys.stderr, flush=True)
-            _EXT = load(
-                name="clod_composite",
-                sources=[str(_CSRC)],
-                extra_cflags=["-O3", "-fopenmp", "-ffp-contract=off"],
-                extra_ldflags=["-fopenmp"],
-                verbose=bool(os.environ.get("CLOD_VERBOSE_BUILD")),
-            )
-            if announce:
-                print(f"clod-adapter: compositor built in {time.perf_counter() - t0:.0f} s", file=sys.stderr,
+            # loading a cached build takes well under a second; anything longer is a (re)build,
+            # which takes 1-3 min on 2 cores: say so instead of sitting silent
+            t0 = time.perf_counter()
+            folder = os.environ.get("TORCH_EXTENSIONS_DIR") or "torch's extension cache"
+            notice = threading.Timer(2.0, lambda: print(
+                f"clod-adapter: building the C++ compositor (first use or changed source; about 1-3 min on "
+                f"2 cores; cached in {folder})...", file=sys.stderr, flush=True))
+            notice.daemon = True
+            notice.start()
+            try:
+                _EXT = load(
+                    name="clod_composite",
+                    sources=[str(_CSRC)],
+                    extra_cflags=["-O3", "-fopenmp", "-ffp-contract=off"],
+                    extra_ldflags=["-fopenmp"],
+                    verbose=bool(os.environ.get("CLOD_VERBOSE_BUILD")),
+                )
+            finally:
+                notice.cancel()
+            if time.perf_counter() - t0 > 2.0:
+                print(f"clod-adapter: compositor ready after {time.perf_counter() - t0:.0f} s", file=sys.stderr,
                       flush=True)
         except Exception as e:  # no compiler, no headers, ...
             _EXT_ERROR = e
             _EXT = None
     return _EXT
-
-
-def _build_needed() -> Optional[str]:
-    """The build folder when no built extension is cached there yet (a first build is coming),
-    else None. (A cached build whose source changed is rebuilt without this notice.)"""
-    try:
-        from torch.utils.cpp_extension import _get_build_directory
-
-        d = Path(_get_build_directory("clod_composite", verbose=False))
-    except Exception:
-        return None
-    return None if any(d.glob("clod_composite*.so")) else str(d)
 
 
 def cpp_extension_available() -> bool:

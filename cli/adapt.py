@@ -1,43 +1,55 @@
 """``clod-adapt``: give a trained 3DGS checkpoint a continuous level of detail (CLoD-GS).
 
-    clod-adapt PLY --images SCENE --max-sv 5 [-o OUT] [--iterations N] [--resolution R]
-               [--device auto|cpu|cuda] [--seed S] [--resume] [--sanitize]
-               [--deterministic]
+    clod-adapt MODEL --images SCENE --max-sv 5 [-o OUT] [--iterations N] [--resolution R]
+               [--device auto|cpu|cuda] [--seed S] [--resume] [--force] [--sanitize]
+               [--deterministic] [--layout inria] [--allow-mismatch]
+    clod-adapt -m MODEL_FOLDER -s SCENE ...        (the official 3DGS spelling)
     clod-adapt --demo [-o OUT]
+
+MODEL: a .ply / gsplat .pt, an official 3DGS model folder (``point_cloud/iteration_N/``, the
+latest N unless ``--iteration``) or a folder holding one .ply.
 
 Exit status: 0 done, 2 bad input (one line on stderr, nothing written), 130 interrupted (the
 resumable state is saved in OUT).
 """
 from __future__ import annotations
 
-import argparse
 import sys
 from pathlib import Path
 
-EXIT_BAD_INPUT = 2
-EXIT_INTERRUPTED = 130
+from clod_adapter import jobs
+from clod_adapter.jobs import EXIT_BAD_INPUT, EXIT_INTERRUPTED, InputError, check_flag  # noqa: F401
+
+EXAMPLE = ("clod-adapt ../shared/data/fern/pretrained -s ../shared/data/fern --resolution 2 --max-sv 5 "
+           "-o runs/fern")
 
 
-def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(
-        prog="clod-adapt",
-        description="Fine-tune a per-Gaussian distance decay sigma_d (CLoD-GS, Cheng et al. ICLR 2026) "
-                    "on a pretrained 3DGS .ply so one model renders from full detail down to a small "
-                    "fraction of its Gaussians.",
-    )
-    p.add_argument("ply", nargs="?", help="pretrained 3DGS model: .ply (INRIA layout, MaskGaussian, "
-                                          "PlayCanvas/SuperSplat compressed) or a gsplat ckpt_*.pt")
-    p.add_argument("--images", metavar="SCENE",
+def build_parser():
+    p = jobs.make_parser(
+        "clod-adapt",
+        "Fine-tune a per-Gaussian distance decay sigma_d (CLoD-GS, Cheng et al. ICLR 2026) on a "
+        "pretrained 3DGS model so one model renders from full detail down to a small fraction of its "
+        "Gaussians.", EXAMPLE)
+    p.add_argument("ply", nargs="?", metavar="MODEL",
+                   help="pretrained 3DGS model: .ply (INRIA layout, MaskGaussian, PlayCanvas/SuperSplat "
+                        "compressed), a gsplat ckpt_*.pt, an official model folder "
+                        "(point_cloud/iteration_N/point_cloud.ply) or a folder holding one .ply")
+    p.add_argument("-m", "--model_path", "--model-path", dest="model_path", metavar="MODEL",
+                   help="the same as MODEL (the official 3DGS flag)")
+    p.add_argument("--iteration", type=int, default=None, metavar="N",
+                   help="with a model folder: use point_cloud/iteration_N (default: the largest N)")
+    p.add_argument("--images", "-s", "--source_path", "--source-path", dest="images", metavar="SCENE",
                    help="scene folder: COLMAP (images/, sparse/0) or NeRF-synthetic (transforms_*.json)")
     p.add_argument("--max-sv", type=float, default=5.0, help="largest virtual distance scale trained (default 5)")
-    p.add_argument("-o", "--output", metavar="OUT", help="output folder (default: ./clod_out)")
+    p.add_argument("-o", "--output", metavar="OUT",
+                   help="output folder, new or empty (default: ./clod_out; demo ./clod_demo)")
     p.add_argument("--iterations", type=int, default=None, help="optimisation steps (default 1000; demo 400)")
-    p.add_argument("--resolution", type=int, default=1, choices=(1, 2, 4, 8),
-                   help="use images_R/ when present, else downsample by R (default 1)")
-    p.add_argument("--device", default="auto", choices=("auto", "cpu", "cuda"))
+    p.add_argument("-r", "--resolution", type=int, default=1, choices=(1, 2, 4, 8),
+                   help="use images_R/ when present, else downsample by R (default 1); use the resolution "
+                        "the checkpoint was trained at")
     p.add_argument("--background", default="black", choices=("black", "white"),
                    help="colour behind the scene (NeRF-synthetic RGBA images are composited over it)")
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--seed", type=int, default=0, help="seed of the view order and s_v sampling (default 0)")
     p.add_argument("--schedule", default="calibrated", choices=("calibrated", "paper"),
                    help="training recipe: 'calibrated' (default; sigma_d mapped from a ranking so s_v draws "
                         "s_v^-1.5 of the Gaussians, window fade, level gains) or 'paper' (CLoD-GS: Eq. 2 fading, "
@@ -60,67 +72,91 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--sanitize", action="store_true",
                    help="drop Gaussians with NaN/Inf values (and clamp +Inf opacity logits to "
                         "logit(1 - 1e-7)) instead of stopping; says how many")
+    p.add_argument("--allow-mismatch", action="store_true",
+                   help="go on when the model renders the training views no better than a flat colour "
+                        "(a model from another scene); refused by default")
     p.add_argument("--resume", action="store_true",
-                   help="continue from OUT/adapt_state.safetensors (give the same PLY, scene and flags; "
+                   help="continue from OUT/adapt_state.safetensors (give the same MODEL, scene and flags; "
                         "--iterations defaults to the saved run's)")
     p.add_argument("--deterministic", action="store_true",
                    help="bit-reproducible CPU gradients (static tile schedule, fixed reduction order; "
                         "somewhat slower): a resumed run then ends identical to an uninterrupted one "
                         "(same seed and thread count). Also CLOD_DETERMINISTIC=1")
+    p.add_argument("--layout", default="clod", choices=("clod", "inria"),
+                   help="inria: also write the official model folder (point_cloud/iteration_N/point_cloud.ply "
+                        "in the exact INRIA layout, cameras.json, cfg_args) for SIBR-style viewers and scripts")
+    p.add_argument("--tensorboard", action="store_true",
+                   help="log loss, PSNR, s_v and rendered fraction per step to OUT/tensorboard "
+                        "(needs pip install -e \".[tensorboard]\")")
+    p.add_argument("--timing-repeats", type=int, default=3, metavar="R",
+                   help="interleaved timing rounds for the final ms/frame (default 3; 0: time the single "
+                        "evaluation pass)")
     p.add_argument("--demo", action="store_true",
                    help="build the embedded synthetic scene and pretrained model in OUT/demo and adapt it")
-    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    jobs.add_common_flags(p)
     return p
 
 
-def _one_line(e: object) -> str:
-    """The message of ``e`` on one line (bad-input errors promise exactly one stderr line)."""
-    return " ".join(str(e).split("\n")).strip()
-
-
 def main(argv: list[str] | None = None) -> int:
+    jobs.thread_defaults()  # before torch is imported (OpenMP reads it when it loads)
     args = build_parser().parse_args(argv)
+    return jobs.run_cli("clod-adapt", lambda: _main(args))
+
+
+def _main(args) -> int:
+    if args.ply and args.model_path and args.ply != args.model_path:
+        raise InputError("give the model once: MODEL or -m/--model_path")
+    model = args.ply or args.model_path
+    check_flag(args.max_sv >= 1, "--max-sv", ">= 1", args.max_sv)
+    if args.iterations is not None:
+        check_flag(args.iterations >= 0, "--iterations", ">= 0", args.iterations)
+    if args.other_lr_scale is not None:
+        check_flag(args.other_lr_scale >= 0, "--other-lr-scale", ">= 0", args.other_lr_scale)
+    if args.lambda_reg is not None:
+        check_flag(args.lambda_reg >= 0, "--lambda-reg", ">= 0", args.lambda_reg)
+    if args.gains is not None:
+        check_flag(set(args.gains) <= set("osc"), "--gains", "letters of 'osc'", repr(args.gains))
+        check_flag(not args.gains or args.schedule == "calibrated", "--gains", "used with --schedule calibrated",
+                   repr(args.gains))
+    if args.tau is not None:
+        check_flag(args.tau > 0, "--tau", "> 0", args.tau)
+    if args.threads is not None:
+        check_flag(args.threads >= 1, "--threads", ">= 1", args.threads)
+    check_flag(args.timing_repeats >= 0, "--timing-repeats", ">= 0", args.timing_repeats)
+    if args.iteration is not None:
+        check_flag(args.iteration >= 0, "--iteration", ">= 0", args.iteration)
+    jobs.set_threads(args.threads)
     # Imports after parsing so --help is instant.
     from clod_adapter.adapt import AdaptConfig
-    from clod_adapter.io.ply import PlyFormatError
-    from clod_adapter.io.scene import SceneError
-    from clod_adapter.pipeline import InputError, run
+    from clod_adapter.pipeline import run
 
     out = Path(args.output or ("clod_demo" if args.demo else "clod_out"))
-    try:
-        if args.demo:
-            from clod_adapter.synthetic import build_demo_scene
+    force = args.force
+    if args.demo:
+        from clod_adapter.pipeline import check_output_dir
+        from clod_adapter.synthetic import build_demo_scene
 
-            scene, ply = build_demo_scene(out / "demo")
-            print(f"clod-adapt: demo scene written to {scene}, pretrained stand-in {ply}")
-            iterations = 400 if args.iterations is None else args.iterations
-        else:
-            if not args.ply or not args.images:
-                print("clod-adapt: error: give PLY and --images SCENE (or --demo)", file=sys.stderr)
-                return EXIT_BAD_INPUT
-            scene, ply = Path(args.images), Path(args.ply)
-            iterations = 1000 if args.iterations is None else args.iterations
-        kw = {} if args.tau is None else {"tau": args.tau}
-        cfg = AdaptConfig(max_sv=args.max_sv, iterations=iterations, seed=args.seed, schedule=args.schedule,
-                          other_lr_scale=args.other_lr_scale, lambda_reg=args.lambda_reg,
-                          fade=args.fade, gains=args.gains, eta_estimator=args.eta_estimator,
-                          background=(1.0, 1.0, 1.0) if args.background == "white" else (0.0, 0.0, 0.0), **kw)
-        run(ply, scene, out, cfg, resolution=args.resolution, device=args.device,
-            resume=args.resume, progress=not args.quiet, sanitize=args.sanitize,
-            deterministic=args.deterministic,
-            iterations_from_state=args.resume and args.iterations is None)
-    except (InputError, PlyFormatError, SceneError) as e:
-        print(f"clod-adapt: error: {_one_line(e)}", file=sys.stderr)
-        return EXIT_BAD_INPUT
-    except ValueError as e:  # config validation
-        print(f"clod-adapt: error: {_one_line(e)}", file=sys.stderr)
-        return EXIT_BAD_INPUT
-    except OSError as e:  # an unreadable input or unwritable output the checks above missed
-        name = e.filename if e.filename is not None else "clod-adapt"
-        print(f"clod-adapt: error: {name}: {e.strerror or e}", file=sys.stderr)
-        return EXIT_BAD_INPUT
-    except KeyboardInterrupt:
-        return EXIT_INTERRUPTED
+        check_output_dir(out, [], create=False, force=args.force, resume=args.resume)
+        scene, ply = build_demo_scene(out / "demo")
+        force = True  # checked above; OUT now holds the demo scene
+        print(f"clod-adapt: demo scene written to {scene}, pretrained stand-in {ply}")
+        iterations = 400 if args.iterations is None else args.iterations
+    else:
+        if not model or not args.images:
+            raise InputError("give MODEL and --images SCENE (or -m MODEL -s SCENE, or --demo)")
+        scene, ply = Path(args.images), Path(model)
+        iterations = 1000 if args.iterations is None else args.iterations
+    kw = {} if args.tau is None else {"tau": args.tau}
+    cfg = AdaptConfig(max_sv=args.max_sv, iterations=iterations, seed=args.seed, schedule=args.schedule,
+                      other_lr_scale=args.other_lr_scale, lambda_reg=args.lambda_reg,
+                      fade=args.fade, gains=args.gains, eta_estimator=args.eta_estimator,
+                      background=(1.0, 1.0, 1.0) if args.background == "white" else (0.0, 0.0, 0.0), **kw)
+    run(ply, scene, out, cfg, resolution=args.resolution, device=args.device,
+        resume=args.resume, progress=not args.quiet, sanitize=args.sanitize,
+        deterministic=args.deterministic,
+        iterations_from_state=args.resume and args.iterations is None, force=force,
+        allow_mismatch=args.allow_mismatch, iteration=args.iteration, layout=args.layout,
+        tensorboard=args.tensorboard, timing_repeats=args.timing_repeats)
     return 0
 
 

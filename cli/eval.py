@@ -1,8 +1,8 @@
 """``clod-eval``: what each level of detail of an adapted CLoD-GS model costs and loses.
 
-    clod-eval OUT/point_cloud.ply --images SCENE [--pretrained PRE.ply] [--resolution R]
+    clod-eval OUT[/point_cloud.ply] --images SCENE [--pretrained PRE] [--resolution R]
               [--budgets 1,0.5,0.25,0.1] [--sv-steps 25] [--max-sv X] [--lpips-weights PATH]
-              [--sigma-c C] [--device auto|cpu|cuda] -o REPORT
+              [--sigma-c C] [--timing-repeats 3] [--device auto|cpu|cuda] [--force] -o REPORT
 
 Writes REPORT/{report.csv, report_per_view.csv, report.json, report.md, quality_vs_gaussians.png,
 quality_vs_time.png, popping.png, lod_strip.png} (see :mod:`clod_adapter.report`).
@@ -12,35 +12,41 @@ Exit status: 0 done, 2 bad input (one line on stderr naming the file or flag, no
 """
 from __future__ import annotations
 
-import argparse
+import json
 import sys
 from pathlib import Path
 
-EXIT_BAD_INPUT = 2
-EXIT_INTERRUPTED = 130
+from clod_adapter import jobs
+from clod_adapter.jobs import EXIT_BAD_INPUT, EXIT_INTERRUPTED, InputError, check_flag  # noqa: F401
+
+EXAMPLE = ("clod-eval runs/fern -s ../shared/data/fern --pretrained ../shared/data/fern/pretrained "
+           "--resolution 2 -o runs/fern_report")
 
 
-def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(
-        prog="clod-eval",
-        description="Sweep an adapted CLoD-GS model over s_v and hard Gaussian budgets, compare it with "
-                    "baselines cut from the pretrained model at the same counts, measure popping, "
-                    "and write a report (CSV, JSON, plots).",
-    )
-    p.add_argument("ply", nargs="?", help="adapted model .ply (with sigma_d; from clod-adapt)")
-    p.add_argument("--images", metavar="SCENE",
+def build_parser():
+    p = jobs.make_parser(
+        "clod-eval",
+        "Sweep an adapted CLoD-GS model over s_v and hard Gaussian budgets, compare it with baselines "
+        "cut from the pretrained model at the same counts, measure popping, and write a report (CSV, "
+        "JSON, plots).", EXAMPLE)
+    p.add_argument("ply", nargs="?", metavar="ADAPTED",
+                   help="adapted model (with sigma_d): a clod-adapt output folder or its point_cloud.ply")
+    p.add_argument("--images", "-s", "--source_path", "--source-path", dest="images", metavar="SCENE",
                    help="scene folder: COLMAP (images/, sparse/0) or NeRF-synthetic (transforms_*.json)")
-    p.add_argument("--pretrained", metavar="PRE.ply",
-                   help="pretrained model the baselines cut: .ply (INRIA, compressed) or gsplat ckpt .pt "
-                        "(default: the adapted model without sigma_d)")
-    p.add_argument("--resolution", type=int, default=1, choices=(1, 2, 4, 8),
+    p.add_argument("--pretrained", metavar="PRE",
+                   help="pretrained model the baselines cut: .ply (INRIA, compressed), gsplat ckpt .pt, an "
+                        "official model folder or a folder holding one .ply (default: the adapted model "
+                        "without sigma_d)")
+    p.add_argument("--iteration", type=int, default=None, metavar="N",
+                   help="with a --pretrained model folder: use point_cloud/iteration_N (default: the largest)")
+    p.add_argument("-r", "--resolution", type=int, default=1, choices=(1, 2, 4, 8),
                    help="use images_R/ when present, else downsample by R (default 1)")
     p.add_argument("--budgets", default=None,
                    help="comma-separated budgets: values <= 1 are fractions, integers > 1 counts "
                         "(default 1,0.5,0.25,0.1 down to max_sv^-1.5, and max_sv^-1.5)")
     p.add_argument("--sv-steps", type=int, default=25, help="points of the s_v sweep (default 25)")
     p.add_argument("--max-sv", type=float, default=None,
-                   help="trained maximum s_v (default: from adapt_state.safetensors beside PLY, else 5); "
+                   help="trained maximum s_v (default: from adapt_state.safetensors beside the model, else 5); "
                         "the sweep goes to 1.2x this")
     p.add_argument("--popping-steps", type=int, default=61, help="frames of the popping sweep (default 61)")
     p.add_argument("--lpips-weights", metavar="PATH",
@@ -50,127 +56,148 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--sigma-c", type=float, default=None,
                    help="constant sigma_d of the constant-sigma baseline (default: the best of a grid on "
                         "training views at 50 %% of the Gaussians)")
-    p.add_argument("--seed", type=int, default=0, help="seed of the random baseline")
-    p.add_argument("--dlod-iterations", type=int, default=None,
+    p.add_argument("--timing-repeats", type=int, default=3, metavar="R",
+                   help="interleaved timing rounds after the quality pass (default 3; 0: time the quality "
+                        "pass itself)")
+    p.add_argument("--seed", type=int, default=0, help="seed of the random baseline and the timing order (default 0)")
+    p.add_argument("--dlod-iterations", type=int, default=None, metavar="N",
                    help="steps of the per-budget ceiling dlod_finetuned (one fine-tuned model per budget; "
                         "default: the adaptation's iterations from adapt_state.safetensors, else 1000; 0 skips)")
     p.add_argument("--splat-transform", metavar="EXE", default=None,
                    help="splat-transform executable for the merging-decimator baseline 'merge' (default: "
                         "$CLOD_SPLAT_TRANSFORM or splat-transform on PATH; skipped with a note when absent)")
     p.add_argument("--no-merge", action="store_true", help="skip the merging-decimator baseline")
-    p.add_argument("--device", default="auto", choices=("auto", "cpu", "cuda"))
     p.add_argument("--background", default="black", choices=("black", "white"),
                    help="colour behind the scene (NeRF-synthetic RGBA images are composited over it)")
-    p.add_argument("-o", "--output", metavar="REPORT", help="report folder (default: ./clod_report)")
-    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    p.add_argument("-o", "--output", metavar="REPORT", help="report folder, new or empty (default: ./clod_report)")
+    jobs.add_common_flags(p)
     return p
 
 
 def main(argv: list[str] | None = None) -> int:
+    jobs.thread_defaults()  # before torch is imported
     args = build_parser().parse_args(argv)
-    from clod_adapter.io.ply import PlyFormatError, read_ply
-    from clod_adapter.io.scene import SceneError
-    from clod_adapter.io.scenes import load_scene
-    from clod_adapter.pipeline import InputError, pick_device
-    from clod_adapter.report import (check_report_dir, evaluate_report, iterations_from_state, max_sv_from_state,
-                                     normalize_budgets)
+    return jobs.run_cli("clod-eval", lambda: _main(args))
 
-    def bad(msg: str) -> int:
-        print(f"clod-eval: error: {msg}", file=sys.stderr)
-        return EXIT_BAD_INPUT
 
+def _main(args) -> int:
     if not args.ply or not args.images:
-        return bad("give PLY and --images SCENE")
+        raise InputError("give ADAPTED and --images SCENE")
     ply, scene_root = Path(args.ply), Path(args.images)
     out = Path(args.output or "clod_report")
-    try:
-        if not ply.is_file():
-            raise InputError(f"{ply}: no such file")
-        if not scene_root.is_dir():
-            raise InputError(f"{scene_root}: no such scene folder")
-        if args.budgets is not None:
+    budgets = jobs.parse_budgets(args.budgets, "--budgets") if args.budgets is not None else None
+    if args.dlod_iterations is not None:
+        check_flag(args.dlod_iterations >= 0, "--dlod-iterations", ">= 0", args.dlod_iterations)
+    if args.splat_transform is not None and not Path(args.splat_transform).is_file():
+        raise InputError(f"{args.splat_transform}: no such file (--splat-transform)")
+    check_flag(args.sv_steps >= 2, "--sv-steps", ">= 2", args.sv_steps)
+    check_flag(args.popping_steps >= 2, "--popping-steps", ">= 2", args.popping_steps)
+    if args.max_sv is not None:
+        check_flag(args.max_sv >= 1, "--max-sv", ">= 1", args.max_sv)
+    if args.sigma_c is not None:
+        check_flag(args.sigma_c > 0, "--sigma-c", "> 0", args.sigma_c)
+    check_flag(args.timing_repeats >= 0, "--timing-repeats", ">= 0", args.timing_repeats)
+    if args.threads is not None:
+        check_flag(args.threads >= 1, "--threads", ">= 1", args.threads)
+    if args.lpips_weights is not None and not Path(args.lpips_weights).is_file():
+        raise InputError(f"{args.lpips_weights}: no such LPIPS weights file (--lpips-weights)")
+    if not ply.exists():
+        raise InputError(f"{ply}: no such file")
+    if not scene_root.is_dir():
+        raise InputError(f"{scene_root}: no such scene folder")
+    jobs.set_threads(args.threads)
+
+    from clod_adapter.io.load import load_model, resolve_model_path, training_size
+    from clod_adapter.io.ply import read_ply
+    from clod_adapter.io.scenes import load_scene
+    from clod_adapter.pipeline import METRICS_NAME, resolution_note
+    from clod_adapter.report import OUTPUT_NAMES, evaluate_report, iterations_from_state, max_sv_from_state
+
+    ply = resolve_model_path(ply, prefer="point_cloud.ply")
+    dev = jobs.pick_device(args.device)
+    adapted = read_ply(ply)
+    if len(adapted) == 0:
+        raise InputError(f"{ply}: the model has no Gaussians")
+    if adapted.sigma_d is None:
+        raise InputError(f"{ply}: no sigma_d property; not an adapted model (run clod-adapt first)")
+    pretrained, pre = None, None
+    inputs = [ply]
+    if args.pretrained is not None:
+        pre = Path(args.pretrained)
+        if not pre.exists():
+            raise InputError(f"{pre}: no such file (--pretrained)")
+        pre = resolve_model_path(pre, args.iteration, flag="--pretrained")
+        pretrained = load_model(pre)
+        if len(pretrained) == 0:
+            raise InputError(f"{pre}: the model has no Gaussians")
+        inputs.append(pre)
+    elif args.iteration is not None:
+        raise InputError("--iteration applies to a --pretrained model folder")
+    jobs.check_output_dir(out, inputs, OUTPUT_NAMES + ("report.md",), create=False, force=args.force)
+    bg = (1.0, 1.0, 1.0) if args.background == "white" else (0.0, 0.0, 0.0)
+    scene = load_scene(scene_root, resolution=args.resolution, background=bg)
+    if not scene.cameras:
+        raise InputError(f"{scene_root}: the scene has no views")
+    lpips = None
+    if not args.no_lpips:
+        lpips = args.lpips_weights if args.lpips_weights is not None else "auto"
+        if lpips != "auto":
+            from clod_adapter.lpips import load_lpips
+
             try:
-                budgets = normalize_budgets([float(x) for x in args.budgets.split(",") if x.strip()])
+                load_lpips(lpips)
             except ValueError as e:
-                raise InputError(f"--budgets {args.budgets!r}: {e}") from None
-            if not budgets:
-                raise InputError("--budgets: give at least one budget")
-        if args.dlod_iterations is not None and args.dlod_iterations < 0:
-            raise InputError(f"--dlod-iterations must be >= 0, got {args.dlod_iterations}")
-        if args.splat_transform is not None and not Path(args.splat_transform).is_file():
-            raise InputError(f"{args.splat_transform}: no such file (--splat-transform)")
-        if args.sv_steps < 2:
-            raise InputError(f"--sv-steps must be >= 2, got {args.sv_steps}")
-        if args.popping_steps < 2:
-            raise InputError(f"--popping-steps must be >= 2, got {args.popping_steps}")
-        if args.max_sv is not None and not args.max_sv >= 1:
-            raise InputError(f"--max-sv must be >= 1, got {args.max_sv}")
-        if args.sigma_c is not None and not args.sigma_c > 0:
-            raise InputError(f"--sigma-c must be > 0, got {args.sigma_c}")
-        if args.lpips_weights is not None and not Path(args.lpips_weights).is_file():
-            raise InputError(f"{args.lpips_weights}: no such LPIPS weights file (--lpips-weights)")
-        dev = pick_device(args.device)
-        adapted = read_ply(ply)
-        if len(adapted) == 0:
-            raise InputError(f"{ply}: the model has no Gaussians")
-        if adapted.sigma_d is None:
-            raise InputError(f"{ply}: no sigma_d property; not an adapted model (run clod-adapt first)")
-        pretrained = None
-        inputs = [ply]
-        if args.pretrained is not None:
-            pre = Path(args.pretrained)
-            if not pre.is_file():
-                raise InputError(f"{pre}: no such file (--pretrained)")
-            from clod_adapter.io.load import load_model
+                raise InputError(str(e).splitlines()[0]) from None
+    max_sv = args.max_sv if args.max_sv is not None else (adapted.lod.max_sv if adapted.lod else None) \
+        or max_sv_from_state(ply) or 5.0
+    if budgets is None:
+        from clod_adapter.pipeline import budget_levels
 
-            pretrained = load_model(pre)
-            if len(pretrained) == 0:
-                raise InputError(f"{pre}: the model has no Gaussians")
-            inputs.append(pre)
-        bg = (1.0, 1.0, 1.0) if args.background == "white" else (0.0, 0.0, 0.0)
-        scene = load_scene(scene_root, resolution=args.resolution, background=bg)
-        if not scene.cameras:
-            raise InputError(f"{scene_root}: the scene has no views")
-        lpips = None
-        if not args.no_lpips:
-            lpips = args.lpips_weights if args.lpips_weights is not None else "auto"
-            if lpips != "auto":
-                from clod_adapter.lpips import load_lpips
+        budgets = budget_levels(max_sv)
+    dlod_it = args.dlod_iterations
+    if dlod_it is None:
+        dlod_it = iterations_from_state(ply) or 1000
+    merge_tool = None
+    if not args.no_merge:
+        from clod_adapter.baselines import find_splat_transform
 
-                try:
-                    load_lpips(lpips)
-                except ValueError as e:
-                    raise InputError(str(e).splitlines()[0]) from None
-        max_sv = args.max_sv if args.max_sv is not None else (adapted.lod.max_sv if adapted.lod else None) \
-            or max_sv_from_state(ply) or 5.0
-        if args.budgets is None:
-            from clod_adapter.pipeline import budget_levels
-
-            budgets = budget_levels(max_sv)
-        dlod_it = args.dlod_iterations
-        if dlod_it is None:
-            dlod_it = iterations_from_state(ply) or 1000
-        merge_tool = None
-        if not args.no_merge:
-            from clod_adapter.baselines import find_splat_transform
-
-            merge_tool = args.splat_transform or find_splat_transform()
-            if merge_tool is None:
-                print("clod-eval: note: splat-transform not found; the 'merge' baseline is skipped "
-                      "(npm install -g @playcanvas/splat-transform)", file=sys.stderr)
-        check_report_dir(out, inputs)
-        evaluate_report(ply, scene, out, pretrained=pretrained, pretrained_label=args.pretrained, budgets=budgets, max_sv=max_sv,
-                        sv_steps=args.sv_steps, popping_steps=args.popping_steps, lpips=lpips,
-                        seed=args.seed, sigma_c=args.sigma_c, device=dev, progress=not args.quiet,
-                        background=bg, dlod_iterations=dlod_it, merge_tool=merge_tool)
-        print(f"clod-eval: wrote the report to {out}")
-    except (InputError, PlyFormatError, SceneError) as e:
-        return bad(" ".join(str(e).split("\n")))
-    except OSError as e:  # an unreadable input or unwritable output the checks above missed
-        return bad(f"{e.filename if e.filename is not None else 'clod-eval'}: {e.strerror or e}")
-    except KeyboardInterrupt:
-        return EXIT_INTERRUPTED
+        merge_tool = args.splat_transform or find_splat_transform()
+        if merge_tool is None:
+            print("clod-eval: note: splat-transform not found; the 'merge' baseline is skipped "
+                  "(npm install -g @playcanvas/splat-transform)", file=sys.stderr)
+    notes = []
+    cam0 = (scene.test or scene.train)[0]
+    note = _resolution_note(ply, pre, (cam0.width, cam0.height), resolution_note, training_size, METRICS_NAME)
+    if note:
+        notes.append(note)
+    jobs.check_output_dir(out, inputs, OUTPUT_NAMES + ("report.md",), force=True)  # checked above; create
+    evaluate_report(ply, scene, out, pretrained=pretrained, pretrained_label=str(pre) if pre else None,
+                    budgets=budgets, max_sv=max_sv, sv_steps=args.sv_steps, popping_steps=args.popping_steps,
+                    lpips=lpips, seed=args.seed, sigma_c=args.sigma_c, device=dev, progress=not args.quiet,
+                    background=bg, timing_repeats=args.timing_repeats, notes=notes,
+                    dlod_iterations=dlod_it, merge_tool=merge_tool)
+    print(f"clod-eval: wrote the report to {out}")
     return 0
+
+
+def _resolution_note(ply, pre, size, resolution_note, training_size, metrics_name):
+    """The aliasing note when the training size is known (cameras.json of a model folder, or the
+    image size clod-adapt recorded in metrics.json beside the adapted model) and differs."""
+    for path in (ply, pre):
+        if path is None:
+            continue
+        ts = training_size(path)
+        if ts:
+            return resolution_note(ts, size, f"cameras.json beside {path}")
+    m = Path(ply).parent / metrics_name
+    if m.is_file():
+        try:
+            ts = json.loads(m.read_text()).get("image_size")
+        except (ValueError, OSError):
+            ts = None
+        if ts:
+            return resolution_note(tuple(ts), size, f"clod-adapt's {m}")
+    return None
 
 
 if __name__ == "__main__":

@@ -429,7 +429,8 @@ def adapt(
         train_cameras, train_images: training views and their [H, W, 3] float images in [0, 1].
         cfg: the run's settings.
         backend: rasteriser backend.
-        progress: show a tqdm bar with loss, PSNR and rendered fraction.
+        progress: show progress with loss, PSNR, s_v and rendered fraction (``frac``): a tqdm
+            bar when stderr is a terminal, else a plain line every 10 %.
         on_interrupt: called with the state when SIGINT/SIGTERM stops the run early.
         max_steps: run at most this many steps in this call (the schedule still spans
             ``cfg.iterations``); None: run to the end.
@@ -441,10 +442,10 @@ def adapt(
         True when all iterations ran, False when interrupted or stopped by ``max_steps``
         (state holds the progress).
     """
-    from tqdm import tqdm
+    from .jobs import progress_bar
 
-    bar = tqdm(total=cfg.iterations, initial=state.iteration, disable=not progress,
-               desc="clod-adapt", unit="it", dynamic_ncols=True)
+    # a tqdm bar on a terminal; a plain line every 10 % in a log (stderr not a terminal)
+    bar = progress_bar(cfg.iterations, "clod-adapt", unit="it", initial=state.iteration, disable=not progress)
     ema = {"loss": None, "psnr": None}
     stop_at = cfg.iterations if max_steps is None else min(cfg.iterations, state.iteration + max_steps)
     import contextlib
@@ -502,8 +503,9 @@ def adapt(
             h["psnr"].append(round(p, 3))
             for k, v in (("loss", h["loss"][-1]), ("psnr", p)):
                 ema[k] = v if ema[k] is None else 0.9 * ema[k] + 0.1 * v
+            # frac: the rendered fraction eta of the step (not tqdm's "time remaining")
             bar.set_postfix(loss=f"{ema['loss']:.4f}", psnr=f"{ema['psnr']:.2f}",
-                            s_v=f"{s_v:.2f}", eta=f"{eta:.3f}", refresh=False)
+                            s_v=f"{s_v:.2f}", frac=f"{eta:.3f}", refresh=False)
             bar.update(1)
             if on_step is not None:
                 on_step(state)

@@ -23,11 +23,12 @@ from typing import Optional
 
 import torch
 
-from . import __version__, lod
+from . import __version__, jobs, lod
 from .adapt import AdaptConfig, StopFlag, adapt, load_state, prepare, save_state
 from .evaluate import evaluate_level, evaluate_levels
 from .io.atomic import atomic_save, atomic_write
-from .io.load import load_model
+from .io.load import load_model, resolve_model_path, training_size
+from .jobs import InputError, pick_device  # noqa: F401 (public here since the first release)
 from .io.ply import write_ply
 from .io.scenes import load_scene
 from .lod_render import render_lod
@@ -38,97 +39,25 @@ METRICS_NAME = "metrics.json"
 STRIP_NAME = "lod_strip.png"
 
 
-class InputError(ValueError):
-    """Bad user input (a file, a folder or a flag); the message is one line naming it."""
+#: the training curve (loss, PSNR, rendered fraction against the step).
+TRAINING_PLOT_NAME = "training.png"
+#: written with ``layout="inria"`` (besides the files above): the official 3DGS model folder.
+INRIA_FILES = ("point_cloud", "cameras.json", "cfg_args")
+TENSORBOARD_DIR = "tensorboard"
+OUTPUT_NAMES = (PLY_NAME, STATE_NAME, METRICS_NAME, STRIP_NAME, TRAINING_PLOT_NAME)
 
 
-def pick_device(device: str) -> torch.device:
-    """``auto``: CUDA when available and gsplat imports, else CPU. Raises InputError for cuda
-    without CUDA."""
-    if device == "cpu":
-        return torch.device("cpu")
-    cuda_ok = torch.cuda.is_available()
-    if device == "cuda":
-        if not cuda_ok:
-            raise InputError("--device cuda: no CUDA device is available (use --device cpu)")
-        return torch.device("cuda")
-    if device != "auto":
-        raise InputError(f"--device must be auto, cpu or cuda, got {device!r}")
-    if cuda_ok:
-        try:
-            import gsplat  # noqa: F401
-
-            return torch.device("cuda")
-        except Exception:
-            pass
-    return torch.device("cpu")
-
-
-def _probe_writable(directory: Path) -> Optional[str]:
-    """None when a file can be created (and removed) in ``directory``, else the OS reason.
-
-    ``os.access`` is not enough (as root it says yes whatever the mode bits), so a real hidden
-    file is created and removed at once.
-    """
-    import tempfile
-
-    try:
-        fd, tmp = tempfile.mkstemp(dir=directory, prefix=".clod-probe-", suffix=".tmp")
-    except OSError as e:
-        return e.strerror or type(e).__name__
-    os.close(fd)
-    try:
-        os.unlink(tmp)
-    except OSError:
-        pass
-    return None
-
-
-def check_output_dir(out_dir: Path, inputs: list[Path], *, create: bool = True) -> None:
-    """Refuse outputs that would overwrite an input or cannot be written; create ``out_dir``.
-
-    With ``create=False`` only checks (nothing is created or left behind), so it can run before
-    the inputs are fully validated; ``out_dir`` or, when it does not exist yet, its nearest
-    existing ancestor must be a directory in which a file can be created. With ``create=True``
-    (the default) ``out_dir`` is also created (with parents) and probed; on failure the folders
-    just created are removed again.
+def check_output_dir(out_dir: Path, inputs: list[Path], *, create: bool = True, force: bool = False,
+                     resume: bool = False, ignore=()) -> None:
+    """:func:`clod_adapter.jobs.check_output_dir` for this job's outputs: refuse an output that
+    would overwrite an input, a non-empty folder (unless ``force`` or ``resume``) or one that
+    cannot be written; with ``create`` make the folder.
 
     Raises:
-        InputError: not creatable / not writable, not a directory, or an output path (or
-            ``out_dir`` itself) equals an input path.
+        InputError: naming the folder and the problem.
     """
-    out_dir = Path(out_dir)
-    targets = [out_dir / n for n in (PLY_NAME, STATE_NAME, METRICS_NAME, STRIP_NAME)]
-    for inp in inputs:
-        if out_dir.resolve() == Path(inp).resolve():
-            raise InputError(f"{out_dir}: output path equals the input {inp}; -o takes a folder, choose another")
-        for t in targets:
-            if t.resolve() == Path(inp).resolve():
-                raise InputError(f"{t}: output path equals the input {inp}; choose another -o")
-    if out_dir.exists() and not out_dir.is_dir():
-        raise InputError(f"{out_dir}: output path exists and is not a directory")
-    missing = [p for p in (out_dir, *out_dir.parents) if not p.exists()]
-    if not create:
-        anc = missing[-1].parent if missing else out_dir
-        if not anc.is_dir():
-            raise InputError(f"{out_dir}: cannot create output directory ({anc} is not a directory)")
-        why = _probe_writable(anc)
-        if why is not None:
-            what = "output directory is not writable" if anc == out_dir else f"cannot create output directory in {anc}"
-            raise InputError(f"{out_dir}: {what} ({why})")
-        return
-    try:
-        out_dir.mkdir(parents=True, exist_ok=True)
-    except OSError as e:
-        raise InputError(f"{out_dir}: cannot create output directory ({e.strerror})") from None
-    why = _probe_writable(out_dir)
-    if why is not None:
-        for p in missing:  # deepest first: undo what mkdir made
-            try:
-                p.rmdir()
-            except OSError:
-                break
-        raise InputError(f"{out_dir}: output directory is not writable ({why})")
+    jobs.check_output_dir(out_dir, inputs, OUTPUT_NAMES, create=create, force=force, resume=resume,
+                          ignore=ignore)
 
 
 #: ``--sanitize`` maps +Inf opacity logits (opacity exactly 1, as some exporters write) to
@@ -215,24 +144,231 @@ def sv_levels(max_sv: float) -> list[float]:
     return levels
 
 
-def write_strip(path: Path, gaussians, camera, s_vs, background, backend: str) -> None:
-    """Render ``camera`` at each ``s_v`` and write the images side by side as a PNG."""
+def _font(size: int):
+    from PIL import ImageFont
+
+    try:
+        return ImageFont.load_default(size=size)  # Pillow >= 10.1 with FreeType
+    except TypeError:
+        return ImageFont.load_default()
+
+
+def label_panels(panels, captions, min_width: int = 240):
+    """Put images side by side, each with its caption in a band *below* it (never over the
+    picture). Images narrower than ``min_width`` px are enlarged (nearest neighbour, integer
+    factor) so the captions stay readable. ``panels``: [H, W, 3] float tensors/arrays in [0, 1]
+    or uint8 arrays; ``captions``: one string per panel (may contain newlines). Returns a PIL
+    image."""
     import numpy as np
     from PIL import Image, ImageDraw
 
-    tiles = []
+    ims = []
+    for p in panels:
+        a = p.detach().clamp(0, 1).cpu().numpy() if hasattr(p, "detach") else np.asarray(p)
+        if a.dtype != np.uint8:
+            a = (np.clip(a, 0, 1) * 255 + 0.5).astype(np.uint8)
+        ims.append(Image.fromarray(np.ascontiguousarray(a)))
+    w, h = ims[0].size
+    k = max(1, -(-min_width // max(w, 1)))
+    if k > 1:
+        ims = [im.resize((w * k, h * k), Image.Resampling.NEAREST) for im in ims]
+        w, h = w * k, h * k
+    lines = max(len(c.split("\n")) for c in captions)
+    size = int(min(max(w / 14, 11), 26))
+    font = _font(size)
+    band = lines * (size + 4) + 8
+    gap = 4
+    sheet = Image.new("RGB", (len(ims) * w + (len(ims) - 1) * gap, h + band), (255, 255, 255))
+    draw = ImageDraw.Draw(sheet)
+    for i, (im, cap) in enumerate(zip(ims, captions)):
+        x = i * (w + gap)
+        sheet.paste(im, (x, 0))
+        draw.multiline_text((x + 4, h + 4), cap, fill=(0, 0, 0), font=font, spacing=4)
+    return sheet
+
+
+def write_strip(path: Path, gaussians, camera, s_vs, background, backend: str, gt=None) -> None:
+    """Render ``camera`` at each ``s_v`` and write the images side by side as a PNG, the ground
+    truth ``gt`` ([H, W, 3] in [0, 1], optional) first; each panel is captioned below with its
+    s_v and the Gaussians rendered (count and % of the model)."""
+    panels, caps = [], []
+    if gt is not None:
+        panels.append(gt)
+        caps.append(f"ground truth\n{camera.name}")
+    n = max(len(gaussians), 1)
     with torch.no_grad():
         for s in s_vs:
             out = render_lod(gaussians, camera, s, background=background, backend=backend)
-            arr = (out.image.clamp(0, 1).cpu().numpy() * 255 + 0.5).astype(np.uint8)
-            im = Image.fromarray(arr)
-            ImageDraw.Draw(im).text((4, 4), f"s_v={s:g}  {out.n_rendered} G", fill=(255, 255, 0))
-            tiles.append(im)
-    w, h = tiles[0].size
-    strip = Image.new("RGB", (w * len(tiles), h))
-    for i, t in enumerate(tiles):
-        strip.paste(t, (i * w, 0))
-    atomic_save(path, lambda tmp: strip.save(tmp, format="PNG"))
+            panels.append(out.image)
+            caps.append(f"s_v = {s:g}\n{out.n_rendered:,} G ({100 * out.n_rendered / n:.0f} %)")
+    sheet = label_panels(panels, caps)
+    atomic_save(path, lambda tmp: sheet.save(tmp, format="PNG"))
+
+
+def write_training_plot(path: Path, history: dict, max_sv: float) -> None:
+    """``training.png``: loss, PSNR of the training view and rendered fraction against the step,
+    from ``AdaptState.history`` (per step ``loss``, ``psnr``, ``eta`` at the sampled ``s_v``).
+    PSNR and fraction are drawn per step coloured by that step's s_v, with the running mean of
+    the steps near full detail (s_v <= 1 + 0.1 (max_sv - 1)) as a line: the loop renders one
+    random s_v per step, so this is its closest record of "PSNR at s_v = 1"."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    import numpy as np
+
+    loss = np.asarray(history.get("loss", []), dtype=float)
+    steps = np.arange(1, len(loss) + 1)
+    sv = np.asarray(history.get("s_v", [1.0] * len(loss)), dtype=float)[: len(loss)]
+    fig, axes = plt.subplots(1, 3, figsize=(13, 3.4))
+
+    def smooth(x, k=25):
+        if len(x) == 0:
+            return x
+        k = max(1, min(k, len(x)))
+        c = np.cumsum(np.insert(x, 0, 0.0))
+        out = np.empty(len(x))
+        for i in range(len(x)):
+            lo = max(0, i - k + 1)
+            out[i] = (c[i + 1] - c[lo]) / (i + 1 - lo)
+        return out
+
+    ax = axes[0]
+    ax.plot(steps, loss, color="0.75", lw=0.6, label="per step")
+    ax.plot(steps, smooth(loss), color="C0", label="running mean (25)")
+    ax.set_ylabel("loss")
+    ax.legend(fontsize=7)
+    near = sv <= 1.0 + 0.1 * max(max_sv - 1.0, 0.0)
+    sc = None
+    for ax, key, lab in ((axes[1], "psnr", "training-view PSNR (dB)"), (axes[2], "eta", "rendered fraction")):
+        y = np.asarray(history.get(key, []), dtype=float)[: len(loss)]
+        if len(y) == 0:
+            ax.set_ylabel(lab)
+            continue
+        sc = ax.scatter(steps[: len(y)], y, c=sv[: len(y)], s=3, cmap="viridis", vmin=1.0, vmax=max(max_sv, 1.0001))
+        if near[: len(y)].any():
+            yn = y[near[: len(y)]]
+            ax.plot(steps[: len(y)][near[: len(y)]], smooth(yn, 10), color="C3",
+                    label=f"s_v <= {1.0 + 0.1 * max(max_sv - 1.0, 0.0):.2f}, running mean")
+            ax.legend(fontsize=7)
+        ax.set_ylabel(lab)
+    for ax in axes:
+        ax.set_xlabel("step")
+        ax.grid(alpha=0.3)
+    if sc is not None:
+        fig.colorbar(sc, ax=axes[2], label="s_v of the step")
+    fig.tight_layout()
+    atomic_save(path, lambda tmp: fig.savefig(tmp, format="png", dpi=100))
+    plt.close(fig)
+
+
+#: a model whose training-view PSNR is not at least this far above that of a flat image of the
+#: views' mean colour does not belong to the scene (every real pair measured is >= 6.2 dB above
+#: it, fern even at --resolution 8; models from other scenes were 0.8-7.4 dB below it).
+MISMATCH_MARGIN_DB = 1.0
+
+
+@torch.no_grad()
+def scene_match(gaussians, cameras, images, *, background, backend: str, views: int = 3) -> dict:
+    """Evidence that ``gaussians`` was trained on this scene, from up to ``views`` training views.
+
+    Returns ``{"psnr", "flat_psnr", "margin_db", "in_view_fraction", "views"}``: the model's mean
+    PSNR on those views, the mean PSNR of a flat image of each view's mean colour, their
+    difference, and the fraction of Gaussians whose centre lies in any training view (over all
+    ``cameras``). ``margin_db < MISMATCH_MARGIN_DB`` means a model from another scene: any model
+    trained on these views renders them far better than a constant colour.
+    """
+    from .metrics import psnr
+
+    idx = torch.linspace(0, len(cameras) - 1, min(views, len(cameras))).round().long().tolist()
+    pm, pf = [], []
+    for i in idx:
+        gt = images[i]
+        img = render_lod(gaussians, cameras[i], None, background=background, backend=backend).image.clamp(0, 1)
+        pm.append(psnr(img, gt))
+        pf.append(psnr(gt.mean(dim=(0, 1), keepdim=True).expand_as(gt), gt))
+    dev = gaussians.means.device
+    fr = torch.zeros(len(gaussians), dtype=torch.bool, device=dev)
+    for c in cameras:
+        fr |= lod.in_frustum(gaussians.means, c.viewmat.to(dev), c.K.to(dev), c.width, c.height)
+    m, f = sum(pm) / len(pm), sum(pf) / len(pf)
+    return {"psnr": m, "flat_psnr": f, "margin_db": m - f, "in_view_fraction": float(fr.float().mean()),
+            "views": [cameras[i].name for i in idx]}
+
+
+def resolution_note(train_size, eval_size, source: str) -> Optional[str]:
+    """A note when the images are evaluated at another size than the checkpoint was trained at
+    (more than rounding apart), else None: the renders then alias (smaller) or blur (larger), and
+    coarser levels can score *higher* than full detail."""
+    if not train_size:
+        return None
+    tw, th = train_size
+    w, h = eval_size
+    if abs(tw - w) <= 1 and abs(th - h) <= 1:
+        return None
+    ratio = tw / max(w, 1)
+    return (f"the checkpoint was trained at {tw}x{th} ({source}) but is evaluated at {w}x{h} "
+            f"({ratio:.2g}x {'smaller' if ratio > 1 else 'larger'}): 3DGS renders alias at other "
+            "resolutions, so PSNR can rise with s_v; use the training resolution (--resolution) to compare levels")
+
+
+def write_inria_layout(out_dir: Path, model, scene, *, iteration: int, resolution: int, background,
+                       scene_root: Path) -> list[str]:
+    """The official 3DGS model folder inside ``out_dir`` (graphdeco-inria/gaussian-splatting
+    ``scene/__init__.py`` and ``utils/camera_utils.camera_to_JSON``), so SIBR-style viewers and
+    the official scripts open it: ``point_cloud/iteration_N/point_cloud.ply`` in the exact INRIA
+    layout (no ``sigma_d``: SIBR reads a fixed struct per vertex), ``cameras.json`` (id,
+    img_name, width, height, position = camera centre, rotation = camera-to-world, fx, fy in
+    pixels; train views then test views) and ``cfg_args`` (``Namespace(...)`` as the trainer
+    writes it). Returns the paths written, relative to ``out_dir``."""
+    import numpy as np
+
+    rel_ply = Path("point_cloud") / f"iteration_{iteration}" / "point_cloud.ply"
+    (out_dir / rel_ply.parent).mkdir(parents=True, exist_ok=True)
+    write_ply(out_dir / rel_ply, model.with_sigma_d(None).to("cpu"))
+    cams = []
+    for i, c in enumerate(list(scene.train) + list(scene.test)):
+        c2w = np.linalg.inv(c.viewmat.detach().double().cpu().numpy())
+        K = c.K.detach().double().cpu().numpy()
+        cams.append({"id": i, "img_name": Path(c.name).stem, "width": int(c.width), "height": int(c.height),
+                     "position": c2w[:3, 3].tolist(), "rotation": [r.tolist() for r in c2w[:3, :3]],
+                     "fy": float(K[1, 1]), "fx": float(K[0, 0])})
+    with atomic_write(out_dir / "cameras.json", "w") as f:
+        json.dump(cams, f)
+    images = f"images_{resolution}" if resolution > 1 and (Path(scene_root) / f"images_{resolution}").is_dir() else "images"
+    res = 1 if images != "images" else (resolution if resolution > 1 else -1)
+    cfg = (f"Namespace(data_device='cuda', eval=True, images='{images}', model_path='{Path(out_dir).resolve()}', "
+           f"resolution={res}, sh_degree={model.sh_degree}, source_path='{Path(scene_root).resolve()}', "
+           f"white_background={bool(tuple(background) == (1.0, 1.0, 1.0))})")
+    with atomic_write(out_dir / "cfg_args", "w") as f:
+        f.write(cfg)
+    return [str(rel_ply), "cameras.json", "cfg_args"]
+
+
+def input_iteration(ply_path: Path) -> Optional[int]:
+    """N of a ``.../iteration_N/point_cloud.ply`` input, else None."""
+    name = Path(ply_path).parent.name
+    if name.startswith("iteration_"):
+        try:
+            return int(name[len("iteration_"):])
+        except ValueError:
+            return None
+    return None
+
+
+@torch.no_grad()
+def retime_levels(input_model, model, cameras, levels, *, tau, background, backend, repeats: int) -> dict:
+    """Interleaved render timings (:func:`clod_adapter.timing.time_interleaved`) of the input
+    model and of ``model`` at each s_v in ``levels``, on ``cameras``: keys ``"input"`` and each
+    level."""
+    from .timing import time_interleaved
+
+    jobs_ = {"input": [lambda c=c: render_lod(input_model, c, None, tau=tau, background=background,
+                                              backend=backend, estimator="paper") for c in cameras]}
+    for s in levels:
+        jobs_[s] = [lambda c=c, s=s: render_lod(model, c, s, tau=tau, background=background, backend=backend,
+                                                estimator="paper") for c in cameras]
+    return time_interleaved(jobs_, repeats=repeats, warmup=1)
 
 
 def run(
@@ -249,8 +385,24 @@ def run(
     sanitize: bool = False,
     deterministic: bool = False,
     iterations_from_state: bool = False,
+    force: bool = False,
+    allow_mismatch: bool = False,
+    iteration: Optional[int] = None,
+    layout: str = "clod",
+    tensorboard: bool = False,
+    timing_repeats: int = 3,
 ) -> dict:
     """Run the whole job; returns the metrics dict (also written to ``metrics.json``).
+
+    ``ply_path`` is a model file, an official 3DGS model folder (``point_cloud/iteration_N/``,
+    the largest N unless ``iteration``) or a folder holding one .ply
+    (:func:`clod_adapter.io.load.resolve_model_path`). ``out_dir`` must be empty or new unless
+    ``force`` (replace files of the same name) or ``resume``. A model that renders the training
+    views no better than a flat colour (:func:`scene_match`) is refused as coming from another
+    scene unless ``allow_mismatch``. ``layout="inria"`` also writes the official model folder
+    (:func:`write_inria_layout`); ``tensorboard`` logs loss, PSNR, s_v and rendered fraction per
+    step to ``out_dir/tensorboard`` (needs the ``tensorboard`` package). ``timing_repeats``:
+    interleaved timing rounds of the final ms/frame (:mod:`clod_adapter.timing`).
 
     ``sanitize``: drop Gaussians with NaN/Inf values and clamp +Inf opacity logits (see
     :func:`check_finite`) instead of failing on them.
@@ -277,7 +429,9 @@ def run(
         before anything was written).
     """
     kw = dict(resolution=resolution, device=device, resume=resume, progress=progress, log=log,
-              sanitize=sanitize, iterations_from_state=iterations_from_state)
+              sanitize=sanitize, iterations_from_state=iterations_from_state, force=force,
+              allow_mismatch=allow_mismatch, iteration=iteration, layout=layout, tensorboard=tensorboard,
+              timing_repeats=timing_repeats)
     with StopFlag(abortable=True) as stop, deterministic_mode(deterministic):
         try:
             return _run(ply_path, scene_root, out_dir, cfg, stop=stop, **kw)
@@ -373,13 +527,23 @@ def load_resume_state(state_path: Path, cfg: AdaptConfig, *, input_sha256: str, 
 
 def _run(ply_path, scene_root, out_dir, cfg: AdaptConfig, *, stop: StopFlag, resolution: int,
          device: str, resume: bool, progress: bool, log, sanitize: bool,
-         iterations_from_state: bool) -> dict:
+         iterations_from_state: bool, force: bool, allow_mismatch: bool, iteration: Optional[int],
+         layout: str, tensorboard: bool, timing_repeats: int) -> dict:
     t_start = time.perf_counter()
     ply_path, scene_root, out_dir = Path(ply_path), Path(scene_root), Path(out_dir)
-    if not ply_path.is_file():
+    if layout not in ("clod", "inria"):
+        raise InputError(f"--layout must be clod or inria, got {layout!r}")
+    if not ply_path.exists():
         raise InputError(f"{ply_path}: no such file")
+    ply_path = resolve_model_path(ply_path, iteration)
     if not scene_root.is_dir():
         raise InputError(f"{scene_root}: no such scene folder")
+    if tensorboard:
+        try:
+            from torch.utils.tensorboard import SummaryWriter  # noqa: F401
+        except Exception:
+            raise InputError("--tensorboard: the tensorboard package is not installed "
+                             "(pip install -e \".[tensorboard]\")") from None
     dev = pick_device(device)
     backend = "gsplat" if dev.type == "cuda" else "cpu"
     gaussians = load_model(ply_path, allow_nonfinite=True)
@@ -393,7 +557,7 @@ def _run(ply_path, scene_root, out_dir, cfg: AdaptConfig, *, stop: StopFlag, res
     state_path = out_dir / STATE_NAME
     if resume and not state_path.is_file():
         raise InputError(f"{state_path}: no state to resume from")
-    check_output_dir(out_dir, [ply_path], create=False)  # checks only: nothing written yet
+    check_output_dir(out_dir, [ply_path], create=False, force=force, resume=resume)  # checks only
     input_sha256, scene_fp = file_sha256(ply_path), scene_key(scene.train)
     if resume:
         resumed = load_resume_state(state_path, cfg, input_sha256=input_sha256, scene_fp=scene_fp,
@@ -410,10 +574,25 @@ def _run(ply_path, scene_root, out_dir, cfg: AdaptConfig, *, stop: StopFlag, res
     if not bool(fr_any.any()):
         raise InputError(f"{ply_path}: no Gaussian lies inside any training view of {scene_root}; "
                          "is the model from another scene?")
-    check_output_dir(out_dir, [ply_path])  # every input is valid: create the output folder
-    log(f"clod-adapt: {len(gaussians):,} Gaussians (SH degree {gaussians.sh_degree}), "
-        f"{len(scene.train)} train / {len(scene.test)} test views at "
-        f"{scene.train[0].width}x{scene.train[0].height}, device {dev}")
+    match = scene_match(gaussians, scene.train, train_imgs, background=cfg.background, backend=backend)
+    if match["margin_db"] < MISMATCH_MARGIN_DB:
+        what = (f"{ply_path}: the model does not render {scene_root}: {match['psnr']:.2f} dB PSNR on "
+                f"{len(match['views'])} training views, not above a flat image of their mean colour "
+                f"({match['flat_psnr']:.2f} dB); {100 * match['in_view_fraction']:.0f} % of its Gaussians "
+                "lie in any training view")
+        if not allow_mismatch:
+            raise InputError(what + "; is the model from another scene? (--allow-mismatch goes on anyway)")
+        log(f"clod-adapt: warning: {what}; going on (--allow-mismatch)")
+    notes = []
+    size = (scene.train[0].width, scene.train[0].height)
+    note = resolution_note(training_size(ply_path), size, "cameras.json of the model folder")
+    if note:
+        notes.append(note)
+        log(f"clod-adapt: note: {note}")
+    check_output_dir(out_dir, [ply_path], force=True)  # every input is valid: create the output folder
+    log(f"clod-adapt: {ply_path}: {len(gaussians):,} Gaussians (SH degree {gaussians.sh_degree}); "
+        f"{len(scene.train)} train / {len(scene.test)} test views at {size[0]}x{size[1]}; device {dev}, "
+        f"{torch.get_num_threads()} threads; training-view PSNR {match['psnr']:.2f} dB")
 
     bg = cfg.background
     input_eval = evaluate_level(gaussians, test_cams, test_imgs, None, background=bg, backend=backend)
@@ -443,17 +622,36 @@ def _run(ply_path, scene_root, out_dir, cfg: AdaptConfig, *, stop: StopFlag, res
         log(f"\nclod-adapt: interrupted at iteration {st.iteration}; state saved to {state_path} "
             f"(continue with --resume)")
 
-    on_step = None
+    step_hooks = []
     if os.environ.get(PROGRESS_FILE_ENV):
         hook_path = Path(os.environ[PROGRESS_FILE_ENV])
+        step_hooks.append(lambda st: hook_path.write_text(f"{st.iteration}\n"))
+    writer = None
+    if tensorboard:
+        from torch.utils.tensorboard import SummaryWriter
 
+        writer = SummaryWriter(log_dir=str(out_dir / TENSORBOARD_DIR))
+
+        def tb_step(st):
+            h = st.history
+            for key in ("loss", "psnr", "eta", "s_v"):
+                if h.get(key):
+                    writer.add_scalar(f"train/{'rendered_fraction' if key == 'eta' else key}", h[key][-1], st.iteration)
+        step_hooks.append(tb_step)
+    on_step = None
+    if step_hooks:
         def on_step(st):
-            hook_path.write_text(f"{st.iteration}\n")
+            for f in step_hooks:
+                f(st)
 
     t_train = time.perf_counter()
     it0 = state.iteration
-    finished = adapt(state, scene.train, train_imgs, cfg, backend=backend, progress=progress,
-                     on_interrupt=on_interrupt, stop=stop, on_step=on_step)
+    try:
+        finished = adapt(state, scene.train, train_imgs, cfg, backend=backend, progress=progress,
+                         on_interrupt=on_interrupt, stop=stop, on_step=on_step)
+    finally:
+        if writer is not None:
+            writer.close()
     if not finished:
         raise KeyboardInterrupt
     train_s = time.perf_counter() - t_train
@@ -468,12 +666,26 @@ def _run(ply_path, scene_root, out_dir, cfg: AdaptConfig, *, stop: StopFlag, res
                             backend=backend)
     budget_evals = [evaluate_level(model, test_cams, test_imgs, None, tau=cfg.tau, background=bg,
                                    backend=backend, budget=float(b)) for b in budget_levels(cfg.max_sv)]
+    timing = None
+    if timing_repeats > 0:  # ms/frame of the input and every level, interleaved (load hits all alike)
+        timing = retime_levels(gaussians, model, test_cams, levels, tau=cfg.tau, background=bg,
+                               backend=backend, repeats=timing_repeats)
     stop.set_abortable(False)
+    level_dicts = [m.to_dict() for m in evals]
+    input_model = {"psnr": input_eval.psnr, "ssim": input_eval.ssim,
+                   "gaussians": input_eval.gaussians, "ms_per_frame": input_eval.ms_per_frame}
+    if timing is not None:
+        for d, t in [(input_model, timing["input"])] + [(d, timing[d["s_v"]]) for d in level_dicts]:
+            d["ms_per_frame"] = t["ms_total"]
+            d["ms_per_frame_min"], d["ms_per_frame_max"] = t["ms_total_min"], t["ms_total_max"]
+            if "select_ms" in d:
+                d["select_ms"], d["raster_ms"] = t["ms_select"], t["ms_raster"]
     metrics = {
         "version": __version__,
         "input_ply": str(ply_path),
         "scene": str(scene_root),
         "resolution": resolution,
+        "image_size": list(size),
         "device": str(dev),
         "threads": torch.get_num_threads(),
         "num_gaussians": len(model),
@@ -482,42 +694,65 @@ def _run(ply_path, scene_root, out_dir, cfg: AdaptConfig, *, stop: StopFlag, res
         "config": asdict(cfg),
         "train_seconds": round(train_s, 2),
         "seconds_per_iteration": round(train_s / max(state.iteration - it0, 1), 4),
-        "input_model": {"psnr": input_eval.psnr, "ssim": input_eval.ssim,
-                        "gaussians": input_eval.gaussians, "ms_per_frame": input_eval.ms_per_frame},
+        "input_model": input_model,
+        "scene_match": match,
         "init_s_v1": init_s_v1,
         "deterministic": bool(deterministic_enabled()),
-        "levels": [m.to_dict() for m in evals],
+        "timing": {"method": "interleaved" if timing is not None else "single pass",
+                   "repeats": timing_repeats, "omp_wait_policy": os.environ.get("OMP_WAIT_POLICY"),
+                   "what": "median over rounds of the median over test views of LoD selection + "
+                           "rasterisation wall time (ms); *_min/*_max: smallest/largest round; "
+                           "budgets: single pass"},
+        "levels": level_dicts,
         "budgets": [m.to_dict() for m in budget_evals],
         "dead_sigma_d": int((model.sigma_d <= 0).sum()),
+        "notes": notes,
     }
     if stop.stop:  # a signal just after the evaluation: nothing written yet, stop here
         log(f"\nclod-adapt: interrupted after training; state saved to {state_path} (continue with --resume)")
         raise KeyboardInterrupt
     # each output atomically; a signal from here on only lets them complete
+    written = [PLY_NAME, STATE_NAME, METRICS_NAME, STRIP_NAME, TRAINING_PLOT_NAME]
     write_ply(out_dir / PLY_NAME, model.to("cpu"))
     with atomic_write(out_dir / METRICS_NAME, "w") as f:
         json.dump(metrics, f, indent=2)
-    write_strip(out_dir / STRIP_NAME, model, test_cams[0], levels, bg, backend)
+    write_strip(out_dir / STRIP_NAME, model, test_cams[0], levels, bg, backend, gt=test_imgs[0])
+    write_training_plot(out_dir / TRAINING_PLOT_NAME, state.history, cfg.max_sv)
+    if layout == "inria":
+        it_n = (input_iteration(ply_path) or 0) + state.iteration
+        written += write_inria_layout(out_dir, model, scene, iteration=it_n, resolution=resolution,
+                                      background=bg, scene_root=scene_root)
+    if tensorboard:
+        written.append(TENSORBOARD_DIR + "/")
     if stop.stop:
         log("clod-adapt: signal received while writing the outputs; they were completed first")
     metrics["wall_seconds"] = round(time.perf_counter() - t_start, 1)
     log(format_summary(metrics))
-    log(f"clod-adapt: wrote {out_dir / PLY_NAME}, {state_path.name}, {METRICS_NAME}, {STRIP_NAME} "
-        f"in {metrics['wall_seconds']:.0f} s")
+    log(f"clod-adapt: wrote {', '.join(written)} to {out_dir} in {metrics['wall_seconds']:.0f} s "
+        f"({metrics['seconds_per_iteration']:.3f} s per iteration)")
     return metrics
 
 
 def format_summary(metrics: dict) -> str:
-    """A short text table of ``metrics`` (input model, then each s_v)."""
+    """A short text table of ``metrics`` (input model, then each s_v); ms/frame is the median of
+    interleaved rounds, with the smallest-largest round when measured."""
     n = metrics["num_gaussians"]
     im = metrics["input_model"]
-    lines = [f"{'model':>10} {'PSNR':>7} {'SSIM':>7} {'Gaussians':>10} {'%':>6} {'ms/frame':>9}",
+
+    def ms(d):
+        if "ms_per_frame_min" in d:
+            return f"{d['ms_per_frame']:9.1f} ({d['ms_per_frame_min']:.1f}-{d['ms_per_frame_max']:.1f})"
+        return f"{d['ms_per_frame']:9.1f}"
+
+    lines = [f"{'model':>10} {'PSNR':>7} {'SSIM':>7} {'Gaussians':>10} {'%':>6} {'ms/frame (range)':>16}",
              f"{'input':>10} {im['psnr']:7.2f} {im['ssim']:7.4f} {im['gaussians']:10.0f} "
-             f"{100 * im['gaussians'] / n:6.1f} {im['ms_per_frame']:9.1f}"]
+             f"{100 * im['gaussians'] / n:6.1f} {ms(im)}"]
     for lv in metrics["levels"]:
         lines.append(f"{'s_v=' + format(lv['s_v'], 'g'):>10} {lv['psnr']:7.2f} {lv['ssim']:7.4f} "
-                     f"{lv['gaussians']:10.0f} {100 * lv['fraction']:6.1f} {lv['ms_per_frame']:9.1f}")
+                     f"{lv['gaussians']:10.0f} {100 * lv['fraction']:6.1f} {ms(lv)}")
     for lv in metrics.get("budgets", []):
         lines.append(f"{'b=' + format(100 * lv['budget'], '.3g') + '%':>10} {lv['psnr']:7.2f} {lv['ssim']:7.4f} "
-                     f"{lv['gaussians']:10.0f} {100 * lv['fraction']:6.1f} {lv['ms_per_frame']:9.1f}")
+                     f"{lv['gaussians']:10.0f} {100 * lv['fraction']:6.1f} {ms(lv)}")
+    for note in metrics.get("notes", []):
+        lines.append(f"note: {note}")
     return "\n".join(lines)

@@ -16,8 +16,11 @@
 * ``pretrained``: the pretrained model in full (reference);
 
 scores each render (PSNR, SSIM in the 3DGS form, LPIPS-alex when weights exist), times it
-(median over views of the per-frame wall time, split into LoD selection and rasterisation, ms)
-and measures popping (:func:`popping_curve`). Outputs in ``out_dir`` (each written atomically):
+(:mod:`clod_adapter.timing`: after the quality pass, which warms up, ``timing_repeats`` rounds
+render every method x setting x view once in a shuffled order, so load from other processes hits
+all methods alike; ms = median over rounds of the median over views, split into LoD selection
+and rasterisation, with the smallest and largest round as the spread) and measures popping
+(:func:`popping_curve`). Outputs in ``out_dir`` (each written atomically):
 
 * ``report.csv``: one row per method x setting, aggregated over views (:data:`CSV_COLUMNS`);
 * ``report_per_view.csv``: one row per method x setting x view (:data:`PER_VIEW_COLUMNS`);
@@ -37,13 +40,15 @@ gaussians   mean number of Gaussians handed to the rasteriser per view
 fraction    ``gaussians`` / size of the rendered model
 psnr, ssim  mean over views (dB; 3DGS SSIM)
 lpips       mean LPIPS-alex v0.1 over views (empty without weights)
-ms_total    median over views of ms_select + ms_raster per frame (ms)
-ms_select   median LoD selection / baseline selection time (ms)
-ms_raster   median rasterisation time (ms)
+ms_total    ms_select + ms_raster per frame: median over timing rounds of the median over views (ms)
+ms_select   LoD selection / baseline selection time, the same medians (ms)
+ms_raster   rasterisation time, the same medians (ms)
 bytes       mean bytes of the rendered subset: gaussians x 4 x properties of the .ply layout
             (float32; 62 properties for SH degree 3 with normals, +1 for ``sigma_d`` for the
             adapted model)
 views       number of views aggregated (per-view CSV: ``view``, the image name, instead)
+ms_min      smallest per-round ms_total (the spread of the timing; = ms_total with one round)
+ms_max      largest per-round ms_total
 =========== ====================================================================================
 """
 from __future__ import annotations
@@ -74,7 +79,7 @@ from .lod_render import render_lod
 from .metrics import psnr, ssim
 
 CSV_COLUMNS = ("method", "setting", "s_v", "budget", "gaussians", "fraction", "psnr", "ssim", "lpips",
-               "ms_total", "ms_select", "ms_raster", "bytes", "views")
+               "ms_total", "ms_select", "ms_raster", "bytes", "views", "ms_min", "ms_max")
 PER_VIEW_COLUMNS = ("method", "setting", "view", "s_v", "budget", "gaussians", "fraction", "psnr", "ssim",
                     "lpips", "ms_total", "ms_select", "ms_raster", "bytes")
 BASELINES = ("constant_sigma", "lightgaussian", "random")
@@ -206,6 +211,14 @@ class Sample:
     s_v: Optional[float]
     select_ms: float
     raster_ms: float
+    again: Optional[Callable[[], "Sample"]] = None  # the same render again (for the timing rounds)
+
+
+def _sample(fn: Callable[[], Sample]) -> Sample:
+    """Run a render once and remember how to repeat it (:mod:`clod_adapter.timing`)."""
+    s = fn()
+    s.again = fn
+    return s
 
 
 def _render_selection(g: Gaussians, cam, sel: Selection, bg, backend) -> Sample:
@@ -223,6 +236,7 @@ def _render_lod(g: Gaussians, cam, bg, backend, tau, s_v=None, budget=None) -> S
 class _Rows:
     per_view: list = field(default_factory=list)
     rows: list = field(default_factory=list)
+    redo: dict = field(default_factory=dict)  # row index -> per-view render callables (timing)
 
 
 def _score(rows: _Rows, method: str, setting: str, budget, samples: list[Sample], cams, gts,
@@ -244,10 +258,29 @@ def _score(rows: _Rows, method: str, setting: str, budget, samples: list[Sample]
            "gaussians": mean("gaussians"), "fraction": mean("fraction"), "psnr": mean("psnr"),
            "ssim": mean("ssim"), "lpips": mean("lpips"), "ms_total": med("ms_total"),
            "ms_select": med("ms_select"), "ms_raster": med("ms_raster"), "bytes": mean("bytes"),
-           "views": len(pv)}
+           "views": len(pv), "ms_min": med("ms_total"), "ms_max": med("ms_total")}
+    if all(s.again is not None for s in samples):
+        rows.redo[len(rows.rows)] = ([s.again for s in samples], len(rows.per_view))
     rows.per_view.extend(pv)
     rows.rows.append(agg)
     return agg
+
+
+def _retime(rows: _Rows, repeats: int, seed: int, on_render=None) -> None:
+    """Replace the quality pass's times of every row with interleaved timing rounds."""
+    from .timing import time_interleaved
+
+    if repeats <= 0 or not rows.redo:
+        return
+    res = time_interleaved({i: fns for i, (fns, _) in rows.redo.items()}, repeats=repeats, warmup=0,
+                           seed=seed, on_render=on_render)
+    for i, t in res.items():
+        r = rows.rows[i]
+        r.update(ms_total=t["ms_total"], ms_select=t["ms_select"], ms_raster=t["ms_raster"],
+                 ms_min=t["ms_total_min"], ms_max=t["ms_total_max"])
+        start = rows.redo[i][1]
+        for j, pv in enumerate(t["per_view"]):
+            rows.per_view[start + j].update(pv)
 
 
 # --- popping ----------------------------------------------------------------------------------
@@ -343,8 +376,12 @@ _STYLE = {"clod": ("C0", "-", "."), "clod_budget": ("C0", "", "o"), "constant_si
           "dlod_finetuned": ("C5", "-.", "P"), "pretrained": ("k", "", "*")}
 
 
-def _plot_quality(rows: list[dict], x: str, xlabel: str, path: Path, extra=None,
+def _plot_quality(rows: list[dict], x: str, xlabel: str, path: Path, extra=None, time_axis: bool = False,
                   mark: Optional[tuple] = None) -> None:
+    """Quality against ``x``. ``time_axis``: markers only, each with a horizontal bar from the
+    fastest to the slowest timing round, never joined by lines (a line across budgets would turn
+    timing noise into a trend), and the x axis log-scaled. ``mark``: (x, label) of a dotted
+    vertical line (the coarsest trained level, max_sv^-1.5)."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -355,17 +392,33 @@ def _plot_quality(rows: list[dict], x: str, xlabel: str, path: Path, extra=None,
     fig, axes = plt.subplots(1, ncol, figsize=(4.2 * ncol, 3.4), squeeze=False)
     for ax, m in zip(axes[0], metrics):
         for method in METHODS:
-            rs = sorted((r for r in rows if r["method"] == method and r[m] is not None), key=lambda r: r[x])
+            # ordered by Gaussian count, so the sweep's line follows the level of detail
+            rs = sorted((r for r in rows if r["method"] == method and r[m] is not None and r[x] is not None),
+                        key=lambda r: (r["gaussians"], r[x]))
             if not rs:
                 continue
-            c, ls, mk = _STYLE[method]
-            ax.plot([r[x] for r in rs], [r[m] for r in rs], color=c, linestyle=ls or "none", marker=mk,
-                    label=method, ms=6 if method != "pretrained" else 11)
+            c, ls, mk = _STYLE.get(method, ("C4", "-", "d"))
+            ms = 6 if method != "pretrained" else 11
+            xs, ys = [r[x] for r in rs], [r[m] for r in rs]
+            if time_axis:
+                lo = [max(r[x] - (r.get("ms_min") if r.get("ms_min") is not None else r[x]), 0.0) for r in rs]
+                hi = [max((r.get("ms_max") if r.get("ms_max") is not None else r[x]) - r[x], 0.0) for r in rs]
+                ax.errorbar(xs, ys, xerr=[lo, hi], color=c, linestyle="none", marker=mk, ms=ms * 0.8,
+                            capsize=2, elinewidth=0.8, label=method)
+            else:
+                ax.plot(xs, ys, color=c, linestyle=ls or "none", marker=mk, label=method, ms=ms)
         if mark is not None:
             ax.axvline(mark[0], color="0.4", linestyle=":", linewidth=1)
             ax.annotate(mark[1], (mark[0], 0.02), xycoords=("data", "axes fraction"), fontsize=7,
                         color="0.3", rotation=90, ha="right", va="bottom")
-        ax.set_xlabel(xlabel)
+        ax.set_xlabel(xlabel, fontsize=8 if time_axis else None)
+        if time_axis:
+            from matplotlib.ticker import LogLocator, ScalarFormatter
+
+            ax.set_xscale("log")
+            ax.xaxis.set_major_locator(LogLocator(subs=(1.0, 2.0, 5.0)))
+            ax.xaxis.set_major_formatter(ScalarFormatter())
+            ax.xaxis.set_minor_formatter(matplotlib.ticker.NullFormatter())
         ax.set_ylabel({"psnr": "PSNR (dB)", "ssim": "SSIM", "lpips": "LPIPS-alex (lower is better)"}[m])
         ax.grid(alpha=0.3)
     axes[0][0].legend(fontsize=7)
@@ -381,6 +434,10 @@ def _plot_time_curve(rows: list[dict]):
         sv = [r["s_v"] for r in rs]
         for k, lab in (("ms_total", "total"), ("ms_select", "LoD selection"), ("ms_raster", "rasterisation")):
             ax.plot(sv, [r[k] for r in rs], marker=".", label=lab)
+        if rs and all(r.get("ms_min") is not None for r in rs):
+            ax.fill_between(sv, [r["ms_min"] for r in rs], [r["ms_max"] for r in rs], color="C0", alpha=0.2,
+                            label="total: fastest-slowest round")
+        ax.set_ylim(bottom=0)
         ax.set_xlabel("s_v")
         ax.set_ylabel("median ms per frame")
         ax.set_title("render time, clod sweep", fontsize=9)
@@ -446,15 +503,19 @@ def format_markdown(report: dict) -> str:
     ref = next((r for r in rows if r["method"] == "pretrained"), None)
     if ref is not None:
         out += ["", f"Pretrained, full: {fmt(ref['psnr'], '.2f')} / {fmt(ref['ssim'], '.3f')} / "
-                f"{fmt(ref['lpips'], '.3f')} ({ref['gaussians']:,.0f} Gaussians, {fmt(ref['ms_total'], '.0f')} ms)."]
-    out += ["", "Adapted model over s_v (median ms per frame = LoD selection + rasterisation):", "",
-            "| s_v | Gaussians | % | PSNR | SSIM | LPIPS | ms | ms select | ms raster | MB rendered |",
-            "|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
+                f"{fmt(ref['lpips'], '.3f')} ({ref['gaussians']:,.0f} Gaussians, {fmt(ref['ms_total'], '.0f')} ms, "
+                f"rounds {fmt(ref.get('ms_min'), '.0f')}-{fmt(ref.get('ms_max'), '.0f')} ms)."]
+    t = report.get("timing", {})
+    out += ["", f"Adapted model over s_v (ms per frame = LoD selection + rasterisation; median of "
+            f"{t.get('repeats', 1) or 1} interleaved round(s) of the median over views; range: fastest-slowest round):", "",
+            "| s_v | Gaussians | % | PSNR | SSIM | LPIPS | ms | ms range | ms select | ms raster | MB rendered |",
+            "|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
     for r in rows:
         if r["method"] == "clod":
             out.append(f"| {r['s_v']:.2f} | {r['gaussians']:,.0f} | {100 * r['fraction']:.1f} | "
                        f"{fmt(r['psnr'], '.2f')} | {fmt(r['ssim'], '.4f')} | {fmt(r['lpips'], '.4f')} | "
-                       f"{fmt(r['ms_total'], '.1f')} | {fmt(r['ms_select'], '.1f')} | "
+                       f"{fmt(r['ms_total'], '.1f')} | {fmt(r.get('ms_min'), '.1f')}-{fmt(r.get('ms_max'), '.1f')} | "
+                       f"{fmt(r['ms_select'], '.1f')} | "
                        f"{fmt(r['ms_raster'], '.1f')} | {r['bytes'] / 1e6:.2f} |")
     st = report.get("storage")
     if st:
@@ -471,26 +532,16 @@ def format_markdown(report: dict) -> str:
     return "\n".join(out) + "\n"
 
 
-def check_report_dir(out_dir: Path, inputs: Sequence[Path]) -> None:
-    """Create ``out_dir`` (after inputs are checked) and refuse outputs overwriting an input.
+def check_report_dir(out_dir: Path, inputs: Sequence[Path], *, force: bool = True) -> None:
+    """Create ``out_dir`` (after inputs are checked) and refuse outputs overwriting an input (and,
+    unless ``force``, a non-empty folder): :func:`clod_adapter.jobs.check_output_dir`.
 
     Raises:
-        clod_adapter.pipeline.InputError: not creatable / writable or an output equals an input.
+        clod_adapter.jobs.InputError: not creatable / writable or an output equals an input.
     """
-    from .pipeline import InputError
+    from .jobs import check_output_dir
 
-    for inp in inputs:
-        for n in OUTPUT_NAMES:
-            if (out_dir / n).resolve() == Path(inp).resolve():
-                raise InputError(f"{out_dir / n}: output path equals the input {inp}; choose another -o")
-    if out_dir.exists() and not out_dir.is_dir():
-        raise InputError(f"{out_dir}: exists and is not a directory")
-    try:
-        out_dir.mkdir(parents=True, exist_ok=True)
-    except OSError as e:
-        raise InputError(f"{out_dir}: cannot create output directory ({e.strerror})") from None
-    if not os.access(out_dir, os.W_OK | os.X_OK):
-        raise InputError(f"{out_dir}: output directory is not writable")
+    check_output_dir(out_dir, inputs, OUTPUT_NAMES + ("report.md",), force=force)
 
 
 # --- the report -----------------------------------------------------------------------------
@@ -515,6 +566,8 @@ def evaluate_report(
     device: Union[str, torch.device] = "cpu",
     progress: bool = True,
     log: Callable[[str], None] = print,
+    timing_repeats: int = 3,
+    notes: Sequence[str] = (),
     dlod_iterations: int = 0,
     merge_tool: Optional[str] = None,
 ) -> dict:
@@ -538,29 +591,31 @@ def evaluate_report(
         seed: seed of the random baseline.
         tau: the LoD threshold (default: the adapted model's).
         background: [3] RGB behind the scene.
+        device: where to render (CUDA renders with gsplat).
+        progress: show progress (a tqdm bar on a terminal, else a plain line every 10 %).
+        log: where the final text table goes (None: nowhere).
+        timing_repeats: interleaved timing rounds after the quality pass
+            (:mod:`clod_adapter.timing`); 0 keeps the quality pass's own (single) times.
+        notes: extra notes for the report (e.g. a resolution warning).
         dlod_iterations: > 0 adds ``dlod_finetuned``: for each budget below 1, the pretrained
             model cut by the best static ranking of this report (highest mean PSNR at that
             budget among :data:`RANKING_BASELINES`, global top share of the model) and
             fine-tuned for this many steps (:func:`clod_adapter.dlod.finetune_subset`).
         merge_tool: a splat-transform executable: adds ``merge``
             (:func:`clod_adapter.baselines.merge_decimate`); None skips it.
-        device: where to render (CUDA renders with gsplat).
-        progress: show a tqdm bar.
-        log: where the final text table goes (None: nowhere).
 
     Returns:
         the report dict (also ``report.json``): ``rows`` (aggregated, :data:`CSV_COLUMNS`),
         ``per_view``, ``popping`` (:func:`popping_curve`), ``settings`` and ``notes``.
     """
-    from tqdm.auto import tqdm
-
+    from .jobs import progress_bar
     from .pipeline import sv_levels, write_strip
 
     t_start = time.perf_counter()
     out_dir = Path(out_dir)
     dev = torch.device(device)
     backend = "gsplat" if dev.type == "cuda" else "cpu"
-    notes = []
+    notes = list(notes)
     ply_path = None
     if not isinstance(adapted, Gaussians):
         ply_path = Path(adapted)
@@ -568,7 +623,8 @@ def evaluate_report(
     if adapted.sigma_d is None:
         raise ValueError("evaluate_report: the adapted model has no sigma_d (run clod-adapt first)")
     if max_sv is None:
-        max_sv = (max_sv_from_state(ply_path) if ply_path is not None else None) or 5.0
+        max_sv = (adapted.lod.max_sv if adapted.lod is not None else None) \
+            or (max_sv_from_state(ply_path) if ply_path is not None else None) or 5.0
     if pretrained is None:
         base = adapted.with_sigma_d(None)
         notes.append("no pretrained model given: baselines cut the adapted model's own attributes")
@@ -595,28 +651,30 @@ def evaluate_report(
     pop_svs = [float(x) for x in np.linspace(1.0, s_vs[-1], popping_steps)]
     strip_svs = sv_levels(max_sv)
     extra = len(BASELINES) + (1 if merge_tool else 0) + (1 if dlod_iterations > 0 else 0)
-    n_renders = len(cams) * (len(s_vs) + 1 + len(budgets) * (1 + extra)) + popping_steps + 2
-    bar = tqdm(total=n_renders, desc="clod-eval", unit="render", disable=not progress, leave=False)
+    n_renders = len(cams) * (len(s_vs) + 1 + len(budgets) * (1 + extra)) * (1 + max(timing_repeats, 0))
+    n_renders += popping_steps + 2
+    bar = progress_bar(n_renders, "clod-eval", unit="render", disable=not progress, leave=False)
     tick = lambda: bar.update(1)  # noqa: E731
     R = _Rows()
     bpg_a, bpg_b = bytes_per_gaussian(adapted), bytes_per_gaussian(base)
     na, nb = len(adapted), len(base)
 
-    def run(fn):
+    def run(fn):  # fn(cam) must bind its loop variables (s=s, b=b): it is called again for timing
         out = []
         for cam in cams:
-            out.append(fn(cam))
+            out.append(_sample(lambda cam=cam: fn(cam)))
             tick()
         return out
 
-    # one untimed render first: the first call pays one-off costs (extension load, allocator)
+    # one untimed render first: the first call pays one-off costs (extension load, allocator);
+    # the quality pass below is the warm-up of the interleaved timing rounds
     _render_lod(base, cams[0], bg, backend, tau)
     t0 = time.perf_counter()
     _score(R, "pretrained", "full", None, run(lambda c: _render_lod(base, c, bg, backend, tau)),
            cams, gts, nb, bpg_b, lpips_fn)
     for s in s_vs:
         bar.set_postfix_str(f"clod s_v={s:.2f}")
-        _score(R, "clod", f"s_v={s:g}", None, run(lambda c: _render_lod(adapted, c, bg, backend, tau, s_v=s)),
+        _score(R, "clod", f"s_v={s:g}", None, run(lambda c, s=s: _render_lod(adapted, c, bg, backend, tau, s_v=s)),
                cams, gts, na, bpg_a, lpips_fn)
     t_sig = time.perf_counter()
     lg_scores = lightgaussian_significance(base, train_cams)
@@ -629,12 +687,13 @@ def evaluate_report(
         from .budget import critical_s_v
 
         d_ref = reference_distances(base, train_cams)
-        global_scores["constant_sigma"] = critical_s_v(base.opacities, d_ref, torch.full_like(d_ref, sigma_c), tau_b).float()
+        global_scores["constant_sigma"] = critical_s_v(base.opacities, d_ref, torch.full_like(d_ref, sigma_c),
+                                                       tau_b).float()
     dlod_levels, dlod_choice, merge_sizes = {}, {}, {}
     for b in budgets:
         lab = budget_label(b)
         bar.set_postfix_str(lab)
-        clod_s = run(lambda c: _render_lod(adapted, c, bg, backend, tau, budget=b))
+        clod_s = run(lambda c, b=b: _render_lod(adapted, c, bg, backend, tau, budget=b))
         _score(R, "clod_budget", lab, b, clod_s, cams, gts, na, bpg_a, lpips_fn)
         ks = [s.n for s in clod_s]  # the baselines render the same per-view counts
         sel_fns = {
@@ -645,7 +704,8 @@ def evaluate_report(
         for name in BASELINES:
             samples = []
             for cam, k in zip(cams, ks):
-                samples.append(_render_selection(base, cam, sel_fns[name](cam, k), bg, backend))
+                samples.append(_sample(lambda cam=cam, k=k, sel=sel_fns[name]:
+                                       _render_selection(base, cam, sel(cam, k), bg, backend)))
                 tick()
             _score(R, name, lab, b, samples, cams, gts, nb, bpg_b, lpips_fn)
         share = (b if isinstance(b, float) else b / max(nb, 1))
@@ -660,7 +720,7 @@ def evaluate_report(
                 merged = None
             if merged is not None:
                 merge_sizes[lab] = len(merged)
-                _score(R, "merge", lab, b, run(lambda c: _render_lod(merged, c, bg, backend, tau)),
+                _score(R, "merge", lab, b, run(lambda c, m=merged: _render_lod(m, c, bg, backend, tau)),
                        cams, gts, nb, bpg_b, lpips_fn)
         if dlod_iterations > 0 and share < 1.0:
             from .dlod import finetune_subset, global_cut
@@ -672,8 +732,10 @@ def evaluate_report(
             level = finetune_subset(base.subset(keep), train_cams, train_gts, iterations=dlod_iterations,
                                     seed=seed, background=bg, backend=backend)
             dlod_levels[lab], dlod_choice[lab] = len(level), best
-            _score(R, "dlod_finetuned", lab, b, run(lambda c: _render_lod(level, c, bg, backend, tau)),
+            _score(R, "dlod_finetuned", lab, b, run(lambda c, m=level: _render_lod(m, c, bg, backend, tau)),
                    cams, gts, nb, bpg_b, lpips_fn)
+    bar.set_postfix_str(f"timing x{timing_repeats}")
+    _retime(R, timing_repeats, seed, on_render=tick)
     bar.set_postfix_str("popping")
     pop = popping_curve(adapted, cams[0], pop_svs, discrete_model=base, discrete_scores=lg_scores, tau=tau,
                         background=bg, backend=backend, on_render=tick)
@@ -697,6 +759,9 @@ def evaluate_report(
                         "dlod_levels": dlod_levels, "dlod_ranking": dlod_choice,
                         "dlod_iterations": dlod_iterations} if dlod_levels else {}),
                     **({"merge_sizes": merge_sizes} if merge_sizes else {})},
+        "timing": {"repeats": timing_repeats, "order": "shuffled per round (seed)" if timing_repeats else "single pass",
+                   "omp_wait_policy": os.environ.get("OMP_WAIT_POLICY"),
+                   "what": "ms = median over rounds of the median over views; ms_min/ms_max = smallest/largest round"},
         "settings": {"max_sv": max_sv, "s_vs": s_vs, "budgets": budgets, "sigma_c": sigma_c,
                      "sigma_c_rule": sigma_c_rule, "seed": seed, "tau": tau,
                      "background": bg, "popping_steps": popping_steps,
@@ -717,10 +782,10 @@ def evaluate_report(
         f.write(_csv_text(R.per_view, PER_VIEW_COLUMNS))
     _plot_quality(R.rows, "gaussians", "mean Gaussians rendered per view", out_dir / "quality_vs_gaussians.png",
                   mark=(na * max_sv ** -1.5, f"max_sv^-1.5 = {100 * max_sv ** -1.5:.1f} %"))
-    _plot_quality(R.rows, "ms_total", "median ms per frame", out_dir / "quality_vs_time.png",
-                  extra=_plot_time_curve(R.rows))
+    _plot_quality(R.rows, "ms_total", "median ms per frame (bars: fastest-slowest round)",
+                  out_dir / "quality_vs_time.png", extra=_plot_time_curve(R.rows), time_axis=True)
     _plot_popping(pop, out_dir / "popping.png")
-    write_strip(out_dir / "lod_strip.png", adapted, cams[0], strip_svs, bg, backend)
+    write_strip(out_dir / "lod_strip.png", adapted, cams[0], strip_svs, bg, backend, gt=gts[0])
     report["wall_seconds"] = round(time.perf_counter() - t_start, 1)
     with atomic_write(out_dir / "report.json", "w") as f:
         json.dump(_jsonable(report), f, indent=1)

@@ -9,7 +9,8 @@ carries ``sigma_d``); otherwise (or with ``--synthetic``) a small synthetic mode
 ``--scene`` (COLMAP or NeRF-synthetic folder) when given, else the synthetic camera grid's centre
 view, else a camera looking at the model's median from its -z side. One camera is rendered at
 s_v = 1, 2, 4 and at a budget of a quarter of the Gaussians at s_v = 1; the four images are
-written side by side to ``--out``.
+written side by side to ``--out``, each captioned below with its setting and the Gaussians drawn
+(the scene's own resolution unless ``--resolution R`` downsamples it).
 """
 from __future__ import annotations
 
@@ -18,9 +19,7 @@ import sys
 import time
 from pathlib import Path
 
-import numpy as np
 import torch
-from PIL import Image
 
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
@@ -58,7 +57,8 @@ def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("ply", nargs="?", help=f"adapted .ply (default {DEFAULT_PLY} if present)")
     p.add_argument("--scene", help="scene folder for the camera (COLMAP or NeRF-synthetic)")
-    p.add_argument("--resolution", type=int, default=8, help="--scene downsampling (default 8)")
+    p.add_argument("--resolution", type=int, default=1, choices=(1, 2, 4, 8),
+                   help="--scene downsampling: images_R/ or the images / R (default 1: the scene's size)")
     p.add_argument("--synthetic", action="store_true", help="use the synthetic model even if PLY exists")
     p.add_argument("--n", type=int, default=3000, help="synthetic model size (default 3000)")
     p.add_argument("--width", type=int, default=160)
@@ -92,7 +92,7 @@ def main(argv=None) -> int:
                 cam.viewmat[None], cam.K[None], cam.width, cam.height)
         kw = dict(sh_degree=model.sh_degree, sigma_d=model.sigma_d, backend="cpu")
         clod_rasterization(*base, **kw, s_v=1.0)  # warm-up (builds / loads the CPU compositor)
-        tiles, n1 = [], None
+        tiles, caps, n1 = [], [], None
         for label, extra in [("s_v=1", {"s_v": 1.0}), ("s_v=2", {"s_v": 2.0}), ("s_v=4", {"s_v": 4.0}),
                              ("budget", None)]:
             if extra is None:
@@ -104,11 +104,15 @@ def main(argv=None) -> int:
             n = meta["lod_n_rendered"][0]
             n1 = n if n1 is None else n1
             print(f"{label:>12}: {n:8d} Gaussians rendered (s_v {meta['lod_s_v'][0]:.3f}), {ms:8.1f} ms")
-            tiles.append((col[0].clamp(0, 1).numpy() * 255 + 0.5).astype(np.uint8))
+            tiles.append(col[0])
+            caps.append(f"{label}\n{n:,} Gaussians")
+    from clod_adapter.pipeline import label_panels
+
     out = Path(args.out)
     out.parent.mkdir(parents=True, exist_ok=True)
-    Image.fromarray(np.concatenate(tiles, axis=1)).save(out)
-    print(f"wrote {out}")
+    sheet = label_panels(tiles, caps)
+    sheet.save(out)
+    print(f"wrote {out} ({sheet.width}x{sheet.height})")
     return 0
 
 

@@ -1,15 +1,26 @@
 """Shared test fixtures: paths to ../shared/data, skipping with a reason when it is absent."""
 from __future__ import annotations
 
+import os
 from pathlib import Path
 
 import pytest
 import torch
 
 REPO = Path(__file__).resolve().parents[1]
-SHARED_DATA = REPO.parent / "shared" / "data"
+#: ../shared/data beside the clone; CLOD_SHARED_DATA overrides it (e.g. for a git worktree elsewhere)
+SHARED_DATA = Path(os.environ.get("CLOD_SHARED_DATA") or REPO.parent / "shared" / "data")
 
 torch.set_num_threads(2)
+
+
+@pytest.fixture(scope="session", autouse=True)
+def _compositor_built():
+    """Build (or load) the C++ compositor before any test, so its one-time build notice on stderr
+    never lands in a test that counts stderr lines."""
+    from clod_adapter.render.composite import cpp_extension_available
+
+    cpp_extension_available()
 
 
 def shared_path(*parts: str) -> Path:

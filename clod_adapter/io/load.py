@@ -46,13 +46,107 @@ from clod_adapter.io.compressed_ply import is_compressed_ply, read_compressed_pl
 from clod_adapter.io.gsplat_ckpt import read_gsplat_ckpt
 from clod_adapter.io.ply import PlyFormatError, read_ply
 
-__all__ = ["load_model", "MASK_PROPERTIES"]
+__all__ = ["load_model", "resolve_model_path", "model_folder", "training_size", "MASK_PROPERTIES"]
 
 PathLike = Union[str, "os.PathLike[str]"]
 MaskMode = Literal["auto", "argmax", "ignore"]
 
 MASK_PROPERTIES = ("masks_0", "masks_1", "mask")
 _TORCH_SUFFIXES = {".pt", ".pth", ".ckpt"}
+
+
+MODEL_SUFFIXES = (".ply", ".pt", ".pth", ".ckpt")
+
+
+def _iteration_dirs(folder: Path) -> dict[int, Path]:
+    out = {}
+    pc = folder / "point_cloud"
+    if pc.is_dir():
+        for d in pc.iterdir():
+            if d.is_dir() and d.name.startswith("iteration_") and (d / "point_cloud.ply").is_file():
+                try:
+                    out[int(d.name[len("iteration_"):])] = d / "point_cloud.ply"
+                except ValueError:
+                    pass
+    return out
+
+
+def resolve_model_path(path: PathLike, iteration: Optional[int] = None, flag: str = "",
+                       prefer: Optional[str] = None) -> Path:
+    """The model file a user means by ``path``, as 3DGS users pass it.
+
+    * a file: itself;
+    * an official 3DGS model folder (``-m`` layout, graphdeco-inria/gaussian-splatting
+      ``scene/__init__.py``): ``point_cloud/iteration_N/point_cloud.ply``, the largest ``N``
+      unless ``iteration`` is given;
+    * a folder holding exactly one model file (.ply, or a gsplat .pt/.pth/.ckpt when there is no
+      .ply), e.g. ``point_cloud/iteration_7000`` or a ``clod-adapt`` output folder.
+
+    ``flag`` (e.g. ``"--pretrained"``) is named in errors. ``prefer``: a file name taken first
+    when the folder holds it (``"point_cloud.ply"`` for a ``clod-adapt`` output folder, whose
+    ``--layout inria`` copy under ``point_cloud/`` has no ``sigma_d``).
+
+    Raises:
+        PlyFormatError: ``path`` does not exist ("no such file or folder"), a folder that is none of the above ("is a folder, expected ..."), or no
+            ``iteration_<iteration>``.
+    """
+    path = Path(path)
+    via = f" ({flag})" if flag else ""
+    if path.is_file():
+        if iteration is not None:
+            raise PlyFormatError(path, f"--iteration {iteration} needs a model folder, not a file{via}")
+        return path
+    if not path.exists():
+        raise PlyFormatError(path, f"no such file or folder{via}")
+    if prefer is not None and iteration is None and (path / prefer).is_file():
+        return path / prefer
+    its = _iteration_dirs(path)
+    if its:
+        if iteration is None:
+            return its[max(its)]
+        if iteration not in its:
+            have = ", ".join(str(i) for i in sorted(its))
+            raise PlyFormatError(path, f"no point_cloud/iteration_{iteration}/point_cloud.ply (iterations: {have}){via}")
+        return its[iteration]
+    if iteration is not None:
+        raise PlyFormatError(path, f"--iteration {iteration}: no point_cloud/iteration_*/point_cloud.ply in this folder{via}")
+    files = sorted(p for p in path.iterdir() if p.is_file() and p.suffix.lower() in MODEL_SUFFIXES)
+    plys = [p for p in files if p.suffix.lower() == ".ply"]
+    pick = plys if plys else files
+    if len(pick) == 1:
+        return pick[0]
+    what = (f"it holds {len(pick)} model files ({', '.join(p.name for p in pick[:4])}); name one"
+            if pick else "it holds no .ply")
+    raise PlyFormatError(path, f"is a folder, expected a .ply file, a 3DGS model folder "
+                               f"(point_cloud/iteration_N/point_cloud.ply) or a folder holding one .ply; "
+                               f"{what}{via}")
+
+
+def model_folder(model_path: PathLike) -> Optional[Path]:
+    """The official model folder a ``.../point_cloud/iteration_N/point_cloud.ply`` lies in, or the
+    folder of any other model file (where ``cameras.json`` / ``cfg_args`` may be); None if none."""
+    p = Path(model_path)
+    if p.parent.name.startswith("iteration_") and p.parent.parent.name == "point_cloud":
+        return p.parent.parent.parent
+    return p.parent
+
+
+def training_size(model_path: PathLike) -> Optional[tuple[int, int]]:
+    """(width, height) the checkpoint was trained at, from ``cameras.json`` of its model folder
+    (the official trainer's format: one entry per camera with ``width``/``height`` at the
+    training resolution), or None when unknown or not one size."""
+    import json
+
+    folder = model_folder(model_path)
+    f = folder / "cameras.json" if folder is not None else None
+    if f is None or not f.is_file():
+        return None
+    try:
+        cams = json.loads(f.read_text())
+        sizes = {(int(c["width"]), int(c["height"])) for c in cams}
+    except (ValueError, KeyError, TypeError, OSError):
+        return None
+    return sizes.pop() if len(sizes) == 1 else None
 
 
 def load_model(path: PathLike, *, masks: MaskMode = "auto", allow_nonfinite: bool = False,

@@ -328,6 +328,25 @@ def _check_image_size(path: Path, w0: int, h0: int, camera_id: int, model_dir: P
     )
 
 
+def _check_scaled_size(path: Path, w: int, h: int, w0: int, h0: int, resolution: int, camera_id: int,
+                       model_dir: Path) -> None:
+    """An image in ``images_R/`` must be its camera's size divided by R, up to rounding (within
+    1 px: floor, round or ceil, as the tools that make ``images_R`` differ); anything else would
+    be stretched onto the camera silently.
+
+    Raises:
+        SceneError: naming the image, its size and the expected one.
+    """
+    ew, eh = w0 / resolution, h0 / resolution
+    if abs(w - ew) < 1.0 + 1e-9 and abs(h - eh) < 1.0 + 1e-9:
+        return
+    raise SceneError(
+        path,
+        f"image is {w}x{h} but camera {camera_id} in {model_dir} is {w0}x{h0}, so images_{resolution}/ should "
+        f"hold {ew:g}x{eh:g} (up to rounding); the image does not match its camera",
+    )
+
+
 def load_colmap_scene(root: PathLike, resolution: int = 1, llffhold: int = 8) -> Scene:
     """Load a COLMAP scene folder (``images/``, optional ``images_R/``, ``sparse/0``) as a ``Scene``.
 
@@ -351,7 +370,8 @@ def load_colmap_scene(root: PathLike, resolution: int = 1, llffhold: int = 8) ->
         SceneError: missing folder or model, unreadable model, a distorted camera model
             (anything but PINHOLE / SIMPLE_PINHOLE: undistort first), an image listed in the
             model but absent from disk, an image in ``images/`` whose size is neither its
-            camera's nor an exact integer multiple of it, no registered images, or a bad ``resolution`` /
+            camera's nor an exact integer multiple of it, an image in ``images_R/`` that is not its
+            camera's size / R up to rounding, no registered images, or a bad ``resolution`` /
             ``llffhold``.
     """
     root = Path(root)
@@ -395,6 +415,7 @@ def load_colmap_scene(root: PathLike, resolution: int = 1, llffhold: int = 8) ->
         path = image_dir / im.name
         if use_scaled:
             w, h = _image_size(path)
+            _check_scaled_size(path, w, h, w0, h0, resolution, ccam.camera_id, model_dir)
         else:
             _check_image_size(path, w0, h0, ccam.camera_id, model_dir)
             w, h = int(round(w0 / resolution)), int(round(h0 / resolution))

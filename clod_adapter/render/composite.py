@@ -58,13 +58,31 @@ def _load_extension():
         try:
             from torch.utils.cpp_extension import load
 
-            _EXT = load(
-                name="clod_composite",
-                sources=[str(_CSRC)],
-                extra_cflags=["-O3", "-fopenmp", "-ffp-contract=off"],
-                extra_ldflags=["-fopenmp"],
-                verbose=bool(os.environ.get("CLOD_VERBOSE_BUILD")),
-            )
+            import sys
+            import time
+
+            # loading a cached build takes well under a second; anything longer is a (re)build,
+            # which takes 1-3 min on 2 cores: say so instead of sitting silent
+            t0 = time.perf_counter()
+            folder = os.environ.get("TORCH_EXTENSIONS_DIR") or "torch's extension cache"
+            notice = threading.Timer(2.0, lambda: print(
+                f"clod-adapter: building the C++ compositor (first use or changed source; about 1-3 min on "
+                f"2 cores; cached in {folder})...", file=sys.stderr, flush=True))
+            notice.daemon = True
+            notice.start()
+            try:
+                _EXT = load(
+                    name="clod_composite",
+                    sources=[str(_CSRC)],
+                    extra_cflags=["-O3", "-fopenmp", "-ffp-contract=off"],
+                    extra_ldflags=["-fopenmp"],
+                    verbose=bool(os.environ.get("CLOD_VERBOSE_BUILD")),
+                )
+            finally:
+                notice.cancel()
+            if time.perf_counter() - t0 > 2.0:
+                print(f"clod-adapter: compositor ready after {time.perf_counter() - t0:.0f} s", file=sys.stderr,
+                      flush=True)
         except Exception as e:  # no compiler, no headers, ...
             _EXT_ERROR = e
             _EXT = None

@@ -24,10 +24,11 @@ How survivors are drawn (:data:`FADES`, :class:`LodSettings`):
   only the ones about to leave (fern, 25 % of the Gaussians: 8.9 dB against 16.9 dB for the same
   Gaussians drawn with their own opacity).
 * ``"window"`` (default of the calibrated schedule): with their own opacity at the level
-  (:func:`level`, learned per-Gaussian level gains, :class:`clod_adapter.gaussians.Gaussians`),
-  times :func:`fade_weight` ``= clamp(m / w, 0, 1)``: only a Gaussian within ``w`` of its exit
-  (``0 < m < w``) is faded, and it reaches 0 exactly where the mask drops it, so the image is
-  continuous in ``s_v`` (no popping).
+  (:func:`level_of_fraction` of the share drawn, learned per-Gaussian level gains,
+  :class:`clod_adapter.gaussians.Gaussians`), times :func:`fade_weight` ``= clamp(m / w, 0, 1)``:
+  only a Gaussian within ``w`` of its exit (``0 < m < w``) is faded, and it reaches 0 exactly
+  where the mask drops it, so the image is continuous in ``s_v`` (no popping). The width opens
+  from 0 at ``s_v = 1`` (:func:`fade_width_at`), so full detail is drawn unfaded.
 
 The calibrated schedule sets ``sigma_d`` from a ranking (:func:`calibrate_sigma_d`) so that the
 rendered fraction follows ``s_v^-1.5`` (the paper's count target) by construction.
@@ -59,6 +60,10 @@ Fade = Literal["window", "eq2"]
 #: width ``w`` of the fade window in log-opacity units (``m`` of :func:`lod_margin`): a Gaussian
 #: fades from full opacity to 0 as its ``alpha''`` falls from ``e^w tau s_v`` to ``tau s_v``.
 DEFAULT_FADE_WIDTH = 0.5
+#: the fade window opens from zero width at ``s_v = 1`` to its full width at this ``s_v``, so
+#: full detail draws every Gaussian that passes the mask at its own opacity (and the image stays
+#: continuous in ``s_v``: a Gaussian's weight ``m / width`` still reaches 0 where it leaves).
+FADE_RAMP_S_V = 1.1
 
 
 @dataclass(frozen=True)
@@ -256,8 +261,17 @@ def fade_weight(margin: Tensor, width: float = DEFAULT_FADE_WIDTH) -> Tensor:
     """Window fade ``clamp(m / width, 0, 1)`` of the margins ``m`` [N] (:func:`lod_margin`): 1 for
     a Gaussian well inside the level, falling linearly to 0 at its exit ``m = 0``. Its
     gradient reaches ``sigma_d`` (through ``m``) only inside the window, which is how training
-    learns which Gaussians stay longest. ``-inf`` margins give 0."""
+    learns which Gaussians stay longest. ``-inf`` margins give 0; ``width = 0`` gives the hard
+    mask ``m > 0``."""
+    if width <= 0.0:
+        return (margin > 0).to(margin.dtype)
     return torch.clamp(margin / float(width), 0.0, 1.0)
+
+
+def fade_width_at(s_v: float, width: float = DEFAULT_FADE_WIDTH) -> float:
+    """The window's width at ``s_v``: 0 at ``s_v = 1``, growing with ``ln s_v`` to ``width`` at
+    :data:`FADE_RAMP_S_V` and constant beyond."""
+    return float(width) * min(1.0, max(math.log(max(float(s_v), 1.0)) / math.log(FADE_RAMP_S_V), 0.0))
 
 
 def level(s_v: float | Tensor, max_sv: float) -> float:
@@ -268,6 +282,16 @@ def level(s_v: float | Tensor, max_sv: float) -> float:
         return 0.0
     s = float(s_v)
     return min(max(math.log(max(s, 1.0)) / math.log(max_sv), 0.0), 1.0)
+
+
+def level_of_fraction(fraction: float, max_sv: float) -> float:
+    """The level of the gains when ``fraction`` of the Gaussians in view is drawn:
+    :func:`level` of ``fraction^(-2/3)`` (the ``s_v`` whose target fraction it is). Taken from the
+    drawn share, not from ``s_v``, so a model draws the same gains for the same share whatever the
+    view and however exactly its ``sigma_d`` follows ``s_v^-1.5``."""
+    if not fraction > 0.0:
+        return level(float("inf"), max_sv) if max_sv > 1.0 else 0.0
+    return level(min(float(fraction), 1.0) ** (-2.0 / 3.0), max_sv)
 
 
 def s_v_for_fraction(fraction: float) -> float:

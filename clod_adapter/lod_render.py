@@ -129,8 +129,11 @@ def _draw(gaussians: Gaussians, viewmat: Tensor, K: Tensor, w: int, h: int, s_v:
         return _Draw(mask, gaussians, lod.lod_opacities(opac, d_norm, sd, s_used, st.eps), visible,
                      frustum, s_used, eta)
     margin = lod.lod_margin(opac, d_norm.detach(), sd, s_used, st.tau, st.eps)
-    model = gaussians.at_level(lod.level(s_used, st.max_sv) if ell is None else float(ell))
-    drawn = model.opacities * lod.fade_weight(margin, st.fade_width)
+    if ell is None:
+        n_vis = int(visible.sum())
+        ell = lod.level_of_fraction(int(mask.sum()) / n_vis if n_vis else 1.0, st.max_sv)
+    model = gaussians.at_level(float(ell))
+    drawn = model.opacities * lod.fade_weight(margin, lod.fade_width_at(s_used, st.fade_width))
     return _Draw(mask, model, drawn, visible, frustum, s_used, eta)
 
 
@@ -265,8 +268,8 @@ def render_lod(
         budget_in_view: a fractional ``budget`` is a share of the Gaussians in view (the
             calibrated schedule's training), not of the model.
         level: window fade only: draw the level gains at this level in [0, 1] instead of
-            :func:`clod_adapter.lod.level` of the ``s_v`` used (training draws ``s_v`` and
-            renders its exact budget).
+            :func:`clod_adapter.lod.level_of_fraction` of the share of the Gaussians in view
+            drawn.
 
     Returns:
         :class:`LodRender`.

@@ -18,10 +18,10 @@ from clod_adapter.metrics import psnr
 from clod_adapter.synthetic import make_cameras, make_ground_truth, perturb
 from conftest import render_views
 
-#: full-detail tolerance of the calibrated schedule (README: the base attributes are frozen, so
-#: s_v = 1 draws the input model; only Gaussians seen from farther than their reference distance
-#: can sit in the fade window there).
-FULL_DETAIL_TOL_DB = 0.1
+#: full-detail tolerance of the calibrated schedule (README: the base attributes are frozen and
+#: the fade window is closed at s_v = 1, so s_v = 1 draws the input model; only a Gaussian seen
+#: much farther than its reference distance can fall under the mask there).
+FULL_DETAIL_TOL_DB = 0.02
 
 
 # --- calibration ------------------------------------------------------------------------------
@@ -150,7 +150,7 @@ def test_quarter_budget_beats_the_opacity_cut(adapted):
 
 def test_fraction_follows_s_v_to_the_minus_1_5(adapted):
     """The stated mapping: at s_v in [1, max_sv] the Gaussians drawn at full opacity are
-    s_v^-1.5 of those in view (mean over the training views), within 0.03 + 15 %."""
+    s_v^-1.5 of those in view (mean over the training views), within 0.02 + 10 %."""
     _, ad, cams, _ = adapted
     w = ad.lod.fade_width
     for s in (1.0, 2.0, 3.0, 5.0):
@@ -164,4 +164,4 @@ def test_fraction_follows_s_v_to_the_minus_1_5(adapted):
             fr.append(float(((m >= w) & vis).sum()) / float(vis.sum()))
         mean = sum(fr) / len(fr)
         target = s ** -1.5
-        assert abs(mean - target) <= 0.03 + 0.15 * target, (s, mean, target)
+        assert abs(mean - target) <= 0.02 + 0.10 * target, (s, mean, target)

@@ -154,7 +154,7 @@ def test_viewer_in_headless_chromium(tmp_path):
 
 
 def _save_readme_picture(path: Path, page1: np.ndarray, page2: np.ndarray) -> None:
-    """Both page screenshots stacked (s_v = 1 above, coarsest below), 60 % scale, 64 colours."""
+    """Both page screenshots stacked (s_v = 1 above, coarsest below), 60 % scale, 128 colours."""
     from PIL import Image
 
     ims = [Image.fromarray((p * 255 + 0.5).astype(np.uint8)) for p in (page1, page2)]
@@ -163,4 +163,4 @@ def _save_readme_picture(path: Path, page1: np.ndarray, page2: np.ndarray) -> No
     sheet.paste(ims[0], (0, 0))
     sheet.paste(ims[1], (0, ims[0].height + 4))
     path.parent.mkdir(parents=True, exist_ok=True)
-    sheet.quantize(64, dither=Image.Dither.NONE).save(path, optimize=True)
+    sheet.quantize(128, dither=Image.Dither.NONE).save(path, optimize=True)

@@ -2,9 +2,9 @@
 
 The viewer's read-out gives, next to the count, what rasterising that many Gaussians costs with
 *our* CPU rasteriser (:func:`clod_adapter.render.rasterization`, backend ``"cpu"``) at one image
-size: a straight line ``ms = a + b n`` through two timings on the model itself (the Gaussians in
-view of the start camera, all of them and a quarter, each the median of ``repeats`` runs after a
-warm-up). It is an estimate of our renderer's cost, not the browser's frame time.
+size: a least-squares line ``ms = a + b n`` (a, b >= 0) through three timings on the model itself
+(the Gaussians in view of the start camera: all of them, a half and a quarter, each the median
+of ``repeats`` runs after a warm-up). It is an estimate of our renderer's cost, not the browser's frame time.
 """
 from __future__ import annotations
 
@@ -13,6 +13,7 @@ import time
 from dataclasses import dataclass
 from typing import Optional
 
+import numpy as np
 import torch
 
 from clod_adapter.gaussians import Gaussians
@@ -42,7 +43,7 @@ class RasterTimeModel:
     def label(self) -> str:
         """How the estimate was made, for the read-out."""
         return (f"our CPU rasteriser, {self.threads} threads, {self.width}x{self.height}, "
-                f"fitted at startup on {self.counts[0]:,} / {self.counts[1]:,} Gaussians of this model")
+                f"line fitted at startup to {' / '.join(f'{c:,}' for c in self.counts)} Gaussians of this model")
 
 
 def _time_ms(fn, repeats: int) -> float:
@@ -79,13 +80,14 @@ def calibrate_raster_time(gaussians: Gaussians, camera, *, max_count: int = 200_
         return None
     gen = torch.Generator().manual_seed(seed)
     pool = pool[torch.randperm(pool.numel(), generator=gen)[:max_count]]
-    counts = (int(pool.numel()), int(pool.numel()) // 4)
+    counts = (int(pool.numel()), int(pool.numel()) // 2, int(pool.numel()) // 4)
     times = []
     for n in counts:
         idx = pool[:n]
         args = (g.means[idx], g.quats[idx], g.scales[idx], g.opacities[idx], g.colors[idx],
                 viewmat[None], K[None], w, h)
         times.append(_time_ms(lambda: rasterization(*args, sh_degree=g.sh_degree, backend="cpu"), repeats))
-    slope = max((times[0] - times[1]) / max(counts[0] - counts[1], 1), 0.0)
-    intercept = max(times[0] - slope * counts[0], 0.0)
+    x, y = np.asarray(counts, dtype=np.float64), np.asarray(times)
+    slope = max(float(np.polyfit(x, y, 1)[0]), 0.0)
+    intercept = max(float(np.mean(y - slope * x)), 0.0)
     return RasterTimeModel(intercept, slope, w, h, torch.get_num_threads(), counts, tuple(times))

@@ -1,0 +1,180 @@
+"""Viewer cameras: viser's camera pose <-> our pinhole camera, and where a viewer starts.
+
+viser reports each browser camera as ``T_world_camera`` (``wxyz`` quaternion, ``position``) in
+the OpenCV convention (x right, y down, z forward), a vertical field of view ``fov`` (radians)
+and the canvas size in pixels; its renderer centres the principal point. Our cameras
+(:class:`clod_adapter.io.scene.Camera`) hold the inverse, ``viewmat`` = world-to-camera, and
+``K`` in pixels, in the same axes, so the conversion is an inverse and ``fy = (H / 2) /
+tan(fov / 2)``, ``fx = fy``, ``(cx, cy) = (W / 2, H / 2)``.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Optional, Sequence
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from clod_adapter.gaussians import Gaussians
+
+__all__ = ["ViewCamera", "ViewPose", "camera_from_pose", "pose_from_camera", "default_start_view",
+           "scene_start_view", "robust_bounds"]
+
+#: vertical field of view of the start view without a scene (radians)
+DEFAULT_FOV = math.radians(50.0)
+
+
+@dataclass
+class ViewCamera:
+    """A pinhole camera with the attributes :func:`clod_adapter.lod_render.lod_subset` and
+    :func:`clod_adapter.lod_render.render_lod` read.
+
+    Attributes:
+        viewmat: [4, 4] float32 world-to-camera (OpenCV axes).
+        K: [3, 3] float32 intrinsics, pixels.
+        width, height: image size, pixels.
+    """
+
+    viewmat: Tensor
+    K: Tensor
+    width: int
+    height: int
+
+    @property
+    def center(self) -> Tensor:
+        """[3] camera centre, world units."""
+        R, t = self.viewmat[:3, :3], self.viewmat[:3, 3]
+        return -(R.T @ t)
+
+
+@dataclass
+class ViewPose:
+    """A viser camera pose: ``wxyz`` [4] and ``position`` [3] of ``T_world_camera`` (OpenCV
+    axes), ``fov`` vertical field of view (radians), the orbit centre ``look_at`` [3] and the
+    ``up`` direction [3] (world units / unit vectors, float64 numpy)."""
+
+    wxyz: np.ndarray
+    position: np.ndarray
+    fov: float
+    look_at: np.ndarray
+    up: np.ndarray
+
+
+def _quat_to_matrix(wxyz: Sequence[float]) -> np.ndarray:
+    w, x, y, z = np.asarray(wxyz, dtype=np.float64) / max(float(np.linalg.norm(wxyz)), 1e-300)
+    return np.array([
+        [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+        [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+        [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
+    ])
+
+
+def _matrix_to_quat(R: np.ndarray) -> np.ndarray:
+    """wxyz (w >= 0) of a rotation matrix (Shepperd's method)."""
+    R = np.asarray(R, dtype=np.float64)
+    tr = R[0, 0] + R[1, 1] + R[2, 2]
+    if tr > 0:
+        s = 2.0 * math.sqrt(tr + 1.0)
+        q = [0.25 * s, (R[2, 1] - R[1, 2]) / s, (R[0, 2] - R[2, 0]) / s, (R[1, 0] - R[0, 1]) / s]
+    elif R[0, 0] > R[1, 1] and R[0, 0] > R[2, 2]:
+        s = 2.0 * math.sqrt(1.0 + R[0, 0] - R[1, 1] - R[2, 2])
+        q = [(R[2, 1] - R[1, 2]) / s, 0.25 * s, (R[0, 1] + R[1, 0]) / s, (R[0, 2] + R[2, 0]) / s]
+    elif R[1, 1] > R[2, 2]:
+        s = 2.0 * math.sqrt(1.0 + R[1, 1] - R[0, 0] - R[2, 2])
+        q = [(R[0, 2] - R[2, 0]) / s, (R[0, 1] + R[1, 0]) / s, 0.25 * s, (R[1, 2] + R[2, 1]) / s]
+    else:
+        s = 2.0 * math.sqrt(1.0 + R[2, 2] - R[0, 0] - R[1, 1])
+        q = [(R[1, 0] - R[0, 1]) / s, (R[0, 2] + R[2, 0]) / s, (R[1, 2] + R[2, 1]) / s, 0.25 * s]
+    q = np.asarray(q)
+    q /= np.linalg.norm(q)
+    return -q if q[0] < 0 else q
+
+
+def camera_from_pose(wxyz: Sequence[float], position: Sequence[float], fov: float, width: int,
+                     height: int) -> ViewCamera:
+    """Our camera for a viser pose.
+
+    Args:
+        wxyz: [4] rotation of ``T_world_camera`` (OpenCV axes; need not be normalised).
+        position: [3] camera centre, world units.
+        fov: vertical field of view, radians, in (0, pi).
+        width, height: image size, pixels (>= 1).
+
+    Returns:
+        :class:`ViewCamera` with ``viewmat = T_world_camera^-1`` and a centred ``K``.
+
+    Raises:
+        ValueError: ``fov`` outside (0, pi) or a size < 1.
+    """
+    if not 0.0 < fov < math.pi:
+        raise ValueError(f"fov must be in (0, pi) radians, got {fov}")
+    if int(width) < 1 or int(height) < 1:
+        raise ValueError(f"image size must be >= 1 pixel, got {width}x{height}")
+    R = _quat_to_matrix(wxyz)
+    t = np.asarray(position, dtype=np.float64)
+    vm = np.eye(4)
+    vm[:3, :3] = R.T
+    vm[:3, 3] = -R.T @ t
+    f = 0.5 * int(height) / math.tan(0.5 * fov)
+    K = np.array([[f, 0.0, 0.5 * int(width)], [0.0, f, 0.5 * int(height)], [0.0, 0.0, 1.0]])
+    return ViewCamera(torch.from_numpy(vm).float(), torch.from_numpy(K).float(), int(width), int(height))
+
+
+def pose_from_camera(camera, look_at: Optional[Sequence[float]] = None) -> ViewPose:
+    """The viser pose of one of our cameras (``viewmat``, ``K``, ``width``, ``height``).
+
+    viser has no principal-point offset and one focal length: the pose keeps the vertical field
+    of view ``2 atan(H / (2 fy))``. ``look_at`` defaults to one unit ahead of the camera.
+    """
+    vm = camera.viewmat.detach().double().cpu().numpy()
+    R_wc = vm[:3, :3].T
+    pos = -R_wc @ vm[:3, 3]
+    fy = float(camera.K[1, 1])
+    fov = 2.0 * math.atan(0.5 * int(camera.height) / fy)
+    fwd = R_wc[:, 2]
+    la = pos + fwd if look_at is None else np.asarray(look_at, dtype=np.float64)
+    return ViewPose(_matrix_to_quat(R_wc), pos, fov, la, -R_wc[:, 1])
+
+
+def robust_bounds(means: Tensor, q: float = 0.02, max_points: int = 1_000_000) -> tuple[np.ndarray, np.ndarray]:
+    """([3], [3]) the ``q`` and ``1 - q`` quantiles of the centres per axis (float64 numpy): a
+    bounding box that stray floaters do not inflate. At most ``max_points`` centres are used (an
+    evenly spaced subsample)."""
+    m = means.detach().double()
+    if m.shape[0] > max_points:
+        m = m[torch.linspace(0, m.shape[0] - 1, max_points).long()]
+    lo = torch.quantile(m, q, dim=0).numpy()
+    hi = torch.quantile(m, 1.0 - q, dim=0).numpy()
+    return lo, hi
+
+
+def default_start_view(gaussians: Gaussians, fov: float = DEFAULT_FOV) -> ViewPose:
+    """Start view without a scene: outside the model's bounding box looking at its centre.
+
+    The box is :func:`robust_bounds` (2 % / 98 % quantiles of the centres). The camera looks
+    along +z (the COLMAP / OpenCV forward axis) with up = -y, from ``r / tan(fov / 2)`` in front
+    of the box centre, ``r`` = half the box diagonal: outside the sphere around the box (so
+    outside the box) with the sphere inside the vertical field of view.
+    """
+    lo, hi = robust_bounds(gaussians.means)
+    centre = 0.5 * (lo + hi)
+    r = max(0.5 * float(np.linalg.norm(hi - lo)), 1e-6)
+    dist = 1.05 * r / math.tan(0.5 * fov)
+    pos = centre - np.array([0.0, 0.0, dist])
+    # OpenCV camera axes in world: x right = +x, y down = +y, z forward = +z: the identity
+    return ViewPose(np.array([1.0, 0.0, 0.0, 0.0]), pos, fov, centre, np.array([0.0, -1.0, 0.0]))
+
+
+def scene_start_view(camera, gaussians: Gaussians) -> ViewPose:
+    """Start view at a scene camera: its position, orientation and vertical field of view;
+    the orbit centre on its optical axis at the depth of the model's (robust) centre, or one
+    unit ahead when that centre is behind the camera."""
+    lo, hi = robust_bounds(gaussians.means)
+    centre = 0.5 * (lo + hi)
+    p = pose_from_camera(camera)
+    fwd = _quat_to_matrix(p.wxyz)[:, 2]
+    depth = float((centre - p.position) @ fwd)
+    p.look_at = p.position + fwd * (depth if depth > 1e-6 else 1.0)
+    return p

@@ -110,7 +110,7 @@ def main(argv: list[str] | None = None) -> int:
     if why:
         return _fail(why)
 
-    max_sv = args.max_sv if args.max_sv is not None else model_max_sv(ply)
+    max_sv = args.max_sv if args.max_sv is not None else model_max_sv(ply, model)
     bg = (1.0, 1.0, 1.0) if args.background == "white" else (0.0, 0.0, 0.0)
     if not args.no_timing:
         print("clod-view: loading our CPU rasteriser for the ms estimate (a one-time C++ build "

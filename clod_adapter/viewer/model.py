@@ -12,17 +12,19 @@ __all__ = ["DEFAULT_MAX_SV", "model_max_sv", "load_view_model"]
 DEFAULT_MAX_SV = 5.0
 
 
-def model_max_sv(ply_path: os.PathLike | str) -> float:
+def model_max_sv(ply_path: os.PathLike | str, model: Gaussians | None = None) -> float:
     """The largest virtual distance scale the model at ``ply_path`` was trained for.
 
-    Read from ``adapt_state.safetensors`` beside the .ply (its ``config`` metadata, written by
-    ``clod-adapt``; :func:`clod_adapter.report.max_sv_from_state`); :data:`DEFAULT_MAX_SV` (5)
-    when that file is absent, unreadable or holds no positive finite value. The one place a
-    viewer asks, so a later source (e.g. a .ply header field) is added here.
+    Read from the model's LoD settings (the ``clod_lod`` header comment of the extended .ply,
+    ``model.lod`` when the model is given), else from ``adapt_state.safetensors`` beside the .ply
+    (its ``config`` metadata; :func:`clod_adapter.report.max_sv_from_state`); :data:`DEFAULT_MAX_SV`
+    (5) when neither holds a positive finite value.
     """
     from clod_adapter.report import max_sv_from_state
 
-    v = max_sv_from_state(Path(ply_path))
+    v = model.lod.max_sv if (model is not None and model.lod is not None) else None
+    if v is None:
+        v = max_sv_from_state(Path(ply_path))
     if v is None or not (v >= 1.0 and v < float("inf")):
         return DEFAULT_MAX_SV
     return float(v)

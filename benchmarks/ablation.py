@@ -32,7 +32,7 @@ VARIANTS = (
     ("gain_o", "opacity gain only", {"gains": "o"}),
     ("gain_os", "opacity + scale gains", {"gains": "os"}),
     ("eq2_fade", "Eq. 2 fading instead of the window", {"fade": "eq2"}),
-    ("no_recal", "recalibrate only at the end", {"recalibrate_every": 0}),
+    ("recal_100", "recalibrate sigma_d every 100 steps (default: only after the last)", {"recalibrate_every": 100}),
     ("opacity_rank", "start from the opacity ranking", {"ranking": "opacity"}),
     ("ws_paper", "the paper's level weighting w_s", {"level_weighting": "paper"}),
     ("other_lr_0.1", "base attributes at 0.1 x the official learning rates", {"other_lr_scale": 0.1}),

@@ -19,7 +19,7 @@ from common import LABELS, RUNS, adapt_cached, load_input, metrics_of, setup_thr
 
 from clod_adapter.adapt import AdaptConfig
 from clod_adapter.io.ply import read_ply
-from clod_adapter.lod_render import render_lod
+from clod_adapter.view import render_lod
 from clod_adapter.metrics import psnr
 
 #: (tag, description, AdaptConfig overrides); "default" first.

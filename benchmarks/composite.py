@@ -27,6 +27,7 @@ from pathlib import Path  # noqa: E402
 import torch  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+from clod_adapter.render.composite import use_impl  # noqa: E402
 from clod_adapter.render.composite import (  # noqa: E402
     cpp_extension_available,
     rasterize_to_pixels,
@@ -98,8 +99,9 @@ def run(scene, impl, backward):
     leaves = [scene[k].clone().requires_grad_(backward)
               for k in ("means2d", "conics", "colors", "opacities")]
     t0 = time.perf_counter()
-    img, alpha = rasterize_to_pixels(*leaves, scene["width"], scene["height"], scene["tile_size"],
-                                     scene["isect_offsets"], scene["flatten_ids"], impl=impl)
+    with use_impl(impl):
+        img, alpha = rasterize_to_pixels(*leaves, scene["width"], scene["height"], scene["tile_size"],
+                                         scene["isect_offsets"], scene["flatten_ids"])
     if backward:
         (img.sum() + alpha.sum()).backward()
     return time.perf_counter() - t0, img.detach()

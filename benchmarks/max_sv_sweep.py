@@ -28,7 +28,7 @@ from clod_adapter.baselines import (find_splat_transform, lightgaussian_signific
                                     ranking_selection, render_subset)
 from clod_adapter.budget import budget_count
 from clod_adapter.io.ply import read_ply
-from clod_adapter.lod_render import render_lod
+from clod_adapter.view import render_lod
 from clod_adapter.metrics import psnr, ssim
 from clod_adapter.report import resolve_lpips
 

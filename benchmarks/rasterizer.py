@@ -26,6 +26,7 @@ import torch  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from clod_adapter.render import rasterization  # noqa: E402
+from clod_adapter.render.composite import use_impl  # noqa: E402
 
 torch.set_num_threads(2)
 
@@ -68,7 +69,8 @@ def run(n, res, impl, reps, backward):
 
     def fwd():
         with torch.set_grad_enabled(backward):
-            rc, ra, meta = rasterization(*params, V, K, W, H, sh_degree=3, backend="cpu", impl=impl)
+            with use_impl(impl):
+                rc, ra, meta = rasterization(*params, V, K, W, H, sh_degree=3, backend="cpu")
         if backward:
             (rc.sum() + ra.sum()).backward()
             for p in params:
@@ -152,7 +154,8 @@ def run_once(n, res, impl):
     means, quats, scales, opac, sh, V, K, W, H = make_scene(n, res)
     t0 = time.perf_counter()
     with torch.no_grad():
-        rasterization(means, quats, scales, opac, sh, V, K, W, H, sh_degree=3, backend="cpu", impl=impl)
+        with use_impl(impl):
+            rasterization(means, quats, scales, opac, sh, V, K, W, H, sh_degree=3, backend="cpu")
     return time.perf_counter() - t0
 
 

@@ -109,7 +109,7 @@ def _main(args) -> int:
 
     from clod_adapter.io.load import load_model, resolve_model_path, training_size
     from clod_adapter.io.ply import read_ply
-    from clod_adapter.io.scenes import load_scene
+    from clod_adapter.io.scene import load_scene
     from clod_adapter.pipeline import METRICS_NAME, resolution_note
     from clod_adapter.report import OUTPUT_NAMES, evaluate_report, iterations_from_state, max_sv_from_state
 

@@ -103,7 +103,7 @@ def _main(args, argv) -> int:
 
     from clod_adapter.io.load import resolve_model_path
     from clod_adapter.io.ply import read_ply
-    from clod_adapter.io.scenes import load_scene
+    from clod_adapter.io.scene import load_scene
 
     ply = resolve_model_path(ply, prefer="point_cloud.ply")
     baked_name = None
@@ -144,6 +144,7 @@ def export(model, scene, train_imgs, test_cams, test_imgs, out: Path, *, ply: Pa
 
     from clod_adapter import export as ex
     from clod_adapter.io.atomic import atomic_write
+    from clod_adapter.metrics import psnr
     from clod_adapter.io.ply import read_ply, write_ply
     from clod_adapter.report import bytes_per_gaussian
 
@@ -181,9 +182,9 @@ def export(model, scene, train_imgs, test_cams, test_imgs, out: Path, *, ply: Pa
         baked = None
         if baked_name is not None:
             baked, binfo = ex.bake(model, scene.cameras, s_v=s_v, budget=budget, return_info=True)
-            lod_ps = [ex.capped_psnr(ex.render_lod(model, c, s_v, budget=budget, estimator="paper").image, gt)
+            lod_ps = [psnr(ex.render_lod(model, c, s_v, budget=budget, estimator="paper").image, gt, cap=True)
                       for c, gt in zip(test_cams, test_imgs)]
-            bk_ps = [ex.capped_psnr(ex.render_lod(baked, c).image, gt) for c, gt in zip(test_cams, test_imgs)]
+            bk_ps = [psnr(ex.render_lod(baked, c).image, gt, cap=True) for c, gt in zip(test_cams, test_imgs)]
             rep["baked"] = {"file": baked_name, "s_v": s_v, "budget": budget, "cameras": "train+test",
                             "gaussians": len(baked), "mean_rendered_per_view_lod": binfo.per_view_rendered,
                             "opacity": binfo.chosen, "psnr_vs_render_lod_all_views": binfo.psnr_vs_lod,
@@ -247,7 +248,9 @@ def write_spz(path: Path, model) -> str:
 
 
 def _mean_psnr(ex, model, cams, imgs) -> float:
-    ps = [ex.capped_psnr(ex.render_lod(model, c, 1.0, estimator="paper").image, gt) for c, gt in zip(cams, imgs)]
+    from clod_adapter.metrics import psnr
+
+    ps = [psnr(ex.render_lod(model, c, 1.0, estimator="paper").image, gt, cap=True) for c, gt in zip(cams, imgs)]
     return sum(ps) / len(ps)
 
 

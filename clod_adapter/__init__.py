@@ -1,4 +1,41 @@
 """clod-adapter: continuous level of detail (CLoD-GS, Cheng et al., ICLR 2026) for existing
-3D Gaussian Splatting checkpoints."""
+3D Gaussian Splatting checkpoints.
+
+The public API, importable from the package root (loaded on first use, so ``import
+clod_adapter`` stays light and does not import torch: the CLIs set OpenMP defaults first):
+
+* models: :class:`Gaussians`, :func:`load_model`, :func:`read_ply`, :func:`write_ply`,
+  :class:`LodSettings`;
+* scenes: :func:`load_scene`, :class:`Camera`, :class:`Scene`;
+* rendering at a level of detail: :func:`render_lod`, :func:`lod_subset`, :func:`view_lod`,
+  :class:`LodView`, :func:`clod_rasterization` (gsplat ``rasterization`` + LoD),
+  :func:`rasterization` (gsplat-compatible, no LoD);
+* adapting: :class:`AdaptConfig`, :func:`prepare`, :func:`adapt`, :func:`run_adapt_job`;
+* evaluating: :func:`evaluate_report`.
+"""
 
 __version__ = "0.1.0"
+
+#: public name -> (module, attribute)
+_EXPORTS = {
+    "Gaussians": ("gaussians", "Gaussians"), "LodSettings": ("lod", "LodSettings"),
+    "load_model": ("io.load", "load_model"), "read_ply": ("io.ply", "read_ply"), "write_ply": ("io.ply", "write_ply"),
+    "load_scene": ("io.scene", "load_scene"), "Camera": ("io.scene", "Camera"), "Scene": ("io.scene", "Scene"),
+    "render_lod": ("view", "render_lod"), "lod_subset": ("view", "lod_subset"), "view_lod": ("view", "view_lod"),
+    "LodView": ("view", "LodView"), "clod_rasterization": ("hook", "clod_rasterization"),
+    "rasterization": ("render", "rasterization"),
+    "AdaptConfig": ("adapt", "AdaptConfig"), "prepare": ("adapt", "prepare"), "adapt": ("adapt", "adapt"),
+    "run_adapt_job": ("pipeline", "run"), "evaluate_report": ("report", "evaluate_report"),
+}
+__all__ = sorted(_EXPORTS) + ["__version__"]
+
+
+def __getattr__(name: str):
+    where = _EXPORTS.get(name)
+    if where is None:
+        raise AttributeError(f"module 'clod_adapter' has no attribute {name!r}")
+    import importlib
+
+    value = getattr(importlib.import_module(f"{__name__}.{where[0]}"), where[1])
+    globals()[name] = value
+    return value

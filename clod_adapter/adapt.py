@@ -39,7 +39,7 @@ from .budget import critical_s_v
 from .gaussians import GAIN_NAMES, Gaussians
 from .io.atomic import atomic_save
 from .losses import clod_loss, render_loss
-from .lod_render import render_lod
+from .view import render_lod
 from .metrics import psnr
 
 #: official 3DGS learning rates (arguments/__init__.py, OptimizationParams); means are scaled by

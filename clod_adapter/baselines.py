@@ -1,7 +1,7 @@
 """Baselines for fixed Gaussian budgets: which ``k`` Gaussians of a pretrained model to render.
 
-Every selection picks among the same population as :func:`clod_adapter.lod_render.render_lod`
-(:func:`clod_adapter.lod_render.in_view`: Gaussians whose footprint reaches the image), so a
+Every selection picks among the same population as :func:`clod_adapter.view.render_lod`
+(:func:`clod_adapter.view.in_view`: Gaussians whose footprint reaches the image), so a
 budget of ``k`` means the same thing for every method, and returns the indices plus the
 opacities to draw them with. :func:`render_subset` then hands exactly those Gaussians to the
 rasteriser, the way ``render_lod`` does.
@@ -30,11 +30,10 @@ import torch
 from torch import Tensor
 
 from . import lod
-from .budget import critical_s_v, select_budget
+from .budget import select_budget
 from .gaussians import Gaussians
-from .lod_render import in_view
-from .render import rasterization
 from .render.projection import ALPHA_THRESHOLD, GAUSSIAN_EXTEND, project_visible
+from .view import LodView, view_lod
 
 #: LightGaussian's volume exponent (``--v_pow 0.1`` in their prune scripts).
 LIGHTGAUSSIAN_V_POW = 0.1
@@ -49,12 +48,14 @@ class Selection:
         opacities: [k] float32 opacities to draw them with.
         s_v: the solved virtual distance scale (constant-sigma baseline), else None.
         select_ms: wall time of the selection for this camera (in-view test + ranking), ms.
+        view: the camera's :class:`clod_adapter.view.LodView` (its projection is reused to draw).
     """
 
     indices: Tensor
     opacities: Tensor
     s_v: Optional[float] = None
     select_ms: float = 0.0
+    view: Optional[LodView] = None
 
 
 @dataclass
@@ -68,41 +69,37 @@ class SubsetRender:
     raster_ms: float
 
 
-def _cam(gaussians: Gaussians, camera):
-    dev, dt = gaussians.means.device, gaussians.means.dtype
-    return (camera.viewmat.to(dev, dt), camera.K.to(dev, dt), int(camera.width), int(camera.height))
-
-
 @torch.no_grad()
 def render_subset(gaussians: Gaussians, camera, indices: Tensor, opacities: Optional[Tensor] = None,
                   *, background=None, sh_degree: Optional[int] = None, backend: str = "auto",
-                  impl: str = "auto") -> SubsetRender:
+                  view: Optional[LodView] = None) -> SubsetRender:
     """Rasterise exactly the Gaussians ``indices`` of ``gaussians`` (as ``render_lod`` does).
 
     Args:
-        gaussians: the model (N Gaussians).
+        gaussians: the model (N Gaussians; drawn at its base level, without LoD).
         camera: object with ``viewmat`` [4, 4], ``K`` [3, 3], ``width``, ``height``.
-        indices: [k] int64 indices to render.
+        indices: [k] int64 indices to render (ascending; Gaussians out of view are culled).
         opacities: [k] opacities for them (default: the model's activated opacities).
         background: [3] RGB behind the scene (default black).
-        sh_degree, backend, impl: as :func:`clod_adapter.render.rasterization`.
+        sh_degree, backend: as :func:`clod_adapter.render.rasterization`.
+        view: the camera's :class:`clod_adapter.view.LodView` of ``gaussians`` when the caller
+            has it (its projection is reused).
     """
-    viewmat, K, w, h = _cam(gaussians, camera)
-    dev = gaussians.means.device
-    idx = indices.to(dev)
-    op = gaussians.opacities[idx] if opacities is None else opacities.to(dev, gaussians.means.dtype)
+    v = view if view is not None else view_lod(gaussians.with_sigma_d(None), camera)
+    idx = indices.to(gaussians.means.device)
+    op = None if opacities is None else opacities.to(gaussians.means)
+    keep = v._row_of.index_select(0, idx) >= 0  # in front of the camera (the rest is culled anyway)
+    if not bool(keep.all()):
+        idx = idx[keep]
+        op = None if op is None else op[keep]
     bg = None
     if background is not None:
-        bg = torch.as_tensor(background, dtype=gaussians.means.dtype, device=dev).reshape(1, 3)
+        bg = torch.as_tensor(background, dtype=gaussians.means.dtype, device=gaussians.means.device)
     t0 = time.perf_counter()
-    colors, alphas, _ = rasterization(
-        gaussians.means[idx], gaussians.quats[idx], gaussians.scales[idx], op,
-        gaussians.colors[idx], viewmat[None], K[None], w, h,
-        sh_degree=gaussians.sh_degree if sh_degree is None else sh_degree,
-        backgrounds=bg, backend=backend, impl=impl,
-    )
+    img, alpha, _ = v.rasterize(v.subset(idx, op), background=bg,
+                                sh_degree=gaussians.sh_degree if sh_degree is None else sh_degree, backend=backend)
     t1 = time.perf_counter()
-    return SubsetRender(colors[0], alphas[0], int(idx.numel()), (t1 - t0) * 1e3)
+    return SubsetRender(img, alpha, int(indices.numel()), (t1 - t0) * 1e3)
 
 
 def topk_in_view(scores: Tensor, visible: Tensor, k: int) -> Tensor:
@@ -119,12 +116,10 @@ def ranking_selection(gaussians: Gaussians, camera, scores: Tensor, k: int) -> S
     """Global-ranking baseline for one camera: the ``k`` best-scored Gaussians in view, drawn
     with their original opacities. ``scores`` [N] (higher = kept first), e.g. from
     :func:`lightgaussian_significance` or :func:`random_scores`."""
-    viewmat, K, w, h = _cam(gaussians, camera)
     t0 = time.perf_counter()
-    vis = in_view(gaussians, viewmat, K, w, h)
-    idx = topk_in_view(scores.to(vis.device), vis, k)
-    op = gaussians.opacities[idx]
-    return Selection(idx, op, None, (time.perf_counter() - t0) * 1e3)
+    view = view_lod(gaussians.with_sigma_d(None), camera)
+    idx = topk_in_view(scores.to(view.visible.device), view.visible, k)
+    return Selection(idx, view.opacities.index_select(0, idx), None, (time.perf_counter() - t0) * 1e3, view)
 
 
 def default_sigma_c(adapted: Gaussians) -> float:
@@ -158,18 +153,14 @@ def constant_sigma_selection(gaussians: Gaussians, camera, k: int, sigma_c: floa
     """
     if not sigma_c > 0:
         raise ValueError(f"sigma_c must be > 0, got {sigma_c}")
-    viewmat, K, w, h = _cam(gaussians, camera)
-    means = gaussians.means
     t0 = time.perf_counter()
-    frustum = lod.in_frustum(means, viewmat, K, w, h)
-    vis = in_view(gaussians, viewmat, K, w, h)
-    d_norm = lod.normalized_distances(means, lod.camera_center(viewmat), frustum)
-    sig = torch.full_like(d_norm, float(sigma_c))
-    opac = gaussians.opacities
-    crit = critical_s_v(opac, d_norm, sig, tau, eps)
-    idx, s_v = select_budget(crit, k, vis)
-    op = lod.lod_opacities(opac[idx], d_norm[idx], sig[idx], s_v, eps) if fade else opac[idx]
-    return Selection(idx, op, s_v, (time.perf_counter() - t0) * 1e3)
+    plain = gaussians.with_sigma_d(None)
+    sig = torch.full((len(plain),), float(sigma_c), dtype=plain.means.dtype, device=plain.means.device)
+    view = view_lod(plain.with_sigma_d(sig), camera, tau=tau, eps=eps)
+    idx, s_v = select_budget(view.critical, k, view.visible)
+    opac = view.opacities.index_select(0, idx)
+    op = lod.lod_opacities(opac, view.d_norm[idx], sig[idx], s_v, eps) if fade else opac
+    return Selection(idx, op, s_v, (time.perf_counter() - t0) * 1e3, view)
 
 
 #: constant decays tried by :func:`tune_sigma_c` (from "distance dominates" to "opacity only").
@@ -199,7 +190,7 @@ def tune_sigma_c(gaussians: Gaussians, cameras: Sequence, images: Sequence[Tenso
         ps = []
         for i in idx:
             sel = constant_sigma_selection(gaussians, cameras[i], k, float(c))
-            img = render_subset(gaussians, cameras[i], sel.indices, sel.opacities,
+            img = render_subset(gaussians, cameras[i], sel.indices, sel.opacities, view=sel.view,
                                 background=background, backend=backend).image
             ps.append(psnr(img, images[i]))
         score = sum(ps) / len(ps)
@@ -219,9 +210,11 @@ def pixels_hit(gaussians: Gaussians, camera) -> Tensor:
     inside the image (clipping). Transmittance early-out (pixels behind an opaque surface) is
     ignored, so occluded Gaussians are over-counted relative to ``count_render``.
     """
-    viewmat, K, w, h = _cam(gaussians, camera)
+    dev, dt = gaussians.means.device, gaussians.means.dtype
+    viewmat, K = camera.viewmat.to(dev, dt), camera.K.to(dev, dt)
+    w, h = int(camera.width), int(camera.height)
     n = len(gaussians)
-    out = torch.zeros(n, dtype=torch.float32, device=gaussians.means.device)
+    out = torch.zeros(n, dtype=torch.float32, device=dev)
     if n == 0:
         return out
     op = gaussians.opacities

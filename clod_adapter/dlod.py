@@ -18,7 +18,7 @@ from torch import Tensor
 from .adapt import OFFICIAL_LR, scene_extent
 from .gaussians import Gaussians
 from .losses import render_loss
-from .lod_render import render_lod
+from .view import render_lod
 
 _FIELDS = ("means", "quats", "log_scales", "opacity_logits", "sh0", "shN")
 

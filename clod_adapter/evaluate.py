@@ -15,7 +15,7 @@ from torch import Tensor
 
 from . import lod
 from .gaussians import Gaussians
-from .lod_render import render_lod
+from .view import render_lod
 from .metrics import psnr, ssim
 
 

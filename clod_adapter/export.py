@@ -8,7 +8,7 @@
 * :func:`reduce_sh`: drop SH bands whose removal costs less than a set PSNR on training views.
 
 Persistence (the choice made here). A Gaussian is rendered from a view iff it is in view
-(:func:`clod_adapter.lod_render.in_view`) and ``s_v < s*`` (:func:`clod_adapter.budget.critical_s_v`,
+(:func:`clod_adapter.view.in_view`) and ``s_v < s*`` (:func:`clod_adapter.budget.critical_s_v`,
 which folds opacity, ``sigma_d`` and the view's normalised distance into one number). Its
 persistence is the largest ``s*`` over the views that see it, i.e. the coarsest level at which
 *some* view still draws it; 0 for a Gaussian no view sees. The maximum (not the mean) is used so
@@ -17,7 +17,6 @@ Ties (e.g. the zeros) are broken by opacity, then index.
 """
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass, field, replace
 from typing import Optional, Sequence
 
@@ -25,14 +24,12 @@ import torch
 from torch import Tensor
 
 from . import lod
-from .budget import budget_count, critical_s_v, select_budget
 from .gaussians import Gaussians
-from .lod_render import in_view, render_lod
+from .metrics import psnr
+from .view import render_lod, view_lod
 
 __all__ = ["persistence", "importance_order", "bake", "prune_never_rendered", "reduce_sh",
-           "view_selection", "truncate_sh", "capped_psnr", "BakeInfo"]
-
-PSNR_CAP_DB = 100.0  # identical images score this instead of +inf (keeps differences finite)
+           "truncate_sh", "BakeInfo"]
 
 
 def _require_sigma(g: Gaussians, what: str) -> None:
@@ -40,29 +37,9 @@ def _require_sigma(g: Gaussians, what: str) -> None:
         raise ValueError(f"{what}: the model has no sigma_d (not an adapted model)")
 
 
-def capped_psnr(img: Tensor, gt: Tensor) -> float:
-    """PSNR (dB) of ``img`` (clamped to [0, 1]) against ``gt``, capped at :data:`PSNR_CAP_DB`."""
-    mse = torch.mean((img.detach().clamp(0, 1).float() - gt.to(img.device).float()) ** 2).item()
-    return min(PSNR_CAP_DB, -10.0 * math.log10(max(mse, 1e-10)))
-
-
 @torch.no_grad()
-def _view_terms(g: Gaussians, cam, tau: float, eps: float):
-    """(in-view mask [N], critical s* [N] float64, d' [N], frustum [N]) for one camera."""
-    dev = g.means.device
-    viewmat = cam.viewmat.to(dev, g.means.dtype)
-    K = cam.K.to(dev, g.means.dtype)
-    w, h = int(cam.width), int(cam.height)
-    frustum = lod.in_frustum(g.means, viewmat, K, w, h)
-    vis = in_view(g, viewmat, K, w, h)
-    d_norm = lod.normalized_distances(g.means, lod.camera_center(viewmat), frustum)
-    crit = critical_s_v(g.opacities, d_norm, g.sigma_d, tau, eps)
-    return vis, crit, d_norm, frustum
-
-
-@torch.no_grad()
-def persistence(gaussians: Gaussians, cameras: Sequence, *, tau: float = lod.DEFAULT_TAU,
-                eps: float = lod.DEFAULT_EPS) -> Tensor:
+def persistence(gaussians: Gaussians, cameras: Sequence, *, tau: Optional[float] = None,
+                eps: Optional[float] = None) -> Tensor:
     """[N] float64 persistence: max over ``cameras`` that see a Gaussian of its critical scale
     ``s*`` (rendered from that view iff ``s_v < s*``); 0 when no camera sees it.
 
@@ -72,14 +49,14 @@ def persistence(gaussians: Gaussians, cameras: Sequence, *, tau: float = lod.DEF
     _require_sigma(gaussians, "persistence")
     p = torch.zeros(len(gaussians), dtype=torch.float64, device=gaussians.means.device)
     for cam in cameras:
-        vis, crit, _, _ = _view_terms(gaussians, cam, tau, eps)
-        p = torch.maximum(p, torch.where(vis, crit, torch.zeros_like(crit)))
+        v = view_lod(gaussians, cam, tau=tau, eps=eps)
+        p = torch.maximum(p, torch.where(v.visible, v.critical, torch.zeros_like(v.critical)))
     return p
 
 
 @torch.no_grad()
-def importance_order(gaussians: Gaussians, cameras: Sequence, *, tau: float = lod.DEFAULT_TAU,
-                     eps: float = lod.DEFAULT_EPS, persist: Optional[Tensor] = None) -> Tensor:
+def importance_order(gaussians: Gaussians, cameras: Sequence, *, tau: Optional[float] = None,
+                     eps: Optional[float] = None, persist: Optional[Tensor] = None) -> Tensor:
     """[N] int64 permutation: descending :func:`persistence`, ties by descending opacity, then
     ascending index. ``gaussians.subset(perm)[:k]`` is the k-Gaussian level of detail."""
     p = persistence(gaussians, cameras, tau=tau, eps=eps) if persist is None else persist
@@ -91,36 +68,6 @@ def importance_order(gaussians: Gaussians, cameras: Sequence, *, tau: float = lo
     order = order[torch.sort(-op[order], stable=True).indices]
     order = order[torch.sort(-p[order], stable=True).indices]
     return order
-
-
-@torch.no_grad()
-def view_selection(gaussians: Gaussians, cam, s_v: Optional[float] = None, budget=None, *,
-                   tau: float = lod.DEFAULT_TAU, eps: float = lod.DEFAULT_EPS,
-                   min_s_v: float = 1.0) -> tuple[Tensor, Tensor, float]:
-    """What :func:`render_lod` draws from ``cam``, without rasterising.
-
-    Returns:
-        (mask [N] bool, attenuation [N] = alpha''/alpha (Eq. 2's factor), s_v used).
-    """
-    _require_sigma(gaussians, "view_selection")
-    if (s_v is None) == (budget is None):
-        raise ValueError("view_selection: give exactly one of s_v and budget")
-    vis, crit, d_norm, _ = _view_terms(gaussians, cam, tau, eps)
-    if budget is not None:
-        idx, s = select_budget(crit, budget_count(budget, len(gaussians)), vis)
-        if s < min_s_v:
-            s = float(min_s_v)
-            mask = (crit > s) & vis
-        else:
-            mask = torch.zeros_like(vis)
-            mask[idx] = True
-    else:
-        if not s_v >= 1.0:
-            raise ValueError(f"s_v must be >= 1, got {s_v}")
-        s = float(s_v)
-        mask = (lod.lod_margin(gaussians.opacities, d_norm, gaussians.sigma_d, s, tau, eps) > 0) & vis
-    att = torch.exp(lod.lod_log_attenuation(d_norm, gaussians.sigma_d, s, eps))
-    return mask, att, s
 
 
 @dataclass
@@ -141,16 +88,19 @@ def _logit(a: Tensor) -> Tensor:
 
 @torch.no_grad()
 def bake(gaussians: Gaussians, cameras: Sequence, s_v: Optional[float] = None, budget=None, *,
-         opacity: str = "auto", tau: float = lod.DEFAULT_TAU, eps: float = lod.DEFAULT_EPS,
+         opacity: str = "auto", tau: Optional[float] = None, eps: Optional[float] = None,
          background=None, backend: str = "auto", return_info: bool = False):
     """A standard model (``sigma_d = None``) of the Gaussians one setting renders.
 
     The kept set is the union over ``cameras`` of what :func:`render_lod` draws at ``s_v`` (or,
     with ``budget``, at each view's solved ``s_v``, never below 1): a superset of each view's
-    selection, so its count can exceed a budget. A standard file has no decay, so opacities are:
+    selection, so its count can exceed a budget. Scales and colours are the model's at the mean
+    level the views draw (level gains, :meth:`Gaussians.at_level`). A standard file has no decay,
+    so opacities are:
 
-    * ``"original"``: the unattenuated alpha of each kept Gaussian;
-    * ``"mean"``: alpha times the mean over the views that keep it of Eq. 2's attenuation;
+    * ``"original"``: each kept Gaussian's opacity at that level, unfaded;
+    * ``"mean"``: the mean over the views that keep it of the opacity :func:`render_lod` draws it
+      with (Eq. 2's ``alpha''``, or the window-faded opacity at the level);
     * ``"auto"`` (default): both are rendered from ``cameras`` and the one closer (PSNR) to
       ``render_lod`` at the setting is kept (measured on fern: see docs/export_fern.md).
 
@@ -160,40 +110,42 @@ def bake(gaussians: Gaussians, cameras: Sequence, s_v: Optional[float] = None, b
     _require_sigma(gaussians, "bake")
     if opacity not in ("auto", "original", "mean"):
         raise ValueError(f"bake: opacity must be auto, original or mean, got {opacity!r}")
+    if (s_v is None) == (budget is None):
+        raise ValueError("bake: give exactly one of s_v and budget")
     n = len(gaussians)
     dev = gaussians.means.device
     keep = torch.zeros(n, dtype=torch.bool, device=dev)
-    att_sum = torch.zeros(n, dtype=torch.float64, device=dev)
+    drawn_sum = torch.zeros(n, dtype=torch.float64, device=dev)
     cnt = torch.zeros(n, dtype=torch.float64, device=dev)
-    settings, rendered = [], []
+    settings, rendered, levels = [], [], []
     for cam in cameras:
-        mask, att, s = view_selection(gaussians, cam, s_v, budget, tau=tau, eps=eps)
-        keep |= mask
-        att_sum += torch.where(mask, att.double(), torch.zeros_like(att_sum))
-        cnt += mask.double()
-        settings.append(s)
-        rendered.append(int(mask.sum()))
+        sel = view_lod(gaussians, cam, tau=tau, eps=eps).select(s_v, budget=budget, estimator="paper")
+        keep[sel.indices] = True
+        drawn_sum[sel.indices] += sel.opacities.double()
+        cnt[sel.indices] += 1.0
+        settings.append(sel.s_v)
+        levels.append(sel.level)
+        rendered.append(int(sel.indices.numel()))
     idx = torch.nonzero(keep, as_tuple=False).squeeze(1)
-    alpha = gaussians.opacities.detach()
-    mean_att = (att_sum / cnt.clamp_min(1)).to(alpha.dtype)
-    cands = {"original": gaussians.opacity_logits.detach().clone(),
-             "mean": _logit(alpha * mean_att)}
+    at = gaussians.at_level(sum(levels) / max(len(levels), 1))
+    mean_drawn = (drawn_sum / cnt.clamp_min(1)).to(at.opacity_logits.dtype)
+    cands = {"original": at.opacity_logits.detach().clone(), "mean": _logit(mean_drawn)}
     names = list(cands) if opacity == "auto" else [opacity]
     scores = {}
     if opacity == "auto" or return_info:
-        refs = [render_lod(gaussians, cam, s, background=background, backend=backend,
+        refs = [render_lod(gaussians, cam, s, tau=tau, eps=eps, background=background, backend=backend,
                            estimator="paper").image for cam, s in zip(cameras, settings)]
         for name in cands:
             if opacity != "auto" and name != opacity:
                 continue
-            g = replace(gaussians, opacity_logits=cands[name], sigma_d=None).subset(idx)
-            ps = [capped_psnr(render_lod(g, cam, background=background, backend=backend).image,
-                              ref.clamp(0, 1)) for cam, ref in zip(cameras, refs)]
+            g = replace(at, opacity_logits=cands[name]).with_sigma_d(None).subset(idx)
+            ps = [psnr(render_lod(g, cam, background=background, backend=backend).image,
+                       ref.clamp(0, 1), cap=True) for cam, ref in zip(cameras, refs)]
             scores[name] = sum(ps) / max(len(ps), 1)
         if opacity == "auto":
             names = [max(scores, key=lambda k: (scores[k], k == "original"))]
     chosen = names[0]
-    out = replace(gaussians, opacity_logits=cands[chosen], sigma_d=None).subset(idx).clone()
+    out = replace(at, opacity_logits=cands[chosen]).with_sigma_d(None).subset(idx).clone()
     if return_info:
         return out, BakeInfo(chosen=chosen, psnr_vs_lod=scores, n_kept=int(idx.numel()),
                              per_view_rendered=sum(rendered) / max(len(rendered), 1))
@@ -202,8 +154,8 @@ def bake(gaussians: Gaussians, cameras: Sequence, s_v: Optional[float] = None, b
 
 @torch.no_grad()
 def prune_never_rendered(gaussians: Gaussians, cameras: Sequence, *,
-                         anchor_cameras: Optional[Sequence] = None, tau: float = lod.DEFAULT_TAU,
-                         eps: float = lod.DEFAULT_EPS) -> tuple[Gaussians, int]:
+                         anchor_cameras: Optional[Sequence] = None, tau: Optional[float] = None,
+                         eps: Optional[float] = None) -> tuple[Gaussians, int]:
     """Drop the Gaussians that no camera in ``cameras`` renders at any ``s_v >= 1``.
 
     The rendered set shrinks as ``s_v`` grows, so "rendered at some s_v >= 1" is "rendered at
@@ -218,8 +170,8 @@ def prune_never_rendered(gaussians: Gaussians, cameras: Sequence, *,
     _require_sigma(gaussians, "prune_never_rendered")
     keep = torch.zeros(len(gaussians), dtype=torch.bool, device=gaussians.means.device)
     for cam in cameras:
-        vis, crit, _, _ = _view_terms(gaussians, cam, tau, eps)
-        keep |= vis & (crit > 1.0)
+        v = view_lod(gaussians, cam, tau=tau, eps=eps)
+        keep |= v.visible & (v.critical > 1.0)
     for cam in (cameras if anchor_cameras is None else anchor_cameras):
         viewmat = cam.viewmat.to(gaussians.means.device, gaussians.means.dtype)
         fr = lod.in_frustum(gaussians.means, viewmat, cam.K.to(viewmat), int(cam.width), int(cam.height))
@@ -257,8 +209,8 @@ def reduce_sh(gaussians: Gaussians, cameras: Sequence, images: Sequence[Tensor],
         _require_sigma(gaussians, "reduce_sh")
 
     def score(g: Gaussians) -> float:
-        ps = [capped_psnr(render_lod(g, cam, s_v, background=background, backend=backend,
-                                     estimator="paper").image, gt) for cam, gt in zip(cameras, images)]
+        ps = [psnr(render_lod(g, cam, s_v, background=background, backend=backend,
+                              estimator="paper").image, gt, cap=True) for cam, gt in zip(cameras, images)]
         return sum(ps) / max(len(ps), 1)
 
     d0 = gaussians.sh_degree
@@ -298,11 +250,11 @@ def prefix_vs_selection(gaussians: Gaussians, perm: Tensor, cameras: Sequence, i
         pp, ps, cnt = [], [], []
         for cam, gt in zip(cameras, images):
             r = render_lod(sub, cam, background=background, backend=backend)
-            pp.append(capped_psnr(r.image, gt))
+            pp.append(psnr(r.image, gt, cap=True))
             cnt.append(r.n_rendered)
             s = render_lod(gaussians, cam, budget=int(r.n_rendered), min_s_v=0.0, background=background,
                            backend=backend, estimator="paper")
-            ps.append(capped_psnr(s.image, gt))
+            ps.append(psnr(s.image, gt, cap=True))
         m = max(len(pp), 1)
         rows.append({"fraction": f, "count": k, "rendered_per_view": sum(cnt) / m,
                      "psnr_prefix": sum(pp) / m, "psnr_selection": sum(ps) / m})

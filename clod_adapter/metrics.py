@@ -20,12 +20,19 @@ _C1 = 0.01 ** 2
 _C2 = 0.03 ** 2
 
 
-def psnr(img: Tensor, gt: Tensor) -> float:
+#: the cap of ``psnr(..., cap=True)``: identical images score this instead of +inf.
+PSNR_CAP_DB = 100.0
+
+
+def psnr(img: Tensor, gt: Tensor, cap: bool = False) -> float:
     """PSNR in dB of ``img`` against ``gt`` (both [H, W, 3] or [..., H, W, C], values in [0, 1]).
 
-    ``img`` is clamped to [0, 1] first, as 3DGS evaluation does. Identical images give +inf.
+    ``img`` is clamped to [0, 1] first, as 3DGS evaluation does. Identical images give +inf, or
+    :data:`PSNR_CAP_DB` with ``cap`` (keeps differences between PSNRs finite).
     """
-    mse = torch.mean((img.detach().clamp(0, 1).float() - gt.float()) ** 2).item()
+    mse = torch.mean((img.detach().clamp(0, 1).float() - gt.to(img.device).float()) ** 2).item()
+    if cap:
+        return min(PSNR_CAP_DB, -10.0 * math.log10(max(mse, 1e-10)))
     return float("inf") if mse == 0 else -10.0 * math.log10(mse)
 
 

@@ -30,8 +30,8 @@ from .io.atomic import atomic_save, atomic_write
 from .io.load import load_model, resolve_model_path, training_size
 from .jobs import InputError, pick_device  # noqa: F401 (public here since the first release)
 from .io.ply import write_ply
-from .io.scenes import load_scene
-from .lod_render import render_lod
+from .io.scene import load_scene
+from .view import render_lod
 
 PLY_NAME = "point_cloud.ply"
 STATE_NAME = "adapt_state.safetensors"

@@ -75,7 +75,7 @@ from .baselines import (SIGMA_C_CANDIDATES, Selection, constant_sigma_selection,
 from .gaussians import Gaussians
 from .io.atomic import atomic_save, atomic_write
 from .io.ply import ply_property_names, read_ply
-from .lod_render import render_lod
+from .view import render_lod
 from .metrics import psnr, ssim
 
 CSV_COLUMNS = ("method", "setting", "s_v", "budget", "gaussians", "fraction", "psnr", "ssim", "lpips",
@@ -222,7 +222,7 @@ def _sample(fn: Callable[[], Sample]) -> Sample:
 
 
 def _render_selection(g: Gaussians, cam, sel: Selection, bg, backend) -> Sample:
-    r = render_subset(g, cam, sel.indices, sel.opacities, background=bg, backend=backend)
+    r = render_subset(g, cam, sel.indices, sel.opacities, background=bg, backend=backend, view=sel.view)
     return Sample(r.image, r.n_rendered, sel.s_v, sel.select_ms, r.raster_ms)
 
 
@@ -324,7 +324,7 @@ def popping_curve(gaussians: Gaussians, camera, s_vs: Sequence[float], *,
     levels = []
     for k in (counts[0], counts[-1]):
         sel = ranking_selection(dm, camera, scores, k)
-        levels.append(render_subset(dm, camera, sel.indices, sel.opacities, background=background,
+        levels.append(render_subset(dm, camera, sel.indices, sel.opacities, background=background, view=sel.view,
                                     backend=backend).image.clamp(0, 1))
         if on_render:
             on_render()

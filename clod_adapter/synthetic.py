@@ -15,7 +15,8 @@ import torch
 
 from .gaussians import SH_C0, Gaussians
 from .io.ply import write_ply
-from .io.scene import Camera, write_colmap_scene
+from .io.scene import Camera
+from .io.colmap import write_colmap_scene
 from .render import rasterization
 
 DEMO_WIDTH, DEMO_HEIGHT = 160, 120

@@ -24,7 +24,7 @@ import torch
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from clod_adapter.render import clod_rasterization  # noqa: E402
+from clod_adapter import clod_rasterization  # noqa: E402
 
 DEFAULT_PLY = REPO / "runs" / "fern" / "point_cloud.ply"
 
@@ -80,7 +80,7 @@ def main(argv=None) -> int:
         print(f"{ply}: {len(model)} Gaussians")
         cam = None
     if args.scene:
-        from clod_adapter.io.scenes import load_scene
+        from clod_adapter.io.scene import load_scene
 
         scene = load_scene(args.scene, resolution=args.resolution)
         cam = (scene.test or scene.train)[0]

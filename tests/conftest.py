@@ -61,7 +61,7 @@ def write_tiny_scene(root: Path, n: int = 400, rows: int = 2, cols: int = 5, wid
     ``rows x cols`` camera grid; the .ply is a perturbed copy (the "pretrained" stand-in).
     """
     from clod_adapter.io.ply import write_ply
-    from clod_adapter.io.scene import write_colmap_scene
+    from clod_adapter.io.colmap import write_colmap_scene
     from clod_adapter.synthetic import make_cameras, make_ground_truth, perturb
 
     gt = make_ground_truth(n, seed=seed)
@@ -72,3 +72,20 @@ def write_tiny_scene(root: Path, n: int = 400, rows: int = 2, cols: int = 5, wid
     ply = Path(root) / "in.ply"
     write_ply(ply, perturb(gt, seed + 1))
     return scene, ply
+
+
+@pytest.fixture(autouse=True)
+def _compositor_impl(request):
+    """A test parametrised over ``impl`` ("cpp" | "torch") runs with that CPU compositor
+    (:func:`clod_adapter.render.composite.use_impl`); "cpp" skips where it cannot be built."""
+    callspec = getattr(request.node, "callspec", None)
+    impl = callspec.params.get("impl") if callspec is not None else None
+    if impl not in ("cpp", "torch"):
+        yield
+        return
+    from clod_adapter.render.composite import cpp_extension_available, use_impl
+
+    if impl == "cpp" and not cpp_extension_available():
+        pytest.skip("the C++ compositor cannot be built here")
+    with use_impl(impl):
+        yield

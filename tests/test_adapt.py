@@ -7,7 +7,7 @@ import torch
 
 from clod_adapter.adapt import AdaptConfig, adapt, load_state, prepare, save_state
 from clod_adapter.io.ply import read_ply
-from clod_adapter.lod_render import render_lod
+from clod_adapter.view import render_lod
 from clod_adapter.synthetic import make_cameras, make_ground_truth, perturb
 from conftest import render_views, write_tiny_scene
 

@@ -35,7 +35,7 @@ RUN_FAST = ["--iterations", "2", "--max-sv", "2"]
 # --- the tiny scene -----------------------------------------------------------------------------
 @pytest.fixture(scope="module")
 def tiny_src(tmp_path_factory) -> Path:
-    from clod_adapter.io.scene import write_colmap_scene
+    from clod_adapter.io.colmap import write_colmap_scene
     from clod_adapter.synthetic import make_cameras, make_ground_truth, perturb
 
     root = tmp_path_factory.mktemp("tiny")
@@ -280,7 +280,7 @@ def test_image_size_not_matching_camera(tiny, capfd):
 
 def test_image_exact_integer_multiple_is_downscaled(tiny):
     """Library level (no run needed): a 2x image is accepted and downscaled to the camera size."""
-    from clod_adapter.io.scene import load_colmap_scene
+    from clod_adapter.io.colmap import load_colmap_scene
 
     p = tiny / "scene" / "images" / "view003.png"
     small = np.asarray(Image.open(p).convert("RGB"))

@@ -13,8 +13,7 @@ import torch
 from PIL import Image
 
 from clod_adapter.io.blender import load_blender_scene
-from clod_adapter.io.scene import SceneError
-from clod_adapter.io.scenes import load_scene, scene_format
+from clod_adapter.io.scene import SceneError, load_scene, scene_format
 from clod_adapter.render import rasterization
 from clod_adapter.synthetic import make_cameras, make_ground_truth, perturb
 
@@ -126,7 +125,7 @@ def test_no_pycolmap_import(blender):
     root = blender[0]
     code = (
         "import sys\n"
-        "from clod_adapter.io.scenes import load_scene\n"
+        "from clod_adapter.io.scene import load_scene\n"
         "import clod_adapter.pipeline, cli.adapt, cli.eval\n"
         f"s = load_scene({str(root)!r}, background=(1, 1, 1))\n"
         "s.load_image(s.train[0])\n"
@@ -139,7 +138,7 @@ def test_no_pycolmap_import(blender):
 
 
 def test_colmap_still_dispatched(tmp_path):
-    from clod_adapter.io.scene import write_colmap_scene
+    from clod_adapter.io.colmap import write_colmap_scene
 
     cams = make_cameras(1, 2, width=16, height=12)
     imgs = [np.zeros((12, 16, 3), np.uint8) for _ in cams]

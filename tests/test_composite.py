@@ -10,12 +10,9 @@ import math
 import pytest
 import torch
 
-from clod_adapter.render import composite
-from clod_adapter.render.composite import (
-    cpp_extension_available,
-    rasterize_to_pixels,
-    rasterize_to_pixels_torch,
-)
+from clod_adapter.render import _torch_impl, composite
+from clod_adapter.render._torch_impl import rasterize_to_pixels_torch
+from clod_adapter.render.composite import cpp_extension_available, rasterize_to_pixels, use_impl
 
 needs_cpp = pytest.mark.skipif(not cpp_extension_available(), reason="C++ compositor did not build")
 
@@ -85,11 +82,11 @@ def render(scene, impl, backgrounds=None, grad=False):
     bg = None
     if backgrounds is not None:
         bg = backgrounds.clone().requires_grad_(grad)
-    fn = rasterize_to_pixels_torch if impl == "torch" else (
-        lambda *a, **k: rasterize_to_pixels(*a, impl=impl, **k))
-    img, alpha = fn(leaves["means2d"], leaves["conics"], leaves["colors"], leaves["opacities"],
-                    scene["width"], scene["height"], scene["tile_size"],
-                    scene["isect_offsets"], scene["flatten_ids"], backgrounds=bg)
+    fn = rasterize_to_pixels_torch if impl == "torch" else rasterize_to_pixels
+    with use_impl(impl):
+        img, alpha = fn(leaves["means2d"], leaves["conics"], leaves["colors"], leaves["opacities"],
+                        scene["width"], scene["height"], scene["tile_size"],
+                        scene["isect_offsets"], scene["flatten_ids"], backgrounds=bg)
     return img, alpha, leaves, bg
 
 
@@ -172,13 +169,13 @@ def test_cpp_matches_torch_float32(seed, N, W, H, ts, monkeypatch):
         assert_close(g_c[k], g_t[k], name=k)
 
     # the T <= 1e-4 early stop did trigger: without it the image changes
-    monkeypatch.setattr(composite, "TRANSMITTANCE_THRESHOLD", 0.0)
+    monkeypatch.setattr(_torch_impl, "TRANSMITTANCE_THRESHOLD", 0.0)
     img_ns, a_ns, *_ = render(scene, "torch")
     assert (a_ns.detach() - a_t).abs().max() > 1e-4
     assert (img_ns.detach() - img_t).abs().max() > 1e-4
     # the 1/255 skip and the 0.999 clamp matter too
-    monkeypatch.setattr(composite, "TRANSMITTANCE_THRESHOLD", 1e-4)
-    monkeypatch.setattr(composite, "ALPHA_THRESHOLD", 0.0)
+    monkeypatch.setattr(_torch_impl, "TRANSMITTANCE_THRESHOLD", 1e-4)
+    monkeypatch.setattr(_torch_impl, "ALPHA_THRESHOLD", 0.0)
     img_na, *_ = render(scene, "torch")
     assert (img_na.detach() - img_t).abs().max() > 1e-5
 
@@ -221,7 +218,7 @@ def test_gradcheck_float64(impl):
     assert ((alpha - 1 / 255).abs() > 1e-5).all() and (alpha < 0.99).all()
 
     def fn(m, cn, cl, op, b):
-        return rasterize_to_pixels(m, cn, cl, op, 16, 16, 16, offsets, ids, backgrounds=b, impl=impl)
+        return rasterize_to_pixels(m, cn, cl, op, 16, 16, 16, offsets, ids, backgrounds=b)
 
     inputs = tuple(t.clone().requires_grad_(True) for t in (means, conics, colors, opac, bg))
     assert torch.autograd.gradcheck(fn, inputs, eps=1e-6, atol=1e-6, rtol=1e-4,
@@ -274,8 +271,7 @@ def test_empty_and_misc(impl):
     offsets = torch.zeros(2, 2, dtype=torch.int32)  # all tiles empty
     ids = torch.zeros(0, dtype=torch.int64)
     bg = torch.tensor([0.1, 0.2])
-    img, a = rasterize_to_pixels(means, conics, colors, opac, 20, 18, 16, offsets, ids,
-                                 backgrounds=bg, impl=impl)
+    img, a = rasterize_to_pixels(means, conics, colors, opac, 20, 18, 16, offsets, ids, backgrounds=bg)
     assert img.shape == (18, 20, 2) and a.shape == (18, 20, 1)
     assert torch.equal(a, torch.zeros_like(a))
     assert torch.allclose(img, bg.expand(18, 20, 2))

@@ -11,8 +11,8 @@ import torch
 
 from clod_adapter import export as ex
 from clod_adapter.io.ply import read_ply, write_ply
-from clod_adapter.io.scene import load_colmap_scene
-from clod_adapter.lod_render import render_lod
+from clod_adapter.io.colmap import load_colmap_scene
+from clod_adapter.view import render_lod
 
 from conftest import write_tiny_scene
 

@@ -8,8 +8,8 @@ from pathlib import Path
 import pytest
 import torch
 
-from clod_adapter.lod_render import render_lod
-from clod_adapter.render import clod_rasterization, rasterization
+from clod_adapter.view import render_lod
+from clod_adapter import clod_rasterization, rasterization
 from clod_adapter.synthetic import make_cameras, make_ground_truth
 
 REPO = Path(__file__).resolve().parents[1]

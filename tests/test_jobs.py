@@ -173,7 +173,7 @@ def test_real_pairs_match(which, resolution):
     import torch
 
     from clod_adapter.io.load import load_model, resolve_model_path
-    from clod_adapter.io.scenes import load_scene
+    from clod_adapter.io.scene import load_scene
     from clod_adapter.pipeline import MISMATCH_MARGIN_DB, scene_match
 
     g = load_model(resolve_model_path(shared_path("fern", which)))
@@ -188,7 +188,7 @@ def test_real_pairs_match(which, resolution):
 def test_synthetic_scene_matches(tiny_src):
     import torch
 
-    from clod_adapter.io.scene import load_colmap_scene
+    from clod_adapter.io.colmap import load_colmap_scene
     from clod_adapter.pipeline import MISMATCH_MARGIN_DB, scene_match
 
     scene = load_colmap_scene(tiny_src["scene"])

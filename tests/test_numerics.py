@@ -1,5 +1,5 @@
 """Numerical stability of the CLoD mechanism, the budget solver and the CPU rasteriser
-(impl="cpp" and impl="torch"; gsplat is GPU-only and not exercised here).
+(the C++ compositor and its twin; gsplat is GPU-only and not exercised here).
 
 Stiff and extreme cases: sigma_d <= 0 (the ReLU dead zone), sigma_d = 1e6, s_v = 1 .. 1e4, tiny
 eps, d' = 0 (camera on a Gaussian), one / zero Gaussians, an empty frustum, everything behind the
@@ -23,9 +23,9 @@ from hypothesis import strategies as st
 from clod_adapter import lod
 from clod_adapter.budget import critical_s_v, select_budget
 from clod_adapter.gaussians import Gaussians
-from clod_adapter.lod_render import render_lod
+from clod_adapter.view import render_lod
 from clod_adapter.render import rasterization
-from clod_adapter.render.composite import cpp_extension_available
+from clod_adapter.render.composite import cpp_extension_available, use_impl
 
 W, H = 32, 24
 IMPLS = ["torch", pytest.param("cpp", marks=pytest.mark.skipif(
@@ -80,7 +80,8 @@ def _assert_finite_grads(tensors: dict, where: str = "") -> None:
 
 
 def _render_and_check(g: Gaussians, cam, s_v=None, impl="torch", budget=None, **kw):
-    out = render_lod(g, cam, s_v, backend="cpu", impl=impl, budget=budget, **kw)
+    with use_impl(impl):
+        out = render_lod(g, cam, s_v, backend="cpu", budget=budget, **kw)
     assert torch.isfinite(out.image).all(), "non-finite image"
     assert torch.isfinite(out.alpha).all() and (out.alpha >= 0).all() and (out.alpha <= 1).all()
     assert torch.isfinite(out.eta).all() and 0.0 <= float(out.eta.detach()) <= 1.0
@@ -330,9 +331,10 @@ def test_rasterizer_extreme_gaussians_finite(gs, fx, impl):
     means, ls, qs, lg = _build(gs)
     g = _model(means, ls, qs, lg, seed=len(gs))
     cam = _cam(fx)
-    cols, alphas, meta = rasterization(
-        g.means, g.quats, g.scales, g.opacities, g.colors, cam.viewmat[None], cam.K[None], W, H,
-        sh_degree=1, backend="cpu", impl=impl)
+    with use_impl(impl):
+        cols, alphas, meta = rasterization(
+            g.means, g.quats, g.scales, g.opacities, g.colors, cam.viewmat[None], cam.K[None], W, H,
+            sh_degree=1, backend="cpu")
     assert torch.isfinite(cols).all() and torch.isfinite(alphas).all()
     assert bool((alphas >= 0).all()) and bool((alphas <= 1).all())
     assert bool((meta["radii"] >= 0).all()), "negative radius (int32 overflow?)"
@@ -352,12 +354,13 @@ def test_cpp_and_torch_compositors_agree_on_extreme_gaussians(gs, fx):
     res = {}
     for impl in ("torch", "cpp"):
         g = _model(means, ls, qs, lg, seed=len(gs))
-        c, a, _ = rasterization(g.means, g.quats, g.scales, g.opacities, g.colors, cam.viewmat[None],
-                                cam.K[None], W, H, sh_degree=1, backend="cpu", impl=impl)
-        loss = c.sum() + a.sum()
-        if not loss.requires_grad:
-            return
-        loss.backward()
+        with use_impl(impl):
+            c, a, _ = rasterization(g.means, g.quats, g.scales, g.opacities, g.colors, cam.viewmat[None],
+                                    cam.K[None], W, H, sh_degree=1, backend="cpu")
+            loss = c.sum() + a.sum()
+            if not loss.requires_grad:
+                return
+            loss.backward()
         res[impl] = (c.detach(), a.detach(), g.opacity_logits.grad.clone(), g.sh0.grad.clone())
     for x, y in zip(res["torch"], res["cpp"]):
         torch.testing.assert_close(x, y, rtol=1e-4, atol=1e-4)
@@ -499,7 +502,8 @@ def test_far_scene_matches_scene_at_origin_float64():
                    base.opacity_logits.detach(), torch.rand(len(base), generator=torch.Generator().manual_seed(1)),
                    dtype=torch.float64)
         cam = _cam(center=(off, off, off), dtype=torch.float64)
-        outs.append(render_lod(g, cam, 2.0, backend="cpu", impl="torch"))
+        with use_impl("torch"):
+            outs.append(render_lod(g, cam, 2.0, backend="cpu"))
     assert outs[0].n_rendered == outs[1].n_rendered > 0
     torch.testing.assert_close(outs[0].image, outs[1].image, rtol=1e-6, atol=1e-6)
 

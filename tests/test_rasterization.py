@@ -6,7 +6,6 @@ import math
 import pytest
 import torch
 
-from clod_adapter.render import cpu as cpu_mod
 from clod_adapter.render import fully_fused_projection, rasterization, spherical_harmonics
 from clod_adapter.render.projection import project_visible
 from clod_adapter.render.tiles import isect_offset_encode, isect_tiles
@@ -18,36 +17,12 @@ ALPHA_T = 1.0 / 255.0
 # ------------------------------------------------------------------------------------------
 # helpers
 # ------------------------------------------------------------------------------------------
-def standin_rasterize_to_pixels(means2d, conics, colors, opacities, width, height, tile_size,
-                                isect_offsets, flatten_ids, backgrounds=None, impl="auto"):
-    """Minimal pure-torch gsplat compositor (used only while composite.py is missing)."""
-    th, tw = isect_offsets.shape
-    D = colors.shape[-1]
-    M = flatten_ids.numel()
-    offs = torch.cat([isect_offsets.flatten().long(), torch.tensor([M])])
-    img = torch.zeros(height, width, D, dtype=colors.dtype)
-    alp = torch.zeros(height, width, 1, dtype=colors.dtype)
-    rows_c, rows_a = [], []
-    out_c = [[None] * tw for _ in range(th)]
-    out_a = [[None] * tw for _ in range(th)]
-    for ty in range(th):
-        for tx in range(tw):
-            t = ty * tw + tx
-            ys = torch.arange(ty * tile_size, min((ty + 1) * tile_size, height), dtype=colors.dtype)
-            xs = torch.arange(tx * tile_size, min((tx + 1) * tile_size, width), dtype=colors.dtype)
-            py, px = torch.meshgrid(ys + 0.5, xs + 0.5, indexing="ij")
-            ids = flatten_ids[offs[t]:offs[t + 1]]
-            c, a = _composite_pixels(px.reshape(-1), py.reshape(-1), means2d[ids], conics[ids],
-                                     colors[ids], opacities[ids], backgrounds)
-            out_c[ty][tx] = c.reshape(len(ys), len(xs), D)
-            out_a[ty][tx] = a.reshape(len(ys), len(xs), 1)
-    img = torch.cat([torch.cat(r, dim=1) for r in out_c], dim=0)
-    alp = torch.cat([torch.cat(r, dim=1) for r in out_a], dim=0)
-    return img, alp
+IMPLS = ["torch", "cpp"]
 
 
 def _composite_pixels(px, py, means2d, conics, colors, opacities, bg):
-    """gsplat per-pixel front-to-back compositing of an ordered list (vectorised over pixels)."""
+    """gsplat per-pixel front-to-back compositing of an ordered list (vectorised over pixels):
+    the brute-force reference's compositor."""
     P = px.numel()
     D = colors.shape[-1]
     if means2d.shape[0] == 0:
@@ -71,29 +46,6 @@ def _composite_pixels(px, py, means2d, conics, colors, opacities, bg):
     if bg is not None:
         col = col + T[:, None] * bg
     return col, (1 - T)[:, None]
-
-
-def real_compositor():
-    try:
-        from clod_adapter.render.composite import rasterize_to_pixels  # noqa: F401
-        return rasterize_to_pixels
-    except ImportError:
-        return None
-
-
-REAL = real_compositor()
-IMPLS = ["torch", "cpp"] if REAL is not None else ["standin"]
-
-
-@pytest.fixture(autouse=True)
-def _compositor(monkeypatch):
-    if REAL is None:
-        monkeypatch.setattr(cpu_mod, "_compositor", lambda: standin_rasterize_to_pixels)
-    yield
-
-
-def _impl_arg(impl):
-    return "auto" if impl == "standin" else impl
 
 
 def camera(dtype=torch.float64, fx=22.0, fy=21.0, cx=W / 2 + 0.3, cy=H / 2 - 0.2, theta=0.1):
@@ -374,7 +326,7 @@ def test_matches_brute_force_renderer(impl):
     V, K = camera()
     bg = torch.tensor([[0.1, 0.2, 0.3]], dtype=torch.float64)
     rc, ra, meta = rasterization(means, quats, scales, opac, sh, V[None], K[None], W, H,
-                                 sh_degree=3, backgrounds=bg, backend="cpu", impl=_impl_arg(impl))
+                                 sh_degree=3, backgrounds=bg, backend="cpu")
     bc, ba = brute_force_render(means, quats, scales, opac, _sh_colors_fn(means, sh, V, 3), V, K, W, H, bg[0])
     torch.testing.assert_close(rc[0], bc, atol=1e-5, rtol=0)
     torch.testing.assert_close(ra[0], ba, atol=1e-5, rtol=0)
@@ -391,7 +343,7 @@ def test_precomputed_colors_multi_camera(impl):
     g = torch.Generator().manual_seed(0)
     cols = torch.rand(30, 4, generator=g, dtype=torch.float64)
     rc, ra, meta = rasterization(means, quats, scales, opac, cols, torch.stack([V0, V1]),
-                                 torch.stack([K0, K1]), W, H, backend="cpu", impl=_impl_arg(impl))
+                                 torch.stack([K0, K1]), W, H, backend="cpu")
     assert rc.shape == (2, H, W, 4) and ra.shape == (2, H, W, 1)
     for c, (V, K) in enumerate([(V0, K0), (V1, K1)]):
         bc, ba = brute_force_render(means, quats, scales, opac, lambda ids: cols[ids], V, K, W, H)
@@ -405,18 +357,18 @@ def test_empty_and_all_culled_return_background(impl):
     bg = torch.tensor([[0.25, 0.5, 0.75]], dtype=torch.float64)
     z = torch.zeros(0, dtype=torch.float64)
     rc, ra, meta = rasterization(z.view(0, 3), z.view(0, 4), z.view(0, 3), z, z.view(0, 16, 3), V[None], K[None],
-                                 W, H, sh_degree=3, backgrounds=bg, backend="cpu", impl=_impl_arg(impl))
+                                 W, H, sh_degree=3, backgrounds=bg, backend="cpu")
     assert torch.allclose(rc, bg.view(1, 1, 1, 3).expand(1, H, W, 3)) and (ra == 0).all()
     assert meta["n_visible"].tolist() == [0]
     means, quats, scales, opac, sh = scene(n=8, seed=9)
     means[:, 2] = -means[:, 2]  # all behind the camera
     means[:4] = torch.tensor([100.0, 100.0, 3.0])  # and some far off-screen
     rc, ra, meta = rasterization(means, quats, scales, opac, sh, V[None], K[None], W, H, sh_degree=3,
-                                 backgrounds=bg, backend="cpu", impl=_impl_arg(impl))
+                                 backgrounds=bg, backend="cpu")
     assert torch.allclose(rc, bg.view(1, 1, 1, 3).expand(1, H, W, 3)) and (ra == 0).all()
     assert (meta["radii"] == 0).all()
     rc, ra, _ = rasterization(means, quats, scales, opac, sh, V[None], K[None], W, H, sh_degree=3,
-                              backend="cpu", impl=_impl_arg(impl))
+                              backend="cpu")
     assert (rc == 0).all() and (ra == 0).all()
 
 
@@ -435,7 +387,7 @@ def test_gradients_finite_differences(impl):
 
     def loss(ts):
         rc, ra, _ = rasterization(ts[0], ts[1], ts[2], ts[3], ts[4], V[None], K[None], W, H, sh_degree=3,
-                                  backgrounds=bg, backend="cpu", impl=_impl_arg(impl))
+                                  backgrounds=bg, backend="cpu")
         return (rc[0] * wc).sum() + (ra[0] * wa).sum()
 
     params = [t.clone().requires_grad_() for t in base]
@@ -464,7 +416,7 @@ def test_means2d_retain_grad(impl):
     V, K = camera()
     means.requires_grad_()
     rc, ra, meta = rasterization(means, quats, scales, opac, sh, V[None], K[None], W, H, sh_degree=3,
-                                 backend="cpu", impl=_impl_arg(impl))
+                                 backend="cpu")
     meta["means2d"].retain_grad()
     rc.sum().backward()
     g2 = meta["means2d"].grad

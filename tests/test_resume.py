@@ -27,7 +27,7 @@ import torch
 
 from clod_adapter.adapt import load_state
 from clod_adapter.io.ply import write_ply
-from clod_adapter.io.scene import write_colmap_scene
+from clod_adapter.io.colmap import write_colmap_scene
 from clod_adapter.synthetic import make_cameras, make_ground_truth, perturb
 from conftest import REPO, uint8_views
 

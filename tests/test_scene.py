@@ -11,7 +11,8 @@ import pytest
 import torch
 from PIL import Image
 
-from clod_adapter.io.scene import Camera, Scene, SceneError, load_colmap_scene, write_colmap_scene
+from clod_adapter.io.scene import Camera, Scene, SceneError
+from clod_adapter.io.colmap import load_colmap_scene, write_colmap_scene
 from conftest import shared_path
 
 

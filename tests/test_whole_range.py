@@ -13,7 +13,7 @@ from clod_adapter.adapt import AdaptConfig, adapt, prepare, reference_distances
 from clod_adapter.baselines import ranking_selection, render_subset
 from clod_adapter.budget import critical_s_v
 from clod_adapter.gaussians import Gaussians
-from clod_adapter.lod_render import in_view, lod_subset, render_lod
+from clod_adapter.view import in_view, lod_subset, render_lod
 from clod_adapter.metrics import psnr
 from clod_adapter.synthetic import make_cameras, make_ground_truth, perturb
 from conftest import render_views

@@ -2,8 +2,7 @@
 per-pixel compositor) or on CUDA through gsplat."""
 from .dispatch import rasterization
 from .gsplat_backend import gsplat_available
-from .hook import clod_rasterization
 from .projection import fully_fused_projection
 from .sh import spherical_harmonics
 
-__all__ = ["rasterization", "clod_rasterization", "fully_fused_projection", "spherical_harmonics", "gsplat_available"]
+__all__ = ["rasterization", "fully_fused_projection", "spherical_harmonics", "gsplat_available"]

@@ -9,26 +9,46 @@ Only visible Gaussians (radii > 0) reach the compositor, so the cost follows wha
 from __future__ import annotations
 
 import math
-from typing import Any, Callable, Dict, Optional, Tuple
+from typing import Any, Dict, Optional, Tuple
 
 import torch
 from torch import Tensor
 
+from .composite import rasterize_to_pixels
 from .projection import project_visible
 from .sh import spherical_harmonics
 from .tiles import isect_offset_encode, isect_tiles
 
-__all__ = ["rasterization_cpu"]
+__all__ = ["rasterization_cpu", "rasterize_projected", "sh_colors"]
 
 
-def _compositor() -> Callable[..., Tuple[Tensor, Tensor]]:
-    try:
-        from .composite import rasterize_to_pixels
-    except ImportError as e:  # pragma: no cover - depends on the tree state
-        raise ImportError(
-            "clod_adapter.render.composite.rasterize_to_pixels is not available: " + str(e)
-        ) from e
-    return rasterize_to_pixels
+def sh_colors(sh_degree: int, means: Tensor, coeffs: Tensor, campos: Tensor) -> Tensor:
+    """[V, 3] colours of SH coefficients ``coeffs`` [V, K, 3] seen from ``campos`` [3] (the
+    direction ``means - campos``), gsplat's ``clamp_min(sh + 0.5, 0)``."""
+    col = spherical_harmonics(sh_degree, means - campos, coeffs)
+    return torch.clamp_min(col + 0.5, 0.0)
+
+
+def rasterize_projected(proj, colors: Tensor, opacities: Tensor, width: int, height: int,
+                        tile_size: int = 16, background: Optional[Tensor] = None) -> Tuple[Tensor, Tensor, Tensor, Tensor]:
+    """Tile binning and compositing of an already projected set (one camera).
+
+    Args:
+        proj: :class:`clod_adapter.render.projection.VisibleProjection` of V Gaussians.
+        colors: [V, D] features (e.g. :func:`sh_colors`), opacities: [V], aligned with ``proj``.
+        background: [D] or None.
+
+    Returns:
+        (colors [H, W, D], alphas [H, W, 1], isect_offsets [th, tw] int32, flatten_ids [M] int64).
+    """
+    tile_width = math.ceil(width / tile_size)
+    tile_height = math.ceil(height / tile_size)
+    _, isect_ids, flatten_ids = isect_tiles(proj.means2d, proj.radii, proj.depths, tile_size,
+                                            tile_width, tile_height)
+    offsets = isect_offset_encode(isect_ids, tile_width, tile_height)
+    rc, ra = rasterize_to_pixels(proj.means2d, proj.conics, colors, opacities, width, height, tile_size, offsets,
+                                 flatten_ids, background)
+    return rc, ra, offsets, flatten_ids
 
 
 def rasterization_cpu(
@@ -48,7 +68,6 @@ def rasterization_cpu(
     sh_degree: Optional[int] = None,
     tile_size: int = 16,
     backgrounds: Optional[Tensor] = None,
-    impl: str = "auto",
 ) -> Tuple[Tensor, Tensor, Dict[str, Any]]:
     """Render C pinhole cameras on the CPU, gsplat.rasterization semantics.
 
@@ -59,7 +78,6 @@ def rasterization_cpu(
             else [N, K, 3] SH coefficients with K >= (sh_degree + 1)^2.
         viewmats [C, 4, 4] world-to-camera, Ks [C, 3, 3].
         backgrounds: [C, D] or None.
-        impl: compositor implementation, "auto" | "cpp" | "torch".
 
     Returns:
         render_colors [C, H, W, D], render_alphas [C, H, W, 1], meta dict (see module docs:
@@ -98,7 +116,6 @@ def rasterization_cpu(
     dev = means.device
     tile_width = math.ceil(width / tile_size)
     tile_height = math.ceil(height / tile_size)
-    raster = _compositor()
 
     if sh_degree is not None:
         campos = torch.linalg.inv(viewmats.detach().to(dt))[:, :3, 3]  # [C, 3]
@@ -118,21 +135,14 @@ def rasterization_cpu(
     for c, p in enumerate(projs):
         ids = p.ids
         radii_full[c, ids] = p.radii
-        m2d = means2d_full[c].index_select(0, ids)
+        p = p._replace(means2d=means2d_full[c].index_select(0, ids))
         op = opacities.index_select(0, ids)
         if sh_degree is None:
             col = (colors[c] if per_cam_colors else colors).index_select(0, ids)
         else:
-            mv = means.index_select(0, ids)
-            dirs = mv - campos[c]
-            col = spherical_harmonics(sh_degree, dirs, colors.index_select(0, ids))
-            col = torch.clamp_min(col + 0.5, 0.0)
-        _, isect_ids, flatten_ids = isect_tiles(m2d, p.radii, p.depths, tile_size,
-                                                tile_width, tile_height)
-        offsets = isect_offset_encode(isect_ids, tile_width, tile_height)
+            col = sh_colors(sh_degree, means.index_select(0, ids), colors.index_select(0, ids), campos[c])
         bg = backgrounds[c] if backgrounds is not None else None
-        rc, ra = raster(m2d, p.conics, col, op, width, height, tile_size, offsets,
-                        flatten_ids, bg, impl=impl)
+        rc, ra, offsets, flatten_ids = rasterize_projected(p, col, op, width, height, tile_size, bg)
         out_colors.append(rc)
         out_alphas.append(ra)
         depths_l.append(torch.zeros(N, dtype=dt, device=dev).index_copy(0, ids, p.depths.detach()))

@@ -9,9 +9,36 @@ from torch import Tensor
 from .cpu import rasterization_cpu
 from .gsplat_backend import gsplat_unavailable_reason, rasterization_gsplat
 
-__all__ = ["rasterization"]
+__all__ = ["rasterization", "resolve_backend"]
 
 _BACKENDS = ("auto", "cpu", "gsplat")
+
+
+def resolve_backend(backend: str, means: Tensor) -> str:
+    """``"cpu"`` or ``"gsplat"`` for tensors like ``means``: gsplat for ``backend="gsplat"`` or
+    for CUDA tensors with ``"auto"``, else the CPU rasteriser.
+
+    Raises:
+        ValueError: unknown backend.
+        RuntimeError: gsplat asked for (or CUDA tensors) but gsplat or CUDA is missing; CPU
+            asked for with CUDA tensors.
+    """
+    if backend not in _BACKENDS:
+        raise ValueError(f"backend must be one of {_BACKENDS}, got {backend!r}")
+    on_cuda = means.is_cuda
+    if backend == "gsplat" or (backend == "auto" and on_cuda):
+        reason = gsplat_unavailable_reason()
+        if reason is not None:
+            raise RuntimeError(
+                f"gsplat backend requested (backend={backend!r}, tensors on {means.device}) but {reason}. "
+                "Move the tensors to the CPU or use backend='cpu'."
+            )
+        if not on_cuda:
+            raise RuntimeError(f"gsplat backend needs CUDA tensors, got tensors on {means.device}")
+        return "gsplat"
+    if on_cuda:
+        raise RuntimeError("backend='cpu' needs CPU tensors; got CUDA tensors (call .cpu()).")
+    return "cpu"
 
 
 def rasterization(
@@ -32,34 +59,20 @@ def rasterization(
     tile_size: int = 16,
     backgrounds: Optional[Tensor] = None,
     backend: str = "auto",
-    impl: str = "auto",
 ) -> Tuple[Tensor, Tensor, Dict[str, Any]]:
     """gsplat.rasterization-compatible renderer (classic mode, unpacked, pinhole).
 
     backend: "auto" (gsplat if the tensors are on CUDA and gsplat imports, else CPU),
-    "cpu", or "gsplat". impl selects the CPU compositor ("auto" | "cpp" | "torch").
+    "cpu", or "gsplat".
 
     Raises:
         RuntimeError: backend="gsplat" without CUDA/gsplat, backend="cpu" with CUDA tensors,
             or tensors on CUDA with backend="auto" but gsplat missing.
         ValueError: unknown backend.
     """
-    if backend not in _BACKENDS:
-        raise ValueError(f"backend must be one of {_BACKENDS}, got {backend!r}")
-    on_cuda = means.is_cuda
     kw = dict(near_plane=near_plane, far_plane=far_plane, radius_clip=radius_clip, eps2d=eps2d,
-              sh_degree=sh_degree, tile_size=tile_size, backgrounds=backgrounds, impl=impl)
+              sh_degree=sh_degree, tile_size=tile_size, backgrounds=backgrounds)
     args = (means, quats, scales, opacities, colors, viewmats, Ks, width, height)
-    if backend == "gsplat" or (backend == "auto" and on_cuda):
-        reason = gsplat_unavailable_reason()
-        if reason is not None:
-            raise RuntimeError(
-                f"gsplat backend requested (backend={backend!r}, tensors on {means.device}) but {reason}. "
-                "Move the tensors to the CPU or use backend='cpu'."
-            )
-        if not on_cuda:
-            raise RuntimeError(f"gsplat backend needs CUDA tensors, got tensors on {means.device}")
+    if resolve_backend(backend, means) == "gsplat":
         return rasterization_gsplat(*args, **kw)
-    if on_cuda:
-        raise RuntimeError("backend='cpu' needs CPU tensors; got CUDA tensors (call .cpu()).")
     return rasterization_cpu(*args, **kw)

@@ -43,7 +43,6 @@ def rasterization_gsplat(
     sh_degree: Optional[int] = None,
     tile_size: int = 16,
     backgrounds: Optional[Tensor] = None,
-    impl: str = "auto",  # accepted for signature parity; unused
 ) -> Tuple[Tensor, Tensor, Dict[str, Any]]:
     """``gsplat.rasterization`` (gsplat 1.5.3, CUDA) with our conventions fixed: unpacked,
     classic mode, RGB. Shapes as :func:`clod_adapter.render.rasterization`: means [N, 3],

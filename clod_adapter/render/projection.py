@@ -22,7 +22,8 @@ from typing import NamedTuple, Optional, Tuple
 import torch
 from torch import Tensor
 
-__all__ = ["fully_fused_projection", "project_visible", "VisibleProjection", "ALPHA_THRESHOLD"]
+__all__ = ["fully_fused_projection", "project_visible", "project_geometry", "finish_projection",
+           "ProjectedGeometry", "VisibleProjection", "ALPHA_THRESHOLD"]
 
 ALPHA_THRESHOLD = 1.0 / 255.0
 GAUSSIAN_EXTEND = 3.33
@@ -71,35 +72,55 @@ def _check(means: Tensor, quats: Tensor, scales: Tensor, opacities: Optional[Ten
         raise ValueError(f"K must be [3, 3], got {tuple(K.shape)}")
 
 
-def project_visible(
+class ProjectedGeometry(NamedTuple):
+    """Stage 1 of the projection (:func:`project_geometry`): the Gaussians in front of the camera
+    (``ids`` into the inputs) with their 2D means, depths and the raw 2D covariance terms
+    ``cov2d = [[aa, ab], [ab, bb]]`` *before* the ``eps2d`` blur, plus ``axb2 = |A x B|^2``
+    (for the cancellation-free determinant). All [M] tensors (autograd)."""
+
+    ids: Tensor  # [M] int64
+    means2d: Tensor  # [M, 2]
+    depths: Tensor  # [M]
+    aa: Tensor
+    ab: Tensor
+    bb: Tensor
+    axb2: Tensor
+
+    def subset(self, idx: Tensor) -> "ProjectedGeometry":
+        """The rows ``idx`` [k] (int64 positions into this geometry)."""
+        return ProjectedGeometry(*(t.index_select(0, idx) for t in self))
+
+
+def project_geometry(
     means: Tensor,
     quats: Tensor,
     scales: Tensor,
-    opacities: Optional[Tensor],
     viewmat: Tensor,
     K: Tensor,
     width: int,
     height: int,
-    eps2d: float = 0.3,
     near_plane: float = 0.01,
     far_plane: float = 1e10,
-    radius_clip: float = 0.0,
-) -> VisibleProjection:
-    """Project and keep only the Gaussians gsplat would not cull (radii > 0)."""
-    _check(means, quats, scales, opacities, viewmat, K)
+    keep: Optional[Tensor] = None,
+) -> ProjectedGeometry:
+    """Stage 1 of :func:`project_visible`: depth culling and the EWA terms (steps 1 and 3 of
+    the module docstring) for the Gaussians with ``near_plane <= z <= far_plane`` (and ``keep``
+    [N] bool, when given). ``means`` [N, 3], ``quats`` [N, 4] wxyz, ``scales`` [N, 3] activated,
+    ``viewmat`` [4, 4], ``K`` [3, 3]."""
+    _check(means, quats, scales, None, viewmat, K)
     dt = means.dtype
     viewmat = viewmat.to(dt)
     K = K.to(dt)
     R = viewmat[:3, :3]
     T = viewmat[:3, 3]
 
-    # --- cheap culling on depth (and opacity) without autograd -----------------------------
+    # --- cheap culling on depth (and ``keep``) without autograd -----------------------------
     with torch.no_grad():
         z_all = means.detach() @ R[2].detach() + T[2].detach()
-        keep = (z_all >= near_plane) & (z_all <= far_plane)
-        if opacities is not None:
-            keep &= opacities.detach() >= ALPHA_THRESHOLD
-        ids = keep.nonzero().squeeze(1)
+        ok = (z_all >= near_plane) & (z_all <= far_plane)
+        if keep is not None:
+            ok &= keep
+        ids = ok.nonzero().squeeze(1)
 
     m = means.index_select(0, ids)
     q = quats.index_select(0, ids)
@@ -146,28 +167,56 @@ def project_visible(
     JRQ = torch.bmm(torch.stack([JR0, JR1], dim=1), rq)  # [n, 2, 3]
     Ms = JRQ * s[:, None, :]
     A, B = Ms.unbind(1)
-    AA = (A * A).sum(-1)
-    BB = (B * B).sum(-1)
-    c00 = AA + eps2d
-    c01 = (A * B).sum(-1)
-    c11 = BB + eps2d
-    # det = c00 c11 - c01^2 without cancellation: for M = [A; B], det(M M^T + e I) =
-    # |A x B|^2 + e (|A|^2 + |B|^2) + e^2 (Lagrange's identity). The naive product loses every
-    # digit in float32 for long needle/flat Gaussians (scale ratio 1e6) and culls them or
-    # yields a non-positive-definite conic.
+    # |A x B|^2 for det = c00 c11 - c01^2 without cancellation: for M = [A; B],
+    # det(M M^T + e I) = |A x B|^2 + e (|A|^2 + |B|^2) + e^2 (Lagrange's identity). The naive
+    # product loses every digit in float32 for long needle/flat Gaussians (scale ratio 1e6) and
+    # culls them or yields a non-positive-definite conic.
     AxB = torch.linalg.cross(A, B, dim=-1)
-    det = (AxB * AxB).sum(-1) + eps2d * (AA + BB) + eps2d * eps2d
+    return ProjectedGeometry(ids, means2d, tz, (A * A).sum(-1), (A * B).sum(-1), (B * B).sum(-1),
+                             (AxB * AxB).sum(-1))
 
+
+def finish_projection(
+    geom: ProjectedGeometry,
+    opacities: Optional[Tensor],
+    width: int,
+    height: int,
+    eps2d: float = 0.3,
+    radius_clip: float = 0.0,
+    cov_scale: Optional[Tensor] = None,
+) -> VisibleProjection:
+    """Stage 2 of :func:`project_visible` (steps 2, 4-6 of the module docstring): the ``eps2d``
+    blur, conics, radii and culling of the rows of ``geom``.
+
+    Args:
+        geom: stage 1 (:func:`project_geometry`).
+        opacities: [M] opacities of those rows (opacity cull and opacity-aware extent), or None
+            (extent 3.33, no opacity cull: the footprint test of "in view").
+        cov_scale: [M] factor on each 3D covariance (``exp(2 l g)`` of an isotropic level gain
+            ``g`` on the log-scales), applied to the raw 2D terms exactly as re-projecting with
+            scaled ``scales`` would (up to rounding); None = 1.
+
+    Returns:
+        :class:`VisibleProjection` with ``ids`` into the original inputs.
+    """
+    aa, ab, bb, axb2 = geom.aa, geom.ab, geom.bb, geom.axb2
+    if cov_scale is not None:
+        aa, ab, bb, axb2 = aa * cov_scale, ab * cov_scale, bb * cov_scale, axb2 * (cov_scale * cov_scale)
+    c00 = aa + eps2d
+    c01 = ab
+    c11 = bb + eps2d
+    det = axb2 + eps2d * (aa + bb) + eps2d * eps2d
     with torch.no_grad():
         det_ok = (det > 0) & torch.isfinite(det)  # an overflowing footprint is culled
         if opacities is not None:
-            op = opacities.detach().index_select(0, ids)
-            extend = torch.sqrt(2.0 * torch.log(op / ALPHA_THRESHOLD)).clamp_max(GAUSSIAN_EXTEND)
+            op = opacities.detach()
+            det_ok &= op >= ALPHA_THRESHOLD
+            extend = torch.sqrt(2.0 * torch.log(op.clamp_min(ALPHA_THRESHOLD) / ALPHA_THRESHOLD)).clamp_max(GAUSSIAN_EXTEND)
         else:
             extend = GAUSSIAN_EXTEND
         rad_x = torch.ceil(extend * torch.sqrt(c00.detach()))
         rad_y = torch.ceil(extend * torch.sqrt(c11.detach()))
-        mx, my = means2d.detach().unbind(-1)
+        mx, my = geom.means2d.detach().unbind(-1)
         ok = det_ok & ~((rad_x <= radius_clip) & (rad_y <= radius_clip))
         ok &= ~((mx + rad_x <= 0) | (mx - rad_x >= width) | (my + rad_y <= 0) | (my - rad_y >= height))
         sel = ok.nonzero().squeeze(1)
@@ -176,14 +225,38 @@ def project_visible(
         radii = torch.stack([rad_x, rad_y], dim=-1).index_select(0, sel)
         radii = radii.clamp_max(MAX_RADIUS).to(torch.int32)
 
-    means2d = means2d.index_select(0, sel)
-    depths = tz.index_select(0, sel)
+    means2d = geom.means2d.index_select(0, sel)
+    depths = geom.depths.index_select(0, sel)
     c00 = c00.index_select(0, sel)
     c01 = c01.index_select(0, sel)
     c11 = c11.index_select(0, sel)
     inv_det = 1.0 / det.index_select(0, sel)
     conics = torch.stack([c11 * inv_det, -c01 * inv_det, c00 * inv_det], dim=-1)
-    return VisibleProjection(ids.index_select(0, sel), radii, means2d, depths, conics)
+    return VisibleProjection(geom.ids.index_select(0, sel), radii, means2d, depths, conics)
+
+
+def project_visible(
+    means: Tensor,
+    quats: Tensor,
+    scales: Tensor,
+    opacities: Optional[Tensor],
+    viewmat: Tensor,
+    K: Tensor,
+    width: int,
+    height: int,
+    eps2d: float = 0.3,
+    near_plane: float = 0.01,
+    far_plane: float = 1e10,
+    radius_clip: float = 0.0,
+) -> VisibleProjection:
+    """Project and keep only the Gaussians gsplat would not cull (radii > 0):
+    :func:`project_geometry` (Gaussians under the 1/255 opacity cull skipped before the heavy
+    math) then :func:`finish_projection`."""
+    _check(means, quats, scales, opacities, viewmat, K)
+    keep = None if opacities is None else opacities.detach() >= ALPHA_THRESHOLD
+    geom = project_geometry(means, quats, scales, viewmat, K, width, height, near_plane, far_plane, keep)
+    op = None if opacities is None else opacities.index_select(0, geom.ids)
+    return finish_projection(geom, op, width, height, eps2d, radius_clip)
 
 
 def fully_fused_projection(

@@ -28,8 +28,8 @@ DEFAULT_FOV = math.radians(50.0)
 
 @dataclass
 class ViewCamera:
-    """A pinhole camera with the attributes :func:`clod_adapter.lod_render.lod_subset` and
-    :func:`clod_adapter.lod_render.render_lod` read.
+    """A pinhole camera with the attributes :func:`clod_adapter.view.lod_subset` and
+    :func:`clod_adapter.view.render_lod` read.
 
     Attributes:
         viewmat: [4, 4] float32 world-to-camera (OpenCV axes).

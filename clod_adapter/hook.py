@@ -6,7 +6,7 @@ opacities, ``viewmats`` [C, 4, 4], ``Ks`` [C, 3, 3], ...) plus the per-Gaussian 
 applies Eq. 2 (``alpha'' = alpha exp(-(d' s_v)^2 / (2 ReLU(sigma_d)^2 + eps))``) and the
 ``alpha'' > tau s_v`` mask (or the exact budget selection of :mod:`clod_adapter.budget`), and hands
 the selected Gaussians to :func:`clod_adapter.render.rasterization` (gsplat on CUDA, CPU
-otherwise). The selection is the one :func:`clod_adapter.lod_render.render_lod` makes, so both
+otherwise). The selection is the one :func:`clod_adapter.view.render_lod` makes, so both
 give the same image.
 
 Without ``sigma_d``, or with neither ``s_v`` nor ``budget``, it is exactly ``rasterization``.
@@ -18,8 +18,9 @@ from typing import Any, Dict, Optional, Tuple
 import torch
 from torch import Tensor
 
-from .. import lod
-from .dispatch import rasterization
+from . import lod
+from .render.dispatch import rasterization
+from .view import view_lod_tensors
 
 __all__ = ["clod_rasterization"]
 
@@ -40,9 +41,7 @@ def _check_kwargs(packed: bool, render_mode: str, rasterize_mode: str, kwargs: d
     del packed  # packed / unpacked give the same image; the backends render unpacked
     out = {}
     for k, v in kwargs.items():
-        if k == "impl":
-            out[k] = v
-        elif k in _NOOP_DEFAULTS:
+        if k in _NOOP_DEFAULTS:
             if v != _NOOP_DEFAULTS[k]:
                 raise ValueError(f"clod_rasterization: {k}={v!r} is not supported "
                                  f"(only gsplat's default {_NOOP_DEFAULTS[k]!r})")
@@ -75,8 +74,12 @@ def clod_rasterization(
     sigma_d: Optional[Tensor] = None,
     s_v: Optional[float] = None,
     budget: Optional[float | int] = None,
-    tau: float = lod.DEFAULT_TAU,
-    eps: float = lod.DEFAULT_EPS,
+    lod_settings: Optional[lod.LodSettings] = None,
+    opacity_logit_gain: Optional[Tensor] = None,
+    log_scale_gain: Optional[Tensor] = None,
+    sh0_gain: Optional[Tensor] = None,
+    tau: Optional[float] = None,
+    eps: Optional[float] = None,
     min_s_v: float = 1.0,
     backend: str = "auto",
     **kwargs: Any,
@@ -95,10 +98,14 @@ def clod_rasterization(
         budget: instead of ``s_v``: render exactly this many Gaussians (int) or this fraction
             of N (float in [0, 1]) per camera, ``s_v`` solved per camera (capped by the
             Gaussians in view; raised to at least ``min_s_v``, see ``render_lod``).
-        tau, eps: LoD threshold and Eq. 2's epsilon.
+        lod_settings: how the model is drawn (:class:`clod_adapter.lod.LodSettings`; the
+            adapted .ply's ``Gaussians.lod``); None: the paper's Eq. 2 drawing.
+        opacity_logit_gain, log_scale_gain: [N] level gains, sh0_gain: [N, 1, 3] (SH colours
+            only): the adapted model's (None: none).
+        tau, eps: LoD threshold and Eq. 2's epsilon (default: ``lod_settings``', else 0.005 / 1e-8).
         min_s_v: budget mode: lowest ``s_v`` used (1 = full detail; 0: exactly ``budget``).
         backend: ``"auto"`` | ``"cpu"`` | ``"gsplat"`` (see ``clod_adapter.render.rasterization``).
-        **kwargs: ``impl`` (CPU compositor); other gsplat keywords only at their defaults.
+        **kwargs: other gsplat keywords, only at their defaults.
 
     Returns:
         (render_colors [C, H, W, D], render_alphas [C, H, W, 1], meta). Without LoD, meta is
@@ -128,32 +135,30 @@ def clod_rasterization(
     if viewmats.ndim != 3 or Ks.ndim != 3 or viewmats.shape[0] != Ks.shape[0]:
         raise ValueError(f"clod_rasterization: viewmats [C, 4, 4] and Ks [C, 3, 3] expected, got "
                          f"{tuple(viewmats.shape)} and {tuple(Ks.shape)}")
-    from ..lod_render import in_view_tensors, select_lod  # lazy: lod_render imports this package
-
+    if (near_plane, far_plane, radius_clip, eps2d, tile_size) != (0.01, 1e10, 0.0, 0.3, 16):
+        raise ValueError("clod_rasterization: with LoD only gsplat's defaults near_plane=0.01, far_plane=1e10, "
+                         "radius_clip=0, eps2d=0.3, tile_size=16 are supported")
     C = viewmats.shape[0]
     per_cam_colors = sh_degree is None and colors.ndim == 3
     w, h = int(width), int(height)
+    gains = {"opacity_logit_gain": opacity_logit_gain, "log_scale_gain": log_scale_gain, "sh0_gain": sh0_gain}
+    a = opacities.clamp(1e-30, 1.0)
+    logits = torch.log(a) - torch.log1p(-a.clamp_max(1.0 - 1e-7))  # the view works on raw logits
     imgs, alphas, metas, svs, counts, indices = [], [], [], [], [], []
     for c in range(C):
-        vm = viewmats[c].to(means.dtype)
-        K = Ks[c].to(means.dtype)
-        frustum = lod.in_frustum(means, vm, K, w, h, near_plane)
-        d_norm = lod.normalized_distances(means, lod.camera_center(vm), frustum)
-        visible = in_view_tensors(means, quats, scales, vm, K, w, h, near_plane)
-        mask, sv = select_lod(opacities.detach(), d_norm.detach(), sigma_d.detach(), visible,
-                              s_v=s_v, budget=budget, tau=tau, eps=eps, min_s_v=min_s_v)
-        idx = torch.nonzero(mask, as_tuple=False).squeeze(1)
-        opac = lod.lod_opacities(opacities, d_norm, sigma_d, sv, eps)
-        col = colors[c][idx] if per_cam_colors else colors[idx]
-        bg = None if backgrounds is None else backgrounds[c:c + 1]
-        rc, ra, meta = rasterization(means[idx], quats[idx], scales[idx], opac[idx], col,
-                                     viewmats[c:c + 1], Ks[c:c + 1], w, h, backgrounds=bg, **common)
-        imgs.append(rc)
-        alphas.append(ra)
+        col = colors[c] if per_cam_colors else colors
+        view = view_lod_tensors(means, quats, scales, logits, col, viewmats[c], Ks[c], w, h, sigma_d=sigma_d,
+                                gains=gains, settings=lod_settings, tau=tau, eps=eps)
+        sel = view.select(s_v, budget=budget, min_s_v=min_s_v, estimator="paper")
+        bg = None if backgrounds is None else backgrounds[c]
+        rc, ra, meta = view.rasterize(sel, background=bg, sh_degree=sh_degree, backend=backend,
+                                      colors=None if sh_degree is not None else col)
+        imgs.append(rc[None])
+        alphas.append(ra[None])
         metas.append(meta)
-        svs.append(sv)
-        counts.append(int(idx.numel()))
-        indices.append(idx)
+        svs.append(sel.s_v)
+        counts.append(int(sel.indices.numel()))
+        indices.append(sel.indices)
     out_meta: Dict[str, Any] = dict(metas[0]) if C == 1 else {"cameras": metas, "n_cameras": C}
     out_meta.update(lod_s_v=svs, lod_n_rendered=counts, lod_indices=indices)
     return torch.cat(imgs, 0), torch.cat(alphas, 0), out_meta

@@ -1,0 +1,510 @@
+"""One camera's level of detail: the per-camera terms of CLoD-GS, computed once per frame.
+
+:func:`view_lod` (or :func:`view_lod_tensors` for raw gsplat-style tensors) builds a
+:class:`LodView` for one camera:
+
+* ``frustum`` [N]: Gaussian centres inside the image (``z > near``): the population of d''s
+  normaliser and of ``eta`` (CLoD-GS Sec. 3);
+* the projection of the Gaussians in front of the camera (stage 1,
+  :func:`clod_adapter.render.projection.project_geometry`), computed once: it gives ``visible``
+  [N] (the footprint reaches the image, gsplat 1.5.3 culling with the opacity-free 3.33-sigma
+  extent: the population budgets and fractions refer to) and, later, the rasteriser's own
+  projection of the drawn subset (:meth:`LodView.rasterize` finishes the same rows with the
+  drawn opacities and level scales instead of projecting again);
+* ``d_norm`` [N]: ``d' = |mu - c| / max_frustum |mu - c|``;
+* ``critical`` [N] (on first use): each Gaussian's critical ``s_v`` (:mod:`clod_adapter.budget`).
+
+:meth:`LodView.select` picks what is drawn at a virtual distance scale ``s_v`` (the mask
+``alpha'' > tau s_v``, Eq. 2) or within a budget (``s_v`` solved exactly), with the drawn
+opacities of the model's :class:`clod_adapter.lod.LodSettings` (Eq. 2's ``alpha''``, or the
+window fade with the level gains); :meth:`LodView.rasterize` draws a selection.
+:func:`render_lod` and :func:`lod_subset` are the one-call forms every caller uses (training,
+evaluation, the renderer hook, export, baselines, the viewer).
+"""
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass, field, replace
+from typing import Literal, Optional, Sequence
+
+import torch
+from torch import Tensor
+
+from . import lod
+from .budget import budget_count, critical_s_v, select_budget
+from .gaussians import Gaussians
+from .render.projection import finish_projection, project_geometry
+
+Estimator = Literal["ste", "sigmoid", "paper"]
+#: gsplat 1.5.3 defaults used by every LoD render.
+EPS2D, NEAR_PLANE, FAR_PLANE, TILE_SIZE = 0.3, 0.01, 1e10, 16
+
+
+def _settings(st: Optional[lod.LodSettings], tau: Optional[float], eps: Optional[float]) -> lod.LodSettings:
+    """``st`` (defaults when None) with ``tau``/``eps`` overrides."""
+    st = st if st is not None else lod.LodSettings()
+    if tau is not None or eps is not None:
+        st = replace(st, tau=st.tau if tau is None else float(tau), eps=st.eps if eps is None else float(eps))
+    return st
+
+
+@dataclass
+class LodSelection:
+    """What one camera draws (:meth:`LodView.select`).
+
+    Attributes:
+        indices: [k] int64 indices into the model, ascending.
+        opacities: [k] the opacities the rasteriser is given (after the LoD rule; autograd).
+        mask: [N] bool, ``indices`` as a mask.
+        s_v: the virtual distance scale used (solved in budget mode; None without LoD).
+        level: level of the gains in [0, 1] (0: the base attributes).
+        eta: scalar tensor, rendered fraction of the frustum (gradient per the estimator).
+    """
+
+    indices: Tensor
+    opacities: Tensor
+    mask: Tensor
+    s_v: Optional[float]
+    level: float
+    eta: Tensor
+
+
+@dataclass
+class LodView:
+    """The per-camera LoD terms of one model (see the module docstring). Build with
+    :func:`view_lod` / :func:`view_lod_tensors`.
+
+    Attributes:
+        means [N, 3], quats [N, 4], scales [N, 3] (activated, base), opacity_logits [N]
+        (raw, base), colors [N, K, 3] SH coefficients (or [N, D] features with ``sh_degree``
+        None), sigma_d [N] or None, gains: dict of the level gains present (Gaussians field
+        names), settings: :class:`clod_adapter.lod.LodSettings`.
+        viewmat [4, 4], K [3, 3], width, height: the camera.
+        frustum [N] bool, visible [N] bool, n_in_view: see the module docstring.
+        project_ms: wall time of the projection and the in-view test, ms.
+    """
+
+    means: Tensor
+    quats: Tensor
+    scales: Tensor
+    opacity_logits: Tensor
+    colors: Tensor
+    sigma_d: Optional[Tensor]
+    gains: dict
+    settings: lod.LodSettings
+    viewmat: Tensor
+    K: Tensor
+    width: int
+    height: int
+    frustum: Tensor
+    visible: Tensor
+    project_ms: float = 0.0
+    _geom: object = field(default=None, repr=False)
+    _row_of: Optional[Tensor] = field(default=None, repr=False)
+    _d_norm: Optional[Tensor] = field(default=None, repr=False)
+    _critical: Optional[Tensor] = field(default=None, repr=False)
+    _opacities: Optional[Tensor] = field(default=None, repr=False)
+
+    # --- per-camera terms ----------------------------------------------------------------------
+    @property
+    def n(self) -> int:
+        return self.means.shape[0]
+
+    @property
+    def n_in_view(self) -> int:
+        return int(self.visible.sum())
+
+    @property
+    def opacities(self) -> Tensor:
+        """[N] activated base opacities."""
+        if self._opacities is None:
+            self._opacities = torch.sigmoid(self.opacity_logits)
+        return self._opacities
+
+    @property
+    def d_norm(self) -> Tensor:
+        """[N] frustum-normalised distances d' (:func:`clod_adapter.lod.normalized_distances`)."""
+        if self._d_norm is None:
+            self._d_norm = lod.normalized_distances(self.means, lod.camera_center(self.viewmat), self.frustum)
+        return self._d_norm
+
+    @property
+    def critical(self) -> Tensor:
+        """[N] float64 critical ``s_v`` of each Gaussian in this view (rendered iff ``s_v < s*``)."""
+        if self._critical is None:
+            self._require_sigma()
+            self._critical = critical_s_v(self.opacities.detach(), self.d_norm.detach(), self.sigma_d.detach(),
+                                          self.settings.tau, self.settings.eps)
+        return self._critical
+
+    def _require_sigma(self) -> None:
+        if self.sigma_d is None:
+            raise ValueError("render_lod: s_v/budget given but the model has no sigma_d")
+
+    # --- selection -----------------------------------------------------------------------------
+    def select(self, s_v: Optional[float] = None, *, budget: Optional[float | int] = None,
+               min_s_v: float = 1.0, budget_in_view: bool = False, level: Optional[float] = None,
+               estimator: Estimator = "ste", temperature: float = 1.0,
+               eta_grad_sigma_only: bool = True) -> LodSelection:
+        """What this camera draws at ``s_v`` or within ``budget`` (arguments as :func:`render_lod`).
+
+        Raises:
+            ValueError: both ``s_v`` and ``budget``; ``s_v < 1``; LoD without ``sigma_d``.
+        """
+        if budget is not None and s_v is not None:
+            raise ValueError("render_lod: give s_v or budget, not both")
+        dev = self.means.device
+        if s_v is None and budget is None:
+            idx = torch.nonzero(self.visible, as_tuple=False).squeeze(1)
+            return LodSelection(idx, self.opacities.index_select(0, idx), self.visible, None, 0.0,
+                                torch.ones((), dtype=self.means.dtype, device=dev))
+        self._require_sigma()
+        if s_v is not None and not s_v >= 1.0:
+            raise ValueError(f"render_lod: s_v must be >= 1, got {s_v}")
+        st = self.settings
+        opac, sd = self.opacities, self.sigma_d
+        if budget is not None:
+            if budget_in_view and isinstance(budget, float) and budget <= 1.0:
+                budget = int(round(budget * self.n_in_view))
+            crit = self.critical
+            idx, s_used = select_budget(crit, budget_count(budget, self.n), self.visible)
+            if s_used < min_s_v:
+                s_used = float(min_s_v)
+                mask = (crit > s_used) & self.visible
+                idx = torch.nonzero(mask, as_tuple=False).squeeze(1)
+            else:
+                mask = torch.zeros_like(self.visible)
+                mask[idx] = True
+            eta = (mask[self.frustum].float().mean() if bool(self.frustum.any())
+                   else torch.zeros((), device=dev))
+        else:
+            s_used = float(s_v)
+            d = self.d_norm.detach()
+            with torch.no_grad():
+                mask = (lod.lod_margin(opac.detach(), d, sd.detach(), s_used, st.tau, st.eps) > 0) & self.visible
+            idx = torch.nonzero(mask, as_tuple=False).squeeze(1)
+            if estimator != "paper" and torch.is_grad_enabled() and sd.requires_grad:
+                m_eta = (lod.lod_margin(opac.detach(), d, sd, s_used, st.tau, st.eps) if eta_grad_sigma_only
+                         else lod.lod_margin(opac, self.d_norm, sd, s_used, st.tau, st.eps))
+                eta = lod.rendered_fraction(m_eta, self.frustum, estimator, temperature)
+            else:
+                eta = (mask[self.frustum].float().mean() if bool(self.frustum.any())
+                       else torch.zeros((), device=dev))
+        if st.fade == "eq2":
+            drawn = lod.lod_opacities(opac.index_select(0, idx), self.d_norm.index_select(0, idx),
+                                      sd.index_select(0, idx), s_used, st.eps)
+            return LodSelection(idx, drawn, mask, s_used, 0.0, eta)
+        if level is None:
+            n_vis = self.n_in_view
+            level = lod.level_of_fraction(idx.numel() / n_vis if n_vis else 1.0, st.max_sv)
+        margin = lod.lod_margin(opac.index_select(0, idx), self.d_norm.detach().index_select(0, idx),
+                                sd.index_select(0, idx), s_used, st.tau, st.eps)
+        logits = self.opacity_logits.index_select(0, idx)
+        g = self.gains.get("opacity_logit_gain")
+        if g is not None and level > 0:
+            logits = logits + level * g.index_select(0, idx)
+        drawn = torch.sigmoid(logits) * lod.fade_weight(margin, lod.fade_width_at(s_used, st.fade_width))
+        return LodSelection(idx, drawn, mask, s_used, float(level), eta)
+
+    def subset(self, indices: Tensor, opacities: Optional[Tensor] = None) -> LodSelection:
+        """A selection of given ``indices`` [k] (ascending, in view) drawn with ``opacities``
+        [k] (default: the base opacities) at the base level: for static cuts (baselines)."""
+        idx = indices.to(self.means.device)
+        op = self.opacities.index_select(0, idx) if opacities is None else opacities.to(self.means)
+        mask = torch.zeros_like(self.visible)
+        mask[idx] = True
+        return LodSelection(idx, op, mask, None, 0.0, mask[self.frustum].float().mean()
+                            if bool(self.frustum.any()) else torch.zeros(()))
+
+    # --- drawing -------------------------------------------------------------------------------
+    def drawn_attributes(self, sel: LodSelection) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+        """(means [k, 3], quats [k, 4], scales [k, 3], colors [k, ...]) of ``sel`` at its level
+        (autograd), for rasterisers that project themselves (gsplat, viewers)."""
+        idx = sel.indices
+        scales = self.scales.index_select(0, idx)
+        g = self.gains.get("log_scale_gain")
+        if g is not None and sel.level > 0:
+            scales = scales * torch.exp(sel.level * g.index_select(0, idx))[:, None]
+        return (self.means.index_select(0, idx), self.quats.index_select(0, idx), scales,
+                self._colors_at(idx, sel.level))
+
+    def _colors_at(self, idx: Tensor, level: float) -> Tensor:
+        col = self.colors.index_select(0, idx)
+        g = self.gains.get("sh0_gain")
+        if g is not None and level > 0 and col.ndim == 3:
+            col = torch.cat([col[:, :1] + level * g.index_select(0, idx), col[:, 1:]], dim=1)
+        return col
+
+    def rasterize(self, sel: LodSelection, *, background: Optional[Tensor] = None,
+                  sh_degree: Optional[int] = None, backend: str = "auto", colors: Optional[Tensor] = None):
+        """Draw ``sel``: ``(image [H, W, D], alpha [H, W, 1], meta)``.
+
+        CPU backend: the rows of this view's projection are finished with the drawn opacities
+        and the level's scales (:func:`clod_adapter.render.projection.finish_projection`; no
+        second projection), coloured (SH at the camera centre) and composited. CUDA: gsplat
+        rasterises the drawn attributes (it projects them itself).
+
+        Args:
+            background: [D] colour behind the scene (default black).
+            sh_degree: SH degree to evaluate (default: from ``colors``' K); None with [N, D]
+                features.
+            colors: [N, D] features to draw instead of the model's colours (the renderer hook).
+        """
+        from .render.cpu import rasterize_projected, sh_colors
+        from .render.dispatch import rasterization, resolve_backend
+
+        idx = sel.indices
+        w, h = self.width, self.height
+        feats = self.colors if colors is None else colors
+        sh = sh_degree
+        if sh is None and colors is None and feats.ndim == 3:
+            sh = int(math.isqrt(feats.shape[1]) - 1)
+        if resolve_backend(backend, self.means) == "gsplat":
+            means, quats, scales, col = self.drawn_attributes(sel)
+            if colors is not None:
+                col = colors.index_select(0, idx)
+            bg = None if background is None else background.reshape(1, -1)
+            rc, ra, meta = rasterization(means, quats, scales, sel.opacities, col, self.viewmat[None],
+                                         self.K[None], w, h, sh_degree=sh, backgrounds=bg, backend="gsplat")
+            return rc[0], ra[0], meta
+        rows = self._row_of.index_select(0, idx)
+        geom = self._geom.subset(rows)
+        cov_scale = None
+        g = self.gains.get("log_scale_gain")
+        if g is not None and sel.level > 0:
+            cov_scale = torch.exp(2.0 * sel.level * g.index_select(0, idx))
+        proj = finish_projection(geom, sel.opacities, w, h, EPS2D, 0.0, cov_scale)
+        local = torch.searchsorted(idx, proj.ids)  # positions of the drawn rows in ``sel``
+        op = sel.opacities.index_select(0, local)
+        if colors is not None:
+            col = colors.index_select(0, proj.ids)
+        elif sh is None:
+            col = feats.index_select(0, proj.ids)
+        else:
+            coeffs = self._colors_at(proj.ids, sel.level)
+            col = sh_colors(sh, self.means.index_select(0, proj.ids), coeffs, lod.camera_center(self.viewmat))
+        bg = None if background is None else background.reshape(-1)
+        rc, ra, offsets, flat = rasterize_projected(proj, col, op, w, h, TILE_SIZE, bg)
+        meta = {"visible_ids": proj.ids, "radii": proj.radii, "means2d": proj.means2d, "depths": proj.depths,
+                "conics": proj.conics, "isect_offsets": offsets, "flatten_ids": flat,
+                "n_visible": int(proj.ids.numel()), "width": w, "height": h, "tile_size": TILE_SIZE}
+        return rc, ra, meta
+
+
+def view_lod_tensors(means: Tensor, quats: Tensor, scales: Tensor, opacity_logits: Tensor, colors: Tensor,
+                     viewmat: Tensor, K: Tensor, width: int, height: int, *, sigma_d: Optional[Tensor] = None,
+                     gains: Optional[dict] = None, settings: Optional[lod.LodSettings] = None,
+                     tau: Optional[float] = None, eps: Optional[float] = None) -> LodView:
+    """:class:`LodView` of raw tensors: ``means`` [N, 3], ``quats`` [N, 4] (wxyz), ``scales``
+    [N, 3] (activated), ``opacity_logits`` [N] (raw), ``colors`` [N, K, 3] SH or [N, D] features,
+    ``viewmat`` [4, 4] world-to-camera, ``K`` [3, 3] (pixels), ``width``/``height`` (pixels),
+    ``sigma_d`` [N], ``gains`` {Gaussians gain field: tensor}, ``settings`` (default: the paper's
+    Eq. 2 drawing), ``tau``/``eps`` overrides."""
+    t0 = time.perf_counter()
+    dt = means.dtype
+    viewmat = viewmat.to(means.device, dt)
+    K = K.to(means.device, dt)
+    w, h = int(width), int(height)
+    n = means.shape[0]
+    frustum = lod.in_frustum(means, viewmat, K, w, h, NEAR_PLANE)
+    geom = project_geometry(means, quats, scales, viewmat, K, w, h, NEAR_PLANE, FAR_PLANE)
+    with torch.no_grad():
+        vis_ids = finish_projection(geom, None, w, h, EPS2D).ids
+        visible = torch.zeros(n, dtype=torch.bool, device=means.device)
+        visible[vis_ids] = True
+        row_of = torch.full((n,), -1, dtype=torch.long, device=means.device)
+        row_of[geom.ids] = torch.arange(geom.ids.numel(), device=means.device)
+    return LodView(means=means, quats=quats, scales=scales, opacity_logits=opacity_logits, colors=colors,
+                   sigma_d=sigma_d, gains={k: v for k, v in (gains or {}).items() if v is not None},
+                   settings=_settings(settings, tau, eps), viewmat=viewmat, K=K, width=w, height=h,
+                   frustum=frustum, visible=visible, project_ms=(time.perf_counter() - t0) * 1e3,
+                   _geom=geom, _row_of=row_of)
+
+
+def view_lod(gaussians: Gaussians, camera, *, tau: Optional[float] = None,
+             eps: Optional[float] = None) -> LodView:
+    """:class:`LodView` of ``gaussians`` (its ``sigma_d``, level gains and LoD settings) for
+    ``camera``: any object with ``viewmat`` [4, 4] (world-to-camera, OpenCV axes), ``K`` [3, 3]
+    (pixels), ``width``, ``height`` (e.g. :class:`clod_adapter.io.scene.Camera`)."""
+    g = gaussians
+    return view_lod_tensors(g.means, g.quats, g.scales, g.opacity_logits, g.colors, camera.viewmat, camera.K,
+                            camera.width, camera.height, sigma_d=g.sigma_d,
+                            gains={k: getattr(g, k) for k in ("opacity_logit_gain", "log_scale_gain", "sh0_gain")},
+                            settings=g.lod, tau=tau, eps=eps)
+
+
+@torch.no_grad()
+def in_view(gaussians: Gaussians, viewmat: Tensor, K: Tensor, width: int, height: int) -> Tensor:
+    """[N] bool: Gaussians whose footprint reaches the image (gsplat 1.5.3 culling with the
+    opacity-free 3.33-sigma extent, near plane 0.01): :attr:`LodView.visible`."""
+    return in_view_tensors(gaussians.means, gaussians.quats, gaussians.scales, viewmat, K, width, height)
+
+
+@torch.no_grad()
+def in_view_tensors(means: Tensor, quats: Tensor, scales: Tensor, viewmat: Tensor, K: Tensor,
+                    width: int, height: int) -> Tensor:
+    """:func:`in_view` on raw tensors (means [N, 3], quats [N, 4], activated scales [N, 3])."""
+    n = means.shape[0]
+    vis = torch.zeros(n, dtype=torch.bool, device=means.device)
+    if n == 0:
+        return vis
+    dt = means.dtype
+    vm, Kd = viewmat.to(means.device, dt), K.to(means.device, dt)
+    geom = project_geometry(means.detach(), quats.detach(), scales.detach(), vm, Kd, int(width), int(height),
+                            NEAR_PLANE, FAR_PLANE)
+    vis[finish_projection(geom, None, int(width), int(height), EPS2D).ids] = True
+    return vis
+
+
+# --- the one-call forms ---------------------------------------------------------------------------
+@dataclass
+class LodRender:
+    """Result of :func:`render_lod`.
+
+    Attributes:
+        image: [H, W, 3] rendered colours (float32, not clamped).
+        alpha: [H, W, 1] accumulated opacity.
+        mask: [N] bool, Gaussians handed to the rasteriser: in view and passing the LoD mask (or
+            the budget selection).
+        n_rendered: ``mask.sum()``, the render cost.
+        n_frustum: number of Gaussian centres inside the view frustum.
+        eta: scalar tensor, rendered fraction of the frustum (gradient per the estimator; 1.0
+            without LoD).
+        s_v: the virtual distance scale used (the solved one in budget mode; None: no LoD).
+        level: level of the gains drawn, in [0, 1].
+        project_ms, select_ms, raster_ms: wall time of the projection + in-view test, of the
+            LoD selection (frustum, d', Eq. 2 mask or budget solve, drawn opacities), and of the
+            rasterisation (finishing the projection of the drawn set, colours, compositing), ms.
+        meta: the rasteriser's meta dict (per-Gaussian arrays index ``meta["visible_ids"]``).
+    """
+
+    image: Tensor
+    alpha: Tensor
+    mask: Tensor
+    n_rendered: int
+    n_frustum: int
+    eta: Tensor
+    s_v: Optional[float] = None
+    level: float = 0.0
+    project_ms: float = 0.0
+    select_ms: float = 0.0
+    raster_ms: float = 0.0
+    meta: dict = field(default_factory=dict)
+
+
+def render_lod(
+    gaussians: Gaussians,
+    camera,
+    s_v: Optional[float] = None,
+    *,
+    budget: Optional[float | int] = None,
+    tau: Optional[float] = None,
+    eps: Optional[float] = None,
+    estimator: Estimator = "ste",
+    temperature: float = 1.0,
+    background: Optional[Sequence[float] | Tensor] = None,
+    sh_degree: Optional[int] = None,
+    backend: str = "auto",
+    eta_grad_sigma_only: bool = True,
+    min_s_v: float = 1.0,
+    budget_in_view: bool = False,
+    level: Optional[float] = None,
+) -> LodRender:
+    """Render ``gaussians`` from ``camera`` at virtual distance scale ``s_v`` (or a budget).
+
+    The Gaussians in view that pass the mask ``alpha'' > tau s_v`` (CLoD-GS Eq. 2) are handed to
+    the rasteriser, drawn as the model's :class:`clod_adapter.lod.LodSettings` say: ``"eq2"`` with
+    Eq. 2's ``alpha''`` (the paper), ``"window"`` with the attributes at the level
+    (:meth:`Gaussians.at_level`) and only the Gaussians about to leave faded
+    (:func:`clod_adapter.lod.fade_weight`). A model without settings is drawn as the paper does.
+
+    Args:
+        gaussians: the model (N Gaussians). ``sigma_d`` is required when ``s_v`` or ``budget`` is given.
+        camera: any object with ``viewmat`` [4, 4] (world-to-camera), ``K`` [3, 3] (pixels),
+            ``width``, ``height`` (e.g. :class:`clod_adapter.io.scene.Camera`).
+        s_v: virtual distance scale >= 1, or None for the plain model (no LoD, every Gaussian).
+        budget: render exactly this many Gaussians (int) or this fraction of the model (float
+            in [0, 1]) instead of a given ``s_v``: the ``s_v`` is solved exactly per view
+            (:mod:`clod_adapter.budget`), capped by the Gaussians in view.
+        tau: LoD threshold (mask ``alpha'' > tau s_v``); default the model's (0.005).
+        eps: Eq. 2's epsilon; default the model's (1e-8).
+        estimator, temperature: gradient of ``eta`` (see :func:`clod_adapter.lod.rendered_fraction`).
+        background: [3] colour behind the scene (default black, as 3DGS on LLFF).
+        sh_degree: SH degree to evaluate (default: the model's).
+        backend: rasteriser backend (``"auto"``, ``"cpu"``, ``"gsplat"``).
+        eta_grad_sigma_only: ``eta``'s gradient reaches ``sigma_d`` only (opacities and positions
+            detached in its margin), so the count regulariser cuts Gaussians through their decay
+            instead of eroding their opacity at every level of detail.
+        min_s_v: budget mode only: the solved ``s_v`` is raised to at least this (default 1,
+            the full-detail level, so a budget acts as a cap: larger budgets than the s_v = 1
+            count render that level). 0 renders exactly ``budget`` Gaussians whatever ``s_v``.
+        budget_in_view: a fractional ``budget`` is a share of the Gaussians in view, not of the
+            model (the calibrated schedule's training).
+        level: window fade only: draw the level gains at this level in [0, 1] instead of
+            :func:`clod_adapter.lod.level_of_fraction` of the share of the Gaussians in view drawn.
+
+    Returns:
+        :class:`LodRender`.
+
+    Raises:
+        ValueError: ``s_v`` or ``budget`` given but the model has no ``sigma_d``; ``s_v < 1``;
+            both ``s_v`` and ``budget`` given.
+    """
+    view = view_lod(gaussians, camera, tau=tau, eps=eps)
+    t1 = time.perf_counter()
+    sel = view.select(s_v, budget=budget, min_s_v=min_s_v, budget_in_view=budget_in_view, level=level,
+                      estimator=estimator, temperature=temperature, eta_grad_sigma_only=eta_grad_sigma_only)
+    t2 = time.perf_counter()
+    bg = None
+    if background is not None:
+        bg = torch.as_tensor(background, dtype=gaussians.means.dtype, device=gaussians.means.device)
+    image, alpha, meta = view.rasterize(sel, background=bg,
+                                        sh_degree=gaussians.sh_degree if sh_degree is None else sh_degree,
+                                        backend=backend)
+    t3 = time.perf_counter()
+    return LodRender(image=image, alpha=alpha, mask=sel.mask, n_rendered=int(sel.indices.numel()),
+                     n_frustum=int(view.frustum.sum()), eta=sel.eta, s_v=sel.s_v, level=sel.level,
+                     project_ms=view.project_ms, select_ms=(t2 - t1) * 1e3, raster_ms=(t3 - t2) * 1e3, meta=meta)
+
+
+@dataclass
+class LodSubset:
+    """What one camera draws at one level of detail (:func:`lod_subset`), without rasterising.
+
+    Attributes:
+        indices: [k] int64 indices into the model, ascending.
+        means: [k, 3], quats: [k, 4] (wxyz), scales: [k, 3] (activated, world units, at the
+            level), opacities: [k] (the opacities the rasteriser is given, after the LoD rule),
+        colors: [k, K, 3] SH coefficients (gsplat ``colors`` layout, at the level): the drawn
+            attributes.
+        s_v: the virtual distance scale used (solved in budget mode; None without LoD).
+        n_in_view: Gaussians in view (the population budgets and fractions refer to).
+    """
+
+    indices: Tensor
+    means: Tensor
+    quats: Tensor
+    scales: Tensor
+    opacities: Tensor
+    colors: Tensor
+    s_v: Optional[float]
+    n_in_view: int
+
+
+@torch.no_grad()
+def lod_subset(gaussians: Gaussians, camera, s_v: Optional[float] = None, *,
+               budget: Optional[float | int] = None, tau: Optional[float] = None,
+               eps: Optional[float] = None, min_s_v: float = 1.0) -> LodSubset:
+    """The Gaussians :func:`render_lod` hands to the rasteriser for ``camera`` and their drawn
+    attributes (same arguments; no gradient). For viewers and exporters that rasterise
+    elsewhere. Neither ``s_v`` nor ``budget``: every Gaussian in view, unchanged.
+
+    Raises:
+        ValueError: as :func:`render_lod`.
+    """
+    view = view_lod(gaussians, camera, tau=tau, eps=eps)
+    sel = view.select(s_v, budget=budget, min_s_v=min_s_v, estimator="paper")
+    means, quats, scales, colors = view.drawn_attributes(sel)
+    return LodSubset(indices=sel.indices, means=means, quats=quats, scales=scales, opacities=sel.opacities,
+                     colors=colors, s_v=sel.s_v, n_in_view=view.n_in_view)

@@ -1,7 +1,7 @@
 """``clod-adapt``: give a trained 3DGS checkpoint a continuous level of detail (CLoD-GS).
 
     clod-adapt MODEL --images SCENE --max-sv 5 [-o OUT] [--iterations N] [--resolution R]
-               [--device auto|cpu|cuda] [--seed S] [--resume] [--force] [--sanitize]
+               [--device auto|cpu|cuda] [--seed S] [--resume] [--force] [--sanitize] [--masks P]
                [--deterministic] [--layout inria] [--allow-mismatch]
     clod-adapt -m MODEL_FOLDER -s SCENE ...        (the official 3DGS spelling)
     clod-adapt --demo [-o OUT]
@@ -69,6 +69,10 @@ def build_parser():
     p.add_argument("--tau", type=float, default=None, help="LoD threshold: render iff alpha'' > tau*s_v (default 0.005)")
     p.add_argument("--eta-estimator", default="ste", choices=("ste", "sigmoid", "paper"),
                    help="gradient of the rendered fraction in L_reg; 'paper' = hard count, no gradient")
+    p.add_argument("--masks", default="auto", choices=("auto", "argmax", "gumbel", "all"),
+                   help="a MaskGaussian .ply with mask scores (masks_0/masks_1): keep p(keep) > 0.5 "
+                        "('argmax', the default 'auto'), one Gumbel draw as MaskGaussian's own save "
+                        "('gumbel', seeded by --seed) or every Gaussian ('all'); the log says how many were kept")
     p.add_argument("--sanitize", action="store_true",
                    help="drop Gaussians with NaN/Inf values (and clamp +Inf opacity logits to "
                         "logit(1 - 1e-7)) instead of stopping; says how many")
@@ -156,7 +160,7 @@ def _main(args) -> int:
         deterministic=args.deterministic,
         iterations_from_state=args.resume and args.iterations is None, force=force,
         allow_mismatch=args.allow_mismatch, iteration=args.iteration, layout=args.layout,
-        tensorboard=args.tensorboard, timing_repeats=args.timing_repeats)
+        tensorboard=args.tensorboard, timing_repeats=args.timing_repeats, masks=args.masks)
     return 0
 
 

@@ -12,10 +12,15 @@ whole range is kept"): raw offsets added at level ``l`` in [0, 1] (:func:`clod_a
 as ``opacity_logits + l * opacity_logit_gain``, ``log_scales + l * log_scale_gain`` (one scalar
 for the three axes) and ``sh0 + l * sh0_gain``. At full detail (``l = 0``) the model is exactly
 its base attributes. ``lod`` holds the settings it is drawn with (:class:`clod_adapter.lod.LodSettings`).
+
+``extra`` carries per-Gaussian values the model does not use but a checkpoint had (e.g.
+MaskGaussian's ``masks_0``/``masks_1``), so that they survive a read, an adaptation and a write
+(:func:`clod_adapter.io.ply.read_ply` / ``write_ply``); they are never parameters
+(:meth:`Gaussians.tensors` leaves them out), but every per-Gaussian operation carries them.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass, fields, replace
+from dataclasses import dataclass, field, fields, replace
 from typing import Optional
 
 import torch
@@ -55,6 +60,8 @@ class Gaussians:
         log_scale_gain: [N] level gain of the log-scales (all three axes), or None (zero).
         sh0_gain: [N, 1, 3] level gain of the degree-0 SH coefficient, or None (zero).
         lod: how the model is drawn at a level of detail, or None (defaults; the paper's Eq. 2).
+        extra: [N] tensors by .ply property name (any dtype), carried along but not trained or
+            rendered (e.g. ``masks_0``, ``masks_1``); empty by default.
     """
 
     means: Tensor
@@ -68,6 +75,7 @@ class Gaussians:
     log_scale_gain: Optional[Tensor] = None
     sh0_gain: Optional[Tensor] = None
     lod: Optional[LodSettings] = None
+    extra: dict[str, Tensor] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
         n = self.means.shape[0]
@@ -89,6 +97,9 @@ class Gaussians:
             t = getattr(self, name)
             if t is not None and tuple(t.shape) != shape:
                 raise ValueError(f"Gaussians.{name} has shape {tuple(t.shape)}, expected {shape}")
+        for name, t in self.extra.items():
+            if tuple(t.shape) != (n,):
+                raise ValueError(f"Gaussians.extra[{name!r}] has shape {tuple(t.shape)}, expected ({n},)")
 
     # --- activated views -------------------------------------------------------------------
     def __len__(self) -> int:
@@ -138,22 +149,27 @@ class Gaussians:
         return replace(self, **upd)
 
     def tensors(self) -> dict[str, Tensor]:
-        """The non-None parameter tensors by field name."""
+        """The non-None parameter tensors by field name (not :attr:`extra`)."""
         return {f.name: getattr(self, f.name) for f in fields(self)
                 if isinstance(getattr(self, f.name), Tensor)}
 
+    def _map(self, fn) -> "Gaussians":
+        """``fn`` applied to every tensor, parameters and :attr:`extra` alike."""
+        return replace(self, **{k: fn(v) for k, v in self.tensors().items()},
+                       extra={k: fn(v) for k, v in self.extra.items()})
+
     def to(self, device: torch.device | str) -> "Gaussians":
-        return replace(self, **{k: v.to(device) for k, v in self.tensors().items()})
+        return self._map(lambda v: v.to(device))
 
     def detach(self) -> "Gaussians":
-        return replace(self, **{k: v.detach() for k, v in self.tensors().items()})
+        return self._map(lambda v: v.detach())
 
     def clone(self) -> "Gaussians":
-        return replace(self, **{k: v.detach().clone() for k, v in self.tensors().items()})
+        return self._map(lambda v: v.detach().clone())
 
     def subset(self, index: Tensor) -> "Gaussians":
         """Gaussians selected by a boolean mask [N] or an index tensor [M] (int64)."""
-        return replace(self, **{k: v[index] for k, v in self.tensors().items()})
+        return self._map(lambda v: v[index])
 
     def with_sigma_d(self, sigma_d: Optional[Tensor]) -> "Gaussians":
         """The model with ``sigma_d`` replaced; ``None`` also drops the level gains and settings

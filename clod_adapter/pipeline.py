@@ -17,7 +17,7 @@ import json
 import math
 import os
 import time
-from dataclasses import asdict
+from dataclasses import asdict, replace
 from pathlib import Path
 from typing import Optional
 
@@ -27,9 +27,9 @@ from . import __version__, jobs, lod
 from .adapt import AdaptConfig, StopFlag, adapt, load_state, prepare, save_state
 from .evaluate import evaluate_level, evaluate_levels
 from .io.atomic import atomic_save, atomic_write
-from .io.load import load_model, resolve_model_path, training_size
+from .io.load import apply_masks, load_model, resolve_model_path, training_size
 from .jobs import InputError, pick_device  # noqa: F401 (public here since the first release)
-from .io.ply import write_ply
+from .io.ply import PlyFormatError, write_ply
 from .io.scene import load_scene
 from .view import render_lod
 
@@ -112,8 +112,6 @@ def check_finite(gaussians, ply_path: Path, sanitize: bool = False, log=print):
     clamp = pos_inf_op & ~rows_bad
     info = {"dropped": int(rows_bad.sum()), "opacity_clamped": int(clamp.sum())}
     if info["opacity_clamped"]:
-        from dataclasses import replace
-
         op = gaussians.opacity_logits
         gaussians = replace(gaussians, opacity_logits=torch.where(
             clamp, torch.full_like(op, SANITIZE_OPACITY_LOGIT), op))
@@ -325,7 +323,7 @@ def write_inria_layout(out_dir: Path, model, scene, *, iteration: int, resolutio
 
     rel_ply = Path("point_cloud") / f"iteration_{iteration}" / "point_cloud.ply"
     (out_dir / rel_ply.parent).mkdir(parents=True, exist_ok=True)
-    write_ply(out_dir / rel_ply, model.with_sigma_d(None).to("cpu"))
+    write_ply(out_dir / rel_ply, replace(model.with_sigma_d(None), extra={}).to("cpu"))
     cams = []
     for i, c in enumerate(list(scene.train) + list(scene.test)):
         c2w = np.linalg.inv(c.viewmat.detach().double().cpu().numpy())
@@ -391,6 +389,7 @@ def run(
     layout: str = "clod",
     tensorboard: bool = False,
     timing_repeats: int = 3,
+    masks: str = "auto",
 ) -> dict:
     """Run the whole job; returns the metrics dict (also written to ``metrics.json``).
 
@@ -406,6 +405,13 @@ def run(
 
     ``sanitize``: drop Gaussians with NaN/Inf values and clamp +Inf opacity logits (see
     :func:`check_finite`) instead of failing on them.
+
+    ``masks``: which Gaussians of a MaskGaussian .ply with mask properties (``masks_0``/``masks_1``)
+    are kept: ``"auto"`` (the default policy, ``argmax``), ``"argmax"``, ``"gumbel"`` (one draw
+    seeded by ``cfg.seed``) or ``"all"`` (:func:`clod_adapter.io.load.apply_masks`); the log and
+    ``metrics.json`` (``input_masks``) say what was applied. Unknown per-Gaussian .ply properties
+    of the kept Gaussians (e.g. the mask scores) are written back to ``point_cloud.ply`` (not to
+    the exact INRIA copy of ``layout="inria"``).
 
     ``resume``: continue from ``out_dir/adapt_state.safetensors``; refused (InputError) when it
     was saved for another input .ply, scene or resolution, or with other settings than ``cfg``
@@ -431,7 +437,7 @@ def run(
     kw = dict(resolution=resolution, device=device, resume=resume, progress=progress, log=log,
               sanitize=sanitize, iterations_from_state=iterations_from_state, force=force,
               allow_mismatch=allow_mismatch, iteration=iteration, layout=layout, tensorboard=tensorboard,
-              timing_repeats=timing_repeats)
+              timing_repeats=timing_repeats, masks=masks)
     with StopFlag(abortable=True) as stop, deterministic_mode(deterministic):
         try:
             return _run(ply_path, scene_root, out_dir, cfg, stop=stop, **kw)
@@ -528,7 +534,7 @@ def load_resume_state(state_path: Path, cfg: AdaptConfig, *, input_sha256: str, 
 def _run(ply_path, scene_root, out_dir, cfg: AdaptConfig, *, stop: StopFlag, resolution: int,
          device: str, resume: bool, progress: bool, log, sanitize: bool,
          iterations_from_state: bool, force: bool, allow_mismatch: bool, iteration: Optional[int],
-         layout: str, tensorboard: bool, timing_repeats: int) -> dict:
+         layout: str, tensorboard: bool, timing_repeats: int, masks: str) -> dict:
     t_start = time.perf_counter()
     ply_path, scene_root, out_dir = Path(ply_path), Path(scene_root), Path(out_dir)
     if layout not in ("clod", "inria"):
@@ -546,9 +552,17 @@ def _run(ply_path, scene_root, out_dir, cfg: AdaptConfig, *, stop: StopFlag, res
                              "(pip install -e \".[tensorboard]\")") from None
     dev = pick_device(device)
     backend = "gsplat" if dev.type == "cuda" else "cpu"
-    gaussians = load_model(ply_path, allow_nonfinite=True)
+    try:
+        gaussians = load_model(ply_path, masks="all", allow_nonfinite=True)
+        gaussians, mask_info = apply_masks(gaussians, masks, seed=cfg.seed, path=ply_path)
+    except ValueError as e:  # an unknown policy (a PlyFormatError names the file already)
+        if isinstance(e, PlyFormatError):
+            raise
+        raise InputError(f"--masks: {e}") from None
     if len(gaussians) == 0:
         raise InputError(f"{ply_path}: the model has no Gaussians")
+    if mask_info is not None:
+        log(f"clod-adapt: MaskGaussian masks {mask_info.describe()} (--masks argmax|gumbel|all)")
     gaussians, sanitized = check_finite(gaussians, ply_path, sanitize, log=log)
     scene = load_scene(scene_root, resolution=resolution, background=cfg.background)
     stop.reinstall()  # importing pycolmap (COLMAP scenes only) replaces the SIGTERM handler
@@ -655,7 +669,7 @@ def _run(ply_path, scene_root, out_dir, cfg: AdaptConfig, *, stop: StopFlag, res
     if not finished:
         raise KeyboardInterrupt
     train_s = time.perf_counter() - t_train
-    model = state.gaussians().detach()
+    model = replace(state.gaussians().detach(), extra=gaussians.extra)  # unknown .ply properties ride along
     # the final state first: an interrupt during the evaluation resumes at the last iteration
     save_state(state_path, state, cfg, meta)
     stop.state_saved = True
@@ -690,6 +704,7 @@ def _run(ply_path, scene_root, out_dir, cfg: AdaptConfig, *, stop: StopFlag, res
         "threads": torch.get_num_threads(),
         "num_gaussians": len(model),
         "input_sanitized": sanitized,
+        "input_masks": asdict(mask_info) if mask_info is not None else None,
         "test_views": [c.name for c in test_cams],
         "config": asdict(cfg),
         "train_seconds": round(train_s, 2),

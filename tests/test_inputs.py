@@ -366,15 +366,16 @@ def test_load_model_maskgaussian_masks(tmp_path):
         warnings.simplefilter("error")
         r = load_model(p)
     assert len(r) == on.sum() and torch.equal(r.means, g.means[torch.from_numpy(on)])
-    assert len(read_ply(p)) == n  # read_ply itself ignores the mask properties
-    # soft scores (MaskGaussian's learned logits): ignored with a warning, or argmax on request
+    assert len(read_ply(p)) == n  # read_ply itself keeps every Gaussian (the masks go to extra)
+    # soft scores (MaskGaussian's learned logits): argmax by default (tests/test_masks.py: the rest)
     s0 = np.where(on, 2.0, -1.0).astype(np.float32) + 0.25
     p = tmp_path / "soft.ply"
     _write_ply_with(p, g, {"masks_0": s0, "masks_1": np.full(n, 0.5, np.float32)})
-    with pytest.warns(UserWarning, match="soft MaskGaussian mask scores"):
-        assert len(load_model(p)) == n
-    r = load_model(p, masks="argmax")
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        r = load_model(p)
     assert torch.equal(r.quats, g.quats[torch.from_numpy(on)])
+    assert torch.equal(load_model(p, masks="argmax").quats, r.quats)
     with warnings.catch_warnings():
         warnings.simplefilter("error")
         assert len(load_model(p, masks="ignore")) == n

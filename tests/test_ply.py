@@ -205,6 +205,71 @@ def test_ascii_and_big_endian(tmp_path):
     _assert_bit_equal(g, read_ply(tmp_path / "mix.ply"))
 
 
+# --- extra (unknown) per-Gaussian properties --------------------------------------------------------
+def test_extra_properties_round_trip(tmp_path):
+    g = _random_gaussians(50, 2, False, seed=3)
+    src = write_ply(tmp_path / "plain.ply", g)
+    data = np.array(plyfile.PlyData.read(str(src))["vertex"].data)
+    names = list(data.dtype.names)
+    i = names.index("opacity") + 1  # MaskGaussian's save_ply puts masks_0/1 right after opacity
+    rng = np.random.default_rng(0)
+    extra = {"masks_0": ("<f4", rng.normal(size=50)), "masks_1": ("<f4", rng.normal(size=50)),
+             "red": ("u1", rng.integers(0, 256, 50)), "weight": ("<f8", rng.normal(size=50)),
+             "label": ("<u2", rng.integers(0, 65536, 50))}
+    order = names[:i] + ["masks_0", "masks_1"] + names[i:] + ["red", "weight", "label"]
+    arr = np.empty(50, dtype=[(k, extra[k][0] if k in extra else "<f4") for k in order])
+    for k in order:
+        arr[k] = extra[k][1] if k in extra else data[k]
+    plyfile.PlyData([plyfile.PlyElement.describe(arr, "vertex")]).write(str(tmp_path / "mg.ply"))
+
+    r = read_ply(tmp_path / "mg.ply")
+    _assert_bit_equal(g, r)  # the model itself is untouched by the extras
+    assert list(r.extra) == ["masks_0", "masks_1", "red", "weight", "label"]  # file order
+    assert [r.extra[k].dtype for k in r.extra] == [torch.float32, torch.float32, torch.uint8, torch.float64,
+                                                   torch.uint16]
+    assert "masks_0" not in r.tensors()  # not parameters
+    out = write_ply(tmp_path / "out.ply", r)
+    v = plyfile.PlyData.read(str(out))["vertex"]
+    assert [p.name for p in v.properties] == ply_property_names(2) + list(r.extra)  # known layout, then extras
+    for k in extra:
+        assert v.data[k].dtype == arr[k].dtype.newbyteorder("<") and np.array_equal(v.data[k], arr[k]), k
+    rr = read_ply(out)
+    _assert_bit_equal(g, rr)
+    assert all(rr.extra[k].numpy().tobytes() == r.extra[k].numpy().tobytes() for k in extra)
+    # big endian and ASCII files give the same extras
+    plyfile.PlyData([plyfile.PlyElement.describe(arr.astype(arr.dtype.newbyteorder(">")), "vertex")],
+                    byte_order=">").write(str(tmp_path / "be.ply"))
+    plyfile.PlyData([plyfile.PlyElement.describe(arr, "vertex")], text=True).write(str(tmp_path / "a.ply"))
+    for f in ("be.ply", "a.ply"):
+        e = read_ply(tmp_path / f).extra
+        assert list(e) == list(r.extra) and all(torch.equal(e[k], r.extra[k]) for k in e), f
+    # a CLoD extended file (sigma_d, gains) keeps them as known properties, the extras after
+    ext = Gaussians(**r.tensors(), sigma_d=torch.ones(50), opacity_logit_gain=torch.zeros(50), extra=r.extra)
+    names = [p.name for p in plyfile.PlyData.read(str(write_ply(tmp_path / "ext.ply", ext)))["vertex"].properties]
+    assert names == ply_property_names(2, with_sigma_d=True) + ["opacity_gain"] + list(r.extra)
+    assert list(read_ply(tmp_path / "ext.ply").extra) == list(r.extra)
+    with pytest.raises(ValueError, match="opacity"):
+        write_ply(tmp_path / "clash.ply", Gaussians(**g.tensors(), extra={"opacity": torch.zeros(50)}))
+
+
+def test_gaussians_carry_extra():
+    g = _random_gaussians(6, 1, True, seed=4)
+    m = torch.arange(6, dtype=torch.float32)
+    g = Gaussians(**g.tensors(), extra={"masks_0": m, "id": torch.arange(6, dtype=torch.int16)})
+    assert set(g.tensors()) == {"means", "quats", "log_scales", "opacity_logits", "sh0", "shN", "sigma_d"}
+    keep = torch.tensor([True, False, True, True, False, False])
+    for s in (g.subset(keep), g.subset(torch.tensor([0, 2, 3]))):
+        assert torch.equal(s.extra["masks_0"], torch.tensor([0.0, 2.0, 3.0]))
+        assert s.extra["id"].dtype == torch.int16 and torch.equal(s.means, g.means[keep])
+    c = g.clone()
+    c.extra["masks_0"][0] = 99.0
+    assert m[0] == 0.0  # a copy
+    for other in (g.detach(), g.to("cpu"), g.with_sigma_d(None), g.at_level(0.5)):
+        assert torch.equal(other.extra["masks_0"], m)
+    with pytest.raises(ValueError, match=r"extra\['masks_0'\] has shape \(5,\)"):
+        Gaussians(**g.tensors(), extra={"masks_0": torch.zeros(5)})
+
+
 # --- errors -------------------------------------------------------------------------------------
 def _write_fields(path, names, n=5, element="vertex"):
     arr = np.zeros(n, dtype=[(k, "<f4") for k in names])

@@ -7,38 +7,47 @@ Dispatch (:func:`load_model`):
 * any other .ply (content starts with ``ply``, or the name ends in ``.ply``) ->
   :func:`~clod_adapter.io.ply.read_ply`: the INRIA layout, which also covers MaskGaussian
   checkpoints (its ``save_ply_default`` writes the vanilla layout; its ``save_ply`` adds the
-  ``masks_0``/``masks_1`` properties, which ``read_ply`` ignores -- see *Masks* below), the
+  ``masks_0``/``masks_1`` properties, applied by :func:`apply_masks` -- see *Masks* below), the
   no-normals exporter variant and the CLoD extension with ``sigma_d``;
 * a torch checkpoint (name ``*.pt`` / ``*.pth`` / ``*.ckpt`` or a zip-format torch file) ->
   :func:`~clod_adapter.io.gsplat_ckpt.read_gsplat_ckpt` (gsplat simple_trainer ``ckpt_*.pt``);
 * anything else -> :class:`~clod_adapter.io.ply.PlyFormatError` naming the file.
 
 Masks (INRIA-layout .ply only). MaskGaussian (Liu et al., CVPR 2025; kaikai23/MaskGaussian
-``scene/gaussian_model.py``) learns two mask scores per Gaussian, saved as ``masks_0``,
-``masks_1``; it renders with ``mask = gumbel_softmax(log_softmax([masks_0, masks_1]),
-hard=True)[:, 0]`` (class 0 = "keep"), i.e. a stochastic hard mask. With ``masks="auto"`` (the
-default):
+``scene/gaussian_model.py``) learns two mask scores per Gaussian. Its official save
+(``save_ply_default``) draws the mask once and writes the kept Gaussians in the plain layout
+(nothing to do here); its unused ``save_ply`` writes every Gaussian with the scores as
+``masks_0``, ``masks_1``. It renders with ``mask = gumbel_softmax(log_softmax([masks_0, masks_1]),
+hard=True)[:, 0]`` (class 0 = "keep"), a stochastic hard mask with ``p(keep) =
+sigmoid(masks_0 - masks_1)``. ``read_ply`` keeps the scores in ``Gaussians.extra``;
+:func:`apply_masks` (called by :func:`load_model`) selects Gaussians by one of the policies
+(:data:`MASK_POLICIES`):
 
-* a ``masks_0``/``masks_1`` pair that is already hard one-hot (every value 0 or 1 and
-  ``masks_0 + masks_1 == 1``) keeps the Gaussians with ``masks_0 == 1``;
-* a single ``mask`` (or lone ``masks_0``) property with only 0/1 values keeps those equal to 1;
-* soft scores (learned logits, anything else) are ignored: every Gaussian is kept and a
-  ``UserWarning`` says so.
+* ``"argmax"`` (the default, ``"auto"``; chosen by measurement, see
+  ``benchmarks/maskgaussian_masks.py``): keep ``p(keep) > 0.5``, i.e. ``masks_0 > masks_1``, the
+  mode of the sampled mask; deterministic;
+* ``"gumbel"``: one hard Gumbel-softmax draw as the official save does, from a
+  ``torch.Generator`` seeded with ``mask_seed`` (deterministic for a seed);
+* ``"all"`` (alias ``"ignore"``): keep every Gaussian.
 
-``masks="argmax"`` also applies soft scores deterministically, keeping the mode of
-MaskGaussian's sampled mask (``masks_0 > masks_1``; for a single ``mask`` logit, ``mask > 0``);
-``masks="ignore"`` never filters. Filtering never empties the model silently: a mask that would
-keep no Gaussian raises ``PlyFormatError``.
+``"auto"`` keeps every Gaussian of a CLoD-adapted model (one with ``sigma_d``: ``clod-adapt``
+applied the masks before adapting and wrote the kept Gaussians' scores back), so re-reading an
+output never drops Gaussians again.
+
+A single ``mask`` property (or a lone ``masks_0``) is read as the logit of ``p(keep)``
+(``argmax``: ``mask > 0``; ``gumbel``: keep with probability ``sigmoid(mask)``). Masks that are
+already hard (``masks_0``/``masks_1`` one-hot, or a 0/1 ``mask``) are a drawn mask: ``argmax`` and
+``gumbel`` both keep exactly the Gaussians marked 1. The mask properties of the kept Gaussians stay
+in ``extra`` (and so in a ``.ply`` written from the model). Filtering never empties the model
+silently: a policy that would keep no Gaussian raises ``PlyFormatError``.
 """
 from __future__ import annotations
 
 import os
-import warnings
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Literal, Optional, Union
 
-import numpy as np
-import plyfile
 import torch
 
 from clod_adapter.gaussians import Gaussians
@@ -46,12 +55,18 @@ from clod_adapter.io.compressed_ply import is_compressed_ply, read_compressed_pl
 from clod_adapter.io.gsplat_ckpt import read_gsplat_ckpt
 from clod_adapter.io.ply import PlyFormatError, read_ply
 
-__all__ = ["load_model", "resolve_model_path", "model_folder", "training_size", "MASK_PROPERTIES"]
+__all__ = ["load_model", "apply_masks", "MaskInfo", "resolve_model_path", "model_folder", "training_size",
+           "MASK_PROPERTIES", "MASK_POLICIES", "DEFAULT_MASK_POLICY"]
 
 PathLike = Union[str, "os.PathLike[str]"]
-MaskMode = Literal["auto", "argmax", "ignore"]
+MaskMode = Literal["auto", "argmax", "gumbel", "all", "ignore"]
 
 MASK_PROPERTIES = ("masks_0", "masks_1", "mask")
+#: the mask policies (module docstring); ``"auto"`` means :data:`DEFAULT_MASK_POLICY`, ``"ignore"`` is ``"all"``.
+MASK_POLICIES = ("argmax", "gumbel", "all")
+#: the policy for learned (soft) mask scores, by ``benchmarks/maskgaussian_masks.py`` (README).
+DEFAULT_MASK_POLICY = "argmax"
+_MASK_WHAT = {"argmax": "keep p(keep) > 0.5", "gumbel": "one Gumbel draw, seed {seed}", "all": "keep all"}
 _TORCH_SUFFIXES = {".pt", ".pth", ".ckpt"}
 
 
@@ -149,27 +164,30 @@ def training_size(model_path: PathLike) -> Optional[tuple[int, int]]:
     return sizes.pop() if len(sizes) == 1 else None
 
 
-def load_model(path: PathLike, *, masks: MaskMode = "auto", allow_nonfinite: bool = False,
+def load_model(path: PathLike, *, masks: MaskMode = "auto", mask_seed: int = 0, allow_nonfinite: bool = False,
                allow_appearance: bool = False) -> Gaussians:
     """Read a 3DGS model from ``path``, whatever its supported format (see the module docstring).
 
     Args:
         path: a .ply (INRIA / MaskGaussian / CLoD-extended / compressed) or a gsplat ``.pt``.
-        masks: how MaskGaussian-style mask properties of an INRIA-layout .ply are treated:
-            ``"auto"``, ``"argmax"`` or ``"ignore"`` (module docstring).
+        masks: how MaskGaussian-style mask properties of an INRIA-layout .ply are applied:
+            ``"auto"`` (= :data:`DEFAULT_MASK_POLICY`), ``"argmax"``, ``"gumbel"``, ``"all"`` /
+            ``"ignore"`` (module docstring; :func:`apply_masks`).
+        mask_seed: seed of the ``"gumbel"`` draw.
         allow_nonfinite: passed to ``read_ply`` / ``read_gsplat_ckpt``.
         allow_appearance: passed to ``read_gsplat_ckpt`` (gsplat ``--app_opt`` checkpoints).
 
     Returns:
-        ``Gaussians`` (float32, CPU).
+        ``Gaussians`` (float32, CPU); unknown .ply properties (e.g. the mask scores of the kept
+        Gaussians) in ``extra``.
 
     Raises:
         FileNotFoundError: ``path`` does not exist.
-        PlyFormatError: the content is no supported format, or the reader rejects it.
-        ValueError: ``masks`` is not one of the modes.
+        PlyFormatError: the content is no supported format, the reader rejects it, or the mask
+            keeps no Gaussian.
+        ValueError: ``masks`` is not one of the policies.
     """
-    if masks not in ("auto", "argmax", "ignore"):
-        raise ValueError(f"masks must be 'auto', 'argmax' or 'ignore', got {masks!r}")
+    _policy(masks)
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"{path}: no such file")
@@ -181,11 +199,7 @@ def load_model(path: PathLike, *, masks: MaskMode = "auto", allow_nonfinite: boo
         if magic[:3] == b"ply" and is_compressed_ply(path):
             return read_compressed_ply(path)
         g = read_ply(path, allow_nonfinite=allow_nonfinite)
-        if masks != "ignore":
-            keep = _mask_selection(path, len(g), masks)
-            if keep is not None:
-                g = g.subset(torch.from_numpy(keep))
-        return g
+        return apply_masks(g, masks, seed=mask_seed, path=path)[0]
     if suffix in _TORCH_SUFFIXES or magic == b"PK\x03\x04":
         return read_gsplat_ckpt(path, allow_appearance=allow_appearance, allow_nonfinite=allow_nonfinite)
     if not magic:
@@ -194,45 +208,103 @@ def load_model(path: PathLike, *, masks: MaskMode = "auto", allow_nonfinite: boo
                                "PlayCanvas compressed) or a gsplat checkpoint .pt")
 
 
-def _mask_selection(path: Path, n: int, mode: MaskMode) -> Optional[np.ndarray]:
-    """Boolean keep-mask [n] from the vertex mask properties of ``path``, or None to keep all."""
-    ply = plyfile.PlyData.read(str(path))  # read_ply succeeded, so this parses; binary data is mmapped
-    vertex = ply["vertex"]
-    have = {p.name for p in vertex.properties if not isinstance(p, plyfile.PlyListProperty)}
-    present = [m for m in MASK_PROPERTIES if m in have]
-    if not present:
-        return None
+def _policy(masks: str) -> str:
+    """The policy ``masks`` names (``"auto"`` -> the default, ``"ignore"`` -> ``"all"``).
 
-    def col(name: str) -> np.ndarray:
-        return np.asarray(vertex.data[name], dtype=np.float64)
+    Raises:
+        ValueError: not a policy.
+    """
+    if masks == "auto":
+        return DEFAULT_MASK_POLICY
+    if masks == "ignore":
+        return "all"
+    if masks not in MASK_POLICIES:
+        raise ValueError(f"masks must be one of auto, {', '.join(MASK_POLICIES)} or ignore, got {masks!r}")
+    return masks
 
-    def hard(a: np.ndarray) -> bool:
-        return bool(np.isin(a, (0.0, 1.0)).all())
 
-    if "masks_0" in have and "masks_1" in have:
-        m0, m1 = col("masks_0"), col("masks_1")
-        if hard(m0) and hard(m1) and bool((m0 + m1 == 1.0).all()):
-            keep, how = m0 == 1.0, "hard one-hot masks_0/masks_1"
-        elif mode == "argmax":
-            keep, how = m0 > m1, "masks_0 > masks_1 (argmax of MaskGaussian's mask scores)"
-        else:
-            warnings.warn(f"{path}: masks_0/masks_1 hold soft MaskGaussian mask scores; ignored, all {n} "
-                          f"Gaussians kept (load_model(..., masks='argmax') keeps masks_0 > masks_1)",
-                          UserWarning, stacklevel=3)
-            return None
+@dataclass
+class MaskInfo:
+    """What :func:`apply_masks` did: the ``policy`` asked for, the mask ``source`` (which
+    properties), whether the mask was ``hard`` (already drawn: applied as is unless ``"all"``),
+    Gaussians ``kept`` of ``total``, the ``seed`` of a Gumbel draw (None when there was none)."""
+
+    policy: str
+    source: str
+    hard: bool
+    kept: int
+    total: int
+    seed: Optional[int] = None
+    note: str = ""
+
+    def describe(self) -> str:
+        """One line, e.g. ``masks_0/masks_1 (soft scores): argmax (keep p(keep) > 0.5), kept
+        19,458 of 39,977 Gaussians (48.7 %)``."""
+        what = _MASK_WHAT[self.policy].format(seed=self.seed)
+        if self.hard and self.policy != "all":
+            what = "a drawn 0/1 mask, applied as is"
+        kind = "hard mask" if self.hard else "soft scores"
+        note = f"; {self.note}" if self.note else ""
+        return (f"{self.source} ({kind}): {self.policy} ({what}{note}), kept {self.kept:,} of {self.total:,} "
+                f"Gaussians ({100 * self.kept / max(self.total, 1):.1f} %)")
+
+
+def apply_masks(gaussians: Gaussians, masks: MaskMode = "auto", *, seed: int = 0,
+                path: PathLike = "<model>") -> tuple[Gaussians, Optional[MaskInfo]]:
+    """Select Gaussians by the MaskGaussian mask properties in ``gaussians.extra``.
+
+    Args:
+        gaussians: a model read by ``read_ply`` (mask properties, if any, in ``extra``).
+        masks: the policy (module docstring): ``"auto"`` (= :data:`DEFAULT_MASK_POLICY`, or
+            ``"all"`` for a model with ``sigma_d``), ``"argmax"``, ``"gumbel"``, ``"all"`` /
+            ``"ignore"``.
+        seed: seed of the ``"gumbel"`` draw (a ``torch.Generator`` on the CPU: the same seed
+            keeps the same Gaussians on every machine).
+        path: named in errors.
+
+    Returns:
+        (the kept Gaussians, their ``extra`` subset alike, or ``gaussians`` itself; a
+        :class:`MaskInfo`, or None when the model has no mask property).
+
+    Raises:
+        PlyFormatError: the policy keeps no Gaussian.
+        ValueError: unknown policy.
+    """
+    policy = _policy(masks)
+    note = ""
+    if masks == "auto" and gaussians.sigma_d is not None:
+        policy, note = "all", "a CLoD-adapted model: its masks were applied before adaptation"
+    ex = gaussians.extra
+    n = len(gaussians)
+    if "masks_0" in ex and "masks_1" in ex:
+        m0, m1 = ex["masks_0"].double().cpu(), ex["masks_1"].double().cpu()
+        hard = _is_hard(m0) and _is_hard(m1) and bool((m0 + m1 == 1.0).all())
+        source, logit = "masks_0/masks_1", m0 - m1
+    elif "mask" in ex or "masks_0" in ex:
+        name = "mask" if "mask" in ex else "masks_0"
+        logit = ex[name].double().cpu()
+        hard = _is_hard(logit)
+        source = name
+        if hard:  # a drawn 0/1 mask: 1 = keep
+            logit = logit - 0.5
     else:
-        name = "mask" if "mask" in have else present[0]
-        m = col(name)
-        if hard(m):
-            keep, how = m == 1.0, f"hard 0/1 {name}"
-        elif mode == "argmax":
-            keep, how = m > 0.0, f"{name} > 0 (mask logit)"
-        else:
-            warnings.warn(f"{path}: {name} holds soft values (not 0/1); ignored, all {n} Gaussians kept "
-                          f"(load_model(..., masks='argmax') keeps {name} > 0)", UserWarning, stacklevel=3)
-            return None
-    if len(keep) != n:  # cannot happen for a file read_ply accepted; guard anyway
-        raise PlyFormatError(path, f"mask has {len(keep)} rows, model has {n}")
-    if n and not keep.any():
-        raise PlyFormatError(path, f"the mask ({how}) keeps no Gaussian; load with masks='ignore' to keep all")
-    return keep
+        return gaussians, None
+    if policy == "all":
+        return gaussians, MaskInfo(policy, source, hard, n, n, note=note)
+    if policy == "argmax" or hard:
+        keep, used_seed = logit > 0, None
+    else:  # one hard Gumbel-softmax draw of log_softmax([s0, s1]): keep iff s0 + g0 > s1 + g1
+        gen = torch.Generator().manual_seed(int(seed))
+        u = torch.rand((n, 2), generator=gen, dtype=torch.float64).clamp_min(1e-300)
+        g = -torch.log(-torch.log(u))
+        keep, used_seed = logit + g[:, 0] > g[:, 1], int(seed)
+    info = MaskInfo(policy, source, hard, int(keep.sum()), n, used_seed)
+    if n and not bool(keep.any()):
+        raise PlyFormatError(path, f"the mask ({info.describe()}) keeps no Gaussian; load with masks='all' to keep all")
+    if info.kept == n:
+        return gaussians, info
+    return gaussians.subset(keep.to(gaussians.means.device)), info
+
+
+def _is_hard(a: torch.Tensor) -> bool:
+    return bool(((a == 0.0) | (a == 1.0)).all())

@@ -15,9 +15,11 @@ level gains ``opacity_gain``, ``scale_gain``, ``f_dc_gain_0..2`` (only those pre
 ``clod_lod max_sv=5 tau=0.005 eps=1e-08 fade=window fade_width=0.5``; viewers that do not know
 them ignore both.
 
-Reading selects the properties by name (order and extra properties do not matter; ASCII and
-big-endian files are read as plyfile parses them); writing always produces the exact INRIA
-order, binary little endian.
+Reading selects the properties by name (order does not matter; ASCII and big-endian files are
+read as plyfile parses them); writing always produces the exact INRIA order, binary little
+endian. Any other scalar vertex property (e.g. MaskGaussian's ``masks_0``/``masks_1``) is kept
+in :attr:`Gaussians.extra <clod_adapter.gaussians.Gaussians>` and written back after the known
+ones, with its type; list properties and other elements are dropped.
 """
 from __future__ import annotations
 
@@ -134,7 +136,9 @@ def read_ply(path: PathLike, *, allow_nonfinite: bool = False) -> Gaussians:
     """Read a 3DGS checkpoint .ply (INRIA layout, optionally with ``sigma_d``) into ``Gaussians``.
 
     Required vertex properties: x y z, f_dc_0..2, f_rest_0..M-1 with M in {0, 9, 24, 45}
-    (SH degree 0..3), opacity, scale_0..2, rot_0..3. Optional: nx ny nz (ignored), ``sigma_d``.
+    (SH degree 0..3), opacity, scale_0..2, rot_0..3. Optional: nx ny nz (ignored), ``sigma_d``,
+    the level gains. Every other scalar vertex property goes, in file order, to ``extra`` as an
+    [N] tensor of its own type (not checked for NaN/Inf).
     Any numeric property type is accepted and converted to float32 (float32 input is copied
     bit-exactly). The file is memory-mapped (plyfile's default) and converted in one vectorised
     pass; the input is never modified.
@@ -146,7 +150,7 @@ def read_ply(path: PathLike, *, allow_nonfinite: bool = False) -> Gaussians:
     Returns:
         ``Gaussians`` with contiguous float32 CPU tensors: means [N,3], quats [N,4] (wxyz, raw),
         log_scales [N,3], opacity_logits [N], sh0 [N,1,3], shN [N,K-1,3] (reordered from the
-        channel-major f_rest), sigma_d [N] or None.
+        channel-major f_rest), sigma_d [N] or None, the gains present, ``extra``.
 
     Raises:
         FileNotFoundError: ``path`` does not exist.
@@ -182,6 +186,15 @@ def read_ply(path: PathLike, *, allow_nonfinite: bool = False) -> Gaussians:
     if missing:
         shown = ", ".join(missing[:8]) + (", ..." if len(missing) > 8 else "")
         raise PlyFormatError(path, f"vertex element lacks required propert{'y' if len(missing) == 1 else 'ies'} {shown}")
+
+    known = set(ply_property_names(degree, with_normals=True, with_sigma_d=True))
+    known.update(v for props in GAIN_PROPERTIES.values() for v in props)
+    extra_names = [p.name for p in vertex.properties if not isinstance(p, plyfile.PlyListProperty)
+                   and p.name not in known and not p.name.startswith("f_rest_")]
+    extra = {}
+    for name in extra_names:  # one small copy per property, native byte order
+        a = np.asarray(data[name])
+        extra[name] = torch.from_numpy(np.ascontiguousarray(a, dtype=a.dtype.newbyteorder("=")))
 
     n = len(data)
     src, where = _as_2d(data, wanted)  # [N, F'] view (or one converted copy) + column of each name
@@ -246,6 +259,7 @@ def read_ply(path: PathLike, *, allow_nonfinite: bool = False) -> Gaussians:
         shN=t(shN),
         sigma_d=t(sigma_d) if sigma_d is not None else None,
         lod=lod_settings if sigma_d is not None else None,
+        extra=extra,
         **{k: t(v) for k, v in gains.items()},
     )
 
@@ -325,8 +339,9 @@ def write_ply(path: PathLike, gaussians: Gaussians, *, with_normals: bool = True
 
     Property order: x y z [nx ny nz] f_dc_0..2 f_rest_0.. opacity scale_0..2 rot_0..3, then
     ``sigma_d`` when ``gaussians.sigma_d`` is not None (the extended file), then the level gains
-    present (``opacity_gain``, ``scale_gain``, ``f_dc_gain_0..2``); ``gaussians.lod`` is written
-    as the ``clod_lod`` header comment. Normals are written
+    present (``opacity_gain``, ``scale_gain``, ``f_dc_gain_0..2``), then ``gaussians.extra`` by
+    name with its own type (e.g. ``masks_0``, ``masks_1``); ``gaussians.lod`` is written as the
+    ``clod_lod`` header comment. Normals are written
     as zeros (as the official ``save_ply``). ``shN`` [N,K-1,3] is written channel-major
     (``f_rest_{c*(K-1)+k}``). Tensors on any device / dtype are converted to float32 CPU; the
     vertex block is one contiguous structured array, so read -> write -> read is bit-exact.
@@ -341,6 +356,7 @@ def write_ply(path: PathLike, gaussians: Gaussians, *, with_normals: bool = True
 
     Raises:
         FileNotFoundError: the parent directory does not exist.
+        ValueError: an ``extra`` name is also a property of the layout written.
     """
     path = Path(path)
     g = gaussians
@@ -375,6 +391,17 @@ def write_ply(path: PathLike, gaussians: Gaussians, *, with_normals: bool = True
     for k in gain_fields:
         put(_as_f32(getattr(g, k)).reshape(n, len(GAIN_PROPERTIES[k])))
     assert i == len(names)
+    if g.extra:
+        clash = [k for k in g.extra if k in names]
+        if clash:
+            raise ValueError(f"Gaussians.extra holds {', '.join(clash)}, a property of the layout written")
+        cols = {k: v.detach().cpu().numpy() for k, v in g.extra.items()}
+        full = np.empty(n, dtype=vertex.dtype.descr + [(k, a.dtype.newbyteorder("<")) for k, a in cols.items()])
+        for name in names:
+            full[name] = vertex[name]
+        for k, a in cols.items():
+            full[k] = a
+        vertex = full
 
     element = plyfile.PlyElement.describe(vertex, "vertex")
     comments = [lod_comment(g.lod)] if (g.lod is not None and g.sigma_d is not None) else []

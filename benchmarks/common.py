@@ -70,7 +70,7 @@ def resolve_input(name: str) -> tuple[Path, Path, int]:
 def adapt_cached(name: str, cfg: AdaptConfig, tag: str, *, log=print) -> Path:
     """The adapted .ply of ``name`` with ``cfg``: runs ``clod-adapt``'s job into
     ``RUNS/name/tag`` unless a run with the same settings is there. Returns the .ply path."""
-    from clod_adapter.pipeline import run
+    from clod_adapter.jobs.adapt import run
 
     ply, scene, res = resolve_input(name)
     out = RUNS / name / tag

@@ -30,7 +30,7 @@ from clod_adapter.budget import budget_count
 from clod_adapter.io.ply import read_ply
 from clod_adapter.view import render_lod
 from clod_adapter.metrics import psnr, ssim
-from clod_adapter.report import resolve_lpips
+from clod_adapter.jobs.eval import resolve_lpips
 
 #: budgets evaluated (fractions of the model): the README's, each max_sv^-1.5, and a dense grid.
 BUDGETS = (1.0, 0.5, 0.35, 0.25, 0.192, 0.15, 0.1, 0.0894, 0.07, 0.0544, 0.05, 0.035)

@@ -132,12 +132,12 @@ def _main(args) -> int:
     jobs.set_threads(args.threads)
     # Imports after parsing so --help is instant.
     from clod_adapter.adapt import AdaptConfig
-    from clod_adapter.pipeline import run
+    from clod_adapter.jobs.adapt import run
 
     out = Path(args.output or ("clod_demo" if args.demo else "clod_out"))
     force = args.force
     if args.demo:
-        from clod_adapter.pipeline import check_output_dir
+        from clod_adapter.jobs.adapt import check_output_dir
         from clod_adapter.synthetic import build_demo_scene
 
         check_output_dir(out, [], create=False, force=args.force, resume=args.resume)

@@ -5,7 +5,7 @@
               [--sigma-c C] [--timing-repeats 3] [--device auto|cpu|cuda] [--force] -o REPORT
 
 Writes REPORT/{report.csv, report_per_view.csv, report.json, report.md, quality_vs_gaussians.png,
-quality_vs_time.png, popping.png, lod_strip.png} (see :mod:`clod_adapter.report`).
+quality_vs_time.png, popping.png, lod_strip.png} (see :mod:`clod_adapter.jobs.eval`).
 
 Exit status: 0 done, 2 bad input (one line on stderr naming the file or flag, nothing written),
 130 interrupted.
@@ -110,8 +110,9 @@ def _main(args) -> int:
     from clod_adapter.io.load import load_model, resolve_model_path, training_size
     from clod_adapter.io.ply import read_ply
     from clod_adapter.io.scene import load_scene
-    from clod_adapter.pipeline import METRICS_NAME, resolution_note
-    from clod_adapter.report import OUTPUT_NAMES, evaluate_report, iterations_from_state, max_sv_from_state
+    from clod_adapter.jobs.adapt import METRICS_NAME, resolution_note
+    from clod_adapter.adapt import iterations_from_state, max_sv_from_state
+    from clod_adapter.jobs.eval import OUTPUT_NAMES, evaluate_report
 
     ply = resolve_model_path(ply, prefer="point_cloud.ply")
     dev = jobs.pick_device(args.device)
@@ -151,7 +152,7 @@ def _main(args) -> int:
     max_sv = args.max_sv if args.max_sv is not None else (adapted.lod.max_sv if adapted.lod else None) \
         or max_sv_from_state(ply) or 5.0
     if budgets is None:
-        from clod_adapter.pipeline import budget_levels
+        from clod_adapter.jobs.adapt import budget_levels
 
         budgets = budget_levels(max_sv)
     dlod_it = args.dlod_iterations

@@ -9,26 +9,21 @@ Gaussians that setting renders from the scene's views), with ``--ordered`` OUTDI
 (Gaussians sorted so every prefix is a level of detail) and always OUTDIR/export.json (sizes,
 counts, PSNRs, pruning and SH results). ``--prune`` drops Gaussians no training view renders at
 any s_v >= 1; ``--sh-max-drop-db D`` lowers the SH degree while the training-view PSNR at
-s_v = 1 drops by at most D dB. Both apply to every file written. See :mod:`clod_adapter.export`.
+s_v = 1 drops by at most D dB. Both apply to every file written. The job is
+:func:`clod_adapter.jobs.export.export` (operations: :mod:`clod_adapter.export`).
 
 Exit status: 0 done, 2 bad input (one line on stderr naming the file or flag, nothing written),
 130 interrupted.
 """
 from __future__ import annotations
 
-import json
 import math
 import sys
-import time
 from pathlib import Path
 
 from clod_adapter import jobs
 from clod_adapter.jobs import EXIT_BAD_INPUT, EXIT_INTERRUPTED, InputError, check_flag  # noqa: F401
 
-EXTENDED_NAME = "point_cloud_clod.ply"
-ORDERED_NAME = "ordered.ply"
-JSON_NAME = "export.json"
-PREFIX_FRACTIONS = (1.0, 0.5, 0.25, 0.1)
 EXAMPLE = ("clod-export runs/fern -s ../shared/data/fern --resolution 2 -o runs/fern_export --s-v 2 "
            "--ordered --prune")
 
@@ -102,6 +97,7 @@ def _main(args, argv) -> int:
     jobs.set_threads(args.threads)
 
     from clod_adapter.io.load import resolve_model_path
+    from clod_adapter.jobs.export import EXTENDED_NAME, JSON_NAME, ORDERED_NAME, export, summary
     from clod_adapter.io.ply import read_ply
     from clod_adapter.io.scene import load_scene
 
@@ -134,145 +130,6 @@ def _main(args, argv) -> int:
     print(summary(report))
     print(f"clod-export: wrote {', '.join(report['files'])} to {out} in {report['seconds']:.0f} s")
     return 0
-
-
-def export(model, scene, train_imgs, test_cams, test_imgs, out: Path, *, ply: Path, s_v, budget,
-           baked_name, ordered, prune, sh_max_drop_db, argv=None, progress: bool = False, spz: bool = False) -> dict:
-    """Compute everything, then write the files (each atomically); returns the export.json dict.
-    ``progress``: one step per phase (a tqdm bar on a terminal, else a line per phase)."""
-    import torch
-
-    from clod_adapter import export as ex
-    from clod_adapter.io.atomic import atomic_write
-    from clod_adapter.metrics import psnr
-    from clod_adapter.io.ply import read_ply, write_ply
-    from clod_adapter.report import bytes_per_gaussian
-
-    t0 = time.perf_counter()
-    phases = ["input PSNR"] + (["prune"] if prune else []) + (["SH bands"] if sh_max_drop_db is not None else []) \
-        + (["bake"] if baked_name is not None else []) + (["order"] if ordered else []) + ["write"]
-    bar = jobs.progress_bar(len(phases), "clod-export", unit="step", disable=not progress, every=1e-9)
-    done = iter(phases)
-
-    def step():
-        bar.set_postfix_str(next(done))
-        bar.update(1)
-
-    n_in = len(model)
-    rep: dict = {"input": str(ply), "scene": str(scene.root), "gaussians_in": n_in,
-                 "sh_degree_in": model.sh_degree,
-                 "train_views": len(scene.train), "test_views": [c.name for c in test_cams],
-                 "resolution": [test_cams[0].width, test_cams[0].height]}
-    with torch.no_grad():
-        rep["psnr_test_sv1_in"] = _mean_psnr(ex, model, test_cams, test_imgs)
-        step()
-        if prune:
-            model, n_drop = ex.prune_never_rendered(model, scene.train, anchor_cameras=scene.cameras)
-            rep["prune"] = {"dropped": n_drop, "kept": len(model),
-                            "bytes_saved": n_drop * bytes_per_gaussian(model),
-                            "psnr_test_sv1_after": _mean_psnr(ex, model, test_cams, test_imgs)}
-            step()
-        if sh_max_drop_db is not None:
-            model, info = ex.reduce_sh(model, scene.train, train_imgs, sh_max_drop_db)
-            info["psnr_test_sv1_after"] = _mean_psnr(ex, model, test_cams, test_imgs)
-            rep["sh"] = info
-            step()
-        rep["gaussians_out"] = len(model)
-        rep["sh_degree_out"] = model.sh_degree
-        baked = None
-        if baked_name is not None:
-            baked, binfo = ex.bake(model, scene.cameras, s_v=s_v, budget=budget, return_info=True)
-            lod_ps = [psnr(ex.render_lod(model, c, s_v, budget=budget, estimator="paper").image, gt, cap=True)
-                      for c, gt in zip(test_cams, test_imgs)]
-            bk_ps = [psnr(ex.render_lod(baked, c).image, gt, cap=True) for c, gt in zip(test_cams, test_imgs)]
-            rep["baked"] = {"file": baked_name, "s_v": s_v, "budget": budget, "cameras": "train+test",
-                            "gaussians": len(baked), "mean_rendered_per_view_lod": binfo.per_view_rendered,
-                            "opacity": binfo.chosen, "psnr_vs_render_lod_all_views": binfo.psnr_vs_lod,
-                            "psnr_test_render_lod": sum(lod_ps) / len(lod_ps),
-                            "psnr_test_baked": sum(bk_ps) / len(bk_ps)}
-            step()
-        ordered_model = None
-        if ordered:
-            persist = ex.persistence(model, scene.train)
-            perm = ex.importance_order(model, scene.train, persist=persist)
-            ordered_model = model.subset(perm)
-            rep["ordered"] = {"file": ORDERED_NAME, "order_views": "train", "persistence_zero": int((persist == 0).sum()),
-                              "prefix_vs_selection_test": ex.prefix_vs_selection(model, perm, test_cams, test_imgs,
-                                                                                 PREFIX_FRACTIONS)}
-            step()
-    jobs.check_output_dir(out, [ply], force=True)  # checked before; create it now
-    files = [EXTENDED_NAME]
-    write_ply(out / EXTENDED_NAME, model)
-    if baked is not None:
-        write_ply(out / baked_name, baked)
-        files.append(baked_name)
-    if ordered_model is not None:
-        write_ply(out / ORDERED_NAME, ordered_model)
-        files.append(ORDERED_NAME)
-    if spz:
-        for f in list(files):
-            files.append(write_spz(out / Path(f).with_suffix(".spz").name, read_ply(out / f)))
-    rep["bytes"] = {"input": ply.stat().st_size, **{f: (out / f).stat().st_size for f in files}}
-    rep["seconds"] = round(time.perf_counter() - t0, 2)
-    rep["command"] = "clod-export " + " ".join(sys.argv[1:] if argv is None else argv)
-    files.append(JSON_NAME)
-    rep["files"] = files
-    with atomic_write(out / JSON_NAME, "w") as f:
-        json.dump(rep, f, indent=2)
-        f.write("\n")
-    step()
-    bar.close()
-    return rep
-
-
-def write_spz(path: Path, model) -> str:
-    """Write ``model`` (``sigma_d`` dropped: SPZ has no extra attributes) as .spz with gsply
-    (``gsply.write_spz``, SPZ version 3, 12 fractional bits), atomically; returns the file name.
-
-    The plain INRIA .ply goes through ``gsply.plyread`` so gsply's own conventions (log scales,
-    logit opacities) are used."""
-    import os
-    import tempfile
-
-    import gsply
-
-    from clod_adapter.io.ply import write_ply
-
-    with tempfile.TemporaryDirectory(dir=path.parent, prefix=".spz-") as d:
-        plain = write_ply(Path(d) / "plain.ply", model.with_sigma_d(None))
-        tmp = Path(d) / path.name
-        gsply.write_spz(tmp, gsply.plyread(plain))
-        os.chmod(tmp, 0o644)
-        os.replace(tmp, path)
-    return path.name
-
-
-def _mean_psnr(ex, model, cams, imgs) -> float:
-    from clod_adapter.metrics import psnr
-
-    ps = [psnr(ex.render_lod(model, c, 1.0, estimator="paper").image, gt, cap=True) for c, gt in zip(cams, imgs)]
-    return sum(ps) / len(ps)
-
-
-def summary(rep: dict) -> str:
-    lines = [f"{rep['gaussians_in']:,} -> {rep['gaussians_out']:,} Gaussians, SH degree {rep['sh_degree_in']} -> "
-             f"{rep['sh_degree_out']}; test PSNR of the input at s_v = 1: {rep['psnr_test_sv1_in']:.2f} dB"]
-    if "prune" in rep:
-        p = rep["prune"]
-        lines.append(f"prune: dropped {p['dropped']} ({p['bytes_saved']} bytes), test PSNR s_v=1 {p['psnr_test_sv1_after']:.2f} dB")
-    if "sh" in rep:
-        s = rep["sh"]
-        lines.append(f"SH: degree {s['degree_in']} -> {s['degree_out']}, {s['bytes_saved']} bytes saved, "
-                     f"train PSNR cost {s['psnr_cost_db']:.3f} dB")
-    if "baked" in rep:
-        b = rep["baked"]
-        lines.append(f"baked: {b['gaussians']} Gaussians, opacity {b['opacity']}, test PSNR {b['psnr_test_baked']:.2f} "
-                     f"(render_lod {b['psnr_test_render_lod']:.2f})")
-    if "ordered" in rep:
-        for r in rep["ordered"]["prefix_vs_selection_test"]:
-            lines.append(f"prefix {r['fraction']:.0%} ({r['count']}): {r['psnr_prefix']:.2f} dB vs selection "
-                         f"{r['psnr_selection']:.2f} dB ({r['rendered_per_view']:.0f} per view)")
-    return "\n".join("clod-export: " + s for s in lines)
 
 
 if __name__ == "__main__":

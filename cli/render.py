@@ -104,8 +104,8 @@ def _main(args) -> int:
     from clod_adapter.io.scene import load_scene
     from clod_adapter.view import render_lod
     from clod_adapter.metrics import psnr
-    from clod_adapter.pipeline import label_panels
-    from clod_adapter.report import max_sv_from_state
+    from clod_adapter.figures import label_panels
+    from clod_adapter.adapt import max_sv_from_state
     from clod_adapter.video import camera_path, orbit_path, write_mp4
 
     t0 = time.perf_counter()

@@ -10,8 +10,9 @@ clod_adapter`` stays light and does not import torch: the CLIs set OpenMP defaul
 * rendering at a level of detail: :func:`render_lod`, :func:`lod_subset`, :func:`view_lod`,
   :class:`LodView`, :func:`clod_rasterization` (gsplat ``rasterization`` + LoD),
   :func:`rasterization` (gsplat-compatible, no LoD);
-* adapting: :class:`AdaptConfig`, :func:`prepare`, :func:`adapt`, :func:`run_adapt_job`;
-* evaluating: :func:`evaluate_report`.
+* adapting: :class:`AdaptConfig`, :func:`prepare`, :func:`adapt`;
+* the three jobs behind the CLIs: :func:`run_adapt_job` (``clod-adapt``), :func:`evaluate_report`
+  (``clod-eval``), :func:`export_model` (``clod-export``).
 """
 
 __version__ = "0.1.0"
@@ -25,7 +26,8 @@ _EXPORTS = {
     "LodView": ("view", "LodView"), "clod_rasterization": ("hook", "clod_rasterization"),
     "rasterization": ("render", "rasterization"),
     "AdaptConfig": ("adapt", "AdaptConfig"), "prepare": ("adapt", "prepare"), "adapt": ("adapt", "adapt"),
-    "run_adapt_job": ("pipeline", "run"), "evaluate_report": ("report", "evaluate_report"),
+    "run_adapt_job": ("jobs.adapt", "run"), "evaluate_report": ("jobs.eval", "evaluate_report"),
+    "export_model": ("jobs.export", "export"),
 }
 __all__ = sorted(_EXPORTS) + ["__version__"]
 

@@ -520,6 +520,44 @@ def adapt(
 
 
 # --- resumable state -------------------------------------------------------------------------
+#: the resumable state's file name in a clod-adapt output folder.
+STATE_NAME = "adapt_state.safetensors"
+
+
+def state_config(ply_path: os.PathLike) -> Optional[dict]:
+    """The :class:`AdaptConfig` (as a dict) of the state beside an adapted .ply (its ``config``
+    metadata, :func:`save_state`), or None when absent or unreadable."""
+    p = Path(ply_path).parent / STATE_NAME
+    if not p.is_file():
+        return None
+    try:
+        from safetensors import safe_open
+
+        with safe_open(str(p), framework="pt", device="cpu") as f:
+            meta = f.metadata() or {}
+        return json.loads(meta["config"])
+    except Exception:
+        return None
+
+
+def max_sv_from_state(ply_path: os.PathLike) -> Optional[float]:
+    """``max_sv`` of the adaptation state beside ``ply_path``, or None."""
+    cfg = state_config(ply_path)
+    try:
+        return float(cfg["max_sv"]) if cfg else None
+    except (KeyError, TypeError, ValueError):
+        return None
+
+
+def iterations_from_state(ply_path: os.PathLike) -> Optional[int]:
+    """``iterations`` of the adaptation state beside ``ply_path``, or None."""
+    cfg = state_config(ply_path)
+    try:
+        return int(cfg["iterations"]) if cfg else None
+    except (KeyError, TypeError, ValueError):
+        return None
+
+
 def save_state(path: os.PathLike, state: AdaptState, cfg: AdaptConfig, extra_meta: Optional[dict] = None) -> None:
     """Write ``state`` to a safetensors file atomically.
 

@@ -12,6 +12,7 @@ means keeping the ``k`` largest ``s*`` (ties broken by index) at any ``s_v`` in
 """
 from __future__ import annotations
 
+import math
 from typing import Optional
 
 import torch
@@ -60,6 +61,19 @@ def critical_s_v(opacities: Tensor, d_norm: Tensor, sigma_d: Tensor, tau: float 
             break
     s = torch.exp(u)
     return torch.where(finite, s, torch.zeros_like(s))
+
+
+def normalize_budget(budget) -> float | int:
+    """A budget as this project means it: a fraction in [0, 1] (float; so ``1`` is 100 %) or a
+    count > 1 (int). Raises ValueError (negative, not finite, or a non-integral count)."""
+    v = float(budget)
+    if not math.isfinite(v) or v < 0:
+        raise ValueError(f"budget {budget!r} must be a fraction in [0, 1] or a count > 1")
+    if v <= 1.0:
+        return v
+    if v != int(v):
+        raise ValueError(f"budget {budget!r}: counts (> 1) must be integers; fractions are <= 1")
+    return int(v)
 
 
 def budget_count(budget: float | int, n: int) -> int:

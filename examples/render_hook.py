@@ -106,7 +106,7 @@ def main(argv=None) -> int:
             print(f"{label:>12}: {n:8d} Gaussians rendered (s_v {meta['lod_s_v'][0]:.3f}), {ms:8.1f} ms")
             tiles.append(col[0])
             caps.append(f"{label}\n{n:,} Gaussians")
-    from clod_adapter.pipeline import label_panels
+    from clod_adapter.figures import label_panels
 
     out = Path(args.out)
     out.parent.mkdir(parents=True, exist_ok=True)

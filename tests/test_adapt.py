@@ -77,7 +77,7 @@ def test_load_state_rejects_other_files(tmp_path):
 
 
 def test_pipeline_outputs(tmp_path):
-    from clod_adapter.pipeline import run
+    from clod_adapter.jobs.adapt import run
 
     scene, ply = write_tiny_scene(tmp_path, n=900)
     before = ply.read_bytes()

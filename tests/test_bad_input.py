@@ -191,7 +191,7 @@ def test_nan_inf_is_an_error_by_default(tiny, capfd):
 
 
 def test_sanitize_drops_nonfinite_and_clamps_inf_opacity(tiny, capfd):
-    from clod_adapter.pipeline import SANITIZE_OPACITY_LOGIT
+    from clod_adapter.jobs.adapt import SANITIZE_OPACITY_LOGIT
 
     ply = _with_nonfinite(tiny)
     before = ply.read_bytes()
@@ -207,7 +207,7 @@ def test_sanitize_drops_nonfinite_and_clamps_inf_opacity(tiny, capfd):
 
 def test_real_inf_opacity_fixture(tiny, capfd):
     """guitar_sh0_nonormals.ply stores 667 opacities of exactly 1 as logit +Inf."""
-    from clod_adapter.pipeline import SANITIZE_OPACITY_LOGIT, check_finite
+    from clod_adapter.jobs.adapt import SANITIZE_OPACITY_LOGIT, check_finite
 
     guitar = shared_path("fixtures", "plys", "guitar_sh0_nonormals.ply")
     _assert_bad(tiny, [guitar, "--images", tiny / "scene"], capfd, "guitar_sh0_nonormals.ply",

@@ -126,7 +126,7 @@ def test_no_pycolmap_import(blender):
     code = (
         "import sys\n"
         "from clod_adapter.io.scene import load_scene\n"
-        "import clod_adapter.pipeline, cli.adapt, cli.eval\n"
+        "import clod_adapter.jobs.adapt, cli.adapt, cli.eval\n"
         f"s = load_scene({str(root)!r}, background=(1, 1, 1))\n"
         "s.load_image(s.train[0])\n"
         "assert 'pycolmap' not in sys.modules, 'pycolmap imported'\n"

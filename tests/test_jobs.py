@@ -95,7 +95,7 @@ def test_folder_without_model_is_a_one_line_error(tiny_src, tmp_path, capfd):
 def test_real_official_model_folder():
     """fern/pretrained is an official -m folder: its latest iteration and training size."""
     from clod_adapter.io.load import resolve_model_path, training_size
-    from clod_adapter.pipeline import resolution_note
+    from clod_adapter.jobs.adapt import resolution_note
 
     folder = shared_path("fern", "pretrained")
     ply = resolve_model_path(folder)
@@ -174,7 +174,7 @@ def test_real_pairs_match(which, resolution):
 
     from clod_adapter.io.load import load_model, resolve_model_path
     from clod_adapter.io.scene import load_scene
-    from clod_adapter.pipeline import MISMATCH_MARGIN_DB, scene_match
+    from clod_adapter.jobs.adapt import MISMATCH_MARGIN_DB, scene_match
 
     g = load_model(resolve_model_path(shared_path("fern", which)))
     scene = load_scene(shared_path("fern"), resolution=resolution)
@@ -189,7 +189,7 @@ def test_synthetic_scene_matches(tiny_src):
     import torch
 
     from clod_adapter.io.colmap import load_colmap_scene
-    from clod_adapter.pipeline import MISMATCH_MARGIN_DB, scene_match
+    from clod_adapter.jobs.adapt import MISMATCH_MARGIN_DB, scene_match
 
     scene = load_colmap_scene(tiny_src["scene"])
     with torch.no_grad():

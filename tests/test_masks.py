@@ -16,7 +16,7 @@ from clod_adapter.adapt import AdaptConfig
 from clod_adapter.gaussians import Gaussians
 from clod_adapter.io.load import DEFAULT_MASK_POLICY, MASK_POLICIES, apply_masks, load_model
 from clod_adapter.io.ply import PlyFormatError, ply_property_names, read_ply, write_ply
-from clod_adapter.pipeline import run
+from clod_adapter.jobs.adapt import run
 from conftest import write_tiny_scene
 
 

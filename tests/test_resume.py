@@ -133,7 +133,7 @@ def test_signal_then_resume_is_bit_exact(scene, tmp_path, sig):
 
 def _inprocess_run(scene: Path, out: Path, **kw):
     from clod_adapter.adapt import AdaptConfig
-    from clod_adapter.pipeline import run
+    from clod_adapter.jobs.adapt import run
 
     cfg = AdaptConfig(max_sv=MAX_SV, iterations=ITERATIONS, seed=SEED)
     return run(scene / "in.ply", scene / "scene", out, cfg, device="cpu", progress=False,
@@ -141,7 +141,7 @@ def _inprocess_run(scene: Path, out: Path, **kw):
 
 
 def test_interrupt_during_final_evaluation_resumes(scene, tmp_path, monkeypatch):
-    import clod_adapter.pipeline as pl
+    import clod_adapter.jobs.adapt as pl
 
     real = pl.evaluate_levels
 
@@ -163,7 +163,7 @@ def test_interrupt_during_final_evaluation_resumes(scene, tmp_path, monkeypatch)
 def test_second_signal_during_state_save(scene, tmp_path, monkeypatch):
     import safetensors.torch
 
-    import clod_adapter.pipeline as pl
+    import clod_adapter.jobs.adapt as pl
 
     real_adapt, real_save = pl.adapt, safetensors.torch.save_file
     saves = []

@@ -17,10 +17,10 @@ def model_max_sv(ply_path: os.PathLike | str, model: Gaussians | None = None) ->
 
     Read from the model's LoD settings (the ``clod_lod`` header comment of the extended .ply,
     ``model.lod`` when the model is given), else from ``adapt_state.safetensors`` beside the .ply
-    (its ``config`` metadata; :func:`clod_adapter.report.max_sv_from_state`); :data:`DEFAULT_MAX_SV`
+    (its ``config`` metadata; :func:`clod_adapter.jobs.eval.max_sv_from_state`); :data:`DEFAULT_MAX_SV`
     (5) when neither holds a positive finite value.
     """
-    from clod_adapter.report import max_sv_from_state
+    from clod_adapter.adapt import max_sv_from_state
 
     v = model.lod.max_sv if (model is not None and model.lod is not None) else None
     if v is None:

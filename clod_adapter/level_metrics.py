@@ -13,7 +13,7 @@ from typing import Callable, Optional, Sequence
 import torch
 from torch import Tensor
 
-from . import lod
+
 from .gaussians import Gaussians
 from .view import render_lod
 from .metrics import psnr, ssim

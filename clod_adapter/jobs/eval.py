@@ -68,15 +68,17 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from . import __version__, lod
-from .baselines import (SIGMA_C_CANDIDATES, Selection, constant_sigma_selection,
+from .. import __version__, lod
+from ..adapt import max_sv_from_state
+from ..baselines import (SIGMA_C_CANDIDATES, Selection, constant_sigma_selection,
                         lightgaussian_significance, tune_sigma_c,
                         random_scores, ranking_selection, render_subset)
-from .gaussians import Gaussians
-from .io.atomic import atomic_save, atomic_write
-from .io.ply import ply_property_names, read_ply
-from .view import render_lod
-from .metrics import psnr, ssim
+from ..budget import normalize_budget
+from ..gaussians import Gaussians
+from ..io.atomic import atomic_save, atomic_write
+from ..io.ply import ply_property_names, read_ply
+from ..view import render_lod
+from ..metrics import psnr, ssim
 
 CSV_COLUMNS = ("method", "setting", "s_v", "budget", "gaussians", "fraction", "psnr", "ssim", "lpips",
                "ms_total", "ms_select", "ms_raster", "bytes", "views", "ms_min", "ms_max")
@@ -89,7 +91,6 @@ METHODS = ("clod", "clod_budget") + BASELINES + ("merge", "dlod_finetuned", "pre
 OUTPUT_NAMES = ("report.csv", "report_per_view.csv", "report.json", "quality_vs_gaussians.png",
                 "quality_vs_time.png", "popping.png", "lod_strip.png")
 DEFAULT_BUDGETS = (1.0, 0.5, 0.25, 0.1)
-STATE_NAME = "adapt_state.safetensors"
 
 LpipsSpec = Union[str, os.PathLike, Callable, None]
 
@@ -113,60 +114,15 @@ def sv_grid(max_sv: float, steps: int = 25, overshoot: float = 1.2) -> list[floa
     return [float(x) for x in np.linspace(1.0, top, steps)]
 
 
-def _state_config(ply_path: os.PathLike) -> Optional[dict]:
-    """The ``config`` metadata of ``adapt_state.safetensors`` beside ``ply_path`` (written by
-    :func:`clod_adapter.adapt.save_state`), or None if absent/unreadable."""
-    p = Path(ply_path).parent / STATE_NAME
-    if not p.is_file():
-        return None
-    try:
-        from safetensors import safe_open
-
-        with safe_open(str(p), framework="pt", device="cpu") as f:
-            meta = f.metadata() or {}
-        return json.loads(meta["config"])
-    except Exception:
-        return None
-
-
-def max_sv_from_state(ply_path: os.PathLike) -> Optional[float]:
-    """``max_sv`` of the adaptation state beside ``ply_path``, or None."""
-    cfg = _state_config(ply_path)
-    try:
-        return float(cfg["max_sv"]) if cfg else None
-    except (KeyError, TypeError, ValueError):
-        return None
-
-
-def iterations_from_state(ply_path: os.PathLike) -> Optional[int]:
-    """``iterations`` of the adaptation state beside ``ply_path``, or None."""
-    cfg = _state_config(ply_path)
-    try:
-        return int(cfg["iterations"]) if cfg else None
-    except (KeyError, TypeError, ValueError):
-        return None
-
-
 def budget_label(b: float | int) -> str:
     """The CSV ``setting`` of a budget: ``budget=0.5`` (fraction) or ``budget=5000`` (count)."""
     return f"budget={b:g}" if isinstance(b, float) else f"budget={int(b)}"
 
 
 def normalize_budgets(budgets: Sequence) -> list:
-    """Budgets as floats in [0, 1] (fractions) or ints > 1 (counts). A value <= 1 is a fraction
-    (so ``1`` means 100 %); a value > 1 must be integral. Raises ValueError otherwise."""
-    out = []
-    for b in budgets:
-        v = float(b)
-        if not math.isfinite(v) or v < 0:
-            raise ValueError(f"budget {b!r} must be a fraction in [0, 1] or a count > 1")
-        if v <= 1.0:
-            out.append(v)
-        elif v == int(v):
-            out.append(int(v))
-        else:
-            raise ValueError(f"budget {b!r}: counts (> 1) must be integers; fractions must be <= 1")
-    return out
+    """Budgets as floats in [0, 1] (fractions) or ints > 1 (counts)
+    (:func:`clod_adapter.budget.normalize_budget` each). Raises ValueError."""
+    return [normalize_budget(b) for b in budgets]
 
 
 def image_change(a: Tensor, b: Tensor) -> float:
@@ -190,7 +146,7 @@ def resolve_lpips(spec: LpipsSpec) -> tuple[Optional[Callable], str]:
     if callable(spec):
         return spec, "LPIPS from a caller-supplied model"
     try:
-        from . import lpips as lp
+        from .. import lpips as lp
     except ImportError as e:
         return None, f"LPIPS skipped: clod_adapter.lpips unavailable ({e})"
     path = None if spec == "auto" else spec
@@ -268,7 +224,7 @@ def _score(rows: _Rows, method: str, setting: str, budget, samples: list[Sample]
 
 def _retime(rows: _Rows, repeats: int, seed: int, on_render=None) -> None:
     """Replace the quality pass's times of every row with interleaved timing rounds."""
-    from .timing import time_interleaved
+    from ..timing import time_interleaved
 
     if repeats <= 0 or not rows.redo:
         return
@@ -532,18 +488,6 @@ def format_markdown(report: dict) -> str:
     return "\n".join(out) + "\n"
 
 
-def check_report_dir(out_dir: Path, inputs: Sequence[Path], *, force: bool = True) -> None:
-    """Create ``out_dir`` (after inputs are checked) and refuse outputs overwriting an input (and,
-    unless ``force``, a non-empty folder): :func:`clod_adapter.jobs.check_output_dir`.
-
-    Raises:
-        clod_adapter.jobs.InputError: not creatable / writable or an output equals an input.
-    """
-    from .jobs import check_output_dir
-
-    check_output_dir(out_dir, inputs, OUTPUT_NAMES + ("report.md",), force=force)
-
-
 # --- the report -----------------------------------------------------------------------------
 @torch.no_grad()
 def evaluate_report(
@@ -608,8 +552,9 @@ def evaluate_report(
         the report dict (also ``report.json``): ``rows`` (aggregated, :data:`CSV_COLUMNS`),
         ``per_view``, ``popping`` (:func:`popping_curve`), ``settings`` and ``notes``.
     """
-    from .jobs import progress_bar
-    from .pipeline import sv_levels, write_strip
+    from . import progress_bar
+    from ..figures import write_strip
+    from .adapt import sv_levels
 
     t_start = time.perf_counter()
     out_dir = Path(out_dir)
@@ -683,8 +628,8 @@ def evaluate_report(
     tau_b = lod.DEFAULT_TAU if tau is None else tau
     global_scores = {"lightgaussian": lg_scores, "random": rnd_scores}
     if dlod_iterations > 0:
-        from .adapt import reference_distances
-        from .budget import critical_s_v
+        from ..adapt import reference_distances
+        from ..budget import critical_s_v
 
         d_ref = reference_distances(base, train_cams)
         global_scores["constant_sigma"] = critical_s_v(base.opacities, d_ref, torch.full_like(d_ref, sigma_c),
@@ -710,7 +655,7 @@ def evaluate_report(
             _score(R, name, lab, b, samples, cams, gts, nb, bpg_b, lpips_fn)
         share = (b if isinstance(b, float) else b / max(nb, 1))
         if merge_tool and share < 1.0:
-            from .baselines import merge_decimate
+            from ..baselines import merge_decimate
 
             bar.set_postfix_str(f"{lab} merge")
             try:
@@ -723,7 +668,7 @@ def evaluate_report(
                 _score(R, "merge", lab, b, run(lambda c, m=merged: _render_lod(m, c, bg, backend, tau)),
                        cams, gts, nb, bpg_b, lpips_fn)
         if dlod_iterations > 0 and share < 1.0:
-            from .dlod import finetune_subset, global_cut
+            from ..dlod import finetune_subset, global_cut
 
             cands = [r for r in R.rows if r["setting"] == lab and r["method"] in RANKING_BASELINES]
             best = max(cands, key=lambda r: r["psnr"])["method"]

@@ -57,7 +57,7 @@ class ArgumentParser(argparse.ArgumentParser):
 
 def make_parser(prog: str, description: str, example: str) -> ArgumentParser:
     """The parser of one CLI, with ``--version`` and an example in ``--help``."""
-    from . import __version__
+    from .. import __version__
 
     p = ArgumentParser(prog=prog, description=description, epilog=f"example:\n  {example}",
                        formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -87,8 +87,8 @@ def one_line(e: object) -> str:
 def run_cli(prog: str, body: Callable[[], int]) -> int:
     """Run ``body`` and turn bad input into ``prog: error: ...`` on one stderr line (exit 2),
     Ctrl-C / SIGTERM into exit 130."""
-    from .io.ply import PlyFormatError
-    from .io.scene import SceneError
+    from ..io.ply import PlyFormatError
+    from ..io.scene import SceneError
 
     try:
         return body()
@@ -105,19 +105,18 @@ def run_cli(prog: str, body: Callable[[], int]) -> int:
 
 # --- flags ------------------------------------------------------------------------------------
 def parse_budget(text: str, flag: str = "--budget"):
-    """One budget: a fraction in [0, 1] (float) or a count > 1 (int). Raises InputError naming
-    ``flag``."""
+    """One budget from a flag: :func:`clod_adapter.budget.normalize_budget` of the number, a
+    fraction in [0, 1] (float) or a count > 1 (int). Raises InputError naming ``flag``."""
+    from ..budget import normalize_budget
+
     try:
         v = float(str(text).strip())
     except ValueError:
         raise InputError(f"{flag}: {str(text).strip()!r} is not a number") from None
-    if not math.isfinite(v) or v < 0:
-        raise InputError(f"{flag}: {text!r} must be a fraction in [0, 1] or a count > 1")
-    if v <= 1.0:
-        return v
-    if v != int(v):
-        raise InputError(f"{flag}: {text!r}: counts (> 1) must be integers; fractions are <= 1")
-    return int(v)
+    try:
+        return normalize_budget(v)
+    except ValueError as e:
+        raise InputError(f"{flag}: {text!r}: {str(e).split(': ', 1)[-1]}") from None
 
 
 def parse_budgets(text: str, flag: str = "--budgets") -> list:

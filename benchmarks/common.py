@@ -31,7 +31,7 @@ RUNS = REPO / "runs" / "bench"
 
 from clod_adapter.adapt import AdaptConfig  # noqa: E402
 from clod_adapter.io.load import load_model  # noqa: E402
-from clod_adapter.io.scene import load_scene  # noqa: E402
+from clod_adapter.io.load import load_scene  # noqa: E402
 
 FERN = SHARED / "fern"
 INPUTS = {

@@ -38,7 +38,7 @@ from clod_adapter.view import render_lod  # noqa: E402
 
 def fern_model(adapted: str | None):
     from clod_adapter.io.load import load_model
-    from clod_adapter.io.scene import load_scene
+    from clod_adapter.io.load import load_scene
 
     root = REPO.parent / "shared" / "data" / "fern"
     scene = load_scene(root, resolution=2)

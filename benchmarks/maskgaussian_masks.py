@@ -69,7 +69,7 @@ from clod_adapter.level_metrics import evaluate_level  # noqa: E402
 from clod_adapter.gaussians import Gaussians  # noqa: E402
 from clod_adapter.io.load import apply_masks, load_model  # noqa: E402
 from clod_adapter.io.ply import read_ply, write_ply  # noqa: E402
-from clod_adapter.io.scene import load_scene  # noqa: E402
+from clod_adapter.io.load import load_scene  # noqa: E402
 from clod_adapter.metrics import psnr, ssim  # noqa: E402
 from clod_adapter.render import rasterization  # noqa: E402
 

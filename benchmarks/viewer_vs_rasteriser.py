@@ -33,7 +33,7 @@ import torch  # noqa: E402
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from clod_adapter.io.scene import load_scene  # noqa: E402
+from clod_adapter.io.load import load_scene  # noqa: E402
 from clod_adapter.view import render_lod  # noqa: E402
 from clod_adapter.metrics import psnr  # noqa: E402
 from clod_adapter.render import rasterization  # noqa: E402

@@ -26,8 +26,8 @@ from common import LABELS, RUNS, adapt_cached, fmt_pct, metrics_of, resolve_inpu
 
 from clod_adapter.adapt import AdaptConfig
 from clod_adapter.baselines import find_splat_transform
-from clod_adapter.io.scene import load_scene
-from clod_adapter.jobs.adapt import budget_levels
+from clod_adapter.io.load import load_scene
+from clod_adapter.level_metrics import budget_levels
 from clod_adapter.jobs.eval import evaluate_report
 
 STATIC = ("constant_sigma", "lightgaussian", "random", "merge")

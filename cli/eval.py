@@ -109,7 +109,7 @@ def _main(args) -> int:
 
     from clod_adapter.io.load import load_model, resolve_model_path, training_size
     from clod_adapter.io.ply import read_ply
-    from clod_adapter.io.scene import load_scene
+    from clod_adapter.io.load import load_scene
     from clod_adapter.jobs.adapt import METRICS_NAME, resolution_note
     from clod_adapter.adapt import iterations_from_state, max_sv_from_state
     from clod_adapter.jobs.eval import OUTPUT_NAMES, evaluate_report
@@ -152,7 +152,7 @@ def _main(args) -> int:
     max_sv = args.max_sv if args.max_sv is not None else (adapted.lod.max_sv if adapted.lod else None) \
         or max_sv_from_state(ply) or 5.0
     if budgets is None:
-        from clod_adapter.jobs.adapt import budget_levels
+        from clod_adapter.level_metrics import budget_levels
 
         budgets = budget_levels(max_sv)
     dlod_it = args.dlod_iterations

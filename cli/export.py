@@ -99,7 +99,7 @@ def _main(args, argv) -> int:
     from clod_adapter.io.load import resolve_model_path
     from clod_adapter.jobs.export import EXTENDED_NAME, JSON_NAME, ORDERED_NAME, export, summary
     from clod_adapter.io.ply import read_ply
-    from clod_adapter.io.scene import load_scene
+    from clod_adapter.io.load import load_scene
 
     ply = resolve_model_path(ply, prefer="point_cloud.ply")
     baked_name = None

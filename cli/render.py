@@ -101,7 +101,7 @@ def _main(args) -> int:
     from clod_adapter.io.atomic import atomic_save, atomic_write
     from clod_adapter.io.load import resolve_model_path
     from clod_adapter.io.ply import read_ply
-    from clod_adapter.io.scene import load_scene
+    from clod_adapter.io.load import load_scene
     from clod_adapter.view import render_lod
     from clod_adapter.metrics import psnr
     from clod_adapter.figures import label_panels

@@ -88,7 +88,8 @@ def main(argv: list[str] | None = None) -> int:
     except ImportError as e:
         return _fail(str(e))
     from clod_adapter.io.ply import PlyFormatError
-    from clod_adapter.io.scene import SceneError, load_scene
+    from clod_adapter.io.scene import SceneError
+    from clod_adapter.io.load import load_scene
     from clod_adapter.viewer.model import load_view_model, model_max_sv
     from clod_adapter.viewer.selection import DEFAULT_MAX_DRAWN
 

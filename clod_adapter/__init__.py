@@ -21,7 +21,7 @@ __version__ = "0.1.0"
 _EXPORTS = {
     "Gaussians": ("gaussians", "Gaussians"), "LodSettings": ("lod", "LodSettings"),
     "load_model": ("io.load", "load_model"), "read_ply": ("io.ply", "read_ply"), "write_ply": ("io.ply", "write_ply"),
-    "load_scene": ("io.scene", "load_scene"), "Camera": ("io.scene", "Camera"), "Scene": ("io.scene", "Scene"),
+    "load_scene": ("io.load", "load_scene"), "Camera": ("io.scene", "Camera"), "Scene": ("io.scene", "Scene"),
     "render_lod": ("view", "render_lod"), "lod_subset": ("view", "lod_subset"), "view_lod": ("view", "view_lod"),
     "LodView": ("view", "LodView"), "clod_rasterization": ("hook", "clod_rasterization"),
     "rasterization": ("render", "rasterization"),

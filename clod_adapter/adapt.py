@@ -29,7 +29,7 @@ import os
 import signal
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Callable, Optional
+from typing import Callable, Literal, Optional
 
 import torch
 from torch import Tensor
@@ -54,6 +54,9 @@ OFFICIAL_LR = {
 }
 PARAM_NAMES = ("means", "quats", "log_scales", "opacity_logits", "sh0", "shN", "sigma_d")
 SCHEDULES = ("calibrated", "paper")
+Schedule = Literal["calibrated", "paper"]
+Ranking = Literal["lightgaussian", "opacity"]
+LevelWeighting = Literal["paper", "uniform"]
 #: level gains by letter of :attr:`AdaptConfig.gains`, and the official learning rate each uses
 #: (that of the attribute it offsets).
 GAIN_LETTERS = {"o": "opacity_logit_gain", "s": "log_scale_gain", "c": "sh0_gain"}
@@ -102,24 +105,24 @@ class AdaptConfig:
 
     max_sv: float = 5.0
     iterations: int = 1000
-    schedule: str = "calibrated"
+    schedule: Schedule = "calibrated"
     sigma_d_lr: float = 1e-2
     other_lr_scale: Optional[float] = None
     lambda_reg: Optional[float] = None
     tau: float = lod.DEFAULT_TAU
     eps: float = lod.DEFAULT_EPS
-    eta_estimator: str = "ste"
+    eta_estimator: lod.Estimator = "ste"
     temperature: float = 1.0
     init_attenuation: Optional[float] = None
     seed: int = 0
     background: tuple = (0.0, 0.0, 0.0)
-    fade: Optional[str] = None
+    fade: Optional[lod.Fade] = None
     fade_width: float = lod.DEFAULT_FADE_WIDTH
     gains: Optional[str] = None
     gain_lr_scale: float = 1.0
-    ranking: str = "lightgaussian"
+    ranking: Ranking = "lightgaussian"
     recalibrate_every: int = 0
-    level_weighting: Optional[str] = None
+    level_weighting: Optional[LevelWeighting] = None
 
     def __post_init__(self) -> None:
         if self.schedule not in SCHEDULES:

@@ -6,6 +6,7 @@ rasterisation) in milliseconds on the current device and thread count.
 """
 from __future__ import annotations
 
+import math
 import statistics
 from dataclasses import asdict, dataclass
 from typing import Callable, Optional, Sequence
@@ -101,3 +102,21 @@ def evaluate_levels(
         if progress is not None:
             progress(m)
     return out
+
+
+def budget_levels(max_sv: float) -> list[float]:
+    """Fractions evaluated by the job: 1, 0.5, 0.25, 0.1 down to ``max_sv^-1.5`` (the coarsest
+    trained level), plus ``max_sv^-1.5`` itself."""
+    low = max_sv ** -1.5
+    out = [b for b in (1.0, 0.5, 0.25, 0.1) if b >= low - 1e-12]
+    if all(abs(b - low) > 1e-9 for b in out):
+        out.append(float(low))
+    return out
+
+
+def sv_levels(max_sv: float) -> list[float]:
+    """s_v = 1, 2, ..., floor(max_sv), plus max_sv itself when it is not an integer."""
+    levels = [float(s) for s in range(1, int(math.floor(max_sv)) + 1)]
+    if max_sv > levels[-1] + 1e-9:
+        levels.append(float(max_sv))
+    return levels

@@ -54,6 +54,7 @@ DEFAULT_EPS = 1e-8
 #: gradients overflow float32 (eps = 1e-45 gave NaN gradients at d' = 0, eps = 0 NaN values).
 EPS_FLOOR = 1e-20
 ETA_ESTIMATORS = ("ste", "sigmoid", "paper")
+Estimator = Literal["ste", "sigmoid", "paper"]
 #: how the Gaussians that pass the mask are drawn (module docstring).
 FADES = ("window", "eq2")
 Fade = Literal["window", "eq2"]
@@ -82,7 +83,7 @@ class LodSettings:
     max_sv: float = 5.0
     tau: float = DEFAULT_TAU
     eps: float = DEFAULT_EPS
-    fade: str = "eq2"
+    fade: Fade = "eq2"
     fade_width: float = DEFAULT_FADE_WIDTH
 
     def __post_init__(self) -> None:
@@ -224,7 +225,7 @@ def lod_mask(opacities: Tensor, d_norm: Tensor, sigma_d: Tensor, s_v: float | Te
     return m & frustum if frustum is not None else m
 
 
-def rendered_fraction(margin: Tensor, frustum: Optional[Tensor] = None, estimator: str = "ste",
+def rendered_fraction(margin: Tensor, frustum: Optional[Tensor] = None, estimator: Estimator = "ste",
                       temperature: float = 1.0) -> Tensor:
     """Rendered fraction ``eta`` of the Gaussians in the frustum, with a chosen gradient.
 

@@ -26,17 +26,18 @@ from __future__ import annotations
 import math
 import time
 from dataclasses import dataclass, field, replace
-from typing import Literal, Optional, Sequence
+from typing import Optional, Sequence
 
 import torch
 from torch import Tensor
 
 from . import lod
+from .lod import Estimator
+from .render.dispatch import Backend
 from .budget import budget_count, critical_s_v, select_budget
 from .gaussians import Gaussians
 from .render.projection import finish_projection, project_geometry
 
-Estimator = Literal["ste", "sigmoid", "paper"]
 #: gsplat 1.5.3 defaults used by every LoD render.
 EPS2D, NEAR_PLANE, FAR_PLANE, TILE_SIZE = 0.3, 0.01, 1e10, 16
 
@@ -237,7 +238,7 @@ class LodView:
         return col
 
     def rasterize(self, sel: LodSelection, *, background: Optional[Tensor] = None,
-                  sh_degree: Optional[int] = None, backend: str = "auto", colors: Optional[Tensor] = None):
+                  sh_degree: Optional[int] = None, backend: Backend = "auto", colors: Optional[Tensor] = None):
         """Draw ``sel``: ``(image [H, W, D], alpha [H, W, 1], meta)``.
 
         CPU backend: the rows of this view's projection are finished with the drawn opacities
@@ -405,7 +406,7 @@ def render_lod(
     temperature: float = 1.0,
     background: Optional[Sequence[float] | Tensor] = None,
     sh_degree: Optional[int] = None,
-    backend: str = "auto",
+    backend: Backend = "auto",
     eta_grad_sigma_only: bool = True,
     min_s_v: float = 1.0,
     budget_in_view: bool = False,

@@ -80,7 +80,7 @@ def main(argv=None) -> int:
         print(f"{ply}: {len(model)} Gaussians")
         cam = None
     if args.scene:
-        from clod_adapter.io.scene import load_scene
+        from clod_adapter.io.load import load_scene
 
         scene = load_scene(args.scene, resolution=args.resolution)
         cam = (scene.test or scene.train)[0]

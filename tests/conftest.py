@@ -89,3 +89,19 @@ def _compositor_impl(request):
         pytest.skip("the C++ compositor cannot be built here")
     with use_impl(impl):
         yield
+
+
+#: environment variable that runs the tests marked ``slow`` (CI sets it; the default run skips
+#: them so it stays within a few minutes on 2 cores).
+RUN_SLOW_ENV = "CLOD_RUN_SLOW"
+
+
+def pytest_collection_modifyitems(config, items):
+    import os
+
+    if os.environ.get(RUN_SLOW_ENV, "").strip() not in ("", "0"):
+        return
+    skip = pytest.mark.skip(reason=f"slow; run with {RUN_SLOW_ENV}=1 (CI does)")
+    for item in items:
+        if "slow" in item.keywords:
+            item.add_marker(skip)

@@ -24,6 +24,7 @@ def _fraction(g, cams, s_v):
     return sum(render_lod(g, c, s_v).n_rendered for c in cams) / (len(cams) * len(g))
 
 
+@pytest.mark.slow
 def test_lreg_acts_with_ste_and_not_with_paper(tiny):
     model, cams, imgs = tiny
     fractions = {}
@@ -50,6 +51,7 @@ def test_frozen_attributes_do_not_move(tiny):
     assert not torch.equal(g.sigma_d, prepare(model, cams, cfg).params["sigma_d"])
 
 
+@pytest.mark.slow
 def test_state_round_trip_and_resume(tiny, tmp_path):
     model, cams, imgs = tiny
     cfg = AdaptConfig(iterations=12, init_attenuation=0.9, seed=7)

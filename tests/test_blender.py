@@ -13,7 +13,8 @@ import torch
 from PIL import Image
 
 from clod_adapter.io.blender import load_blender_scene
-from clod_adapter.io.scene import SceneError, load_scene, scene_format
+from clod_adapter.io.scene import SceneError
+from clod_adapter.io.load import load_scene, scene_format
 from clod_adapter.render import rasterization
 from clod_adapter.synthetic import make_cameras, make_ground_truth, perturb
 
@@ -125,7 +126,7 @@ def test_no_pycolmap_import(blender):
     root = blender[0]
     code = (
         "import sys\n"
-        "from clod_adapter.io.scene import load_scene\n"
+        "from clod_adapter.io.load import load_scene\n"
         "import clod_adapter.jobs.adapt, cli.adapt, cli.eval\n"
         f"s = load_scene({str(root)!r}, background=(1, 1, 1))\n"
         "s.load_image(s.train[0])\n"
@@ -148,6 +149,7 @@ def test_colmap_still_dispatched(tmp_path):
     assert len(s.train) == 2 and s.background == (0.0, 0.0, 0.0)
 
 
+@pytest.mark.slow
 def test_clod_adapt_end_to_end(tmp_path, blender):
     from cli.adapt import main
     from clod_adapter.io.ply import read_ply, write_ply

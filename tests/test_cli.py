@@ -4,6 +4,8 @@ import subprocess
 import sys
 from pathlib import Path
 
+import pytest
+
 
 from cli.adapt import main
 from conftest import REPO, shared_path
@@ -90,6 +92,7 @@ def test_model_from_another_scene(tmp_path, capsys):
     _assert_bad(code, err, "another scene", out)
 
 
+@pytest.mark.slow
 def test_demo_end_to_end(tmp_path):
     out = tmp_path / "demo"
     r = subprocess.run([sys.executable, "-m", "cli.adapt", "--demo", "-o", str(out), "--iterations", "40",
@@ -101,6 +104,7 @@ def test_demo_end_to_end(tmp_path):
     assert (out / "point_cloud.ply").stat().st_size > 0
 
 
+@pytest.mark.slow
 def test_adapt_from_gsplat_checkpoint(tmp_path, capsys):
     """clod-adapt takes a gsplat ckpt_*.pt (its `splats` dict) as the pretrained model."""
     import torch

@@ -96,6 +96,7 @@ def test_baked_ply_exact_inria_layout_and_kept_set(setup, cli_out):
     np.testing.assert_array_equal(minimal_inria_reader(path)["xyz"], m.means[keep].numpy())
 
 
+@pytest.mark.slow
 def test_bake_opacity_modes_and_budget(setup):
     m, cams = setup["model"], setup["scene"].cameras
     g_auto, info = ex.bake(m, cams, s_v=2.0, return_info=True)
@@ -174,6 +175,7 @@ def test_reduce_sh_drops_bands_that_are_zero(setup):
     assert abs(info["psnr_cost_db"]) <= 0.05
 
 
+@pytest.mark.slow
 def test_cli_prune_and_sh(setup):
     import json
 

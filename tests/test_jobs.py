@@ -107,6 +107,7 @@ def test_real_official_model_folder():
 
 
 # --- output folders ------------------------------------------------------------------------------
+@pytest.mark.slow
 def test_non_empty_output_is_refused(tiny_src, tmp_path, capfd):
     out = tmp_path / "out"
     out.mkdir()
@@ -154,6 +155,7 @@ def test_model_from_another_scene_is_refused(tmp_path, capfd):
     assert not out.exists()
 
 
+@pytest.mark.slow
 def test_allow_mismatch_goes_on(tmp_path, capfd):
     ply = shared_path("fixtures", "plys", "inria_sh3_9080.ply")
     bonsai = shared_path("fixtures", "bonsai_tiny")
@@ -167,13 +169,14 @@ def test_allow_mismatch_goes_on(tmp_path, capfd):
     assert m["scene_match"]["margin_db"] < 1.0
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("which,resolution", [("pretrained", 2), ("pretrained", 8), ("maskgaussian", 2)])
 def test_real_pairs_match(which, resolution):
     """The check cannot misfire on fern's own checkpoints, even at a resolution it was not trained at."""
     import torch
 
     from clod_adapter.io.load import load_model, resolve_model_path
-    from clod_adapter.io.scene import load_scene
+    from clod_adapter.io.load import load_scene
     from clod_adapter.jobs.adapt import MISMATCH_MARGIN_DB, scene_match
 
     g = load_model(resolve_model_path(shared_path("fern", which)))
@@ -199,6 +202,7 @@ def test_synthetic_scene_matches(tiny_src):
 
 
 # --- logs ------------------------------------------------------------------------------------------
+@pytest.mark.slow
 def test_non_tty_log_has_plain_lines(tiny_src, tmp_path):
     out = tmp_path / "out"
     r = subprocess.run([sys.executable, "-m", "cli.adapt", str(tiny_src["ply"]), "--images", str(tiny_src["scene"]),

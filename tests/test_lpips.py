@@ -101,6 +101,7 @@ def test_batch_matches_single(model):
     assert not batch.requires_grad
 
 
+@pytest.mark.slow
 def test_increases_with_noise_and_blur(model):
     a = _fern(0, crop=True)
     g = torch.Generator().manual_seed(0)

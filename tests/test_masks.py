@@ -143,6 +143,7 @@ def test_plain_ply_has_no_mask_info(tmp_path):
 
 
 # --- the job: load, adapt one step, write the mask properties back --------------------------------
+@pytest.mark.slow
 def test_masked_checkpoint_adapts_and_round_trips_mask_properties(tmp_path, capsys):
     scene, ply = write_tiny_scene(tmp_path, n=300)
     g = read_ply(ply)

@@ -122,6 +122,7 @@ def _read_csv(path):
         return r.fieldnames, list(r)
 
 
+@pytest.mark.slow
 def test_report_outputs_and_csv_schema(report, tiny):
     rep, out = report
     for n in OUTPUT_NAMES:
@@ -148,6 +149,7 @@ def test_report_outputs_and_csv_schema(report, tiny):
     assert "| clod_budget |" in md and "Popping" in md and md.count("\n| 1.00 |") == 1
 
 
+@pytest.mark.slow
 def test_report_baselines_match_clod_counts(report):
     rep, _ = report
     pv = rep["per_view"]
@@ -193,6 +195,7 @@ def test_cli_bad_inputs(tiny, tmp_path, capsys):
     _bad([ad], capsys, out, "--images")
 
 
+@pytest.mark.slow
 def test_cli_runs(tiny, tmp_path, capsys):
     out = tmp_path / "rep"
     r = tiny["root"]

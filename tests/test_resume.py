@@ -104,6 +104,7 @@ def _wait_for_iteration(proc, progress: Path, at_least: int, timeout: float = 60
     raise AssertionError(f"no iteration {at_least} within {timeout} s")
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM], ids=["SIGINT", "SIGTERM"])
 def test_signal_then_resume_is_bit_exact(scene, tmp_path, sig):
     out, progress = tmp_path / "out", tmp_path / "progress"
@@ -140,6 +141,7 @@ def _inprocess_run(scene: Path, out: Path, **kw):
                log=lambda *a: None, deterministic=True, **kw)
 
 
+@pytest.mark.slow
 def test_interrupt_during_final_evaluation_resumes(scene, tmp_path, monkeypatch):
     import clod_adapter.jobs.adapt as pl
 
@@ -160,6 +162,7 @@ def test_interrupt_during_final_evaluation_resumes(scene, tmp_path, monkeypatch)
     _assert_same_result(out, scene / "ref")
 
 
+@pytest.mark.slow
 def test_second_signal_during_state_save(scene, tmp_path, monkeypatch):
     import safetensors.torch
 

@@ -40,6 +40,7 @@ def _png(data: bytes) -> np.ndarray:
     return np.asarray(Image.open(io.BytesIO(data)).convert("RGB"), dtype=np.float32) / 255.0
 
 
+@pytest.mark.slow
 def test_viewer_in_headless_chromium(tmp_path):
     from clod_adapter.viewer.headless import browser_missing, chromium_driver, compare_frames, stable_render
 

@@ -127,6 +127,7 @@ def _mean_psnr(imgs, gts):
     return sum(psnr(i.clamp(0, 1), g) for i, g in zip(imgs, gts)) / len(gts)
 
 
+@pytest.mark.slow
 def test_full_detail_stays_at_the_input(adapted):
     model, ad, cams, imgs = adapted
     base = _mean_psnr([render_lod(model, c).image for c in cams], imgs)
@@ -135,6 +136,7 @@ def test_full_detail_stays_at_the_input(adapted):
     assert torch.equal(ad.means, model.means) and torch.equal(ad.opacity_logits, model.opacity_logits)
 
 
+@pytest.mark.slow
 def test_quarter_budget_beats_the_opacity_cut(adapted):
     model, ad, cams, imgs = adapted
     ours, cut = [], []
@@ -148,6 +150,7 @@ def test_quarter_budget_beats_the_opacity_cut(adapted):
     assert p_ours > p_cut + 1.0, (p_ours, p_cut)
 
 
+@pytest.mark.slow
 def test_fraction_follows_s_v_to_the_minus_1_5(adapted):
     """The stated mapping: at s_v in [1, max_sv] the Gaussians drawn at full opacity are
     s_v^-1.5 of those in view (mean over the training views), within 0.02 + 10 %."""

@@ -46,7 +46,7 @@ from __future__ import annotations
 import os
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Literal, Optional, Union
+from typing import Literal, Optional, Sequence, Union
 
 import torch
 
@@ -54,6 +54,7 @@ from clod_adapter.gaussians import Gaussians
 from clod_adapter.io.compressed_ply import is_compressed_ply, read_compressed_ply
 from clod_adapter.io.gsplat_ckpt import read_gsplat_ckpt
 from clod_adapter.io.ply import PlyFormatError, read_ply
+from clod_adapter.io.scene import Scene, SceneError
 
 __all__ = ["load_model", "apply_masks", "MaskInfo", "resolve_model_path", "model_folder", "training_size",
            "MASK_PROPERTIES", "MASK_POLICIES", "DEFAULT_MASK_POLICY"]
@@ -308,3 +309,37 @@ def apply_masks(gaussians: Gaussians, masks: MaskMode = "auto", *, seed: int = 0
 
 def _is_hard(a: torch.Tensor) -> bool:
     return bool(((a == 0.0) | (a == 1.0)).all())
+
+
+def scene_format(root: PathLike) -> str:
+    """``"blender"`` when ``root/transforms_train.json`` exists, else ``"colmap"``."""
+    from clod_adapter.io.blender import is_blender_scene
+
+    return "blender" if is_blender_scene(root) else "colmap"
+
+
+def load_scene(root: PathLike, resolution: int = 1, background: Sequence[float] = (0.0, 0.0, 0.0),
+               llffhold: int = 8) -> Scene:
+    """Load a scene folder, NeRF-synthetic or COLMAP.
+
+    ``transforms_train.json`` present: :func:`clod_adapter.io.blender.load_blender_scene` (RGBA
+    images composited over ``background``; ``llffhold`` unused). Otherwise
+    :func:`clod_adapter.io.colmap.load_colmap_scene` (``llffhold`` split; ``background`` is
+    recorded on the Scene and applies to images with an alpha channel). pycolmap is imported only
+    for COLMAP scenes.
+
+    Raises:
+        SceneError: as the loader chosen.
+    """
+    if scene_format(root) == "blender":
+        from clod_adapter.io.blender import load_blender_scene
+
+        return load_blender_scene(root, resolution=resolution, background=background)
+    from clod_adapter.io.colmap import load_colmap_scene
+
+    scene = load_colmap_scene(root, resolution=resolution, llffhold=llffhold)
+    try:
+        scene.background = tuple(float(x) for x in background)
+    except (TypeError, ValueError):
+        raise SceneError(Path(root), f"background must be 3 numbers in [0, 1], got {background!r}") from None
+    return scene

@@ -1,6 +1,6 @@
 """Scenes: posed cameras (gsplat conventions), the train/test split and the images, whatever the
-format; :func:`load_scene` reads a folder in either supported format (COLMAP:
-:mod:`clod_adapter.io.colmap`; NeRF-synthetic: :mod:`clod_adapter.io.blender`).
+format (COLMAP: :mod:`clod_adapter.io.colmap`; NeRF-synthetic: :mod:`clod_adapter.io.blender`;
+:func:`clod_adapter.io.load.load_scene` reads a folder in either).
 
 Conventions:
     * ``Camera.viewmat`` is world-to-camera [4, 4] with OpenCV axes (x right, y down, z forward),
@@ -27,7 +27,7 @@ from PIL import Image
 from torch import Tensor
 
 
-__all__ = ["Camera", "Scene", "SceneError", "load_scene", "scene_format"]
+__all__ = ["Camera", "Scene", "SceneError"]
 
 PathLike = Union[str, "os.PathLike[str]"]
 
@@ -210,37 +210,3 @@ def _image_size(path: Path) -> tuple[int, int]:
             return im.size
     except (OSError, ValueError, SyntaxError) as e:
         raise SceneError(path, f"cannot read image header: {e}") from None
-
-
-def scene_format(root: PathLike) -> str:
-    """``"blender"`` when ``root/transforms_train.json`` exists, else ``"colmap"``."""
-    from clod_adapter.io.blender import is_blender_scene
-
-    return "blender" if is_blender_scene(root) else "colmap"
-
-
-def load_scene(root: PathLike, resolution: int = 1, background: Sequence[float] = (0.0, 0.0, 0.0),
-               llffhold: int = 8) -> Scene:
-    """Load a scene folder, NeRF-synthetic or COLMAP.
-
-    ``transforms_train.json`` present: :func:`clod_adapter.io.blender.load_blender_scene` (RGBA
-    images composited over ``background``; ``llffhold`` unused). Otherwise
-    :func:`clod_adapter.io.colmap.load_colmap_scene` (``llffhold`` split; ``background`` is
-    recorded on the Scene and applies to images with an alpha channel). pycolmap is imported only
-    for COLMAP scenes.
-
-    Raises:
-        SceneError: as the loader chosen.
-    """
-    if scene_format(root) == "blender":
-        from clod_adapter.io.blender import load_blender_scene
-
-        return load_blender_scene(root, resolution=resolution, background=background)
-    from clod_adapter.io.colmap import load_colmap_scene
-
-    scene = load_colmap_scene(root, resolution=resolution, llffhold=llffhold)
-    try:
-        scene.background = tuple(float(x) for x in background)
-    except (TypeError, ValueError):
-        raise SceneError(Path(root), f"background must be 3 numbers in [0, 1], got {background!r}") from None
-    return scene

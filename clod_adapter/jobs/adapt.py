@@ -26,12 +26,12 @@ import torch
 from .. import __version__, jobs, lod
 from ..adapt import STATE_NAME, AdaptConfig, StopFlag, adapt, load_state, prepare, save_state
 from ..figures import write_strip, write_training_plot
-from ..level_metrics import evaluate_level, evaluate_levels
+from ..level_metrics import budget_levels, evaluate_level, evaluate_levels, sv_levels
 from ..io.atomic import atomic_write
 from ..io.load import apply_masks, load_model, resolve_model_path, training_size
 from . import InputError, pick_device  # noqa: F401 (public here since the first release)
 from ..io.ply import PlyFormatError, write_ply
-from ..io.scene import load_scene
+from ..io.load import load_scene
 from ..view import render_lod
 
 PLY_NAME = "point_cloud.ply"
@@ -122,24 +122,6 @@ def check_finite(gaussians, ply_path: Path, sanitize: bool = False, log=print):
     log(f"clod-adapt: --sanitize: dropped {info['dropped']:,} of {n:,} Gaussians with NaN/Inf values; "
         f"set {info['opacity_clamped']:,} +Inf opacity logits to {SANITIZE_OPACITY_LOGIT:.2f} (opacity 1 - 1e-7)")
     return gaussians, info
-
-
-def budget_levels(max_sv: float) -> list[float]:
-    """Fractions evaluated by the job: 1, 0.5, 0.25, 0.1 down to ``max_sv^-1.5`` (the coarsest
-    trained level), plus ``max_sv^-1.5`` itself."""
-    low = max_sv ** -1.5
-    out = [b for b in (1.0, 0.5, 0.25, 0.1) if b >= low - 1e-12]
-    if all(abs(b - low) > 1e-9 for b in out):
-        out.append(float(low))
-    return out
-
-
-def sv_levels(max_sv: float) -> list[float]:
-    """s_v = 1, 2, ..., floor(max_sv), plus max_sv itself when it is not an integer."""
-    levels = [float(s) for s in range(1, int(math.floor(max_sv)) + 1)]
-    if max_sv > levels[-1] + 1e-9:
-        levels.append(float(max_sv))
-    return levels
 
 
 #: a model whose training-view PSNR is not at least this far above that of a flat image of the

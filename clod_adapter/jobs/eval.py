@@ -554,7 +554,7 @@ def evaluate_report(
     """
     from . import progress_bar
     from ..figures import write_strip
-    from .adapt import sv_levels
+    from ..level_metrics import sv_levels
 
     t_start = time.perf_counter()
     out_dir = Path(out_dir)

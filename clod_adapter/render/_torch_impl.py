@@ -9,9 +9,12 @@ from typing import Optional, Tuple
 import torch
 from torch import Tensor
 
-from .composite import ALPHA_THRESHOLD, MAX_ALPHA, TRANSMITTANCE_THRESHOLD
+__all__ = ["rasterize_to_pixels_torch", "MAX_ALPHA", "ALPHA_THRESHOLD", "TRANSMITTANCE_THRESHOLD"]
 
-__all__ = ["rasterize_to_pixels_torch"]
+#: gsplat 1.5.3's compositing rules (RasterizeToPixels3DGSFwd.cu), shared with the C++ compositor
+MAX_ALPHA = 0.999
+ALPHA_THRESHOLD = 1.0 / 255.0
+TRANSMITTANCE_THRESHOLD = 1e-4
 
 
 # ----------------------------------------------------------------------------

@@ -34,9 +34,7 @@ __all__ = [
     "set_deterministic",
 ]
 
-MAX_ALPHA = 0.999
-ALPHA_THRESHOLD = 1.0 / 255.0
-TRANSMITTANCE_THRESHOLD = 1e-4
+from ._torch_impl import ALPHA_THRESHOLD, MAX_ALPHA, TRANSMITTANCE_THRESHOLD, rasterize_to_pixels_torch  # noqa: F401
 
 _CSRC = Path(__file__).resolve().parent / "csrc" / "composite.cpp"
 _EXT = None
@@ -250,7 +248,5 @@ def rasterize_to_pixels(
     if use_cpp:
         return _rasterize_cpp(means2d, conics, colors, opacities, width, height,
                               tile_size, isect_offsets, flatten_ids, backgrounds)
-    from ._torch_impl import rasterize_to_pixels_torch
-
     return rasterize_to_pixels_torch(means2d, conics, colors, opacities, width, height,
                                      tile_size, isect_offsets, flatten_ids, backgrounds)

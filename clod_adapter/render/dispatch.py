@@ -2,19 +2,21 @@
 else the CPU rasterizer."""
 from __future__ import annotations
 
-from typing import Any, Dict, Optional, Tuple
+from typing import Any, Dict, Literal, Optional, Tuple
 
 from torch import Tensor
 
 from .cpu import rasterization_cpu
 from .gsplat_backend import gsplat_unavailable_reason, rasterization_gsplat
 
-__all__ = ["rasterization", "resolve_backend"]
+__all__ = ["rasterization", "resolve_backend", "Backend"]
 
+#: rasteriser backends: gsplat for CUDA tensors ("auto"), or forced.
+Backend = Literal["auto", "cpu", "gsplat"]
 _BACKENDS = ("auto", "cpu", "gsplat")
 
 
-def resolve_backend(backend: str, means: Tensor) -> str:
+def resolve_backend(backend: Backend, means: Tensor) -> Literal["cpu", "gsplat"]:
     """``"cpu"`` or ``"gsplat"`` for tensors like ``means``: gsplat for ``backend="gsplat"`` or
     for CUDA tensors with ``"auto"``, else the CPU rasteriser.
 
@@ -58,7 +60,7 @@ def rasterization(
     sh_degree: Optional[int] = None,
     tile_size: int = 16,
     backgrounds: Optional[Tensor] = None,
-    backend: str = "auto",
+    backend: Backend = "auto",
 ) -> Tuple[Tensor, Tensor, Dict[str, Any]]:
     """gsplat.rasterization-compatible renderer (classic mode, unpacked, pinhole).
 

@@ -128,7 +128,12 @@ def main(argv: list[str] | None = None) -> int:
                 raise
             print(f"clod-adapt: error: {jobs.one_line(e)}", file=sys.stderr, flush=True)
             return EXIT_PEER_LOST
-    return jobs.run_cli("clod-adapt", body)
+    code = jobs.run_cli("clod-adapt", body)
+    if "clod_adapter.distributed" in sys.modules:  # a data-parallel process: end it without the
+        from clod_adapter.distributed import exit_process  # interpreter's shutdown (see there)
+
+        return exit_process(code)
+    return code
 
 
 def _main(args) -> int:

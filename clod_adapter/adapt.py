@@ -180,7 +180,10 @@ class AdaptConfig:
 
 @dataclass
 class AdaptState:
-    """Everything needed to continue a run: parameters, Adam moments, RNG, view order."""
+    """Everything needed to continue a run: parameters, Adam moments, RNG, view order.
+
+    ``history`` holds one record per rendered view (``s_v``, rendered fraction ``eta``,
+    ``loss``, training-view ``psnr``), ``views_per_step`` of them per step, in schedule order."""
 
     params: dict
     optimizer: torch.optim.Optimizer

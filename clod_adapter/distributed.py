@@ -33,6 +33,8 @@ from torch import Tensor
 
 #: the variables torchrun (or any ``env://`` launcher) sets for every rank.
 ENV_VARS = ("RANK", "WORLD_SIZE", "MASTER_ADDR", "MASTER_PORT")
+#: True once this process has joined a process group (:func:`init`).
+_JOINED = False
 #: environment variable: seconds before a collective (or joining the group) gives up.
 TIMEOUT_ENV = "CLOD_DIST_TIMEOUT"
 DEFAULT_TIMEOUT_S = 1800.0
@@ -171,6 +173,8 @@ def init(device: str | torch.device = "cpu", environ: Mapping[str, str] = os.env
             why = " ".join(str(e).split())[:200] or type(e).__name__
             raise PeerLost(f"rank {rank} of {world}: could not join the process group at "
                            f"{environ['MASTER_ADDR']}:{environ['MASTER_PORT']} ({backend}) within {t:g} s: {why}") from None
+    global _JOINED
+    _JOINED = True
     g = Group(rank=rank, world_size=world, local_rank=local, backend=backend, device=dev, timeout=t)
     g.barrier("start-up")
     return g
@@ -185,6 +189,28 @@ def shutdown() -> None:
             dist.destroy_process_group()
         except Exception:  # a broken group after a lost peer: nothing left to release
             pass
+
+
+def exit_process(code: int) -> int:
+    """End a process that joined a process group with ``os._exit(code)`` after flushing stdout
+    and stderr; return ``code`` otherwise.
+
+    Gloo's worker threads release the last collectives' tensors asynchronously; when that
+    happens while Python is shutting down, the thread needs the GIL, is terminated by the
+    interpreter and the process aborts (SIGABRT, "terminate called without an active
+    exception"; pytorch/pytorch#190489, seen here about once in ten 2-rank runs, even after
+    ``destroy_process_group``). Everything this job writes is complete and atomic before it
+    returns, so skipping the interpreter's shutdown loses nothing."""
+    if not _JOINED:
+        return code
+    import sys
+
+    for stream in (sys.stdout, sys.stderr):
+        try:
+            stream.flush()
+        except Exception:
+            pass
+    os._exit(code)
 
 
 def _trainable(optimizer: torch.optim.Optimizer) -> list[Tensor]:

@@ -125,10 +125,6 @@ class Group:
         honours the timeout). Raises PeerLost."""
         self.all_reduce(torch.zeros(1, device=self.device), what)
 
-    def any(self, flag: bool, what: str) -> bool:
-        """True when ``flag`` is True on any rank. Raises PeerLost."""
-        return bool(self.all_reduce(torch.tensor([float(flag)], device=self.device), what, "max").item() > 0)
-
 
 def init(device: str | torch.device = "cpu", environ: Mapping[str, str] = os.environ) -> Group:
     """Join the process group described by torchrun's environment (``env://``).

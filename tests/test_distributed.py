@@ -251,3 +251,36 @@ def test_view_images_keep_within_budget():
     assert none.cached_bytes == 0 and none.loads == 2
     with pytest.raises(IndexError):
         imgs[3]
+
+
+def test_a_stop_request_from_another_rank_stops_after_the_same_step():
+    """The stop flag travels in the step's reduction: when another rank reports a signal in
+    step 3, this rank finishes step 3 and stops before step 4 (saving through on_interrupt),
+    although it never saw a signal itself. The other rank is simulated: it adds nothing to the
+    gradients and the records of its views, and its stop flag at the third reduction."""
+    from clod_adapter.adapt import adapt, prepare
+    from clod_adapter.distributed import Group
+    from clod_adapter.synthetic import make_cameras, make_ground_truth, perturb
+    from conftest import render_views
+
+    class OtherRankSignals(Group):
+        calls = 0
+
+        def all_reduce(self, t, what, op="sum"):
+            if t.dtype == torch.float64 and what == "the step's reduction":
+                OtherRankSignals.calls += 1
+                if OtherRankSignals.calls == 3:
+                    t[-1] += 1.0
+            return t
+
+    gt = make_ground_truth(200, seed=4)
+    cams = make_cameras(2, 2, width=32, height=24)
+    imgs = render_views(gt, cams)
+    cfg = AdaptConfig(max_sv=3.0, iterations=10, seed=2, views_per_step=2)
+    st = prepare(perturb(gt, 5), cams, cfg)
+    group = OtherRankSignals(rank=0, world_size=2, local_rank=0, backend="gloo", device=torch.device("cpu"),
+                             timeout=60.0)
+    saved = []
+    assert adapt(st, cams, imgs, cfg, progress=False, group=group, on_interrupt=lambda s: saved.append(s.iteration)) is False
+    assert saved == [3] and st.iteration == 3
+    assert len(st.history["loss"]) == 6  # two records per step, the other rank's included

@@ -69,7 +69,7 @@ class AdaptConfig:
     Attributes:
         max_sv: largest virtual distance scale trained (s_v ~ U(1, max_sv)); the coarsest
             trained level draws ``max_sv^-1.5`` of the Gaussians in view.
-        iterations: optimisation steps (one training view each).
+        iterations: optimisation steps (``views_per_step`` training views each).
         schedule: ``"calibrated"`` (default) or ``"paper"`` (module docstring).
         sigma_d_lr: Adam learning rate of sigma_d (paper: 1e-2).
         other_lr_scale: factor on the official 3DGS learning rates of the base attributes

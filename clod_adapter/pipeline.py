@@ -634,6 +634,9 @@ def _run(ply_path, scene_root, out_dir, cfg: AdaptConfig, *, stop: StopFlag, res
     if group is not None:
         log(f"clod-adapt: data-parallel over {group.world_size} processes ({group.backend}), "
             f"{cfg.views_per_step} views per step; rank 0 writes")
+        if cfg.views_per_step < group.world_size:
+            log(f"clod-adapt: note: {cfg.views_per_step} views per step for {group.world_size} processes: "
+                f"{group.world_size - cfg.views_per_step} of them render nothing (--views-per-step)")
 
     bg = cfg.background
     input_eval = evaluate_level(gaussians, test_cams, test_imgs, None, background=bg, backend=backend) if main else None

@@ -46,7 +46,9 @@ def _env(**extra) -> dict:
     for k in ("RANK", "WORLD_SIZE", "LOCAL_RANK", "MASTER_ADDR", "MASTER_PORT", "TORCHELASTIC_RUN_ID",
               "CLOD_DETERMINISTIC", "CLOD_PROGRESS_FILE"):
         env.pop(k, None)
-    env.update({"OMP_NUM_THREADS": "1", "PYTHONPATH": str(REPO), "CLOD_DIST_TIMEOUT": "60"}, **extra)
+    # gloo on the loopback interface whatever the host name resolves to
+    env.update({"OMP_NUM_THREADS": "1", "PYTHONPATH": str(REPO), "CLOD_DIST_TIMEOUT": "60",
+                "GLOO_SOCKET_IFNAME": "lo"}, **extra)
     return env
 
 

@@ -5,15 +5,18 @@
                [--deterministic] [--layout inria] [--allow-mismatch]
     clod-adapt -m MODEL_FOLDER -s SCENE ...        (the official 3DGS spelling)
     clod-adapt --demo [-o OUT]
+    torchrun --nproc_per_node=N -m cli.adapt MODEL --images SCENE ...   (data-parallel; or --distributed)
 
 MODEL: a .ply / gsplat .pt, an official 3DGS model folder (``point_cloud/iteration_N/``, the
 latest N unless ``--iteration``) or a folder holding one .ply.
 
 Exit status: 0 done, 2 bad input (one line on stderr, nothing written), 130 interrupted (the
-resumable state is saved in OUT).
+resumable state is saved in OUT), 1 data-parallel run that lost a process (one line saying
+which state is on disk).
 """
 from __future__ import annotations
 
+import os
 import sys
 from pathlib import Path
 
@@ -95,16 +98,46 @@ def build_parser():
     p.add_argument("--timing-repeats", type=int, default=3, metavar="R",
                    help="interleaved timing rounds for the final ms/frame (default 3; 0: time the single "
                         "evaluation pass)")
+    p.add_argument("--views-per-step", type=int, default=None, metavar="V",
+                   help="training views per optimisation step, each at its own s_v, gradients averaged "
+                        "(default 1; data-parallel: the number of processes; --resume: the saved run's)")
+    p.add_argument("--distributed", action="store_true",
+                   help="data-parallel over views with torch.distributed, reading torchrun's environment "
+                        "(RANK, WORLD_SIZE, MASTER_ADDR, MASTER_PORT; gloo on CPU, NCCL on GPUs); implied "
+                        "when started by torchrun: torchrun --nproc_per_node=N -m cli.adapt ...")
+    p.add_argument("--save-every", type=int, default=None, metavar="N",
+                   help="also write the resumable state every N steps (default: every 10 %% of the run when "
+                        "data-parallel, else only on a signal and at the end; 0: never)")
     p.add_argument("--demo", action="store_true",
                    help="build the embedded synthetic scene and pretrained model in OUT/demo and adapt it")
     jobs.add_common_flags(p)
     return p
 
 
+#: exit status of a data-parallel run that lost one of its processes.
+EXIT_PEER_LOST = 1
+
+
 def main(argv: list[str] | None = None) -> int:
     jobs.thread_defaults()  # before torch is imported (OpenMP reads it when it loads)
     args = build_parser().parse_args(argv)
-    return jobs.run_cli("clod-adapt", lambda: _main(args))
+
+    def body() -> int:
+        try:
+            return _main(args)
+        except RuntimeError as e:
+            from clod_adapter.distributed import PeerLost
+
+            if not isinstance(e, PeerLost):
+                raise
+            print(f"clod-adapt: error: {jobs.one_line(e)}", file=sys.stderr, flush=True)
+            return EXIT_PEER_LOST
+    code = jobs.run_cli("clod-adapt", body)
+    if "clod_adapter.distributed" in sys.modules:  # a data-parallel process: end it without the
+        from clod_adapter.distributed import exit_process  # interpreter's shutdown (see there)
+
+        return exit_process(code)
+    return code
 
 
 def _main(args) -> int:
@@ -129,6 +162,20 @@ def _main(args) -> int:
     check_flag(args.timing_repeats >= 0, "--timing-repeats", ">= 0", args.timing_repeats)
     if args.iteration is not None:
         check_flag(args.iteration >= 0, "--iteration", ">= 0", args.iteration)
+    if args.views_per_step is not None:
+        check_flag(args.views_per_step >= 1, "--views-per-step", ">= 1", args.views_per_step)
+    if args.save_every is not None:
+        check_flag(args.save_every >= 0, "--save-every", ">= 0", args.save_every)
+    from clod_adapter.distributed import launched_by_torchrun
+
+    distributed = args.distributed or launched_by_torchrun()
+    if args.distributed and not launched_by_torchrun():
+        raise InputError("--distributed: RANK, WORLD_SIZE, MASTER_ADDR, MASTER_PORT are not set; start it with "
+                         "torchrun --nproc_per_node=N -m cli.adapt ...")
+    if distributed and args.demo:
+        raise InputError("--demo runs in one process; build the demo first (clod-adapt --demo -o OUT), then "
+                         "torchrun ... -m cli.adapt OUT/demo/pretrained/point_cloud.ply --images OUT/demo/scene")
+    world = int(os.environ.get("WORLD_SIZE", "1")) if distributed else 1
     jobs.set_threads(args.threads)
     # Imports after parsing so --help is instant.
     from clod_adapter.adapt import AdaptConfig
@@ -151,16 +198,20 @@ def _main(args) -> int:
         scene, ply = Path(args.images), Path(model)
         iterations = 1000 if args.iterations is None else args.iterations
     kw = {} if args.tau is None else {"tau": args.tau}
+    views = args.views_per_step if args.views_per_step is not None else world
     cfg = AdaptConfig(max_sv=args.max_sv, iterations=iterations, seed=args.seed, schedule=args.schedule,
                       other_lr_scale=args.other_lr_scale, lambda_reg=args.lambda_reg,
                       fade=args.fade, gains=args.gains, eta_estimator=args.eta_estimator,
-                      background=(1.0, 1.0, 1.0) if args.background == "white" else (0.0, 0.0, 0.0), **kw)
+                      background=(1.0, 1.0, 1.0) if args.background == "white" else (0.0, 0.0, 0.0),
+                      views_per_step=views, **kw)
     run(ply, scene, out, cfg, resolution=args.resolution, device=args.device,
         resume=args.resume, progress=not args.quiet, sanitize=args.sanitize,
         deterministic=args.deterministic,
         iterations_from_state=args.resume and args.iterations is None, force=force,
         allow_mismatch=args.allow_mismatch, iteration=args.iteration, layout=args.layout,
-        tensorboard=args.tensorboard, timing_repeats=args.timing_repeats, masks=args.masks)
+        tensorboard=args.tensorboard, timing_repeats=args.timing_repeats, masks=args.masks,
+        distributed=distributed, save_every=args.save_every,
+        views_from_state=args.resume and args.views_per_step is None)
     return 0
 
 

@@ -72,7 +72,7 @@ class AdaptConfig:
     Attributes:
         max_sv: largest virtual distance scale trained (s_v ~ U(1, max_sv)); the coarsest
             trained level draws ``max_sv^-1.5`` of the Gaussians in view.
-        iterations: optimisation steps (one training view each).
+        iterations: optimisation steps (``views_per_step`` training views each).
         schedule: ``"calibrated"`` (default) or ``"paper"`` (module docstring).
         sigma_d_lr: Adam learning rate of sigma_d (paper: 1e-2).
         other_lr_scale: factor on the official 3DGS learning rates of the base attributes
@@ -101,6 +101,10 @@ class AdaptConfig:
             steps cost 0.2-1.4 dB at 50-5 % of the Gaussians: README ablation).
         level_weighting: ``"paper"`` (w_s = (1 - 0.5 s_v / max_sv)^2) or ``"uniform"``
             (calibrated default: every level counts alike).
+        views_per_step: training views per optimisation step, each at its own ``s_v``; the
+            step uses the mean of their gradients (default 1). In a data-parallel run
+            (:mod:`clod_adapter.distributed`) view ``j`` of a step is rendered by rank
+            ``j mod world_size``, so the result does not depend on the number of processes.
     """
 
     max_sv: float = 5.0
@@ -123,6 +127,7 @@ class AdaptConfig:
     ranking: Ranking = "lightgaussian"
     recalibrate_every: int = 0
     level_weighting: Optional[LevelWeighting] = None
+    views_per_step: int = 1
 
     def __post_init__(self) -> None:
         if self.schedule not in SCHEDULES:
@@ -161,6 +166,8 @@ class AdaptConfig:
             raise ValueError(f"recalibrate_every must be >= 0, got {self.recalibrate_every}")
         if self.level_weighting not in ("paper", "uniform"):
             raise ValueError(f"level_weighting must be 'paper' or 'uniform', got {self.level_weighting!r}")
+        if not (isinstance(self.views_per_step, int) and self.views_per_step >= 1):
+            raise ValueError(f"views_per_step must be an integer >= 1, got {self.views_per_step!r}")
         self.background = tuple(float(x) for x in self.background)
 
     @property
@@ -176,7 +183,10 @@ class AdaptConfig:
 
 @dataclass
 class AdaptState:
-    """Everything needed to continue a run: parameters, Adam moments, RNG, view order."""
+    """Everything needed to continue a run: parameters, Adam moments, RNG, view order.
+
+    ``history`` holds one record per rendered view (``s_v``, rendered fraction ``eta``,
+    ``loss``, training-view ``psnr``), ``views_per_step`` of them per step, in schedule order."""
 
     params: dict
     optimizer: torch.optim.Optimizer
@@ -407,6 +417,28 @@ class StopFlag:
 _StopFlag = StopFlag  # old name
 
 
+def view_loss(g: Gaussians, camera, gt: Tensor, s_v: float, cfg: AdaptConfig, backend: str = "auto"):
+    """One training view's render and loss at ``s_v`` (the body of a step of :func:`adapt`).
+
+    Returns:
+        (:class:`clod_adapter.view.LodRender`, scalar loss tensor).
+    """
+    if cfg.schedule == "calibrated":
+        # the level's exact share of the Gaussians in view, drawn with the level's gains
+        out = render_lod(g, camera, budget=lod.target_fraction(s_v), budget_in_view=True,
+                         min_s_v=0.0, tau=cfg.tau, eps=cfg.eps, background=cfg.background,
+                         backend=backend)
+    else:
+        out = render_lod(g, camera, s_v, tau=cfg.tau, eps=cfg.eps,
+                         estimator=cfg.eta_estimator, temperature=cfg.temperature,
+                         background=cfg.background, backend=backend)
+    l_render = render_loss(out.image, gt)
+    loss, _ = clod_loss(l_render, out.eta, s_v, cfg.max_sv, cfg.lambda_reg)
+    if cfg.level_weighting == "uniform":
+        loss = loss / lod.scale_weight(s_v, cfg.max_sv)
+    return out, loss
+
+
 def adapt(
     state: AdaptState,
     train_cameras,
@@ -419,17 +451,21 @@ def adapt(
     max_steps: Optional[int] = None,
     stop: Optional[StopFlag] = None,
     on_step: Optional[Callable[[AdaptState], None]] = None,
+    group=None,
 ) -> bool:
     """Run (or continue) the fine-tuning from ``state.iteration`` to ``cfg.iterations``.
 
-    Each step: one training view (shuffled, without replacement per epoch), ``s_v ~ U(1,
-    max_sv)``, render at ``s_v``, ``L = w (L_render + lambda_reg L_reg)`` (``w``: the level
-    weighting), one Adam step; calibrated schedule: :func:`recalibrate` every
-    ``cfg.recalibrate_every`` steps and after the last.
+    Each step: ``cfg.views_per_step`` training views (shuffled, without replacement per
+    epoch), each with its own ``s_v ~ U(1, max_sv)`` (drawn in that order from the state's
+    generator: view, s_v, view, s_v, ...), rendered at ``s_v``; ``L = w (L_render + lambda_reg
+    L_reg)`` (``w``: the level weighting); one Adam step on the mean of the views' gradients;
+    calibrated schedule: :func:`recalibrate` every ``cfg.recalibrate_every`` steps and after
+    the last.
 
     Args:
         state: from :func:`prepare` or :func:`load_state`; updated in place.
-        train_cameras, train_images: training views and their [H, W, 3] float images in [0, 1].
+        train_cameras, train_images: training views and their [H, W, 3] float images in [0, 1]
+            (any sequence; only the views rendered here are indexed).
         cfg: the run's settings.
         backend: rasteriser backend.
         progress: show progress with loss, PSNR, s_v and rendered fraction (``frac``): a tqdm
@@ -440,10 +476,17 @@ def adapt(
         stop: an entered :class:`StopFlag` to use (the caller's signal handling, put in its
             non-abortable mode for the loop); None: install one for the duration of the call.
         on_step: called with the state after each completed step.
+        group: a :class:`clod_adapter.distributed.Group` for data-parallel training (each rank
+            renders views ``j`` with ``j mod world_size == rank`` of every step, gradients and
+            the step's records are summed over the ranks, and a signal on any rank stops all of
+            them after the same step); None: one process.
 
     Returns:
         True when all iterations ran, False when interrupted or stopped by ``max_steps``
         (state holds the progress).
+
+    Raises:
+        clod_adapter.distributed.PeerLost: (``group`` given) another rank stopped answering.
     """
     from .jobs import progress_bar
 
@@ -458,61 +501,65 @@ def adapt(
     else:
         stop.set_abortable(False)
         ctx = contextlib.nullcontext(stop)
+    views = cfg.views_per_step
+    rank, world = (group.rank, group.world_size) if group is not None else (0, 1)
+    agreed_stop = False  # data-parallel: a signal on any rank, agreed in the step's reduction
+
     with ctx as flag:
+        stopping = (lambda: agreed_stop) if group is not None else (lambda: flag.stop)
         while state.iteration < stop_at:
-            if flag.stop:
+            if stopping():
                 bar.close()
                 if on_interrupt is not None:
                     on_interrupt(state)
                 return False
             it = state.iteration
-            if not state.order:
-                state.order = torch.randperm(len(train_cameras), generator=state.generator).tolist()
-            vi = state.order.pop()
-            s_v = lod.sample_s_v(cfg.max_sv, state.generator)
+            picks = []
+            for _ in range(views):
+                if not state.order:
+                    state.order = torch.randperm(len(train_cameras), generator=state.generator).tolist()
+                vi = state.order.pop()
+                picks.append((vi, lod.sample_s_v(cfg.max_sv, state.generator)))
             for grp in state.optimizer.param_groups:
                 if grp["name"] == "means":
                     grp["lr"] = means_lr(cfg, state.extent, it)
             g = state.gaussians()
-            if cfg.schedule == "calibrated":
-                # the level's exact share of the Gaussians in view, drawn with the level's gains
-                out = render_lod(g, train_cameras[vi], budget=lod.target_fraction(s_v), budget_in_view=True,
-                                 min_s_v=0.0, tau=cfg.tau, eps=cfg.eps, background=cfg.background,
-                                 backend=backend)
-            else:
-                out = render_lod(g, train_cameras[vi], s_v, tau=cfg.tau, eps=cfg.eps,
-                                 estimator=cfg.eta_estimator, temperature=cfg.temperature,
-                                 background=cfg.background, backend=backend)
-            gt = train_images[vi]
-            l_render = render_loss(out.image, gt)
-            loss, _ = clod_loss(l_render, out.eta, s_v, cfg.max_sv, cfg.lambda_reg)
-            if cfg.level_weighting == "uniform":
-                loss = loss / lod.scale_weight(s_v, cfg.max_sv)
             state.optimizer.zero_grad(set_to_none=True)
-            if loss.requires_grad:
-                loss.backward()
+            rows = {}
+            for j, (vi, s_v) in enumerate(picks):
+                if j % world != rank:
+                    continue
+                out, loss = view_loss(g, train_cameras[vi], train_images[vi], s_v, cfg, backend)
+                if loss.requires_grad:
+                    loss.backward()
+                rows[j] = (float(loss.detach()), psnr(out.image, train_images[vi]), float(out.eta.detach()))
+                del out, loss
+            if group is not None or views > 1:
+                from .distributed import combine_step
+
+                rows, agreed_stop = combine_step(state.optimizer, rows, views, group, stop=flag.stop)
             state.optimizer.step()
             state.iteration += 1
             if cfg.schedule == "calibrated" and (
                     state.iteration == cfg.iterations
                     or (cfg.recalibrate_every and state.iteration % cfg.recalibrate_every == 0)):
                 recalibrate(state, train_cameras, cfg)
-            p = psnr(out.image, gt)
-            eta = float(out.eta.detach())
             h = state.history
-            h["s_v"].append(round(s_v, 4))
-            h["eta"].append(round(eta, 5))
-            h["loss"].append(round(float(loss.detach()), 6))
-            h["psnr"].append(round(p, 3))
-            for k, v in (("loss", h["loss"][-1]), ("psnr", p)):
-                ema[k] = v if ema[k] is None else 0.9 * ema[k] + 0.1 * v
+            for j, (vi, s_v) in enumerate(picks):
+                loss_j, p, eta = rows[j]
+                h["s_v"].append(round(s_v, 4))
+                h["eta"].append(round(eta, 5))
+                h["loss"].append(round(loss_j, 6))
+                h["psnr"].append(round(p, 3))
+                for k, v in (("loss", h["loss"][-1]), ("psnr", p)):
+                    ema[k] = v if ema[k] is None else 0.9 * ema[k] + 0.1 * v
             # frac: the rendered fraction eta of the step (not tqdm's "time remaining")
             bar.set_postfix(loss=f"{ema['loss']:.4f}", psnr=f"{ema['psnr']:.2f}",
-                            s_v=f"{s_v:.2f}", frac=f"{eta:.3f}", refresh=False)
+                            s_v=f"{picks[-1][1]:.2f}", frac=f"{rows[len(picks) - 1][2]:.3f}", refresh=False)
             bar.update(1)
             if on_step is not None:
                 on_step(state)
-        if flag.stop and state.iteration >= stop_at:
+        if stopping() and state.iteration >= stop_at:
             # a signal during the last step: the loop is done, report it all the same
             bar.close()
             if on_interrupt is not None:

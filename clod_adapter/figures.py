@@ -72,12 +72,13 @@ def write_strip(path: Path, gaussians, camera, s_vs, background, backend: str, g
     atomic_save(path, lambda tmp: sheet.save(tmp, format="PNG"))
 
 
-def write_training_plot(path: Path, history: dict, max_sv: float) -> None:
+def write_training_plot(path: Path, history: dict, max_sv: float, views_per_step: int = 1) -> None:
     """``training.png``: loss, PSNR of the training view and rendered fraction against the step,
     from ``AdaptState.history`` (per step ``loss``, ``psnr``, ``eta`` at the sampled ``s_v``).
     PSNR and fraction are drawn per step coloured by that step's s_v, with the running mean of
     the steps near full detail (s_v <= 1 + 0.1 (max_sv - 1)) as a line: the loop renders one
-    random s_v per step, so this is its closest record of "PSNR at s_v = 1"."""
+    random s_v per view, so this is its closest record of "PSNR at s_v = 1". The history holds
+    one record per view; with ``views_per_step`` > 1 they are placed at fractional steps."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -85,7 +86,7 @@ def write_training_plot(path: Path, history: dict, max_sv: float) -> None:
     import numpy as np
 
     loss = np.asarray(history.get("loss", []), dtype=float)
-    steps = np.arange(1, len(loss) + 1)
+    steps = np.arange(1, len(loss) + 1) / max(int(views_per_step), 1)
     sv = np.asarray(history.get("s_v", [1.0] * len(loss)), dtype=float)[: len(loss)]
     fig, axes = plt.subplots(1, 3, figsize=(13, 3.4))
 

@@ -98,3 +98,24 @@ def test_render_lod_budget_is_a_cap_at_s_v_1():
     assert big.s_v == 1.0 and big.n_rendered == at1  # capped at the full-detail level
     small = render_lod(g, cam, budget=at1 // 2)
     assert small.n_rendered == at1 // 2 and small.s_v > 1.0
+
+
+def test_select_budget_matches_a_stable_sort():
+    """The O(N) selection returns what a stable descending sort does (ties broken by index),
+    over many ties, candidate masks and k."""
+    from clod_adapter.budget import _select_budget_sorted
+
+    g = torch.Generator().manual_seed(0)
+    for trial in range(60):
+        n = int(torch.randint(1, 300, (1,), generator=g))
+        vals = torch.randint(0, 12, (n,), generator=g).double() / 4  # many ties, zeros
+        if trial % 3 == 0:
+            vals = torch.rand(n, generator=g, dtype=torch.float64)
+        cand = torch.rand(n, generator=g) < 0.7 if trial % 2 else None
+        m = n if cand is None else int(cand.sum())
+        for k in sorted({0, 1, m // 3, m // 2, max(m - 1, 0), m, m + 5}):
+            idx, s_v = select_budget(vals, k, cand)
+            pool = torch.arange(n) if cand is None else torch.arange(n)[cand]
+            ref_idx, ref_s = _select_budget_sorted(pool, vals[pool], max(0, min(k, m))) if m else (pool, 1.0)
+            assert torch.equal(idx, ref_idx), (trial, k)
+            assert s_v == ref_s, (trial, k)

@@ -31,6 +31,7 @@ from ..io.atomic import atomic_write
 from ..io.load import apply_masks, load_model, resolve_model_path, training_size
 from . import InputError, pick_device  # noqa: F401 (public here since the first release)
 from ..io.ply import PlyFormatError, write_ply
+from ..io.view_images import ViewImages
 from ..io.load import load_scene
 from ..view import render_lod
 
@@ -254,6 +255,9 @@ def run(
     tensorboard: bool = False,
     timing_repeats: int = 3,
     masks: str = "auto",
+    distributed: bool = False,
+    save_every: Optional[int] = 0,
+    views_from_state: bool = False,
 ) -> dict:
     """Run the whole job; returns the metrics dict (also written to ``metrics.json``).
 
@@ -276,6 +280,13 @@ def run(
     ``metrics.json`` (``input_masks``) say what was applied. Unknown per-Gaussian .ply properties
     of the kept Gaussians (e.g. the mask scores) are written back to ``point_cloud.ply`` (not to
     the exact INRIA copy of ``layout="inria"``).
+    ``distributed``: data-parallel over views with the processes torchrun started
+    (:mod:`clod_adapter.distributed`; every process calls ``run`` with the same arguments):
+    rank 0 logs, writes the state and the outputs and returns the metrics; the other ranks
+    return ``{"rank", "world_size", "iteration", "train_seconds"}`` once the final state is
+    written. ``save_every``: also write the resumable state every this many steps (0: only on
+    a signal and at the end; None: every 10 % of the run when ``distributed``, else 0). ``views_from_state`` (with ``resume``): take ``views_per_step``
+    from the state instead of ``cfg``.
 
     ``resume``: continue from ``out_dir/adapt_state.safetensors``; refused (InputError) when it
     was saved for another input .ply, scene or resolution, or with other settings than ``cfg``
@@ -297,18 +308,34 @@ def run(
         input (one-line messages naming the file). Nothing is written before inputs are checked.
         KeyboardInterrupt: after SIGINT/SIGTERM, once the resumable state has been saved (or
         before anything was written).
+        clod_adapter.distributed.PeerLost: (``distributed``) another process died or stopped
+            answering; the message says which state is on disk.
     """
+    if save_every is not None and save_every < 0:
+        raise InputError(f"--save-every must be >= 0, got {save_every}")
     kw = dict(resolution=resolution, device=device, resume=resume, progress=progress, log=log,
               sanitize=sanitize, iterations_from_state=iterations_from_state, force=force,
               allow_mismatch=allow_mismatch, iteration=iteration, layout=layout, tensorboard=tensorboard,
-              timing_repeats=timing_repeats, masks=masks)
+              timing_repeats=timing_repeats, masks=masks, save_every=save_every,
+              views_from_state=views_from_state)
     with StopFlag(abortable=True) as stop, deterministic_mode(deterministic):
+        group = None
         try:
+            if distributed:
+                from .. import distributed as dd
+
+                group = dd.init(pick_device(device))
+                kw["group"] = group
+                if not group.is_main:  # rank 0 speaks for the run
+                    kw["log"], kw["progress"] = (lambda *a, **k: None), False
             return _run(ply_path, scene_root, out_dir, cfg, stop=stop, **kw)
         except KeyboardInterrupt:
             if not getattr(stop, "state_saved", False):
-                log("\nclod-adapt: interrupted before training started; nothing written")
+                kw["log"]("\nclod-adapt: interrupted before training started; nothing written")
             raise
+        finally:
+            if group is not None:
+                dd.shutdown()
 
 
 #: test hook (undocumented for users): write the iteration number to this file after each step.
@@ -357,12 +384,13 @@ def scene_key(cameras) -> str:
 
 
 def load_resume_state(state_path: Path, cfg: AdaptConfig, *, input_sha256: str, scene_fp: str,
-                      resolution: int, num_gaussians: int, iterations_from_state: bool, device):
+                      resolution: int, num_gaussians: int, iterations_from_state: bool, device,
+                      views_from_state: bool = False):
     """Load ``state_path`` for ``--resume`` and check it belongs to this input and these settings.
 
     Returns:
         (state, config, metadata); the config is ``cfg`` (with the state's iterations when
-        ``iterations_from_state``).
+        ``iterations_from_state``, and its views per step when ``views_from_state``).
 
     Raises:
         InputError: unreadable state, or saved for another input/scene/resolution/settings.
@@ -374,6 +402,8 @@ def load_resume_state(state_path: Path, cfg: AdaptConfig, *, input_sha256: str, 
         raise InputError(msg if str(state_path) in msg else f"{state_path}: {msg}") from None
     if iterations_from_state:
         cfg.iterations = saved.iterations
+    if views_from_state:
+        cfg.views_per_step = saved.views_per_step
     want, have = asdict(cfg), asdict(saved)
     diffs = [f"{k}={have[k]!r} (now {want[k]!r})" for k in want if k != "iterations" and want[k] != have.get(k)]
     if diffs:
@@ -398,8 +428,10 @@ def load_resume_state(state_path: Path, cfg: AdaptConfig, *, input_sha256: str, 
 def _run(ply_path, scene_root, out_dir, cfg: AdaptConfig, *, stop: StopFlag, resolution: int,
          device: str, resume: bool, progress: bool, log, sanitize: bool,
          iterations_from_state: bool, force: bool, allow_mismatch: bool, iteration: Optional[int],
-         layout: str, tensorboard: bool, timing_repeats: int, masks: str) -> dict:
+         layout: str, tensorboard: bool, timing_repeats: int, masks: str, group=None,
+         save_every: Optional[int] = 0, views_from_state: bool = False) -> dict:
     t_start = time.perf_counter()
+    main = group is None or group.is_main  # the one process that writes (data-parallel: rank 0)
     ply_path, scene_root, out_dir = Path(ply_path), Path(scene_root), Path(out_dir)
     if layout not in ("clod", "inria"):
         raise InputError(f"--layout must be clod or inria, got {layout!r}")
@@ -414,7 +446,7 @@ def _run(ply_path, scene_root, out_dir, cfg: AdaptConfig, *, stop: StopFlag, res
         except Exception:
             raise InputError("--tensorboard: the tensorboard package is not installed "
                              "(pip install -e \".[tensorboard]\")") from None
-    dev = pick_device(device)
+    dev = pick_device(device) if group is None else group.device
     backend = "gsplat" if dev.type == "cuda" else "cpu"
     try:
         gaussians = load_model(ply_path, masks="all", allow_nonfinite=True)
@@ -440,12 +472,16 @@ def _run(ply_path, scene_root, out_dir, cfg: AdaptConfig, *, stop: StopFlag, res
     if resume:
         resumed = load_resume_state(state_path, cfg, input_sha256=input_sha256, scene_fp=scene_fp,
                                     resolution=resolution, num_gaussians=len(gaussians),
-                                    iterations_from_state=iterations_from_state, device=dev)
+                                    iterations_from_state=iterations_from_state, device=dev,
+                                    views_from_state=views_from_state)
 
     gaussians = gaussians.to(dev)
-    train_imgs = [scene.load_image(c).to(dev) for c in scene.train]
+    # decoded on first use, kept within a memory budget (CLOD_IMAGE_CACHE_MB): a data-parallel
+    # rank decodes only its own views, and hundreds of large views do not fill the memory
+    scene.cache_size = 0
+    train_imgs = ViewImages(scene, scene.train, dev)
     test_cams = scene.test or scene.train[:1]
-    test_imgs = [scene.load_image(c).to(dev) for c in test_cams]
+    test_imgs = ViewImages(scene, test_cams, dev)
     fr_any = torch.zeros(len(gaussians), dtype=torch.bool, device=dev)
     for c in scene.train:
         fr_any |= lod.in_frustum(gaussians.means, c.viewmat.to(dev), c.K.to(dev), c.width, c.height)
@@ -467,13 +503,20 @@ def _run(ply_path, scene_root, out_dir, cfg: AdaptConfig, *, stop: StopFlag, res
     if note:
         notes.append(note)
         log(f"clod-adapt: note: {note}")
-    check_output_dir(out_dir, [ply_path], force=True)  # every input is valid: create the output folder
+    if main:
+        check_output_dir(out_dir, [ply_path], force=True)  # every input is valid: create the output folder
     log(f"clod-adapt: {ply_path}: {len(gaussians):,} Gaussians (SH degree {gaussians.sh_degree}); "
         f"{len(scene.train)} train / {len(scene.test)} test views at {size[0]}x{size[1]}; device {dev}, "
         f"{torch.get_num_threads()} threads; training-view PSNR {match['psnr']:.2f} dB")
+    if group is not None:
+        log(f"clod-adapt: data-parallel over {group.world_size} processes ({group.backend}), "
+            f"{cfg.views_per_step} views per step; rank 0 writes")
+        if cfg.views_per_step < group.world_size:
+            log(f"clod-adapt: note: {cfg.views_per_step} views per step for {group.world_size} processes: "
+                f"{group.world_size - cfg.views_per_step} of them render nothing (--views-per-step)")
 
     bg = cfg.background
-    input_eval = evaluate_level(gaussians, test_cams, test_imgs, None, background=bg, backend=backend)
+    input_eval = evaluate_level(gaussians, test_cams, test_imgs, None, background=bg, backend=backend) if main else None
     # from here on a signal only sets the flag: the state is saved at the next safe point
     stop.set_abortable(False)
     if resume:
@@ -483,29 +526,48 @@ def _run(ply_path, scene_root, out_dir, cfg: AdaptConfig, *, stop: StopFlag, res
     else:
         state = prepare(gaussians, scene.train, cfg, train_imgs, backend=backend)
         log(f"clod-adapt: sigma_d initialised with attenuation {state.init.get('attenuation')} at s_v = 1")
-        init_eval = evaluate_level(state.gaussians().detach(), test_cams, test_imgs, 1.0,
-                                   tau=cfg.tau, background=bg, backend=backend)
-        init_s_v1 = {"psnr": init_eval.psnr, "ssim": init_eval.ssim,
-                     "psnr_drop_db": input_eval.psnr - init_eval.psnr, **state.init}
+        init_s_v1 = None
+        if main:
+            init_eval = evaluate_level(state.gaussians().detach(), test_cams, test_imgs, 1.0,
+                                       tau=cfg.tau, background=bg, backend=backend)
+            init_s_v1 = {"psnr": init_eval.psnr, "ssim": init_eval.ssim,
+                         "psnr_drop_db": input_eval.psnr - init_eval.psnr, **state.init}
+    if group is not None:
+        from ..distributed import broadcast_params
+
+        broadcast_params(state, group)  # every rank starts from rank 0's parameters
 
     from ..render.composite import deterministic_enabled
 
     meta = {"input_ply": str(ply_path), "scene": str(scene_root), "resolution": resolution,
             "input_sha256": input_sha256, "scene_key": scene_fp, "init_s_v1": json.dumps(init_s_v1),
-            "deterministic": int(deterministic_enabled()), "threads": torch.get_num_threads()}
+            "deterministic": int(deterministic_enabled()), "threads": torch.get_num_threads(),
+            "world_size": 1 if group is None else group.world_size}
+    saved = {"iteration": state.iteration if resume else None}  # the state on disk
+    if save_every is None:
+        save_every = max(1, cfg.iterations // 10) if group is not None else 0
 
     def on_interrupt(st):
-        save_state(state_path, st, cfg, meta)
+        if main:
+            save_state(state_path, st, cfg, meta)
+            saved["iteration"] = st.iteration
         stop.state_saved = True
         log(f"\nclod-adapt: interrupted at iteration {st.iteration}; state saved to {state_path} "
             f"(continue with --resume)")
 
     step_hooks = []
-    if os.environ.get(PROGRESS_FILE_ENV):
+    if save_every and main:
+        def checkpoint(st):
+            if st.iteration % save_every == 0 and st.iteration < cfg.iterations:
+                save_state(state_path, st, cfg, meta)
+                saved["iteration"] = st.iteration
+                stop.state_saved = True
+        step_hooks.append(checkpoint)
+    if os.environ.get(PROGRESS_FILE_ENV) and main:
         hook_path = Path(os.environ[PROGRESS_FILE_ENV])
         step_hooks.append(lambda st: hook_path.write_text(f"{st.iteration}\n"))
     writer = None
-    if tensorboard:
+    if tensorboard and main:
         from torch.utils.tensorboard import SummaryWriter
 
         writer = SummaryWriter(log_dir=str(out_dir / TENSORBOARD_DIR))
@@ -526,7 +588,24 @@ def _run(ply_path, scene_root, out_dir, cfg: AdaptConfig, *, stop: StopFlag, res
     it0 = state.iteration
     try:
         finished = adapt(state, scene.train, train_imgs, cfg, backend=backend, progress=progress,
-                         on_interrupt=on_interrupt, stop=stop, on_step=on_step)
+                         on_interrupt=on_interrupt, stop=stop, on_step=on_step, group=group)
+        if group is not None and finished:
+            from ..distributed import check_in_sync
+
+            check_in_sync(state, group)
+    except Exception as e:
+        from ..distributed import PeerLost
+
+        if isinstance(e, PeerLost):
+            how = "continue with --resume, with any number of processes"
+            if not main:
+                what = f"{state_path} holds the last state rank 0 saved ({how})"
+            elif saved["iteration"] is not None:
+                what = f"{state_path} holds iteration {saved['iteration']} ({how})"
+            else:
+                what = "no state was saved"
+            raise PeerLost(f"{e}; {what}") from None
+        raise
     finally:
         if writer is not None:
             writer.close()
@@ -535,8 +614,14 @@ def _run(ply_path, scene_root, out_dir, cfg: AdaptConfig, *, stop: StopFlag, res
     train_s = time.perf_counter() - t_train
     model = replace(state.gaussians().detach(), extra=gaussians.extra)  # unknown .ply properties ride along
     # the final state first: an interrupt during the evaluation resumes at the last iteration
-    save_state(state_path, state, cfg, meta)
+    if main:
+        save_state(state_path, state, cfg, meta)
     stop.state_saved = True
+    if group is not None:
+        group.barrier("the final save")  # the others may leave once the final state is on disk
+        if not main:
+            return {"rank": group.rank, "world_size": group.world_size, "iteration": state.iteration,
+                    "train_seconds": round(train_s, 2)}
 
     levels = sv_levels(cfg.max_sv)
     stop.set_abortable(True)  # the evaluation writes nothing; raises if a signal came meanwhile
@@ -573,6 +658,7 @@ def _run(ply_path, scene_root, out_dir, cfg: AdaptConfig, *, stop: StopFlag, res
         "config": asdict(cfg),
         "train_seconds": round(train_s, 2),
         "seconds_per_iteration": round(train_s / max(state.iteration - it0, 1), 4),
+        "world_size": 1 if group is None else group.world_size,
         "input_model": input_model,
         "scene_match": match,
         "init_s_v1": init_s_v1,
@@ -596,7 +682,7 @@ def _run(ply_path, scene_root, out_dir, cfg: AdaptConfig, *, stop: StopFlag, res
     with atomic_write(out_dir / METRICS_NAME, "w") as f:
         json.dump(metrics, f, indent=2)
     write_strip(out_dir / STRIP_NAME, model, test_cams[0], levels, bg, backend, gt=test_imgs[0])
-    write_training_plot(out_dir / TRAINING_PLOT_NAME, state.history, cfg.max_sv)
+    write_training_plot(out_dir / TRAINING_PLOT_NAME, state.history, cfg.max_sv, cfg.views_per_step)
     if layout == "inria":
         it_n = (input_iteration(ply_path) or 0) + state.iteration
         written += write_inria_layout(out_dir, model, scene, iteration=it_n, resolution=resolution,

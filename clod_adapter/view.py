@@ -177,8 +177,7 @@ class LodView:
             else:
                 mask = torch.zeros_like(self.visible)
                 mask[idx] = True
-            eta = (mask[self.frustum].float().mean() if bool(self.frustum.any())
-                   else torch.zeros((), device=dev))
+            eta = self._share_in_frustum(mask)
         else:
             s_used = float(s_v)
             d = self.d_norm.detach()
@@ -190,8 +189,7 @@ class LodView:
                          else lod.lod_margin(opac, self.d_norm, sd, s_used, st.tau, st.eps))
                 eta = lod.rendered_fraction(m_eta, self.frustum, estimator, temperature)
             else:
-                eta = (mask[self.frustum].float().mean() if bool(self.frustum.any())
-                       else torch.zeros((), device=dev))
+                eta = self._share_in_frustum(mask)
         if st.fade == "eq2":
             drawn = lod.lod_opacities(opac.index_select(0, idx), self.d_norm.index_select(0, idx),
                                       sd.index_select(0, idx), s_used, st.eps)
@@ -215,8 +213,13 @@ class LodView:
         op = self.opacities.index_select(0, idx) if opacities is None else opacities.to(self.means)
         mask = torch.zeros_like(self.visible)
         mask[idx] = True
-        return LodSelection(idx, op, mask, None, 0.0, mask[self.frustum].float().mean()
-                            if bool(self.frustum.any()) else torch.zeros(()))
+        return LodSelection(idx, op, mask, None, 0.0, self._share_in_frustum(mask))
+
+    def _share_in_frustum(self, mask: Tensor) -> Tensor:
+        """[] float: the share of the frustum's Gaussians that ``mask`` [N] bool holds, 0 for an
+        empty frustum (counts, not a compacted copy: this runs every frame)."""
+        n = self.frustum.sum()
+        return ((mask & self.frustum).sum() / n.clamp_min(1)).to(self.means.dtype)
 
     # --- drawing -------------------------------------------------------------------------------
     def drawn_attributes(self, sel: LodSelection) -> tuple[Tensor, Tensor, Tensor, Tensor]:

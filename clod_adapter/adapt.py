@@ -523,15 +523,19 @@ def adapt(
             for grp in state.optimizer.param_groups:
                 if grp["name"] == "means":
                     grp["lr"] = means_lr(cfg, state.extent, it)
-            g = state.gaussians()
+            with torch.enable_grad():
+                g = state.gaussians()
             state.optimizer.zero_grad(set_to_none=True)
             rows = {}
             for j, (vi, s_v) in enumerate(picks):
                 if j % world != rank:
                     continue
-                out, loss = view_loss(g, train_cameras[vi], train_images[vi], s_v, cfg, backend)
-                if loss.requires_grad:
-                    loss.backward()
+                # grad on even when the caller is inside torch.no_grad() (an evaluation loop):
+                # without it the step would silently train nothing
+                with torch.enable_grad():
+                    out, loss = view_loss(g, train_cameras[vi], train_images[vi], s_v, cfg, backend)
+                    if loss.requires_grad:
+                        loss.backward()
                 rows[j] = (float(loss.detach()), psnr(out.image, train_images[vi]), float(out.eta.detach()))
                 del out, loss
             if group is not None or views > 1:

@@ -77,11 +77,12 @@ def finetune_subset(gaussians: Gaussians, train_cameras: Sequence, train_images:
         if not order:
             order = torch.randperm(len(train_cameras), generator=gen).tolist()
         vi = order.pop()
-        model = Gaussians(**params)
-        out = render_lod(model, train_cameras[vi], None, background=background, backend=backend)
-        loss = render_loss(out.image, train_images[vi])
         opt.zero_grad(set_to_none=True)
-        if loss.requires_grad:
-            loss.backward()
+        with torch.enable_grad():  # also inside a caller's no_grad() (clod-eval's report is one)
+            model = Gaussians(**params)
+            out = render_lod(model, train_cameras[vi], None, background=background, backend=backend)
+            loss = render_loss(out.image, train_images[vi])
+            if loss.requires_grad:
+                loss.backward()
         opt.step()
     return Gaussians(**{k: v.detach() for k, v in params.items()})

@@ -114,3 +114,13 @@ def test_pipeline_outputs(tmp_path):
     counts = [lv["gaussians"] for lv in mj["levels"]]
     assert counts[0] >= counts[-1]
     assert abs(mj["init_s_v1"]["psnr_drop_db"]) <= 0.05
+
+
+def test_dlod_finetune_trains_inside_no_grad(tiny):
+    """clod-eval's report is a no_grad function; its per-budget ceiling must still train."""
+    from clod_adapter.dlod import finetune_subset
+
+    model, cams, imgs = tiny
+    with torch.no_grad():
+        out = finetune_subset(model, cams, imgs, iterations=3)
+    assert not torch.equal(out.sh0, model.sh0)

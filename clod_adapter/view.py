@@ -181,8 +181,7 @@ class LodView:
         else:
             s_used = float(s_v)
             d = self.d_norm.detach()
-            with torch.no_grad():
-                mask = (lod.lod_margin(opac.detach(), d, sd.detach(), s_used, st.tau, st.eps) > 0) & self.visible
+            mask = lod.lod_mask(opac, d, sd, s_used, st.tau, st.eps) & self.visible
             idx = torch.nonzero(mask, as_tuple=False).squeeze(1)
             if estimator != "paper" and torch.is_grad_enabled() and sd.requires_grad:
                 m_eta = (lod.lod_margin(opac.detach(), d, sd, s_used, st.tau, st.eps) if eta_grad_sigma_only

@@ -36,6 +36,7 @@ VARIANTS = (
     ("opacity_rank", "start from the opacity ranking", {"ranking": "opacity"}),
     ("ws_paper", "the paper's level weighting w_s", {"level_weighting": "paper"}),
     ("other_lr_0.1", "base attributes at 0.1 x the official learning rates", {"other_lr_scale": 0.1}),
+    ("other_lr_0.02", "base attributes at 0.02 x the official learning rates", {"other_lr_scale": 0.02}),
 )
 
 

@@ -142,3 +142,23 @@ def test_low_precision_evaluation_is_finite():
         assert a.dtype == dt and torch.isfinite(a.float()).all()
         assert bool((a.float() <= opac.to(dt).float() + 1e-3).all())
         assert not torch.isnan(m).any()
+
+
+def test_lod_mask_equals_margin_sign():
+    """lod.lod_mask (the per-frame test, rearranged and in place) agrees with its reference,
+    ``lod_margin > 0``, including opacity 0, dead decays, d' = 0 and s_v far out."""
+    g = torch.Generator().manual_seed(0)
+    n = 20000
+    opac = torch.rand(n, generator=g)
+    opac[:50] = 0.0
+    d = torch.rand(n, generator=g)
+    d[50:100] = 0.0
+    sigma = torch.randn(n, generator=g).abs() * 0.5
+    sigma[100:200] = -sigma[100:200]
+    for s_v in (1.0, 1.7, 5.0, 37.0, 1e4):
+        ref = lod.lod_margin(opac, d, sigma, s_v) > 0
+        got = lod.lod_mask(opac, d, sigma, s_v)
+        assert got.dtype == torch.bool
+        if s_v <= 5.0:  # a real mix of kept and dropped, so agreement means something
+            assert 0 < int(ref.sum()) < n
+        assert int((got != ref).sum()) == 0, f"s_v={s_v}: {int((got != ref).sum())} differ"

@@ -65,10 +65,10 @@ class Camera:
 
     @property
     def center(self) -> Tensor:
-        """[3] float32 camera centre in world units, ``-R^T t``."""
-        R = self.viewmat[:3, :3]
-        t = self.viewmat[:3, 3]
-        return -(R.T @ t)
+        """[3] float32 camera centre in world units, ``-R^T t`` (:func:`clod_adapter.lod.camera_center`)."""
+        from ..lod import camera_center
+
+        return camera_center(self.viewmat)
 
 
 @dataclass

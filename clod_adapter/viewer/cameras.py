@@ -44,9 +44,10 @@ class ViewCamera:
 
     @property
     def center(self) -> Tensor:
-        """[3] camera centre, world units."""
-        R, t = self.viewmat[:3, :3], self.viewmat[:3, 3]
-        return -(R.T @ t)
+        """[3] camera centre, world units (:func:`clod_adapter.lod.camera_center`)."""
+        from clod_adapter.lod import camera_center
+
+        return camera_center(self.viewmat)
 
 
 @dataclass

@@ -157,7 +157,7 @@ def run_sweep(inputs, max_svs, iterations, out_name: str) -> None:
     print(note)
     tool = find_splat_transform()
     if tool is None:
-        print("note: splat-transform not found; the merging decimator is skipped")
+        print("note: splat-transform not found; the merging decimator is skipped (`npm ci` in the repo root)")
     rows = []
     for name in inputs:
         it = iterations or (400 if name == "demo" else 1000)

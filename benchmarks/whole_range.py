@@ -44,7 +44,8 @@ def evaluate(name: str, ply: Path, cfg: AdaptConfig, dlod_iterations: int, reuse
     scene = load_scene(scene_root, resolution=res)
     tool = find_splat_transform()
     if tool is None:
-        log("note: splat-transform not found; the merging decimator is skipped (npm install -g @playcanvas/splat-transform)")
+        log("note: splat-transform not found; the merging decimator is skipped "
+            "(`npm ci` in the repository root installs the pinned version)")
     out.mkdir(parents=True, exist_ok=True)
     t = time.perf_counter()
     rep = evaluate_report(ply, scene, out, pretrained=pre, budgets=budget_levels(cfg.max_sv), max_sv=cfg.max_sv,

@@ -65,7 +65,8 @@ def build_parser():
                         "default: the adaptation's iterations from adapt_state.safetensors, else 1000; 0 skips)")
     p.add_argument("--splat-transform", metavar="EXE", default=None,
                    help="splat-transform executable for the merging-decimator baseline 'merge' (default: "
-                        "$CLOD_SPLAT_TRANSFORM or splat-transform on PATH; skipped with a note when absent)")
+                        "$CLOD_SPLAT_TRANSFORM, else node_modules/.bin/splat-transform as installed by `npm ci` "
+                        "in the repository root, else PATH; skipped with a note when absent)")
     p.add_argument("--no-merge", action="store_true", help="skip the merging-decimator baseline")
     p.add_argument("--background", default="black", choices=("black", "white"),
                    help="colour behind the scene (NeRF-synthetic RGBA images are composited over it)")
@@ -165,7 +166,7 @@ def _main(args) -> int:
         merge_tool = args.splat_transform or find_splat_transform()
         if merge_tool is None:
             print("clod-eval: note: splat-transform not found; the 'merge' baseline is skipped "
-                  "(npm install -g @playcanvas/splat-transform)", file=sys.stderr)
+                  "(install the pinned version with `npm ci` in the repository root)", file=sys.stderr)
     notes = []
     cam0 = (scene.test or scene.train)[0]
     note = _resolution_note(ply, pre, (cam0.width, cam0.height), resolution_note, training_size, METRICS_NAME)

@@ -24,7 +24,7 @@ from __future__ import annotations
 import math
 import time
 from dataclasses import dataclass
-from typing import Optional, Sequence
+from typing import Literal, Optional, Sequence
 
 import torch
 from torch import Tensor
@@ -270,39 +270,104 @@ def random_scores(n: int, seed: int = 0, device="cpu") -> Tensor:
 
 
 # --- merging decimator (splat-transform) -------------------------------------------------------
-#: environment variable naming the splat-transform executable (else it is looked up on PATH).
+#: environment variable naming the splat-transform executable (it wins over every other place).
 SPLAT_TRANSFORM_ENV = "CLOD_SPLAT_TRANSFORM"
+#: the pinned version (root ``package.json``; installed into ``node_modules/`` by :data:`NPM_INSTALL`).
+SPLAT_TRANSFORM_VERSION = "3.7.0"
+#: the one documented install command, run from the repository root (CI runs it too).
+NPM_INSTALL = "npm ci"
+#: ``merge_decimate`` modes and the splat-transform flag each one runs.
+MERGE_MODES = {"decimate": "--decimate", "adaptive": "--decimate-adaptive"}
+
+
+def project_root() -> Optional["Path"]:
+    """The folder holding ``pyproject.toml`` above this package's ``__file__`` (the checkout of
+    an editable install), or None for an installed copy without one."""
+    from pathlib import Path
+
+    for d in Path(__file__).resolve().parents:
+        if (d / "pyproject.toml").is_file():
+            return d
+    return None
+
+
+def _local_bin(folder: "Path") -> Optional[str]:
+    """``folder/node_modules/.bin/splat-transform`` (``.cmd`` on Windows) when executable."""
+    import os
+
+    for name in ("splat-transform", "splat-transform.cmd") if os.name == "nt" else ("splat-transform",):
+        exe = folder / "node_modules" / ".bin" / name
+        if exe.is_file() and os.access(exe, os.X_OK):
+            return str(exe)
+    return None
 
 
 def find_splat_transform() -> Optional[str]:
-    """Path of PlayCanvas ``splat-transform`` (npm ``@playcanvas/splat-transform``): the
-    ``$CLOD_SPLAT_TRANSFORM`` executable, else ``splat-transform`` on PATH; None when absent."""
+    """Path of PlayCanvas ``splat-transform`` (npm ``@playcanvas/splat-transform``, pinned to
+    :data:`SPLAT_TRANSFORM_VERSION` by the root ``package.json``), looked up in this order:
+
+    1. ``$CLOD_SPLAT_TRANSFORM`` when set (an executable file, else None: no fallback);
+    2. ``node_modules/.bin/splat-transform`` under the project root (:func:`project_root`, where
+       ``npm ci`` installs it);
+    3. ``node_modules/.bin/splat-transform`` under the current directory;
+    4. ``splat-transform`` on PATH.
+
+    Returns:
+        the executable's path, or None when none is found.
+    """
     import os
     import shutil
+    from pathlib import Path
 
     env = os.environ.get(SPLAT_TRANSFORM_ENV)
     if env:
         return env if os.path.isfile(env) and os.access(env, os.X_OK) else None
+    for folder in (project_root(), Path.cwd()):
+        exe = _local_bin(folder) if folder is not None else None
+        if exe is not None:
+            return exe
     return shutil.which("splat-transform")
 
 
-def merge_decimate(gaussians: Gaussians, count: int, *, tool: Optional[str] = None,
-                   timeout: float = 600.0) -> Gaussians:
+def _failure_line(text: str) -> str:
+    """The line of splat-transform's output that says what failed: the last ``✗ ...`` line that
+    is not its closing ``✗ failed in ...`` summary, else the last non-empty line."""
+    lines = [ln.strip() for ln in text.splitlines() if ln.strip()]
+    for ln in reversed(lines):
+        if ln.startswith("\u2717") and not ln[1:].strip().startswith("failed in"):
+            return ln
+    return lines[-1] if lines else "no output"
+
+
+def merge_decimate(gaussians: Gaussians, count: int, *, mode: Literal["decimate", "adaptive"] = "decimate",
+                   tool: Optional[str] = None, timeout: float = 600.0) -> Gaussians:
     """The model simplified to ``count`` Gaussians by the merging decimator viewers ship:
-    splat-transform's ``--decimate`` (NanoGS progressive pairwise merging with mass-preserving
-    moment matching; PlayCanvas splat-transform, run on the CPU with ``-g cpu``). No training.
+    PlayCanvas splat-transform 3.x (NanoGS progressive pairwise merging with mass-preserving
+    moment matching), run on the CPU (``-g cpu``: without it the tool asks WebGPU for a device
+    and fails on a machine without one). No training.
+
+    ``mode="decimate"`` runs ``--decimate COUNT`` (``-d``: the same merge rate everywhere);
+    ``mode="adaptive"`` runs ``--decimate-adaptive COUNT`` (removal allocated by local error).
+    (In splat-transform 3.x ``-F`` is ``--filter-floaters``, not a decimator.) The model is
+    written without ``sigma_d``, level gains and LoD settings (the plain 3DGS model); the tool
+    returns exactly the count asked for (splat-transform 3.7.0; checked, not assumed).
 
     Args:
-        gaussians: the model (``sigma_d`` and gains are not written).
-        count: target number of Gaussians (>= 1).
+        gaussians: the model, N Gaussians (``sigma_d`` and gains are not written).
+        count: target number of Gaussians, clamped to [1, N].
+        mode: ``"decimate"`` or ``"adaptive"``.
         tool: the splat-transform executable (default :func:`find_splat_transform`).
         timeout: seconds before the run is abandoned.
 
     Returns:
-        the decimated model (CPU tensors).
+        the decimated model, ``count`` Gaussians (CPU float32 tensors, SH degree of the input,
+        no ``sigma_d``).
 
     Raises:
-        RuntimeError: splat-transform is not available, fails, or times out (message says which).
+        ValueError: ``mode`` is not one of :data:`MERGE_MODES`.
+        RuntimeError: splat-transform is not found (the message names ``npm ci``), cannot be
+            started, times out, exits non-zero (the message holds its error line), writes no
+            file, or returns another number of Gaussians than asked; one line saying which.
     """
     import subprocess
     import tempfile
@@ -311,20 +376,36 @@ def merge_decimate(gaussians: Gaussians, count: int, *, tool: Optional[str] = No
     from .io.load import load_model
     from .io.ply import write_ply
 
+    if mode not in MERGE_MODES:
+        raise ValueError(f"merge_decimate: mode must be one of {', '.join(MERGE_MODES)}, got {mode!r}")
     exe = tool or find_splat_transform()
     if exe is None:
-        raise RuntimeError("splat-transform not found (npm install -g @playcanvas/splat-transform, "
-                           f"or set ${SPLAT_TRANSFORM_ENV})")
+        import os
+
+        env = os.environ.get(SPLAT_TRANSFORM_ENV)
+        where = (f"${SPLAT_TRANSFORM_ENV}={env} is not an executable file" if env else
+                 "not in node_modules/.bin nor on PATH")
+        raise RuntimeError(f"splat-transform not found ({where}); install the pinned version with "
+                           f"`{NPM_INSTALL}` in the repository root")
     count = max(1, min(int(count), len(gaussians)))
     with tempfile.TemporaryDirectory(prefix="clod-merge-") as tmp:
         src, dst = Path(tmp) / "in.ply", Path(tmp) / "out.ply"
         write_ply(src, gaussians.with_sigma_d(None).to("cpu"))
-        cmd = [exe, "-g", "cpu", "-w", str(src), "-F", str(count), str(dst)]
+        cmd = [exe, "-g", "cpu", "-w", str(src), MERGE_MODES[mode], str(count), str(dst)]
         try:
-            res = subprocess.run(cmd, capture_output=True, text=True, timeout=timeout)
-        except (OSError, subprocess.TimeoutExpired) as e:
-            raise RuntimeError(f"splat-transform failed: {e}") from None
-        if res.returncode != 0 or not dst.is_file():
-            tail = (res.stderr or res.stdout).strip().splitlines()[-1:] or ["no output"]
-            raise RuntimeError(f"splat-transform exited {res.returncode}: {tail[0]}")
-        return load_model(dst)
+            res = subprocess.run(cmd, capture_output=True, text=True, errors="replace", timeout=timeout)
+        except subprocess.TimeoutExpired:
+            raise RuntimeError(f"splat-transform {MERGE_MODES[mode]} {count} timed out after {timeout:g} s") from None
+        except OSError as e:
+            raise RuntimeError(f"splat-transform could not be started ({exe}): {e}") from None
+        if res.returncode != 0:
+            raise RuntimeError(f"splat-transform exited {res.returncode}: {_failure_line(res.stderr or res.stdout)}")
+        if not dst.is_file():
+            raise RuntimeError(f"splat-transform exited 0 but wrote no file: {_failure_line(res.stderr or res.stdout)}")
+        try:
+            out = load_model(dst)
+        except (OSError, ValueError) as e:
+            raise RuntimeError(f"splat-transform wrote an unreadable model: {e}") from None
+    if len(out) != count:
+        raise RuntimeError(f"splat-transform {MERGE_MODES[mode]} {count} returned {len(out)} Gaussians")
+    return out

@@ -36,7 +36,7 @@ from clod_adapter.gaussians import Gaussians
 from clod_adapter.io.atomic import atomic_write
 from clod_adapter.lod import LodSettings
 
-__all__ = ["PlyFormatError", "read_ply", "write_ply", "ply_property_names"]
+__all__ = ["PlyFormatError", "read_ply", "write_ply", "ply_property_names", "ply_vertex_dtype", "ply_comments"]
 
 PathLike = Union[str, "os.PathLike[str]"]
 
@@ -334,6 +334,40 @@ def _as_f32(x: torch.Tensor) -> np.ndarray:
     return x.detach().to(device="cpu", dtype=torch.float32).numpy()
 
 
+def _float_layout(g: Gaussians, with_normals: bool) -> tuple[list[str], list[str]]:
+    """The float32 property names :func:`write_ply` writes for ``g`` (INRIA order, ``sigma_d``,
+    gains) and the gain fields present."""
+    names = ply_property_names(g.sh_degree, with_normals=with_normals, with_sigma_d=g.sigma_d is not None)
+    gain_fields = [k for k in GAIN_PROPERTIES if getattr(g, k) is not None]
+    for k in gain_fields:
+        names += GAIN_PROPERTIES[k]
+    return names, gain_fields
+
+
+def ply_vertex_dtype(gaussians: Gaussians, *, with_normals: bool = True) -> np.dtype:
+    """The packed little-endian structured dtype of one vertex row as :func:`write_ply` writes
+    ``gaussians``: the float32 properties in order, then each ``extra`` with its own type.
+
+    Raises:
+        ValueError: an ``extra`` name is also a property of the layout written.
+    """
+    names, _ = _float_layout(gaussians, with_normals)
+    descr = [(name, "<f4") for name in names]
+    if gaussians.extra:
+        clash = [k for k in gaussians.extra if k in names]
+        if clash:
+            raise ValueError(f"Gaussians.extra holds {', '.join(clash)}, a property of the layout written")
+        descr += [(k, torch.empty(0, dtype=v.dtype).numpy().dtype.newbyteorder("<"))
+                  for k, v in gaussians.extra.items()]
+    return np.dtype(descr)
+
+
+def ply_comments(gaussians: Gaussians) -> list[str]:
+    """The header comments :func:`write_ply` writes: the ``clod_lod`` settings of an adapted model."""
+    g = gaussians
+    return [lod_comment(g.lod)] if (g.lod is not None and g.sigma_d is not None) else []
+
+
 def write_ply(path: PathLike, gaussians: Gaussians, *, with_normals: bool = True) -> Path:
     """Write ``gaussians`` as an INRIA-layout .ply, binary little endian, atomically.
 
@@ -362,10 +396,7 @@ def write_ply(path: PathLike, gaussians: Gaussians, *, with_normals: bool = True
     g = gaussians
     n = g.num_gaussians
     km1 = g.shN.shape[1]
-    names = ply_property_names(g.sh_degree, with_normals=with_normals, with_sigma_d=g.sigma_d is not None)
-    gain_fields = [k for k in GAIN_PROPERTIES if getattr(g, k) is not None]
-    for k in gain_fields:
-        names += GAIN_PROPERTIES[k]
+    names, gain_fields = _float_layout(g, with_normals)
     vertex = np.empty(n, dtype=[(name, "<f4") for name in names])
     flat = vertex.view("<f4").reshape(n, len(names))  # a view: filling it fills ``vertex``
 
@@ -392,11 +423,8 @@ def write_ply(path: PathLike, gaussians: Gaussians, *, with_normals: bool = True
         put(_as_f32(getattr(g, k)).reshape(n, len(GAIN_PROPERTIES[k])))
     assert i == len(names)
     if g.extra:
-        clash = [k for k in g.extra if k in names]
-        if clash:
-            raise ValueError(f"Gaussians.extra holds {', '.join(clash)}, a property of the layout written")
         cols = {k: v.detach().cpu().numpy() for k, v in g.extra.items()}
-        full = np.empty(n, dtype=vertex.dtype.descr + [(k, a.dtype.newbyteorder("<")) for k, a in cols.items()])
+        full = np.empty(n, dtype=ply_vertex_dtype(g, with_normals=with_normals))
         for name in names:
             full[name] = vertex[name]
         for k, a in cols.items():
@@ -404,8 +432,7 @@ def write_ply(path: PathLike, gaussians: Gaussians, *, with_normals: bool = True
         vertex = full
 
     element = plyfile.PlyElement.describe(vertex, "vertex")
-    comments = [lod_comment(g.lod)] if (g.lod is not None and g.sigma_d is not None) else []
-    ply = plyfile.PlyData([element], text=False, byte_order="<", comments=comments)
+    ply = plyfile.PlyData([element], text=False, byte_order="<", comments=ply_comments(g))
     with atomic_write(path, "wb") as f:
         ply.write(f)
     return path

@@ -69,3 +69,25 @@ def test_holdout_validation_keeps_the_scene_settings(tmp_path):
     assert held.background == (1.0, 1.0, 1.0) and held.resolution == 2
     assert len(held.test) == 1 and held.test[0].name == sorted(_names(cams[:8]))[4]
     assert not set(_names(sc.test)) & set(_names(held.cameras))
+
+
+def test_clod_adapt_holdout_val_fits_without_the_validation_views(tmp_path):
+    """``clod-adapt --holdout-val`` (the benchmarks' ``--split val``): trained on the fit views,
+    scored on the validation views; no test view is used and metrics.json says so."""
+    import json
+
+    from cli.adapt import main as adapt_main
+    from conftest import write_tiny_scene
+    from clod_adapter.io.load import load_scene
+
+    scene_dir, ply = write_tiny_scene(tmp_path / "src", n=200)
+    sc = load_scene(scene_dir)
+    fit, val = validation_split(sc.train)
+    out = tmp_path / "out"
+    code = adapt_main([str(ply), "--images", str(scene_dir), "-o", str(out), "--holdout-val",
+                       "--iterations", "2", "--max-sv", "2", "--timing-repeats", "0", "--quiet"])
+    assert code == 0
+    mj = json.loads((out / "metrics.json").read_text())
+    assert mj["holdout_val"] is True and mj["test_views"] == _names(val)
+    assert not set(mj["test_views"]) & set(_names(sc.test))
+    assert mj["scene_match"]["views"] and set(mj["scene_match"]["views"]) <= set(_names(fit))

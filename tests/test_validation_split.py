@@ -91,3 +91,25 @@ def test_clod_adapt_holdout_val_fits_without_the_validation_views(tmp_path):
     assert mj["holdout_val"] is True and mj["test_views"] == _names(val)
     assert not set(mj["test_views"]) & set(_names(sc.test))
     assert mj["scene_match"]["views"] and set(mj["scene_match"]["views"]) <= set(_names(fit))
+
+
+def test_benchmarks_scene_views():
+    import sys
+
+    from conftest import REPO
+
+    sys.path.insert(0, str(REPO / "benchmarks"))
+    try:
+        from common import scene_views, split_suffix
+    finally:
+        sys.path.remove(str(REPO / "benchmarks"))
+    cams = make_cameras(2, 5, width=8, height=6)
+    sc = Scene(root=REPO, train=cams[1:8] + cams[9:], test=[cams[0], cams[8]])
+    tr, te = scene_views(sc, "test")
+    assert _names(tr) == _names(sc.train) and _names(te) == _names(sc.test)
+    fit, val = scene_views(sc, "val")
+    assert (fit, val) == validation_split(sc.train)
+    assert not set(_names(sc.test)) & set(_names(fit + val))
+    assert split_suffix("test") == "" and split_suffix("val") == "_val"
+    with pytest.raises(ValueError):
+        scene_views(sc, "train")

@@ -71,6 +71,7 @@ def test_holdout_validation_keeps_the_scene_settings(tmp_path):
     assert not set(_names(sc.test)) & set(_names(held.cameras))
 
 
+@pytest.mark.slow
 def test_clod_adapt_holdout_val_fits_without_the_validation_views(tmp_path):
     """``clod-adapt --holdout-val`` (the benchmarks' ``--split val``): trained on the fit views,
     scored on the validation views; no test view is used and metrics.json says so."""

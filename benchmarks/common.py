@@ -9,6 +9,13 @@ Inputs (``INPUTS``):
 
 Adaptations are cached under ``RUNS/<input>/<tag>/`` (the ``clod-adapt`` output folder): a run
 whose ``metrics.json`` holds the same settings is reused, so the benchmarks share them.
+
+Splits (``--split``, :func:`scene_views`): ``test`` fits on the training views and scores on the
+test views (what the README reports); ``val`` fits on the training views minus the validation
+views (:func:`clod_adapter.io.scene.validation_split`) and scores on those, never touching a test
+view. Benchmarks that *choose* settings (ablation.py, max_sv_sweep.py, lambda_sweep.py) default
+to ``val``; their adaptations then run ``clod-adapt --holdout-val`` and are cached apart (tag
+suffix ``_val``).
 """
 from __future__ import annotations
 
@@ -32,6 +39,7 @@ RUNS = REPO / "runs" / "bench"
 from clod_adapter.adapt import AdaptConfig  # noqa: E402
 from clod_adapter.io.load import load_model  # noqa: E402
 from clod_adapter.io.load import load_scene  # noqa: E402
+from clod_adapter.io.scene import validation_split  # noqa: E402
 
 FERN = SHARED / "fern"
 INPUTS = {
@@ -41,6 +49,33 @@ INPUTS = {
 }
 LABELS = {"fern": "fern (vanilla 3DGS, 39,977 G)", "maskgaussian": "fern, MaskGaussian (19,383 G)",
           "demo": "synthetic demo scene (6,000 G)"}
+
+
+SPLITS = ("test", "val")
+
+
+def add_split_arg(ap, default: str = "val") -> None:
+    """``--split {test,val}`` on an argparse parser (see the module docstring)."""
+    ap.add_argument("--split", choices=SPLITS, default=default,
+                    help="views that score the settings: 'val' (training views held out of the fit; "
+                         "for choosing) or 'test' (the held-out test views; for reporting) "
+                         f"(default {default})")
+
+
+def scene_views(scene, split: str) -> tuple[list, list]:
+    """(cameras to fit on, cameras to score on) of ``scene`` for a split: ``"test"``: (train,
+    test); ``"val"``: :func:`clod_adapter.io.scene.validation_split` of the training views (fit,
+    val). A scene without test views scores ``"test"`` on its first training view."""
+    if split == "test":
+        return list(scene.train), list(scene.test) or list(scene.train[:1])
+    if split == "val":
+        return validation_split(scene.train)
+    raise ValueError(f"split must be one of {SPLITS}, got {split!r}")
+
+
+def split_suffix(split: str) -> str:
+    """Suffix of cache tags and output names: ``""`` for test, ``"_val"`` for val."""
+    return "" if split == "test" else f"_{split}"
 
 
 def setup_threads(n: int = 2) -> None:
@@ -67,18 +102,25 @@ def resolve_input(name: str) -> tuple[Path, Path, int]:
     return Path(parts[0]), Path(parts[1]), int(parts[2]) if len(parts) == 3 else 1
 
 
-def adapt_cached(name: str, cfg: AdaptConfig, tag: str, *, log=print) -> Path:
+def adapt_cached(name: str, cfg: AdaptConfig, tag: str, *, split: str = "test", log=print) -> Path:
     """The adapted .ply of ``name`` with ``cfg``: runs ``clod-adapt``'s job into
-    ``RUNS/name/tag`` unless a run with the same settings is there. Returns the .ply path."""
+    ``RUNS/name/tag`` (``tag + "_val"`` for ``split="val"``, trained on the fit views only:
+    ``clod-adapt --holdout-val``) unless a run with the same settings is there. Returns the .ply
+    path."""
     from clod_adapter.jobs.adapt import run
 
+    if split not in SPLITS:
+        raise ValueError(f"split must be one of {SPLITS}, got {split!r}")
+    holdout = split == "val"
     ply, scene, res = resolve_input(name)
+    tag = tag + split_suffix(split)
     out = RUNS / name / tag
     mj = out / "metrics.json"
     if mj.is_file():
         try:
             have = json.loads(mj.read_text())
-            if have.get("config") == json.loads(json.dumps(asdict(cfg))) and have.get("input_ply") == str(ply):
+            if (have.get("config") == json.loads(json.dumps(asdict(cfg))) and have.get("input_ply") == str(ply)
+                    and bool(have.get("holdout_val", False)) == holdout):
                 log(f"[{name}/{tag}] reusing {out} ({have.get('train_seconds')} s of training)")
                 return out / "point_cloud.ply"
         except (OSError, ValueError):
@@ -86,8 +128,9 @@ def adapt_cached(name: str, cfg: AdaptConfig, tag: str, *, log=print) -> Path:
         for p in out.iterdir():  # stale run with other settings
             if p.is_file():
                 p.unlink()
-    log(f"[{name}/{tag}] adapting {ply.name} ({cfg.schedule}, max_sv {cfg.max_sv:g}, {cfg.iterations} steps) ...")
-    run(ply, scene, out, cfg, resolution=res, progress=False, log=lambda *a: None)
+    log(f"[{name}/{tag}] adapting {ply.name} ({cfg.schedule}, max_sv {cfg.max_sv:g}, {cfg.iterations} steps"
+        f"{', fit views only' if holdout else ''}) ...")
+    run(ply, scene, out, cfg, resolution=res, progress=False, log=lambda *a: None, holdout_val=holdout)
     return out / "point_cloud.ply"
 
 
@@ -96,11 +139,13 @@ def metrics_of(ply: Path) -> dict:
     return json.loads((Path(ply).parent / "metrics.json").read_text())
 
 
-def load_input(name: str):
-    """(pretrained Gaussians, scene, test images) of an input."""
+def load_input(name: str, split: str = "test"):
+    """(pretrained Gaussians, scene, images of the scored views) of an input: the scored views
+    are ``scene_views(scene, split)[1]`` (the test views for ``"test"``, the validation views
+    for ``"val"``)."""
     ply, scene_root, res = resolve_input(name)
     scene = load_scene(scene_root, resolution=res)
-    return load_model(ply), scene, [scene.load_image(c) for c in scene.test]
+    return load_model(ply), scene, [scene.load_image(c) for c in scene_views(scene, split)[1]]
 
 
 def fmt_pct(b: float) -> str:

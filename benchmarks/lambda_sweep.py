@@ -1,10 +1,13 @@
 """lambda_reg against quality at full detail and depth of the LoD, on fern.
 
 Fine-tunes the pretrained fern model once per setting (default seed, other settings default)
-and prints test-view PSNR and the rendered fraction at s_v = 1, 2, 3, 5. The README's
-"Choosing lambda_reg" table is
+and prints PSNR and the rendered fraction at s_v = 1, 2, 3, 5 on the scored views: with
+``--split val`` (the default: lambda_reg is a choice) trained on the training views minus the
+validation views and scored on those (:func:`clod_adapter.io.scene.validation_split`), with
+``--split test`` trained on every training view and scored on the test views. The README's
+"Choosing lambda_reg" table was measured before issue 18 on the test views:
 
-    python benchmarks/lambda_sweep.py 1:500 0.1:500 0.01:500 0.03:1000 0.05:1000
+    python benchmarks/lambda_sweep.py --split test 1:500 0.1:500 0.01:500 0.03:1000 0.05:1000
 
 (LAMBDA:STEPS per run; 2.5-5 min each on 2 cores).
 """
@@ -22,6 +25,9 @@ import torch  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+from common import add_split_arg, scene_views  # noqa: E402
 
 from clod_adapter.adapt import AdaptConfig, adapt, prepare  # noqa: E402
 from clod_adapter.level_metrics import evaluate_level  # noqa: E402
@@ -34,6 +40,7 @@ def main() -> None:
     ap.add_argument("runs", nargs="+", help="LAMBDA:STEPS, e.g. 0.05:1000")
     ap.add_argument("--scene", default=str(REPO.parent / "shared" / "data" / "fern"))
     ap.add_argument("--resolution", type=int, default=2)
+    add_split_arg(ap, "val")
     args = ap.parse_args()
     torch.set_num_threads(2)
     root = Path(args.scene)
@@ -42,17 +49,19 @@ def main() -> None:
         sys.exit(f"lambda_sweep: {ply} not found (needs ../shared/data/fern)")
     g = read_ply(ply)
     sc = load_colmap_scene(root, resolution=args.resolution)
-    tr = [sc.load_image(c) for c in sc.train]
-    te = [sc.load_image(c) for c in sc.test]
+    fit, ev = scene_views(sc, args.split)
+    tr = [sc.load_image(c) for c in fit]
+    te = [sc.load_image(c) for c in ev]
+    print(f"{len(fit)} fit views, scored on {len(ev)} {'validation' if args.split == 'val' else 'test'} views")
     print(f"{'lambda':>8} {'steps':>6} " + " ".join(f"{'s_v=' + str(s):>15}" for s in (1, 2, 3, 5)) + "  seconds")
     for spec in args.runs:
         lam, steps = spec.split(":")
         cfg = AdaptConfig(schedule="paper", lambda_reg=float(lam), iterations=int(steps))
         t = time.perf_counter()
-        st = prepare(g, sc.train, cfg, tr)
-        adapt(st, sc.train, tr, cfg, progress=False)
+        st = prepare(g, fit, cfg, tr)
+        adapt(st, fit, tr, cfg, progress=False)
         m = st.gaussians().detach()
-        res = [evaluate_level(m, sc.test, te, float(s)) for s in (1, 2, 3, 5)]
+        res = [evaluate_level(m, ev, te, float(s)) for s in (1, 2, 3, 5)]
         cells = " ".join(f"{r.psnr:6.2f}dB {100 * r.fraction:4.0f}%" for r in res)
         print(f"{float(lam):8g} {int(steps):6d} {cells}  {time.perf_counter() - t:.0f}", flush=True)
 

@@ -2,15 +2,20 @@
 Gaussians drawn, with the static cuts of the input model at the same budgets.
 
 For each input and each max_sv: ``clod-adapt``'s job with its defaults (cached, common.py), then
-the test views at s_v = 1, along an s_v sweep (1 .. max_sv) and at a grid of budgets (fractions of
+the scored views (``--split``: ``val``, the default, the validation views, trained without them
+(``clod-adapt --holdout-val``), to choose max_sv; ``test``, the test views, to report) at s_v = 1, along an s_v sweep (1 .. max_sv) and at a grid of budgets (fractions of
 the model, down to 3.5 %), scored with PSNR / SSIM / LPIPS-alex. The input model is cut to the
 same budgets by opacity ranking, LightGaussian significance and (when installed) splat-transform's
 merging decimator. Writes ``runs/bench/<name>.csv``, ``<name>.md`` and ``<name>.png`` (PSNR vs
 Gaussians drawn, one curve per max_sv plus the static cuts, one panel per input, max_sv^-1.5
 marked):
 
-    python benchmarks/max_sv_sweep.py                          # fern, max_sv 1 3 5 7
+    python benchmarks/max_sv_sweep.py                          # fern, max_sv 1 3 5 7, validation views
     python benchmarks/max_sv_sweep.py --inputs fern demo --max-svs 3 5
+    python benchmarks/max_sv_sweep.py --split test             # the README's table (test views)
+
+With ``--split val`` the outputs are ``<name>_val.*``. robustness.py (a report) defaults to
+``--split test``.
 """
 from __future__ import annotations
 
@@ -21,7 +26,8 @@ import time
 from pathlib import Path
 
 import torch
-from common import LABELS, RUNS, adapt_cached, fmt_pct, load_input, metrics_of, setup_threads, table
+from common import (LABELS, RUNS, adapt_cached, add_split_arg, fmt_pct, load_input, metrics_of, scene_views,
+                    setup_threads, split_suffix, table)
 
 from clod_adapter.adapt import AdaptConfig
 from clod_adapter.baselines import (find_splat_transform, lightgaussian_significance, merge_decimate,
@@ -46,11 +52,11 @@ def _score(imgs, gts, lp):
 
 
 @torch.no_grad()
-def sweep(name: str, max_svs, iterations: int, lp, tool, log=print) -> list[dict]:
-    """Rows (dicts) for one input: each max_sv's model along s_v and budgets, and the static cuts."""
-    pre, scene, gts = load_input(name)
-    cams = scene.test or scene.train[:1]
-    gts = gts or [scene.load_image(c) for c in cams]
+def sweep(name: str, max_svs, iterations: int, lp, tool, log=print, split: str = "test") -> list[dict]:
+    """Rows (dicts) for one input: each max_sv's model along s_v and budgets, and the static cuts,
+    scored on the views of ``split`` (common.scene_views)."""
+    pre, scene, gts = load_input(name, split)
+    fit_cams, cams = scene_views(scene, split)
     n = len(pre)
     rows = []
 
@@ -64,7 +70,7 @@ def sweep(name: str, max_svs, iterations: int, lp, tool, log=print) -> list[dict
         [render_lod(pre, c).n_rendered for c in cams])
     for m in max_svs:
         cfg = AdaptConfig(max_sv=float(m), iterations=iterations)
-        ply = adapt_cached(name, cfg, f"calibrated_M{m:g}_it{iterations}", log=log)
+        ply = adapt_cached(name, cfg, f"calibrated_M{m:g}_it{iterations}", split=split, log=log)
         met = metrics_of(ply)
         model = read_ply(ply)
         t = time.perf_counter()
@@ -76,7 +82,7 @@ def sweep(name: str, max_svs, iterations: int, lp, tool, log=print) -> list[dict
             add("clod_budget", m, f"budget={b:g}", sum(o.s_v for o in outs) / len(outs), b,
                 [o.image for o in outs], [o.n_rendered for o in outs])
         log(f"[{name}/M{m:g}] {met['train_seconds']:.0f} s training; evaluated in {time.perf_counter() - t:.0f} s")
-    scores = {"opacity": pre.opacities, "lightgaussian": lightgaussian_significance(pre, scene.train)}
+    scores = {"opacity": pre.opacities, "lightgaussian": lightgaussian_significance(pre, fit_cams)}
     for b in BUDGETS:
         k = budget_count(b, n)
         for meth, sc in scores.items():
@@ -91,7 +97,7 @@ def sweep(name: str, max_svs, iterations: int, lp, tool, log=print) -> list[dict
     return rows
 
 
-def markdown(rows: list[dict], max_svs) -> str:
+def markdown(rows: list[dict], max_svs, split: str = "test") -> str:
     out = []
     for name in dict.fromkeys(r["input"] for r in rows):
         rs = [r for r in rows if r["input"] == name]
@@ -111,7 +117,8 @@ def markdown(rows: list[dict], max_svs) -> str:
             if any(r["method"] == meth for r in rs):
                 body.append([f"input cut by {meth}", f"{inp['psnr']:.2f}"]
                             + [f"{get(meth, '', b)['psnr']:.2f}" if get(meth, "", b) else "-" for b in TABLE_BUDGETS] + [""])
-        out += [f"### {LABELS.get(name, name)}: PSNR (dB) on the test views", "",
+        views = "validation views" if split == "val" else "test views"
+        out += [f"### {LABELS.get(name, name)}: PSNR (dB) on the {views}", "",
                 f"Input model {inp['psnr']:.2f} dB, {inp['gaussians']:,.0f} Gaussians in view.", "",
                 table(head, body), ""]
     return "\n".join(out)
@@ -142,7 +149,7 @@ def plot(rows: list[dict], max_svs, path: Path) -> None:
         inp = next(r for r in rs if r["method"] == "input")
         ax.plot([inp["gaussians"]], [inp["psnr"]], "k*", ms=11, label="input model")
         ax.set_xscale("log")
-        ax.set_xlabel("Gaussians drawn per view (mean over test views; dotted: max_sv^-1.5)")
+        ax.set_xlabel("Gaussians drawn per view (mean over the scored views; dotted: max_sv^-1.5)")
         ax.set_ylabel("PSNR (dB)")
         ax.set_title(LABELS.get(name, name), fontsize=10)
         ax.grid(alpha=0.3, which="both")
@@ -152,7 +159,7 @@ def plot(rows: list[dict], max_svs, path: Path) -> None:
     plt.close(fig)
 
 
-def run_sweep(inputs, max_svs, iterations, out_name: str) -> None:
+def run_sweep(inputs, max_svs, iterations, out_name: str, split: str = "test") -> None:
     lp, note = resolve_lpips("auto")
     print(note)
     tool = find_splat_transform()
@@ -161,28 +168,30 @@ def run_sweep(inputs, max_svs, iterations, out_name: str) -> None:
     rows = []
     for name in inputs:
         it = iterations or (400 if name == "demo" else 1000)
-        rows += sweep(name, max_svs, it, lp, tool)
+        rows += sweep(name, max_svs, it, lp, tool, split=split)
+    out_name += split_suffix(split)
     RUNS.mkdir(parents=True, exist_ok=True)
     with open(RUNS / f"{out_name}.csv", "w", newline="") as f:
         w = csv.DictWriter(f, fieldnames=list(rows[0]))
         w.writeheader()
         w.writerows(rows)
-    md = markdown(rows, max_svs)
+    md = markdown(rows, max_svs, split)
     (RUNS / f"{out_name}.md").write_text(md)
     plot(rows, max_svs, RUNS / f"{out_name}.png")
     print(md)
     print(f"wrote {RUNS / out_name}.csv / .md / .png")
 
 
-def main(default_inputs=("fern",), out_name="max_sv_sweep") -> None:
+def main(default_inputs=("fern",), out_name="max_sv_sweep", default_split="val") -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--inputs", nargs="+", default=list(default_inputs))
     ap.add_argument("--max-svs", nargs="+", type=float, default=[1, 3, 5, 7])
     ap.add_argument("--iterations", type=int, default=None, help="default: clod-adapt's (1000; demo 400)")
     ap.add_argument("--threads", type=int, default=2)
+    add_split_arg(ap, default_split)
     args = ap.parse_args()
     setup_threads(args.threads)
-    run_sweep(args.inputs, [float(m) for m in args.max_svs], args.iterations, out_name)
+    run_sweep(args.inputs, [float(m) for m in args.max_svs], args.iterations, out_name, args.split)
 
 
 if __name__ == "__main__":

@@ -11,8 +11,10 @@ per input model):
     python benchmarks/robustness.py
 
 It shares adaptations with max_sv_sweep.py and whole_range.py (runs/bench/, same settings).
+A report, not a choice: scored on the test views by default (``--split val`` for the
+validation views).
 """
 from max_sv_sweep import main
 
 if __name__ == "__main__":
-    main(default_inputs=("fern", "maskgaussian"), out_name="robustness")
+    main(default_inputs=("fern", "maskgaussian"), out_name="robustness", default_split="test")

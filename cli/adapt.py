@@ -16,6 +16,7 @@ which state is on disk).
 """
 from __future__ import annotations
 
+import argparse
 import os
 import sys
 from pathlib import Path
@@ -108,6 +109,8 @@ def build_parser():
     p.add_argument("--save-every", type=int, default=None, metavar="N",
                    help="also write the resumable state every N steps (default: every 10 %% of the run when "
                         "data-parallel, else only on a signal and at the end; 0: never)")
+    p.add_argument("--holdout-val", action="store_true",
+                   help=argparse.SUPPRESS)  # benchmarks' --split val: fit without the validation views, score on them
     p.add_argument("--demo", action="store_true",
                    help="build the embedded synthetic scene and pretrained model in OUT/demo and adapt it")
     jobs.add_common_flags(p)
@@ -211,7 +214,7 @@ def _main(args) -> int:
         allow_mismatch=args.allow_mismatch, iteration=args.iteration, layout=args.layout,
         tensorboard=args.tensorboard, timing_repeats=args.timing_repeats, masks=args.masks,
         distributed=distributed, save_every=args.save_every,
-        views_from_state=args.resume and args.views_per_step is None)
+        views_from_state=args.resume and args.views_per_step is None, holdout_val=args.holdout_val)
     return 0
 
 

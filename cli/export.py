@@ -5,7 +5,7 @@
 
 Writes OUTDIR/point_cloud_clod.ply (the extended .ply, INRIA layout + ``sigma_d``), with
 ``--s-v``/``--budget`` OUTDIR/baked_sv{X}.ply / baked_budget{K}.ply (standard INRIA .ply of the
-Gaussians that setting renders from the scene's views), with ``--ordered`` OUTDIR/ordered.ply
+Gaussians that setting renders from the training views), with ``--ordered`` OUTDIR/ordered.ply
 (Gaussians sorted so every prefix is a level of detail) and always OUTDIR/export.json (sizes,
 counts, PSNRs, pruning and SH results). ``--prune`` drops Gaussians no training view renders at
 any s_v >= 1; ``--sh-max-drop-db D`` lowers the SH degree while the training-view PSNR at
@@ -43,7 +43,7 @@ def build_parser():
     p.add_argument("-o", "--output", metavar="OUTDIR", help="output folder, new or empty")
     g = p.add_mutually_exclusive_group()
     g.add_argument("--s-v", type=float, default=None, metavar="X",
-                   help="bake the Gaussians rendered at s_v = X (>= 1) from the scene's views")
+                   help="bake the Gaussians rendered at s_v = X (>= 1) from the training views")
     g.add_argument("--budget", default=None, metavar="K",
                    help="bake the Gaussians of a per-view budget: a count (integer > 1) or a fraction (<= 1)")
     p.add_argument("--ordered", action="store_true", help="write ordered.ply and score its prefixes")

@@ -87,13 +87,17 @@ def test_baked_ply_exact_inria_layout_and_kept_set(setup, cli_out):
     assert all(p.val_dtype in ("f4", "float32") or np.dtype(p.val_dtype) == np.float32 for p in ply["vertex"].properties)
     assert ply.byte_order == "<" and not ply.text
     assert path.read_bytes()[:200].find(b"format binary_little_endian 1.0") >= 0
-    m, cams = setup["model"], setup["scene"].cameras
+    m, cams = setup["model"], setup["scene"].train  # baked from the training views only (issue 18)
     keep = torch.zeros(len(m), dtype=torch.bool)
     for c in cams:
         keep |= render_lod(m, c, 1.5).mask
     assert 0 < int(keep.sum()) < len(m)
     assert len(ply["vertex"].data) == int(keep.sum())
     np.testing.assert_array_equal(minimal_inria_reader(path)["xyz"], m.means[keep].numpy())
+    import json
+
+    rep = json.loads((cli_out / "export.json").read_text())
+    assert rep["baked"]["cameras"] == "train" and "psnr_vs_render_lod_train_views" in rep["baked"]
 
 
 @pytest.mark.slow

@@ -10,6 +10,8 @@ Conventions:
       (examples/datasets/colmap.py) and the fern checkpoint's training (TRAINING.md) do.
     * COLMAP test split as the official 3DGS ``readColmapSceneInfo`` with ``eval``: images
       sorted by name, index % llffhold == 0 is a test view.
+    * Validation views (:func:`validation_split`): settings and design choices are scored on
+      training views held out of the fit, never on the test views.
 
 ``pycolmap`` is imported only for COLMAP scenes (NeRF-synthetic scenes never load it).
 """
@@ -27,7 +29,7 @@ from PIL import Image
 from torch import Tensor
 
 
-__all__ = ["Camera", "Scene", "SceneError"]
+__all__ = ["Camera", "Scene", "SceneError", "validation_split", "holdout_validation"]
 
 PathLike = Union[str, "os.PathLike[str]"]
 
@@ -137,6 +139,58 @@ class Scene:
         if not cams:
             return torch.zeros((0, 0, 0, 3), dtype=torch.float32)
         return torch.stack([self.load_image(c) for c in cams])
+
+
+#: :func:`validation_split` defaults: every 8th training view, starting at the 5th (offset 4,
+#: half-way between the test views, which sit at index % 8 == 0 of all views).
+VAL_EVERY = 8
+VAL_OFFSET = 4
+
+
+def validation_split(train_cameras: Sequence[Camera], every: int = VAL_EVERY,
+                     offset: int = VAL_OFFSET) -> tuple[list[Camera], list[Camera]]:
+    """Split the *training* cameras into (fit_cameras, val_cameras).
+
+    What it is for: hyperparameters and design choices (a schedule, max_sv, lambda_reg, the start
+    subset of a fine-tuned level, ...) are chosen by their score on the validation views, which
+    the fit never sees; the test views are kept for the final report only, so a choice never
+    looks at them. Pass ``scene.train`` only: no test view can then be a validation view.
+
+    The rule: the cameras are sorted by name; the one at sorted index ``i`` is a validation view
+    iff ``i >= offset`` and ``(i - offset) % every == 0`` (indices ``offset, offset + every,
+    ...``). When that picks none but there are >= 2 training views (fewer than ``offset + 1``
+    views), the view at index ``min(offset, n - 1)`` is the one validation view; a single training
+    view is never held out. ``every >= 2``, so the fit set is never empty when ``n >= 1``.
+    Deterministic (names only), disjoint, and fit + val is every training camera; both lists are
+    sorted by name. E.g. 57 training views (skull), ``every=8``: 7 validation views (indices 4,
+    12, ..., 52) and 50 fit views.
+
+    Raises:
+        ValueError: ``every < 2`` or ``offset < 0``.
+    """
+    every, offset = int(every), int(offset)
+    if every < 2:
+        raise ValueError(f"validation_split: every must be >= 2, got {every}")
+    if offset < 0:
+        raise ValueError(f"validation_split: offset must be >= 0, got {offset}")
+    cams = sorted(train_cameras, key=lambda c: c.name)
+    n = len(cams)
+    val_idx = set(range(offset, n, every))
+    if not val_idx and n >= 2:
+        val_idx = {min(offset, n - 1)}
+    fit = [c for i, c in enumerate(cams) if i not in val_idx]
+    val = [c for i, c in enumerate(cams) if i in val_idx]
+    return fit, val
+
+
+def holdout_validation(scene: Scene, every: int = VAL_EVERY, offset: int = VAL_OFFSET) -> Scene:
+    """A copy of ``scene`` whose ``train`` is the fit views and ``test`` the validation views of
+    :func:`validation_split` (``scene.test`` left out entirely): a job run on it fits without
+    the validation views and scores on them, and never sees a test view (``clod-adapt
+    --holdout-val``). Same root, resolution and background; its own (empty) image cache."""
+    fit, val = validation_split(scene.train, every, offset)
+    return Scene(root=scene.root, train=fit, test=val, resolution=scene.resolution,
+                 cache_size=scene.cache_size, background=scene.background)
 
 
 def _read_image(path: Path, width: int, height: int, background: Sequence[float] = (0.0, 0.0, 0.0)) -> Tensor:

@@ -258,6 +258,7 @@ def run(
     distributed: bool = False,
     save_every: Optional[int] = 0,
     views_from_state: bool = False,
+    holdout_val: bool = False,
 ) -> dict:
     """Run the whole job; returns the metrics dict (also written to ``metrics.json``).
 
@@ -287,6 +288,9 @@ def run(
     written. ``save_every``: also write the resumable state every this many steps (0: only on
     a signal and at the end; None: every 10 % of the run when ``distributed``, else 0). ``views_from_state`` (with ``resume``): take ``views_per_step``
     from the state instead of ``cfg``.
+    ``holdout_val``: train on the fit views only and evaluate on the validation views
+    (:func:`clod_adapter.io.scene.holdout_validation`; the test views are not used at all), for
+    runs that choose settings (the benchmarks' ``--split val``); ``metrics.json`` says so.
 
     ``resume``: continue from ``out_dir/adapt_state.safetensors``; refused (InputError) when it
     was saved for another input .ply, scene or resolution, or with other settings than ``cfg``
@@ -317,7 +321,7 @@ def run(
               sanitize=sanitize, iterations_from_state=iterations_from_state, force=force,
               allow_mismatch=allow_mismatch, iteration=iteration, layout=layout, tensorboard=tensorboard,
               timing_repeats=timing_repeats, masks=masks, save_every=save_every,
-              views_from_state=views_from_state)
+              views_from_state=views_from_state, holdout_val=holdout_val)
     with StopFlag(abortable=True) as stop, deterministic_mode(deterministic):
         group = None
         try:
@@ -429,7 +433,7 @@ def _run(ply_path, scene_root, out_dir, cfg: AdaptConfig, *, stop: StopFlag, res
          device: str, resume: bool, progress: bool, log, sanitize: bool,
          iterations_from_state: bool, force: bool, allow_mismatch: bool, iteration: Optional[int],
          layout: str, tensorboard: bool, timing_repeats: int, masks: str, group=None,
-         save_every: Optional[int] = 0, views_from_state: bool = False) -> dict:
+         save_every: Optional[int] = 0, views_from_state: bool = False, holdout_val: bool = False) -> dict:
     t_start = time.perf_counter()
     main = group is None or group.is_main  # the one process that writes (data-parallel: rank 0)
     ply_path, scene_root, out_dir = Path(ply_path), Path(scene_root), Path(out_dir)
@@ -462,6 +466,10 @@ def _run(ply_path, scene_root, out_dir, cfg: AdaptConfig, *, stop: StopFlag, res
     gaussians, sanitized = check_finite(gaussians, ply_path, sanitize, log=log)
     scene = load_scene(scene_root, resolution=resolution, background=cfg.background)
     stop.reinstall()  # importing pycolmap (COLMAP scenes only) replaces the SIGTERM handler
+    if holdout_val:  # fit on the training views minus the validation views, score on those
+        from ..io.scene import holdout_validation
+
+        scene = holdout_validation(scene)
     if not scene.train:
         raise InputError(f"{scene_root}: no training views (every image is a test view)")
     state_path = out_dir / STATE_NAME
@@ -655,6 +663,7 @@ def _run(ply_path, scene_root, out_dir, cfg: AdaptConfig, *, stop: StopFlag, res
         "input_sanitized": sanitized,
         "input_masks": asdict(mask_info) if mask_info is not None else None,
         "test_views": [c.name for c in test_cams],
+        "holdout_val": bool(holdout_val),
         "config": asdict(cfg),
         "train_seconds": round(train_s, 2),
         "seconds_per_iteration": round(train_s / max(state.iteration - it0, 1), 4),

@@ -20,7 +20,10 @@ PREFIX_FRACTIONS = (1.0, 0.5, 0.25, 0.1)
 def export(model, scene, train_imgs, test_cams, test_imgs, out: Path, *, ply: Path, s_v, budget,
            baked_name, ordered, prune, sh_max_drop_db, argv=None, progress: bool = False, spz: bool = False) -> dict:
     """Compute everything, then write the files (each atomically); returns the export.json dict.
-    ``progress``: one step per phase (a tqdm bar on a terminal, else a line per phase)."""
+    ``progress``: one step per phase (a tqdm bar on a terminal, else a line per phase).
+
+    Every output is derived from the training views only (pruning and its ``d'`` anchors, SH
+    reduction, the baked level, the importance order); the test views only score the results."""
     import torch
 
     from .. import export as ex
@@ -48,7 +51,7 @@ def export(model, scene, train_imgs, test_cams, test_imgs, out: Path, *, ply: Pa
         rep["psnr_test_sv1_in"] = _mean_psnr(ex, model, test_cams, test_imgs)
         step()
         if prune:
-            model, n_drop = ex.prune_never_rendered(model, scene.train, anchor_cameras=scene.cameras)
+            model, n_drop = ex.prune_never_rendered(model, scene.train, anchor_cameras=scene.train)
             rep["prune"] = {"dropped": n_drop, "kept": len(model),
                             "bytes_saved": n_drop * bytes_per_gaussian(model),
                             "psnr_test_sv1_after": _mean_psnr(ex, model, test_cams, test_imgs)}
@@ -62,13 +65,13 @@ def export(model, scene, train_imgs, test_cams, test_imgs, out: Path, *, ply: Pa
         rep["sh_degree_out"] = model.sh_degree
         baked = None
         if baked_name is not None:
-            baked, binfo = ex.bake(model, scene.cameras, s_v=s_v, budget=budget, return_info=True)
+            baked, binfo = ex.bake(model, scene.train, s_v=s_v, budget=budget, return_info=True)
             lod_ps = [psnr(ex.render_lod(model, c, s_v, budget=budget, estimator="paper").image, gt, cap=True)
                       for c, gt in zip(test_cams, test_imgs)]
             bk_ps = [psnr(ex.render_lod(baked, c).image, gt, cap=True) for c, gt in zip(test_cams, test_imgs)]
-            rep["baked"] = {"file": baked_name, "s_v": s_v, "budget": budget, "cameras": "train+test",
+            rep["baked"] = {"file": baked_name, "s_v": s_v, "budget": budget, "cameras": "train",
                             "gaussians": len(baked), "mean_rendered_per_view_lod": binfo.per_view_rendered,
-                            "opacity": binfo.chosen, "psnr_vs_render_lod_all_views": binfo.psnr_vs_lod,
+                            "opacity": binfo.chosen, "psnr_vs_render_lod_train_views": binfo.psnr_vs_lod,
                             "psnr_test_render_lod": sum(lod_ps) / len(lod_ps),
                             "psnr_test_baked": sum(bk_ps) / len(bk_ps)}
             step()

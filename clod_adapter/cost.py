@@ -40,7 +40,7 @@ COST_UNIT = "ellipse_px"
 
 @torch.no_grad()
 def cost_units(proj: VisibleProjection, opacities: Optional[Tensor], width: int, height: int,
-               tile_size: int = 16) -> dict[str, Tensor]:
+               tile_size: int = 16, units: tuple[str, ...] = ("tiles", "bbox_px", "ellipse_px")) -> dict[str, Tensor]:
     """Candidate per-Gaussian cost units of a finished projection (V rows, ``proj.ids``).
 
     Args:
@@ -48,6 +48,7 @@ def cost_units(proj: VisibleProjection, opacities: Optional[Tensor], width: int,
         opacities: [V] the opacities the projection was finished with (the ellipse's extent),
             or None (extent 3.33 sigma).
         width, height, tile_size: image and tile size, pixels.
+        units: which of the units below to compute.
 
     Returns:
         dict of [V] float64: ``"tiles"`` (16x16 tiles the box ``mean2d +- radius`` touches, the
@@ -55,25 +56,31 @@ def cost_units(proj: VisibleProjection, opacities: Optional[Tensor], width: int,
         pixels), ``"ellipse_px"`` (the ``alpha >= 1/255`` ellipse's area, pixels, times the
         share of the box inside the image).
     """
-    tw, th = math.ceil(width / tile_size), math.ceil(height / tile_size)
-    x0, y0, x1, y1 = tile_rects(proj.means2d, proj.radii, tile_size, tw, th)
-    tiles = ((x1 - x0) * (y1 - y0)).double()
-    m = proj.means2d.detach().double()
-    r = proj.radii.double()
-    bw = ((m[:, 0] + r[:, 0]).clamp(0, width) - (m[:, 0] - r[:, 0]).clamp(0, width)).clamp_min(0)
-    bh = ((m[:, 1] + r[:, 1]).clamp(0, height) - (m[:, 1] - r[:, 1]).clamp(0, height)).clamp_min(0)
-    bbox = bw * bh
-    a, b, c = proj.conics.detach().double().unbind(-1)
-    det_conic = (a * c - b * b).clamp_min(1e-30)
-    if opacities is None:
-        e2 = torch.full_like(a, GAUSSIAN_EXTEND ** 2)
-    else:
-        o = opacities.detach().double().clamp_min(ALPHA_THRESHOLD)
-        e2 = (2.0 * torch.log(o / ALPHA_THRESHOLD)).clamp(0.0, GAUSSIAN_EXTEND ** 2)
-    ell = math.pi * e2 / torch.sqrt(det_conic)
-    full = (4.0 * r[:, 0] * r[:, 1]).clamp_min(1.0)
-    ell = torch.minimum(ell, full) * (bbox / full)
-    return {"tiles": tiles, "bbox_px": bbox, "ellipse_px": ell}
+    out = {}
+    if "tiles" in units:
+        tw, th = math.ceil(width / tile_size), math.ceil(height / tile_size)
+        x0, y0, x1, y1 = tile_rects(proj.means2d, proj.radii, tile_size, tw, th)
+        out["tiles"] = ((x1 - x0) * (y1 - y0)).double()
+    if "bbox_px" in units or "ellipse_px" in units:
+        m = proj.means2d.detach().double()
+        r = proj.radii.double()
+        bw = ((m[:, 0] + r[:, 0]).clamp(0, width) - (m[:, 0] - r[:, 0]).clamp(0, width)).clamp_min(0)
+        bh = ((m[:, 1] + r[:, 1]).clamp(0, height) - (m[:, 1] - r[:, 1]).clamp(0, height)).clamp_min(0)
+        bbox = bw * bh
+        if "bbox_px" in units:
+            out["bbox_px"] = bbox
+    if "ellipse_px" in units:
+        a, b, c = proj.conics.detach().double().unbind(-1)
+        det_conic = (a * c - b * b).clamp_min(1e-30)
+        if opacities is None:
+            e2 = torch.full_like(a, GAUSSIAN_EXTEND ** 2)
+        else:
+            o = opacities.detach().double().clamp_min(ALPHA_THRESHOLD)
+            e2 = (2.0 * torch.log(o / ALPHA_THRESHOLD)).clamp(0.0, GAUSSIAN_EXTEND ** 2)
+        ell = math.pi * e2 / torch.sqrt(det_conic)
+        full = (4.0 * r[:, 0] * r[:, 1]).clamp_min(1.0)
+        out["ellipse_px"] = torch.minimum(ell, full) * (bbox / full)
+    return out
 
 
 def _level_opacities(view, idx: Tensor, level: float) -> Tensor:
@@ -136,7 +143,7 @@ def splat_cost(view, indices: Optional[Tensor] = None, *, level: float = 0.0, op
     where = torch.full((view.n,), -1, dtype=torch.long, device=dev)
     where[sub] = torch.arange(sub.numel(), device=dev)
     local = where.index_select(0, proj.ids)
-    u = cost_units(proj, op.index_select(0, local), view.width, view.height, TILE_SIZE)[unit]
+    u = cost_units(proj, op.index_select(0, local), view.width, view.height, TILE_SIZE, (unit,))[unit]
     out.index_copy_(0, pos.index_select(0, local), u)
     return out
 

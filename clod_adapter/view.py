@@ -35,6 +35,7 @@ from . import lod
 from .lod import Estimator
 from .render.dispatch import Backend
 from .budget import budget_count, critical_s_v, select_budget
+from .cost import FrameTimeModel
 from .gaussians import Gaussians
 from .render.projection import finish_projection, project_geometry
 
@@ -147,14 +148,24 @@ class LodView:
     def select(self, s_v: Optional[float] = None, *, budget: Optional[float | int] = None,
                min_s_v: float = 1.0, budget_in_view: bool = False, level: Optional[float] = None,
                estimator: Estimator = "ste", temperature: float = 1.0,
-               eta_grad_sigma_only: bool = True) -> LodSelection:
-        """What this camera draws at ``s_v`` or within ``budget`` (arguments as :func:`render_lod`).
+               eta_grad_sigma_only: bool = True, budget_cost: Optional[float] = None,
+               budget_ms: Optional[float] = None, time_model: Optional[FrameTimeModel] = None) -> LodSelection:
+        """What this camera draws at ``s_v`` or within ``budget``, ``budget_cost`` or
+        ``budget_ms`` (arguments as :func:`render_lod`). A cost budget draws the count
+        :meth:`cost_count` gives, as a count budget of that size would (same Gaussians, same
+        ``s_v``, the ``min_s_v`` rule).
 
         Raises:
-            ValueError: both ``s_v`` and ``budget``; ``s_v < 1``; LoD without ``sigma_d``.
+            ValueError: more than one of ``s_v``, ``budget``, ``budget_cost``, ``budget_ms``;
+                ``s_v < 1``; a negative cost budget; LoD without ``sigma_d``.
         """
-        if budget is not None and s_v is not None:
-            raise ValueError("render_lod: give s_v or budget, not both")
+        given = [k for k, v in (("s_v", s_v), ("budget", budget), ("budget_cost", budget_cost),
+                                ("budget_ms", budget_ms)) if v is not None]
+        if len(given) > 1:
+            raise ValueError(f"render_lod: give one of s_v, budget, budget_cost, budget_ms, not {' and '.join(given)}")
+        if budget_cost is not None or budget_ms is not None:
+            budget = self.cost_count(budget_cost, budget_ms, level=level, time_model=time_model)
+            budget_in_view = False
         dev = self.means.device
         if s_v is None and budget is None:
             idx = torch.nonzero(self.visible, as_tuple=False).squeeze(1)
@@ -204,6 +215,78 @@ class LodView:
             logits = logits + level * g.index_select(0, idx)
         drawn = torch.sigmoid(logits) * lod.fade_weight(margin, lod.fade_width_at(s_used, st.fade_width))
         return LodSelection(idx, drawn, mask, s_used, float(level), eta)
+
+    def cost_count(self, budget_cost: Optional[float] = None, budget_ms: Optional[float] = None, *,
+                   level: Optional[float] = None, time_model: Optional[FrameTimeModel] = None) -> int:
+        """How many Gaussians a cost budget draws: the longest prefix of the count budgets' order
+        (the Gaussians in view by :attr:`critical` descending, ties by index) whose cost fits.
+
+        Per-Gaussian costs are :func:`clod_adapter.cost.splat_cost` (clipped ellipse pixels) at the
+        level the prefix is drawn at (``level``, or :func:`clod_adapter.lod.level_of_fraction` of
+        its share of the Gaussians in view for the window fade with level gains; 0 for Eq. 2),
+        with the opacities at that level before the fade (an upper bound: the fade and Eq. 2's
+        attenuation only shrink footprints). When the level varies with the prefix, the count is
+        found by a fixed point on the level and then lowered until the prefix fits at its own
+        level.
+
+        Args:
+            budget_cost: a float in (0, 1]: that share of the cost of drawing every Gaussian in
+                view (at full detail); > 1: an absolute cost (pixels, :data:`clod_adapter.cost.COST_UNIT`).
+            budget_ms: predicted rasterisation ms (:class:`clod_adapter.cost.FrameTimeModel`,
+                ``time_model`` or the defaults): the longest prefix whose predicted ms fits.
+
+        Returns:
+            the count k (0 <= k <= :attr:`n_in_view`); non-decreasing in the budget when the
+            level does not depend on k (no level gains, Eq. 2, or ``level`` given).
+        """
+        from .cost import DEFAULT_FRAME_TIME_MODEL, _order_in_view, _prefix_count, splat_cost
+
+        if (budget_cost is None) == (budget_ms is None):
+            raise ValueError("cost_count: give budget_cost or budget_ms")
+        b = float(budget_cost if budget_cost is not None else budget_ms)
+        if not b >= 0:
+            raise ValueError(f"render_lod: cost budgets must be >= 0, got {b}")
+        order = _order_in_view(self.critical, self.visible)
+        n_vis = order.numel()
+        if n_vis == 0:
+            return 0
+        st = self.settings
+        varies = (level is None and st.fade != "eq2"
+                  and any(k in self.gains for k in ("log_scale_gain", "opacity_logit_gain")))
+
+        def level_for(k: int) -> float:
+            if st.fade == "eq2":
+                return 0.0
+            if level is not None:
+                return float(level)
+            return lod.level_of_fraction(k / n_vis, st.max_sv) if varies else 0.0
+
+        cache: dict = {}
+
+        def weights(lv: float) -> Tensor:  # [n_vis] per-Gaussian cost in order, in the budget's unit
+            if lv not in cache:
+                c = splat_cost(self, order, level=lv)
+                cache[lv] = c if budget_ms is None else (time_model or DEFAULT_FRAME_TIME_MODEL).per_splat_ms(c)
+            return cache[lv]
+
+        if budget_ms is not None:
+            limit = b - (time_model or DEFAULT_FRAME_TIME_MODEL).c0_ms
+        elif b <= 1.0:
+            # the same float64 cumulative sum as the prefix search: 1.0 draws every Gaussian
+            limit = b * float(torch.cumsum(weights(level_for(n_vis)).double(), 0)[-1])
+        else:
+            limit = b
+        lv = level_for(n_vis)
+        k = _prefix_count(weights(lv), limit)
+        if varies:
+            for _ in range(8):  # fixed point: the level of the count found
+                nl = level_for(k)
+                if nl == lv:
+                    break
+                lv, k = nl, _prefix_count(weights(nl), limit)
+            while k > 0 and float(weights(level_for(k))[:k].sum()) > limit:
+                k = min(k - 1, _prefix_count(weights(level_for(k)), limit))
+        return k
 
     def subset(self, indices: Tensor, opacities: Optional[Tensor] = None) -> LodSelection:
         """A selection of given ``indices`` [k] (ascending, in view) drawn with ``opacities``
@@ -413,6 +496,9 @@ def render_lod(
     min_s_v: float = 1.0,
     budget_in_view: bool = False,
     level: Optional[float] = None,
+    budget_cost: Optional[float] = None,
+    budget_ms: Optional[float] = None,
+    time_model: Optional[FrameTimeModel] = None,
 ) -> LodRender:
     """Render ``gaussians`` from ``camera`` at virtual distance scale ``s_v`` (or a budget).
 
@@ -446,18 +532,27 @@ def render_lod(
             model (the calibrated schedule's training).
         level: window fade only: draw the level gains at this level in [0, 1] instead of
             :func:`clod_adapter.lod.level_of_fraction` of the share of the Gaussians in view drawn.
+        budget_cost: a budget in rasterisation cost instead of a count: the Gaussians in view
+            with the largest critical ``s_v`` (the count budgets' order, so a prefix of it)
+            while their summed :func:`clod_adapter.cost.splat_cost` (clipped ellipse pixels)
+            fits; a float in (0, 1] is that share of the cost of every Gaussian in view, > 1 an
+            absolute cost (:meth:`LodView.cost_count`). ``min_s_v`` applies as to ``budget``.
+        budget_ms: a budget in predicted rasterisation ms (``raster_ms``; the projection is not
+            in it): the longest such prefix whose :class:`clod_adapter.cost.FrameTimeModel`
+            prediction (``time_model``, default the fitted one) fits.
 
     Returns:
         :class:`LodRender`.
 
     Raises:
-        ValueError: ``s_v`` or ``budget`` given but the model has no ``sigma_d``; ``s_v < 1``;
-            both ``s_v`` and ``budget`` given.
+        ValueError: ``s_v`` or a budget given but the model has no ``sigma_d``; ``s_v < 1``;
+            more than one of ``s_v``, ``budget``, ``budget_cost``, ``budget_ms`` given.
     """
     view = view_lod(gaussians, camera, tau=tau, eps=eps)
     t1 = time.perf_counter()
     sel = view.select(s_v, budget=budget, min_s_v=min_s_v, budget_in_view=budget_in_view, level=level,
-                      estimator=estimator, temperature=temperature, eta_grad_sigma_only=eta_grad_sigma_only)
+                      estimator=estimator, temperature=temperature, eta_grad_sigma_only=eta_grad_sigma_only,
+                      budget_cost=budget_cost, budget_ms=budget_ms, time_model=time_model)
     t2 = time.perf_counter()
     bg = None
     if background is not None:
@@ -498,16 +593,19 @@ class LodSubset:
 @torch.no_grad()
 def lod_subset(gaussians: Gaussians, camera, s_v: Optional[float] = None, *,
                budget: Optional[float | int] = None, tau: Optional[float] = None,
-               eps: Optional[float] = None, min_s_v: float = 1.0) -> LodSubset:
+               eps: Optional[float] = None, min_s_v: float = 1.0, budget_cost: Optional[float] = None,
+               budget_ms: Optional[float] = None, time_model: Optional[FrameTimeModel] = None) -> LodSubset:
     """The Gaussians :func:`render_lod` hands to the rasteriser for ``camera`` and their drawn
     attributes (same arguments; no gradient). For viewers and exporters that rasterise
-    elsewhere. Neither ``s_v`` nor ``budget``: every Gaussian in view, unchanged.
+    elsewhere. No ``s_v`` and no budget (``budget``, ``budget_cost``, ``budget_ms``): every
+    Gaussian in view, unchanged.
 
     Raises:
         ValueError: as :func:`render_lod`.
     """
     view = view_lod(gaussians, camera, tau=tau, eps=eps)
-    sel = view.select(s_v, budget=budget, min_s_v=min_s_v, estimator="paper")
+    sel = view.select(s_v, budget=budget, min_s_v=min_s_v, estimator="paper", budget_cost=budget_cost,
+                      budget_ms=budget_ms, time_model=time_model)
     means, quats, scales, colors = view.drawn_attributes(sel)
     return LodSubset(indices=sel.indices, means=means, quats=quats, scales=scales, opacities=sel.opacities,
                      colors=colors, s_v=sel.s_v, n_in_view=view.n_in_view)

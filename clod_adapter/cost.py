@@ -1,0 +1,237 @@
+"""Frame cost of a drawn set: per-Gaussian cost units and a frame-time model.
+
+The CPU rasteriser's frame time follows splat-pixel work, not the number of Gaussians: the
+compositor (``render/csrc/composite.cpp``) loops over the tiles' sorted Gaussian lists, i.e.
+over every (Gaussian, 16x16 tile) intersection that tile binning
+(:func:`clod_adapter.render.tiles.isect_tiles`) builds, and within each pair over the pixels of
+the Gaussian's ``alpha >= 1/255`` ellipse in that tile (a tile stops early once every pixel's
+transmittance is <= 1e-4). Per Gaussian, that work is
+best predicted by the **clipped ellipse area** (unit ``"ellipse_px"``, :data:`COST_UNIT`): the
+area in pixels of its ``alpha >= 1/255`` ellipse (``pi * 2 ln(255 opacity) * sqrt(det cov2d)``,
+extent capped at 3.33 sigma as the radii are) times the share of its box ``mean2d +- radius``
+inside the image. ``benchmarks/cost_model.py`` fits the frame time against it, against the
+tile-intersection count (``"tiles"``, what the binning emits) and against the clipped box
+(``"bbox_px"``); the ellipse had the smallest relative errors (README "Budgets in frame
+time").
+
+* :func:`splat_cost`: [k] per-Gaussian cost of a :class:`clod_adapter.view.LodView`'s rows,
+  from the projection the view already has (no second projection);
+* :func:`cost_prefix`: the top-scored Gaussians in view whose cumulative cost fits a budget
+  (the static cut behind ``LodView.select(budget_cost=...)``, usable by baselines);
+* :class:`FrameTimeModel`: ``ms = c0 + per_cost * cost_sum + per_gaussian * count``.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Optional
+
+import torch
+from torch import Tensor
+
+from .render.projection import ALPHA_THRESHOLD, GAUSSIAN_EXTEND, VisibleProjection, finish_projection
+from .render.tiles import tile_rects
+
+__all__ = ["splat_cost", "cost_units", "cost_prefix", "FrameTimeModel", "DEFAULT_FRAME_TIME_MODEL", "COST_UNIT"]
+
+#: the cost unit of :func:`splat_cost`
+COST_UNIT = "ellipse_px"
+
+
+@torch.no_grad()
+def cost_units(proj: VisibleProjection, opacities: Optional[Tensor], width: int, height: int,
+               tile_size: int = 16, units: tuple[str, ...] = ("tiles", "bbox_px", "ellipse_px")) -> dict[str, Tensor]:
+    """Candidate per-Gaussian cost units of a finished projection (V rows, ``proj.ids``).
+
+    Args:
+        proj: :func:`clod_adapter.render.projection.finish_projection` output (V rows).
+        opacities: [V] the opacities the projection was finished with (the ellipse's extent),
+            or None (extent 3.33 sigma).
+        width, height, tile_size: image and tile size, pixels.
+        units: which of the units below to compute.
+
+    Returns:
+        dict of [V] float64: ``"tiles"`` (16x16 tiles the box ``mean2d +- radius`` touches, the
+        tile-intersection count of the binning), ``"bbox_px"`` (that box clipped to the image,
+        pixels), ``"ellipse_px"`` (the ``alpha >= 1/255`` ellipse's area, pixels, times the
+        share of the box inside the image).
+    """
+    out = {}
+    if "tiles" in units:
+        tw, th = math.ceil(width / tile_size), math.ceil(height / tile_size)
+        x0, y0, x1, y1 = tile_rects(proj.means2d, proj.radii, tile_size, tw, th)
+        out["tiles"] = ((x1 - x0) * (y1 - y0)).double()
+    if "bbox_px" in units or "ellipse_px" in units:
+        m = proj.means2d.detach().double()
+        r = proj.radii.double()
+        bw = ((m[:, 0] + r[:, 0]).clamp(0, width) - (m[:, 0] - r[:, 0]).clamp(0, width)).clamp_min(0)
+        bh = ((m[:, 1] + r[:, 1]).clamp(0, height) - (m[:, 1] - r[:, 1]).clamp(0, height)).clamp_min(0)
+        bbox = bw * bh
+        if "bbox_px" in units:
+            out["bbox_px"] = bbox
+    if "ellipse_px" in units:
+        a, b, c = proj.conics.detach().double().unbind(-1)
+        det_conic = (a * c - b * b).clamp_min(1e-30)
+        if opacities is None:
+            e2 = torch.full_like(a, GAUSSIAN_EXTEND ** 2)
+        else:
+            o = opacities.detach().double().clamp_min(ALPHA_THRESHOLD)
+            e2 = (2.0 * torch.log(o / ALPHA_THRESHOLD)).clamp(0.0, GAUSSIAN_EXTEND ** 2)
+        ell = math.pi * e2 / torch.sqrt(det_conic)
+        full = (4.0 * r[:, 0] * r[:, 1]).clamp_min(1.0)
+        out["ellipse_px"] = torch.minimum(ell, full) * (bbox / full)
+    return out
+
+
+def _level_opacities(view, idx: Tensor, level: float) -> Tensor:
+    """[k] activated opacities of rows ``idx`` at ``level`` (the opacity gain, no fade)."""
+    logits = view.opacity_logits.detach().index_select(0, idx)
+    g = view.gains.get("opacity_logit_gain")
+    if g is not None and level > 0:
+        logits = logits + level * g.detach().index_select(0, idx)
+    return torch.sigmoid(logits)
+
+
+@torch.no_grad()
+def splat_cost(view, indices: Optional[Tensor] = None, *, level: float = 0.0, opacities: Optional[Tensor] = None,
+               unit: str = COST_UNIT) -> Tensor:
+    """Per-Gaussian rasterisation cost of drawing ``indices`` from ``view``'s camera.
+
+    Finishes the rows of the projection the :class:`clod_adapter.view.LodView` already has (as
+    :meth:`LodView.rasterize` does: the ``eps2d`` blur, the opacity-aware extent, culling), with
+    the level's covariance scaling ``exp(2 level log_scale_gain)`` when ``level > 0``.
+
+    Args:
+        view: a :class:`clod_adapter.view.LodView`.
+        indices: [k] int64 model indices (any order; default: every Gaussian in view, ascending).
+        level: level of the gains in [0, 1] (0: base attributes).
+        opacities: [k] the opacities drawn (e.g. ``LodSelection.opacities``); default the
+            opacities at ``level`` without the LoD fade (``sigmoid(logit + level *
+            opacity_logit_gain)``). The fade and Eq. 2's attenuation only lower opacities, and a
+            lower opacity never widens the footprint, so the default is an upper bound of the
+            drawn cost (equal for Gaussians the fade leaves alone).
+        unit: ``"ellipse_px"`` (default, :data:`COST_UNIT`), ``"tiles"`` or ``"bbox_px"``
+            (:func:`cost_units`).
+
+    Returns:
+        [k] float64 cost in ``unit`` (0 for a Gaussian the projection culls). With
+        ``opacities=sel.opacities`` and ``level=sel.level`` it is the cost of what
+        :meth:`LodView.rasterize` draws: the ``"tiles"`` cost equals, Gaussian by Gaussian, the
+        intersections the rasteriser bins for it (``meta["flatten_ids"]``).
+    """
+    from .view import EPS2D, TILE_SIZE
+
+    dev = view.means.device
+    idx = torch.nonzero(view.visible, as_tuple=False).squeeze(1) if indices is None else indices.to(dev).long()
+    out = torch.zeros(idx.numel(), dtype=torch.float64, device=dev)
+    rows = view._row_of.index_select(0, idx)
+    ok = rows >= 0  # in front of the camera (the others are never drawn)
+    pos = torch.nonzero(ok, as_tuple=False).squeeze(1)
+    if pos.numel() == 0:
+        return out
+    sub = idx.index_select(0, pos)
+    geom = view._geom.subset(rows.index_select(0, pos))
+    op = (_level_opacities(view, sub, level) if opacities is None
+          else opacities.detach().to(dev).index_select(0, pos).to(view.means.dtype))
+    cov_scale = None
+    g = view.gains.get("log_scale_gain")
+    if g is not None and level > 0:
+        cov_scale = torch.exp(2.0 * level * g.detach().index_select(0, sub))
+    geom = type(geom)(*(t.detach() for t in geom))
+    proj = finish_projection(geom, op, view.width, view.height, EPS2D, 0.0, cov_scale)
+    # proj.ids are model indices; map them back to positions in ``sub`` (rows are unique)
+    where = torch.full((view.n,), -1, dtype=torch.long, device=dev)
+    where[sub] = torch.arange(sub.numel(), device=dev)
+    local = where.index_select(0, proj.ids)
+    u = cost_units(proj, op.index_select(0, local), view.width, view.height, TILE_SIZE, (unit,))[unit]
+    out.index_copy_(0, pos.index_select(0, local), u)
+    return out
+
+
+def _prefix_count(cost_sorted: Tensor, budget: float) -> int:
+    """Largest k with ``cost_sorted[:k].sum() <= budget`` (cost >= 0; float64 cumulative sum)."""
+    if cost_sorted.numel() == 0 or budget < 0:
+        return 0
+    cum = torch.cumsum(cost_sorted.double(), 0)
+    return int(torch.searchsorted(cum, torch.tensor([float(budget)], dtype=torch.float64, device=cum.device),
+                                  right=True)[0])
+
+
+def _order_in_view(order_scores: Tensor, visible: Tensor) -> Tensor:
+    """Model indices of the ``visible`` Gaussians by ``order_scores`` descending, ties by index."""
+    pool = torch.nonzero(visible, as_tuple=False).squeeze(1)
+    order = torch.sort(-order_scores.index_select(0, pool).double(), stable=True).indices
+    return pool.index_select(0, order)
+
+
+def cost_prefix(order_scores: Tensor, cost: Tensor, visible: Tensor, budget_cost: float) -> Tensor:
+    """The top-scored Gaussians in view whose cumulative cost fits ``budget_cost``: a static cut
+    by cost (as :func:`clod_adapter.baselines.topk_in_view` is by count).
+
+    Args:
+        order_scores: [N] scores, higher first (ties broken by lower index), e.g. the critical
+            ``s_v`` (:attr:`LodView.critical`) or a baseline's significance.
+        cost: [N] (or [V], aligned with ``visible.nonzero()``) non-negative per-Gaussian cost
+            (:func:`splat_cost`; any unit, e.g. predicted ms per Gaussian).
+        visible: [N] bool, the Gaussians that may be chosen.
+        budget_cost: the budget in the unit of ``cost`` (absolute; >= 0).
+
+    Returns:
+        [k] int64 model indices, ascending: the longest prefix of the score order whose cost
+        sum is <= ``budget_cost`` (so nested and non-decreasing in the budget).
+    """
+    order = _order_in_view(order_scores, visible)
+    c = cost if cost.numel() != visible.numel() else cost.index_select(0, order)
+    if cost.numel() != visible.numel():  # [V] aligned with visible.nonzero()
+        pool = torch.nonzero(visible, as_tuple=False).squeeze(1)
+        where = torch.full((visible.numel(),), -1, dtype=torch.long, device=visible.device)
+        where[pool] = torch.arange(pool.numel(), device=visible.device)
+        c = cost.index_select(0, where.index_select(0, order))
+    k = _prefix_count(c, float(budget_cost))
+    return torch.sort(order[:k]).values
+
+
+@dataclass(frozen=True)
+class FrameTimeModel:
+    """Predicted drawing time of a frame: ``ms = c0_ms + per_cost_ms * cost_sum +
+    per_gaussian_ms * count``, ``cost_sum`` in :data:`COST_UNIT` (clipped ellipse pixels,
+    :func:`splat_cost`) of the drawn set and ``count`` its number of Gaussians.
+
+    The time is that of :meth:`clod_adapter.view.LodView.rasterize` (``LodRender.raster_ms``:
+    finishing the projection of the drawn rows, SH colours, tile binning, compositing). The
+    view's projection of the whole model (``LodRender.project_ms``) and the selection are paid
+    before any budget applies and are not in it.
+
+    Defaults: fitted by ``python benchmarks/cost_model.py`` (fern images_2 and skull, 3 cameras
+    each, full models and random / LightGaussian / opacity-ranked subsets of 1.5-100 % of the
+    Gaussians in view; 2 threads, minimum of 5 interleaved rounds) on the 2-core development
+    machine, shared with other jobs: ``c0_ms = 2.42``, ``per_cost_ms = 5.53e-6`` (per ellipse pixel),
+    ``per_gaussian_ms = 9.31e-4``; R^2 0.95 over 96 draws, median relative error 13 % (fern) and
+    11 % (skull). A run while the cores were busier gave about twice the per-pixel slope.
+    Refit on another machine (or thread count) with that command and pass the printed
+    coefficients (``render_lod(..., budget_ms=..., time_model=FrameTimeModel(...))``).
+    """
+
+    c0_ms: float = 0.0
+    per_cost_ms: float = 0.0
+    per_gaussian_ms: float = 0.0
+
+    def ms(self, cost_sum: float | Tensor, count: int | Tensor) -> float | Tensor:
+        """Predicted ms of drawing ``count`` Gaussians of total cost ``cost_sum``."""
+        return self.c0_ms + self.per_cost_ms * cost_sum + self.per_gaussian_ms * count
+
+    def cost_for_ms(self, ms: float, count: int = 0) -> float:
+        """The cost (in :data:`COST_UNIT`, pixels) that ``count`` Gaussians may have to be drawn in ``ms``
+        (may be negative: not even an empty set fits)."""
+        if self.per_cost_ms <= 0:
+            return math.inf if self.ms(0.0, count) <= ms else -math.inf
+        return (ms - self.c0_ms - self.per_gaussian_ms * count) / self.per_cost_ms
+
+    def per_splat_ms(self, cost: Tensor) -> Tensor:
+        """[k] the marginal ms of each Gaussian of cost ``cost`` [k]
+        (``per_cost_ms * cost + per_gaussian_ms``)."""
+        return self.per_cost_ms * cost.double() + self.per_gaussian_ms
+
+
+#: :class:`FrameTimeModel` fitted on the development machine (see its docstring)
+DEFAULT_FRAME_TIME_MODEL = FrameTimeModel(c0_ms=2.42, per_cost_ms=5.53e-6, per_gaussian_ms=9.31e-4)

@@ -1,0 +1,183 @@
+"""Cost budgets: per-Gaussian splat cost, cost prefixes, budgets in cost and in predicted ms."""
+from dataclasses import replace
+
+import pytest
+import torch
+
+from clod_adapter import lod
+from clod_adapter.cost import FrameTimeModel, cost_prefix, cost_units, splat_cost
+from clod_adapter.synthetic import make_cameras, make_ground_truth
+from clod_adapter.view import lod_subset, render_lod, view_lod
+
+
+def _model(n=1500, seed=0, window=False, gains=False):
+    g = make_ground_truth(n, seed=seed)
+    gen = torch.Generator().manual_seed(seed + 7)
+    g = g.with_sigma_d(0.2 + torch.rand(len(g), generator=gen))
+    if gains:
+        g = replace(g, log_scale_gain=0.6 * torch.rand(len(g), generator=gen),
+                    opacity_logit_gain=torch.randn(len(g), generator=gen))
+    if window:
+        g = replace(g, lod=lod.LodSettings(fade="window"))
+    return g
+
+
+@pytest.fixture(scope="module")
+def scene():
+    return _model(), make_cameras(1, 2)
+
+
+def _drawn_cost(view, sel, unit="ellipse_px"):
+    return float(splat_cost(view, sel.indices, level=sel.level, opacities=sel.opacities, unit=unit).sum())
+
+
+@pytest.mark.parametrize("window,gains", [(False, False), (True, False), (True, True)])
+def test_drawn_cost_within_budget(window, gains):
+    g = _model(window=window, gains=gains)
+    view = view_lod(g, make_cameras(1, 1)[0])
+    total = float(splat_cost(view).sum())
+    for share in (0.05, 0.2, 0.5, 0.9):
+        sel = view.select(budget_cost=share, min_s_v=0.0)
+        assert 0 < sel.indices.numel() < view.n_in_view
+        assert _drawn_cost(view, sel) <= share * total + 1e-6
+    absolute = 0.3 * total
+    sel = view.select(budget_cost=absolute, min_s_v=0.0)
+    assert _drawn_cost(view, sel) <= absolute + 1e-6
+
+
+def test_count_monotone_and_nested(scene):
+    g, cams = scene
+    for cam in cams:
+        view = view_lod(g, cam)
+        prev = None
+        for share in torch.linspace(0.01, 1.0, 25).tolist():
+            sel = view.select(budget_cost=share, min_s_v=0.0)
+            if prev is not None:
+                assert sel.indices.numel() >= prev.numel()
+                assert bool(torch.isin(prev, sel.indices).all())
+            prev = sel.indices
+
+
+def test_full_share_draws_every_gaussian_in_view(scene):
+    g, cams = scene
+    for cam in cams:
+        view = view_lod(g, cam)
+        sel = view.select(budget_cost=1.0, min_s_v=0.0)
+        assert torch.equal(sel.mask, view.visible)
+        r = render_lod(g, cam, budget_cost=1.0, min_s_v=0.0)
+        assert r.n_rendered == view.n_in_view
+
+
+def test_prefix_of_the_count_order(scene):
+    """A cost budget draws exactly what the count budget of the same size draws (same s_v)."""
+    g, cams = scene
+    view = view_lod(g, cams[0])
+    for share in (0.1, 0.3, 0.7):
+        for min_s_v in (0.0, 1.0):
+            sel = view.select(budget_cost=share, min_s_v=min_s_v)
+            k = view.cost_count(share)
+            ref = view.select(budget=k, min_s_v=min_s_v)
+            assert torch.equal(sel.indices, ref.indices) and sel.s_v == ref.s_v
+            if min_s_v == 0.0:
+                assert sel.indices.numel() == k
+                # and it is a prefix of the critical order
+                order = torch.sort(-view.critical[view.visible], stable=True).indices
+                pool = torch.nonzero(view.visible).squeeze(1)
+                assert torch.equal(torch.sort(pool[order[:k]]).values, sel.indices)
+
+
+def test_budget_ms_monotone_and_consistent(scene):
+    g, cams = scene
+    view = view_lod(g, cams[1])
+    tm = FrameTimeModel(c0_ms=1.0, per_cost_ms=2e-4, per_gaussian_ms=1e-3)
+    prev = -1
+    for ms in (0.5, 1.0, 2.0, 5.0, 10.0, 50.0, 1e4):
+        sel = view.select(budget_ms=ms, min_s_v=0.0, time_model=tm)
+        k = sel.indices.numel()
+        assert k >= prev
+        prev = k
+        cost = _drawn_cost(view, sel)
+        assert tm.ms(cost, k) <= ms + 1e-9 or k == 0
+    assert prev == view.n_in_view
+    assert view.select(budget_ms=0.5, min_s_v=0.0, time_model=tm).indices.numel() == 0
+    # cost_for_ms inverts ms
+    assert tm.ms(tm.cost_for_ms(7.0, 100), 100) == pytest.approx(7.0)
+
+
+def test_two_budgets_raise(scene):
+    g, cams = scene
+    cam = cams[0]
+    for kw in ({"s_v": 2.0, "budget_cost": 0.5}, {"budget": 100, "budget_cost": 0.5},
+               {"budget_cost": 0.5, "budget_ms": 10.0}, {"budget": 0.5, "budget_ms": 10.0}):
+        with pytest.raises(ValueError):
+            render_lod(g, cam, **kw)
+        with pytest.raises(ValueError):
+            lod_subset(g, cam, **kw)
+    with pytest.raises(ValueError):
+        render_lod(g, cam, budget_cost=-1.0)
+
+
+def test_splat_cost_matches_the_rasteriser(scene):
+    """The tile cost of a drawn selection is the rasteriser's own tile-intersection count, and the
+    ellipse cost is that of its projection (meta)."""
+    g, cams = scene
+    for window in (False, True):
+        gg = replace(_model(gains=True), lod=lod.LodSettings(fade="window")) if window else g
+        view = view_lod(gg, cams[0])
+        for sel in (view.select(s_v=2.0), view.select(budget_cost=0.4, min_s_v=0.0), view.select()):
+            _, _, meta = view.rasterize(sel)
+            ids = meta["visible_ids"]
+            tiles = torch.zeros(gg.means.shape[0], dtype=torch.float64)
+            tiles.index_add_(0, ids, torch.bincount(meta["flatten_ids"], minlength=ids.numel()).double())
+            got = splat_cost(view, sel.indices, level=sel.level, opacities=sel.opacities, unit="tiles")
+            assert torch.equal(got, tiles[sel.indices])
+            ell = splat_cost(view, sel.indices, level=sel.level, opacities=sel.opacities)
+            op = sel.opacities[torch.searchsorted(sel.indices, ids)]
+            from clod_adapter.render.projection import VisibleProjection
+            proj = VisibleProjection(ids, meta["radii"], meta["means2d"], meta["depths"], meta["conics"])
+            ref = torch.zeros(gg.means.shape[0], dtype=torch.float64)
+            ref[ids] = cost_units(proj, op, view.width, view.height)["ellipse_px"]
+            torch.testing.assert_close(ell, ref[sel.indices])
+
+
+def test_base_opacity_cost_bounds_the_drawn_cost():
+    """Selecting with the opacities before the fade over-estimates (never under-estimates) the cost."""
+    g = _model(window=True, gains=True)
+    view = view_lod(g, make_cameras(1, 1)[0])
+    for share in (0.1, 0.5):
+        sel = view.select(budget_cost=share, min_s_v=0.0)
+        est = splat_cost(view, sel.indices, level=sel.level)
+        drawn = splat_cost(view, sel.indices, level=sel.level, opacities=sel.opacities)
+        assert bool((drawn <= est + 1e-9).all())
+
+
+def test_cost_prefix_static_cut():
+    gen = torch.Generator().manual_seed(3)
+    n = 200
+    scores = torch.rand(n, generator=gen)
+    cost = torch.rand(n, generator=gen, dtype=torch.float64) * 10
+    visible = torch.rand(n, generator=gen) > 0.3
+    prev = torch.empty(0, dtype=torch.long)
+    for b in (0.0, 5.0, 50.0, 200.0, 1e9):
+        idx = cost_prefix(scores, cost, visible, b)
+        assert float(cost[idx].sum()) <= b
+        assert bool(visible[idx].all()) and bool(torch.isin(prev, idx).all())
+        if 0 < idx.numel() < int(visible.sum()):
+            # a prefix of the score order: everything chosen outranks everything left in view
+            rest = visible.clone()
+            rest[idx] = False
+            assert float(scores[idx].min()) >= float(scores[rest].max())
+        prev = idx
+    assert prev.numel() == int(visible.sum())
+    # [V] costs aligned with visible.nonzero() give the same cut
+    pool = torch.nonzero(visible).squeeze(1)
+    assert torch.equal(cost_prefix(scores, cost[pool], visible, 50.0), cost_prefix(scores, cost, visible, 50.0))
+
+
+def test_lod_subset_accepts_cost_budgets(scene):
+    g, cams = scene
+    a = lod_subset(g, cams[0], budget_cost=0.3, min_s_v=0.0)
+    b = render_lod(g, cams[0], budget_cost=0.3, min_s_v=0.0)
+    assert torch.equal(a.indices, torch.nonzero(b.mask).squeeze(1))
+    c = lod_subset(g, cams[0], budget_ms=3.0)
+    assert c.indices.numel() <= a.n_in_view

@@ -261,7 +261,8 @@ class FrameTimeModel:
     Gaussians in view; 2 threads, minimum of 5 interleaved rounds) on the 2-core development
     machine, shared with other jobs: ``c0_ms = 2.42``, ``per_cost_ms = 5.53e-6`` (per ellipse pixel),
     ``per_gaussian_ms = 9.31e-4``; R^2 0.95 over 96 draws, median relative error 13 % (fern) and
-    11 % (skull). A run while the cores were busier gave about twice the per-pixel slope.
+    11 % (skull). Runs while other jobs held one of the cores (wall = CPU time) gave
+    ``per_cost_ms`` 7.9e-6 to 1.2e-5: the slope is the machine's and its load's.
     Refit on another machine (or thread count) with that command and pass the printed
     coefficients (``render_lod(..., budget_ms=..., time_model=FrameTimeModel(...))``).
     """

@@ -36,6 +36,9 @@ __all__ = ["splat_cost", "cost_units", "cost_prefix", "FrameTimeModel", "DEFAULT
 
 #: the cost unit of :func:`splat_cost`
 COST_UNIT = "ellipse_px"
+#: gsplat 1.5.3's ``eps2d`` and tile size, as :mod:`clod_adapter.view` draws (``view.EPS2D``,
+#: ``view.TILE_SIZE``; this module does not import the view, which imports it)
+EPS2D, TILE_SIZE = 0.3, 16
 
 
 @torch.no_grad()
@@ -147,8 +150,6 @@ class Footprints:
                                geom.depths.detach(), aa, ab, bb, axb2)
         # the opacity-free terms of finish_projection and cost_units (same operations, same
         # dtype), so "ellipse_px" costs at new opacities are a few elementwise operations
-        from .view import EPS2D
-
         c00, c01, c11 = aa + EPS2D, ab, bb + EPS2D
         det = axb2 + EPS2D * (aa + bb) + EPS2D * EPS2D
         self._det_ok = (det > 0) & torch.isfinite(det)
@@ -161,8 +162,6 @@ class Footprints:
     def cost(self, opacities: Tensor, unit: str = COST_UNIT, first: Optional[int] = None) -> Tensor:
         """[k] float64 cost in ``unit`` of the rows drawn with ``opacities`` [k] (0: culled);
         ``first``: only the first rows ([first] opacities in, [first] costs out)."""
-        from .view import EPS2D, TILE_SIZE
-
         n = self.k if first is None else int(first)
         out = torch.zeros(n, dtype=torch.float64, device=opacities.device)
         npos = self.pos.numel() if first is None else int(torch.searchsorted(self.pos, torch.tensor([n]))[0])

@@ -195,3 +195,9 @@ def test_eq2_cost_budget_is_exact(scene):
         assert _drawn_cost(view, sel) <= b + 1e-6
         nxt = view.select(budget=k + 1, min_s_v=0.0)
         assert _drawn_cost(view, nxt) > b
+
+
+def test_constants_match_the_view():
+    from clod_adapter import cost, view
+
+    assert (cost.EPS2D, cost.TILE_SIZE) == (view.EPS2D, view.TILE_SIZE)

@@ -29,13 +29,16 @@ from typing import Optional
 import torch
 from torch import Tensor
 
-from .render.projection import ALPHA_THRESHOLD, GAUSSIAN_EXTEND, VisibleProjection, finish_projection
+from .render.projection import ALPHA_THRESHOLD, GAUSSIAN_EXTEND, MAX_RADIUS, VisibleProjection, finish_projection
 from .render.tiles import tile_rects
 
 __all__ = ["splat_cost", "cost_units", "cost_prefix", "FrameTimeModel", "DEFAULT_FRAME_TIME_MODEL", "COST_UNIT"]
 
 #: the cost unit of :func:`splat_cost`
 COST_UNIT = "ellipse_px"
+#: gsplat 1.5.3's ``eps2d`` and tile size, as :mod:`clod_adapter.view` draws (``view.EPS2D``,
+#: ``view.TILE_SIZE``; this module does not import the view, which imports it)
+EPS2D, TILE_SIZE = 0.3, 16
 
 
 @torch.no_grad()
@@ -119,33 +122,83 @@ def splat_cost(view, indices: Optional[Tensor] = None, *, level: float = 0.0, op
         :meth:`LodView.rasterize` draws: the ``"tiles"`` cost equals, Gaussian by Gaussian, the
         intersections the rasteriser bins for it (``meta["flatten_ids"]``).
     """
-    from .view import EPS2D, TILE_SIZE
-
     dev = view.means.device
     idx = torch.nonzero(view.visible, as_tuple=False).squeeze(1) if indices is None else indices.to(dev).long()
-    out = torch.zeros(idx.numel(), dtype=torch.float64, device=dev)
-    rows = view._row_of.index_select(0, idx)
-    ok = rows >= 0  # in front of the camera (the others are never drawn)
-    pos = torch.nonzero(ok, as_tuple=False).squeeze(1)
-    if pos.numel() == 0:
-        return out
-    sub = idx.index_select(0, pos)
-    geom = view._geom.subset(rows.index_select(0, pos))
-    op = (_level_opacities(view, sub, level) if opacities is None
-          else opacities.detach().to(dev).index_select(0, pos).to(view.means.dtype))
-    cov_scale = None
-    g = view.gains.get("log_scale_gain")
-    if g is not None and level > 0:
-        cov_scale = torch.exp(2.0 * level * g.detach().index_select(0, sub))
-    geom = type(geom)(*(t.detach() for t in geom))
-    proj = finish_projection(geom, op, view.width, view.height, EPS2D, 0.0, cov_scale)
-    # proj.ids are model indices; map them back to positions in ``sub`` (rows are unique)
-    where = torch.full((view.n,), -1, dtype=torch.long, device=dev)
-    where[sub] = torch.arange(sub.numel(), device=dev)
-    local = where.index_select(0, proj.ids)
-    u = cost_units(proj, op.index_select(0, local), view.width, view.height, TILE_SIZE, (unit,))[unit]
-    out.index_copy_(0, pos.index_select(0, local), u)
-    return out
+    op = _level_opacities(view, idx, level) if opacities is None else opacities.detach().to(dev)
+    return Footprints(view, idx, level).cost(op, unit)
+
+
+class Footprints:
+    """The opacity-free part of the projection of rows ``idx`` [k] of ``view`` at ``level``
+    (its covariance scaling applied), for costing them at many opacities
+    (:meth:`cost`; :func:`splat_cost` is ``Footprints(view, idx, level).cost(opacities)``)."""
+
+    @torch.no_grad()
+    def __init__(self, view, idx: Tensor, level: float = 0.0):
+        dev = view.means.device
+        self.k, self.width, self.height = idx.numel(), view.width, view.height
+        rows = view._row_of.index_select(0, idx)
+        self.pos = torch.nonzero(rows >= 0, as_tuple=False).squeeze(1)  # in front of the camera
+        geom = view._geom.subset(rows.index_select(0, self.pos))
+        aa, ab, bb, axb2 = (t.detach() for t in (geom.aa, geom.ab, geom.bb, geom.axb2))
+        g = view.gains.get("log_scale_gain")
+        if g is not None and level > 0:  # as finish_projection's cov_scale, applied once
+            cs = torch.exp(2.0 * level * g.detach().index_select(0, idx.index_select(0, self.pos)))
+            aa, ab, bb, axb2 = aa * cs, ab * cs, bb * cs, axb2 * (cs * cs)
+        # ids = positions in ``pos``, so the finished projection indexes this object directly
+        self.geom = type(geom)(torch.arange(self.pos.numel(), device=dev), geom.means2d.detach(),
+                               geom.depths.detach(), aa, ab, bb, axb2)
+        # the opacity-free terms of finish_projection and cost_units (same operations, same
+        # dtype), so "ellipse_px" costs at new opacities are a few elementwise operations
+        c00, c01, c11 = aa + EPS2D, ab, bb + EPS2D
+        det = axb2 + EPS2D * (aa + bb) + EPS2D * EPS2D
+        self._det_ok = (det > 0) & torch.isfinite(det)
+        self._sx, self._sy = torch.sqrt(c00), torch.sqrt(c11)
+        inv_det = 1.0 / det
+        a, b, c = (c11 * inv_det).double(), (-c01 * inv_det).double(), (c00 * inv_det).double()
+        self._sqrt_det_conic = torch.sqrt((a * c - b * b).clamp_min(1e-30))
+
+    @torch.no_grad()
+    def cost(self, opacities: Tensor, unit: str = COST_UNIT, first: Optional[int] = None) -> Tensor:
+        """[k] float64 cost in ``unit`` of the rows drawn with ``opacities`` [k] (0: culled);
+        ``first``: only the first rows ([first] opacities in, [first] costs out)."""
+        n = self.k if first is None else int(first)
+        out = torch.zeros(n, dtype=torch.float64, device=opacities.device)
+        npos = self.pos.numel() if first is None else int(torch.searchsorted(self.pos, torch.tensor([n]))[0])
+        if npos == 0:
+            return out
+        pos = self.pos[:npos]
+        if unit == "ellipse_px":
+            return out.index_copy_(0, pos, self._ellipse(opacities.index_select(0, pos), npos))
+        geom = type(self.geom)(*(t[:npos] for t in self.geom))
+        op = opacities.index_select(0, pos).to(self.geom.means2d.dtype)
+        proj = finish_projection(geom, op, self.width, self.height, EPS2D)
+        u = cost_units(proj, op.index_select(0, proj.ids), self.width, self.height, TILE_SIZE, (unit,))[unit]
+        return out.index_copy_(0, pos.index_select(0, proj.ids), u)
+
+    def _ellipse(self, opacities: Tensor, n: int) -> Tensor:
+        """[n] ``"ellipse_px"`` of the first ``n`` rows in front of the camera: finish_projection's
+        extent, radii and culling, then :func:`cost_units`' formula, without compacting."""
+        dt = self.geom.means2d.dtype
+        op = opacities.detach().to(dt)
+        w, h = self.width, self.height
+        sx, sy = self._sx[:n], self._sy[:n]
+        mx, my = self.geom.means2d[:n].unbind(-1)
+        extend = torch.sqrt(2.0 * torch.log(op.clamp_min(ALPHA_THRESHOLD) / ALPHA_THRESHOLD)).clamp_max(GAUSSIAN_EXTEND)
+        rad_x, rad_y = torch.ceil(extend * sx), torch.ceil(extend * sy)
+        ok = self._det_ok[:n] & (op >= ALPHA_THRESHOLD) & ~((rad_x <= 0.0) & (rad_y <= 0.0))
+        ok &= ~((mx + rad_x <= 0) | (mx - rad_x >= w) | (my + rad_y <= 0) | (my - rad_y >= h))
+        rx = rad_x.clamp_max(MAX_RADIUS).to(torch.int32).double()
+        ry = rad_y.clamp_max(MAX_RADIUS).to(torch.int32).double()
+        mxd, myd = mx.double(), my.double()
+        bw = ((mxd + rx).clamp(0, w) - (mxd - rx).clamp(0, w)).clamp_min(0)
+        bh = ((myd + ry).clamp(0, h) - (myd - ry).clamp(0, h)).clamp_min(0)
+        o = op.double().clamp_min(ALPHA_THRESHOLD)
+        e2 = (2.0 * torch.log(o / ALPHA_THRESHOLD)).clamp(0.0, GAUSSIAN_EXTEND ** 2)
+        ell = math.pi * e2 / self._sqrt_det_conic[:n]
+        full = (4.0 * rx * ry).clamp_min(1.0)
+        val = torch.minimum(ell, full) * (bw * bh / full)
+        return torch.where(ok, val, torch.zeros_like(val))
 
 
 def _prefix_count(cost_sorted: Tensor, budget: float) -> int:
@@ -207,7 +260,8 @@ class FrameTimeModel:
     Gaussians in view; 2 threads, minimum of 5 interleaved rounds) on the 2-core development
     machine, shared with other jobs: ``c0_ms = 2.42``, ``per_cost_ms = 5.53e-6`` (per ellipse pixel),
     ``per_gaussian_ms = 9.31e-4``; R^2 0.95 over 96 draws, median relative error 13 % (fern) and
-    11 % (skull). A run while the cores were busier gave about twice the per-pixel slope.
+    11 % (skull). Runs while other jobs held one of the cores (wall = CPU time) gave
+    ``per_cost_ms`` 7.9e-6 to 1.2e-5: the slope is the machine's and its load's.
     Refit on another machine (or thread count) with that command and pass the printed
     coefficients (``render_lod(..., budget_ms=..., time_model=FrameTimeModel(...))``).
     """

@@ -45,9 +45,11 @@ FERN = SHARED / "fern"
 INPUTS = {
     "fern": (FERN / "pretrained/point_cloud/iteration_7000/point_cloud.ply", FERN, 2),
     "maskgaussian": (FERN / "maskgaussian/point_cloud/iteration_8500/point_cloud.ply", FERN, 2),
+    "skull": (SHARED / "skull" / "pretrained/point_cloud/iteration_5000/point_cloud.ply", SHARED / "skull", 1),
     "demo": (None, None, 1),
 }
 LABELS = {"fern": "fern (vanilla 3DGS, 39,977 G)", "maskgaussian": "fern, MaskGaussian (19,383 G)",
+          "skull": "skull (360-degree, vanilla 3DGS, 59,954 G)",
           "demo": "synthetic demo scene (6,000 G)"}
 
 

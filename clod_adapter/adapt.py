@@ -55,14 +55,16 @@ OFFICIAL_LR = {
 PARAM_NAMES = ("means", "quats", "log_scales", "opacity_logits", "sh0", "shN", "sigma_d")
 SCHEDULES = ("calibrated", "paper")
 Schedule = Literal["calibrated", "paper"]
-Ranking = Literal["lightgaussian", "opacity"]
+Ranking = Literal["lightgaussian", "opacity", "value"]
+LevelUnit = Literal["cost", "count"]
+LEVEL_UNITS = ("cost", "count")
 LevelWeighting = Literal["paper", "uniform"]
 #: level gains by letter of :attr:`AdaptConfig.gains`, and the official learning rate each uses
 #: (that of the attribute it offsets).
 GAIN_LETTERS = {"o": "opacity_logit_gain", "s": "log_scale_gain", "c": "sh0_gain"}
 GAIN_LR = {"opacity_logit_gain": OFFICIAL_LR["opacity_logits"], "log_scale_gain": OFFICIAL_LR["log_scales"],
            "sh0_gain": OFFICIAL_LR["sh0"]}
-RANKINGS = ("lightgaussian", "opacity")
+RANKINGS = ("lightgaussian", "opacity", "value")
 
 
 @dataclass
@@ -101,6 +103,13 @@ class AdaptConfig:
             steps cost 0.2-1.4 dB at 50-5 % of the Gaussians: README ablation).
         level_weighting: ``"paper"`` (w_s = (1 - 0.5 s_v / max_sv)^2) or ``"uniform"``
             (calibrated default: every level counts alike).
+        level_unit: calibrated schedule: what a level's share ``s_v^-1.5`` measures. ``"cost"``
+            (default): the frame cost of the Gaussians drawn (their footprints in pixels,
+            :mod:`clod_adapter.cost`), so ``sigma_d`` is calibrated on cost quantiles and each
+            step renders exactly that share of the view's cost (``budget_cost``): the trained
+            levels reach ``max_sv^-1.5`` of the frame *time*. ``"count"``: the share of the
+            Gaussians in view (the paper's count target; coarse levels that keep the largest
+            splats cost far more than their count).
         views_per_step: training views per optimisation step, each at its own ``s_v``; the
             step uses the mean of their gradients (default 1). In a data-parallel run
             (:mod:`clod_adapter.distributed`) view ``j`` of a step is rendered by rank
@@ -128,6 +137,7 @@ class AdaptConfig:
     recalibrate_every: int = 0
     level_weighting: Optional[LevelWeighting] = None
     views_per_step: int = 1
+    level_unit: LevelUnit = "cost"
 
     def __post_init__(self) -> None:
         if self.schedule not in SCHEDULES:
@@ -166,6 +176,8 @@ class AdaptConfig:
             raise ValueError(f"recalibrate_every must be >= 0, got {self.recalibrate_every}")
         if self.level_weighting not in ("paper", "uniform"):
             raise ValueError(f"level_weighting must be 'paper' or 'uniform', got {self.level_weighting!r}")
+        if self.level_unit not in LEVEL_UNITS:
+            raise ValueError(f"level_unit must be one of {LEVEL_UNITS}, got {self.level_unit!r}")
         if not (isinstance(self.views_per_step, int) and self.views_per_step >= 1):
             raise ValueError(f"views_per_step must be an integer >= 1, got {self.views_per_step!r}")
         self.background = tuple(float(x) for x in self.background)
@@ -243,25 +255,80 @@ def reference_distances(gaussians: Gaussians, cameras) -> Tensor:
 
 
 @torch.no_grad()
+def view_statistics(gaussians: Gaussians, cameras) -> dict:
+    """What calibration needs from the training views (O(N) memory).
+
+    Returns:
+        dict of [N] float32 tensors: ``d_ref`` (:func:`reference_distances`) and ``cost`` (mean
+        frame cost over the views: :func:`clod_adapter.cost.splat_cost` at the base level,
+        clipped ellipse pixels, 0 in views that do not draw it).
+    """
+    from .cost import splat_cost
+    from .view import view_lod
+
+    g = gaussians.detach().with_sigma_d(None)
+    n = len(g)
+    dev = g.means.device
+    d_ref = reference_distances(g, cameras)
+    cost = torch.zeros(n, dtype=torch.float64, device=dev)
+    for cam in cameras:
+        v = view_lod(g, cam)
+        ids = torch.nonzero(v.visible, as_tuple=False).squeeze(1)
+        cost.index_add_(0, ids, splat_cost(v, ids).double())
+    return {"d_ref": d_ref, "cost": (cost / max(len(cameras), 1)).float()}
+
+
+@torch.no_grad()
 def ranking_scores(gaussians: Gaussians, cameras, ranking: str = "lightgaussian") -> Tensor:
     """[N] the static ranking the calibrated schedule starts from (higher = kept longer):
-    LightGaussian global significance over ``cameras`` or the opacity."""
+    LightGaussian global significance over ``cameras``, the opacity, or ``"value"``: each
+    Gaussian's blending weight summed over the pixels of ``cameras`` (:func:`blend_value`)."""
     if ranking == "opacity":
         return gaussians.opacities.detach().float()
+    if ranking == "value":
+        return blend_value(gaussians, cameras)
     from .baselines import lightgaussian_significance
 
     return lightgaussian_significance(gaussians.detach(), cameras)
 
 
+def blend_value(gaussians: Gaussians, cameras) -> Tensor:
+    """[N] float32 each Gaussian's blending weight ``alpha_i T_i`` summed over the pixels of
+    ``cameras``: what it adds to the images (occluded and faint Gaussians score little, however
+    large their footprint). One forward and backward pass per view: the gradient of the image
+    sum with respect to a constant per-Gaussian feature is that weight sum."""
+    from .view import view_lod
+
+    g = gaussians.detach().with_sigma_d(None)
+    val = torch.zeros(len(g), dtype=torch.float64, device=g.means.device)
+    for cam in cameras:
+        v = view_lod(g, cam)
+        f = torch.ones(len(g), 1, dtype=g.means.dtype, device=g.means.device, requires_grad=True)
+        with torch.enable_grad():
+            img, _, _ = v.rasterize(v.select(None), colors=f)
+            img.sum().backward()
+        val += f.grad[:, 0].double()
+    return val.float()
+
+
+def calibrated_sigma_d(score: Tensor, opacities: Tensor, stats: dict, cfg: AdaptConfig) -> Tensor:
+    """[N] ``sigma_d`` of the calibrated schedule: :func:`lod.calibrate_sigma_d` of ``score`` at
+    the reference distances, on cost quantiles when ``cfg.level_unit`` is ``"cost"`` (``stats``
+    from :func:`view_statistics`)."""
+    return lod.calibrate_sigma_d(score, opacities, stats["d_ref"], tau=cfg.tau, eps=cfg.eps,
+                                 fade_width=cfg.fade_width,
+                                 cost=stats["cost"] if cfg.level_unit == "cost" else None)
+
+
 @torch.no_grad()
-def recalibrate(state: "AdaptState", cameras, cfg: AdaptConfig) -> None:
+def recalibrate(state: "AdaptState", cameras, cfg: AdaptConfig, stats: Optional[dict] = None) -> None:
     """Re-map ``sigma_d`` from the order it has learned (the reference critical s_v at each
     Gaussian's reference distance), in place: the learned order at the reference distance is
-    kept and the drawn fraction at ``s_v`` is again ``s_v^-1.5`` (:func:`lod.calibrate_sigma_d`)."""
+    kept and the drawn share at ``s_v`` is again ``s_v^-1.5`` (:func:`calibrated_sigma_d`)."""
     g = state.gaussians().detach()
-    d_ref = reference_distances(g, cameras)
-    s_ref = critical_s_v(g.opacities, d_ref, g.sigma_d, cfg.tau, cfg.eps)
-    new = lod.calibrate_sigma_d(s_ref, g.opacities, d_ref, tau=cfg.tau, eps=cfg.eps, fade_width=cfg.fade_width)
+    stats = stats if stats is not None else view_statistics(g, cameras)
+    s_ref = critical_s_v(g.opacities, stats["d_ref"], g.sigma_d, cfg.tau, cfg.eps)
+    new = calibrated_sigma_d(s_ref, g.opacities, stats, cfg)
     state.params["sigma_d"].data.copy_(new.to(state.params["sigma_d"]))
 
 
@@ -330,10 +397,9 @@ def prepare(gaussians: Gaussians, train_cameras, cfg: AdaptConfig, train_images=
     init = {}
     if g.sigma_d is None and cfg.schedule == "calibrated":
         scores = ranking_scores(g, train_cameras, cfg.ranking)
-        d_ref = reference_distances(g, train_cameras)
-        g = g.with_sigma_d(lod.calibrate_sigma_d(scores, g.opacities, d_ref, tau=cfg.tau, eps=cfg.eps,
-                                                 fade_width=cfg.fade_width).to(g.means))
-        init = {"ranking": cfg.ranking}
+        stats = view_statistics(g, train_cameras)
+        g = g.with_sigma_d(calibrated_sigma_d(scores, g.opacities, stats, cfg).to(g.means))
+        init = {"ranking": cfg.ranking, "level_unit": cfg.level_unit}
     elif g.sigma_d is None:
         dmax = max_normalized_distance(g, train_cameras)
         att = cfg.init_attenuation
@@ -423,7 +489,11 @@ def view_loss(g: Gaussians, camera, gt: Tensor, s_v: float, cfg: AdaptConfig, ba
     Returns:
         (:class:`clod_adapter.view.LodRender`, scalar loss tensor).
     """
-    if cfg.schedule == "calibrated":
+    if cfg.schedule == "calibrated" and cfg.level_unit == "cost":
+        # the level's exact share of the view's frame cost, drawn with the level's gains
+        out = render_lod(g, camera, budget_cost=lod.target_fraction(s_v), min_s_v=0.0, tau=cfg.tau,
+                         eps=cfg.eps, background=cfg.background, backend=backend)
+    elif cfg.schedule == "calibrated":
         # the level's exact share of the Gaussians in view, drawn with the level's gains
         out = render_lod(g, camera, budget=lod.target_fraction(s_v), budget_in_view=True,
                          min_s_v=0.0, tau=cfg.tau, eps=cfg.eps, background=cfg.background,
@@ -667,6 +737,7 @@ def load_state(path: os.PathLike, device: str | torch.device = "cpu") -> tuple[A
     cfg_d = json.loads(meta["config"])
     cfg_d["background"] = tuple(cfg_d.get("background", (0, 0, 0)))
     cfg_d.setdefault("schedule", "paper")  # states written before the calibrated schedule
+    cfg_d.setdefault("level_unit", "count")  # states written before levels in cost
     try:
         cfg = AdaptConfig(**cfg_d)
     except (TypeError, ValueError) as e:

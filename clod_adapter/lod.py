@@ -296,6 +296,13 @@ def fade_width_at(s_v: float, width: float = DEFAULT_FADE_WIDTH) -> float:
     return float(width) * min(1.0, max(math.log(max(float(s_v), 1.0)) / math.log(FADE_RAMP_S_V), 0.0))
 
 
+def full_detail_share(s_v: float) -> float:
+    """How much of full detail the window-fade drawing keeps at ``s_v``: 1 at ``s_v = 1``
+    (every Gaussian in view, whatever its ``sigma_d``), falling with ``ln s_v`` to 0 at
+    :data:`FADE_RAMP_S_V` (the LoD rule alone), 0 beyond (:meth:`clod_adapter.view.LodView.select`)."""
+    return 1.0 - min(1.0, max(math.log(max(float(s_v), 1.0)) / math.log(FADE_RAMP_S_V), 0.0))
+
+
 def level(s_v: float | Tensor, max_sv: float) -> float:
     """Level coordinate ``l = clamp(ln s_v / ln max_sv, 0, 1)`` of the learned level gains:
     0 at full detail (``s_v = 1``, the input's attributes), 1 at the trained maximum and beyond.
@@ -326,9 +333,15 @@ def s_v_for_fraction(fraction: float) -> float:
 
 def calibrate_sigma_d(score: Tensor, opacities: Tensor, d_ref: Tensor, *, tau: float = DEFAULT_TAU,
                       eps: float = DEFAULT_EPS, fade_width: float = DEFAULT_FADE_WIDTH,
-                      sigma_max: float = 1e3) -> Tensor:
+                      sigma_max: float = 1e3, cost: Optional[Tensor] = None) -> Tensor:
     """``sigma_d`` that turns a ranking into Eq. 2 levels: the Gaussian of rank quantile ``q``
     (0 = highest ``score``) keeps full opacity up to ``s_v = q^(-2/3)`` at its reference distance.
+
+    With ``cost`` [N] (each Gaussian's mean frame cost, e.g. its footprint in pixels averaged
+    over the training views, :func:`clod_adapter.cost.splat_cost`) ``q`` is the *cost* quantile:
+    the share of the total cost taken by the Gaussians ranked before it (plus half its own), so
+    the drawn set at ``s_v`` costs ``s_v^-1.5`` of the full frame on average: levels in frame
+    cost rather than in count. Without it ``q`` is the rank quantile (levels in count).
 
     With ``S = q^(-2/3)``, Eq. 2's margin at ``S`` is set to the fade width ``w``:
     ``log(alpha / tau) - a S^2 - log S = w`` with ``a = d_ref^2 / (2 sigma_d^2)``, so at ``s_v``
@@ -355,7 +368,14 @@ def calibrate_sigma_d(score: Tensor, opacities: Tensor, d_ref: Tensor, *, tau: f
         return out
     order = torch.sort(-score.detach().double(), stable=True).indices
     q = torch.empty(n, dtype=torch.float64, device=score.device)
-    q[order] = (torch.arange(n, dtype=torch.float64, device=score.device) + 0.5) / n
+    if cost is None:
+        q[order] = (torch.arange(n, dtype=torch.float64, device=score.device) + 0.5) / n
+    else:
+        c = cost.detach().double().clamp_min(0.0).index_select(0, order)
+        total = float(c.sum())
+        if not total > 0:
+            c, total = torch.ones_like(c), float(n)
+        q[order] = ((torch.cumsum(c, 0) - 0.5 * c) / total).clamp(1e-12, 1.0)
     S = q ** (-2.0 / 3.0)
     alpha = opacities.detach().double().clamp(1e-300, 1.0)
     rhs = torch.log(alpha / tau) - float(fade_width) - torch.log(S)  # = a S^2

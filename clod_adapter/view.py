@@ -100,10 +100,8 @@ class LodView:
     width: int
     height: int
     frustum: Tensor
-    visible: Tensor
     project_ms: float = 0.0
-    _geom: object = field(default=None, repr=False)
-    _row_of: Optional[Tensor] = field(default=None, repr=False)
+    _proj: Optional[tuple] = field(default=None, repr=False)  # (geom, row_of, visible, candidates or None)
     _d_norm: Optional[Tensor] = field(default=None, repr=False)
     _critical: Optional[Tensor] = field(default=None, repr=False)
     _opacities: Optional[Tensor] = field(default=None, repr=False)
@@ -116,6 +114,47 @@ class LodView:
     @property
     def n_in_view(self) -> int:
         return int(self.visible.sum())
+
+    @property
+    def n_frustum(self) -> int:
+        """Gaussian centres inside the view frustum: the population of the level's share (no
+        projection needed, so an ``s_v`` frame projects only what its LoD mask keeps)."""
+        return int(self.frustum.sum())
+
+    def _projection(self, candidates: Optional[Tensor] = None) -> tuple:
+        """(geometry, row_of [N], visible [N]) of the Gaussians in front of the camera (all of them,
+        or only ``candidates`` [N] bool: rows and ``visible`` cover just those). Computed once and
+        reused; a full projection serves any later request."""
+        have = self._proj
+        if have is not None and (have[3] is None or have[3] is candidates):
+            return have[:3]
+        t0 = time.perf_counter()
+        n, w, h = self.n, self.width, self.height
+        geom = project_geometry(self.means, self.quats, self.scales, self.viewmat, self.K, w, h, NEAR_PLANE,
+                                FAR_PLANE, candidates)
+        with torch.no_grad():
+            vis_ids = finish_projection(geom, None, w, h, EPS2D).ids
+            visible = torch.zeros(n, dtype=torch.bool, device=self.means.device)
+            visible[vis_ids] = True
+            row_of = torch.full((n,), -1, dtype=torch.long, device=self.means.device)
+            row_of[geom.ids] = torch.arange(geom.ids.numel(), device=self.means.device)
+        self._proj = (geom, row_of, visible, candidates)
+        self.project_ms += (time.perf_counter() - t0) * 1e3
+        return self._proj[:3]
+
+    @property
+    def visible(self) -> Tensor:
+        """[N] bool: the footprint reaches the image (gsplat 1.5.3 culling, opacity-free 3.33-sigma
+        extent): the population budgets and in-view shares refer to. Projects the whole model."""
+        return self._projection()[2]
+
+    @property
+    def _geom(self):
+        return self._projection()[0]
+
+    @property
+    def _row_of(self) -> Tensor:
+        return self._projection()[1]
 
     @property
     def opacities(self) -> Tensor:
@@ -183,7 +222,8 @@ class LodView:
             idx, s_used = select_budget(crit, budget_count(budget, self.n), self.visible)
             if s_used < min_s_v:
                 s_used = float(min_s_v)
-                mask = (crit > s_used) & self.visible
+                # capped at full detail (s_v = 1): every Gaussian in view, as the s_v path draws it
+                mask = self.visible if (s_used <= 1.0 and st.fade == "window") else (crit > s_used) & self.visible
                 idx = torch.nonzero(mask, as_tuple=False).squeeze(1)
             else:
                 mask = torch.zeros_like(self.visible)
@@ -192,7 +232,11 @@ class LodView:
         else:
             s_used = float(s_v)
             d = self.d_norm.detach()
-            mask = lod.lod_mask(opac, d, sd, s_used, st.tau, st.eps) & self.visible
+            mask = lod.lod_mask(opac, d, sd, s_used, st.tau, st.eps)
+            if st.fade == "window" and lod.full_detail_share(s_used) > 0.0:
+                mask &= self.visible
+                return self._near_full_detail(mask, torch.nonzero(mask, as_tuple=False).squeeze(1), s_used, level)
+            mask &= self._projection(mask)[2]  # only what the LoD mask keeps is projected
             idx = torch.nonzero(mask, as_tuple=False).squeeze(1)
             if estimator != "paper" and torch.is_grad_enabled() and sd.requires_grad:
                 m_eta = (lod.lod_margin(opac.detach(), d, sd, s_used, st.tau, st.eps) if eta_grad_sigma_only
@@ -205,8 +249,8 @@ class LodView:
                                       sd.index_select(0, idx), s_used, st.eps)
             return LodSelection(idx, drawn, mask, s_used, 0.0, eta)
         if level is None:
-            n_vis = self.n_in_view
-            level = lod.level_of_fraction(idx.numel() / n_vis if n_vis else 1.0, st.max_sv)
+            n_fr = self.n_frustum
+            level = lod.level_of_fraction(idx.numel() / n_fr if n_fr else 1.0, st.max_sv)
         margin = lod.lod_margin(opac.index_select(0, idx), self.d_norm.detach().index_select(0, idx),
                                 sd.index_select(0, idx), s_used, st.tau, st.eps)
         logits = self.opacity_logits.index_select(0, idx)
@@ -215,6 +259,31 @@ class LodView:
             logits = logits + level * g.index_select(0, idx)
         drawn = torch.sigmoid(logits) * lod.fade_weight(margin, lod.fade_width_at(s_used, st.fade_width))
         return LodSelection(idx, drawn, mask, s_used, float(level), eta)
+
+    def _near_full_detail(self, mask: Tensor, idx: Tensor, s_v: float, level: Optional[float]) -> LodSelection:
+        """Window fade, ``1 <= s_v < FADE_RAMP_S_V``: every Gaussian in view is drawn, those the
+        mask keeps with weight ``(1 - t) + t fade`` and the others with ``1 - t``, ``t`` =
+        :func:`clod_adapter.lod.full_detail_share` of ``s_v`` (0 at ``s_v = 1``: exactly the
+        input; 1 at the ramp's end: the LoD rule). So full detail is the whole model in every
+        view (a Gaussian whose critical ``s_v`` is below 1 in this view, e.g. a view whose
+        frustum is shallower than the training views', fades out over the ramp instead of
+        being missing), and the image stays continuous in ``s_v``."""
+        st = self.settings
+        t = 1.0 - lod.full_detail_share(s_v)
+        n_fr = self.n_frustum
+        if level is None:
+            level = t * lod.level_of_fraction(idx.numel() / n_fr if n_fr else 1.0, st.max_sv)
+        all_idx = torch.nonzero(self.visible, as_tuple=False).squeeze(1)
+        margin = lod.lod_margin(self.opacities.index_select(0, all_idx),
+                                self.d_norm.detach().index_select(0, all_idx),
+                                self.sigma_d.index_select(0, all_idx), s_v, st.tau, st.eps)
+        logits = self.opacity_logits.index_select(0, all_idx)
+        g = self.gains.get("opacity_logit_gain")
+        if g is not None and level > 0:
+            logits = logits + level * g.index_select(0, all_idx)
+        w = (1.0 - t) + t * lod.fade_weight(margin, lod.fade_width_at(s_v, st.fade_width))
+        eta = self._share_in_frustum(mask)
+        return LodSelection(all_idx, torch.sigmoid(logits) * w, self.visible, s_v, float(level), eta)
 
     def cost_count(self, budget_cost: Optional[float] = None, budget_ms: Optional[float] = None, *,
                    level: Optional[float] = None, time_model: Optional[FrameTimeModel] = None,
@@ -440,8 +509,9 @@ class LodView:
             rc, ra, meta = rasterization(means, quats, scales, sel.opacities, col, self.viewmat[None],
                                          self.K[None], w, h, sh_degree=sh, backgrounds=bg, backend="gsplat")
             return rc[0], ra[0], meta
-        rows = self._row_of.index_select(0, idx)
-        geom = self._geom.subset(rows)
+        geom_all, row_of, _ = self._projection(self._proj[3] if self._proj is not None else None)
+        rows = row_of.index_select(0, idx)
+        geom = geom_all.subset(rows)
         cov_scale = None
         g = self.gains.get("log_scale_gain")
         if g is not None and sel.level > 0:
@@ -478,20 +548,11 @@ def view_lod_tensors(means: Tensor, quats: Tensor, scales: Tensor, opacity_logit
     viewmat = viewmat.to(means.device, dt)
     K = K.to(means.device, dt)
     w, h = int(width), int(height)
-    n = means.shape[0]
     frustum = lod.in_frustum(means, viewmat, K, w, h, NEAR_PLANE)
-    geom = project_geometry(means, quats, scales, viewmat, K, w, h, NEAR_PLANE, FAR_PLANE)
-    with torch.no_grad():
-        vis_ids = finish_projection(geom, None, w, h, EPS2D).ids
-        visible = torch.zeros(n, dtype=torch.bool, device=means.device)
-        visible[vis_ids] = True
-        row_of = torch.full((n,), -1, dtype=torch.long, device=means.device)
-        row_of[geom.ids] = torch.arange(geom.ids.numel(), device=means.device)
     return LodView(means=means, quats=quats, scales=scales, opacity_logits=opacity_logits, colors=colors,
                    sigma_d=sigma_d, gains={k: v for k, v in (gains or {}).items() if v is not None},
                    settings=_settings(settings, tau, eps), viewmat=viewmat, K=K, width=w, height=h,
-                   frustum=frustum, visible=visible, project_ms=(time.perf_counter() - t0) * 1e3,
-                   _geom=geom, _row_of=row_of)
+                   frustum=frustum, project_ms=(time.perf_counter() - t0) * 1e3)
 
 
 def view_lod(gaussians: Gaussians, camera, *, tau: Optional[float] = None,
@@ -635,7 +696,7 @@ def render_lod(
             more than one of ``s_v``, ``budget``, ``budget_cost``, ``budget_ms`` given.
     """
     view = view_lod(gaussians, camera, tau=tau, eps=eps)
-    t1 = time.perf_counter()
+    p0, t1 = view.project_ms, time.perf_counter()
     sel = view.select(s_v, budget=budget, min_s_v=min_s_v, budget_in_view=budget_in_view, level=level,
                       estimator=estimator, temperature=temperature, eta_grad_sigma_only=eta_grad_sigma_only,
                       budget_cost=budget_cost, budget_ms=budget_ms, time_model=time_model)
@@ -649,7 +710,8 @@ def render_lod(
     t3 = time.perf_counter()
     return LodRender(image=image, alpha=alpha, mask=sel.mask, n_rendered=int(sel.indices.numel()),
                      n_frustum=int(view.frustum.sum()), eta=sel.eta, s_v=sel.s_v, level=sel.level,
-                     project_ms=view.project_ms, select_ms=(t2 - t1) * 1e3, raster_ms=(t3 - t2) * 1e3, meta=meta)
+                     project_ms=view.project_ms, select_ms=(t2 - t1) * 1e3 - (view.project_ms - p0),
+                     raster_ms=(t3 - t2) * 1e3, meta=meta)
 
 
 @dataclass

@@ -64,10 +64,11 @@ def build_parser():
                    help="steps of the per-budget ceiling dlod_finetuned (one fine-tuned model per budget; "
                         "default: the adaptation's iterations from adapt_state.safetensors, else 1000; 0 skips)")
     p.add_argument("--splat-transform", metavar="EXE", default=None,
-                   help="splat-transform executable for the merging-decimator baseline 'merge' (default: "
+                   help="splat-transform executable for the decimator baselines 'decimate' and 'decimate_adaptive' (default: "
                         "$CLOD_SPLAT_TRANSFORM, else node_modules/.bin/splat-transform as installed by `npm ci` "
                         "in the repository root, else PATH; skipped with a note when absent)")
-    p.add_argument("--no-merge", action="store_true", help="skip the merging-decimator baseline")
+    p.add_argument("--no-merge", action="store_true",
+                   help="skip splat-transform's decimator baselines (the report says they were not run)")
     p.add_argument("--background", default="black", choices=("black", "white"),
                    help="colour behind the scene (NeRF-synthetic RGBA images are composited over it)")
     p.add_argument("-o", "--output", metavar="REPORT", help="report folder, new or empty (default: ./clod_report)")
@@ -113,7 +114,7 @@ def _main(args) -> int:
     from clod_adapter.io.load import load_scene
     from clod_adapter.jobs.adapt import METRICS_NAME, resolution_note
     from clod_adapter.adapt import iterations_from_state, max_sv_from_state
-    from clod_adapter.jobs.eval import OUTPUT_NAMES, evaluate_report
+    from clod_adapter.jobs.eval import OUTPUT_NAMES
 
     ply = resolve_model_path(ply, prefer="point_cloud.ply")
     dev = jobs.pick_device(args.device)
@@ -165,7 +166,8 @@ def _main(args) -> int:
 
         merge_tool = args.splat_transform or find_splat_transform()
         if merge_tool is None:
-            print("clod-eval: note: splat-transform not found; the 'merge' baseline is skipped "
+            print("clod-eval: note: splat-transform not found; the 'decimate' and 'decimate_adaptive' baselines "
+                  "are not run "
                   "(install the pinned version with `npm ci` in the repository root)", file=sys.stderr)
     notes = []
     cam0 = (scene.test or scene.train)[0]
@@ -173,13 +175,25 @@ def _main(args) -> int:
     if note:
         notes.append(note)
     jobs.check_output_dir(out, inputs, OUTPUT_NAMES + ("report.md",), force=True)  # checked above; create
+    from clod_adapter.baselines import PeerError
+
+    try:
+        _report(ply, scene, out, pretrained, pre, budgets, max_sv, args, lpips, dev, bg, notes, dlod_it, merge_tool)
+    except PeerError as e:  # a peer that fails stops the report: it never silently drops out
+        print(f"clod-eval: error: {jobs.one_line(e)} (--no-merge runs without the decimators)", file=sys.stderr)
+        return 1
+    print(f"clod-eval: wrote the report to {out}")
+    return 0
+
+
+def _report(ply, scene, out, pretrained, pre, budgets, max_sv, args, lpips, dev, bg, notes, dlod_it, merge_tool):
+    from clod_adapter.jobs.eval import evaluate_report
+
     evaluate_report(ply, scene, out, pretrained=pretrained, pretrained_label=str(pre) if pre else None,
                     budgets=budgets, max_sv=max_sv, sv_steps=args.sv_steps, popping_steps=args.popping_steps,
                     lpips=lpips, seed=args.seed, sigma_c=args.sigma_c, device=dev, progress=not args.quiet,
                     background=bg, timing_repeats=args.timing_repeats, notes=notes,
                     dlod_iterations=dlod_it, merge_tool=merge_tool)
-    print(f"clod-eval: wrote the report to {out}")
-    return 0
 
 
 def _resolution_note(ply, pre, size, resolution_note, training_size, metrics_name):

@@ -302,6 +302,10 @@ def _local_bin(folder: "Path") -> Optional[str]:
     return None
 
 
+class PeerError(RuntimeError):
+    """A peer tool (splat-transform) is missing or failed: one line saying which and why."""
+
+
 def find_splat_transform() -> Optional[str]:
     """Path of PlayCanvas ``splat-transform`` (npm ``@playcanvas/splat-transform``, pinned to
     :data:`SPLAT_TRANSFORM_VERSION` by the root ``package.json``), looked up in this order:
@@ -385,7 +389,7 @@ def merge_decimate(gaussians: Gaussians, count: int, *, mode: Literal["decimate"
         env = os.environ.get(SPLAT_TRANSFORM_ENV)
         where = (f"${SPLAT_TRANSFORM_ENV}={env} is not an executable file" if env else
                  "not in node_modules/.bin nor on PATH")
-        raise RuntimeError(f"splat-transform not found ({where}); install the pinned version with "
+        raise PeerError(f"splat-transform not found ({where}); install the pinned version with "
                            f"`{NPM_INSTALL}` in the repository root")
     count = max(1, min(int(count), len(gaussians)))
     with tempfile.TemporaryDirectory(prefix="clod-merge-") as tmp:
@@ -395,17 +399,17 @@ def merge_decimate(gaussians: Gaussians, count: int, *, mode: Literal["decimate"
         try:
             res = subprocess.run(cmd, capture_output=True, text=True, errors="replace", timeout=timeout)
         except subprocess.TimeoutExpired:
-            raise RuntimeError(f"splat-transform {MERGE_MODES[mode]} {count} timed out after {timeout:g} s") from None
+            raise PeerError(f"splat-transform {MERGE_MODES[mode]} {count} timed out after {timeout:g} s") from None
         except OSError as e:
-            raise RuntimeError(f"splat-transform could not be started ({exe}): {e}") from None
+            raise PeerError(f"splat-transform could not be started ({exe}): {e}") from None
         if res.returncode != 0:
-            raise RuntimeError(f"splat-transform exited {res.returncode}: {_failure_line(res.stderr or res.stdout)}")
+            raise PeerError(f"splat-transform exited {res.returncode}: {_failure_line(res.stderr or res.stdout)}")
         if not dst.is_file():
-            raise RuntimeError(f"splat-transform exited 0 but wrote no file: {_failure_line(res.stderr or res.stdout)}")
+            raise PeerError(f"splat-transform exited 0 but wrote no file: {_failure_line(res.stderr or res.stdout)}")
         try:
             out = load_model(dst)
         except (OSError, ValueError) as e:
-            raise RuntimeError(f"splat-transform wrote an unreadable model: {e}") from None
+            raise PeerError(f"splat-transform wrote an unreadable model: {e}") from None
     if len(out) != count:
-        raise RuntimeError(f"splat-transform {MERGE_MODES[mode]} {count} returned {len(out)} Gaussians")
+        raise PeerError(f"splat-transform {MERGE_MODES[mode]} {count} returned {len(out)} Gaussians")
     return out

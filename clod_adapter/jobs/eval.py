@@ -76,7 +76,9 @@ from ..baselines import (SIGMA_C_CANDIDATES, Selection, constant_sigma_selection
 from ..budget import normalize_budget
 from ..gaussians import Gaussians
 from ..io.atomic import atomic_save, atomic_write
-from ..io.ply import ply_property_names, read_ply
+from ..frontier import Point, frontier
+from ..io.ply import read_ply
+from ..storage import ply_bytes
 from ..view import render_lod
 from ..metrics import psnr, ssim
 
@@ -87,7 +89,9 @@ PER_VIEW_COLUMNS = ("method", "setting", "view", "s_v", "budget", "gaussians", "
 BASELINES = ("constant_sigma", "lightgaussian", "random")
 #: baselines that are global rankings (the candidates of dlod_finetuned's cut).
 RANKING_BASELINES = ("constant_sigma", "lightgaussian", "random")
-METHODS = ("clod", "clod_budget") + BASELINES + ("merge", "dlod_finetuned", "pretrained")
+#: splat-transform 3.7.0's untrained decimators (method name -> ``merge_decimate`` mode).
+DECIMATORS = {"decimate": "decimate", "decimate_adaptive": "adaptive"}
+METHODS = ("clod", "clod_budget") + BASELINES + tuple(DECIMATORS) + ("dlod_finetuned", "pretrained")
 OUTPUT_NAMES = ("report.csv", "report_per_view.csv", "report.json", "quality_vs_gaussians.png",
                 "quality_vs_time.png", "popping.png", "lod_strip.png")
 DEFAULT_BUDGETS = (1.0, 0.5, 0.25, 0.1)
@@ -96,11 +100,13 @@ LpipsSpec = Union[str, os.PathLike, Callable, None]
 
 
 # --- small helpers ----------------------------------------------------------------------------
-def bytes_per_gaussian(gaussians: Gaussians, with_sigma_d: Optional[bool] = None) -> int:
-    """Bytes one Gaussian takes in the (extended) INRIA .ply layout: 4 x number of float32
-    properties (with normals; + ``sigma_d`` when the model has one, or as forced)."""
-    sd = gaussians.sigma_d is not None if with_sigma_d is None else with_sigma_d
-    return 4 * len(ply_property_names(gaussians.sh_degree, with_normals=True, with_sigma_d=sd))
+def bytes_per_gaussian(gaussians: Gaussians) -> int:
+    """Bytes one Gaussian takes in the .ply :func:`clod_adapter.io.ply.write_ply` writes for this
+    model (its row stride: normals, ``sigma_d``, level gains and extra properties included;
+    :func:`clod_adapter.storage.ply_row_bytes`)."""
+    from ..storage import ply_row_bytes
+
+    return ply_row_bytes(gaussians)
 
 
 def sv_grid(max_sv: float, steps: int = 25, overshoot: float = 1.2) -> list[float]:
@@ -183,8 +189,9 @@ def _render_selection(g: Gaussians, cam, sel: Selection, bg, backend) -> Sample:
 
 
 def _render_lod(g: Gaussians, cam, bg, backend, tau, s_v=None, budget=None) -> Sample:
+    # fractional budgets are shares of the Gaussians in view (counts are counts)
     out = render_lod(g, cam, s_v, budget=budget, tau=tau, background=bg, backend=backend,
-                     estimator="paper")
+                     estimator="paper", budget_in_view=isinstance(budget, float))
     return Sample(out.image, out.n_rendered, out.s_v, out.select_ms, out.raster_ms)
 
 
@@ -237,6 +244,16 @@ def _retime(rows: _Rows, repeats: int, seed: int, on_render=None) -> None:
         start = rows.redo[i][1]
         for j, pv in enumerate(t["per_view"]):
             rows.per_view[start + j].update(pv)
+
+
+def _adapted_cut(adapted: Gaussians, k: int, cameras) -> Gaussians:
+    """The adapted model's own ``k``-Gaussian level as a static model (a start for
+    ``dlod_finetuned``): the first ``k`` of its importance order over ``cameras``
+    (:func:`clod_adapter.export.importance_order`), base attributes, no ``sigma_d``."""
+    from ..export import importance_order
+
+    keep = torch.sort(importance_order(adapted, cameras)[:k]).values
+    return adapted.subset(keep).with_sigma_d(None)
 
 
 # --- popping ----------------------------------------------------------------------------------
@@ -328,7 +345,8 @@ def _save_fig(fig, path: Path) -> None:
 
 
 _STYLE = {"clod": ("C0", "-", "."), "clod_budget": ("C0", "", "o"), "constant_sigma": ("C1", "--", "s"),
-          "lightgaussian": ("C2", "--", "^"), "random": ("C3", ":", "x"), "merge": ("C4", "--", "D"),
+          "lightgaussian": ("C2", "--", "^"), "random": ("C3", ":", "x"), "decimate": ("C4", "--", "D"),
+          "decimate_adaptive": ("C6", "--", "v"),
           "dlod_finetuned": ("C5", "-.", "P"), "pretrained": ("k", "", "*")}
 
 
@@ -361,6 +379,12 @@ def _plot_quality(rows: list[dict], x: str, xlabel: str, path: Path, extra=None,
                 hi = [max((r.get("ms_max") if r.get("ms_max") is not None else r[x]) - r[x], 0.0) for r in rs]
                 ax.errorbar(xs, ys, xerr=[lo, hi], color=c, linestyle="none", marker=mk, ms=ms * 0.8,
                             capsize=2, elinewidth=0.8, label=method)
+                # the method's frontier: its best quality within each time (lpips: lower is better)
+                sign = -1.0 if m == "lpips" else 1.0
+                fr = frontier(Point(method, "", xx, sign * yy) for xx, yy in zip(xs, ys))
+                if len(fr) > 1:
+                    ax.step([q.ms for q in fr], [sign * q.psnr for q in fr], where="post", color=c, lw=0.9,
+                            alpha=0.7)
             else:
                 ax.plot(xs, ys, color=c, linestyle=ls or "none", marker=mk, label=method, ms=ms)
         if mark is not None:
@@ -440,7 +464,7 @@ def format_markdown(report: dict) -> str:
     rows = report["rows"]
     fmt = lambda v, f: "-" if v is None or (isinstance(v, float) and v != v) else format(v, f)  # noqa: E731
     budgets = [r["setting"] for r in rows if r["method"] == "clod_budget"]
-    methods = [m for m in ("clod_budget",) + BASELINES + ("merge", "dlod_finetuned")
+    methods = [m for m in ("clod_budget",) + BASELINES + tuple(DECIMATORS) + ("dlod_finetuned",)
                if any(r["method"] == m for r in rows)]
     out = [f"{report['num_gaussians']['adapted']:,} Gaussians; views: {', '.join(report['views'])} "
            f"at {report['image_size'][0]}x{report['image_size'][1]}; {report['device']}, "
@@ -545,8 +569,10 @@ def evaluate_report(
             model cut by the best static ranking of this report (highest mean PSNR at that
             budget among :data:`RANKING_BASELINES`, global top share of the model) and
             fine-tuned for this many steps (:func:`clod_adapter.dlod.finetune_subset`).
-        merge_tool: a splat-transform executable: adds ``merge``
-            (:func:`clod_adapter.baselines.merge_decimate`); None skips it.
+        merge_tool: a splat-transform executable: adds splat-transform's decimators
+            ``decimate`` and ``decimate_adaptive`` (:func:`clod_adapter.baselines.merge_decimate`)
+            at each budget's share of the model; a failing run raises RuntimeError (a peer never
+            silently drops out of the report). None: they are not run, and the report says so.
 
     Returns:
         the report dict (also ``report.json``): ``rows`` (aggregated, :data:`CSV_COLUMNS`),
@@ -595,7 +621,7 @@ def evaluate_report(
     bg = list(background)
     pop_svs = [float(x) for x in np.linspace(1.0, s_vs[-1], popping_steps)]
     strip_svs = sv_levels(max_sv)
-    extra = len(BASELINES) + (1 if merge_tool else 0) + (1 if dlod_iterations > 0 else 0)
+    extra = len(BASELINES) + (len(DECIMATORS) if merge_tool else 0) + (1 if dlod_iterations > 0 else 0)
     n_renders = len(cams) * (len(s_vs) + 1 + len(budgets) * (1 + extra)) * (1 + max(timing_repeats, 0))
     n_renders += popping_steps + 2
     bar = progress_bar(n_renders, "clod-eval", unit="render", disable=not progress, leave=False)
@@ -634,7 +660,16 @@ def evaluate_report(
         d_ref = reference_distances(base, train_cams)
         global_scores["constant_sigma"] = critical_s_v(base.opacities, d_ref, torch.full_like(d_ref, sigma_c),
                                                        tau_b).float()
-    dlod_levels, dlod_choice, merge_sizes = {}, {}, {}
+    dlod_levels, dlod_choice, merge_sizes, dlod_info = {}, {}, {}, {}
+    decimated = {}
+    if merge_tool is None:
+        notes.append("splat-transform's decimators (decimate, decimate_adaptive) NOT RUN: splat-transform not "
+                     "found (`npm ci` in the repository root installs the pinned 3.7.0)")
+    if dlod_iterations > 0:
+        from ..io.scene import validation_split
+
+        fit_cams, val_cams = validation_split(train_cams)
+        val_gts = [train_gts[train_cams.index(c)] for c in val_cams]
     for b in budgets:
         lab = budget_label(b)
         bar.set_postfix_str(lab)
@@ -657,26 +692,30 @@ def evaluate_report(
         if merge_tool and share < 1.0:
             from ..baselines import merge_decimate
 
-            bar.set_postfix_str(f"{lab} merge")
-            try:
-                merged = merge_decimate(base, max(1, int(round(share * nb))), tool=merge_tool).to(dev)
-            except RuntimeError as e:
-                notes.append(f"merge at {lab} skipped: {e}")
-                merged = None
-            if merged is not None:
-                merge_sizes[lab] = len(merged)
-                _score(R, "merge", lab, b, run(lambda c, m=merged: _render_lod(m, c, bg, backend, tau)),
+            for method, mode in DECIMATORS.items():
+                bar.set_postfix_str(f"{lab} {method}")
+                m = merge_decimate(base, max(1, int(round(share * nb))), mode=mode, tool=merge_tool).to(dev)
+                merge_sizes[f"{method} {lab}"] = len(m)
+                decimated[(method, lab)] = m
+                _score(R, method, lab, b, run(lambda c, m=m: _render_lod(m, c, bg, backend, tau)),
                        cams, gts, nb, bpg_b, lpips_fn)
         if dlod_iterations > 0 and share < 1.0:
-            from ..dlod import finetune_subset, global_cut
+            from ..dlod import best_start, finetune_subset, global_cut
 
-            cands = [r for r in R.rows if r["setting"] == lab and r["method"] in RANKING_BASELINES]
-            best = max(cands, key=lambda r: r["psnr"])["method"]
-            keep = global_cut(global_scores[best].to(dev), share)
+            # the start: the best subset of this budget by PSNR on validation views (training views
+            # held out of nothing here: only the choice is scored on them, never the test views)
+            k = max(1, int(round(share * nb)))
+            cands = {m: base.subset(global_cut(global_scores[m].to(dev), share)) for m in global_scores}
+            cands.update({m: d for (m, lb), d in decimated.items() if lb == lab})
+            cands["clod"] = _adapted_cut(adapted, k, fit_cams)
+            best, start, val_scores = best_start(cands, val_cams, val_gts, background=bg, backend=backend,
+                                                 return_scores=True)
             bar.set_postfix_str(f"{lab} dlod ({best}, {dlod_iterations} steps)")
-            level = finetune_subset(base.subset(keep), train_cams, train_gts, iterations=dlod_iterations,
-                                    seed=seed, background=bg, backend=backend)
+            level, info = finetune_subset(start, train_cams, train_gts, iterations=dlod_iterations,
+                                          seed=seed, background=bg, backend=backend, return_info=True)
             dlod_levels[lab], dlod_choice[lab] = len(level), best
+            dlod_info[lab] = {"start": best, "val_psnr": val_scores, "convergence": info.convergence,
+                              "loss_every_100": info.loss[::100]}
             _score(R, "dlod_finetuned", lab, b, run(lambda c, m=level: _render_lod(m, c, bg, backend, tau)),
                    cams, gts, nb, bpg_b, lpips_fn)
     bar.set_postfix_str(f"timing x{timing_repeats}")
@@ -699,11 +738,13 @@ def evaluate_report(
         "views": [c.name for c in cams], "image_size": [cams[0].width, cams[0].height],
         "num_gaussians": {"adapted": na, "pretrained": nb},
         "bytes_per_gaussian": {"adapted": bpg_a, "pretrained": bpg_b},
-        "storage": {"adapted_bytes": na * bpg_a, "pretrained_bytes": nb * bpg_b,
-                    **({"dlod_bytes": (nb + sum(dlod_levels.values())) * bpg_b,
-                        "dlod_levels": dlod_levels, "dlod_ranking": dlod_choice,
+        "storage": {"adapted_bytes": ply_bytes(adapted), "pretrained_bytes": ply_bytes(base),
+                    **({"dlod_bytes": ply_bytes(base) + sum(ply_bytes(base.subset(torch.arange(v)))
+                                                           for v in dlod_levels.values()),
+                        "dlod_levels": dlod_levels, "dlod_ranking": dlod_choice, "dlod": dlod_info,
                         "dlod_iterations": dlod_iterations} if dlod_levels else {}),
-                    **({"merge_sizes": merge_sizes} if merge_sizes else {})},
+                    **({"decimated_sizes": merge_sizes} if merge_sizes else {}),
+                    "what": "bytes of the .ply write_ply writes for the model (= the file size)"},
         "timing": {"repeats": timing_repeats, "order": "shuffled per round (seed)" if timing_repeats else "single pass",
                    "omp_wait_policy": os.environ.get("OMP_WAIT_POLICY"),
                    "what": "ms = median over rounds of the median over views; ms_min/ms_max = smallest/largest round"},

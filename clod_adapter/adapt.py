@@ -39,7 +39,7 @@ from .budget import critical_s_v
 from .gaussians import GAIN_NAMES, Gaussians
 from .io.atomic import atomic_save
 from .losses import clod_loss, render_loss
-from .view import render_lod
+from .view import render_lod, view_lod
 from .metrics import psnr
 
 #: official 3DGS learning rates (arguments/__init__.py, OptimizationParams); means are scaled by
@@ -56,8 +56,7 @@ PARAM_NAMES = ("means", "quats", "log_scales", "opacity_logits", "sh0", "shN", "
 SCHEDULES = ("calibrated", "paper")
 Schedule = Literal["calibrated", "paper"]
 Ranking = Literal["lightgaussian", "opacity", "value"]
-LevelUnit = Literal["cost", "count"]
-LEVEL_UNITS = ("cost", "count")
+
 LevelWeighting = Literal["paper", "uniform"]
 #: level gains by letter of :attr:`AdaptConfig.gains`, and the official learning rate each uses
 #: (that of the attribute it offsets).
@@ -103,13 +102,14 @@ class AdaptConfig:
             steps cost 0.2-1.4 dB at 50-5 % of the Gaussians: README ablation).
         level_weighting: ``"paper"`` (w_s = (1 - 0.5 s_v / max_sv)^2) or ``"uniform"``
             (calibrated default: every level counts alike).
-        level_unit: calibrated schedule: what a level's share ``s_v^-1.5`` measures. ``"cost"``
-            (default): the frame cost of the Gaussians drawn (their footprints in pixels,
-            :mod:`clod_adapter.cost`), so ``sigma_d`` is calibrated on cost quantiles and each
-            step renders exactly that share of the view's cost (``budget_cost``): the trained
-            levels reach ``max_sv^-1.5`` of the frame *time*. ``"count"``: the share of the
-            Gaussians in view (the paper's count target; coarse levels that keep the largest
-            splats cost far more than their count).
+        cost_exponent: calibrated schedule: what a level's share ``s_v^-1.5`` measures: the
+            share of ``sum cost_i^cost_exponent`` over the Gaussians in view, ``cost_i`` their
+            frame cost (footprint in pixels, :mod:`clod_adapter.cost`). 0: the share of the
+            *count* (the paper's target; coarse levels keep the largest splats, so they cost far
+            more than their count); 1: the share of the frame *cost* (coarse levels reach
+            ``max_sv^-1.5`` of the frame time, but mid levels lose what large splats cover
+            cheaply); between: both. ``sigma_d`` is calibrated on these weighted quantiles and
+            each step renders exactly that weighted share of the view.
         views_per_step: training views per optimisation step, each at its own ``s_v``; the
             step uses the mean of their gradients (default 1). In a data-parallel run
             (:mod:`clod_adapter.distributed`) view ``j`` of a step is rendered by rank
@@ -137,7 +137,7 @@ class AdaptConfig:
     recalibrate_every: int = 0
     level_weighting: Optional[LevelWeighting] = None
     views_per_step: int = 1
-    level_unit: LevelUnit = "cost"
+    cost_exponent: float = 0.0
 
     def __post_init__(self) -> None:
         if self.schedule not in SCHEDULES:
@@ -176,8 +176,8 @@ class AdaptConfig:
             raise ValueError(f"recalibrate_every must be >= 0, got {self.recalibrate_every}")
         if self.level_weighting not in ("paper", "uniform"):
             raise ValueError(f"level_weighting must be 'paper' or 'uniform', got {self.level_weighting!r}")
-        if self.level_unit not in LEVEL_UNITS:
-            raise ValueError(f"level_unit must be one of {LEVEL_UNITS}, got {self.level_unit!r}")
+        if not 0.0 <= self.cost_exponent <= 1.0:
+            raise ValueError(f"cost_exponent must be in [0, 1], got {self.cost_exponent}")
         if not (isinstance(self.views_per_step, int) and self.views_per_step >= 1):
             raise ValueError(f"views_per_step must be an integer >= 1, got {self.views_per_step!r}")
         self.background = tuple(float(x) for x in self.background)
@@ -313,11 +313,12 @@ def blend_value(gaussians: Gaussians, cameras) -> Tensor:
 
 def calibrated_sigma_d(score: Tensor, opacities: Tensor, stats: dict, cfg: AdaptConfig) -> Tensor:
     """[N] ``sigma_d`` of the calibrated schedule: :func:`lod.calibrate_sigma_d` of ``score`` at
-    the reference distances, on cost quantiles when ``cfg.level_unit`` is ``"cost"`` (``stats``
-    from :func:`view_statistics`)."""
+    the reference distances, on quantiles of ``cost^cfg.cost_exponent`` (``stats`` from
+    :func:`view_statistics`; count quantiles for exponent 0)."""
+    beta = cfg.cost_exponent
     return lod.calibrate_sigma_d(score, opacities, stats["d_ref"], tau=cfg.tau, eps=cfg.eps,
                                  fade_width=cfg.fade_width,
-                                 cost=stats["cost"] if cfg.level_unit == "cost" else None)
+                                 cost=stats["cost"].double().clamp_min(1e-12) ** beta if beta > 0 else None)
 
 
 @torch.no_grad()
@@ -399,7 +400,7 @@ def prepare(gaussians: Gaussians, train_cameras, cfg: AdaptConfig, train_images=
         scores = ranking_scores(g, train_cameras, cfg.ranking)
         stats = view_statistics(g, train_cameras)
         g = g.with_sigma_d(calibrated_sigma_d(scores, g.opacities, stats, cfg).to(g.means))
-        init = {"ranking": cfg.ranking, "level_unit": cfg.level_unit}
+        init = {"ranking": cfg.ranking, "cost_exponent": cfg.cost_exponent}
     elif g.sigma_d is None:
         dmax = max_normalized_distance(g, train_cameras)
         att = cfg.init_attenuation
@@ -483,16 +484,33 @@ class StopFlag:
 _StopFlag = StopFlag  # old name
 
 
+@torch.no_grad()
+def weighted_count(view, share: float, cost_exponent: float) -> int:
+    """How many Gaussians a level of ``share`` of the view's weighted cost draws: the longest
+    prefix of the Gaussians in view by critical ``s_v`` (descending, ties by index: the order
+    every budget uses) whose ``sum cost^cost_exponent`` is at most ``share`` of the total
+    (``cost`` = :func:`clod_adapter.cost.splat_cost` at the base level, clipped ellipse pixels)."""
+    from .cost import _order_in_view, _prefix_count, splat_cost
+
+    order = _order_in_view(view.critical, view.visible)
+    if order.numel() == 0:
+        return 0
+    w = splat_cost(view, order).clamp_min(1e-12) ** float(cost_exponent)
+    return _prefix_count(w, float(share) * float(w.sum()))
+
+
 def view_loss(g: Gaussians, camera, gt: Tensor, s_v: float, cfg: AdaptConfig, backend: str = "auto"):
     """One training view's render and loss at ``s_v`` (the body of a step of :func:`adapt`).
 
     Returns:
         (:class:`clod_adapter.view.LodRender`, scalar loss tensor).
     """
-    if cfg.schedule == "calibrated" and cfg.level_unit == "cost":
-        # the level's exact share of the view's frame cost, drawn with the level's gains
-        out = render_lod(g, camera, budget_cost=lod.target_fraction(s_v), min_s_v=0.0, tau=cfg.tau,
-                         eps=cfg.eps, background=cfg.background, backend=backend)
+    if cfg.schedule == "calibrated" and cfg.cost_exponent > 0:
+        # the level's exact share of the view's weighted cost, drawn with the level's gains
+        view = view_lod(g, camera, tau=cfg.tau, eps=cfg.eps)
+        k = weighted_count(view, lod.target_fraction(s_v), cfg.cost_exponent)
+        out = render_lod(g, camera, budget=max(k, 1), min_s_v=0.0, tau=cfg.tau, eps=cfg.eps,
+                         background=cfg.background, backend=backend, view=view)
     elif cfg.schedule == "calibrated":
         # the level's exact share of the Gaussians in view, drawn with the level's gains
         out = render_lod(g, camera, budget=lod.target_fraction(s_v), budget_in_view=True,
@@ -737,7 +755,7 @@ def load_state(path: os.PathLike, device: str | torch.device = "cpu") -> tuple[A
     cfg_d = json.loads(meta["config"])
     cfg_d["background"] = tuple(cfg_d.get("background", (0, 0, 0)))
     cfg_d.setdefault("schedule", "paper")  # states written before the calibrated schedule
-    cfg_d.setdefault("level_unit", "count")  # states written before levels in cost
+
     try:
         cfg = AdaptConfig(**cfg_d)
     except (TypeError, ValueError) as e:

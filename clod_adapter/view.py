@@ -646,6 +646,7 @@ def render_lod(
     budget_cost: Optional[float] = None,
     budget_ms: Optional[float] = None,
     time_model: Optional[FrameTimeModel] = None,
+    view: Optional[LodView] = None,
 ) -> LodRender:
     """Render ``gaussians`` from ``camera`` at virtual distance scale ``s_v`` (or a budget).
 
@@ -687,6 +688,8 @@ def render_lod(
         budget_ms: a budget in predicted rasterisation ms (``raster_ms``; the projection is not
             in it): the longest such prefix whose :class:`clod_adapter.cost.FrameTimeModel`
             prediction (``time_model``, default the fitted one) fits.
+        view: this model's :class:`LodView` for ``camera`` when the caller has built it (its
+            projection and critical ``s_v`` are reused); default: built here.
 
     Returns:
         :class:`LodRender`.
@@ -695,7 +698,8 @@ def render_lod(
         ValueError: ``s_v`` or a budget given but the model has no ``sigma_d``; ``s_v < 1``;
             more than one of ``s_v``, ``budget``, ``budget_cost``, ``budget_ms`` given.
     """
-    view = view_lod(gaussians, camera, tau=tau, eps=eps)
+    if view is None:
+        view = view_lod(gaussians, camera, tau=tau, eps=eps)
     p0, t1 = view.project_ms, time.perf_counter()
     sel = view.select(s_v, budget=budget, min_s_v=min_s_v, budget_in_view=budget_in_view, level=level,
                       estimator=estimator, temperature=temperature, eta_grad_sigma_only=eta_grad_sigma_only,

@@ -1,0 +1,109 @@
+"""Levels and frame cost: cost-weighted calibration, the weighted training budget, full detail in
+every view, the s_v frame that projects only what its mask keeps, and in-view shares."""
+from __future__ import annotations
+
+from dataclasses import replace
+
+import pytest
+import torch
+
+from clod_adapter import lod
+from clod_adapter.adapt import AdaptConfig, weighted_count
+from clod_adapter.cost import splat_cost
+from clod_adapter.synthetic import make_cameras, make_ground_truth
+from clod_adapter.view import render_lod, view_lod
+
+
+@pytest.fixture(scope="module")
+def scene():
+    gt = make_ground_truth(1500, seed=3)
+    cams = make_cameras(3, 2, width=64, height=48)
+    g = torch.Generator().manual_seed(1)
+    sd = 0.05 + 0.5 * torch.rand(len(gt), generator=g)
+    return gt.with_sigma_d(sd), cams
+
+
+def test_calibration_on_cost_quantiles_follows_the_weighted_share():
+    n = 3000
+    g = torch.Generator().manual_seed(0)
+    score = torch.rand(n, generator=g)
+    alpha = 0.3 + 0.7 * torch.rand(n, generator=g)
+    d = 0.2 + 0.8 * torch.rand(n, generator=g)
+    cost = torch.rand(n, generator=g) ** 4 * 1000  # skewed, as footprints are
+    sd = lod.calibrate_sigma_d(score, alpha, d, cost=cost)
+    for s in (1.5, 3.0, 5.0):
+        full = lod.lod_margin(alpha, d, sd, s) >= lod.DEFAULT_FADE_WIDTH - 1e-4
+        share = float(cost[full].sum() / cost.sum())
+        assert share == pytest.approx(s ** -1.5, abs=0.02), s
+        # the drawn set is a prefix of the ranking
+        assert float(score[full].min()) >= float(score[~full].max()) - 1e-6
+    # weights of one: the count quantiles of the paper's target
+    assert torch.allclose(lod.calibrate_sigma_d(score, alpha, d, cost=torch.ones(n)),
+                          lod.calibrate_sigma_d(score, alpha, d), rtol=1e-5)
+
+
+def test_weighted_count_exponent_zero_is_the_count_and_monotone(scene):
+    g, cams = scene
+    v = view_lod(g, cams[0])
+    n = v.n_in_view
+    assert weighted_count(v, 0.5, 0.0) == pytest.approx(0.5 * n, abs=1)
+    ks = [weighted_count(v, s, 1.0) for s in (0.05, 0.1, 0.3, 0.6, 1.0)]
+    assert ks == sorted(ks) and ks[-1] == n
+    # with exponent 1 the prefix's cost share fits the budget
+    order = torch.sort(-v.critical[v.visible].double(), stable=True).indices
+    idx = torch.nonzero(v.visible).squeeze(1)[order]
+    c = splat_cost(v, idx)
+    k = weighted_count(v, 0.3, 1.0)
+    assert float(c[:k].sum()) <= 0.3 * float(c.sum()) + 1e-6 < float(c[:k + 1].sum())
+    with pytest.raises(ValueError):
+        AdaptConfig(cost_exponent=1.5)
+
+
+def test_full_detail_is_the_whole_model_in_every_view(scene):
+    g, cams = scene
+    # decays so small that most Gaussians have a critical s_v below 1 in these views
+    tiny = g.with_sigma_d(torch.full((len(g),), 0.02))
+    tiny = replace(tiny, lod=lod.LodSettings(fade="window"))
+    for cam in cams[:3]:
+        plain = render_lod(tiny.with_sigma_d(None), cam)
+        full = render_lod(tiny, cam, 1.0)
+        v = view_lod(tiny, cam)
+        assert int((v.critical[v.visible] < 1).sum()) > 0.5 * v.n_in_view
+        assert full.n_rendered == plain.n_rendered
+        assert torch.allclose(full.image, plain.image, atol=1e-6)
+        # continuous over the ramp: small steps of s_v change the image little, and the LoD
+        # rule alone holds from the ramp's end
+        prev, steps = full.image, []
+        for s in torch.linspace(1.0, lod.FADE_RAMP_S_V, 11)[1:].tolist():
+            img = render_lod(tiny, cam, s).image
+            steps.append(float((img - prev).abs().mean()))
+            prev = img
+        assert max(steps) < 0.25 * float((full.image - prev).abs().mean()) + 1e-6
+        end = render_lod(tiny, cam, lod.FADE_RAMP_S_V * 1.0001)
+        assert end.n_rendered == int(((v.critical > lod.FADE_RAMP_S_V * 1.0001) & v.visible).sum())
+
+
+def test_s_v_frame_projects_only_its_mask_and_draws_the_same(scene):
+    g, cams = scene
+    g = replace(g, lod=lod.LodSettings(fade="window", max_sv=5.0))
+    for s in (1.5, 3.0, 8.0):
+        for cam in cams[:2]:
+            lazy = view_lod(g, cam)
+            sel = lazy.select(s)
+            assert lazy._proj[3] is not None  # a partial projection
+            full = view_lod(g, cam)
+            want = lod.lod_mask(full.opacities, full.d_norm, full.sigma_d, s) & full.visible
+            assert torch.equal(sel.indices, torch.nonzero(want).squeeze(1))
+            a = render_lod(g, cam, s).image
+            b = full.rasterize(full.select(s))[0]
+            assert torch.allclose(a, b, atol=1e-6)
+
+
+def test_in_view_share_budgets(scene):
+    g, cams = scene
+    for cam in cams[:2]:
+        v = view_lod(g, cam)
+        out = render_lod(g, cam, budget=0.25, budget_in_view=True, min_s_v=0.0)
+        assert out.n_rendered == round(0.25 * v.n_in_view)
+        whole = render_lod(g, cam, budget=0.25, min_s_v=0.0)  # a share of the model
+        assert whole.n_rendered == round(0.25 * len(g))

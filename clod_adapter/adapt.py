@@ -137,7 +137,7 @@ class AdaptConfig:
     recalibrate_every: int = 0
     level_weighting: Optional[LevelWeighting] = None
     views_per_step: int = 1
-    cost_exponent: float = 0.0
+    cost_exponent: float = 0.5
 
     def __post_init__(self) -> None:
         if self.schedule not in SCHEDULES:

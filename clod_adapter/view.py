@@ -270,6 +270,10 @@ class LodView:
         being missing), and the image stays continuous in ``s_v``."""
         st = self.settings
         t = 1.0 - lod.full_detail_share(s_v)
+        if t <= 0.0 and level is None:  # s_v = 1: the input model as it is, at no extra cost
+            idx = torch.nonzero(self.visible, as_tuple=False).squeeze(1)
+            return LodSelection(idx, self.opacities.index_select(0, idx), self.visible, s_v, 0.0,
+                                self._share_in_frustum(mask))
         n_fr = self.n_frustum
         if level is None:
             level = t * lod.level_of_fraction(idx.numel() / n_fr if n_fr else 1.0, st.max_sv)

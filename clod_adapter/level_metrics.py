@@ -57,11 +57,12 @@ def evaluate_level(
     budget: Optional[float | int] = None,
 ) -> LevelMetrics:
     """Render every camera at ``s_v`` (None: no LoD) or within ``budget`` (a count, or a fraction
-    of the model; ``s_v`` solved per view, at least 1) and score against ``images`` ([H, W, 3])."""
+    of the Gaussians in view; ``s_v`` solved per view, at least 1) and score against ``images``
+    ([H, W, 3])."""
     ps, ss, counts, tms, sel, ras, svs = [], [], [], [], [], [], []
     for cam, gt in zip(cameras, images):
         out = render_lod(gaussians, cam, s_v, tau=tau, background=background, backend=backend,
-                         estimator="paper", budget=budget)
+                         estimator="paper", budget=budget, budget_in_view=isinstance(budget, float))
         svs.append(out.s_v)
         img = out.image.clamp(0, 1)
         gt = gt.to(img.device)

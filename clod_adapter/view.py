@@ -222,8 +222,9 @@ class LodView:
             idx, s_used = select_budget(crit, budget_count(budget, self.n), self.visible)
             if s_used < min_s_v:
                 s_used = float(min_s_v)
-                # capped at full detail (s_v = 1): every Gaussian in view, as the s_v path draws it
-                mask = self.visible if (s_used <= 1.0 and st.fade == "window") else (crit > s_used) & self.visible
+                if s_used <= 1.0 and st.fade == "window":  # capped at full detail: as s_v = 1 draws it
+                    return self._near_full_detail(self.visible, None, 1.0, level)
+                mask = (crit > s_used) & self.visible
                 idx = torch.nonzero(mask, as_tuple=False).squeeze(1)
             else:
                 mask = torch.zeros_like(self.visible)

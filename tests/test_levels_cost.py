@@ -71,6 +71,9 @@ def test_full_detail_is_the_whole_model_in_every_view(scene):
         assert int((v.critical[v.visible] < 1).sum()) > 0.5 * v.n_in_view
         assert full.n_rendered == plain.n_rendered
         assert torch.allclose(full.image, plain.image, atol=1e-6)
+        # a budget capped at full detail draws the same
+        capped = render_lod(tiny, cam, budget=1.0, budget_in_view=True)
+        assert torch.allclose(capped.image, plain.image, atol=1e-6)
         # continuous over the ramp: small steps of s_v change the image little, and the LoD
         # rule alone holds from the ramp's end
         prev, steps = full.image, []

@@ -215,3 +215,31 @@ def test_cli_runs(tiny, tmp_path, capsys):
     js = json.loads((out / "report.json").read_text())
     assert js["storage"]["dlod_bytes"] > js["storage"]["pretrained_bytes"]
     assert "popping" in capsys.readouterr().out
+
+
+# --- splat-transform's decimators in the report --------------------------------------------------
+@pytest.mark.slow
+def test_report_runs_both_decimators_and_a_failing_peer_stops_it(tiny, tmp_path):
+    from clod_adapter.baselines import PeerError, find_splat_transform
+
+    tool = find_splat_transform()
+    if tool is None:
+        pytest.skip("splat-transform not installed (`npm ci` in the repository root installs 3.7.0)")
+    out = tmp_path / "dec"
+    out.mkdir()
+    rep = evaluate_report(tiny["root"] / "ad" / "point_cloud.ply", tiny["scene"], out,
+                          pretrained=tiny["root"] / "pre.ply", budgets=[0.5, 0.2], sv_steps=3, max_sv=3.0,
+                          popping_steps=5, lpips=None, progress=False, log=None, merge_tool=tool,
+                          timing_repeats=1)
+    got = {(r["method"], r["setting"]) for r in rep["rows"]}
+    for m in ("decimate", "decimate_adaptive"):
+        assert {(m, "budget=0.5"), (m, "budget=0.2")} <= got
+    assert rep["storage"]["decimated_sizes"]["decimate budget=0.5"] == round(0.5 * len(tiny["pre"]))
+    bad = tmp_path / "fail.sh"
+    bad.write_text("#!/bin/sh\necho broken >&2\nexit 3\n")
+    bad.chmod(0o755)
+    with pytest.raises(PeerError, match="exited 3"):
+        evaluate_report(tiny["root"] / "ad" / "point_cloud.ply", tiny["scene"], tmp_path / "dec2",
+                        pretrained=tiny["root"] / "pre.ply", budgets=[0.5], sv_steps=3, max_sv=3.0,
+                        popping_steps=5, lpips=None, progress=False, log=None, merge_tool=str(bad),
+                        timing_repeats=0)

@@ -5,7 +5,7 @@ Outputs (all written atomically) in ``out_dir``:
 * ``point_cloud.ply``: the extended INRIA .ply (the input layout plus a float ``sigma_d``);
 * ``adapt_state.safetensors``: parameters, Adam moments, RNG and view order (resumable);
 * ``metrics.json``: test views at s_v = 1, 2, ..., max_sv and at the budgets 100 / 50 / 25 / 10 %
-  and max_sv^-1.5 of the model (PSNR, SSIM, mean rendered Gaussians, ms per frame) and the input
+  and max_sv^-1.5 of the Gaussians in view (PSNR, SSIM, mean rendered Gaussians, ms per frame) and the input
   model's PSNR/SSIM;
 * ``lod_strip.png``: one test view rendered at several s_v, side by side.
 """
@@ -533,7 +533,11 @@ def _run(ply_path, scene_root, out_dir, cfg: AdaptConfig, *, stop: StopFlag, res
         init_s_v1 = json.loads(saved_meta.get("init_s_v1", "null"))
     else:
         state = prepare(gaussians, scene.train, cfg, train_imgs, backend=backend)
-        log(f"clod-adapt: sigma_d initialised with attenuation {state.init.get('attenuation')} at s_v = 1")
+        if "attenuation" in state.init:
+            log(f"clod-adapt: sigma_d initialised with attenuation {state.init['attenuation']} at s_v = 1")
+        else:
+            log(f"clod-adapt: sigma_d calibrated from the {state.init.get('ranking')} ranking on quantiles of "
+                f"cost^{state.init.get('cost_exponent')} (levels in frame cost and count)")
         init_s_v1 = None
         if main:
             init_eval = evaluate_level(state.gaussians().detach(), test_cams, test_imgs, 1.0,

@@ -6,11 +6,14 @@
 * ``frustum`` [N]: Gaussian centres inside the image (``z > near``): the population of d''s
   normaliser and of ``eta`` (CLoD-GS Sec. 3);
 * the projection of the Gaussians in front of the camera (stage 1,
-  :func:`clod_adapter.render.projection.project_geometry`), computed once: it gives ``visible``
-  [N] (the footprint reaches the image, gsplat 1.5.3 culling with the opacity-free 3.33-sigma
-  extent: the population budgets and fractions refer to) and, later, the rasteriser's own
-  projection of the drawn subset (:meth:`LodView.rasterize` finishes the same rows with the
-  drawn opacities and level scales instead of projecting again);
+  :func:`clod_adapter.render.projection.project_geometry`), computed once and only when needed:
+  it gives ``visible`` [N] (the footprint reaches the image, gsplat 1.5.3 culling with the
+  opacity-free 3.33-sigma extent: the population budgets and in-view shares refer to) and,
+  later, the rasteriser's own projection of the drawn subset (:meth:`LodView.rasterize` finishes
+  the same rows with the drawn opacities and level scales instead of projecting again). A frame
+  at a given ``s_v`` needs no population: its LoD mask is evaluated first (it needs only the
+  centres) and only what the mask keeps is projected, so a coarse level does not pay for
+  projecting the whole model; budgets and full detail project everything in front;
 * ``d_norm`` [N]: ``d' = |mu - c| / max_frustum |mu - c|``;
 * ``critical`` [N] (on first use): each Gaussian's critical ``s_v`` (:mod:`clod_adapter.budget`).
 
@@ -305,12 +308,14 @@ class LodView:
           falsi, then bisection) between the prefix at the base opacities (fits) and the prefix
           at the first one's ``s_v`` (bounds it): 10-15 evaluations, 15-30 ms on fern and skull
           against 5 ms for a count budget (2 threads, shared machine);
-        * window fade: at the level the prefix is drawn at (``level``, or
-          :func:`clod_adapter.lod.level_of_fraction` of its share of the Gaussians in view), with
-          the opacities at that level before the fade (an upper bound: the fade only shrinks
-          footprints; 1-4 % above the drawn cost on fern and skull). When the level varies
-          with the prefix (level gains), the count is a fixed point on the level, then lowered
-          until the prefix fits at its own level.
+        * window fade: at the base level (or ``level`` when given): the footprints the calibrated
+          schedule measures its levels in (:func:`clod_adapter.adapt.weighted_count`), one prefix
+          search, monotone in the budget. The level gains change what is drawn (survivors grow
+          to cover for those that left), so the drawn pixel work of a coarse level is larger
+          than its base cost; ``benchmarks/quality_vs_time.py`` times what is drawn. (Costing
+          each prefix at its own level has no monotone solution: a shorter prefix sits at a
+          coarser level whose grown footprints cost more, and the search settled on a few
+          hundred huge splats.)
 
         Args:
             budget_cost: a float in (0, 1]: that share of the cost of drawing every Gaussian in
@@ -322,8 +327,7 @@ class LodView:
             min_s_v: the budget rule of :meth:`select` (Eq. 2: the ``s_v`` floor of the drawing).
 
         Returns:
-            the count k (0 <= k <= :attr:`n_in_view`); non-decreasing in the budget except when
-            the window fade's level gains make the level depend on k.
+            the count k (0 <= k <= :attr:`n_in_view`), non-decreasing in the budget.
         """
         from .cost import DEFAULT_FRAME_TIME_MODEL, Footprints, _level_opacities, _order_in_view, _prefix_count
 
@@ -339,15 +343,11 @@ class LodView:
             return 0
         st = self.settings
         eq2 = st.fade == "eq2"
-        varies = (level is None and not eq2
-                  and any(k in self.gains for k in ("log_scale_gain", "opacity_logit_gain")))
 
         def level_for(k: int) -> float:
-            if eq2:
-                return 0.0
-            if level is not None:
-                return float(level)
-            return lod.level_of_fraction(k / n_vis, st.max_sv) if varies else 0.0
+            # window fade: the footprints at the base level (or the level given), the unit the
+            # calibrated schedule's levels are measured in; one prefix search, monotone in the budget
+            return float(level) if (level is not None and not eq2) else 0.0
 
         def unit(c: Tensor) -> Tensor:  # per-Gaussian cost in the budget's unit
             return c if budget_ms is None else tm.per_splat_ms(c)
@@ -377,14 +377,6 @@ class LodView:
         k = _prefix_count(weights(lv), limit)
         if eq2 and k < n_vis:
             k = self._eq2_cost_count(order, footprints(0.0), k, limit, unit, min_s_v)
-        elif varies:
-            for _ in range(8):  # fixed point: the level of the count found
-                nl = level_for(k)
-                if nl == lv:
-                    break
-                lv, k = nl, _prefix_count(weights(nl), limit)
-            while k > 0 and float(torch.cumsum(weights(level_for(k))[:k].double(), 0)[-1]) > limit:
-                k = min(k - 1, _prefix_count(weights(level_for(k)), limit))
         return k
 
     def _eq2_cost_count(self, order: Tensor, fp, k_lo: int, limit: float, unit, min_s_v: float) -> int:

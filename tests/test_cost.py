@@ -28,6 +28,10 @@ def scene():
 
 
 def _drawn_cost(view, sel, unit="ellipse_px"):
+    """The cost a budget is measured in: what is drawn (Eq. 2), the base footprints (window fade:
+    the level gains' growth is not part of the budget, see ``LodView.cost_count``)."""
+    if view.settings.fade == "window":
+        return float(splat_cost(view, sel.indices, unit=unit).sum())
     return float(splat_cost(view, sel.indices, level=sel.level, opacities=sel.opacities, unit=unit).sum())
 
 

@@ -340,7 +340,7 @@ def main() -> None:
             f"{time.perf_counter() - t0:.0f} s):")
         for line in lines:
             log(line)
-        md.append(format_md(name, settings, info, lines))
+        md.append(format_md(name, settings, info, rows))
     plot(out / "quality_vs_time.png", results)
     (out / "summary.md").write_text("\n".join(md))
     misses = sum(not r["met"] for r in all_rows)
@@ -348,8 +348,12 @@ def main() -> None:
     sys.exit(0 if all_ok else 1)
 
 
-def format_md(name: str, settings: list[Setting], info: dict, lines: list[str]) -> str:
+def format_md(name: str, settings: list[Setting], info: dict, goals: list[dict]) -> str:
     inp = next(s for s in settings if s.method == "input")
+    gl = ["| goal | ours | target | margin | met | where |", "|---|---:|---:|---:|---|---|"]
+    for r in goals:
+        gl.append(f"| {r['goal']} | {r['value']:.2f} | {r['target']:.2f} | {r['margin']:+.2f} | "
+                  f"{'yes' if r['met'] else '**no**'} | {r['detail'].strip('()')} |")
     head = "| method | setting | PSNR | SSIM | LPIPS | ms (range) | time % | drawn / view | % in view | MB |\n" \
            "|---|---|---:|---:|---:|---:|---:|---:|---:|---:|"
     body = []
@@ -358,7 +362,8 @@ def format_md(name: str, settings: list[Setting], info: dict, lines: list[str]) 
         body.append(f"| {s.method} | {s.setting} | {s.psnr:.2f} | {s.ssim:.3f} | {s.lpips:.3f} | "
                     f"{s.ms:.1f} ({s.ms_min:.0f}-{s.ms_max:.0f}) | {100 * s.ms / inp.ms:.0f} | "
                     f"{statistics.mean(s.drawn):,.0f} | {100 * share:.1f} | {s.storage / 1e6:.2f} |")
-    return f"### {LABELS.get(name, name)}\n\n" + "\n".join(["```"] + lines + ["```", "", head] + body) + "\n"
+    return (f"### {LABELS.get(name, name)}\n\nInput {inp.psnr:.2f} dB in {inp.ms:.1f} ms "
+            f"({statistics.mean(inp.drawn):,.0f} drawn per view).\n\n" + "\n".join(gl + ["", head] + body) + "\n")
 
 
 if __name__ == "__main__":

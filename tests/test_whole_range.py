@@ -25,12 +25,15 @@ FULL_DETAIL_TOL_DB = 0.02
 
 
 # --- calibration ------------------------------------------------------------------------------
+def _population(n: int, seed: int = 0):
+    """(score, alpha, d', generator) of ``n`` random Gaussians to calibrate."""
+    g = torch.Generator().manual_seed(seed)
+    return torch.rand(n, generator=g), 0.3 + 0.7 * torch.rand(n, generator=g), 0.2 + 0.8 * torch.rand(n, generator=g), g
+
+
 def test_calibrate_sigma_d_maps_rank_to_level():
     n = 4000
-    g = torch.Generator().manual_seed(0)
-    score = torch.rand(n, generator=g)
-    alpha = 0.3 + 0.7 * torch.rand(n, generator=g)
-    d = 0.2 + 0.8 * torch.rand(n, generator=g)
+    score, alpha, d, _ = _population(n)
     w = 0.5
     sd = lod.calibrate_sigma_d(score, alpha, d, fade_width=w)
     assert sd.shape == (n,) and bool((sd > 0).all())
@@ -56,6 +59,22 @@ def test_calibrate_sigma_d_faint_gaussians_and_ties():
     assert float(sd[3]) == pytest.approx(77.0)
     assert float(crit[3]) == pytest.approx(0.004 / lod.DEFAULT_TAU, rel=1e-4)  # sigma_max: no decay to speak of
     assert lod.calibrate_sigma_d(torch.zeros(0), torch.zeros(0), torch.zeros(0)).shape == (0,)
+
+
+def test_calibration_on_cost_quantiles_follows_the_weighted_share():
+    n = 3000
+    score, alpha, d, g = _population(n)
+    cost = torch.rand(n, generator=g) ** 4 * 1000  # skewed, as footprints are
+    sd = lod.calibrate_sigma_d(score, alpha, d, cost=cost)
+    for s in (1.5, 3.0, 5.0):
+        full = lod.lod_margin(alpha, d, sd, s) >= lod.DEFAULT_FADE_WIDTH - 1e-4
+        share = float(cost[full].sum() / cost.sum())
+        assert share == pytest.approx(s ** -1.5, abs=0.02), s
+        # the drawn set is a prefix of the ranking
+        assert float(score[full].min()) >= float(score[~full].max()) - 1e-6
+    # weights of one: the count quantiles of the paper's target
+    assert torch.allclose(lod.calibrate_sigma_d(score, alpha, d, cost=torch.ones(n)),
+                          lod.calibrate_sigma_d(score, alpha, d), rtol=1e-5)
 
 
 def test_fade_weight_and_level():

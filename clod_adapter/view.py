@@ -226,7 +226,7 @@ class LodView:
             if s_used < min_s_v:
                 s_used = float(min_s_v)
                 if s_used <= 1.0 and st.fade == "window":  # capped at full detail: as s_v = 1 draws it
-                    return self._near_full_detail(self.visible, None, 1.0, level)
+                    return self.select(1.0, level=level)
                 mask = (crit > s_used) & self.visible
                 idx = torch.nonzero(mask, as_tuple=False).squeeze(1)
             else:
@@ -235,6 +235,10 @@ class LodView:
             eta = self._share_in_frustum(mask)
         else:
             s_used = float(s_v)
+            if s_used <= 1.0 and st.fade == "window" and level is None:  # full detail: the input as it is
+                idx = torch.nonzero(self.visible, as_tuple=False).squeeze(1)
+                return LodSelection(idx, opac.index_select(0, idx), self.visible, 1.0, 0.0,
+                                    self._share_in_frustum(self.visible))
             d = self.d_norm.detach()
             mask = lod.lod_mask(opac, d, sd, s_used, st.tau, st.eps)
             if st.fade == "window" and lod.full_detail_share(s_used) > 0.0:
@@ -274,10 +278,6 @@ class LodView:
         being missing), and the image stays continuous in ``s_v``."""
         st = self.settings
         t = 1.0 - lod.full_detail_share(s_v)
-        if t <= 0.0 and level is None:  # s_v = 1: the input model as it is, at no extra cost
-            idx = torch.nonzero(self.visible, as_tuple=False).squeeze(1)
-            return LodSelection(idx, self.opacities.index_select(0, idx), self.visible, s_v, 0.0,
-                                self._share_in_frustum(mask))
         n_fr = self.n_frustum
         if level is None:
             level = t * lod.level_of_fraction(idx.numel() / n_fr if n_fr else 1.0, st.max_sv)

@@ -205,6 +205,12 @@ def evaluate(name: str, settings: list[Setting], info: dict) -> tuple[list[dict]
         if s.method in methods and pred(s)]
     ours, peers = pts(OURS), pts(PEERS)
     rows, lines, ok = [], [], True
+    by_key = {(s.method, s.setting): s for s in settings}
+
+    def desc(p) -> str:  # one point: setting, PSNR / SSIM / LPIPS, time share, drawn per view, MB
+        s = by_key[(p.method, p.setting)] if isinstance(p, Point) else p
+        return (f"{s.method} {s.setting}: {s.psnr:.2f} / {s.ssim:.3f} / {s.lpips:.3f}, {100 * s.ms / inp.ms:.0f} % "
+                f"({s.ms:.0f} ms), {statistics.mean(s.drawn):,.0f} drawn, {s.storage / 1e6:.1f} MB")
 
     def check(goal: str, value: float, target: float, detail: str) -> None:
         nonlocal ok
@@ -220,9 +226,8 @@ def evaluate(name: str, settings: list[Setting], info: dict) -> tuple[list[dict]
     check("full detail time share", FULL_MS - full.ms / inp.ms, 0.0,
           f"(s_v = 1 {full.ms:.1f} ms vs input {inp.ms:.1f} ms = {100 * full.ms / inp.ms:.0f} %)")
     for m in time_margins(ours, peers, inp.ms, TIME_SHARES):
-        o = f"ours {m.ours.setting} {m.ours.psnr:.2f} dB in {m.ours.ms:.1f} ms" if m.ours else "ours: none that fast"
-        p = f"peer {m.peer.method} {m.peer.setting} {m.peer.psnr:.2f} dB in {m.peer.ms:.1f} ms" if m.peer \
-            else "peers: none that fast"
+        o = desc(m.ours) if m.ours else "ours: none that fast"
+        p = desc(m.peer) if m.peer else "peers: none that fast"
         if m.share >= 0.75:
             check(f"within {100 * m.share:.0f} % time >= input - {FULL_DB}", m.ours.psnr if m.ours else -math.inf,
                   inp.psnr - FULL_DB, f"({o})")
@@ -239,7 +244,7 @@ def evaluate(name: str, settings: list[Setting], info: dict) -> tuple[list[dict]
         best = max([dec] + [s for s in group if s.method != "clod"], key=lambda s: s.psnr)
         share = statistics.mean(d / max(v.n_in_view, 1) for d, v in zip(st.drawn, info["views"]))
         check(f"equal count {100 * share:.1f} % in view >= best peer + {MARGIN_DB:g}", st.psnr,
-              best.psnr + MARGIN_DB, f"(best peer {best.method} {best.psnr:.2f} dB; {dmethod} {dsetting})")
+              best.psnr + MARGIN_DB, f"({desc(st)}; best peer {desc(best)})")
     return rows, lines, ok
 
 

@@ -56,7 +56,6 @@ PARAM_NAMES = ("means", "quats", "log_scales", "opacity_logits", "sh0", "shN", "
 SCHEDULES = ("calibrated", "paper")
 Schedule = Literal["calibrated", "paper"]
 Ranking = Literal["lightgaussian", "opacity", "value"]
-
 LevelWeighting = Literal["paper", "uniform"]
 #: level gains by letter of :attr:`AdaptConfig.gains`, and the official learning rate each uses
 #: (that of the attribute it offsets).
@@ -264,7 +263,6 @@ def view_statistics(gaussians: Gaussians, cameras) -> dict:
         clipped ellipse pixels, 0 in views that do not draw it).
     """
     from .cost import splat_cost
-    from .view import view_lod
 
     g = gaussians.detach().with_sigma_d(None)
     n = len(g)
@@ -297,8 +295,6 @@ def blend_value(gaussians: Gaussians, cameras) -> Tensor:
     ``cameras``: what it adds to the images (occluded and faint Gaussians score little, however
     large their footprint). One forward and backward pass per view: the gradient of the image
     sum with respect to a constant per-Gaussian feature is that weight sum."""
-    from .view import view_lod
-
     g = gaussians.detach().with_sigma_d(None)
     val = torch.zeros(len(g), dtype=torch.float64, device=g.means.device)
     for cam in cameras:
@@ -322,12 +318,12 @@ def calibrated_sigma_d(score: Tensor, opacities: Tensor, stats: dict, cfg: Adapt
 
 
 @torch.no_grad()
-def recalibrate(state: "AdaptState", cameras, cfg: AdaptConfig, stats: Optional[dict] = None) -> None:
+def recalibrate(state: "AdaptState", cameras, cfg: AdaptConfig) -> None:
     """Re-map ``sigma_d`` from the order it has learned (the reference critical s_v at each
     Gaussian's reference distance), in place: the learned order at the reference distance is
     kept and the drawn share at ``s_v`` is again ``s_v^-1.5`` (:func:`calibrated_sigma_d`)."""
     g = state.gaussians().detach()
-    stats = stats if stats is not None else view_statistics(g, cameras)
+    stats = view_statistics(g, cameras)
     s_ref = critical_s_v(g.opacities, stats["d_ref"], g.sigma_d, cfg.tau, cfg.eps)
     new = calibrated_sigma_d(s_ref, g.opacities, stats, cfg)
     state.params["sigma_d"].data.copy_(new.to(state.params["sigma_d"]))

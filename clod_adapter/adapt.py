@@ -55,14 +55,14 @@ OFFICIAL_LR = {
 PARAM_NAMES = ("means", "quats", "log_scales", "opacity_logits", "sh0", "shN", "sigma_d")
 SCHEDULES = ("calibrated", "paper")
 Schedule = Literal["calibrated", "paper"]
-Ranking = Literal["lightgaussian", "opacity", "value"]
+Ranking = Literal["lightgaussian", "opacity"]
 LevelWeighting = Literal["paper", "uniform"]
 #: level gains by letter of :attr:`AdaptConfig.gains`, and the official learning rate each uses
 #: (that of the attribute it offsets).
 GAIN_LETTERS = {"o": "opacity_logit_gain", "s": "log_scale_gain", "c": "sh0_gain"}
 GAIN_LR = {"opacity_logit_gain": OFFICIAL_LR["opacity_logits"], "log_scale_gain": OFFICIAL_LR["log_scales"],
            "sh0_gain": OFFICIAL_LR["sh0"]}
-RANKINGS = ("lightgaussian", "opacity", "value")
+RANKINGS = ("lightgaussian", "opacity")
 
 
 @dataclass
@@ -279,32 +279,12 @@ def view_statistics(gaussians: Gaussians, cameras) -> dict:
 @torch.no_grad()
 def ranking_scores(gaussians: Gaussians, cameras, ranking: str = "lightgaussian") -> Tensor:
     """[N] the static ranking the calibrated schedule starts from (higher = kept longer):
-    LightGaussian global significance over ``cameras``, the opacity, or ``"value"``: each
-    Gaussian's blending weight summed over the pixels of ``cameras`` (:func:`blend_value`)."""
+    LightGaussian global significance over ``cameras`` or the opacity."""
     if ranking == "opacity":
         return gaussians.opacities.detach().float()
-    if ranking == "value":
-        return blend_value(gaussians, cameras)
     from .baselines import lightgaussian_significance
 
     return lightgaussian_significance(gaussians.detach(), cameras)
-
-
-def blend_value(gaussians: Gaussians, cameras) -> Tensor:
-    """[N] float32 each Gaussian's blending weight ``alpha_i T_i`` summed over the pixels of
-    ``cameras``: what it adds to the images (occluded and faint Gaussians score little, however
-    large their footprint). One forward and backward pass per view: the gradient of the image
-    sum with respect to a constant per-Gaussian feature is that weight sum."""
-    g = gaussians.detach().with_sigma_d(None)
-    val = torch.zeros(len(g), dtype=torch.float64, device=g.means.device)
-    for cam in cameras:
-        v = view_lod(g, cam)
-        f = torch.ones(len(g), 1, dtype=g.means.dtype, device=g.means.device, requires_grad=True)
-        with torch.enable_grad():
-            img, _, _ = v.rasterize(v.select(None), colors=f)
-            img.sum().backward()
-        val += f.grad[:, 0].double()
-    return val.float()
 
 
 def calibrated_sigma_d(score: Tensor, opacities: Tensor, stats: dict, cfg: AdaptConfig) -> Tensor:
@@ -486,13 +466,13 @@ def weighted_count(view, share: float, cost_exponent: float) -> int:
     prefix of the Gaussians in view by critical ``s_v`` (descending, ties by index: the order
     every budget uses) whose ``sum cost^cost_exponent`` is at most ``share`` of the total
     (``cost`` = :func:`clod_adapter.cost.splat_cost` at the base level, clipped ellipse pixels)."""
-    from .cost import _order_in_view, _prefix_count, splat_cost
+    from .cost import order_in_view, prefix_count, splat_cost
 
-    order = _order_in_view(view.critical, view.visible)
+    order = order_in_view(view.critical, view.visible)
     if order.numel() == 0:
         return 0
     w = splat_cost(view, order).clamp_min(1e-12) ** float(cost_exponent)
-    return _prefix_count(w, float(share) * float(w.sum()))
+    return prefix_count(w, float(share) * float(w.sum()))
 
 
 def view_loss(g: Gaussians, camera, gt: Tensor, s_v: float, cfg: AdaptConfig, backend: str = "auto"):

@@ -32,7 +32,8 @@ from torch import Tensor
 from .render.projection import ALPHA_THRESHOLD, GAUSSIAN_EXTEND, MAX_RADIUS, VisibleProjection, finish_projection
 from .render.tiles import tile_rects
 
-__all__ = ["splat_cost", "cost_units", "cost_prefix", "FrameTimeModel", "DEFAULT_FRAME_TIME_MODEL", "COST_UNIT"]
+__all__ = ["splat_cost", "cost_units", "cost_prefix", "order_in_view", "prefix_count", "level_opacities",
+           "FrameTimeModel", "DEFAULT_FRAME_TIME_MODEL", "COST_UNIT"]
 
 #: the cost unit of :func:`splat_cost`
 COST_UNIT = "ellipse_px"
@@ -86,8 +87,9 @@ def cost_units(proj: VisibleProjection, opacities: Optional[Tensor], width: int,
     return out
 
 
-def _level_opacities(view, idx: Tensor, level: float) -> Tensor:
-    """[k] activated opacities of rows ``idx`` at ``level`` (the opacity gain, no fade)."""
+def level_opacities(view, idx: Tensor, level: float) -> Tensor:
+    """[k] activated opacities of the rows ``idx`` [k] (int64) of a LodView at ``level`` in
+    [0, 1] (base logits + level x the opacity gain; no LoD fade)."""
     logits = view.opacity_logits.detach().index_select(0, idx)
     g = view.gains.get("opacity_logit_gain")
     if g is not None and level > 0:
@@ -124,7 +126,7 @@ def splat_cost(view, indices: Optional[Tensor] = None, *, level: float = 0.0, op
     """
     dev = view.means.device
     idx = torch.nonzero(view.visible, as_tuple=False).squeeze(1) if indices is None else indices.to(dev).long()
-    op = _level_opacities(view, idx, level) if opacities is None else opacities.detach().to(dev)
+    op = level_opacities(view, idx, level) if opacities is None else opacities.detach().to(dev)
     return Footprints(view, idx, level).cost(op, unit)
 
 
@@ -201,8 +203,10 @@ class Footprints:
         return torch.where(ok, val, torch.zeros_like(val))
 
 
-def _prefix_count(cost_sorted: Tensor, budget: float) -> int:
-    """Largest k with ``cost_sorted[:k].sum() <= budget`` (cost >= 0; float64 cumulative sum)."""
+def prefix_count(cost_sorted: Tensor, budget: float) -> int:
+    """Largest k with ``cost_sorted[:k].sum() <= budget``: ``cost_sorted`` [m] non-negative costs
+    in the order to keep them (any unit; float64 cumulative sum), ``budget`` in that unit; 0 for
+    a negative budget."""
     if cost_sorted.numel() == 0 or budget < 0:
         return 0
     cum = torch.cumsum(cost_sorted.double(), 0)
@@ -210,8 +214,9 @@ def _prefix_count(cost_sorted: Tensor, budget: float) -> int:
                                   right=True)[0])
 
 
-def _order_in_view(order_scores: Tensor, visible: Tensor) -> Tensor:
-    """Model indices of the ``visible`` Gaussians by ``order_scores`` descending, ties by index."""
+def order_in_view(order_scores: Tensor, visible: Tensor) -> Tensor:
+    """[V] int64 model indices of the ``visible`` [N] bool Gaussians by ``order_scores`` [N]
+    descending, ties by lower index: the order every budget keeps a prefix of."""
     pool = torch.nonzero(visible, as_tuple=False).squeeze(1)
     order = torch.sort(-order_scores.index_select(0, pool).double(), stable=True).indices
     return pool.index_select(0, order)
@@ -233,14 +238,14 @@ def cost_prefix(order_scores: Tensor, cost: Tensor, visible: Tensor, budget_cost
         [k] int64 model indices, ascending: the longest prefix of the score order whose cost
         sum is <= ``budget_cost`` (so nested and non-decreasing in the budget).
     """
-    order = _order_in_view(order_scores, visible)
+    order = order_in_view(order_scores, visible)
     c = cost if cost.numel() != visible.numel() else cost.index_select(0, order)
     if cost.numel() != visible.numel():  # [V] aligned with visible.nonzero()
         pool = torch.nonzero(visible, as_tuple=False).squeeze(1)
         where = torch.full((visible.numel(),), -1, dtype=torch.long, device=visible.device)
         where[pool] = torch.arange(pool.numel(), device=visible.device)
         c = cost.index_select(0, where.index_select(0, order))
-    k = _prefix_count(c, float(budget_cost))
+    k = prefix_count(c, float(budget_cost))
     return torch.sort(order[:k]).values
 
 

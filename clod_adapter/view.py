@@ -347,7 +347,7 @@ class LodView:
         Returns:
             the count k (0 <= k <= :attr:`n_in_view`), non-decreasing in the budget.
         """
-        from .cost import DEFAULT_FRAME_TIME_MODEL, Footprints, _level_opacities, _order_in_view, _prefix_count
+        from .cost import DEFAULT_FRAME_TIME_MODEL, Footprints, level_opacities, order_in_view, prefix_count
 
         if (budget_cost is None) == (budget_ms is None):
             raise ValueError("cost_count: give budget_cost or budget_ms")
@@ -355,53 +355,35 @@ class LodView:
         if not b >= 0:
             raise ValueError(f"render_lod: cost budgets must be >= 0, got {b}")
         tm = time_model or DEFAULT_FRAME_TIME_MODEL
-        order = _order_in_view(self.critical, self.visible)
+        order = order_in_view(self.critical, self.visible)
         n_vis = order.numel()
         if n_vis == 0:
             return 0
-        st = self.settings
-        eq2 = st.fade == "eq2"
-
-        def level_for(k: int) -> float:
-            # window fade: the footprints at the base level (or the level given), the unit the
-            # calibrated schedule's levels are measured in; one prefix search, monotone in the budget
-            return float(level) if (level is not None and not eq2) else 0.0
-
-        def unit(c: Tensor) -> Tensor:  # per-Gaussian cost in the budget's unit
-            return c if budget_ms is None else tm.per_splat_ms(c)
-
-        cache: dict = {}
-
-        fps: dict = {}
-
-        def footprints(lv: float) -> Footprints:
-            if lv not in fps:
-                fps[lv] = Footprints(self, order, lv)
-            return fps[lv]
-
-        def weights(lv: float) -> Tensor:  # [n_vis] cost in order at level lv, opacities before the fade
-            if lv not in cache:
-                cache[lv] = unit(footprints(lv).cost(_level_opacities(self, order, lv)))
-            return cache[lv]
-
+        eq2 = self.settings.fade == "eq2"
+        # window fade: the footprints at the base level (or the level given): the unit the
+        # calibrated levels are measured in; Eq. 2: base opacities first, then the exact search
+        lv = float(level) if (level is not None and not eq2) else 0.0
+        fp = Footprints(self, order, lv)
+        weights = fp.cost(level_opacities(self, order, lv))
         if budget_ms is not None:
+            weights = tm.per_splat_ms(weights)
             limit = b - tm.c0_ms
         elif b <= 1.0:
             # the same float64 cumulative sum as the prefix search: 1.0 draws every Gaussian
-            limit = b * float(torch.cumsum(weights(level_for(n_vis)).double(), 0)[-1])
+            limit = b * float(torch.cumsum(weights.double(), 0)[-1])
         else:
             limit = b
-        lv = level_for(n_vis)
-        k = _prefix_count(weights(lv), limit)
+        k = prefix_count(weights, limit)
         if eq2 and k < n_vis:
-            k = self._eq2_cost_count(order, footprints(0.0), k, limit, unit, min_s_v)
+            unit = (lambda c: c) if budget_ms is None else tm.per_splat_ms
+            k = self._eq2_cost_count(order, fp, k, limit, unit, min_s_v)
         return k
 
     def _eq2_cost_count(self, order: Tensor, fp, k_lo: int, limit: float, unit, min_s_v: float) -> int:
         """:meth:`cost_count` for Eq. 2 drawing: the largest k whose prefix of ``order``, drawn with
         ``alpha''`` at its own ``s_v``, costs <= ``limit``; ``k_lo`` fits (base opacities); ``fp``:
         the :class:`clod_adapter.cost.Footprints` of ``order`` at level 0."""
-        from .cost import _prefix_count
+        from .cost import prefix_count
 
         crit = self.critical.index_select(0, order)  # descending
         m = order.numel()
@@ -431,7 +413,7 @@ class LodView:
         # costs at s_v(lo) are <= the drawn ones: their prefix bounds the answer from above.
         lo, c_lo = k_lo, drawn(k_lo)
         full = unit(fp.cost(lod.lod_opacities(op, d, sd, s_of(lo), eps)))
-        hi = max(lo, _prefix_count(full, limit))
+        hi = max(lo, prefix_count(full, limit))
         if hi > lo:
             c_hi = drawn(hi)
             if c_hi <= limit:

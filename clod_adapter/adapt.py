@@ -112,8 +112,8 @@ class AdaptConfig:
         s_v_sampling: how each step draws its ``s_v`` (:func:`clod_adapter.lod.sample_s_v`):
             ``"uniform"`` (the paper's ``U(1, max_sv)``; paper default) or ``"log"`` (``ln s_v``
             uniform: the levels near full detail trained as often as the coarse ones; calibrated
-            default: on the validation views of skull and fern +0.1 to +0.6 dB at 10 of the 12
-            decimator counts, README "What the cost weighting buys").
+            default: on the validation views of skull and fern +0.1 to +0.6 dB at 11 of the 12
+            decimator counts, README "What the log-uniform s_v sampling bought").
         views_per_step: training views per optimisation step, each at its own ``s_v``; the
             step uses the mean of their gradients (default 1). In a data-parallel run
             (:mod:`clod_adapter.distributed`) view ``j`` of a step is rendered by rank

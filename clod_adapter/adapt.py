@@ -41,17 +41,8 @@ from .io.atomic import atomic_save
 from .losses import clod_loss, render_loss
 from .view import render_lod, view_lod
 from .metrics import psnr
+from .official import OFFICIAL_LR, scene_extent
 
-#: official 3DGS learning rates (arguments/__init__.py, OptimizationParams); means are scaled by
-#: the scene extent and decay log-linearly from init to final over the run.
-OFFICIAL_LR = {
-    "means": (1.6e-4, 1.6e-6),
-    "sh0": 2.5e-3,
-    "shN": 2.5e-3 / 20.0,
-    "opacity_logits": 5e-2,
-    "log_scales": 5e-3,
-    "quats": 1e-3,
-}
 PARAM_NAMES = ("means", "quats", "log_scales", "opacity_logits", "sh0", "shN", "sigma_d")
 SCHEDULES = ("calibrated", "paper")
 Schedule = Literal["calibrated", "paper"]
@@ -212,12 +203,6 @@ class AdaptState:
     def gaussians(self) -> Gaussians:
         """The model as it stands (parameters, not copies; ``lod`` settings attached)."""
         return Gaussians(**{k: v for k, v in self.params.items()}, lod=self.lod)
-
-
-def scene_extent(cameras) -> float:
-    """3DGS ``getNerfppNorm`` radius: 1.1 x max distance of a camera centre from their mean."""
-    centers = torch.stack([lod.camera_center(c.viewmat.double()) for c in cameras])
-    return float(1.1 * (centers - centers.mean(0)).norm(dim=1).max().clamp_min(1e-6))
 
 
 @torch.no_grad()
@@ -457,9 +442,6 @@ class StopFlag:
         self._old = {}
 
 
-_StopFlag = StopFlag  # old name
-
-
 @torch.no_grad()
 def weighted_count(view, share: float, cost_exponent: float) -> int:
     """How many Gaussians a level of ``share`` of the view's weighted cost draws: the longest
@@ -497,9 +479,7 @@ def view_loss(g: Gaussians, camera, gt: Tensor, s_v: float, cfg: AdaptConfig, ba
                          estimator=cfg.eta_estimator, temperature=cfg.temperature,
                          background=cfg.background, backend=backend)
     l_render = render_loss(out.image, gt)
-    loss, _ = clod_loss(l_render, out.eta, s_v, cfg.max_sv, cfg.lambda_reg)
-    if cfg.level_weighting == "uniform":
-        loss = loss / lod.scale_weight(s_v, cfg.max_sv)
+    loss, _ = clod_loss(l_render, out.eta, s_v, cfg.max_sv, cfg.lambda_reg, cfg.level_weighting)
     return out, loss
 
 
@@ -552,7 +532,7 @@ def adapt(
     Raises:
         clod_adapter.distributed.PeerLost: (``group`` given) another rank stopped answering.
     """
-    from .jobs import progress_bar
+    from .progress import progress_bar
 
     # a tqdm bar on a terminal; a plain line every 10 % in a log (stderr not a terminal)
     bar = progress_bar(cfg.iterations, "clod-adapt", unit="it", initial=state.iteration, disable=not progress)

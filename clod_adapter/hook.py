@@ -33,13 +33,13 @@ _NOOP_DEFAULTS = {
 }
 
 
-def _check_kwargs(packed: bool, render_mode: str, rasterize_mode: str, kwargs: dict) -> dict:
+def _refuse_unsupported(packed: bool, render_mode: str, rasterize_mode: str, kwargs: dict) -> None:
+    """Raise on a gsplat mode or keyword this hook does not implement (gsplat's defaults pass)."""
     if render_mode != "RGB":
         raise ValueError(f"clod_rasterization: only render_mode='RGB' is supported, got {render_mode!r}")
     if rasterize_mode != "classic":
         raise ValueError(f"clod_rasterization: only rasterize_mode='classic' is supported, got {rasterize_mode!r}")
     del packed  # packed / unpacked give the same image; the backends render unpacked
-    out = {}
     for k, v in kwargs.items():
         if k in _NOOP_DEFAULTS:
             if v != _NOOP_DEFAULTS[k]:
@@ -47,7 +47,6 @@ def _check_kwargs(packed: bool, render_mode: str, rasterize_mode: str, kwargs: d
                                  f"(only gsplat's default {_NOOP_DEFAULTS[k]!r})")
         else:
             raise TypeError(f"clod_rasterization: unexpected keyword argument {k!r}")
-    return out
 
 
 def clod_rasterization(
@@ -119,9 +118,9 @@ def clod_rasterization(
         ValueError: ``s_v`` and ``budget`` both given, ``s_v < 1``, ``sigma_d`` of the wrong
             shape, an unsupported mode or keyword value.
     """
-    extra = _check_kwargs(packed, render_mode, rasterize_mode, kwargs)
+    _refuse_unsupported(packed, render_mode, rasterize_mode, kwargs)
     common = dict(near_plane=near_plane, far_plane=far_plane, radius_clip=radius_clip, eps2d=eps2d,
-                  sh_degree=sh_degree, tile_size=tile_size, backend=backend, **extra)
+                  sh_degree=sh_degree, tile_size=tile_size, backend=backend)
     if s_v is not None and budget is not None:
         raise ValueError("clod_rasterization: give s_v or budget, not both")
     if sigma_d is None or (s_v is None and budget is None):

@@ -1,4 +1,4 @@
-"""Data-parallel fine-tuning (``torchrun ... -m cli.adapt``, gloo, 2 ranks on loopback).
+"""Data-parallel fine-tuning (``torchrun ... -m clod_adapter.cli.adapt``, gloo, 2 ranks on loopback).
 
 * 2 ranks x ITERATIONS steps (one view each per step) give the same parameters, Adam moments,
   history and .ply as 1 process with ``--views-per-step 2`` doing the same views at the same
@@ -53,7 +53,7 @@ def _env(**extra) -> dict:
 
 
 def _args(scene: Path, out: Path, *extra) -> list[str]:
-    return ["-m", "cli.adapt", str(scene / "in.ply"), "--images", str(scene / "scene"), "-o", str(out),
+    return ["-m", "clod_adapter.cli.adapt", str(scene / "in.ply"), "--images", str(scene / "scene"), "-o", str(out),
             "--max-sv", str(MAX_SV), "--seed", str(SEED), "--deterministic", "--quiet", "--timing-repeats", "0",
             *extra]
 
@@ -170,7 +170,7 @@ def test_killed_rank_exits_nonzero_state_intact_resume_with_one_process(scene, t
 
 
 def test_flag_errors(tmp_path, capsys, monkeypatch):
-    from cli.adapt import main
+    from clod_adapter.cli.adapt import main
 
     for k in ("RANK", "WORLD_SIZE", "MASTER_ADDR", "MASTER_PORT"):
         monkeypatch.delenv(k, raising=False)

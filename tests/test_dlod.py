@@ -7,7 +7,7 @@ import math
 import pytest
 import torch
 
-from clod_adapter.adapt import OFFICIAL_LR, scene_extent
+from clod_adapter.official import OFFICIAL_LR, scene_extent
 from clod_adapter.dlod import (RECOVERY_DECAY, RECOVERY_ITERATIONS, best_start, convergence, finetune_subset,
                                means_lr)
 from clod_adapter.io.scene import validation_split

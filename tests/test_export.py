@@ -39,7 +39,7 @@ def setup(tmp_path_factory):
 
 @pytest.fixture(scope="module")
 def cli_out(setup):
-    from cli.export import main
+    from clod_adapter.cli.export import main
 
     out = setup["root"] / "out"
     rc = main([str(setup["ply"]), "--images", str(setup["scene_dir"]), "-o", str(out), "--s-v", "1.5",
@@ -183,7 +183,7 @@ def test_reduce_sh_drops_bands_that_are_zero(setup):
 def test_cli_prune_and_sh(setup):
     import json
 
-    from cli.export import main
+    from clod_adapter.cli.export import main
 
     out = setup["root"] / "out_prune"
     rc = main([str(setup["ply"]), "--images", str(setup["scene_dir"]), "-o", str(out), "--budget", "0.5",
@@ -198,7 +198,7 @@ def test_cli_prune_and_sh(setup):
 @pytest.mark.parametrize("case", ["missing", "no_sigma", "bad_sv", "bad_budget", "same_as_input", "no_scene",
                                   "bad_sh"])
 def test_cli_bad_input(setup, tmp_path, capsys, case):
-    from cli.export import main
+    from clod_adapter.cli.export import main
 
     out = tmp_path / "o"
     ply, scene = str(setup["ply"]), str(setup["scene_dir"])

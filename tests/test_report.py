@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 import torch
 
-from cli.eval import main
+from clod_adapter.cli.eval import main
 from clod_adapter.baselines import (constant_sigma_selection, lightgaussian_significance, random_scores,
                                     ranking_selection, render_subset, volume_factor)
 from clod_adapter.io.ply import write_ply

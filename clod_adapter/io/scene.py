@@ -29,11 +29,12 @@ from PIL import Image
 from torch import Tensor
 
 
-__all__ = ["Camera", "Scene", "SceneError", "validation_split", "holdout_validation"]
+__all__ = ["Camera", "Scene", "SceneError", "validation_split", "holdout_validation", "RESOLUTIONS", "image_size"]
 
 PathLike = Union[str, "os.PathLike[str]"]
 
-_RESOLUTIONS = (1, 2, 4, 8)
+#: the downscale factors a scene folder may be read at (3DGS ``-r``: images_N folders).
+RESOLUTIONS = (1, 2, 4, 8)
 
 
 class SceneError(ValueError):
@@ -258,7 +259,11 @@ def _to_rgb_float(im: Image.Image, width: int, height: int,
     return np.clip(rgb, 0.0, 1.0)
 
 
-def _image_size(path: Path) -> tuple[int, int]:
+def image_size(path: Path) -> tuple[int, int]:
+    """(width, height) in pixels of an image file, from its header only.
+
+    Raises:
+        SceneError: the file cannot be read as an image."""
     try:
         with Image.open(path) as im:  # lazy: reads the header only
             return im.size

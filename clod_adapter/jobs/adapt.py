@@ -451,7 +451,7 @@ def _run(ply_path, scene_root, out_dir, cfg: AdaptConfig, *, stop: StopFlag, res
             raise InputError("--tensorboard: the tensorboard package is not installed "
                              "(pip install -e \".[tensorboard]\")") from None
     dev = pick_device(device) if group is None else group.device
-    backend = "gsplat" if dev.type == "cuda" else "cpu"
+    backend = "auto"  # gsplat for CUDA tensors, else the CPU rasteriser (render.dispatch.resolve_backend)
     try:
         gaussians = load_model(ply_path, masks="all", allow_nonfinite=True)
         gaussians, mask_info = apply_masks(gaussians, masks, seed=cfg.seed, path=ply_path)
@@ -535,6 +535,8 @@ def _run(ply_path, scene_root, out_dir, cfg: AdaptConfig, *, stop: StopFlag, res
         state = prepare(gaussians, scene.train, cfg, train_imgs, backend=backend)
         if "attenuation" in state.init:
             log(f"clod-adapt: sigma_d initialised with attenuation {state.init['attenuation']} at s_v = 1")
+        elif not state.init:
+            log("clod-adapt: the input already has sigma_d: fine-tuning it as it is")
         else:
             log(f"clod-adapt: sigma_d calibrated from the {state.init.get('ranking')} ranking on quantiles of "
                 f"cost^{state.init.get('cost_exponent')} (levels in frame cost and count)")

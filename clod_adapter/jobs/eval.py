@@ -78,7 +78,7 @@ from ..gaussians import Gaussians
 from ..io.atomic import atomic_save, atomic_write
 from ..frontier import Point, frontier
 from ..io.ply import read_ply
-from ..storage import ply_bytes
+from ..storage import ply_bytes, ply_row_bytes
 from ..view import render_lod
 from ..metrics import psnr, ssim
 
@@ -86,13 +86,54 @@ CSV_COLUMNS = ("method", "setting", "s_v", "budget", "gaussians", "fraction", "p
                "ms_total", "ms_select", "ms_raster", "bytes", "views", "ms_min", "ms_max")
 PER_VIEW_COLUMNS = ("method", "setting", "view", "s_v", "budget", "gaussians", "fraction", "psnr", "ssim",
                     "lpips", "ms_total", "ms_select", "ms_raster", "bytes")
-BASELINES = ("constant_sigma", "lightgaussian", "random")
-#: baselines that are global rankings (the candidates of dlod_finetuned's cut).
-RANKING_BASELINES = ("constant_sigma", "lightgaussian", "random")
-#: splat-transform 3.7.0's untrained decimators (method name -> ``merge_decimate`` mode).
-DECIMATORS = {"decimate": "decimate", "decimate_adaptive": "adaptive"}
-METHODS = ("clod", "clod_budget") + BASELINES + tuple(DECIMATORS) + ("dlod_finetuned", "pretrained")
-OUTPUT_NAMES = ("report.csv", "report_per_view.csv", "report.json", "quality_vs_gaussians.png",
+
+
+@dataclass(frozen=True)
+class RankingContext:
+    """What the ranking baselines select from, computed once per report: the pretrained model's
+    LightGaussian significance on the training views and a seeded random ranking (both [N]
+    float32), and the constant-sigma baseline's ``sigma_c`` and ``tau``."""
+
+    lightgaussian: Tensor
+    random: Tensor
+    sigma_c: float
+    tau: float
+
+
+@dataclass(frozen=True)
+class Method:
+    """One method of the report: its plot style (matplotlib colour, line style, marker) and, for
+    a ranking baseline, how it selects ``k`` Gaussians of the pretrained model in one view
+    (``select(base, camera, k, ctx: RankingContext) -> Selection``); ``decimate``: the
+    ``merge_decimate`` mode of a splat-transform decimator. Adding a baseline is one entry of
+    :data:`METHOD_REGISTRY`."""
+
+    style: tuple
+    select: Optional[Callable] = None
+    decimate: Optional[str] = None
+
+
+#: every method of the report, in table and legend order.
+METHOD_REGISTRY: dict[str, Method] = {
+    "clod": Method(("C0", "-", ".")),
+    "clod_budget": Method(("C0", "", "o")),
+    "constant_sigma": Method(("C1", "--", "s"), select=lambda base, cam, k, ctx: constant_sigma_selection(
+        base, cam, k, ctx.sigma_c, tau=ctx.tau)),
+    "lightgaussian": Method(("C2", "--", "^"), select=lambda base, cam, k, ctx: ranking_selection(
+        base, cam, ctx.lightgaussian, k)),
+    "random": Method(("C3", ":", "x"), select=lambda base, cam, k, ctx: ranking_selection(base, cam, ctx.random, k)),
+    # splat-transform 3.7.0's untrained decimators
+    "decimate": Method(("C4", "--", "D"), decimate="decimate"),
+    "decimate_adaptive": Method(("C6", "--", "v"), decimate="adaptive"),
+    "dlod_finetuned": Method(("C5", "-.", "P")),
+    "pretrained": Method(("k", "", "*")),
+}
+#: the ranking baselines (drawn at the adapted budgets' per-view counts).
+BASELINES = tuple(k for k, m in METHOD_REGISTRY.items() if m.select is not None)
+#: the decimators (method name -> ``merge_decimate`` mode).
+DECIMATORS = {k: m.decimate for k, m in METHOD_REGISTRY.items() if m.decimate is not None}
+METHODS = tuple(METHOD_REGISTRY)
+OUTPUT_NAMES = ("report.csv", "report_per_view.csv", "report.json", "report.md", "quality_vs_gaussians.png",
                 "quality_vs_time.png", "popping.png", "lod_strip.png")
 DEFAULT_BUDGETS = (1.0, 0.5, 0.25, 0.1)
 
@@ -100,15 +141,6 @@ LpipsSpec = Union[str, os.PathLike, Callable, None]
 
 
 # --- small helpers ----------------------------------------------------------------------------
-def bytes_per_gaussian(gaussians: Gaussians) -> int:
-    """Bytes one Gaussian takes in the .ply :func:`clod_adapter.io.ply.write_ply` writes for this
-    model (its row stride: normals, ``sigma_d``, level gains and extra properties included;
-    :func:`clod_adapter.storage.ply_row_bytes`)."""
-    from ..storage import ply_row_bytes
-
-    return ply_row_bytes(gaussians)
-
-
 def sv_grid(max_sv: float, steps: int = 25, overshoot: float = 1.2) -> list[float]:
     """``steps`` values of ``s_v`` evenly spaced from 1 to ``overshoot * max_sv`` (past the
     trained maximum)."""
@@ -344,12 +376,6 @@ def _save_fig(fig, path: Path) -> None:
     plt.close(fig)
 
 
-_STYLE = {"clod": ("C0", "-", "."), "clod_budget": ("C0", "", "o"), "constant_sigma": ("C1", "--", "s"),
-          "lightgaussian": ("C2", "--", "^"), "random": ("C3", ":", "x"), "decimate": ("C4", "--", "D"),
-          "decimate_adaptive": ("C6", "--", "v"),
-          "dlod_finetuned": ("C5", "-.", "P"), "pretrained": ("k", "", "*")}
-
-
 def _plot_quality(rows: list[dict], x: str, xlabel: str, path: Path, extra=None, time_axis: bool = False,
                   mark: Optional[tuple] = None) -> None:
     """Quality against ``x``. ``time_axis``: markers only, each with a horizontal bar from the
@@ -371,7 +397,7 @@ def _plot_quality(rows: list[dict], x: str, xlabel: str, path: Path, extra=None,
                         key=lambda r: (r["gaussians"], r[x]))
             if not rs:
                 continue
-            c, ls, mk = _STYLE.get(method, ("C4", "-", "d"))
+            c, ls, mk = METHOD_REGISTRY[method].style
             ms = 6 if method != "pretrained" else 11
             xs, ys = [r[x] for r in rs], [r[m] for r in rs]
             if time_axis:
@@ -464,8 +490,7 @@ def format_markdown(report: dict) -> str:
     rows = report["rows"]
     fmt = lambda v, f: "-" if v is None or (isinstance(v, float) and v != v) else format(v, f)  # noqa: E731
     budgets = [r["setting"] for r in rows if r["method"] == "clod_budget"]
-    methods = [m for m in ("clod_budget",) + BASELINES + tuple(DECIMATORS) + ("dlod_finetuned",)
-               if any(r["method"] == m for r in rows)]
+    methods = [m for m in METHODS if m not in ("clod", "pretrained") and any(r["method"] == m for r in rows)]
     out = [f"{report['num_gaussians']['adapted']:,} Gaussians; views: {', '.join(report['views'])} "
            f"at {report['image_size'][0]}x{report['image_size'][1]}; {report['device']}, "
            f"{report['threads']} threads; constant-sigma c = {report['settings']['sigma_c']:g} "
@@ -567,7 +592,7 @@ def evaluate_report(
         notes: extra notes for the report (e.g. a resolution warning).
         dlod_iterations: > 0 adds ``dlod_finetuned``: for each budget below 1, the pretrained
             model cut by the best static ranking of this report (highest mean PSNR at that
-            budget among :data:`RANKING_BASELINES`, global top share of the model) and
+            budget among :data:`BASELINES`, global top share of the model) and
             fine-tuned for this many steps (:func:`clod_adapter.dlod.finetune_subset`).
         merge_tool: a splat-transform executable: adds splat-transform's decimators
             ``decimate`` and ``decimate_adaptive`` (:func:`clod_adapter.baselines.merge_decimate`)
@@ -585,7 +610,7 @@ def evaluate_report(
     t_start = time.perf_counter()
     out_dir = Path(out_dir)
     dev = torch.device(device)
-    backend = "gsplat" if dev.type == "cuda" else "cpu"
+    backend = "auto"  # gsplat for CUDA tensors, else the CPU rasteriser (render.dispatch.resolve_backend)
     notes = list(notes)
     ply_path = None
     if not isinstance(adapted, Gaussians):
@@ -627,7 +652,7 @@ def evaluate_report(
     bar = progress_bar(n_renders, "clod-eval", unit="render", disable=not progress, leave=False)
     tick = lambda: bar.update(1)  # noqa: E731
     R = _Rows()
-    bpg_a, bpg_b = bytes_per_gaussian(adapted), bytes_per_gaussian(base)
+    bpg_a, bpg_b = ply_row_bytes(adapted), ply_row_bytes(base)
     na, nb = len(adapted), len(base)
 
     def run(fn):  # fn(cam) must bind its loop variables (s=s, b=b): it is called again for timing
@@ -652,6 +677,7 @@ def evaluate_report(
     rnd_scores = random_scores(nb, seed, dev)
     t_sig = time.perf_counter() - t_sig
     tau_b = lod.DEFAULT_TAU if tau is None else tau
+    ctx = RankingContext(lightgaussian=lg_scores, random=rnd_scores, sigma_c=float(sigma_c), tau=tau_b)
     global_scores = {"lightgaussian": lg_scores, "random": rnd_scores}
     if dlod_iterations > 0:
         from ..adapt import reference_distances
@@ -676,16 +702,11 @@ def evaluate_report(
         clod_s = run(lambda c, b=b: _render_lod(adapted, c, bg, backend, tau, budget=b))
         _score(R, "clod_budget", lab, b, clod_s, cams, gts, na, bpg_a, lpips_fn)
         ks = [s.n for s in clod_s]  # the baselines render the same per-view counts
-        sel_fns = {
-            "constant_sigma": lambda c, k: constant_sigma_selection(base, c, k, sigma_c, tau=tau_b),
-            "lightgaussian": lambda c, k: ranking_selection(base, c, lg_scores, k),
-            "random": lambda c, k: ranking_selection(base, c, rnd_scores, k),
-        }
         for name in BASELINES:
             samples = []
             for cam, k in zip(cams, ks):
-                samples.append(_sample(lambda cam=cam, k=k, sel=sel_fns[name]:
-                                       _render_selection(base, cam, sel(cam, k), bg, backend)))
+                samples.append(_sample(lambda cam=cam, k=k, sel=METHOD_REGISTRY[name].select:
+                                       _render_selection(base, cam, sel(base, cam, k, ctx), bg, backend)))
                 tick()
             _score(R, name, lab, b, samples, cams, gts, nb, bpg_b, lpips_fn)
         share = (b if isinstance(b, float) else b / max(nb, 1))

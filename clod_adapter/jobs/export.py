@@ -1,6 +1,6 @@
 """The ``clod-export`` job: the extended .ply, a baked standard .ply for one setting, an
 importance-ordered .ply, optional pruning and SH reduction, and ``export.json`` (the operations
-are :mod:`clod_adapter.export`; the CLI, ``cli/export.py``, only parses and checks flags).
+are :mod:`clod_adapter.export`; the CLI, ``clod_adapter/cli/export.py``, only parses and checks flags).
 Everything is computed first, then each file is written atomically."""
 from __future__ import annotations
 
@@ -30,7 +30,7 @@ def export(model, scene, train_imgs, test_cams, test_imgs, out: Path, *, ply: Pa
     from ..io.atomic import atomic_write
     from ..io.ply import read_ply, write_ply
     from ..metrics import psnr
-    from .eval import bytes_per_gaussian
+    from ..storage import ply_row_bytes
 
     t0 = time.perf_counter()
     phases = ["input PSNR"] + (["prune"] if prune else []) + (["SH bands"] if sh_max_drop_db is not None else []) \
@@ -53,7 +53,7 @@ def export(model, scene, train_imgs, test_cams, test_imgs, out: Path, *, ply: Pa
         if prune:
             model, n_drop = ex.prune_never_rendered(model, scene.train, anchor_cameras=scene.train)
             rep["prune"] = {"dropped": n_drop, "kept": len(model),
-                            "bytes_saved": n_drop * bytes_per_gaussian(model),
+                            "bytes_saved": n_drop * ply_row_bytes(model),
                             "psnr_test_sv1_after": _mean_psnr(ex, model, test_cams, test_imgs)}
             step()
         if sh_max_drop_db is not None:

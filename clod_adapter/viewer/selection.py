@@ -23,7 +23,7 @@ from torch import Tensor
 from clod_adapter.baselines import ranking_selection
 from clod_adapter.gaussians import Gaussians
 from clod_adapter.view import lod_subset
-from clod_adapter.render.projection import _quat_to_rotmat_rows
+from clod_adapter.render.projection import quat_to_rotmat_rows
 from clod_adapter.render.sh import spherical_harmonics
 
 __all__ = ["DEFAULT_MAX_DRAWN", "BYTES_PER_GAUSSIAN", "ViewPayload", "view_payload", "covariances",
@@ -91,7 +91,7 @@ def covariances(quats: Tensor, scales: Tensor) -> Tensor:
         quats: [N, 4] wxyz (unnormalised; normalised here, as the rasteriser does).
         scales: [N, 3] activated standard deviations, world units.
     """
-    R = torch.stack(_quat_to_rotmat_rows(quats), dim=-1).reshape(-1, 3, 3)
+    R = torch.stack(quat_to_rotmat_rows(quats), dim=-1).reshape(-1, 3, 3)
     RS = R * scales[:, None, :]
     return RS @ RS.transpose(1, 2)
 

@@ -5,7 +5,7 @@
                [--deterministic] [--layout inria] [--allow-mismatch]
     clod-adapt -m MODEL_FOLDER -s SCENE ...        (the official 3DGS spelling)
     clod-adapt --demo [-o OUT]
-    torchrun --nproc_per_node=N -m cli.adapt MODEL --images SCENE ...   (data-parallel; or --distributed)
+    torchrun --nproc_per_node=N -m clod_adapter.cli.adapt MODEL --images SCENE ...   (data-parallel; or --distributed)
 
 MODEL: a .ply / gsplat .pt, an official 3DGS model folder (``point_cloud/iteration_N/``, the
 latest N unless ``--iteration``) or a folder holding one .ply.
@@ -22,7 +22,7 @@ import sys
 from pathlib import Path
 
 from clod_adapter import jobs
-from clod_adapter.jobs import EXIT_BAD_INPUT, EXIT_INTERRUPTED, InputError, check_flag  # noqa: F401
+from clod_adapter.jobs import InputError, check_flag
 
 EXAMPLE = ("clod-adapt ../shared/data/fern/pretrained -s ../shared/data/fern --resolution 2 --max-sv 5 "
            "-o runs/fern")
@@ -42,15 +42,11 @@ def build_parser():
                    help="the same as MODEL (the official 3DGS flag)")
     p.add_argument("--iteration", type=int, default=None, metavar="N",
                    help="with a model folder: use point_cloud/iteration_N (default: the largest N)")
-    p.add_argument("--images", "-s", "--source_path", "--source-path", dest="images", metavar="SCENE",
-                   help="scene folder: COLMAP (images/, sparse/0) or NeRF-synthetic (transforms_*.json)")
+    jobs.add_scene_flags(p, resolution_note="; use the resolution the checkpoint was trained at")
     p.add_argument("--max-sv", type=float, default=5.0, help="largest virtual distance scale trained (default 5)")
     p.add_argument("-o", "--output", metavar="OUT",
                    help="output folder, new or empty (default: ./clod_out; demo ./clod_demo)")
     p.add_argument("--iterations", type=int, default=None, help="optimisation steps (default 1000; demo 400)")
-    p.add_argument("-r", "--resolution", type=int, default=1, choices=(1, 2, 4, 8),
-                   help="use images_R/ when present, else downsample by R (default 1); use the resolution "
-                        "the checkpoint was trained at")
     p.add_argument("--background", default="black", choices=("black", "white"),
                    help="colour behind the scene (NeRF-synthetic RGBA images are composited over it)")
     p.add_argument("--seed", type=int, default=0, help="seed of the view order and s_v sampling (default 0)")
@@ -71,8 +67,9 @@ def build_parser():
                    help="calibrated schedule: level gains to learn, letters of o (opacity), s (scale), "
                         "c (colour); default 'osc'; '' for none")
     p.add_argument("--tau", type=float, default=None, help="LoD threshold: render iff alpha'' > tau*s_v (default 0.005)")
-    p.add_argument("--eta-estimator", default="ste", choices=("ste", "sigmoid", "paper"),
-                   help="gradient of the rendered fraction in L_reg; 'paper' = hard count, no gradient")
+    p.add_argument("--eta-estimator", default=None, choices=("ste", "sigmoid", "paper"),
+                   help="paper schedule: gradient of the rendered fraction in L_reg (default 'ste'); "
+                        "'paper' = hard count, no gradient")
     p.add_argument("--masks", default="auto", choices=("auto", "argmax", "gumbel", "all"),
                    help="a MaskGaussian .ply with mask scores (masks_0/masks_1): keep p(keep) > 0.5 "
                         "('argmax', the default 'auto'), one Gumbel draw as MaskGaussian's own save "
@@ -105,7 +102,7 @@ def build_parser():
     p.add_argument("--distributed", action="store_true",
                    help="data-parallel over views with torch.distributed, reading torchrun's environment "
                         "(RANK, WORLD_SIZE, MASTER_ADDR, MASTER_PORT; gloo on CPU, NCCL on GPUs); implied "
-                        "when started by torchrun: torchrun --nproc_per_node=N -m cli.adapt ...")
+                        "when started by torchrun: torchrun --nproc_per_node=N -m clod_adapter.cli.adapt ...")
     p.add_argument("--save-every", type=int, default=None, metavar="N",
                    help="also write the resumable state every N steps (default: every 10 %% of the run when "
                         "data-parallel, else only on a signal and at the end; 0: never)")
@@ -154,6 +151,11 @@ def _main(args) -> int:
         check_flag(args.other_lr_scale >= 0, "--other-lr-scale", ">= 0", args.other_lr_scale)
     if args.lambda_reg is not None:
         check_flag(args.lambda_reg >= 0, "--lambda-reg", ">= 0", args.lambda_reg)
+    if args.schedule == "calibrated":  # flags of the paper's count regulariser: nothing to act on
+        for flag, value in (("--lambda-reg", args.lambda_reg), ("--eta-estimator", args.eta_estimator)):
+            if value is not None:
+                raise InputError(f"{flag} acts on the paper schedule's count regulariser only; "
+                                 "the calibrated schedule has none (add --schedule paper)")
     if args.gains is not None:
         check_flag(set(args.gains) <= set("osc"), "--gains", "letters of 'osc'", repr(args.gains))
         check_flag(not args.gains or args.schedule == "calibrated", "--gains", "used with --schedule calibrated",
@@ -174,10 +176,10 @@ def _main(args) -> int:
     distributed = args.distributed or launched_by_torchrun()
     if args.distributed and not launched_by_torchrun():
         raise InputError("--distributed: RANK, WORLD_SIZE, MASTER_ADDR, MASTER_PORT are not set; start it with "
-                         "torchrun --nproc_per_node=N -m cli.adapt ...")
+                         "torchrun --nproc_per_node=N -m clod_adapter.cli.adapt ...")
     if distributed and args.demo:
         raise InputError("--demo runs in one process; build the demo first (clod-adapt --demo -o OUT), then "
-                         "torchrun ... -m cli.adapt OUT/demo/pretrained/point_cloud.ply --images OUT/demo/scene")
+                         "torchrun ... -m clod_adapter.cli.adapt OUT/demo/pretrained/point_cloud.ply --images OUT/demo/scene")
     world = int(os.environ.get("WORLD_SIZE", "1")) if distributed else 1
     jobs.set_threads(args.threads)
     # Imports after parsing so --help is instant.
@@ -204,7 +206,7 @@ def _main(args) -> int:
     views = args.views_per_step if args.views_per_step is not None else world
     cfg = AdaptConfig(max_sv=args.max_sv, iterations=iterations, seed=args.seed, schedule=args.schedule,
                       other_lr_scale=args.other_lr_scale, lambda_reg=args.lambda_reg,
-                      fade=args.fade, gains=args.gains, eta_estimator=args.eta_estimator,
+                      fade=args.fade, gains=args.gains, eta_estimator=args.eta_estimator or "ste",
                       background=(1.0, 1.0, 1.0) if args.background == "white" else (0.0, 0.0, 0.0),
                       views_per_step=views, **kw)
     run(ply, scene, out, cfg, resolution=args.resolution, device=args.device,

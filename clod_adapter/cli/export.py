@@ -22,7 +22,7 @@ import sys
 from pathlib import Path
 
 from clod_adapter import jobs
-from clod_adapter.jobs import EXIT_BAD_INPUT, EXIT_INTERRUPTED, InputError, check_flag  # noqa: F401
+from clod_adapter.jobs import InputError, check_flag
 
 EXAMPLE = ("clod-export runs/fern -s ../shared/data/fern --resolution 2 -o runs/fern_export --s-v 2 "
            "--ordered --prune")
@@ -36,10 +36,7 @@ def build_parser():
         "unneeded SH bands.", EXAMPLE)
     p.add_argument("ply", nargs="?", metavar="ADAPTED",
                    help="adapted model (with sigma_d): a clod-adapt output folder or its point_cloud.ply")
-    p.add_argument("--images", "-s", "--source_path", "--source-path", dest="images", metavar="SCENE",
-                   help="scene folder: COLMAP (images/, sparse/0) or NeRF-synthetic (transforms_*.json)")
-    p.add_argument("-r", "--resolution", type=int, default=1, choices=(1, 2, 4, 8),
-                   help="use images_R/ when present, else downsample by R (default 1)")
+    jobs.add_scene_flags(p)
     p.add_argument("-o", "--output", metavar="OUTDIR", help="output folder, new or empty")
     g = p.add_mutually_exclusive_group()
     g.add_argument("--s-v", type=float, default=None, metavar="X",

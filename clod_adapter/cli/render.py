@@ -20,7 +20,7 @@ import time
 from pathlib import Path
 
 from clod_adapter import jobs
-from clod_adapter.jobs import EXIT_BAD_INPUT, EXIT_INTERRUPTED, InputError, check_flag  # noqa: F401
+from clod_adapter.jobs import InputError, check_flag
 
 EXAMPLE = "clod-render runs/fern -s ../shared/data/fern --resolution 2 --path orbit -o runs/fern_render"
 JSON_NAME = "render.json"
@@ -33,10 +33,7 @@ def build_parser():
         "along the scene's cameras or an orbit while s_v sweeps.", EXAMPLE)
     p.add_argument("ply", nargs="?", metavar="ADAPTED",
                    help="adapted model (with sigma_d): a clod-adapt output folder or its point_cloud.ply")
-    p.add_argument("--images", "-s", "--source_path", "--source-path", dest="images", metavar="SCENE",
-                   help="scene folder: COLMAP (images/, sparse/0) or NeRF-synthetic (transforms_*.json)")
-    p.add_argument("-r", "--resolution", type=int, default=1, choices=(1, 2, 4, 8),
-                   help="use images_R/ when present, else downsample by R (default 1)")
+    jobs.add_scene_flags(p)
     p.add_argument("-o", "--output", metavar="OUTDIR", help="output folder, new or empty (default ./clod_render)")
     g = p.add_mutually_exclusive_group()
     g.add_argument("--s-v", type=float, default=None, metavar="X",
@@ -113,7 +110,7 @@ def _main(args) -> int:
     video_name = f"lod_{args.path}.mp4"
     jobs.check_output_dir(out, [ply], [JSON_NAME, video_name, "views"], create=False, force=args.force)
     dev = jobs.pick_device(args.device)
-    backend = "gsplat" if dev.type == "cuda" else "cpu"
+    backend = "auto"  # gsplat for CUDA tensors, else the CPU rasteriser (render.dispatch.resolve_backend)
     model = read_ply(ply)
     if len(model) == 0:
         raise InputError(f"{ply}: the model has no Gaussians")

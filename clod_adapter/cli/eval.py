@@ -17,7 +17,7 @@ import sys
 from pathlib import Path
 
 from clod_adapter import jobs
-from clod_adapter.jobs import EXIT_BAD_INPUT, EXIT_INTERRUPTED, InputError, check_flag  # noqa: F401
+from clod_adapter.jobs import InputError, check_flag
 
 EXAMPLE = ("clod-eval runs/fern -s ../shared/data/fern --pretrained ../shared/data/fern/pretrained "
            "--resolution 2 -o runs/fern_report")
@@ -31,16 +31,13 @@ def build_parser():
         "JSON, plots).", EXAMPLE)
     p.add_argument("ply", nargs="?", metavar="ADAPTED",
                    help="adapted model (with sigma_d): a clod-adapt output folder or its point_cloud.ply")
-    p.add_argument("--images", "-s", "--source_path", "--source-path", dest="images", metavar="SCENE",
-                   help="scene folder: COLMAP (images/, sparse/0) or NeRF-synthetic (transforms_*.json)")
+    jobs.add_scene_flags(p)
     p.add_argument("--pretrained", metavar="PRE",
                    help="pretrained model the baselines cut: .ply (INRIA, compressed), gsplat ckpt .pt, an "
                         "official model folder or a folder holding one .ply (default: the adapted model "
                         "without sigma_d)")
     p.add_argument("--iteration", type=int, default=None, metavar="N",
                    help="with a --pretrained model folder: use point_cloud/iteration_N (default: the largest)")
-    p.add_argument("-r", "--resolution", type=int, default=1, choices=(1, 2, 4, 8),
-                   help="use images_R/ when present, else downsample by R (default 1)")
     p.add_argument("--budgets", default=None,
                    help="comma-separated budgets: values <= 1 are fractions, integers > 1 counts "
                         "(default 1,0.5,0.25,0.1 down to max_sv^-1.5, and max_sv^-1.5)")
@@ -136,7 +133,7 @@ def _main(args) -> int:
         inputs.append(pre)
     elif args.iteration is not None:
         raise InputError("--iteration applies to a --pretrained model folder")
-    jobs.check_output_dir(out, inputs, OUTPUT_NAMES + ("report.md",), create=False, force=args.force)
+    jobs.check_output_dir(out, inputs, OUTPUT_NAMES, create=False, force=args.force)
     bg = (1.0, 1.0, 1.0) if args.background == "white" else (0.0, 0.0, 0.0)
     scene = load_scene(scene_root, resolution=args.resolution, background=bg)
     if not scene.cameras:
@@ -174,7 +171,7 @@ def _main(args) -> int:
     note = _resolution_note(ply, pre, (cam0.width, cam0.height), resolution_note, training_size, METRICS_NAME)
     if note:
         notes.append(note)
-    jobs.check_output_dir(out, inputs, OUTPUT_NAMES + ("report.md",), force=True)  # checked above; create
+    jobs.check_output_dir(out, inputs, OUTPUT_NAMES, force=True)  # checked above; create
     from clod_adapter.baselines import PeerError
 
     try:

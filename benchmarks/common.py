@@ -104,6 +104,10 @@ def resolve_input(name: str) -> tuple[Path, Path, int]:
     return Path(parts[0]), Path(parts[1]), int(parts[2]) if len(parts) == 3 else 1
 
 
+#: AdaptConfig keys added after runs were cached, with the value those runs had.
+LEGACY_CONFIG = {"s_v_sampling": "uniform"}
+
+
 def adapt_cached(name: str, cfg: AdaptConfig, tag: str, *, split: str = "test", log=print) -> Path:
     """The adapted .ply of ``name`` with ``cfg``: runs ``clod-adapt``'s job into
     ``RUNS/name/tag`` (``tag + "_val"`` for ``split="val"``, trained on the fit views only:
@@ -121,7 +125,8 @@ def adapt_cached(name: str, cfg: AdaptConfig, tag: str, *, split: str = "test", 
     if mj.is_file():
         try:
             have = json.loads(mj.read_text())
-            if (have.get("config") == json.loads(json.dumps(asdict(cfg))) and have.get("input_ply") == str(ply)
+            have_cfg = {**LEGACY_CONFIG, **(have.get("config") or {})}
+            if (have_cfg == json.loads(json.dumps(asdict(cfg))) and have.get("input_ply") == str(ply)
                     and bool(have.get("holdout_val", False)) == holdout):
                 log(f"[{name}/{tag}] reusing {out} ({have.get('train_seconds')} s of training)")
                 return out / "point_cloud.ply"

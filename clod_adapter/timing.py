@@ -33,7 +33,8 @@ def time_interleaved(jobs: Mapping[Hashable, Sequence[Callable[[], object]]], *,
     Returns:
         key -> ``{"ms_total", "ms_select", "ms_raster"}`` (median over rounds of the median over
         views), ``"ms_total_min"``, ``"ms_total_max"`` (smallest / largest per-round median),
-        ``"repeats"``, and ``"per_view"``: [V] dicts of the same three medians over rounds.
+        ``"repeats"``, ``"per_round"`` ([repeats] per-round medians over views, in round order:
+        the paired comparison of two settings is the per-round ratio), and ``"per_view"``: [V] dicts of the same three medians over rounds.
 
     Raises:
         ValueError: ``repeats`` < 1.
@@ -67,6 +68,7 @@ def time_interleaved(jobs: Mapping[Hashable, Sequence[Callable[[], object]]], *,
             "ms_select": statistics.median(s for s, _, _ in per_round),
             "ms_raster": statistics.median(x for _, x, _ in per_round),
             "ms_total_min": min(totals), "ms_total_max": max(totals), "repeats": repeats,
+            "per_round": totals,
             "per_view": [{"ms_total": statistics.median(sum(t) for t in rounds),
                           "ms_select": statistics.median(t[0] for t in rounds),
                           "ms_raster": statistics.median(t[1] for t in rounds)} for rounds in views],

@@ -108,6 +108,23 @@ def test_sample_s_v_range_and_determinism():
         lod.sample_s_v(0.5)
 
 
+def test_sample_s_v_log_spreads_steps_over_factors_of_s_v():
+    """"log": ln s_v uniform, so [1, sqrt(max_sv)] gets half the steps (uniform: ~28 % at 5);
+    same generator draws -> same u, so the two samplings are monotone maps of each other."""
+    n = 4000
+    gl, gu = torch.Generator().manual_seed(0), torch.Generator().manual_seed(0)
+    lo = [lod.sample_s_v(5.0, gl, "log") for _ in range(n)]
+    un = [lod.sample_s_v(5.0, gu, "uniform") for _ in range(n)]
+    assert min(lo) >= 1.0 and max(lo) <= 5.0
+    half = sum(s < 5.0 ** 0.5 for s in lo) / n
+    assert abs(half - 0.5) < 0.03
+    assert sum(s < 5.0 ** 0.5 for s in un) / n < 0.33
+    assert all((a < b) == (c < d) for a, b, c, d in zip(lo, lo[1:], un, un[1:]))
+    assert lod.sample_s_v(1.0, torch.Generator().manual_seed(1), "log") == 1.0
+    with pytest.raises(ValueError, match="sampling"):
+        lod.sample_s_v(5.0, None, "normal")
+
+
 def test_normalized_distances_and_frustum():
     means = torch.tensor([[0.0, 0.0, 2.0], [0.0, 0.0, 4.0], [0.0, 0.0, -5.0], [100.0, 0.0, 1.0]])
     vm = torch.eye(4)

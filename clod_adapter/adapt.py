@@ -493,6 +493,30 @@ def view_loss(g: Gaussians, camera, gt: Tensor, s_v: float, cfg: AdaptConfig, ba
     return out, loss
 
 
+def _draw_views(state: AdaptState, n_views: int, cfg: AdaptConfig) -> list:
+    """One step's (view index, s_v) pairs: views shuffled without replacement per epoch, each
+    with its own ``s_v``, drawn in that order from the state's generator (view, s_v, ...)."""
+    picks = []
+    for _ in range(cfg.views_per_step):
+        if not state.order:
+            state.order = torch.randperm(n_views, generator=state.generator).tolist()
+        vi = state.order.pop()
+        picks.append((vi, lod.sample_s_v(cfg.max_sv, state.generator, cfg.s_v_sampling)))
+    return picks
+
+
+def _record(h: dict, picks: list, rows: dict, ema: dict) -> None:
+    """Append one step's records to the history ``h`` and update the progress averages ``ema``."""
+    for j, (vi, s_v) in enumerate(picks):
+        loss_j, p, eta = rows[j]
+        h["s_v"].append(round(s_v, 4))
+        h["eta"].append(round(eta, 5))
+        h["loss"].append(round(loss_j, 6))
+        h["psnr"].append(round(p, 3))
+        for k, v in (("loss", h["loss"][-1]), ("psnr", p)):
+            ema[k] = v if ema[k] is None else 0.9 * ema[k] + 0.1 * v
+
+
 def adapt(
     state: AdaptState,
     train_cameras,
@@ -568,12 +592,7 @@ def adapt(
                     on_interrupt(state)
                 return False
             it = state.iteration
-            picks = []
-            for _ in range(views):
-                if not state.order:
-                    state.order = torch.randperm(len(train_cameras), generator=state.generator).tolist()
-                vi = state.order.pop()
-                picks.append((vi, lod.sample_s_v(cfg.max_sv, state.generator, cfg.s_v_sampling)))
+            picks = _draw_views(state, len(train_cameras), cfg)
             for grp in state.optimizer.param_groups:
                 if grp["name"] == "means":
                     grp["lr"] = means_lr(cfg, state.extent, it)
@@ -602,15 +621,7 @@ def adapt(
                     state.iteration == cfg.iterations
                     or (cfg.recalibrate_every and state.iteration % cfg.recalibrate_every == 0)):
                 recalibrate(state, train_cameras, cfg)
-            h = state.history
-            for j, (vi, s_v) in enumerate(picks):
-                loss_j, p, eta = rows[j]
-                h["s_v"].append(round(s_v, 4))
-                h["eta"].append(round(eta, 5))
-                h["loss"].append(round(loss_j, 6))
-                h["psnr"].append(round(p, 3))
-                for k, v in (("loss", h["loss"][-1]), ("psnr", p)):
-                    ema[k] = v if ema[k] is None else 0.9 * ema[k] + 0.1 * v
+            _record(state.history, picks, rows, ema)
             # frac: the rendered fraction eta of the step (not tqdm's "time remaining")
             bar.set_postfix(loss=f"{ema['loss']:.4f}", psnr=f"{ema['psnr']:.2f}",
                             s_v=f"{picks[-1][1]:.2f}", frac=f"{rows[len(picks) - 1][2]:.3f}", refresh=False)

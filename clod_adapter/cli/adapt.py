@@ -70,6 +70,12 @@ def build_parser():
     p.add_argument("--eta-estimator", default=None, choices=("ste", "sigmoid", "paper"),
                    help="paper schedule: gradient of the rendered fraction in L_reg (default 'ste'); "
                         "'paper' = hard count, no gradient")
+    _run_flags(p)
+    return p
+
+
+def _run_flags(p) -> None:
+    """How the run goes (inputs' handling, saves, outputs, timing, processes): AdaptOptions'."""
     p.add_argument("--masks", default="auto", choices=("auto", "argmax", "gumbel", "all"),
                    help="a MaskGaussian .ply with mask scores (masks_0/masks_1): keep p(keep) > 0.5 "
                         "('argmax', the default 'auto'), one Gumbel draw as MaskGaussian's own save "
@@ -111,7 +117,6 @@ def build_parser():
     p.add_argument("--demo", action="store_true",
                    help="build the embedded synthetic scene and pretrained model in OUT/demo and adapt it")
     jobs.add_common_flags(p)
-    return p
 
 
 #: exit status of a data-parallel run that lost one of its processes.

@@ -27,8 +27,6 @@ def export(model, scene, train_imgs, test_cams, test_imgs, out: Path, *, ply: Pa
     import torch
 
     from .. import export as ex
-    from ..io.atomic import atomic_write
-    from ..io.ply import read_ply, write_ply
     from ..metrics import psnr
     from ..storage import ply_row_bytes
 
@@ -84,6 +82,19 @@ def export(model, scene, train_imgs, test_cams, test_imgs, out: Path, *, ply: Pa
                               "prefix_vs_selection_test": ex.prefix_vs_selection(model, perm, test_cams, test_imgs,
                                                                                  PREFIX_FRACTIONS)}
             step()
+    _write_files(out, ply, model, baked, baked_name, ordered_model, spz, rep, argv, t0)
+    step()
+    bar.close()
+    return rep
+
+
+def _write_files(out: Path, ply: Path, model, baked, baked_name, ordered_model, spz: bool, rep: dict, argv,
+                 t0: float) -> None:
+    """The export's files, each atomically: the extended .ply, the baked level, the ordered .ply,
+    their .spz copies, then ``export.json`` (``rep``, completed here with bytes and files)."""
+    from ..io.atomic import atomic_write
+    from ..io.ply import read_ply, write_ply
+
     check_output_dir(out, [ply], force=True)  # checked before; create it now
     files = [EXTENDED_NAME]
     write_ply(out / EXTENDED_NAME, model)
@@ -104,9 +115,6 @@ def export(model, scene, train_imgs, test_cams, test_imgs, out: Path, *, ply: Pa
     with atomic_write(out / JSON_NAME, "w") as f:
         json.dump(rep, f, indent=2)
         f.write("\n")
-    step()
-    bar.close()
-    return rep
 
 
 def write_spz(path: Path, model) -> str:

@@ -21,7 +21,7 @@ import os
 from collections import OrderedDict
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Sequence, Union
+from typing import Optional, Sequence, Union
 
 import numpy as np
 import torch
@@ -52,7 +52,8 @@ class Camera:
 
     Attributes:
         name: image file name as listed in the COLMAP model (e.g. ``image000.jpg``).
-        image_path: the file this view's pixels are read from.
+        image_path: the file this view's pixels are read from (None: a camera without an
+            image, e.g. the viewer's, :meth:`pinhole`).
         viewmat: [4, 4] float32 world-to-camera, OpenCV axes (x right, y down, z forward);
             gsplat's ``viewmats`` entry.
         K: [3, 3] float32 intrinsics in pixels at ``width`` x ``height``.
@@ -60,11 +61,17 @@ class Camera:
     """
 
     name: str
-    image_path: Path
+    image_path: Optional[Path]
     viewmat: Tensor
     K: Tensor
     width: int
     height: int
+
+    @classmethod
+    def pinhole(cls, viewmat: Tensor, K: Tensor, width: int, height: int, name: str = "view") -> "Camera":
+        """A camera without an image: ``viewmat`` [4, 4] world-to-camera (OpenCV axes), ``K``
+        [3, 3] intrinsics in pixels, ``width`` x ``height`` pixels (what the renderer reads)."""
+        return cls(name, None, viewmat, K, int(width), int(height))
 
     @property
     def center(self) -> Tensor:

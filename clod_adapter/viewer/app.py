@@ -26,8 +26,9 @@ from typing import Callable, Optional, Sequence
 import numpy as np
 
 from clod_adapter.gaussians import Gaussians
+from clod_adapter.io.scene import Camera
 
-from .cameras import ViewCamera, ViewPose, camera_from_pose, default_start_view, scene_start_view
+from .cameras import ViewPose, camera_from_pose, default_start_view, scene_start_view
 from .model import DEFAULT_MAX_SV
 from .selection import (DEFAULT_MAX_DRAWN, METHOD_ALL, METHOD_STATIC, ViewPayload, view_payload)
 from .timing import RasterTimeModel, calibrate_raster_time
@@ -54,7 +55,7 @@ class ViewRecord:
     """What was last sent to one client: the camera it was computed for, the payload, the
     settings, a counter (1 for the first update) and the wall time of the update (s)."""
 
-    camera: ViewCamera
+    camera: Camera
     payload: ViewPayload
     settings: dict
     version: int

@@ -25,7 +25,7 @@ from pathlib import Path
 import pytest
 import torch
 
-from clod_adapter.adapt import AdaptConfig, load_state
+from clod_adapter.training import AdaptConfig, load_state
 from conftest import REPO, write_tiny_scene
 
 ITERATIONS = 24
@@ -204,7 +204,7 @@ def test_views_per_step_is_the_mean_of_the_views():
 
 
 def _check_views_per_step():
-    from clod_adapter.adapt import adapt, prepare, view_loss
+    from clod_adapter.training import adapt, prepare, view_loss
     from clod_adapter import lod
     from clod_adapter.synthetic import make_cameras, make_ground_truth, perturb
     from conftest import render_views
@@ -272,7 +272,7 @@ def test_a_stop_request_from_another_rank_stops_after_the_same_step():
     step 3, this rank finishes step 3 and stops before step 4 (saving through on_interrupt),
     although it never saw a signal itself. The other rank is simulated: it adds nothing to the
     gradients and the records of its views, and its stop flag at the third reduction."""
-    from clod_adapter.adapt import adapt, prepare
+    from clod_adapter.training import adapt, prepare
     from clod_adapter.distributed import Group
     from clod_adapter.synthetic import make_cameras, make_ground_truth, perturb
     from conftest import render_views

@@ -25,7 +25,7 @@ from pathlib import Path
 import pytest
 import torch
 
-from clod_adapter.adapt import load_state
+from clod_adapter.training import load_state
 from clod_adapter.io.ply import write_ply
 from clod_adapter.io.colmap import write_colmap_scene
 from clod_adapter.synthetic import make_cameras, make_ground_truth, perturb
@@ -133,7 +133,7 @@ def test_signal_then_resume_is_bit_exact(scene, tmp_path, sig):
 
 
 def _inprocess_run(scene: Path, out: Path, **kw):
-    from clod_adapter.adapt import AdaptConfig
+    from clod_adapter.training import AdaptConfig
     from clod_adapter.jobs.adapt import run
 
     cfg = AdaptConfig(max_sv=MAX_SV, iterations=ITERATIONS, seed=SEED)

@@ -19,7 +19,7 @@ import pytest
 import torch
 
 from clod_adapter.baselines import ranking_selection
-from clod_adapter.view import in_view, lod_subset
+from clod_adapter.camera_lod import in_view, lod_subset
 from clod_adapter.render.sh import spherical_harmonics
 from clod_adapter.synthetic import make_cameras, make_ground_truth
 from clod_adapter.viewer import (BYTES_PER_GAUSSIAN, DEFAULT_MAX_SV, camera_from_pose, covariances,

@@ -188,7 +188,7 @@ def _main(args) -> int:
     world = int(os.environ.get("WORLD_SIZE", "1")) if distributed else 1
     jobs.set_threads(args.threads)
     # Imports after parsing so --help is instant.
-    from clod_adapter.adapt import AdaptConfig
+    from clod_adapter.training import AdaptConfig
     from clod_adapter.jobs.adapt import run
 
     out = Path(args.output or ("clod_demo" if args.demo else "clod_out"))

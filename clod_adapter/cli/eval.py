@@ -163,7 +163,7 @@ def _main(args) -> int:
         raise InputError(f"{scene_root}: no such scene folder")
     jobs.set_threads(args.threads)
 
-    from clod_adapter.adapt import iterations_from_state, max_sv_from_state
+    from clod_adapter.training import iterations_from_state, max_sv_from_state
     from clod_adapter.baselines import PeerError
     from clod_adapter.io.load import load_scene, training_size
     from clod_adapter.jobs.adapt import METRICS_NAME, resolution_note

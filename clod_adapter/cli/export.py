@@ -10,7 +10,7 @@ Gaussians that setting renders from the training views), with ``--ordered`` OUTD
 counts, PSNRs, pruning and SH results). ``--prune`` drops Gaussians no training view renders at
 any s_v >= 1; ``--sh-max-drop-db D`` lowers the SH degree while the training-view PSNR at
 s_v = 1 drops by at most D dB. Both apply to every file written. The job is
-:func:`clod_adapter.jobs.export.export` (operations: :mod:`clod_adapter.export`).
+:func:`clod_adapter.jobs.export.export` (operations: :mod:`clod_adapter.bake`).
 
 Exit status: 0 done, 2 bad input (one line on stderr naming the file or flag, nothing written),
 130 interrupted.

@@ -88,7 +88,7 @@ def _render_views(model, scene, cams, level: dict, bg, out: Path, bar) -> list:
 
     from clod_adapter.io.atomic import atomic_save
     from clod_adapter.metrics import psnr
-    from clod_adapter.view import render_lod
+    from clod_adapter.camera_lod import render_lod
 
     views = []
     for c in cams:
@@ -110,7 +110,7 @@ def _render_video(model, scene, args, level: dict, max_sv: float, bg, path: Path
 
     from clod_adapter.figures import label_panels
     from clod_adapter.video import camera_path, orbit_path, write_mp4
-    from clod_adapter.view import render_lod
+    from clod_adapter.camera_lod import render_lod
 
     n_frames, n = args.frames, len(model)
     cams = camera_path(scene.cameras, n_frames) if args.path == "cameras" else \
@@ -150,7 +150,7 @@ def _main(args) -> int:
 
     import torch
 
-    from clod_adapter.adapt import max_sv_from_state
+    from clod_adapter.training import max_sv_from_state
     from clod_adapter.io.atomic import atomic_write
     from clod_adapter.io.load import load_scene, resolve_model_path
     from clod_adapter.io.ply import read_ply

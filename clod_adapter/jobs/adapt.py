@@ -24,7 +24,7 @@ from typing import Callable, Optional
 import torch
 
 from .. import __version__, jobs, lod
-from ..adapt import STATE_NAME, AdaptConfig, StopFlag, adapt, load_state, prepare, save_state
+from ..training import STATE_NAME, AdaptConfig, StopFlag, adapt, load_state, prepare, save_state
 from ..figures import write_strip, write_training_plot
 from ..gaussians import Gaussians
 from ..level_metrics import budget_levels, evaluate_level, evaluate_levels, sv_levels
@@ -35,7 +35,7 @@ from ..io.ply import PlyFormatError, write_ply
 from ..io.view_images import ViewImages
 from ..io.load import load_scene
 from ..render.composite import deterministic_enabled
-from ..view import render_lod
+from ..camera_lod import render_lod
 
 PLY_NAME = "point_cloud.ply"
 METRICS_NAME = "metrics.json"
@@ -239,7 +239,7 @@ def retime_levels(input_model, model, cameras, levels, *, tau, background, backe
 @dataclass
 class AdaptOptions:
     """How one ``clod-adapt`` run goes, besides its model, scene, output folder and
-    :class:`clod_adapter.adapt.AdaptConfig` (what the fine-tuning is). Checked once, on creation.
+    :class:`clod_adapter.training.AdaptConfig` (what the fine-tuning is). Checked once, on creation.
 
     Attributes:
         resolution: scene images at 1/R (``images_R/`` when present).
@@ -620,7 +620,7 @@ def _step_hooks(inp: _Inputs, cfg: AdaptConfig, o: AdaptOptions, stop: StopFlag,
 
 
 def _train(inp: _Inputs, state, cfg: AdaptConfig, o: AdaptOptions, stop: StopFlag, group, meta: dict) -> float:
-    """Phase 3: the fine-tuning (:func:`clod_adapter.adapt.adapt`) with its saves; returns its
+    """Phase 3: the fine-tuning (:func:`clod_adapter.training.adapt`) with its saves; returns its
     seconds. Raises KeyboardInterrupt when a signal stopped it (the state saved first)."""
     saved = {"iteration": state.iteration if o.resume else None}  # the state on disk
 

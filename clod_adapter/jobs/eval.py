@@ -12,7 +12,7 @@
   every Gaussian in view drawn;
 * ``dlod_finetuned`` (``dlod_iterations > 0``): the per-budget ceiling, one model per level: the
   pretrained model cut to the budget by the best static ranking of this report, fine-tuned on the
-  training views (:mod:`clod_adapter.dlod`); its storage is the sum of the levels;
+  training views (:mod:`clod_adapter.dlod_ceiling`); its storage is the sum of the levels;
 * ``pretrained``: the pretrained model in full (reference);
 
 scores each render (PSNR, SSIM in the 3DGS form, LPIPS-alex when weights exist), times it
@@ -69,7 +69,7 @@ import torch
 from torch import Tensor
 
 from .. import __version__, lod
-from ..adapt import max_sv_from_state
+from ..training import max_sv_from_state
 from ..baselines import (SIGMA_C_CANDIDATES, Selection, constant_sigma_selection,
                         lightgaussian_significance, tune_sigma_c,
                         random_scores, ranking_selection, render_subset)
@@ -79,7 +79,7 @@ from ..io.atomic import atomic_save, atomic_write
 from ..frontier import Point, frontier
 from ..io.ply import read_ply
 from ..storage import ply_bytes, ply_row_bytes
-from ..view import render_lod
+from ..camera_lod import render_lod
 from ..metrics import psnr, ssim
 
 CSV_COLUMNS = ("method", "setting", "s_v", "budget", "gaussians", "fraction", "psnr", "ssim", "lpips",
@@ -281,8 +281,8 @@ def _retime(rows: _Rows, repeats: int, seed: int, on_render=None) -> None:
 def _adapted_cut(adapted: Gaussians, k: int, cameras) -> Gaussians:
     """The adapted model's own ``k``-Gaussian level as a static model (a start for
     ``dlod_finetuned``): the first ``k`` of its importance order over ``cameras``
-    (:func:`clod_adapter.export.importance_order`), base attributes, no ``sigma_d``."""
-    from ..export import importance_order
+    (:func:`clod_adapter.bake.importance_order`), base attributes, no ``sigma_d``."""
+    from ..bake import importance_order
 
     keep = torch.sort(importance_order(adapted, cameras)[:k]).values
     return adapted.subset(keep).with_sigma_d(None)
@@ -562,8 +562,8 @@ class EvalOptions:
             (:mod:`clod_adapter.timing`); 0 keeps the quality pass's own (single) times.
         notes: extra notes for the report (e.g. a resolution warning).
         dlod_iterations: > 0 adds ``dlod_finetuned``: for each budget below 1, the best start on
-            validation views (:func:`clod_adapter.dlod.best_start`) fine-tuned for this many steps
-            (:func:`clod_adapter.dlod.finetune_subset`).
+            validation views (:func:`clod_adapter.dlod_ceiling.best_start`) fine-tuned for this many steps
+            (:func:`clod_adapter.dlod_ceiling.finetune_subset`).
         merge_tool: a splat-transform executable: adds splat-transform's decimators at each
             budget's share of the model; a failing run raises RuntimeError (a peer never silently
             drops out of the report). None: they are not run, and the report says so.
@@ -764,7 +764,7 @@ def _score_sweep(ev: _Eval) -> None:
 
 def _dlod_rankings(ev: _Eval, ctx: RankingContext) -> dict:
     """The global rankings the dlod ceiling may start from (name -> [N] scores)."""
-    from ..adapt import reference_distances
+    from ..training import reference_distances
     from ..budget import critical_s_v
 
     d_ref = reference_distances(ev.base, ev.train_cams)
@@ -806,7 +806,7 @@ def _score_budget(ev: _Eval, b, ctx: RankingContext, global_scores: dict) -> Non
 def _score_dlod(ev: _Eval, b, lab: str, share: float, global_scores: dict) -> None:
     """The dlod ceiling at one budget: the best start by PSNR on validation views (training
     views; the test views only score the result), fine-tuned with the recovery schedule."""
-    from ..dlod import best_start, finetune_subset, global_cut
+    from ..dlod_ceiling import best_start, finetune_subset, global_cut
     from ..io.scene import validation_split
 
     fit_cams, val_cams = validation_split(ev.train_cams)

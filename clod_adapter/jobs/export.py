@@ -1,6 +1,6 @@
 """The ``clod-export`` job: the extended .ply, a baked standard .ply for one setting, an
 importance-ordered .ply, optional pruning and SH reduction, and ``export.json`` (the operations
-are :mod:`clod_adapter.export`; the CLI, ``clod_adapter/cli/export.py``, only parses and checks flags).
+are :mod:`clod_adapter.bake`; the CLI, ``clod_adapter/cli/export.py``, only parses and checks flags).
 Everything is computed first, then each file is written atomically."""
 from __future__ import annotations
 
@@ -26,7 +26,7 @@ def export(model, scene, train_imgs, test_cams, test_imgs, out: Path, *, ply: Pa
     reduction, the baked level, the importance order); the test views only score the results."""
     import torch
 
-    from .. import export as ex
+    from .. import bake as ex
     from ..metrics import psnr
     from ..storage import ply_row_bytes
 

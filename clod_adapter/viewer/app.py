@@ -3,7 +3,7 @@
 Each connected browser gets its own panel and its own copy of the model's splats: on every
 camera move (throttled to one update per ``throttle_s``) and on every control change, the
 selection for *that* client camera is recomputed (:func:`clod_adapter.viewer.selection.view_payload`,
-i.e. :func:`clod_adapter.view.lod_subset`: frustum, d', the LoD rule or the budget solver),
+i.e. :func:`clod_adapter.camera_lod.lod_subset`: frustum, d', the LoD rule or the budget solver),
 coloured by the SH at that camera and sent as one splat buffer (``n x 32`` bytes).
 
 Controls: the level (``s_v`` slider from 1 to 2 x the trained ``max_sv``, or a budget in % of

@@ -6,7 +6,7 @@ opacities, ``viewmats`` [C, 4, 4], ``Ks`` [C, 3, 3], ...) plus the per-Gaussian 
 applies Eq. 2 (``alpha'' = alpha exp(-(d' s_v)^2 / (2 ReLU(sigma_d)^2 + eps))``) and the
 ``alpha'' > tau s_v`` mask (or the exact budget selection of :mod:`clod_adapter.budget`), and hands
 the selected Gaussians to :func:`clod_adapter.render.rasterization` (gsplat on CUDA, CPU
-otherwise). The selection is the one :func:`clod_adapter.view.render_lod` makes, so both
+otherwise). The selection is the one :func:`clod_adapter.camera_lod.render_lod` makes, so both
 give the same image.
 
 Without ``sigma_d``, or with neither ``s_v`` nor ``budget``, it is exactly ``rasterization``.
@@ -20,7 +20,7 @@ from torch import Tensor
 
 from . import lod
 from .render.dispatch import rasterization
-from .view import view_lod_tensors
+from .camera_lod import view_lod_tensors
 
 __all__ = ["clod_rasterization"]
 

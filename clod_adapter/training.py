@@ -39,7 +39,7 @@ from .budget import critical_s_v
 from .gaussians import GAIN_NAMES, Gaussians
 from .io.atomic import atomic_save
 from .losses import clod_loss, render_loss
-from .view import render_lod, view_lod
+from .camera_lod import render_lod, view_lod
 from .metrics import psnr
 from .official import OFFICIAL_LR, scene_extent
 
@@ -471,7 +471,7 @@ def view_loss(g: Gaussians, camera, gt: Tensor, s_v: float, cfg: AdaptConfig, ba
     """One training view's render and loss at ``s_v`` (the body of a step of :func:`adapt`).
 
     Returns:
-        (:class:`clod_adapter.view.LodRender`, scalar loss tensor).
+        (:class:`clod_adapter.camera_lod.LodRender`, scalar loss tensor).
     """
     if cfg.schedule == "calibrated" and cfg.cost_exponent > 0:
         # the level's exact share of the view's weighted cost, drawn with the level's gains

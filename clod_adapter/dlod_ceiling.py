@@ -35,7 +35,7 @@ from torch import Tensor
 from .official import OFFICIAL_LR, scene_extent
 from .gaussians import Gaussians
 from .losses import render_loss
-from .view import render_lod
+from .camera_lod import render_lod
 
 _FIELDS = ("means", "quats", "log_scales", "opacity_logits", "sh0", "shN")
 

@@ -153,3 +153,24 @@ def test_no_root_export_shadowed_by_a_submodule():
 
     submodules = {p.stem for p in PKG.glob("*.py")} | {p.name for p in PKG.iterdir() if (p / "__init__.py").is_file()}
     assert sorted(set(clod_adapter._EXPORTS) & submodules) == []
+
+
+#: the training and evaluation logic (README "How the code is laid out"): above the model, the
+#: mechanism and the I/O, below the jobs.
+LOGIC = {"training", "official", "distributed", "losses", "baselines", "dlod_ceiling", "level_metrics", "timing",
+         "frontier", "bake"}
+
+
+def layer(module: str) -> int:
+    """1 the model, mechanism, renderer and I/O; 2 the logic; 3 the jobs and the viewer; 4 the CLIs."""
+    parts = module.split(".")
+    if len(parts) > 1 and parts[1] == "cli":
+        return 4
+    if len(parts) > 1 and parts[1] in ("jobs", "viewer"):
+        return 3
+    return 2 if len(parts) > 1 and parts[1] in LOGIC else 1
+
+
+def test_layers_import_downwards_only():
+    up = sorted(f"{a} -> {b}" for a, bs in import_graph().items() for b in bs if layer(b) > layer(a))
+    assert up == []

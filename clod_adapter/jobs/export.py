@@ -7,7 +7,9 @@ from __future__ import annotations
 import json
 import sys
 import time
+from dataclasses import dataclass
 from pathlib import Path
+from typing import Callable
 
 from . import check_output_dir, progress_bar
 
@@ -93,20 +95,15 @@ def _write_files(out: Path, ply: Path, model, baked, baked_name, ordered_model, 
     """The export's files, each atomically: the extended .ply, the baked level, the ordered .ply,
     their .spz copies, then ``export.json`` (``rep``, completed here with bytes and files)."""
     from ..io.atomic import atomic_write
-    from ..io.ply import read_ply, write_ply
 
     check_output_dir(out, [ply], force=True)  # checked before; create it now
-    files = [EXTENDED_NAME]
-    write_ply(out / EXTENDED_NAME, model)
-    if baked is not None:
-        write_ply(out / baked_name, baked)
-        files.append(baked_name)
-    if ordered_model is not None:
-        write_ply(out / ORDERED_NAME, ordered_model)
-        files.append(ORDERED_NAME)
-    if spz:
-        for f in list(files):
-            files.append(write_spz(out / Path(f).with_suffix(".spz").name, read_ply(out / f)))
+    models = [(EXTENDED_NAME, model), (baked_name, baked), (ORDERED_NAME, ordered_model)]
+    files = []
+    for fmt in ("ply",) + (("spz",) if spz else ()):
+        for name, m in models:
+            if m is not None:
+                files.append(EXPORT_FORMATS[fmt].write(out / Path(name).with_suffix(EXPORT_FORMATS[fmt].suffix).name,
+                                                       m))
     rep["bytes"] = {"input": ply.stat().st_size, **{f: (out / f).stat().st_size for f in files}}
     rep["seconds"] = round(time.perf_counter() - t0, 2)
     rep["command"] = "clod-export " + " ".join(sys.argv[1:] if argv is None else argv)
@@ -115,6 +112,25 @@ def _write_files(out: Path, ply: Path, model, baked, baked_name, ordered_model, 
     with atomic_write(out / JSON_NAME, "w") as f:
         json.dump(rep, f, indent=2)
         f.write("\n")
+
+
+def write_ply_file(path: Path, model) -> str:
+    """:func:`clod_adapter.io.ply.write_ply` (atomic; the extended INRIA layout); returns the file name."""
+    from ..io.ply import write_ply
+
+    write_ply(path, model)
+    return path.name
+
+
+@dataclass(frozen=True)
+class ExportFormat:
+    """One file format ``clod-export`` writes: its suffix, its writer (``write(path, model) ->
+    file name``, atomic) and what it holds. Adding a format is one entry of
+    :data:`EXPORT_FORMATS` (and its round trip in ``tests/test_export.py``)."""
+
+    suffix: str
+    write: Callable
+    what: str
 
 
 def write_spz(path: Path, model) -> str:
@@ -165,3 +181,10 @@ def summary(rep: dict) -> str:
             lines.append(f"prefix {r['fraction']:.0%} ({r['count']}): {r['psnr_prefix']:.2f} dB vs selection "
                          f"{r['psnr_selection']:.2f} dB ({r['rendered_per_view']:.0f} per view)")
     return "\n".join("clod-export: " + s for s in lines)
+
+
+#: the formats clod-export writes, by name (``--spz`` adds ``spz`` to ``ply``).
+EXPORT_FORMATS = {
+    "ply": ExportFormat(".ply", write_ply_file, "INRIA .ply (+ sigma_d and the level gains for the extended file)"),
+    "spz": ExportFormat(".spz", write_spz, "SPZ v3 via gsply (sigma_d dropped)"),
+}

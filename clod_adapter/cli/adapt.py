@@ -189,7 +189,7 @@ def _main(args) -> int:
     jobs.set_threads(args.threads)
     # Imports after parsing so --help is instant.
     from clod_adapter.training import AdaptConfig
-    from clod_adapter.jobs.adapt import run
+    from clod_adapter.jobs.adapt import AdaptOptions, run
 
     out = Path(args.output or ("clod_demo" if args.demo else "clod_out"))
     force = args.force
@@ -214,14 +214,15 @@ def _main(args) -> int:
                       fade=args.fade, gains=args.gains, eta_estimator=args.eta_estimator or "ste",
                       background=(1.0, 1.0, 1.0) if args.background == "white" else (0.0, 0.0, 0.0),
                       views_per_step=views, **kw)
-    run(ply, scene, out, cfg, resolution=args.resolution, device=args.device,
-        resume=args.resume, progress=not args.quiet, sanitize=args.sanitize,
-        deterministic=args.deterministic,
-        iterations_from_state=args.resume and args.iterations is None, force=force,
-        allow_mismatch=args.allow_mismatch, iteration=args.iteration, layout=args.layout,
-        tensorboard=args.tensorboard, timing_repeats=args.timing_repeats, masks=args.masks,
-        distributed=distributed, save_every=args.save_every,
-        views_from_state=args.resume and args.views_per_step is None, holdout_val=args.holdout_val)
+    options = AdaptOptions(resolution=args.resolution, device=args.device, resume=args.resume,
+                           progress=not args.quiet, sanitize=args.sanitize, deterministic=args.deterministic,
+                           iterations_from_state=args.resume and args.iterations is None, force=force,
+                           allow_mismatch=args.allow_mismatch, iteration=args.iteration, layout=args.layout,
+                           tensorboard=args.tensorboard, timing_repeats=args.timing_repeats, masks=args.masks,
+                           distributed=distributed, save_every=args.save_every,
+                           views_from_state=args.resume and args.views_per_step is None,
+                           holdout_val=args.holdout_val)
+    run(ply, scene, out, cfg, options)
     return 0
 
 

@@ -165,9 +165,9 @@ class AdaptConfig:
             raise ValueError(f"fade_width must be > 0, got {self.fade_width}")
         bad = set(self.gains) - set(GAIN_LETTERS)
         if bad:
-            raise ValueError(f"gains takes letters of 'osc' (opacity, scale, colour), got {self.gains!r}")
+            raise ValueError(f"gains must be letters of 'osc' (opacity, scale, colour), got {self.gains!r}")
         if self.gains and not cal:
-            raise ValueError("level gains need the calibrated schedule")
+            raise ValueError(f"gains must be used with the calibrated schedule, got {self.gains!r}")
         if self.ranking not in RANKINGS:
             raise ValueError(f"ranking must be one of {RANKINGS}, got {self.ranking!r}")
         if self.recalibrate_every < 0:
@@ -179,7 +179,7 @@ class AdaptConfig:
         if not 0.0 <= self.cost_exponent <= 1.0:
             raise ValueError(f"cost_exponent must be in [0, 1], got {self.cost_exponent}")
         if not (isinstance(self.views_per_step, int) and self.views_per_step >= 1):
-            raise ValueError(f"views_per_step must be an integer >= 1, got {self.views_per_step!r}")
+            raise ValueError(f"views_per_step must be >= 1 (an integer), got {self.views_per_step!r}")
         self.background = tuple(float(x) for x in self.background)
 
     @property

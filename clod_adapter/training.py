@@ -151,18 +151,13 @@ class AdaptConfig:
             self.level_weighting = "uniform" if cal else "paper"
         if self.s_v_sampling is None:
             self.s_v_sampling = "log" if cal else "uniform"
-        if not self.max_sv >= 1.0:
-            raise ValueError(f"max_sv must be >= 1, got {self.max_sv}")
+        self.lod_settings()  # max_sv, tau, fade, fade_width: LodSettings' rules, checked there
         if self.iterations < 0:
             raise ValueError(f"iterations must be >= 0, got {self.iterations}")
         if self.other_lr_scale < 0:
             raise ValueError(f"other_lr_scale must be >= 0, got {self.other_lr_scale}")
         if self.eta_estimator not in lod.ETA_ESTIMATORS:
             raise ValueError(f"eta_estimator must be one of {lod.ETA_ESTIMATORS}")
-        if self.fade not in lod.FADES:
-            raise ValueError(f"fade must be one of {lod.FADES}, got {self.fade!r}")
-        if not self.fade_width > 0:
-            raise ValueError(f"fade_width must be > 0, got {self.fade_width}")
         bad = set(self.gains) - set(GAIN_LETTERS)
         if bad:
             raise ValueError(f"gains must be letters of 'osc' (opacity, scale, colour), got {self.gains!r}")

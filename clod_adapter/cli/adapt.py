@@ -174,8 +174,6 @@ def _main(args) -> int:
             if value is not None:
                 raise InputError(f"{flag} acts on the paper schedule's count regulariser only; "
                                  "the calibrated schedule has none (add --schedule paper)")
-    if args.threads is not None:
-        check_flag(args.threads >= 1, "--threads", ">= 1", args.threads)
     check_flag(args.timing_repeats >= 0, "--timing-repeats", ">= 0", args.timing_repeats)
     if args.iteration is not None:
         check_flag(args.iteration >= 0, "--iteration", ">= 0", args.iteration)

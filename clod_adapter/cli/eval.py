@@ -29,8 +29,7 @@ def build_parser():
         "Sweep an adapted CLoD-GS model over s_v and hard Gaussian budgets, compare it with baselines "
         "cut from the pretrained model at the same counts, measure popping, and write a report (CSV, "
         "JSON, plots).", EXAMPLE)
-    p.add_argument("ply", nargs="?", metavar="ADAPTED",
-                   help="adapted model (with sigma_d): a clod-adapt output folder or its point_cloud.ply")
+    jobs.add_adapted_arg(p)
     jobs.add_scene_flags(p)
     p.add_argument("--pretrained", metavar="PRE",
                    help="pretrained model the baselines cut: .ply (INRIA, compressed), gsplat ckpt .pt, an "
@@ -93,8 +92,6 @@ def _check_flags(args) -> None:
     if args.sigma_c is not None:
         check_flag(args.sigma_c > 0, "--sigma-c", "> 0", args.sigma_c)
     check_flag(args.timing_repeats >= 0, "--timing-repeats", ">= 0", args.timing_repeats)
-    if args.threads is not None:
-        check_flag(args.threads >= 1, "--threads", ">= 1", args.threads)
     if args.lpips_weights is not None and not Path(args.lpips_weights).is_file():
         raise InputError(f"{args.lpips_weights}: no such LPIPS weights file (--lpips-weights)")
 

@@ -31,15 +31,11 @@ def build_parser():
         "clod-render",
         "Render an adapted CLoD-GS model: the test views at one level of detail (PNG) and a short MP4 "
         "along the scene's cameras or an orbit while s_v sweeps.", EXAMPLE)
-    p.add_argument("ply", nargs="?", metavar="ADAPTED",
-                   help="adapted model (with sigma_d): a clod-adapt output folder or its point_cloud.ply")
+    jobs.add_adapted_arg(p)
     jobs.add_scene_flags(p)
     p.add_argument("-o", "--output", metavar="OUTDIR", help="output folder, new or empty (default ./clod_render)")
-    g = p.add_mutually_exclusive_group()
-    g.add_argument("--s-v", type=float, default=None, metavar="X",
-                   help="level of detail (>= 1) of the images, and of the video instead of a sweep (default 1)")
-    g.add_argument("--budget", default=None, metavar="K",
-                   help="render at most K Gaussians per view (an integer count > 1 or a fraction <= 1) instead")
+    jobs.add_level_flags(p, "level of detail (>= 1) of the images, and of the video instead of a sweep (default 1)",
+                         "render at most K Gaussians per view (an integer count > 1 or a fraction <= 1) instead")
     p.add_argument("--views", default="test", choices=("test", "train", "all"),
                    help="which views to render as images (default test: every 8th image)")
     p.add_argument("--path", default="cameras", choices=("cameras", "orbit"),
@@ -76,8 +72,6 @@ def _check_flags(args):
     check_flag(args.fps >= 1, "--fps", ">= 1", args.fps)
     if args.max_sv is not None:
         check_flag(args.max_sv >= 1, "--max-sv", ">= 1", args.max_sv)
-    if args.threads is not None:
-        check_flag(args.threads >= 1, "--threads", ">= 1", args.threads)
     return budget
 
 

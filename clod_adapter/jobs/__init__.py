@@ -36,8 +36,12 @@ def thread_defaults(environ=os.environ) -> None:
 
 
 def set_threads(n: Optional[int]) -> None:
-    """``torch.set_num_threads(n)`` when ``n`` is given (``--threads``)."""
+    """``torch.set_num_threads(n)`` when ``n`` is given (``--threads``).
+
+    Raises:
+        InputError: ``n < 1``."""
     if n is not None:
+        check_flag(n >= 1, "--threads", ">= 1", n)
         import torch
 
         torch.set_num_threads(int(n))
@@ -75,6 +79,19 @@ def add_scene_flags(p: argparse.ArgumentParser, *, resolution_note: str = "") ->
                    help="scene folder: COLMAP (images/, sparse/0) or NeRF-synthetic (transforms_*.json)")
     p.add_argument("-r", "--resolution", type=int, default=1, choices=(1, 2, 4, 8),
                    help="use images_R/ when present, else downsample by R (default 1)" + resolution_note)
+
+
+def add_adapted_arg(p: argparse.ArgumentParser) -> None:
+    """The positional ADAPTED model of the CLIs that read an adapted model."""
+    p.add_argument("ply", nargs="?", metavar="ADAPTED",
+                   help="adapted model (with sigma_d): a clod-adapt output folder or its point_cloud.ply")
+
+
+def add_level_flags(p: argparse.ArgumentParser, s_v_help: str, budget_help: str) -> None:
+    """``--s-v X`` or ``--budget K`` (one of them): the level a CLI draws at."""
+    g = p.add_mutually_exclusive_group()
+    g.add_argument("--s-v", type=float, default=None, metavar="X", help=s_v_help)
+    g.add_argument("--budget", default=None, metavar="K", help=budget_help)
 
 
 def add_common_flags(p: argparse.ArgumentParser, *, device_default: str = "auto") -> None:

@@ -21,9 +21,9 @@ import torch
 from common import (LABELS, RUNS, adapt_cached, add_split_arg, load_input, metrics_of, scene_views,
                     setup_threads, split_suffix, table)
 
-from clod_adapter.adapt import AdaptConfig
+from clod_adapter.training import AdaptConfig
 from clod_adapter.io.ply import read_ply
-from clod_adapter.view import render_lod
+from clod_adapter.camera_lod import render_lod
 from clod_adapter.metrics import psnr
 
 #: (tag, description, AdaptConfig overrides); "default" first.

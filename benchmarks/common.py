@@ -36,7 +36,7 @@ sys.path.insert(0, str(REPO))
 SHARED = REPO.parent / "shared" / "data"
 RUNS = REPO / "runs" / "bench"
 
-from clod_adapter.adapt import AdaptConfig  # noqa: E402
+from clod_adapter.training import AdaptConfig  # noqa: E402
 from clod_adapter.io.load import load_model  # noqa: E402
 from clod_adapter.io.load import load_scene  # noqa: E402
 from clod_adapter.io.scene import validation_split  # noqa: E402

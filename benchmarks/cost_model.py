@@ -2,7 +2,7 @@
 
 For fern (images_2) and skull (360 degrees, resolution 1), a few cameras each, the pretrained
 model and its subsets (random, LightGaussian-ranked, opacity-ranked; several sizes) are drawn
-through the LoD path (:meth:`clod_adapter.view.LodView.rasterize` of a static cut, i.e. what a
+through the LoD path (:meth:`clod_adapter.camera_lod.LodView.rasterize` of a static cut, i.e. what a
 budget draws: finishing the projection of the drawn rows, SH colours, tile binning,
 compositing) and timed (median of ``--repeats``). Per candidate unit (tile intersections,
 clipped bounding-box pixels, clipped ellipse pixels; see :func:`clod_adapter.cost.cost_units`)
@@ -36,7 +36,7 @@ sys.path.insert(0, str(REPO))
 
 from clod_adapter.cost import COST_UNIT, cost_units  # noqa: E402
 from clod_adapter.render.projection import finish_projection  # noqa: E402
-from clod_adapter.view import EPS2D, view_lod  # noqa: E402
+from clod_adapter.camera_lod import EPS2D, view_lod  # noqa: E402
 
 DATA = Path(os.environ.get("CLOD_SHARED_DATA") or REPO.parent / "shared" / "data")
 SCENES = {"fern": ("fern/pretrained/point_cloud/iteration_7000/point_cloud.ply", 2),

@@ -47,7 +47,7 @@ def _port() -> int:
 
 def run_once(cfg: dict, ply: Path, scene: Path, res: int, iterations: int, out: Path) -> float:
     """Seconds per step of one configuration (``train_seconds / iterations``)."""
-    args = ["-m", "cli.adapt", str(ply), "--images", str(scene), "--resolution", str(res), "-o", str(out),
+    args = ["-m", "clod_adapter.cli.adapt", str(ply), "--images", str(scene), "--resolution", str(res), "-o", str(out),
             "--iterations", str(iterations), "--views-per-step", "2", "--timing-repeats", "0", "--quiet",
             "--force"]
     env = dict(os.environ, OMP_NUM_THREADS=str(cfg["threads"]), OMP_WAIT_POLICY="PASSIVE", PYTHONPATH=str(REPO))

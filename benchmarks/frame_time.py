@@ -1,6 +1,6 @@
 """Where a frame's time goes: projection (+ in-view test), LoD selection, rasterisation.
 
-One :func:`clod_adapter.view.render_lod` frame is split into the projection of the Gaussians in
+One :func:`clod_adapter.camera_lod.render_lod` frame is split into the projection of the Gaussians in
 front of the camera (done once per frame and reused by the rasteriser), the LoD selection
 (frustum, d', the Eq. 2 mask and the drawn opacities) and the rasterisation (finishing the
 projection of the drawn set, colours, tiles, compositing). Inputs: the fern checkpoint with a
@@ -32,8 +32,8 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
 from clod_adapter import lod  # noqa: E402
-from clod_adapter.adapt import reference_distances  # noqa: E402
-from clod_adapter.view import render_lod  # noqa: E402
+from clod_adapter.training import reference_distances  # noqa: E402
+from clod_adapter.camera_lod import render_lod  # noqa: E402
 
 
 def fern_model(adapted: str | None):

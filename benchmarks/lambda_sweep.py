@@ -29,7 +29,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from common import add_split_arg, scene_views  # noqa: E402
 
-from clod_adapter.adapt import AdaptConfig, adapt, prepare  # noqa: E402
+from clod_adapter.training import AdaptConfig, adapt, prepare  # noqa: E402
 from clod_adapter.level_metrics import evaluate_level  # noqa: E402
 from clod_adapter.io.ply import read_ply  # noqa: E402
 from clod_adapter.io.colmap import load_colmap_scene  # noqa: E402

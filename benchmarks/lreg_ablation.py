@@ -23,7 +23,7 @@ import torch  # noqa: E402
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from clod_adapter.adapt import AdaptConfig, adapt, prepare  # noqa: E402
+from clod_adapter.training import AdaptConfig, adapt, prepare  # noqa: E402
 from clod_adapter.level_metrics import evaluate_level  # noqa: E402
 from clod_adapter.io.ply import read_ply  # noqa: E402
 from clod_adapter.io.colmap import load_colmap_scene  # noqa: E402

@@ -64,7 +64,7 @@ import torch.nn.functional as F  # noqa: E402
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from clod_adapter.adapt import OFFICIAL_LR, scene_extent  # noqa: E402
+from clod_adapter.official import OFFICIAL_LR, scene_extent  # noqa: E402
 from clod_adapter.level_metrics import evaluate_level  # noqa: E402
 from clod_adapter.gaussians import Gaussians  # noqa: E402
 from clod_adapter.io.load import apply_masks, load_model  # noqa: E402

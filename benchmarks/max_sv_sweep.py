@@ -30,12 +30,12 @@ import torch
 from common import (LABELS, RUNS, adapt_cached, add_split_arg, fmt_pct, load_input, metrics_of, scene_views,
                     setup_threads, split_suffix, table)
 
-from clod_adapter.adapt import AdaptConfig
+from clod_adapter.training import AdaptConfig
 from clod_adapter.baselines import (find_splat_transform, lightgaussian_significance, merge_decimate,
                                     ranking_selection, render_subset)
 from clod_adapter.budget import budget_count
 from clod_adapter.io.ply import read_ply
-from clod_adapter.view import render_lod
+from clod_adapter.camera_lod import render_lod
 from clod_adapter.metrics import psnr, ssim
 from clod_adapter.jobs.eval import resolve_lpips
 

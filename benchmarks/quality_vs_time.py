@@ -50,14 +50,14 @@ from common import LABELS, RUNS, add_split_arg, adapt_cached, load_input, scene_
 
 import torch
 
-from clod_adapter.adapt import AdaptConfig
+from clod_adapter.training import AdaptConfig
 from clod_adapter.baselines import lightgaussian_significance, merge_decimate, topk_in_view
 from clod_adapter.frontier import Point, best_within, frontier, time_margins
 from clod_adapter.io.load import load_model
 from clod_adapter.metrics import psnr, ssim
 from clod_adapter.storage import ply_bytes
 from clod_adapter.timing import time_interleaved
-from clod_adapter.view import render_lod, view_lod
+from clod_adapter.camera_lod import render_lod, view_lod
 
 #: ``s_v`` levels and cost budgets of the adapted model.
 S_VS = (1.0, 1.25, 1.5, 2.0, 2.5, 3.0, 4.0, 5.0, 6.0, 7.5, 10.0, 15.0, 20.0, 30.0)

@@ -12,7 +12,7 @@ Each size runs in a fresh subprocess (``--one N``), so sizes do not share caches
   ground truth rendered by our rasteriser; the "pretrained" model is a perturbed copy;
 * ``prepare`` (the calibrated schedule's initialisation: LightGaussian ranking, reference
   distances, ``sigma_d``);
-* ``--steps`` steps of :func:`clod_adapter.adapt.adapt` (the default calibrated schedule: a
+* ``--steps`` steps of :func:`clod_adapter.training.adapt` (the default calibrated schedule: a
   per-view exact budget of ``s_v^-1.5`` of the Gaussians in view, level gains, base attributes
   frozen), the first one discarded as warm-up; per step the wall time split into
   selection (frustum, in-view test, critical s_v, budget), projection, raster forward (SH,
@@ -117,7 +117,7 @@ def instrument(timers: Timers, state) -> None:
     """Wrap the functions a step calls so each adds its wall time to ``timers``."""
     import torch
 
-    import clod_adapter.adapt as ad
+    import clod_adapter.training as ad
 
     real_render, real_bwd = ad.render_lod, torch.Tensor.backward
 
@@ -174,11 +174,11 @@ def one(n: int, args) -> dict:
     import torch
 
     torch.set_num_threads(args.threads)
-    from clod_adapter.adapt import AdaptConfig, adapt, prepare, recalibrate
+    from clod_adapter.training import AdaptConfig, adapt, prepare, recalibrate
     from clod_adapter.io.load import load_model
     from clod_adapter.io.load import load_scene
     from clod_adapter.io.view_images import ViewImages
-    from clod_adapter.view import render_lod
+    from clod_adapter.camera_lod import render_lod
     from clod_adapter.render.composite import cpp_extension_available
 
     assert cpp_extension_available(), "the C++ compositor is needed for timings"

@@ -11,8 +11,9 @@ clod_adapter`` stays light and does not import torch: the CLIs set OpenMP defaul
   :class:`LodView`, :func:`clod_rasterization` (gsplat ``rasterization`` + LoD),
   :func:`rasterization` (gsplat-compatible, no LoD);
 * adapting: :class:`AdaptConfig`, :func:`prepare`, :func:`adapt`;
-* the three jobs behind the CLIs: :func:`run_adapt_job` (``clod-adapt``), :func:`evaluate_report`
-  (``clod-eval``), :func:`export_model` (``clod-export``).
+* the three jobs behind the CLIs: :func:`run_adapt_job` (``clod-adapt``, options
+  :class:`AdaptOptions`), :func:`evaluate_report` (``clod-eval``, options :class:`EvalOptions`),
+  :func:`export_model` (``clod-export``).
 """
 
 __version__ = "0.1.0"
@@ -22,11 +23,13 @@ _EXPORTS = {
     "Gaussians": ("gaussians", "Gaussians"), "LodSettings": ("lod", "LodSettings"),
     "load_model": ("io.load", "load_model"), "read_ply": ("io.ply", "read_ply"), "write_ply": ("io.ply", "write_ply"),
     "load_scene": ("io.load", "load_scene"), "Camera": ("io.scene", "Camera"), "Scene": ("io.scene", "Scene"),
-    "render_lod": ("view", "render_lod"), "lod_subset": ("view", "lod_subset"), "view_lod": ("view", "view_lod"),
-    "LodView": ("view", "LodView"), "clod_rasterization": ("hook", "clod_rasterization"),
+    "render_lod": ("camera_lod", "render_lod"), "lod_subset": ("camera_lod", "lod_subset"),
+    "view_lod": ("camera_lod", "view_lod"), "LodView": ("camera_lod", "LodView"),
+    "clod_rasterization": ("renderer_hook", "clod_rasterization"),
     "rasterization": ("render", "rasterization"),
-    "AdaptConfig": ("adapt", "AdaptConfig"), "prepare": ("adapt", "prepare"), "adapt": ("adapt", "adapt"),
-    "run_adapt_job": ("jobs.adapt", "run"), "evaluate_report": ("jobs.eval", "evaluate_report"),
+    "AdaptConfig": ("training", "AdaptConfig"), "prepare": ("training", "prepare"), "adapt": ("training", "adapt"),
+    "run_adapt_job": ("jobs.adapt", "run"), "AdaptOptions": ("jobs.adapt", "AdaptOptions"),
+    "evaluate_report": ("jobs.eval", "evaluate_report"), "EvalOptions": ("jobs.eval", "EvalOptions"),
     "export_model": ("jobs.export", "export"),
 }
 __all__ = sorted(_EXPORTS) + ["__version__"]

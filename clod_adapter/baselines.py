@@ -1,7 +1,7 @@
 """Baselines for fixed Gaussian budgets: which ``k`` Gaussians of a pretrained model to render.
 
-Every selection picks among the same population as :func:`clod_adapter.view.render_lod`
-(:func:`clod_adapter.view.in_view`: Gaussians whose footprint reaches the image), so a
+Every selection picks among the same population as :func:`clod_adapter.camera_lod.render_lod`
+(:func:`clod_adapter.camera_lod.in_view`: Gaussians whose footprint reaches the image), so a
 budget of ``k`` means the same thing for every method, and returns the indices plus the
 opacities to draw them with. :func:`render_subset` then hands exactly those Gaussians to the
 rasteriser, the way ``render_lod`` does.
@@ -33,7 +33,7 @@ from . import lod
 from .budget import select_budget
 from .gaussians import Gaussians
 from .render.projection import ALPHA_THRESHOLD, GAUSSIAN_EXTEND, project_visible
-from .view import LodView, view_lod
+from .camera_lod import LodView, view_lod
 
 #: LightGaussian's volume exponent (``--v_pow 0.1`` in their prune scripts).
 LIGHTGAUSSIAN_V_POW = 0.1
@@ -48,7 +48,7 @@ class Selection:
         opacities: [k] float32 opacities to draw them with.
         s_v: the solved virtual distance scale (constant-sigma baseline), else None.
         select_ms: wall time of the selection for this camera (in-view test + ranking), ms.
-        view: the camera's :class:`clod_adapter.view.LodView` (its projection is reused to draw).
+        view: the camera's :class:`clod_adapter.camera_lod.LodView` (its projection is reused to draw).
     """
 
     indices: Tensor
@@ -82,7 +82,7 @@ def render_subset(gaussians: Gaussians, camera, indices: Tensor, opacities: Opti
         opacities: [k] opacities for them (default: the model's activated opacities).
         background: [3] RGB behind the scene (default black).
         sh_degree, backend: as :func:`clod_adapter.render.rasterization`.
-        view: the camera's :class:`clod_adapter.view.LodView` of ``gaussians`` when the caller
+        view: the camera's :class:`clod_adapter.camera_lod.LodView` of ``gaussians`` when the caller
             has it (its projection is reused).
     """
     v = view if view is not None else view_lod(gaussians.with_sigma_d(None), camera)

@@ -14,7 +14,7 @@ tile-intersection count (``"tiles"``, what the binning emits) and against the cl
 (``"bbox_px"``); the ellipse had the smallest relative errors (README "Budgets in frame
 time").
 
-* :func:`splat_cost`: [k] per-Gaussian cost of a :class:`clod_adapter.view.LodView`'s rows,
+* :func:`splat_cost`: [k] per-Gaussian cost of a :class:`clod_adapter.camera_lod.LodView`'s rows,
   from the projection the view already has (no second projection);
 * :func:`cost_prefix`: the top-scored Gaussians in view whose cumulative cost fits a budget
   (the static cut behind ``LodView.select(budget_cost=...)``, usable by baselines);
@@ -37,7 +37,7 @@ __all__ = ["splat_cost", "cost_units", "cost_prefix", "order_in_view", "prefix_c
 
 #: the cost unit of :func:`splat_cost`
 COST_UNIT = "ellipse_px"
-#: gsplat 1.5.3's ``eps2d`` and tile size, as :mod:`clod_adapter.view` draws (``view.EPS2D``,
+#: gsplat 1.5.3's ``eps2d`` and tile size, as :mod:`clod_adapter.camera_lod` draws (``view.EPS2D``,
 #: ``view.TILE_SIZE``; this module does not import the view, which imports it)
 EPS2D, TILE_SIZE = 0.3, 16
 
@@ -102,12 +102,12 @@ def splat_cost(view, indices: Optional[Tensor] = None, *, level: float = 0.0, op
                unit: str = COST_UNIT) -> Tensor:
     """Per-Gaussian rasterisation cost of drawing ``indices`` from ``view``'s camera.
 
-    Finishes the rows of the projection the :class:`clod_adapter.view.LodView` already has (as
+    Finishes the rows of the projection the :class:`clod_adapter.camera_lod.LodView` already has (as
     :meth:`LodView.rasterize` does: the ``eps2d`` blur, the opacity-aware extent, culling), with
     the level's covariance scaling ``exp(2 level log_scale_gain)`` when ``level > 0``.
 
     Args:
-        view: a :class:`clod_adapter.view.LodView`.
+        view: a :class:`clod_adapter.camera_lod.LodView`.
         indices: [k] int64 model indices (any order; default: every Gaussian in view, ascending).
         level: level of the gains in [0, 1] (0: base attributes).
         opacities: [k] the opacities drawn (e.g. ``LodSelection.opacities``); default the
@@ -255,7 +255,7 @@ class FrameTimeModel:
     per_gaussian_ms * count``, ``cost_sum`` in :data:`COST_UNIT` (clipped ellipse pixels,
     :func:`splat_cost`) of the drawn set and ``count`` its number of Gaussians.
 
-    The time is that of :meth:`clod_adapter.view.LodView.rasterize` (``LodRender.raster_ms``:
+    The time is that of :meth:`clod_adapter.camera_lod.LodView.rasterize` (``LodRender.raster_ms``:
     finishing the projection of the drawn rows, SH colours, tile binning, compositing). The
     view's projection of the whole model (``LodRender.project_ms``) and the selection are paid
     before any budget applies and are not in it.

@@ -1,6 +1,6 @@
 """Data-parallel fine-tuning over training views with ``torch.distributed`` (torchrun).
 
-    torchrun --nproc_per_node=N -m cli.adapt MODEL --images SCENE -o OUT
+    torchrun --nproc_per_node=N -m clod_adapter.cli.adapt MODEL --images SCENE -o OUT
     clod-adapt --distributed ...        # the same, reading torchrun's environment
 
 Every rank (process) holds the whole model and the same optimiser state. A step takes
@@ -144,7 +144,7 @@ def init(device: str | torch.device = "cpu", environ: Mapping[str, str] = os.env
     missing = [k for k in ENV_VARS if not environ.get(k)]
     if missing:
         raise ValueError(f"--distributed: {', '.join(missing)} not set; launch with "
-                         "torchrun --nproc_per_node=N -m cli.adapt ... (or set MASTER_ADDR, MASTER_PORT, "
+                         "torchrun --nproc_per_node=N -m clod_adapter.cli.adapt ... (or set MASTER_ADDR, MASTER_PORT, "
                          "RANK, WORLD_SIZE for each process)")
     try:
         rank, world = int(environ["RANK"]), int(environ["WORLD_SIZE"])

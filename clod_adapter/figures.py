@@ -8,7 +8,7 @@ from pathlib import Path
 import torch
 
 from .io.atomic import atomic_save
-from .view import render_lod
+from .camera_lod import render_lod
 
 
 def _font(size: int):

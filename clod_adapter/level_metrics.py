@@ -16,7 +16,7 @@ from torch import Tensor
 
 
 from .gaussians import Gaussians
-from .view import render_lod
+from .camera_lod import render_lod
 from .metrics import psnr, ssim
 
 

@@ -299,7 +299,7 @@ def fade_width_at(s_v: float, width: float = DEFAULT_FADE_WIDTH) -> float:
 def full_detail_share(s_v: float) -> float:
     """How much of full detail the window-fade drawing keeps at ``s_v``: 1 at ``s_v = 1``
     (every Gaussian in view, whatever its ``sigma_d``), falling with ``ln s_v`` to 0 at
-    :data:`FADE_RAMP_S_V` (the LoD rule alone), 0 beyond (:meth:`clod_adapter.view.LodView.select`)."""
+    :data:`FADE_RAMP_S_V` (the LoD rule alone), 0 beyond (:meth:`clod_adapter.camera_lod.LodView.select`)."""
     return 1.0 - min(1.0, max(math.log(max(float(s_v), 1.0)) / math.log(FADE_RAMP_S_V), 0.0))
 
 

@@ -23,8 +23,8 @@ import pytest
 import torch
 from PIL import Image
 
-from cli.adapt import main as adapt_main
-from cli.eval import main as eval_main
+from clod_adapter.cli.adapt import main as adapt_main
+from clod_adapter.cli.eval import main as eval_main
 from clod_adapter.io.ply import read_ply, write_ply
 from conftest import shared_path, uint8_views
 

@@ -127,7 +127,7 @@ def test_no_pycolmap_import(blender):
     code = (
         "import sys\n"
         "from clod_adapter.io.load import load_scene\n"
-        "import clod_adapter.jobs.adapt, cli.adapt, cli.eval\n"
+        "import clod_adapter.jobs.adapt, clod_adapter.cli.adapt, clod_adapter.cli.eval\n"
         f"s = load_scene({str(root)!r}, background=(1, 1, 1))\n"
         "s.load_image(s.train[0])\n"
         "assert 'pycolmap' not in sys.modules, 'pycolmap imported'\n"
@@ -151,7 +151,7 @@ def test_colmap_still_dispatched(tmp_path):
 
 @pytest.mark.slow
 def test_clod_adapt_end_to_end(tmp_path, blender):
-    from cli.adapt import main
+    from clod_adapter.cli.adapt import main
     from clod_adapter.io.ply import read_ply, write_ply
 
     root, _, _, gt = blender

@@ -70,7 +70,7 @@ def test_budget_count():
 
 
 def test_render_lod_budget_renders_exactly_k():
-    from clod_adapter.view import render_lod
+    from clod_adapter.camera_lod import render_lod
     from clod_adapter.synthetic import make_cameras, make_ground_truth
 
     gt = make_ground_truth(600, seed=1)
@@ -86,7 +86,7 @@ def test_render_lod_budget_renders_exactly_k():
 
 
 def test_render_lod_budget_is_a_cap_at_s_v_1():
-    from clod_adapter.view import render_lod
+    from clod_adapter.camera_lod import render_lod
     from clod_adapter.synthetic import make_cameras, make_ground_truth
 
     gt = make_ground_truth(600, seed=1)

@@ -7,7 +7,7 @@ from pathlib import Path
 import pytest
 
 
-from cli.adapt import main
+from clod_adapter.cli.adapt import main
 from conftest import REPO, shared_path
 
 FERN_PLY = ("fern", "pretrained", "point_cloud", "iteration_7000", "point_cloud.ply")
@@ -95,7 +95,7 @@ def test_model_from_another_scene(tmp_path, capsys):
 @pytest.mark.slow
 def test_demo_end_to_end(tmp_path):
     out = tmp_path / "demo"
-    r = subprocess.run([sys.executable, "-m", "cli.adapt", "--demo", "-o", str(out), "--iterations", "40",
+    r = subprocess.run([sys.executable, "-m", "clod_adapter.cli.adapt", "--demo", "-o", str(out), "--iterations", "40",
                         "--quiet"], cwd=REPO, capture_output=True, text=True, timeout=600)
     assert r.returncode == 0, r.stderr[-2000:]
     m = json.loads((out / "metrics.json").read_text())

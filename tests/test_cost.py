@@ -7,7 +7,7 @@ import torch
 from clod_adapter import lod
 from clod_adapter.cost import FrameTimeModel, cost_prefix, cost_units, splat_cost
 from clod_adapter.synthetic import make_cameras, make_ground_truth
-from clod_adapter.view import lod_subset, render_lod, view_lod
+from clod_adapter.camera_lod import lod_subset, render_lod, view_lod
 
 
 def _model(n=1500, seed=0, window=False, gains=False):
@@ -202,6 +202,6 @@ def test_eq2_cost_budget_is_exact(scene):
 
 
 def test_constants_match_the_view():
-    from clod_adapter import cost, view
+    from clod_adapter import camera_lod as view, cost
 
     assert (cost.EPS2D, cost.TILE_SIZE) == (view.EPS2D, view.TILE_SIZE)

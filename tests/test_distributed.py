@@ -1,4 +1,4 @@
-"""Data-parallel fine-tuning (``torchrun ... -m cli.adapt``, gloo, 2 ranks on loopback).
+"""Data-parallel fine-tuning (``torchrun ... -m clod_adapter.cli.adapt``, gloo, 2 ranks on loopback).
 
 * 2 ranks x ITERATIONS steps (one view each per step) give the same parameters, Adam moments,
   history and .ply as 1 process with ``--views-per-step 2`` doing the same views at the same
@@ -25,7 +25,7 @@ from pathlib import Path
 import pytest
 import torch
 
-from clod_adapter.adapt import AdaptConfig, load_state
+from clod_adapter.training import AdaptConfig, load_state
 from conftest import REPO, write_tiny_scene
 
 ITERATIONS = 24
@@ -53,7 +53,7 @@ def _env(**extra) -> dict:
 
 
 def _args(scene: Path, out: Path, *extra) -> list[str]:
-    return ["-m", "cli.adapt", str(scene / "in.ply"), "--images", str(scene / "scene"), "-o", str(out),
+    return ["-m", "clod_adapter.cli.adapt", str(scene / "in.ply"), "--images", str(scene / "scene"), "-o", str(out),
             "--max-sv", str(MAX_SV), "--seed", str(SEED), "--deterministic", "--quiet", "--timing-repeats", "0",
             *extra]
 
@@ -170,7 +170,7 @@ def test_killed_rank_exits_nonzero_state_intact_resume_with_one_process(scene, t
 
 
 def test_flag_errors(tmp_path, capsys, monkeypatch):
-    from cli.adapt import main
+    from clod_adapter.cli.adapt import main
 
     for k in ("RANK", "WORLD_SIZE", "MASTER_ADDR", "MASTER_PORT"):
         monkeypatch.delenv(k, raising=False)
@@ -204,7 +204,7 @@ def test_views_per_step_is_the_mean_of_the_views():
 
 
 def _check_views_per_step():
-    from clod_adapter.adapt import adapt, prepare, view_loss
+    from clod_adapter.training import adapt, prepare, view_loss
     from clod_adapter import lod
     from clod_adapter.synthetic import make_cameras, make_ground_truth, perturb
     from conftest import render_views
@@ -272,7 +272,7 @@ def test_a_stop_request_from_another_rank_stops_after_the_same_step():
     step 3, this rank finishes step 3 and stops before step 4 (saving through on_interrupt),
     although it never saw a signal itself. The other rank is simulated: it adds nothing to the
     gradients and the records of its views, and its stop flag at the third reduction."""
-    from clod_adapter.adapt import adapt, prepare
+    from clod_adapter.training import adapt, prepare
     from clod_adapter.distributed import Group
     from clod_adapter.synthetic import make_cameras, make_ground_truth, perturb
     from conftest import render_views

@@ -9,7 +9,7 @@ import pytest
 import torch
 
 from clod_adapter.render.gsplat_backend import gsplat_unavailable_reason
-from clod_adapter.view import render_lod
+from clod_adapter.camera_lod import render_lod
 
 _reason = gsplat_unavailable_reason()
 pytestmark = pytest.mark.skipif(_reason is not None, reason=f"gsplat backend: {_reason}")
@@ -22,7 +22,7 @@ def calibrated_model():
     from dataclasses import replace
 
     from clod_adapter import lod
-    from clod_adapter.adapt import reference_distances
+    from clod_adapter.training import reference_distances
     from clod_adapter.synthetic import make_cameras, make_ground_truth
 
     g = make_ground_truth(6000, seed=0)

@@ -14,9 +14,9 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from cli.adapt import main as adapt_main
-from cli.eval import main as eval_main
-from cli.export import main as export_main
+from clod_adapter.cli.adapt import main as adapt_main
+from clod_adapter.cli.eval import main as eval_main
+from clod_adapter.cli.export import main as export_main
 from clod_adapter.io.ply import read_ply, write_ply
 from conftest import REPO, shared_path, write_tiny_scene
 
@@ -205,7 +205,7 @@ def test_synthetic_scene_matches(tiny_src):
 @pytest.mark.slow
 def test_non_tty_log_has_plain_lines(tiny_src, tmp_path):
     out = tmp_path / "out"
-    r = subprocess.run([sys.executable, "-m", "cli.adapt", str(tiny_src["ply"]), "--images", str(tiny_src["scene"]),
+    r = subprocess.run([sys.executable, "-m", "clod_adapter.cli.adapt", str(tiny_src["ply"]), "--images", str(tiny_src["scene"]),
                         "-o", str(out), "--iterations", "20", "--max-sv", "2", "--timing-repeats", "1"],
                        cwd=REPO, capture_output=True, text=True, timeout=600)
     assert r.returncode == 0, r.stderr[-2000:]
@@ -257,12 +257,9 @@ def test_usage_error_is_one_line(main, capfd):
 
 
 def test_help_has_an_example_and_every_flag_has_help(capsys):
-    import cli.adapt
-    import cli.eval
-    import cli.export
-    import cli.render
+    from clod_adapter.cli import adapt, eval as eval_cli, export, render
 
-    for mod in (cli.adapt, cli.eval, cli.export, cli.render):
+    for mod in (adapt, eval_cli, export, render):
         p = mod.build_parser()
         assert "example:" in p.format_help() and "--version" in p.format_help()
         for a in p._actions:
@@ -345,7 +342,7 @@ def test_outputs_and_inria_layout(adapted, tiny_src):
 def test_clod_render_views_and_video(adapted, tiny_src, tmp_path, capsys):
     ffmpeg = pytest.importorskip("imageio_ffmpeg", reason="clod-render's MP4 needs the [video] extra (imageio-ffmpeg)")
 
-    from cli.render import main as render_main
+    from clod_adapter.cli.render import main as render_main
 
     out = tmp_path / "render"
     code = render_main([str(adapted), "-s", str(tiny_src["scene"]), "-o", str(out), "--frames", "12",

@@ -9,10 +9,10 @@ import pytest
 import torch
 
 from clod_adapter import lod
-from clod_adapter.adapt import AdaptConfig, weighted_count
+from clod_adapter.training import AdaptConfig, weighted_count
 from clod_adapter.cost import splat_cost
 from clod_adapter.synthetic import make_cameras, make_ground_truth
-from clod_adapter.view import render_lod, view_lod
+from clod_adapter.camera_lod import render_lod, view_lod
 
 
 @pytest.fixture(scope="module")

@@ -23,7 +23,7 @@ from hypothesis import strategies as st
 from clod_adapter import lod
 from clod_adapter.budget import critical_s_v, select_budget
 from clod_adapter.gaussians import Gaussians
-from clod_adapter.view import render_lod
+from clod_adapter.camera_lod import render_lod
 from clod_adapter.render import rasterization
 from clod_adapter.render.composite import cpp_extension_available, use_impl
 

@@ -8,12 +8,12 @@ import numpy as np
 import pytest
 import torch
 
-from cli.eval import main
+from clod_adapter.cli.eval import main
 from clod_adapter.baselines import (constant_sigma_selection, lightgaussian_significance, random_scores,
                                     ranking_selection, render_subset, volume_factor)
 from clod_adapter.io.ply import write_ply
 from clod_adapter.io.colmap import load_colmap_scene, write_colmap_scene
-from clod_adapter.view import in_view, render_lod
+from clod_adapter.camera_lod import in_view, render_lod
 from clod_adapter.jobs.eval import (BASELINES, CSV_COLUMNS, OUTPUT_NAMES, PER_VIEW_COLUMNS, evaluate_report,
                                  popping_curve)
 from clod_adapter.synthetic import make_cameras, make_ground_truth, perturb

@@ -25,7 +25,7 @@ from pathlib import Path
 import pytest
 import torch
 
-from clod_adapter.adapt import load_state
+from clod_adapter.training import load_state
 from clod_adapter.io.ply import write_ply
 from clod_adapter.io.colmap import write_colmap_scene
 from clod_adapter.synthetic import make_cameras, make_ground_truth, perturb
@@ -47,7 +47,7 @@ def _env(**extra) -> dict:
 
 
 def _cli(ply, scene, out, *extra) -> list[str]:
-    return [sys.executable, "-m", "cli.adapt", str(ply), "--images", str(scene), "-o", str(out),
+    return [sys.executable, "-m", "clod_adapter.cli.adapt", str(ply), "--images", str(scene), "-o", str(out),
             "--max-sv", str(MAX_SV), "--seed", str(SEED), "--deterministic", "--quiet", *extra]
 
 
@@ -133,7 +133,7 @@ def test_signal_then_resume_is_bit_exact(scene, tmp_path, sig):
 
 
 def _inprocess_run(scene: Path, out: Path, **kw):
-    from clod_adapter.adapt import AdaptConfig
+    from clod_adapter.training import AdaptConfig
     from clod_adapter.jobs.adapt import run
 
     cfg = AdaptConfig(max_sv=MAX_SV, iterations=ITERATIONS, seed=SEED)
@@ -198,7 +198,7 @@ def test_second_signal_during_state_save(scene, tmp_path, monkeypatch):
 
 
 def test_resume_refuses_other_input_or_settings(scene, tmp_path, capsys):
-    from cli.adapt import main
+    from clod_adapter.cli.adapt import main
 
     out = tmp_path / "out"
     out.mkdir()
@@ -209,8 +209,8 @@ def test_resume_refuses_other_input_or_settings(scene, tmp_path, capsys):
         ([str(scene / "other.ply"), "--images", *base, "--max-sv", str(MAX_SV)], "another input model"),
         ([str(scene / "in.ply"), "--images", *base, "--max-sv", "4"], "max_sv"),
         ([str(scene / "in.ply"), "--images", *base[:-2], "--max-sv", str(MAX_SV)], "seed"),
-        ([str(scene / "in.ply"), "--images", *base, "--max-sv", str(MAX_SV), "--lambda-reg", "0.5"],
-         "lambda_reg"),
+        ([str(scene / "in.ply"), "--images", *base, "--max-sv", str(MAX_SV), "--gains", "o"],
+         "gains"),
     ]
     for argv, must in cases:
         code = main(argv)

@@ -77,7 +77,7 @@ def test_clod_adapt_holdout_val_fits_without_the_validation_views(tmp_path):
     scored on the validation views; no test view is used and metrics.json says so."""
     import json
 
-    from cli.adapt import main as adapt_main
+    from clod_adapter.cli.adapt import main as adapt_main
     from conftest import write_tiny_scene
     from clod_adapter.io.load import load_scene
 

@@ -19,7 +19,7 @@ import pytest
 import torch
 
 from clod_adapter.baselines import ranking_selection
-from clod_adapter.view import in_view, lod_subset
+from clod_adapter.camera_lod import in_view, lod_subset
 from clod_adapter.render.sh import spherical_harmonics
 from clod_adapter.synthetic import make_cameras, make_ground_truth
 from clod_adapter.viewer import (BYTES_PER_GAUSSIAN, DEFAULT_MAX_SV, camera_from_pose, covariances,
@@ -197,7 +197,7 @@ def test_raster_time_model_is_fitted_on_the_model():
 @pytest.mark.parametrize("case", ["missing", "not_ply", "truncated", "bad_scene", "bad_host", "bad_max_drawn"])
 def test_cli_bad_input_one_line_exit_2(tmp_path, case, capsys):
     pytest.importorskip("viser")
-    from cli.view import main
+    from clod_adapter.cli.view import main
 
     from clod_adapter.io.ply import write_ply
 
@@ -228,7 +228,7 @@ def test_cli_serves_the_viewer_and_stops_on_sigterm(tmp_path):
     ply = tmp_path / "m.ply"
     write_ply(ply, make_ground_truth(300, seed=1))  # a plain 3DGS model works too
     env = dict(os.environ, PYTHONPATH=str(REPO))
-    proc = subprocess.Popen([sys.executable, "-m", "cli.view", str(ply), "--port", "0", "--no-timing"],
+    proc = subprocess.Popen([sys.executable, "-m", "clod_adapter.cli.view", str(ply), "--port", "0", "--no-timing"],
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=REPO, env=env)
     try:
         url = None

@@ -17,7 +17,7 @@ import numpy as np
 import pytest
 import torch
 
-from clod_adapter.view import lod_subset, render_lod
+from clod_adapter.camera_lod import lod_subset, render_lod
 from clod_adapter.synthetic import make_ground_truth
 
 WAIT_S = 120  # software WebGL on 2 shared cores: generous

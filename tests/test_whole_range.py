@@ -9,11 +9,11 @@ import pytest
 import torch
 
 from clod_adapter import lod
-from clod_adapter.adapt import AdaptConfig, adapt, prepare, reference_distances, view_statistics
+from clod_adapter.training import AdaptConfig, adapt, prepare, reference_distances, view_statistics
 from clod_adapter.baselines import ranking_selection, render_subset
 from clod_adapter.budget import critical_s_v
 from clod_adapter.gaussians import Gaussians
-from clod_adapter.view import in_view, lod_subset, render_lod
+from clod_adapter.camera_lod import in_view, lod_subset, render_lod
 from clod_adapter.metrics import psnr
 from clod_adapter.synthetic import make_cameras, make_ground_truth, perturb
 from conftest import render_views

@@ -22,7 +22,7 @@ from typing import Sequence
 import numpy as np
 import torch
 
-from clod_adapter.io.scene import _RESOLUTIONS, Camera, PathLike, Scene, SceneError, _image_size
+from clod_adapter.io.scene import RESOLUTIONS, Camera, PathLike, Scene, SceneError, image_size
 
 __all__ = ["load_blender_scene", "is_blender_scene"]
 
@@ -80,7 +80,7 @@ def _read_split(root: Path, name: str, resolution: int) -> list[Camera]:
         img = _image_path(root, fp)
         if not img.is_file():
             raise SceneError(img, f"image of frame {i} in {name} does not exist")
-        W, H = _image_size(img)
+        W, H = image_size(img)
         w, h = int(round(W / resolution)), int(round(H / resolution))
         f0 = 0.5 * W / math.tan(0.5 * fovx)  # fx = fy at the file's size, scaled to (w, h)
         K = torch.tensor([[f0 * w / W, 0.0, w / 2.0], [0.0, f0 * h / H, h / 2.0], [0.0, 0.0, 1.0]],
@@ -116,8 +116,8 @@ def load_blender_scene(root: PathLike, resolution: int = 1,
     root = Path(root)
     if not root.is_dir():
         raise SceneError(root, "scene folder does not exist")
-    if resolution not in _RESOLUTIONS:
-        raise SceneError(root, f"resolution must be one of {_RESOLUTIONS}, got {resolution!r}")
+    if resolution not in RESOLUTIONS:
+        raise SceneError(root, f"resolution must be one of {RESOLUTIONS}, got {resolution!r}")
     bg = _check_background(root, background)
     if not is_blender_scene(root):
         raise SceneError(root, "no transforms_train.json (not a NeRF-synthetic scene)")

@@ -22,7 +22,7 @@ import torch
 from PIL import Image
 
 from clod_adapter.io.atomic import atomic_save
-from clod_adapter.io.scene import _RESOLUTIONS, Camera, PathLike, Scene, SceneError, _image_size
+from clod_adapter.io.scene import RESOLUTIONS, Camera, PathLike, Scene, SceneError, image_size
 
 if TYPE_CHECKING:  # pragma: no cover
     import pycolmap
@@ -129,7 +129,7 @@ def _check_image_size(path: Path, w0: int, h0: int, camera_id: int, model_dir: P
     Raises:
         SceneError: naming the image and both sizes.
     """
-    iw, ih = _image_size(path)
+    iw, ih = image_size(path)
     if (iw, ih) == (w0, h0):
         return
     k = iw // w0 if w0 > 0 else 0
@@ -191,8 +191,8 @@ def load_colmap_scene(root: PathLike, resolution: int = 1, llffhold: int = 8) ->
     root = Path(root)
     if not root.is_dir():
         raise SceneError(root, "scene folder does not exist")
-    if resolution not in _RESOLUTIONS:
-        raise SceneError(root, f"resolution must be one of {_RESOLUTIONS}, got {resolution!r}")
+    if resolution not in RESOLUTIONS:
+        raise SceneError(root, f"resolution must be one of {RESOLUTIONS}, got {resolution!r}")
     if not isinstance(llffhold, int) or llffhold < 0:
         raise SceneError(root, f"llffhold must be an integer >= 0, got {llffhold!r}")
     import pycolmap
@@ -228,7 +228,7 @@ def load_colmap_scene(root: PathLike, resolution: int = 1, llffhold: int = 8) ->
                                         f"fx={fx:g} fy={fy:g} cx={cx:g} cy={cy:g}")
         path = image_dir / im.name
         if use_scaled:
-            w, h = _image_size(path)
+            w, h = image_size(path)
             _check_scaled_size(path, w, h, w0, h0, resolution, ccam.camera_id, model_dir)
         else:
             _check_image_size(path, w0, h0, ccam.camera_id, model_dir)

@@ -98,6 +98,41 @@ def _lerp(lo: np.ndarray, hi: np.ndarray, t: np.ndarray) -> np.ndarray:
     return lo * (1.0 - t) + hi * t
 
 
+def _unpack_quats(rot: np.ndarray) -> np.ndarray:
+    """[N, 4] float64 wxyz from the packed rotations: the smallest three components (10 bits
+    each, scaled by sqrt 2) and a 2-bit index of the largest, in w x y z order."""
+    norm = math.sqrt(2.0)
+    abc = np.stack([(_unorm(rot, s, 10) - 0.5) * norm for s in (20, 10, 0)], axis=1)
+    largest = np.sqrt(np.maximum(0.0, 1.0 - (abc * abc).sum(axis=1)))
+    which = (rot >> np.uint32(30)).astype(np.int64)
+    quats = np.empty((len(rot), 4), dtype=np.float64)
+    for w in range(4):
+        sel = which == w
+        others = [i for i in range(4) if i != w]
+        quats[np.ix_(sel, others)] = abc[sel]
+        quats[sel, w] = largest[sel]
+    return quats
+
+
+def _read_sh(path: Path, elements: dict, n: int, require) -> np.ndarray:
+    """[N, K-1, 3] float64 higher-order SH of the optional ``sh`` element (8-bit, in [-4, 4]);
+    [N, 0, 3] without one (gsplat's exporter writes a property-less ``sh`` element for degree 0)."""
+    sh_props = elements["sh"].properties if "sh" in elements else ()
+    if not sh_props:
+        return np.zeros((n, 0, 3), dtype=np.float64)
+    sh = elements["sh"].data
+    names = [f"f_rest_{i}" for i in range(len(sh_props))]
+    m = len(names)
+    if m not in _SH_COUNTS:
+        raise PlyFormatError(path, f"sh element has {m} properties; expected 9, 24 or 45 (SH degree 1..3)")
+    require(sh, "sh", names)
+    if len(sh) != n:
+        raise PlyFormatError(path, f"sh element has {len(sh)} rows, expected {n} (one per vertex)")
+    q = np.stack([np.asarray(sh[name]).astype(np.float64) for name in names], axis=1)  # [N, M]
+    t = np.where(q <= 0, 0.0, np.where(q >= 255, 1.0, (q + 0.5) / 256.0))
+    return ((t - 0.5) * 8.0).reshape(n, 3, m // 3).transpose(0, 2, 1)
+
+
 def read_compressed_ply(path: PathLike) -> Gaussians:
     """Decode a PlayCanvas/SuperSplat compressed .ply (see the module docstring) to ``Gaussians``.
 
@@ -159,17 +194,7 @@ def read_compressed_ply(path: PathLike) -> Gaussians:
         log_scales[:, j] = _lerp(chunk_col(f"min_scale_{axis}"), chunk_col(f"max_scale_{axis}"),
                                  _unorm(scl, shift, bits))
 
-    # rotation: smallest three, 2-bit index of the largest in w x y z order
-    norm = math.sqrt(2.0)
-    abc = np.stack([(_unorm(rot, s, 10) - 0.5) * norm for s in (20, 10, 0)], axis=1)
-    largest = np.sqrt(np.maximum(0.0, 1.0 - (abc * abc).sum(axis=1)))
-    which = (rot >> np.uint32(30)).astype(np.int64)
-    quats = np.empty((n, 4), dtype=np.float64)
-    for w in range(4):
-        sel = which == w
-        others = [i for i in range(4) if i != w]
-        quats[np.ix_(sel, others)] = abc[sel]
-        quats[sel, w] = largest[sel]
+    quats = _unpack_quats(rot)
 
     # colour (SH DC) and opacity
     rgb = np.stack([_unorm(col, s, 8) for s in (24, 16, 8)], axis=1)
@@ -180,22 +205,7 @@ def read_compressed_ply(path: PathLike) -> Gaussians:
     alpha = np.clip(_unorm(col, 0, 8), _ALPHA_EPS, 1.0 - _ALPHA_EPS)
     opacity = -np.log(1.0 / alpha - 1.0)
 
-    # optional higher-order SH
-    shN = np.zeros((n, 0, 3), dtype=np.float64)
-    sh_props = elements["sh"].properties if "sh" in elements else ()
-    if sh_props:  # gsplat's exporter writes an ``sh`` element without properties for degree 0
-        sh = elements["sh"].data
-        names = [f"f_rest_{i}" for i in range(len(sh_props))]
-        m = len(names)
-        if m not in _SH_COUNTS:
-            raise PlyFormatError(path, f"sh element has {m} properties; expected 9, 24 or 45 (SH degree 1..3)")
-        require(sh, "sh", names)
-        if len(sh) != n:
-            raise PlyFormatError(path, f"sh element has {len(sh)} rows, expected {n} (one per vertex)")
-        q = np.stack([np.asarray(sh[name]).astype(np.float64) for name in names], axis=1)  # [N, M]
-        t = np.where(q <= 0, 0.0, np.where(q >= 255, 1.0, (q + 0.5) / 256.0))
-        km1 = m // 3
-        shN = ((t - 0.5) * 8.0).reshape(n, 3, km1).transpose(0, 2, 1)
+    shN = _read_sh(path, elements, n, require)
 
     def t32(a: np.ndarray) -> torch.Tensor:
         return torch.from_numpy(np.ascontiguousarray(a, dtype=np.float32))

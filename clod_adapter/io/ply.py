@@ -132,6 +132,72 @@ def open_ply(path: Path) -> "plyfile.PlyData":
         raise PlyFormatError(path, f"not a valid PLY file: {e or type(e).__name__}") from None
 
 
+def _refuse_nonfinite(path: Path, named: dict) -> None:
+    """Raise PlyFormatError naming the arrays of ``named`` (label -> array) that hold NaN/Inf."""
+    bad = {k: a for k, a in named.items() if not np.isfinite(a).all()}
+    if not bad:
+        return
+    counts = {"NaN": 0, "+Inf": 0, "-Inf": 0}
+    for a in bad.values():
+        counts["NaN"] += int(np.isnan(a).sum())
+        counts["+Inf"] += int(np.isposinf(a).sum())
+        counts["-Inf"] += int(np.isneginf(a).sum())
+    what = ", ".join(f"{c} {k}" for k, c in counts.items() if c)
+    raise PlyFormatError(path, f"non-finite values ({what}) in {', '.join(bad)}; pass allow_nonfinite=True to keep them")
+
+
+def _extra_properties(vertex, data, degree: int) -> dict:
+    """Every scalar vertex property the layout does not name, in file order, as an [N] tensor of
+    its own type (native byte order; one small copy each)."""
+    known = set(ply_property_names(degree, with_normals=True, with_sigma_d=True))
+    known.update(v for props in GAIN_PROPERTIES.values() for v in props)
+    extra = {}
+    for p in vertex.properties:
+        if isinstance(p, plyfile.PlyListProperty) or p.name in known or p.name.startswith("f_rest_"):
+            continue
+        a = np.asarray(data[p.name])
+        extra[p.name] = torch.from_numpy(np.ascontiguousarray(a, dtype=a.dtype.newbyteorder("=")))
+    return extra
+
+
+def _columns(src: np.ndarray, where: dict, wanted: list, n: int, n_rest: int, with_sigma_d: bool,
+             gains_present: dict) -> tuple:
+    """The attributes as fresh C-contiguous float32 arrays (never views of the memory map):
+    (means, sh0, shN (channel-major f_rest reordered), opacity, log_scales, quats, sigma_d or
+    None, gains)."""
+    km1 = n_rest // 3
+
+    def block(first: str, count: int) -> np.ndarray:
+        """[N, count] columns ``first``.. as a view of ``src`` where possible (never returned)."""
+        start = wanted.index(first)
+        idx = [where[name] for name in wanted[start : start + count]]
+        if idx == list(range(idx[0], idx[0] + count)):
+            return src[:, idx[0] : idx[0] + count]
+        return src[:, idx]
+
+    def own(a: np.ndarray) -> np.ndarray:  # a fresh C-contiguous float32 copy (never the memmap)
+        with np.errstate(over="ignore"):  # float64 beyond float32 -> inf, reported below
+            return np.array(a, dtype=np.float32, order="C", copy=True)
+
+    means = own(block("x", 3))
+    sh0 = own(block("f_dc_0", 3)).reshape(n, 1, 3)
+    if km1:
+        shN = own(block("f_rest_0", n_rest).reshape(n, 3, km1).transpose(0, 2, 1))
+    else:
+        shN = np.zeros((n, 0, 3), dtype=np.float32)
+    opacity = own(block("opacity", 1)).reshape(n)
+    log_scales = own(block("scale_0", 3))
+    quats = own(block("rot_0", 4))
+    sigma_d = own(block("sigma_d", 1)).reshape(n) if with_sigma_d else None
+    gains = {k: own(block(v[0], len(v))) for k, v in gains_present.items()}
+    if "sh0_gain" in gains:
+        gains["sh0_gain"] = gains["sh0_gain"].reshape(n, 1, 3)
+    for k in ("opacity_logit_gain", "log_scale_gain"):
+        if k in gains:
+            gains[k] = gains[k].reshape(n)
+    return means, sh0, shN, opacity, log_scales, quats, sigma_d, gains
+
+
 def read_ply(path: PathLike, *, allow_nonfinite: bool = False) -> Gaussians:
     """Read a 3DGS checkpoint .ply (INRIA layout, optionally with ``sigma_d``) into ``Gaussians``.
 
@@ -187,48 +253,13 @@ def read_ply(path: PathLike, *, allow_nonfinite: bool = False) -> Gaussians:
         shown = ", ".join(missing[:8]) + (", ..." if len(missing) > 8 else "")
         raise PlyFormatError(path, f"vertex element lacks required propert{'y' if len(missing) == 1 else 'ies'} {shown}")
 
-    known = set(ply_property_names(degree, with_normals=True, with_sigma_d=True))
-    known.update(v for props in GAIN_PROPERTIES.values() for v in props)
-    extra_names = [p.name for p in vertex.properties if not isinstance(p, plyfile.PlyListProperty)
-                   and p.name not in known and not p.name.startswith("f_rest_")]
-    extra = {}
-    for name in extra_names:  # one small copy per property, native byte order
-        a = np.asarray(data[name])
-        extra[name] = torch.from_numpy(np.ascontiguousarray(a, dtype=a.dtype.newbyteorder("=")))
+    extra = _extra_properties(vertex, data, degree)
 
     n = len(data)
     src, where = _as_2d(data, wanted)  # [N, F'] view (or one converted copy) + column of each name
     del data, vertex, ply  # the memory map stays alive only through ``src`` until we are done
-    km1 = n_rest // 3
-
-    def block(first: str, count: int) -> np.ndarray:
-        """[N, count] columns ``first``.. as a view of ``src`` where possible (never returned)."""
-        start = wanted.index(first)
-        idx = [where[name] for name in wanted[start : start + count]]
-        if idx == list(range(idx[0], idx[0] + count)):
-            return src[:, idx[0] : idx[0] + count]
-        return src[:, idx]
-
-    def own(a: np.ndarray) -> np.ndarray:  # a fresh C-contiguous float32 copy (never the memmap)
-        with np.errstate(over="ignore"):  # float64 beyond float32 -> inf, reported below
-            return np.array(a, dtype=np.float32, order="C", copy=True)
-
-    means = own(block("x", 3))
-    sh0 = own(block("f_dc_0", 3)).reshape(n, 1, 3)
-    if km1:
-        shN = own(block("f_rest_0", n_rest).reshape(n, 3, km1).transpose(0, 2, 1))
-    else:
-        shN = np.zeros((n, 0, 3), dtype=np.float32)
-    opacity = own(block("opacity", 1)).reshape(n)
-    log_scales = own(block("scale_0", 3))
-    quats = own(block("rot_0", 4))
-    sigma_d = own(block("sigma_d", 1)).reshape(n) if with_sigma_d else None
-    gains = {k: own(block(v[0], len(v))) for k, v in gains_present.items()}
-    if "sh0_gain" in gains:
-        gains["sh0_gain"] = gains["sh0_gain"].reshape(n, 1, 3)
-    for k in ("opacity_logit_gain", "log_scale_gain"):
-        if k in gains:
-            gains[k] = gains[k].reshape(n)
+    means, sh0, shN, opacity, log_scales, quats, sigma_d, gains = _columns(src, where, wanted, n, n_rest,
+                                                                          with_sigma_d, gains_present)
     del src
 
     if not allow_nonfinite:
@@ -237,17 +268,7 @@ def read_ply(path: PathLike, *, allow_nonfinite: bool = False) -> Gaussians:
         if sigma_d is not None:
             named["sigma_d"] = sigma_d
         named.update({f"{k} ({GAIN_PROPERTIES[k][0]})": v for k, v in gains.items()})
-        bad = {k: a for k, a in named.items() if not np.isfinite(a).all()}
-        if bad:
-            counts = {"NaN": 0, "+Inf": 0, "-Inf": 0}
-            for a in bad.values():
-                counts["NaN"] += int(np.isnan(a).sum())
-                counts["+Inf"] += int(np.isposinf(a).sum())
-                counts["-Inf"] += int(np.isneginf(a).sum())
-            what = ", ".join(f"{c} {k}" for k, c in counts.items() if c)
-            raise PlyFormatError(
-                path, f"non-finite values ({what}) in {', '.join(bad)}; pass allow_nonfinite=True to keep them"
-            )
+        _refuse_nonfinite(path, named)
 
     t = torch.from_numpy
     return Gaussians(

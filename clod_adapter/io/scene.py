@@ -21,7 +21,7 @@ import os
 from collections import OrderedDict
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Sequence, Union
+from typing import Optional, Sequence, Union
 
 import numpy as np
 import torch
@@ -29,11 +29,12 @@ from PIL import Image
 from torch import Tensor
 
 
-__all__ = ["Camera", "Scene", "SceneError", "validation_split", "holdout_validation"]
+__all__ = ["Camera", "Scene", "SceneError", "validation_split", "holdout_validation", "RESOLUTIONS", "image_size"]
 
 PathLike = Union[str, "os.PathLike[str]"]
 
-_RESOLUTIONS = (1, 2, 4, 8)
+#: the downscale factors a scene folder may be read at (3DGS ``-r``: images_N folders).
+RESOLUTIONS = (1, 2, 4, 8)
 
 
 class SceneError(ValueError):
@@ -51,7 +52,8 @@ class Camera:
 
     Attributes:
         name: image file name as listed in the COLMAP model (e.g. ``image000.jpg``).
-        image_path: the file this view's pixels are read from.
+        image_path: the file this view's pixels are read from (None: a camera without an
+            image, e.g. the viewer's, :meth:`pinhole`).
         viewmat: [4, 4] float32 world-to-camera, OpenCV axes (x right, y down, z forward);
             gsplat's ``viewmats`` entry.
         K: [3, 3] float32 intrinsics in pixels at ``width`` x ``height``.
@@ -59,11 +61,17 @@ class Camera:
     """
 
     name: str
-    image_path: Path
+    image_path: Optional[Path]
     viewmat: Tensor
     K: Tensor
     width: int
     height: int
+
+    @classmethod
+    def pinhole(cls, viewmat: Tensor, K: Tensor, width: int, height: int, name: str = "view") -> "Camera":
+        """A camera without an image: ``viewmat`` [4, 4] world-to-camera (OpenCV axes), ``K``
+        [3, 3] intrinsics in pixels, ``width`` x ``height`` pixels (what the renderer reads)."""
+        return cls(name, None, viewmat, K, int(width), int(height))
 
     @property
     def center(self) -> Tensor:
@@ -258,7 +266,11 @@ def _to_rgb_float(im: Image.Image, width: int, height: int,
     return np.clip(rgb, 0.0, 1.0)
 
 
-def _image_size(path: Path) -> tuple[int, int]:
+def image_size(path: Path) -> tuple[int, int]:
+    """(width, height) in pixels of an image file, from its header only.
+
+    Raises:
+        SceneError: the file cannot be read as an image."""
     try:
         with Image.open(path) as im:  # lazy: reads the header only
             return im.size

@@ -6,12 +6,12 @@ call :func:`thread_defaults` before torch loads its OpenMP runtime.
 from __future__ import annotations
 
 import argparse
-import math
 import os
 import sys
-import time
 from pathlib import Path
 from typing import Callable, Iterable, Optional, Sequence
+
+from ..progress import LineProgress, progress_bar  # noqa: F401  (the jobs' progress, one import)
 
 EXIT_BAD_INPUT = 2
 EXIT_INTERRUPTED = 130
@@ -36,8 +36,12 @@ def thread_defaults(environ=os.environ) -> None:
 
 
 def set_threads(n: Optional[int]) -> None:
-    """``torch.set_num_threads(n)`` when ``n`` is given (``--threads``)."""
+    """``torch.set_num_threads(n)`` when ``n`` is given (``--threads``).
+
+    Raises:
+        InputError: ``n < 1``."""
     if n is not None:
+        check_flag(n >= 1, "--threads", ">= 1", n)
         import torch
 
         torch.set_num_threads(int(n))
@@ -63,6 +67,31 @@ def make_parser(prog: str, description: str, example: str) -> ArgumentParser:
                        formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--version", action="version", version=f"%(prog)s {__version__}")
     return p
+
+
+#: the scene folder flag's spellings: ours and the official 3DGS scripts' (``-s/--source_path``).
+SCENE_FLAGS = ("--images", "-s", "--source_path", "--source-path")
+
+
+def add_scene_flags(p: argparse.ArgumentParser, *, resolution_note: str = "") -> None:
+    """``--images/-s/--source_path SCENE`` and ``-r/--resolution R``: the same in every CLI."""
+    p.add_argument(*SCENE_FLAGS, dest="images", metavar="SCENE",
+                   help="scene folder: COLMAP (images/, sparse/0) or NeRF-synthetic (transforms_*.json)")
+    p.add_argument("-r", "--resolution", type=int, default=1, choices=(1, 2, 4, 8),
+                   help="use images_R/ when present, else downsample by R (default 1)" + resolution_note)
+
+
+def add_adapted_arg(p: argparse.ArgumentParser) -> None:
+    """The positional ADAPTED model of the CLIs that read an adapted model."""
+    p.add_argument("ply", nargs="?", metavar="ADAPTED",
+                   help="adapted model (with sigma_d): a clod-adapt output folder or its point_cloud.ply")
+
+
+def add_level_flags(p: argparse.ArgumentParser, s_v_help: str, budget_help: str) -> None:
+    """``--s-v X`` or ``--budget K`` (one of them): the level a CLI draws at."""
+    g = p.add_mutually_exclusive_group()
+    g.add_argument("--s-v", type=float, default=None, metavar="X", help=s_v_help)
+    g.add_argument("--budget", default=None, metavar="K", help=budget_help)
 
 
 def add_common_flags(p: argparse.ArgumentParser, *, device_default: str = "auto") -> None:
@@ -239,74 +268,3 @@ def check_output_dir(out_dir: Path, inputs: Sequence[Path], names: Iterable[str]
                 break
         raise InputError(f"{out_dir}: output directory is not writable ({why})")
 
-
-# --- progress ---------------------------------------------------------------------------------
-class LineProgress:
-    """tqdm's small interface (``update``, ``set_postfix``, ``set_postfix_str``, ``close``) for
-    logs that are not a terminal: one plain line every ``every`` of the total (and at the end),
-    no carriage returns."""
-
-    def __init__(self, total: int, desc: str, unit: str = "it", initial: int = 0, every: float = 0.1,
-                 file=None) -> None:
-        self.total, self.desc, self.unit, self.n = int(total), desc, unit, int(initial)
-        self.file = file
-        self.every = every
-        self.postfix = ""
-        self.t0 = time.perf_counter()
-        self.n0 = self.n
-        self._next = self._threshold_after(self.n)
-        self.closed = False
-
-    def _threshold_after(self, n: int) -> int:
-        if self.total <= 0:
-            return 1 << 62
-        step = max(1, int(math.ceil(self.every * self.total)))
-        return min(self.total, (n // step + 1) * step)
-
-    def set_postfix(self, ordered_dict=None, refresh: bool = True, **kw) -> None:
-        items = dict(ordered_dict or {}, **kw)
-        self.postfix = ", ".join(f"{k}={v}" for k, v in items.items())
-
-    def set_postfix_str(self, s: str = "", refresh: bool = True) -> None:
-        self.postfix = str(s)
-
-    def update(self, n: int = 1) -> None:
-        self.n += n
-        if self.n >= self._next:
-            self._line()
-            self._next = self._threshold_after(self.n)
-
-    def _line(self) -> None:
-        el = time.perf_counter() - self.t0
-        done = self.n - self.n0
-        left = (self.total - self.n) * el / done if done > 0 else float("nan")
-        pct = 100.0 * self.n / self.total if self.total else 100.0
-        tail = f"; {self.postfix}" if self.postfix else ""
-        eta = f", {left:.0f} s left" if left == left else ""
-        print(f"{self.desc}: {self.n}/{self.total} {self.unit} ({pct:.0f} %), {el:.0f} s{eta}{tail}",
-              file=self.file or sys.stderr, flush=True)
-
-    def close(self) -> None:
-        self.closed = True
-
-    def __enter__(self):
-        return self
-
-    def __exit__(self, *exc) -> None:
-        self.close()
-
-
-def progress_bar(total: int, desc: str, *, unit: str = "it", disable: bool = False, initial: int = 0,
-                 leave: bool = True, file=None, every: float = 0.1):
-    """A tqdm bar when ``file`` (default stderr) is a terminal, else :class:`LineProgress` (a plain
-    line every 10 %); ``disable``: neither (a silent tqdm)."""
-    from tqdm import tqdm
-
-    stream = file or sys.stderr
-    if disable:
-        return tqdm(total=total, disable=True)
-    isatty = getattr(stream, "isatty", None)
-    if isatty is not None and isatty():
-        return tqdm(total=total, initial=initial, desc=desc, unit=unit, leave=leave, file=stream,
-                    dynamic_ncols=True)
-    return LineProgress(total, desc, unit=unit, initial=initial, every=every, file=stream)

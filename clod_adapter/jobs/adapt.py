@@ -17,15 +17,16 @@ import json
 import math
 import os
 import time
-from dataclasses import asdict, replace
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
-from typing import Optional
+from typing import Callable, Optional
 
 import torch
 
 from .. import __version__, jobs, lod
-from ..adapt import STATE_NAME, AdaptConfig, StopFlag, adapt, load_state, prepare, save_state
+from ..training import STATE_NAME, AdaptConfig, StopFlag, adapt, load_state, prepare, save_state
 from ..figures import write_strip, write_training_plot
+from ..gaussians import Gaussians
 from ..level_metrics import budget_levels, evaluate_level, evaluate_levels, sv_levels
 from ..io.atomic import atomic_write
 from ..io.load import apply_masks, load_model, resolve_model_path, training_size
@@ -33,7 +34,8 @@ from . import InputError, pick_device  # noqa: F401 (public here since the first
 from ..io.ply import PlyFormatError, write_ply
 from ..io.view_images import ViewImages
 from ..io.load import load_scene
-from ..view import render_lod
+from ..render.composite import deterministic_enabled
+from ..camera_lod import render_lod
 
 PLY_NAME = "point_cloud.ply"
 METRICS_NAME = "metrics.json"
@@ -234,71 +236,88 @@ def retime_levels(input_model, model, cameras, levels, *, tau, background, backe
     return time_interleaved(jobs_, repeats=repeats, warmup=1)
 
 
-def run(
-    ply_path: os.PathLike,
-    scene_root: os.PathLike,
-    out_dir: os.PathLike,
-    cfg: AdaptConfig,
-    *,
-    resolution: int = 1,
-    device: str = "auto",
-    resume: bool = False,
-    progress: bool = True,
-    log=print,
-    sanitize: bool = False,
-    deterministic: bool = False,
-    iterations_from_state: bool = False,
-    force: bool = False,
-    allow_mismatch: bool = False,
-    iteration: Optional[int] = None,
-    layout: str = "clod",
-    tensorboard: bool = False,
-    timing_repeats: int = 3,
-    masks: str = "auto",
-    distributed: bool = False,
-    save_every: Optional[int] = 0,
-    views_from_state: bool = False,
-    holdout_val: bool = False,
-) -> dict:
+@dataclass
+class AdaptOptions:
+    """How one ``clod-adapt`` run goes, besides its model, scene, output folder and
+    :class:`clod_adapter.training.AdaptConfig` (what the fine-tuning is). Checked once, on creation.
+
+    Attributes:
+        resolution: scene images at 1/R (``images_R/`` when present).
+        device: ``"auto"`` (CUDA when available and gsplat imports), ``"cpu"`` or ``"cuda"``.
+        resume: continue from ``out_dir/adapt_state.safetensors`` (same input, scene, resolution
+            and settings; ``cfg.iterations`` may differ, which changes the schedule).
+        iterations_from_state, views_from_state: with ``resume``, take ``iterations`` /
+            ``views_per_step`` from the state instead of ``cfg``.
+        progress: a progress display; log: where the job's lines go.
+        sanitize: drop Gaussians with NaN/Inf values and clamp +Inf opacity logits
+            (:func:`check_finite`) instead of failing on them.
+        deterministic: bit-reproducible CPU gradients (a resumed run then ends bit-identical to
+            an uninterrupted one with the same seed and thread count).
+        force: write into a non-empty output folder. allow_mismatch: go on with a model that
+            renders the training views no better than a flat colour (:func:`scene_match`).
+        iteration: with an official model folder, ``point_cloud/iteration_N`` (default the largest).
+        layout: ``"clod"`` or ``"inria"`` (also the official model folder, :func:`write_inria_layout`).
+        tensorboard: log loss, PSNR, s_v, rendered fraction per step to ``out_dir/tensorboard``.
+        timing_repeats: interleaved timing rounds of the final ms/frame (:mod:`clod_adapter.timing`).
+        masks: a MaskGaussian .ply's mask policy (:func:`clod_adapter.io.load.apply_masks`).
+        distributed: data-parallel over the processes torchrun started (:mod:`clod_adapter.distributed`).
+        save_every: also write the resumable state every this many steps (0: only on a signal
+            and at the end; None: every 10 % of the run when distributed, else 0).
+        holdout_val: fit on the fit views, score on the validation views
+            (:func:`clod_adapter.io.scene.holdout_validation`; the test views unused).
+
+    Raises:
+        InputError: an unknown ``layout`` or a negative ``save_every``.
+    """
+
+    resolution: int = 1
+    device: str = "auto"
+    resume: bool = False
+    progress: bool = True
+    log: Callable = print
+    sanitize: bool = False
+    deterministic: bool = False
+    iterations_from_state: bool = False
+    force: bool = False
+    allow_mismatch: bool = False
+    iteration: Optional[int] = None
+    layout: str = "clod"
+    tensorboard: bool = False
+    timing_repeats: int = 3
+    masks: str = "auto"
+    distributed: bool = False
+    save_every: Optional[int] = 0
+    views_from_state: bool = False
+    holdout_val: bool = False
+
+    def __post_init__(self) -> None:
+        if self.save_every is not None and self.save_every < 0:
+            raise InputError(f"--save-every must be >= 0, got {self.save_every}")
+        if self.layout not in ("clod", "inria"):
+            raise InputError(f"--layout must be clod or inria, got {self.layout!r}")
+
+
+def run(ply_path: os.PathLike, scene_root: os.PathLike, out_dir: os.PathLike, cfg: AdaptConfig,
+        options: Optional[AdaptOptions] = None, **option_values) -> dict:
     """Run the whole job; returns the metrics dict (also written to ``metrics.json``).
 
     ``ply_path`` is a model file, an official 3DGS model folder (``point_cloud/iteration_N/``,
     the largest N unless ``iteration``) or a folder holding one .ply
     (:func:`clod_adapter.io.load.resolve_model_path`). ``out_dir`` must be empty or new unless
-    ``force`` (replace files of the same name) or ``resume``. A model that renders the training
-    views no better than a flat colour (:func:`scene_match`) is refused as coming from another
-    scene unless ``allow_mismatch``. ``layout="inria"`` also writes the official model folder
-    (:func:`write_inria_layout`); ``tensorboard`` logs loss, PSNR, s_v and rendered fraction per
-    step to ``out_dir/tensorboard`` (needs the ``tensorboard`` package). ``timing_repeats``:
-    interleaved timing rounds of the final ms/frame (:mod:`clod_adapter.timing`).
+    ``force`` (replace files of the same name) or ``resume``. ``options`` (or its fields given
+    by name, ``option_values``): :class:`AdaptOptions`.
 
-    ``sanitize``: drop Gaussians with NaN/Inf values and clamp +Inf opacity logits (see
-    :func:`check_finite`) instead of failing on them.
+    The job runs as named phases, in order: :func:`_read_inputs` (load and check every input;
+    nothing is written before all of them pass), :func:`_start_state` (the input's quality, the
+    initial or resumed state), :func:`_train` (with resumable saves on a signal, at checkpoints
+    and at the end), :func:`_evaluate` (the levels and budgets on the test views, timed) and
+    :func:`_write_outputs` (each file atomically).
 
-    ``masks``: which Gaussians of a MaskGaussian .ply with mask properties (``masks_0``/``masks_1``)
-    are kept: ``"auto"`` (the default policy, ``argmax``), ``"argmax"``, ``"gumbel"`` (one draw
-    seeded by ``cfg.seed``) or ``"all"`` (:func:`clod_adapter.io.load.apply_masks`); the log and
-    ``metrics.json`` (``input_masks``) say what was applied. Unknown per-Gaussian .ply properties
-    of the kept Gaussians (e.g. the mask scores) are written back to ``point_cloud.ply`` (not to
-    the exact INRIA copy of ``layout="inria"``).
-    ``distributed``: data-parallel over views with the processes torchrun started
-    (:mod:`clod_adapter.distributed`; every process calls ``run`` with the same arguments):
-    rank 0 logs, writes the state and the outputs and returns the metrics; the other ranks
-    return ``{"rank", "world_size", "iteration", "train_seconds"}`` once the final state is
-    written. ``save_every``: also write the resumable state every this many steps (0: only on
-    a signal and at the end; None: every 10 % of the run when ``distributed``, else 0). ``views_from_state`` (with ``resume``): take ``views_per_step``
-    from the state instead of ``cfg``.
-    ``holdout_val``: train on the fit views only and evaluate on the validation views
-    (:func:`clod_adapter.io.scene.holdout_validation`; the test views are not used at all), for
-    runs that choose settings (the benchmarks' ``--split val``); ``metrics.json`` says so.
-
-    ``resume``: continue from ``out_dir/adapt_state.safetensors``; refused (InputError) when it
-    was saved for another input .ply, scene or resolution, or with other settings than ``cfg``
-    (``cfg.iterations`` may differ, which changes the schedule; ``iterations_from_state`` takes
-    it from the state instead). ``deterministic``: bit-reproducible CPU gradients
-    (:func:`clod_adapter.render.composite.set_deterministic`, plus
-    ``torch.use_deterministic_algorithms``), so that an interrupted and resumed run ends
-    bit-identical to an uninterrupted one with the same seed and thread count.
+    ``masks``: unknown per-Gaussian .ply properties of the kept Gaussians (e.g. MaskGaussian's
+    mask scores) are written back to ``point_cloud.ply`` (not to the exact INRIA copy). With
+    ``distributed`` every process calls ``run`` with the same arguments: rank 0 logs, writes
+    the state and the outputs and returns the metrics; the other ranks return ``{"rank",
+    "world_size", "iteration", "train_seconds"}`` once the final state is written.
 
     SIGINT/SIGTERM: while inputs are read and evaluated (nothing written yet) the run stops at
     once; from the initialisation on, the signal only sets a flag, checked between iterations
@@ -315,31 +334,392 @@ def run(
         clod_adapter.distributed.PeerLost: (``distributed``) another process died or stopped
             answering; the message says which state is on disk.
     """
-    if save_every is not None and save_every < 0:
-        raise InputError(f"--save-every must be >= 0, got {save_every}")
-    kw = dict(resolution=resolution, device=device, resume=resume, progress=progress, log=log,
-              sanitize=sanitize, iterations_from_state=iterations_from_state, force=force,
-              allow_mismatch=allow_mismatch, iteration=iteration, layout=layout, tensorboard=tensorboard,
-              timing_repeats=timing_repeats, masks=masks, save_every=save_every,
-              views_from_state=views_from_state, holdout_val=holdout_val)
-    with StopFlag(abortable=True) as stop, deterministic_mode(deterministic):
+    o = options if options is not None else AdaptOptions(**option_values)
+    if options is not None and option_values:
+        o = replace(options, **option_values)
+    with StopFlag(abortable=True) as stop, deterministic_mode(o.deterministic):
         group = None
         try:
-            if distributed:
+            if o.distributed:
                 from .. import distributed as dd
 
-                group = dd.init(pick_device(device))
-                kw["group"] = group
+                group = dd.init(pick_device(o.device))
                 if not group.is_main:  # rank 0 speaks for the run
-                    kw["log"], kw["progress"] = (lambda *a, **k: None), False
-            return _run(ply_path, scene_root, out_dir, cfg, stop=stop, **kw)
+                    o = replace(o, log=lambda *a, **k: None, progress=False)
+            return _run(Path(ply_path), Path(scene_root), Path(out_dir), cfg, o, stop, group)
         except KeyboardInterrupt:
             if not getattr(stop, "state_saved", False):
-                kw["log"]("\nclod-adapt: interrupted before training started; nothing written")
+                o.log("\nclod-adapt: interrupted before training started; nothing written")
             raise
         finally:
             if group is not None:
                 dd.shutdown()
+
+
+#: the keys of ``metrics.json``, in file order (``wall_seconds`` is added to the returned dict).
+METRICS_KEYS = ("version", "input_ply", "scene", "resolution", "image_size", "device", "threads", "num_gaussians",
+                "input_sanitized", "input_masks", "test_views", "holdout_val", "config", "train_seconds",
+                "seconds_per_iteration", "world_size", "input_model", "scene_match", "init_s_v1", "deterministic",
+                "timing", "levels", "budgets", "dead_sigma_d", "notes")
+
+
+@dataclass
+class _Inputs:
+    """What :func:`_read_inputs` loaded and checked (phase 1 of a run)."""
+
+    ply_path: Path
+    scene_root: Path
+    out_dir: Path
+    gaussians: Gaussians
+    mask_info: object
+    sanitized: object
+    scene: object
+    dev: torch.device
+    train_imgs: ViewImages
+    test_cams: list
+    test_imgs: ViewImages
+    input_sha256: str
+    scene_fp: str
+    resumed: Optional[tuple]
+    match: dict
+    notes: list
+    size: tuple
+    main: bool
+
+    @property
+    def state_path(self) -> Path:
+        return self.out_dir / STATE_NAME
+
+
+def _run(ply_path: Path, scene_root: Path, out_dir: Path, cfg: AdaptConfig, o: AdaptOptions, stop: StopFlag,
+         group) -> dict:
+    t_start = time.perf_counter()
+    inp = _read_inputs(ply_path, scene_root, out_dir, cfg, o, stop, group)
+    state, cfg, input_eval, init_s_v1 = _start_state(inp, cfg, o, stop, group)
+    meta = {"input_ply": str(inp.ply_path), "scene": str(inp.scene_root), "resolution": o.resolution,
+            "input_sha256": inp.input_sha256, "scene_key": inp.scene_fp, "init_s_v1": json.dumps(init_s_v1),
+            "deterministic": int(deterministic_enabled()), "threads": torch.get_num_threads(),
+            "world_size": 1 if group is None else group.world_size}
+    it0 = state.iteration
+    train_s = _train(inp, state, cfg, o, stop, group, meta)
+    model = replace(state.gaussians().detach(), extra=inp.gaussians.extra)  # unknown .ply properties ride along
+    # the final state first: an interrupt during the evaluation resumes at the last iteration
+    if inp.main:
+        save_state(inp.state_path, state, cfg, meta)
+    stop.state_saved = True
+    if group is not None:
+        group.barrier("the final save")  # the others may leave once the final state is on disk
+        if not inp.main:
+            return {"rank": group.rank, "world_size": group.world_size, "iteration": state.iteration,
+                    "train_seconds": round(train_s, 2)}
+    stop.set_abortable(True)  # the evaluation writes nothing; raises if a signal came meanwhile
+    metrics = _evaluate(inp, model, cfg, o, input_eval)
+    stop.set_abortable(False)
+    metrics.update({
+        "config": asdict(cfg), "train_seconds": round(train_s, 2),
+        "seconds_per_iteration": round(train_s / max(state.iteration - it0, 1), 4),
+        "world_size": 1 if group is None else group.world_size, "init_s_v1": init_s_v1,
+        "dead_sigma_d": int((model.sigma_d <= 0).sum()),
+    })
+    metrics = {k: metrics[k] for k in METRICS_KEYS}
+    if stop.stop:  # a signal just after the evaluation: nothing written yet, stop here
+        o.log(f"\nclod-adapt: interrupted after training; state saved to {inp.state_path} (continue with --resume)")
+        raise KeyboardInterrupt
+    written = _write_outputs(inp, model, state, cfg, o, metrics)
+    if stop.stop:
+        o.log("clod-adapt: signal received while writing the outputs; they were completed first")
+    metrics["wall_seconds"] = round(time.perf_counter() - t_start, 1)
+    o.log(format_summary(metrics))
+    o.log(f"clod-adapt: wrote {', '.join(written)} to {inp.out_dir} in {metrics['wall_seconds']:.0f} s "
+          f"({metrics['seconds_per_iteration']:.3f} s per iteration)")
+    return metrics
+
+
+def _read_model(ply_path: Path, cfg: AdaptConfig, o: AdaptOptions):
+    """The input model with its masks applied and non-finite values checked: (model, mask info,
+    sanitize info)."""
+    try:
+        gaussians = load_model(ply_path, masks="all", allow_nonfinite=True)
+        gaussians, mask_info = apply_masks(gaussians, o.masks, seed=cfg.seed, path=ply_path)
+    except ValueError as e:  # an unknown policy (a PlyFormatError names the file already)
+        if isinstance(e, PlyFormatError):
+            raise
+        raise InputError(f"--masks: {e}") from None
+    if len(gaussians) == 0:
+        raise InputError(f"{ply_path}: the model has no Gaussians")
+    if mask_info is not None:
+        o.log(f"clod-adapt: MaskGaussian masks {mask_info.describe()} (--masks argmax|gumbel|all)")
+    gaussians, sanitized = check_finite(gaussians, ply_path, o.sanitize, log=o.log)
+    return gaussians, mask_info, sanitized
+
+
+def _read_inputs(ply_path: Path, scene_root: Path, out_dir: Path, cfg: AdaptConfig, o: AdaptOptions,
+                 stop: StopFlag, group) -> _Inputs:
+    """Phase 1: load and check the model, the scene, the output folder and (``resume``) the state;
+    the folder is created only once every input has passed."""
+    if not ply_path.exists():
+        raise InputError(f"{ply_path}: no such file")
+    ply_path = resolve_model_path(ply_path, o.iteration)
+    if not scene_root.is_dir():
+        raise InputError(f"{scene_root}: no such scene folder")
+    if o.tensorboard:
+        try:
+            from torch.utils.tensorboard import SummaryWriter  # noqa: F401
+        except Exception:
+            raise InputError("--tensorboard: the tensorboard package is not installed "
+                             "(pip install -e \".[tensorboard]\")") from None
+    dev = pick_device(o.device) if group is None else group.device
+    gaussians, mask_info, sanitized = _read_model(ply_path, cfg, o)
+    scene = load_scene(scene_root, resolution=o.resolution, background=cfg.background)
+    stop.reinstall()  # importing pycolmap (COLMAP scenes only) replaces the SIGTERM handler
+    if o.holdout_val:  # fit on the training views minus the validation views, score on those
+        from ..io.scene import holdout_validation
+
+        scene = holdout_validation(scene)
+    if not scene.train:
+        raise InputError(f"{scene_root}: no training views (every image is a test view)")
+    state_path = out_dir / STATE_NAME
+    if o.resume and not state_path.is_file():
+        raise InputError(f"{state_path}: no state to resume from")
+    check_output_dir(out_dir, [ply_path], create=False, force=o.force, resume=o.resume)  # checks only
+    input_sha256, scene_fp = file_sha256(ply_path), scene_key(scene.train)
+    resumed = None
+    if o.resume:
+        resumed = load_resume_state(state_path, cfg, input_sha256=input_sha256, scene_fp=scene_fp,
+                                    resolution=o.resolution, num_gaussians=len(gaussians),
+                                    iterations_from_state=o.iterations_from_state, device=dev,
+                                    views_from_state=o.views_from_state)
+    gaussians = gaussians.to(dev)
+    # decoded on first use, kept within a memory budget (CLOD_IMAGE_CACHE_MB): a data-parallel
+    # rank decodes only its own views, and hundreds of large views do not fill the memory
+    scene.cache_size = 0
+    train_imgs = ViewImages(scene, scene.train, dev)
+    test_cams = scene.test or scene.train[:1]
+    inp = _Inputs(ply_path, scene_root, out_dir, gaussians, mask_info, sanitized, scene, dev, train_imgs,
+                  test_cams, ViewImages(scene, test_cams, dev), input_sha256, scene_fp, resumed, {}, [],
+                  (scene.train[0].width, scene.train[0].height), group is None or group.is_main)
+    _check_scene_match(inp, cfg, o)
+    if inp.main:
+        check_output_dir(out_dir, [ply_path], force=True)  # every input is valid: create the output folder
+    _log_inputs(inp, cfg, o, group)
+    return inp
+
+
+def _check_scene_match(inp: _Inputs, cfg: AdaptConfig, o: AdaptOptions) -> None:
+    """Refuse a model from another scene (no Gaussian in any training view, or renders no better
+    than a flat colour, unless ``allow_mismatch``); notes a resolution that differs from the
+    model's training one."""
+    g, dev = inp.gaussians, inp.dev
+    fr_any = torch.zeros(len(g), dtype=torch.bool, device=dev)
+    for c in inp.scene.train:
+        fr_any |= lod.in_frustum(g.means, c.viewmat.to(dev), c.K.to(dev), c.width, c.height)
+    if not bool(fr_any.any()):
+        raise InputError(f"{inp.ply_path}: no Gaussian lies inside any training view of {inp.scene_root}; "
+                         "is the model from another scene?")
+    match = scene_match(g, inp.scene.train, inp.train_imgs, background=cfg.background, backend="auto")
+    if match["margin_db"] < MISMATCH_MARGIN_DB:
+        what = (f"{inp.ply_path}: the model does not render {inp.scene_root}: {match['psnr']:.2f} dB PSNR on "
+                f"{len(match['views'])} training views, not above a flat image of their mean colour "
+                f"({match['flat_psnr']:.2f} dB); {100 * match['in_view_fraction']:.0f} % of its Gaussians "
+                "lie in any training view")
+        if not o.allow_mismatch:
+            raise InputError(what + "; is the model from another scene? (--allow-mismatch goes on anyway)")
+        o.log(f"clod-adapt: warning: {what}; going on (--allow-mismatch)")
+    inp.match = match
+    note = resolution_note(training_size(inp.ply_path), inp.size, "cameras.json of the model folder")
+    if note:
+        inp.notes.append(note)
+        o.log(f"clod-adapt: note: {note}")
+
+
+def _log_inputs(inp: _Inputs, cfg: AdaptConfig, o: AdaptOptions, group) -> None:
+    g, size = inp.gaussians, inp.size
+    o.log(f"clod-adapt: {inp.ply_path}: {len(g):,} Gaussians (SH degree {g.sh_degree}); "
+          f"{len(inp.scene.train)} train / {len(inp.scene.test)} test views at {size[0]}x{size[1]}; device "
+          f"{inp.dev}, {torch.get_num_threads()} threads; training-view PSNR {inp.match['psnr']:.2f} dB")
+    if group is not None:
+        o.log(f"clod-adapt: data-parallel over {group.world_size} processes ({group.backend}), "
+              f"{cfg.views_per_step} views per step; rank 0 writes")
+        if cfg.views_per_step < group.world_size:
+            o.log(f"clod-adapt: note: {cfg.views_per_step} views per step for {group.world_size} processes: "
+                  f"{group.world_size - cfg.views_per_step} of them render nothing (--views-per-step)")
+
+
+def _start_state(inp: _Inputs, cfg: AdaptConfig, o: AdaptOptions, stop: StopFlag, group):
+    """Phase 2: the input's quality on the test views, then the initial state (:func:`prepare`)
+    or the resumed one. Returns (state, cfg (the state's, when resumed), input evaluation, the
+    initial model's s_v = 1 quality)."""
+    bg = cfg.background
+    input_eval = evaluate_level(inp.gaussians, inp.test_cams, inp.test_imgs, None, background=bg,
+                                backend="auto") if inp.main else None
+    # from here on a signal only sets the flag: the state is saved at the next safe point
+    stop.set_abortable(False)
+    if inp.resumed is not None:
+        state, cfg, saved_meta = inp.resumed
+        o.log(f"clod-adapt: resuming {inp.state_path} at iteration {state.iteration}/{cfg.iterations}")
+        init_s_v1 = json.loads(saved_meta.get("init_s_v1", "null"))
+    else:
+        state = prepare(inp.gaussians, inp.scene.train, cfg, inp.train_imgs, backend="auto")
+        if "attenuation" in state.init:
+            o.log(f"clod-adapt: sigma_d initialised with attenuation {state.init['attenuation']} at s_v = 1")
+        elif not state.init:
+            o.log("clod-adapt: the input already has sigma_d: fine-tuning it as it is")
+        else:
+            o.log(f"clod-adapt: sigma_d calibrated from the {state.init.get('ranking')} ranking on quantiles of "
+                  f"cost^{state.init.get('cost_exponent')} (levels in frame cost and count)")
+        init_s_v1 = None
+        if inp.main:
+            init_eval = evaluate_level(state.gaussians().detach(), inp.test_cams, inp.test_imgs, 1.0,
+                                       tau=cfg.tau, background=bg, backend="auto")
+            init_s_v1 = {"psnr": init_eval.psnr, "ssim": init_eval.ssim,
+                         "psnr_drop_db": input_eval.psnr - init_eval.psnr, **state.init}
+    if group is not None:
+        from ..distributed import broadcast_params
+
+        broadcast_params(state, group)  # every rank starts from rank 0's parameters
+    return state, cfg, input_eval, init_s_v1
+
+
+def _step_hooks(inp: _Inputs, cfg: AdaptConfig, o: AdaptOptions, stop: StopFlag, group, meta: dict,
+                saved: dict):
+    """(called after each step or None, the tensorboard writer or None): periodic saves
+    (``save_every``), the test hook's progress file, tensorboard scalars."""
+    save_every = o.save_every
+    if save_every is None:
+        save_every = max(1, cfg.iterations // 10) if group is not None else 0
+    hooks = []
+    if save_every and inp.main:
+        def checkpoint(st):
+            if st.iteration % save_every == 0 and st.iteration < cfg.iterations:
+                save_state(inp.state_path, st, cfg, meta)
+                saved["iteration"] = st.iteration
+                stop.state_saved = True
+        hooks.append(checkpoint)
+    if os.environ.get(PROGRESS_FILE_ENV) and inp.main:
+        hook_path = Path(os.environ[PROGRESS_FILE_ENV])
+        hooks.append(lambda st: hook_path.write_text(f"{st.iteration}\n"))
+    writer = None
+    if o.tensorboard and inp.main:
+        from torch.utils.tensorboard import SummaryWriter
+
+        writer = SummaryWriter(log_dir=str(inp.out_dir / TENSORBOARD_DIR))
+
+        def tb_step(st):
+            h = st.history
+            for key in ("loss", "psnr", "eta", "s_v"):
+                if h.get(key):
+                    writer.add_scalar(f"train/{'rendered_fraction' if key == 'eta' else key}", h[key][-1], st.iteration)
+        hooks.append(tb_step)
+    if not hooks:
+        return None, writer
+
+    def on_step(st):
+        for f in hooks:
+            f(st)
+    return on_step, writer
+
+
+def _train(inp: _Inputs, state, cfg: AdaptConfig, o: AdaptOptions, stop: StopFlag, group, meta: dict) -> float:
+    """Phase 3: the fine-tuning (:func:`clod_adapter.training.adapt`) with its saves; returns its
+    seconds. Raises KeyboardInterrupt when a signal stopped it (the state saved first)."""
+    saved = {"iteration": state.iteration if o.resume else None}  # the state on disk
+
+    def on_interrupt(st):
+        if inp.main:
+            save_state(inp.state_path, st, cfg, meta)
+            saved["iteration"] = st.iteration
+        stop.state_saved = True
+        o.log(f"\nclod-adapt: interrupted at iteration {st.iteration}; state saved to {inp.state_path} "
+              f"(continue with --resume)")
+
+    on_step, writer = _step_hooks(inp, cfg, o, stop, group, meta, saved)
+    t_train = time.perf_counter()
+    try:
+        finished = adapt(state, inp.scene.train, inp.train_imgs, cfg, backend="auto", progress=o.progress,
+                         on_interrupt=on_interrupt, stop=stop, on_step=on_step, group=group)
+        if group is not None and finished:
+            from ..distributed import check_in_sync
+
+            check_in_sync(state, group)
+    except Exception as e:
+        from ..distributed import PeerLost
+
+        if isinstance(e, PeerLost):
+            how = "continue with --resume, with any number of processes"
+            if not inp.main:
+                what = f"{inp.state_path} holds the last state rank 0 saved ({how})"
+            elif saved["iteration"] is not None:
+                what = f"{inp.state_path} holds iteration {saved['iteration']} ({how})"
+            else:
+                what = "no state was saved"
+            raise PeerLost(f"{e}; {what}") from None
+        raise
+    finally:
+        if writer is not None:
+            writer.close()
+    if not finished:
+        raise KeyboardInterrupt
+    return time.perf_counter() - t_train
+
+
+def _evaluate(inp: _Inputs, model, cfg: AdaptConfig, o: AdaptOptions, input_eval) -> dict:
+    """Phase 4: the adapted model at every level and budget on the test views, the input and the
+    levels timed in interleaved rounds; returns the metrics dict (without the run's training
+    facts, which :func:`_run` adds)."""
+    bg = cfg.background
+    levels = sv_levels(cfg.max_sv)
+    evals = evaluate_levels(model, inp.test_cams, inp.test_imgs, levels, tau=cfg.tau, background=bg,
+                            backend="auto")
+    budget_evals = [evaluate_level(model, inp.test_cams, inp.test_imgs, None, tau=cfg.tau, background=bg,
+                                   backend="auto", budget=float(b)) for b in budget_levels(cfg.max_sv)]
+    timing = None
+    if o.timing_repeats > 0:  # ms/frame of the input and every level, interleaved (load hits all alike)
+        timing = retime_levels(inp.gaussians, model, inp.test_cams, levels, tau=cfg.tau, background=bg,
+                               backend="auto", repeats=o.timing_repeats)
+    level_dicts = [m.to_dict() for m in evals]
+    input_model = {"psnr": input_eval.psnr, "ssim": input_eval.ssim,
+                   "gaussians": input_eval.gaussians, "ms_per_frame": input_eval.ms_per_frame}
+    if timing is not None:
+        for d, t in [(input_model, timing["input"])] + [(d, timing[d["s_v"]]) for d in level_dicts]:
+            d["ms_per_frame"] = t["ms_total"]
+            d["ms_per_frame_min"], d["ms_per_frame_max"] = t["ms_total_min"], t["ms_total_max"]
+            if "select_ms" in d:
+                d["select_ms"], d["raster_ms"] = t["ms_select"], t["ms_raster"]
+    return {
+        "version": __version__, "input_ply": str(inp.ply_path), "scene": str(inp.scene_root),
+        "resolution": o.resolution, "image_size": list(inp.size), "device": str(inp.dev),
+        "threads": torch.get_num_threads(), "num_gaussians": len(model), "input_sanitized": inp.sanitized,
+        "input_masks": asdict(inp.mask_info) if inp.mask_info is not None else None,
+        "test_views": [c.name for c in inp.test_cams], "holdout_val": bool(o.holdout_val),
+        "input_model": input_model, "scene_match": inp.match,
+        "deterministic": bool(deterministic_enabled()),
+        "timing": {"method": "interleaved" if timing is not None else "single pass",
+                   "repeats": o.timing_repeats, "omp_wait_policy": os.environ.get("OMP_WAIT_POLICY"),
+                   "what": "median over rounds of the median over test views of LoD selection + "
+                           "rasterisation wall time (ms); *_min/*_max: smallest/largest round; "
+                           "budgets: single pass"},
+        "levels": level_dicts, "budgets": [m.to_dict() for m in budget_evals], "notes": inp.notes,
+    }
+
+
+def _write_outputs(inp: _Inputs, model, state, cfg: AdaptConfig, o: AdaptOptions, metrics: dict) -> list:
+    """Phase 5: every output, each atomically (a signal from here on only lets them complete);
+    returns the names written."""
+    bg = cfg.background
+    written = [PLY_NAME, STATE_NAME, METRICS_NAME, STRIP_NAME, TRAINING_PLOT_NAME]
+    write_ply(inp.out_dir / PLY_NAME, model.to("cpu"))
+    with atomic_write(inp.out_dir / METRICS_NAME, "w") as f:
+        json.dump(metrics, f, indent=2)
+    write_strip(inp.out_dir / STRIP_NAME, model, inp.test_cams[0], sv_levels(cfg.max_sv), bg, "auto",
+                gt=inp.test_imgs[0])
+    write_training_plot(inp.out_dir / TRAINING_PLOT_NAME, state.history, cfg.max_sv, cfg.views_per_step)
+    if o.layout == "inria":
+        it_n = (input_iteration(inp.ply_path) or 0) + state.iteration
+        written += write_inria_layout(inp.out_dir, model, inp.scene, iteration=it_n, resolution=o.resolution,
+                                      background=bg, scene_root=inp.scene_root)
+    if o.tensorboard:
+        written.append(TENSORBOARD_DIR + "/")
+    return written
 
 
 #: test hook (undocumented for users): write the iteration number to this file after each step.
@@ -427,288 +807,6 @@ def load_resume_state(state_path: Path, cfg: AdaptConfig, *, input_sha256: str, 
     if state.iteration > cfg.iterations:
         raise InputError(f"{state_path}: already at iteration {state.iteration} > --iterations {cfg.iterations}")
     return state, cfg, meta
-
-
-def _run(ply_path, scene_root, out_dir, cfg: AdaptConfig, *, stop: StopFlag, resolution: int,
-         device: str, resume: bool, progress: bool, log, sanitize: bool,
-         iterations_from_state: bool, force: bool, allow_mismatch: bool, iteration: Optional[int],
-         layout: str, tensorboard: bool, timing_repeats: int, masks: str, group=None,
-         save_every: Optional[int] = 0, views_from_state: bool = False, holdout_val: bool = False) -> dict:
-    t_start = time.perf_counter()
-    main = group is None or group.is_main  # the one process that writes (data-parallel: rank 0)
-    ply_path, scene_root, out_dir = Path(ply_path), Path(scene_root), Path(out_dir)
-    if layout not in ("clod", "inria"):
-        raise InputError(f"--layout must be clod or inria, got {layout!r}")
-    if not ply_path.exists():
-        raise InputError(f"{ply_path}: no such file")
-    ply_path = resolve_model_path(ply_path, iteration)
-    if not scene_root.is_dir():
-        raise InputError(f"{scene_root}: no such scene folder")
-    if tensorboard:
-        try:
-            from torch.utils.tensorboard import SummaryWriter  # noqa: F401
-        except Exception:
-            raise InputError("--tensorboard: the tensorboard package is not installed "
-                             "(pip install -e \".[tensorboard]\")") from None
-    dev = pick_device(device) if group is None else group.device
-    backend = "gsplat" if dev.type == "cuda" else "cpu"
-    try:
-        gaussians = load_model(ply_path, masks="all", allow_nonfinite=True)
-        gaussians, mask_info = apply_masks(gaussians, masks, seed=cfg.seed, path=ply_path)
-    except ValueError as e:  # an unknown policy (a PlyFormatError names the file already)
-        if isinstance(e, PlyFormatError):
-            raise
-        raise InputError(f"--masks: {e}") from None
-    if len(gaussians) == 0:
-        raise InputError(f"{ply_path}: the model has no Gaussians")
-    if mask_info is not None:
-        log(f"clod-adapt: MaskGaussian masks {mask_info.describe()} (--masks argmax|gumbel|all)")
-    gaussians, sanitized = check_finite(gaussians, ply_path, sanitize, log=log)
-    scene = load_scene(scene_root, resolution=resolution, background=cfg.background)
-    stop.reinstall()  # importing pycolmap (COLMAP scenes only) replaces the SIGTERM handler
-    if holdout_val:  # fit on the training views minus the validation views, score on those
-        from ..io.scene import holdout_validation
-
-        scene = holdout_validation(scene)
-    if not scene.train:
-        raise InputError(f"{scene_root}: no training views (every image is a test view)")
-    state_path = out_dir / STATE_NAME
-    if resume and not state_path.is_file():
-        raise InputError(f"{state_path}: no state to resume from")
-    check_output_dir(out_dir, [ply_path], create=False, force=force, resume=resume)  # checks only
-    input_sha256, scene_fp = file_sha256(ply_path), scene_key(scene.train)
-    if resume:
-        resumed = load_resume_state(state_path, cfg, input_sha256=input_sha256, scene_fp=scene_fp,
-                                    resolution=resolution, num_gaussians=len(gaussians),
-                                    iterations_from_state=iterations_from_state, device=dev,
-                                    views_from_state=views_from_state)
-
-    gaussians = gaussians.to(dev)
-    # decoded on first use, kept within a memory budget (CLOD_IMAGE_CACHE_MB): a data-parallel
-    # rank decodes only its own views, and hundreds of large views do not fill the memory
-    scene.cache_size = 0
-    train_imgs = ViewImages(scene, scene.train, dev)
-    test_cams = scene.test or scene.train[:1]
-    test_imgs = ViewImages(scene, test_cams, dev)
-    fr_any = torch.zeros(len(gaussians), dtype=torch.bool, device=dev)
-    for c in scene.train:
-        fr_any |= lod.in_frustum(gaussians.means, c.viewmat.to(dev), c.K.to(dev), c.width, c.height)
-    if not bool(fr_any.any()):
-        raise InputError(f"{ply_path}: no Gaussian lies inside any training view of {scene_root}; "
-                         "is the model from another scene?")
-    match = scene_match(gaussians, scene.train, train_imgs, background=cfg.background, backend=backend)
-    if match["margin_db"] < MISMATCH_MARGIN_DB:
-        what = (f"{ply_path}: the model does not render {scene_root}: {match['psnr']:.2f} dB PSNR on "
-                f"{len(match['views'])} training views, not above a flat image of their mean colour "
-                f"({match['flat_psnr']:.2f} dB); {100 * match['in_view_fraction']:.0f} % of its Gaussians "
-                "lie in any training view")
-        if not allow_mismatch:
-            raise InputError(what + "; is the model from another scene? (--allow-mismatch goes on anyway)")
-        log(f"clod-adapt: warning: {what}; going on (--allow-mismatch)")
-    notes = []
-    size = (scene.train[0].width, scene.train[0].height)
-    note = resolution_note(training_size(ply_path), size, "cameras.json of the model folder")
-    if note:
-        notes.append(note)
-        log(f"clod-adapt: note: {note}")
-    if main:
-        check_output_dir(out_dir, [ply_path], force=True)  # every input is valid: create the output folder
-    log(f"clod-adapt: {ply_path}: {len(gaussians):,} Gaussians (SH degree {gaussians.sh_degree}); "
-        f"{len(scene.train)} train / {len(scene.test)} test views at {size[0]}x{size[1]}; device {dev}, "
-        f"{torch.get_num_threads()} threads; training-view PSNR {match['psnr']:.2f} dB")
-    if group is not None:
-        log(f"clod-adapt: data-parallel over {group.world_size} processes ({group.backend}), "
-            f"{cfg.views_per_step} views per step; rank 0 writes")
-        if cfg.views_per_step < group.world_size:
-            log(f"clod-adapt: note: {cfg.views_per_step} views per step for {group.world_size} processes: "
-                f"{group.world_size - cfg.views_per_step} of them render nothing (--views-per-step)")
-
-    bg = cfg.background
-    input_eval = evaluate_level(gaussians, test_cams, test_imgs, None, background=bg, backend=backend) if main else None
-    # from here on a signal only sets the flag: the state is saved at the next safe point
-    stop.set_abortable(False)
-    if resume:
-        state, cfg, saved_meta = resumed
-        log(f"clod-adapt: resuming {state_path} at iteration {state.iteration}/{cfg.iterations}")
-        init_s_v1 = json.loads(saved_meta.get("init_s_v1", "null"))
-    else:
-        state = prepare(gaussians, scene.train, cfg, train_imgs, backend=backend)
-        if "attenuation" in state.init:
-            log(f"clod-adapt: sigma_d initialised with attenuation {state.init['attenuation']} at s_v = 1")
-        else:
-            log(f"clod-adapt: sigma_d calibrated from the {state.init.get('ranking')} ranking on quantiles of "
-                f"cost^{state.init.get('cost_exponent')} (levels in frame cost and count)")
-        init_s_v1 = None
-        if main:
-            init_eval = evaluate_level(state.gaussians().detach(), test_cams, test_imgs, 1.0,
-                                       tau=cfg.tau, background=bg, backend=backend)
-            init_s_v1 = {"psnr": init_eval.psnr, "ssim": init_eval.ssim,
-                         "psnr_drop_db": input_eval.psnr - init_eval.psnr, **state.init}
-    if group is not None:
-        from ..distributed import broadcast_params
-
-        broadcast_params(state, group)  # every rank starts from rank 0's parameters
-
-    from ..render.composite import deterministic_enabled
-
-    meta = {"input_ply": str(ply_path), "scene": str(scene_root), "resolution": resolution,
-            "input_sha256": input_sha256, "scene_key": scene_fp, "init_s_v1": json.dumps(init_s_v1),
-            "deterministic": int(deterministic_enabled()), "threads": torch.get_num_threads(),
-            "world_size": 1 if group is None else group.world_size}
-    saved = {"iteration": state.iteration if resume else None}  # the state on disk
-    if save_every is None:
-        save_every = max(1, cfg.iterations // 10) if group is not None else 0
-
-    def on_interrupt(st):
-        if main:
-            save_state(state_path, st, cfg, meta)
-            saved["iteration"] = st.iteration
-        stop.state_saved = True
-        log(f"\nclod-adapt: interrupted at iteration {st.iteration}; state saved to {state_path} "
-            f"(continue with --resume)")
-
-    step_hooks = []
-    if save_every and main:
-        def checkpoint(st):
-            if st.iteration % save_every == 0 and st.iteration < cfg.iterations:
-                save_state(state_path, st, cfg, meta)
-                saved["iteration"] = st.iteration
-                stop.state_saved = True
-        step_hooks.append(checkpoint)
-    if os.environ.get(PROGRESS_FILE_ENV) and main:
-        hook_path = Path(os.environ[PROGRESS_FILE_ENV])
-        step_hooks.append(lambda st: hook_path.write_text(f"{st.iteration}\n"))
-    writer = None
-    if tensorboard and main:
-        from torch.utils.tensorboard import SummaryWriter
-
-        writer = SummaryWriter(log_dir=str(out_dir / TENSORBOARD_DIR))
-
-        def tb_step(st):
-            h = st.history
-            for key in ("loss", "psnr", "eta", "s_v"):
-                if h.get(key):
-                    writer.add_scalar(f"train/{'rendered_fraction' if key == 'eta' else key}", h[key][-1], st.iteration)
-        step_hooks.append(tb_step)
-    on_step = None
-    if step_hooks:
-        def on_step(st):
-            for f in step_hooks:
-                f(st)
-
-    t_train = time.perf_counter()
-    it0 = state.iteration
-    try:
-        finished = adapt(state, scene.train, train_imgs, cfg, backend=backend, progress=progress,
-                         on_interrupt=on_interrupt, stop=stop, on_step=on_step, group=group)
-        if group is not None and finished:
-            from ..distributed import check_in_sync
-
-            check_in_sync(state, group)
-    except Exception as e:
-        from ..distributed import PeerLost
-
-        if isinstance(e, PeerLost):
-            how = "continue with --resume, with any number of processes"
-            if not main:
-                what = f"{state_path} holds the last state rank 0 saved ({how})"
-            elif saved["iteration"] is not None:
-                what = f"{state_path} holds iteration {saved['iteration']} ({how})"
-            else:
-                what = "no state was saved"
-            raise PeerLost(f"{e}; {what}") from None
-        raise
-    finally:
-        if writer is not None:
-            writer.close()
-    if not finished:
-        raise KeyboardInterrupt
-    train_s = time.perf_counter() - t_train
-    model = replace(state.gaussians().detach(), extra=gaussians.extra)  # unknown .ply properties ride along
-    # the final state first: an interrupt during the evaluation resumes at the last iteration
-    if main:
-        save_state(state_path, state, cfg, meta)
-    stop.state_saved = True
-    if group is not None:
-        group.barrier("the final save")  # the others may leave once the final state is on disk
-        if not main:
-            return {"rank": group.rank, "world_size": group.world_size, "iteration": state.iteration,
-                    "train_seconds": round(train_s, 2)}
-
-    levels = sv_levels(cfg.max_sv)
-    stop.set_abortable(True)  # the evaluation writes nothing; raises if a signal came meanwhile
-    evals = evaluate_levels(model, test_cams, test_imgs, levels, tau=cfg.tau, background=bg,
-                            backend=backend)
-    budget_evals = [evaluate_level(model, test_cams, test_imgs, None, tau=cfg.tau, background=bg,
-                                   backend=backend, budget=float(b)) for b in budget_levels(cfg.max_sv)]
-    timing = None
-    if timing_repeats > 0:  # ms/frame of the input and every level, interleaved (load hits all alike)
-        timing = retime_levels(gaussians, model, test_cams, levels, tau=cfg.tau, background=bg,
-                               backend=backend, repeats=timing_repeats)
-    stop.set_abortable(False)
-    level_dicts = [m.to_dict() for m in evals]
-    input_model = {"psnr": input_eval.psnr, "ssim": input_eval.ssim,
-                   "gaussians": input_eval.gaussians, "ms_per_frame": input_eval.ms_per_frame}
-    if timing is not None:
-        for d, t in [(input_model, timing["input"])] + [(d, timing[d["s_v"]]) for d in level_dicts]:
-            d["ms_per_frame"] = t["ms_total"]
-            d["ms_per_frame_min"], d["ms_per_frame_max"] = t["ms_total_min"], t["ms_total_max"]
-            if "select_ms" in d:
-                d["select_ms"], d["raster_ms"] = t["ms_select"], t["ms_raster"]
-    metrics = {
-        "version": __version__,
-        "input_ply": str(ply_path),
-        "scene": str(scene_root),
-        "resolution": resolution,
-        "image_size": list(size),
-        "device": str(dev),
-        "threads": torch.get_num_threads(),
-        "num_gaussians": len(model),
-        "input_sanitized": sanitized,
-        "input_masks": asdict(mask_info) if mask_info is not None else None,
-        "test_views": [c.name for c in test_cams],
-        "holdout_val": bool(holdout_val),
-        "config": asdict(cfg),
-        "train_seconds": round(train_s, 2),
-        "seconds_per_iteration": round(train_s / max(state.iteration - it0, 1), 4),
-        "world_size": 1 if group is None else group.world_size,
-        "input_model": input_model,
-        "scene_match": match,
-        "init_s_v1": init_s_v1,
-        "deterministic": bool(deterministic_enabled()),
-        "timing": {"method": "interleaved" if timing is not None else "single pass",
-                   "repeats": timing_repeats, "omp_wait_policy": os.environ.get("OMP_WAIT_POLICY"),
-                   "what": "median over rounds of the median over test views of LoD selection + "
-                           "rasterisation wall time (ms); *_min/*_max: smallest/largest round; "
-                           "budgets: single pass"},
-        "levels": level_dicts,
-        "budgets": [m.to_dict() for m in budget_evals],
-        "dead_sigma_d": int((model.sigma_d <= 0).sum()),
-        "notes": notes,
-    }
-    if stop.stop:  # a signal just after the evaluation: nothing written yet, stop here
-        log(f"\nclod-adapt: interrupted after training; state saved to {state_path} (continue with --resume)")
-        raise KeyboardInterrupt
-    # each output atomically; a signal from here on only lets them complete
-    written = [PLY_NAME, STATE_NAME, METRICS_NAME, STRIP_NAME, TRAINING_PLOT_NAME]
-    write_ply(out_dir / PLY_NAME, model.to("cpu"))
-    with atomic_write(out_dir / METRICS_NAME, "w") as f:
-        json.dump(metrics, f, indent=2)
-    write_strip(out_dir / STRIP_NAME, model, test_cams[0], levels, bg, backend, gt=test_imgs[0])
-    write_training_plot(out_dir / TRAINING_PLOT_NAME, state.history, cfg.max_sv, cfg.views_per_step)
-    if layout == "inria":
-        it_n = (input_iteration(ply_path) or 0) + state.iteration
-        written += write_inria_layout(out_dir, model, scene, iteration=it_n, resolution=resolution,
-                                      background=bg, scene_root=scene_root)
-    if tensorboard:
-        written.append(TENSORBOARD_DIR + "/")
-    if stop.stop:
-        log("clod-adapt: signal received while writing the outputs; they were completed first")
-    metrics["wall_seconds"] = round(time.perf_counter() - t_start, 1)
-    log(format_summary(metrics))
-    log(f"clod-adapt: wrote {', '.join(written)} to {out_dir} in {metrics['wall_seconds']:.0f} s "
-        f"({metrics['seconds_per_iteration']:.3f} s per iteration)")
-    return metrics
 
 
 def format_summary(metrics: dict) -> str:

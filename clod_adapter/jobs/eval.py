@@ -12,7 +12,7 @@
   every Gaussian in view drawn;
 * ``dlod_finetuned`` (``dlod_iterations > 0``): the per-budget ceiling, one model per level: the
   pretrained model cut to the budget by the best static ranking of this report, fine-tuned on the
-  training views (:mod:`clod_adapter.dlod`); its storage is the sum of the levels;
+  training views (:mod:`clod_adapter.dlod_ceiling`); its storage is the sum of the levels;
 * ``pretrained``: the pretrained model in full (reference);
 
 scores each render (PSNR, SSIM in the 3DGS form, LPIPS-alex when weights exist), times it
@@ -60,7 +60,7 @@ import math
 import os
 import statistics
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Callable, Optional, Sequence, Union
 
@@ -69,7 +69,7 @@ import torch
 from torch import Tensor
 
 from .. import __version__, lod
-from ..adapt import max_sv_from_state
+from ..training import max_sv_from_state
 from ..baselines import (SIGMA_C_CANDIDATES, Selection, constant_sigma_selection,
                         lightgaussian_significance, tune_sigma_c,
                         random_scores, ranking_selection, render_subset)
@@ -78,21 +78,62 @@ from ..gaussians import Gaussians
 from ..io.atomic import atomic_save, atomic_write
 from ..frontier import Point, frontier
 from ..io.ply import read_ply
-from ..storage import ply_bytes
-from ..view import render_lod
+from ..storage import ply_bytes, ply_row_bytes
+from ..camera_lod import render_lod
 from ..metrics import psnr, ssim
 
 CSV_COLUMNS = ("method", "setting", "s_v", "budget", "gaussians", "fraction", "psnr", "ssim", "lpips",
                "ms_total", "ms_select", "ms_raster", "bytes", "views", "ms_min", "ms_max")
 PER_VIEW_COLUMNS = ("method", "setting", "view", "s_v", "budget", "gaussians", "fraction", "psnr", "ssim",
                     "lpips", "ms_total", "ms_select", "ms_raster", "bytes")
-BASELINES = ("constant_sigma", "lightgaussian", "random")
-#: baselines that are global rankings (the candidates of dlod_finetuned's cut).
-RANKING_BASELINES = ("constant_sigma", "lightgaussian", "random")
-#: splat-transform 3.7.0's untrained decimators (method name -> ``merge_decimate`` mode).
-DECIMATORS = {"decimate": "decimate", "decimate_adaptive": "adaptive"}
-METHODS = ("clod", "clod_budget") + BASELINES + tuple(DECIMATORS) + ("dlod_finetuned", "pretrained")
-OUTPUT_NAMES = ("report.csv", "report_per_view.csv", "report.json", "quality_vs_gaussians.png",
+
+
+@dataclass(frozen=True)
+class RankingContext:
+    """What the ranking baselines select from, computed once per report: the pretrained model's
+    LightGaussian significance on the training views and a seeded random ranking (both [N]
+    float32), and the constant-sigma baseline's ``sigma_c`` and ``tau``."""
+
+    lightgaussian: Tensor
+    random: Tensor
+    sigma_c: float
+    tau: float
+
+
+@dataclass(frozen=True)
+class Method:
+    """One method of the report: its plot style (matplotlib colour, line style, marker) and, for
+    a ranking baseline, how it selects ``k`` Gaussians of the pretrained model in one view
+    (``select(base, camera, k, ctx: RankingContext) -> Selection``); ``decimate``: the
+    ``merge_decimate`` mode of a splat-transform decimator. Adding a baseline is one entry of
+    :data:`METHOD_REGISTRY`."""
+
+    style: tuple
+    select: Optional[Callable] = None
+    decimate: Optional[str] = None
+
+
+#: every method of the report, in table and legend order.
+METHOD_REGISTRY: dict[str, Method] = {
+    "clod": Method(("C0", "-", ".")),
+    "clod_budget": Method(("C0", "", "o")),
+    "constant_sigma": Method(("C1", "--", "s"), select=lambda base, cam, k, ctx: constant_sigma_selection(
+        base, cam, k, ctx.sigma_c, tau=ctx.tau)),
+    "lightgaussian": Method(("C2", "--", "^"), select=lambda base, cam, k, ctx: ranking_selection(
+        base, cam, ctx.lightgaussian, k)),
+    "random": Method(("C3", ":", "x"), select=lambda base, cam, k, ctx: ranking_selection(base, cam, ctx.random, k)),
+    # splat-transform 3.7.0's untrained decimators
+    "decimate": Method(("C4", "--", "D"), decimate="decimate"),
+    "decimate_adaptive": Method(("C6", "--", "v"), decimate="adaptive"),
+    "dlod_finetuned": Method(("C5", "-.", "P")),
+    "pretrained": Method(("k", "", "*")),
+}
+#: the ranking baselines (drawn at the adapted budgets' per-view counts).
+BASELINES = tuple(k for k, m in METHOD_REGISTRY.items() if m.select is not None)
+#: the decimators (method name -> ``merge_decimate`` mode).
+DECIMATORS = {k: m.decimate for k, m in METHOD_REGISTRY.items() if m.decimate is not None}
+METHODS = tuple(METHOD_REGISTRY)
+OUTPUT_NAMES = ("report.csv", "report_per_view.csv", "report.json", "report.md", "quality_vs_gaussians.png",
                 "quality_vs_time.png", "popping.png", "lod_strip.png")
 DEFAULT_BUDGETS = (1.0, 0.5, 0.25, 0.1)
 
@@ -100,15 +141,6 @@ LpipsSpec = Union[str, os.PathLike, Callable, None]
 
 
 # --- small helpers ----------------------------------------------------------------------------
-def bytes_per_gaussian(gaussians: Gaussians) -> int:
-    """Bytes one Gaussian takes in the .ply :func:`clod_adapter.io.ply.write_ply` writes for this
-    model (its row stride: normals, ``sigma_d``, level gains and extra properties included;
-    :func:`clod_adapter.storage.ply_row_bytes`)."""
-    from ..storage import ply_row_bytes
-
-    return ply_row_bytes(gaussians)
-
-
 def sv_grid(max_sv: float, steps: int = 25, overshoot: float = 1.2) -> list[float]:
     """``steps`` values of ``s_v`` evenly spaced from 1 to ``overshoot * max_sv`` (past the
     trained maximum)."""
@@ -249,8 +281,8 @@ def _retime(rows: _Rows, repeats: int, seed: int, on_render=None) -> None:
 def _adapted_cut(adapted: Gaussians, k: int, cameras) -> Gaussians:
     """The adapted model's own ``k``-Gaussian level as a static model (a start for
     ``dlod_finetuned``): the first ``k`` of its importance order over ``cameras``
-    (:func:`clod_adapter.export.importance_order`), base attributes, no ``sigma_d``."""
-    from ..export import importance_order
+    (:func:`clod_adapter.bake.importance_order`), base attributes, no ``sigma_d``."""
+    from ..bake import importance_order
 
     keep = torch.sort(importance_order(adapted, cameras)[:k]).values
     return adapted.subset(keep).with_sigma_d(None)
@@ -344,12 +376,6 @@ def _save_fig(fig, path: Path) -> None:
     plt.close(fig)
 
 
-_STYLE = {"clod": ("C0", "-", "."), "clod_budget": ("C0", "", "o"), "constant_sigma": ("C1", "--", "s"),
-          "lightgaussian": ("C2", "--", "^"), "random": ("C3", ":", "x"), "decimate": ("C4", "--", "D"),
-          "decimate_adaptive": ("C6", "--", "v"),
-          "dlod_finetuned": ("C5", "-.", "P"), "pretrained": ("k", "", "*")}
-
-
 def _plot_quality(rows: list[dict], x: str, xlabel: str, path: Path, extra=None, time_axis: bool = False,
                   mark: Optional[tuple] = None) -> None:
     """Quality against ``x``. ``time_axis``: markers only, each with a horizontal bar from the
@@ -371,7 +397,7 @@ def _plot_quality(rows: list[dict], x: str, xlabel: str, path: Path, extra=None,
                         key=lambda r: (r["gaussians"], r[x]))
             if not rs:
                 continue
-            c, ls, mk = _STYLE.get(method, ("C4", "-", "d"))
+            c, ls, mk = METHOD_REGISTRY[method].style
             ms = 6 if method != "pretrained" else 11
             xs, ys = [r[x] for r in rs], [r[m] for r in rs]
             if time_axis:
@@ -464,8 +490,7 @@ def format_markdown(report: dict) -> str:
     rows = report["rows"]
     fmt = lambda v, f: "-" if v is None or (isinstance(v, float) and v != v) else format(v, f)  # noqa: E731
     budgets = [r["setting"] for r in rows if r["method"] == "clod_budget"]
-    methods = [m for m in ("clod_budget",) + BASELINES + tuple(DECIMATORS) + ("dlod_finetuned",)
-               if any(r["method"] == m for r in rows)]
+    methods = [m for m in METHODS if m not in ("clod", "pretrained") and any(r["method"] == m for r in rows)]
     out = [f"{report['num_gaussians']['adapted']:,} Gaussians; views: {', '.join(report['views'])} "
            f"at {report['image_size'][0]}x{report['image_size'][1]}; {report['device']}, "
            f"{report['threads']} threads; constant-sigma c = {report['settings']['sigma_c']:g} "
@@ -513,274 +538,353 @@ def format_markdown(report: dict) -> str:
 
 
 # --- the report -----------------------------------------------------------------------------
+@dataclass
+class EvalOptions:
+    """How ``clod-eval`` (:func:`evaluate_report`) evaluates an adapted model.
+
+    Attributes:
+        pretrained: the pretrained model the baselines cut (.ply or Gaussians). None: the adapted
+            model's own attributes without ``sigma_d`` (noted in the report).
+        pretrained_label: the report's name for a ``pretrained`` given as Gaussians.
+        budgets: fractions (<= 1) and/or counts (integers > 1), see :func:`normalize_budgets`.
+        s_vs: the s_v sweep; default :func:`sv_grid` ``(max_sv, sv_steps)``.
+        max_sv: the trained maximum (default: from the model's header or
+            ``adapt_state.safetensors`` beside the .ply, else 5).
+        popping_steps: frames of the popping sweep, s_v from 1 to the sweep's end.
+        lpips: see :func:`resolve_lpips`.
+        sigma_c: the constant decay of the constant-sigma baseline (default: the best on training
+            views, :func:`clod_adapter.baselines.tune_sigma_c`).
+        seed: seed of the random baseline. tau: the LoD threshold (default: the adapted model's).
+        background: [3] RGB behind the scene. device: where to render (CUDA renders with gsplat).
+        progress: show progress (a tqdm bar on a terminal, else a plain line every 10 %).
+        log: where the final text table goes (None: nowhere).
+        timing_repeats: interleaved timing rounds after the quality pass
+            (:mod:`clod_adapter.timing`); 0 keeps the quality pass's own (single) times.
+        notes: extra notes for the report (e.g. a resolution warning).
+        dlod_iterations: > 0 adds ``dlod_finetuned``: for each budget below 1, the best start on
+            validation views (:func:`clod_adapter.dlod_ceiling.best_start`) fine-tuned for this many steps
+            (:func:`clod_adapter.dlod_ceiling.finetune_subset`).
+        merge_tool: a splat-transform executable: adds splat-transform's decimators at each
+            budget's share of the model; a failing run raises RuntimeError (a peer never silently
+            drops out of the report). None: they are not run, and the report says so.
+    """
+
+    pretrained: Union[os.PathLike, str, Gaussians, None] = None
+    budgets: Sequence = DEFAULT_BUDGETS
+    s_vs: Optional[Sequence[float]] = None
+    max_sv: Optional[float] = None
+    sv_steps: int = 25
+    popping_steps: int = 61
+    lpips: LpipsSpec = "auto"
+    sigma_c: Optional[float] = None
+    pretrained_label: Optional[str] = None
+    seed: int = 0
+    tau: Optional[float] = None
+    background: tuple = (0.0, 0.0, 0.0)
+    device: Union[str, torch.device] = "cpu"
+    progress: bool = True
+    log: Optional[Callable[[str], None]] = print
+    timing_repeats: int = 3
+    notes: Sequence[str] = ()
+    dlod_iterations: int = 0
+    merge_tool: Optional[str] = None
+
+
+@dataclass
+class _Eval:
+    """One report in the making: the models, views and settings every phase reads, and the rows."""
+
+    o: EvalOptions
+    adapted: Gaussians
+    base: Gaussians
+    ply_path: Optional[Path]
+    max_sv: float
+    budgets: list
+    s_vs: list
+    dev: torch.device
+    cams: list
+    train_cams: list
+    gts: list
+    train_gts: list
+    sigma_c: float
+    sigma_c_rule: str
+    lpips_fn: Optional[Callable]
+    notes: list
+    bar: object = None
+    rows: _Rows = field(default_factory=_Rows)
+    dlod: dict = field(default_factory=lambda: {"levels": {}, "choice": {}, "info": {}})
+    merge_sizes: dict = field(default_factory=dict)
+    decimated: dict = field(default_factory=dict)
+
+    @property
+    def bg(self) -> list:
+        return list(self.o.background)
+
+    def tick(self) -> None:
+        self.bar.update(1)
+
+    def run(self, fn) -> list:
+        """One sample per view of ``fn(cam)`` (``fn`` binds its loop variables: it is called
+        again for timing)."""
+        out = []
+        for cam in self.cams:
+            out.append(_sample(lambda cam=cam: fn(cam)))
+            self.tick()
+        return out
+
+    def render(self, g: Gaussians, cam, **kw) -> Sample:
+        return _render_lod(g, cam, self.bg, "auto", self.o.tau, **kw)
+
+    def score(self, method: str, setting: str, budget, samples: list, adapted: bool) -> None:
+        g = self.adapted if adapted else self.base
+        _score(self.rows, method, setting, budget, samples, self.cams, self.gts, len(g), ply_row_bytes(g),
+               self.lpips_fn)
+
+
 @torch.no_grad()
-def evaluate_report(
-    adapted: Union[os.PathLike, str, Gaussians],
-    scene,
-    out_dir: os.PathLike,
-    *,
-    pretrained: Union[os.PathLike, str, Gaussians, None] = None,
-    budgets: Sequence = DEFAULT_BUDGETS,
-    s_vs: Optional[Sequence[float]] = None,
-    max_sv: Optional[float] = None,
-    sv_steps: int = 25,
-    popping_steps: int = 61,
-    lpips: LpipsSpec = "auto",
-    sigma_c: Optional[float] = None,
-    pretrained_label: Optional[str] = None,
-    seed: int = 0,
-    tau: Optional[float] = None,
-    background=(0.0, 0.0, 0.0),
-    device: Union[str, torch.device] = "cpu",
-    progress: bool = True,
-    log: Callable[[str], None] = print,
-    timing_repeats: int = 3,
-    notes: Sequence[str] = (),
-    dlod_iterations: int = 0,
-    merge_tool: Optional[str] = None,
-) -> dict:
+def evaluate_report(adapted: Union[os.PathLike, Gaussians], scene, out_dir: os.PathLike,
+                    options: Optional[EvalOptions] = None, **option_values) -> dict:
     """Evaluate an adapted CLoD model against baselines and write the report to ``out_dir``.
+
+    Phases, in order: :func:`_eval_inputs` (models, views, settings), :func:`_score_sweep` (the
+    pretrained model and the adapted one along ``s_v``), :func:`_score_budget` per budget (the
+    adapted model's budget, every ranking baseline of :data:`METHOD_REGISTRY` at the same per-view
+    counts, the decimators, the dlod ceiling), the interleaved timing rounds, the popping sweep,
+    :func:`_write_report`.
 
     Args:
         adapted: the adapted model (.ply path or :class:`Gaussians` with ``sigma_d``).
         scene: a :class:`clod_adapter.io.scene.Scene` (test views: ``scene.test``, or the first
             training view when there are none; LightGaussian scores use ``scene.train``).
         out_dir: output folder (must exist or be creatable; the CLI checks it first).
-        pretrained: the pretrained model the baselines cut (.ply or Gaussians). None: the adapted
-            model's own attributes without ``sigma_d`` (noted in the report).
-        budgets: fractions (<= 1) and/or counts (integers > 1), see :func:`normalize_budgets`.
-        s_vs: the s_v sweep; default :func:`sv_grid` ``(max_sv, sv_steps)``.
-        max_sv: the trained maximum (default: from ``adapt_state.safetensors`` beside the .ply,
-            else 5).
-        popping_steps: frames of the popping sweep, s_v from 1 to the sweep's end.
-        lpips: see :func:`resolve_lpips`.
-        sigma_c: the constant decay of the constant-sigma baseline (default: the
-            best on training views, :func:`clod_adapter.baselines.tune_sigma_c`).
-        seed: seed of the random baseline.
-        tau: the LoD threshold (default: the adapted model's).
-        background: [3] RGB behind the scene.
-        device: where to render (CUDA renders with gsplat).
-        progress: show progress (a tqdm bar on a terminal, else a plain line every 10 %).
-        log: where the final text table goes (None: nowhere).
-        timing_repeats: interleaved timing rounds after the quality pass
-            (:mod:`clod_adapter.timing`); 0 keeps the quality pass's own (single) times.
-        notes: extra notes for the report (e.g. a resolution warning).
-        dlod_iterations: > 0 adds ``dlod_finetuned``: for each budget below 1, the pretrained
-            model cut by the best static ranking of this report (highest mean PSNR at that
-            budget among :data:`RANKING_BASELINES`, global top share of the model) and
-            fine-tuned for this many steps (:func:`clod_adapter.dlod.finetune_subset`).
-        merge_tool: a splat-transform executable: adds splat-transform's decimators
-            ``decimate`` and ``decimate_adaptive`` (:func:`clod_adapter.baselines.merge_decimate`)
-            at each budget's share of the model; a failing run raises RuntimeError (a peer never
-            silently drops out of the report). None: they are not run, and the report says so.
+        options: :class:`EvalOptions` (or its fields given by name, ``option_values``).
 
     Returns:
         the report dict (also ``report.json``): ``rows`` (aggregated, :data:`CSV_COLUMNS`),
         ``per_view``, ``popping`` (:func:`popping_curve`), ``settings`` and ``notes``.
+
+    Raises:
+        ValueError: the adapted model has no ``sigma_d``. RuntimeError: a decimator failed.
     """
     from . import progress_bar
-    from ..figures import write_strip
-    from ..level_metrics import sv_levels
 
+    o = options if options is not None else EvalOptions(**option_values)
+    if options is not None and option_values:
+        o = replace(options, **option_values)
     t_start = time.perf_counter()
-    out_dir = Path(out_dir)
-    dev = torch.device(device)
-    backend = "gsplat" if dev.type == "cuda" else "cpu"
-    notes = list(notes)
+    ev = _eval_inputs(adapted, scene, o)
+    extra = len(BASELINES) + (len(DECIMATORS) if o.merge_tool else 0) + (1 if o.dlod_iterations > 0 else 0)
+    n_renders = len(ev.cams) * (len(ev.s_vs) + 1 + len(ev.budgets) * (1 + extra)) * (1 + max(o.timing_repeats, 0))
+    ev.bar = progress_bar(n_renders + o.popping_steps + 2, "clod-eval", unit="render", disable=not o.progress,
+                          leave=False)
+    t0 = time.perf_counter()
+    _score_sweep(ev)
+    t_sig = time.perf_counter()
+    ctx = RankingContext(lightgaussian=lightgaussian_significance(ev.base, ev.train_cams),
+                         random=random_scores(len(ev.base), o.seed, ev.dev), sigma_c=float(ev.sigma_c),
+                         tau=lod.DEFAULT_TAU if o.tau is None else o.tau)
+    t_sig = time.perf_counter() - t_sig
+    if o.merge_tool is None:
+        ev.notes.append("splat-transform's decimators (decimate, decimate_adaptive) NOT RUN: splat-transform not "
+                        "found (`npm ci` in the repository root installs the pinned 3.7.0)")
+    global_scores = _dlod_rankings(ev, ctx) if o.dlod_iterations > 0 else {}
+    for b in ev.budgets:
+        _score_budget(ev, b, ctx, global_scores)
+    ev.bar.set_postfix_str(f"timing x{o.timing_repeats}")
+    _retime(ev.rows, o.timing_repeats, o.seed, on_render=ev.tick)
+    ev.bar.set_postfix_str("popping")
+    pop_svs = [float(x) for x in np.linspace(1.0, ev.s_vs[-1], o.popping_steps)]
+    pop = popping_curve(ev.adapted, ev.cams[0], pop_svs, discrete_model=ev.base, discrete_scores=ctx.lightgaussian,
+                        tau=o.tau, background=ev.bg, backend="auto", on_render=ev.tick)
+    pop["camera"] = ev.cams[0].name
+    pop["discrete"] = "pretrained model cut by LightGaussian significance at the continuous sweep's end counts"
+    ev.bar.close()
+    report = _report_dict(ev, scene, pop, t_sig, time.perf_counter() - t0)
+    _write_report(ev, Path(out_dir), report, pop, t_start)
+    if o.log is not None:
+        o.log(format_table(ev.rows.rows))
+        o.log(f"popping (camera {pop['camera']}): continuous max {pop['continuous_max']:.4g} / median "
+              f"{pop['continuous_median']:.4g}; discrete max {pop['discrete_max']:.4g}; ratio {pop['ratio']:.1f}")
+        for n in ev.notes:
+            o.log(f"note: {n}")
+    return report
+
+
+def _eval_inputs(adapted, scene, o: EvalOptions) -> _Eval:
+    """Phase 1: the adapted and pretrained models on the device, the sweep and budgets, the
+    views and their images, LPIPS and the constant-sigma baseline's ``sigma_c``."""
+    dev = torch.device(o.device)
+    notes = list(o.notes)
     ply_path = None
     if not isinstance(adapted, Gaussians):
         ply_path = Path(adapted)
         adapted = read_ply(ply_path)
     if adapted.sigma_d is None:
         raise ValueError("evaluate_report: the adapted model has no sigma_d (run clod-adapt first)")
+    max_sv = o.max_sv
     if max_sv is None:
         max_sv = (adapted.lod.max_sv if adapted.lod is not None else None) \
             or (max_sv_from_state(ply_path) if ply_path is not None else None) or 5.0
-    if pretrained is None:
+    if o.pretrained is None:
         base = adapted.with_sigma_d(None)
         notes.append("no pretrained model given: baselines cut the adapted model's own attributes")
     else:
-        base = pretrained if isinstance(pretrained, Gaussians) else read_ply(pretrained)
+        base = o.pretrained if isinstance(o.pretrained, Gaussians) else read_ply(o.pretrained)
         base = base.with_sigma_d(None)
-    budgets = normalize_budgets(budgets)
-    s_vs = sv_grid(max_sv, sv_steps) if s_vs is None else [float(s) for s in s_vs]
-    sigma_c_rule = "given"
-    lpips_fn, lpips_note = resolve_lpips(lpips)
+    budgets = normalize_budgets(o.budgets)
+    s_vs = sv_grid(max_sv, o.sv_steps) if o.s_vs is None else [float(s) for s in o.s_vs]
+    lpips_fn, lpips_note = resolve_lpips(o.lpips)
     if lpips_fn is not None and hasattr(lpips_fn, "to"):
         lpips_fn = lpips_fn.to(dev)
     notes.append(lpips_note)
-
     adapted, base = adapted.to(dev), base.to(dev)
     cams = list(scene.test) or list(scene.train[:1])
     train_cams = list(scene.train) or cams
     gts = [scene.load_image(c).to(dev) for c in cams]
-    train_gts = [scene.load_image(c).to(dev) for c in train_cams] if (sigma_c is None or dlod_iterations > 0) else []
+    need_train = o.sigma_c is None or o.dlod_iterations > 0
+    train_gts = [scene.load_image(c).to(dev) for c in train_cams] if need_train else []
+    sigma_c, sigma_c_rule = o.sigma_c, "given"
     if sigma_c is None:
-        sigma_c = tune_sigma_c(base, train_cams, train_gts, background=list(background), backend=backend)
+        sigma_c = tune_sigma_c(base, train_cams, train_gts, background=list(o.background), backend="auto")
         sigma_c_rule = "best training-view PSNR at 50 % over " + ", ".join(f"{c:g}" for c in SIGMA_C_CANDIDATES)
-    bg = list(background)
-    pop_svs = [float(x) for x in np.linspace(1.0, s_vs[-1], popping_steps)]
-    strip_svs = sv_levels(max_sv)
-    extra = len(BASELINES) + (len(DECIMATORS) if merge_tool else 0) + (1 if dlod_iterations > 0 else 0)
-    n_renders = len(cams) * (len(s_vs) + 1 + len(budgets) * (1 + extra)) * (1 + max(timing_repeats, 0))
-    n_renders += popping_steps + 2
-    bar = progress_bar(n_renders, "clod-eval", unit="render", disable=not progress, leave=False)
-    tick = lambda: bar.update(1)  # noqa: E731
-    R = _Rows()
-    bpg_a, bpg_b = bytes_per_gaussian(adapted), bytes_per_gaussian(base)
-    na, nb = len(adapted), len(base)
+    return _Eval(o, adapted, base, ply_path, max_sv, budgets, s_vs, dev, cams, train_cams, gts, train_gts,
+                 sigma_c, sigma_c_rule, lpips_fn, notes)
 
-    def run(fn):  # fn(cam) must bind its loop variables (s=s, b=b): it is called again for timing
-        out = []
-        for cam in cams:
-            out.append(_sample(lambda cam=cam: fn(cam)))
-            tick()
-        return out
 
+def _score_sweep(ev: _Eval) -> None:
+    """Phase 2: the pretrained model, then the adapted one at every ``s_v`` of the sweep."""
     # one untimed render first: the first call pays one-off costs (extension load, allocator);
     # the quality pass below is the warm-up of the interleaved timing rounds
-    _render_lod(base, cams[0], bg, backend, tau)
-    t0 = time.perf_counter()
-    _score(R, "pretrained", "full", None, run(lambda c: _render_lod(base, c, bg, backend, tau)),
-           cams, gts, nb, bpg_b, lpips_fn)
-    for s in s_vs:
-        bar.set_postfix_str(f"clod s_v={s:.2f}")
-        _score(R, "clod", f"s_v={s:g}", None, run(lambda c, s=s: _render_lod(adapted, c, bg, backend, tau, s_v=s)),
-               cams, gts, na, bpg_a, lpips_fn)
-    t_sig = time.perf_counter()
-    lg_scores = lightgaussian_significance(base, train_cams)
-    rnd_scores = random_scores(nb, seed, dev)
-    t_sig = time.perf_counter() - t_sig
-    tau_b = lod.DEFAULT_TAU if tau is None else tau
-    global_scores = {"lightgaussian": lg_scores, "random": rnd_scores}
-    if dlod_iterations > 0:
-        from ..adapt import reference_distances
-        from ..budget import critical_s_v
+    ev.render(ev.base, ev.cams[0])
+    ev.score("pretrained", "full", None, ev.run(lambda c: ev.render(ev.base, c)), adapted=False)
+    for s in ev.s_vs:
+        ev.bar.set_postfix_str(f"clod s_v={s:.2f}")
+        ev.score("clod", f"s_v={s:g}", None, ev.run(lambda c, s=s: ev.render(ev.adapted, c, s_v=s)), adapted=True)
 
-        d_ref = reference_distances(base, train_cams)
-        global_scores["constant_sigma"] = critical_s_v(base.opacities, d_ref, torch.full_like(d_ref, sigma_c),
-                                                       tau_b).float()
-    dlod_levels, dlod_choice, merge_sizes, dlod_info = {}, {}, {}, {}
-    decimated = {}
-    if merge_tool is None:
-        notes.append("splat-transform's decimators (decimate, decimate_adaptive) NOT RUN: splat-transform not "
-                     "found (`npm ci` in the repository root installs the pinned 3.7.0)")
-    if dlod_iterations > 0:
-        from ..io.scene import validation_split
 
-        fit_cams, val_cams = validation_split(train_cams)
-        val_gts = [train_gts[train_cams.index(c)] for c in val_cams]
-    for b in budgets:
-        lab = budget_label(b)
-        bar.set_postfix_str(lab)
-        clod_s = run(lambda c, b=b: _render_lod(adapted, c, bg, backend, tau, budget=b))
-        _score(R, "clod_budget", lab, b, clod_s, cams, gts, na, bpg_a, lpips_fn)
-        ks = [s.n for s in clod_s]  # the baselines render the same per-view counts
-        sel_fns = {
-            "constant_sigma": lambda c, k: constant_sigma_selection(base, c, k, sigma_c, tau=tau_b),
-            "lightgaussian": lambda c, k: ranking_selection(base, c, lg_scores, k),
-            "random": lambda c, k: ranking_selection(base, c, rnd_scores, k),
-        }
-        for name in BASELINES:
-            samples = []
-            for cam, k in zip(cams, ks):
-                samples.append(_sample(lambda cam=cam, k=k, sel=sel_fns[name]:
-                                       _render_selection(base, cam, sel(cam, k), bg, backend)))
-                tick()
-            _score(R, name, lab, b, samples, cams, gts, nb, bpg_b, lpips_fn)
-        share = (b if isinstance(b, float) else b / max(nb, 1))
-        if merge_tool and share < 1.0:
-            from ..baselines import merge_decimate
+def _dlod_rankings(ev: _Eval, ctx: RankingContext) -> dict:
+    """The global rankings the dlod ceiling may start from (name -> [N] scores)."""
+    from ..training import reference_distances
+    from ..budget import critical_s_v
 
-            for method, mode in DECIMATORS.items():
-                bar.set_postfix_str(f"{lab} {method}")
-                m = merge_decimate(base, max(1, int(round(share * nb))), mode=mode, tool=merge_tool).to(dev)
-                merge_sizes[f"{method} {lab}"] = len(m)
-                decimated[(method, lab)] = m
-                _score(R, method, lab, b, run(lambda c, m=m: _render_lod(m, c, bg, backend, tau)),
-                       cams, gts, nb, bpg_b, lpips_fn)
-        if dlod_iterations > 0 and share < 1.0:
-            from ..dlod import best_start, finetune_subset, global_cut
+    d_ref = reference_distances(ev.base, ev.train_cams)
+    return {"lightgaussian": ctx.lightgaussian, "random": ctx.random,
+            "constant_sigma": critical_s_v(ev.base.opacities, d_ref, torch.full_like(d_ref, ev.sigma_c),
+                                           ctx.tau).float()}
 
-            # the start: the best subset of this budget by PSNR on validation views (training views
-            # held out of nothing here: only the choice is scored on them, never the test views)
-            k = max(1, int(round(share * nb)))
-            cands = {m: base.subset(global_cut(global_scores[m].to(dev), share)) for m in global_scores}
-            cands.update({m: d for (m, lb), d in decimated.items() if lb == lab})
-            cands["clod"] = _adapted_cut(adapted, k, fit_cams)
-            best, start, val_scores = best_start(cands, val_cams, val_gts, background=bg, backend=backend,
-                                                 return_scores=True)
-            bar.set_postfix_str(f"{lab} dlod ({best}, {dlod_iterations} steps)")
-            level, info = finetune_subset(start, train_cams, train_gts, iterations=dlod_iterations,
-                                          seed=seed, background=bg, backend=backend, return_info=True)
-            dlod_levels[lab], dlod_choice[lab] = len(level), best
-            dlod_info[lab] = {"start": best, "val_psnr": val_scores, "convergence": info.convergence,
-                              "loss_every_100": info.loss[::100]}
-            _score(R, "dlod_finetuned", lab, b, run(lambda c, m=level: _render_lod(m, c, bg, backend, tau)),
-                   cams, gts, nb, bpg_b, lpips_fn)
-    bar.set_postfix_str(f"timing x{timing_repeats}")
-    _retime(R, timing_repeats, seed, on_render=tick)
-    bar.set_postfix_str("popping")
-    pop = popping_curve(adapted, cams[0], pop_svs, discrete_model=base, discrete_scores=lg_scores, tau=tau,
-                        background=bg, backend=backend, on_render=tick)
-    pop["camera"] = cams[0].name
-    pop["discrete"] = "pretrained model cut by LightGaussian significance at the continuous sweep's end counts"
-    bar.close()
-    t_eval = time.perf_counter() - t0
 
-    report = {
+def _score_budget(ev: _Eval, b, ctx: RankingContext, global_scores: dict) -> None:
+    """Phase 3, one budget: the adapted model's budget render, each ranking baseline at the same
+    per-view counts, the decimators at the budget's share of the model, the dlod ceiling."""
+    lab = budget_label(b)
+    ev.bar.set_postfix_str(lab)
+    clod_s = ev.run(lambda c, b=b: ev.render(ev.adapted, c, budget=b))
+    ev.score("clod_budget", lab, b, clod_s, adapted=True)
+    ks = [s.n for s in clod_s]  # the baselines render the same per-view counts
+    for name in BASELINES:
+        samples = []
+        for cam, k in zip(ev.cams, ks):
+            samples.append(_sample(lambda cam=cam, k=k, sel=METHOD_REGISTRY[name].select:
+                                   _render_selection(ev.base, cam, sel(ev.base, cam, k, ctx), ev.bg, "auto")))
+            ev.tick()
+        ev.score(name, lab, b, samples, adapted=False)
+    nb = len(ev.base)
+    share = (b if isinstance(b, float) else b / max(nb, 1))
+    if ev.o.merge_tool and share < 1.0:
+        from ..baselines import merge_decimate
+
+        for method, mode in DECIMATORS.items():
+            ev.bar.set_postfix_str(f"{lab} {method}")
+            m = merge_decimate(ev.base, max(1, int(round(share * nb))), mode=mode, tool=ev.o.merge_tool).to(ev.dev)
+            ev.merge_sizes[f"{method} {lab}"] = len(m)
+            ev.decimated[(method, lab)] = m
+            ev.score(method, lab, b, ev.run(lambda c, m=m: ev.render(m, c)), adapted=False)
+    if ev.o.dlod_iterations > 0 and share < 1.0:
+        _score_dlod(ev, b, lab, share, global_scores)
+
+
+def _score_dlod(ev: _Eval, b, lab: str, share: float, global_scores: dict) -> None:
+    """The dlod ceiling at one budget: the best start by PSNR on validation views (training
+    views; the test views only score the result), fine-tuned with the recovery schedule."""
+    from ..dlod_ceiling import best_start, finetune_subset, global_cut
+    from ..io.scene import validation_split
+
+    fit_cams, val_cams = validation_split(ev.train_cams)
+    val_gts = [ev.train_gts[ev.train_cams.index(c)] for c in val_cams]
+    k = max(1, int(round(share * len(ev.base))))
+    cands = {m: ev.base.subset(global_cut(global_scores[m].to(ev.dev), share)) for m in global_scores}
+    cands.update({m: d for (m, lb), d in ev.decimated.items() if lb == lab})
+    cands["clod"] = _adapted_cut(ev.adapted, k, fit_cams)
+    best, start, val_scores = best_start(cands, val_cams, val_gts, background=ev.bg, backend="auto",
+                                         return_scores=True)
+    ev.bar.set_postfix_str(f"{lab} dlod ({best}, {ev.o.dlod_iterations} steps)")
+    level, info = finetune_subset(start, ev.train_cams, ev.train_gts, iterations=ev.o.dlod_iterations,
+                                  seed=ev.o.seed, background=ev.bg, backend="auto", return_info=True)
+    ev.dlod["levels"][lab], ev.dlod["choice"][lab] = len(level), best
+    ev.dlod["info"][lab] = {"start": best, "val_psnr": val_scores, "convergence": info.convergence,
+                            "loss_every_100": info.loss[::100]}
+    ev.score("dlod_finetuned", lab, b, ev.run(lambda c, m=level: ev.render(m, c)), adapted=False)
+
+
+def _report_dict(ev: _Eval, scene, pop: dict, t_sig: float, t_eval: float) -> dict:
+    o, base, cams = ev.o, ev.base, ev.cams
+    dl = ev.dlod["levels"]
+    return {
         "version": __version__,
-        "adapted": str(ply_path) if ply_path is not None else None,
-        "pretrained": None if pretrained is None else (str(pretrained) if not isinstance(pretrained, Gaussians)
-                                                       else (pretrained_label or "<Gaussians>")),
+        "adapted": str(ev.ply_path) if ev.ply_path is not None else None,
+        "pretrained": None if o.pretrained is None else (str(o.pretrained) if not isinstance(o.pretrained, Gaussians)
+                                                         else (o.pretrained_label or "<Gaussians>")),
         "scene": str(getattr(scene, "root", "")),
-        "device": str(dev), "threads": torch.get_num_threads(),
+        "device": str(ev.dev), "threads": torch.get_num_threads(),
         "views": [c.name for c in cams], "image_size": [cams[0].width, cams[0].height],
-        "num_gaussians": {"adapted": na, "pretrained": nb},
-        "bytes_per_gaussian": {"adapted": bpg_a, "pretrained": bpg_b},
-        "storage": {"adapted_bytes": ply_bytes(adapted), "pretrained_bytes": ply_bytes(base),
+        "num_gaussians": {"adapted": len(ev.adapted), "pretrained": len(base)},
+        "bytes_per_gaussian": {"adapted": ply_row_bytes(ev.adapted), "pretrained": ply_row_bytes(base)},
+        "storage": {"adapted_bytes": ply_bytes(ev.adapted), "pretrained_bytes": ply_bytes(base),
                     **({"dlod_bytes": ply_bytes(base) + sum(ply_bytes(base.subset(torch.arange(v)))
-                                                           for v in dlod_levels.values()),
-                        "dlod_levels": dlod_levels, "dlod_ranking": dlod_choice, "dlod": dlod_info,
-                        "dlod_iterations": dlod_iterations} if dlod_levels else {}),
-                    **({"decimated_sizes": merge_sizes} if merge_sizes else {}),
+                                                           for v in dl.values()),
+                        "dlod_levels": dl, "dlod_ranking": ev.dlod["choice"], "dlod": ev.dlod["info"],
+                        "dlod_iterations": o.dlod_iterations} if dl else {}),
+                    **({"decimated_sizes": ev.merge_sizes} if ev.merge_sizes else {}),
                     "what": "bytes of the .ply write_ply writes for the model (= the file size)"},
-        "timing": {"repeats": timing_repeats, "order": "shuffled per round (seed)" if timing_repeats else "single pass",
+        "timing": {"repeats": o.timing_repeats,
+                   "order": "shuffled per round (seed)" if o.timing_repeats else "single pass",
                    "omp_wait_policy": os.environ.get("OMP_WAIT_POLICY"),
                    "what": "ms = median over rounds of the median over views; ms_min/ms_max = smallest/largest round"},
-        "settings": {"max_sv": max_sv, "s_vs": s_vs, "budgets": budgets, "sigma_c": sigma_c,
-                     "sigma_c_rule": sigma_c_rule, "seed": seed, "tau": tau,
-                     "background": bg, "popping_steps": popping_steps,
+        "settings": {"max_sv": ev.max_sv, "s_vs": ev.s_vs, "budgets": ev.budgets, "sigma_c": ev.sigma_c,
+                     "sigma_c_rule": ev.sigma_c_rule, "seed": o.seed, "tau": o.tau,
+                     "background": ev.bg, "popping_steps": o.popping_steps,
                      "lightgaussian": {"v_pow": 0.1, "volume_ref": "sorted-descending volume at int(0.9 N)",
                                        "pixels_hit": "projected ellipse area (alpha >= 1/255, <= 3.33 sigma), "
                                                      "clipped by the bbox fraction inside the image",
-                                       "train_views": len(train_cams), "seconds": round(t_sig, 2)}},
+                                       "train_views": len(ev.train_cams), "seconds": round(t_sig, 2)}},
         "columns": list(CSV_COLUMNS),
-        "rows": R.rows,
-        "per_view": R.per_view,
+        "rows": ev.rows.rows,
+        "per_view": ev.rows.per_view,
         "popping": pop,
-        "notes": notes,
+        "notes": ev.notes,
         "eval_seconds": round(t_eval, 1),
     }
+
+
+def _write_report(ev: _Eval, out_dir: Path, report: dict, pop: dict, t_start: float) -> None:
+    """Phase 4: the CSVs, the figures, the strip, ``report.json`` and ``report.md``, each atomically."""
+    from ..figures import write_strip
+    from ..level_metrics import sv_levels
+
+    rows = ev.rows
     with atomic_write(out_dir / "report.csv", "w", newline="") as f:
-        f.write(_csv_text(R.rows, CSV_COLUMNS))
+        f.write(_csv_text(rows.rows, CSV_COLUMNS))
     with atomic_write(out_dir / "report_per_view.csv", "w", newline="") as f:
-        f.write(_csv_text(R.per_view, PER_VIEW_COLUMNS))
-    _plot_quality(R.rows, "gaussians", "mean Gaussians rendered per view", out_dir / "quality_vs_gaussians.png",
-                  mark=(na * max_sv ** -1.5, f"max_sv^-1.5 = {100 * max_sv ** -1.5:.1f} %"))
-    _plot_quality(R.rows, "ms_total", "median ms per frame (bars: fastest-slowest round)",
-                  out_dir / "quality_vs_time.png", extra=_plot_time_curve(R.rows), time_axis=True)
+        f.write(_csv_text(rows.per_view, PER_VIEW_COLUMNS))
+    mark = ev.max_sv ** -1.5
+    _plot_quality(rows.rows, "gaussians", "mean Gaussians rendered per view", out_dir / "quality_vs_gaussians.png",
+                  mark=(len(ev.adapted) * mark, f"max_sv^-1.5 = {100 * mark:.1f} %"))
+    _plot_quality(rows.rows, "ms_total", "median ms per frame (bars: fastest-slowest round)",
+                  out_dir / "quality_vs_time.png", extra=_plot_time_curve(rows.rows), time_axis=True)
     _plot_popping(pop, out_dir / "popping.png")
-    write_strip(out_dir / "lod_strip.png", adapted, cams[0], strip_svs, bg, backend, gt=gts[0])
+    write_strip(out_dir / "lod_strip.png", ev.adapted, ev.cams[0], sv_levels(ev.max_sv), ev.bg, "auto", gt=ev.gts[0])
     report["wall_seconds"] = round(time.perf_counter() - t_start, 1)
     with atomic_write(out_dir / "report.json", "w") as f:
         json.dump(_jsonable(report), f, indent=1)
     with atomic_write(out_dir / "report.md", "w") as f:
         f.write(format_markdown(report))
-    if log is not None:
-        log(format_table(R.rows))
-        log(f"popping (camera {pop['camera']}): continuous max {pop['continuous_max']:.4g} / median "
-            f"{pop['continuous_median']:.4g}; discrete max {pop['discrete_max']:.4g}; ratio {pop['ratio']:.1f}")
-        for n in notes:
-            log(f"note: {n}")
-    return report

@@ -1,13 +1,15 @@
 """The ``clod-export`` job: the extended .ply, a baked standard .ply for one setting, an
 importance-ordered .ply, optional pruning and SH reduction, and ``export.json`` (the operations
-are :mod:`clod_adapter.export`; the CLI, ``cli/export.py``, only parses and checks flags).
+are :mod:`clod_adapter.bake`; the CLI, ``clod_adapter/cli/export.py``, only parses and checks flags).
 Everything is computed first, then each file is written atomically."""
 from __future__ import annotations
 
 import json
 import sys
 import time
+from dataclasses import dataclass
 from pathlib import Path
+from typing import Callable
 
 from . import check_output_dir, progress_bar
 
@@ -26,11 +28,9 @@ def export(model, scene, train_imgs, test_cams, test_imgs, out: Path, *, ply: Pa
     reduction, the baked level, the importance order); the test views only score the results."""
     import torch
 
-    from .. import export as ex
-    from ..io.atomic import atomic_write
-    from ..io.ply import read_ply, write_ply
+    from .. import bake as ex
     from ..metrics import psnr
-    from .eval import bytes_per_gaussian
+    from ..storage import ply_row_bytes
 
     t0 = time.perf_counter()
     phases = ["input PSNR"] + (["prune"] if prune else []) + (["SH bands"] if sh_max_drop_db is not None else []) \
@@ -53,7 +53,7 @@ def export(model, scene, train_imgs, test_cams, test_imgs, out: Path, *, ply: Pa
         if prune:
             model, n_drop = ex.prune_never_rendered(model, scene.train, anchor_cameras=scene.train)
             rep["prune"] = {"dropped": n_drop, "kept": len(model),
-                            "bytes_saved": n_drop * bytes_per_gaussian(model),
+                            "bytes_saved": n_drop * ply_row_bytes(model),
                             "psnr_test_sv1_after": _mean_psnr(ex, model, test_cams, test_imgs)}
             step()
         if sh_max_drop_db is not None:
@@ -84,18 +84,26 @@ def export(model, scene, train_imgs, test_cams, test_imgs, out: Path, *, ply: Pa
                               "prefix_vs_selection_test": ex.prefix_vs_selection(model, perm, test_cams, test_imgs,
                                                                                  PREFIX_FRACTIONS)}
             step()
+    _write_files(out, ply, model, baked, baked_name, ordered_model, spz, rep, argv, t0)
+    step()
+    bar.close()
+    return rep
+
+
+def _write_files(out: Path, ply: Path, model, baked, baked_name, ordered_model, spz: bool, rep: dict, argv,
+                 t0: float) -> None:
+    """The export's files, each atomically: the extended .ply, the baked level, the ordered .ply,
+    their .spz copies, then ``export.json`` (``rep``, completed here with bytes and files)."""
+    from ..io.atomic import atomic_write
+
     check_output_dir(out, [ply], force=True)  # checked before; create it now
-    files = [EXTENDED_NAME]
-    write_ply(out / EXTENDED_NAME, model)
-    if baked is not None:
-        write_ply(out / baked_name, baked)
-        files.append(baked_name)
-    if ordered_model is not None:
-        write_ply(out / ORDERED_NAME, ordered_model)
-        files.append(ORDERED_NAME)
-    if spz:
-        for f in list(files):
-            files.append(write_spz(out / Path(f).with_suffix(".spz").name, read_ply(out / f)))
+    models = [(EXTENDED_NAME, model), (baked_name, baked), (ORDERED_NAME, ordered_model)]
+    files = []
+    for fmt in ("ply",) + (("spz",) if spz else ()):
+        for name, m in models:
+            if m is not None:
+                files.append(EXPORT_FORMATS[fmt].write(out / Path(name).with_suffix(EXPORT_FORMATS[fmt].suffix).name,
+                                                       m))
     rep["bytes"] = {"input": ply.stat().st_size, **{f: (out / f).stat().st_size for f in files}}
     rep["seconds"] = round(time.perf_counter() - t0, 2)
     rep["command"] = "clod-export " + " ".join(sys.argv[1:] if argv is None else argv)
@@ -104,9 +112,25 @@ def export(model, scene, train_imgs, test_cams, test_imgs, out: Path, *, ply: Pa
     with atomic_write(out / JSON_NAME, "w") as f:
         json.dump(rep, f, indent=2)
         f.write("\n")
-    step()
-    bar.close()
-    return rep
+
+
+def write_ply_file(path: Path, model) -> str:
+    """:func:`clod_adapter.io.ply.write_ply` (atomic; the extended INRIA layout); returns the file name."""
+    from ..io.ply import write_ply
+
+    write_ply(path, model)
+    return path.name
+
+
+@dataclass(frozen=True)
+class ExportFormat:
+    """One file format ``clod-export`` writes: its suffix, its writer (``write(path, model) ->
+    file name``, atomic) and what it holds. Adding a format is one entry of
+    :data:`EXPORT_FORMATS` (and its round trip in ``tests/test_export.py``)."""
+
+    suffix: str
+    write: Callable
+    what: str
 
 
 def write_spz(path: Path, model) -> str:
@@ -157,3 +181,10 @@ def summary(rep: dict) -> str:
             lines.append(f"prefix {r['fraction']:.0%} ({r['count']}): {r['psnr_prefix']:.2f} dB vs selection "
                          f"{r['psnr_selection']:.2f} dB ({r['rendered_per_view']:.0f} per view)")
     return "\n".join("clod-export: " + s for s in lines)
+
+
+#: the formats clod-export writes, by name (``--spz`` adds ``spz`` to ``ply``).
+EXPORT_FORMATS = {
+    "ply": ExportFormat(".ply", write_ply_file, "INRIA .ply (+ sigma_d and the level gains for the extended file)"),
+    "spz": ExportFormat(".spz", write_spz, "SPZ v3 via gsply (sigma_d dropped)"),
+}

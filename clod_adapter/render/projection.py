@@ -22,10 +22,11 @@ from typing import NamedTuple, Optional, Tuple
 import torch
 from torch import Tensor
 
-__all__ = ["fully_fused_projection", "project_visible", "project_geometry", "finish_projection",
-           "ProjectedGeometry", "VisibleProjection", "ALPHA_THRESHOLD"]
+from ._torch_impl import ALPHA_THRESHOLD  # gsplat 1.5.3's 1/255, one definition for both stages
 
-ALPHA_THRESHOLD = 1.0 / 255.0
+__all__ = ["fully_fused_projection", "project_visible", "project_geometry", "finish_projection",
+           "ProjectedGeometry", "VisibleProjection", "ALPHA_THRESHOLD", "quat_to_rotmat_rows"]
+
 GAUSSIAN_EXTEND = 3.33
 #: cap of the int32 radii (pixels); larger footprints cover any image anyway
 MAX_RADIUS = float(2 ** 30)
@@ -41,7 +42,7 @@ class VisibleProjection(NamedTuple):
     conics: Tensor  # [V, 3]
 
 
-def _quat_to_rotmat_rows(quats: Tensor) -> Tuple[Tensor, ...]:
+def quat_to_rotmat_rows(quats: Tensor) -> Tuple[Tensor, ...]:
     """Nine [n] entries (row-major) of the rotation of the normalised wxyz quaternions."""
     q = quats / torch.linalg.vector_norm(quats, dim=-1, keepdim=True).clamp_min(1e-12)
     w, x, y, z = q.unbind(-1)
@@ -162,7 +163,7 @@ def project_geometry(
     JR1 = b1[:, None] * R[1] + b2[:, None] * R[2]  # [n, 3]
 
     # (J R_view R_q) S  -> rows A, B; cov2d = [A.A, A.B; A.B, B.B]
-    r = _quat_to_rotmat_rows(q)
+    r = quat_to_rotmat_rows(q)
     rq = torch.stack(r, dim=-1).view(-1, 3, 3)  # [n, 3, 3]
     JRQ = torch.bmm(torch.stack([JR0, JR1], dim=1), rq)  # [n, 2, 3]
     Ms = JRQ * s[:, None, :]

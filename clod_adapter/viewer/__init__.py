@@ -10,13 +10,13 @@ Core pieces (no viser needed, importable with the base install):
 :mod:`.app` (imports viser, the ``viewer`` extra) serves them: one LoD selection per connected
 browser camera.
 """
-from .cameras import ViewCamera, camera_from_pose, default_start_view, pose_from_camera, scene_start_view
+from .cameras import camera_from_pose, default_start_view, pose_from_camera, scene_start_view
 from .model import DEFAULT_MAX_SV, load_view_model, model_max_sv
 from .selection import DEFAULT_MAX_DRAWN, BYTES_PER_GAUSSIAN, ViewPayload, covariances, view_colors, view_payload
 from .timing import RasterTimeModel, calibrate_raster_time
 
 __all__ = [
-    "ViewCamera", "camera_from_pose", "pose_from_camera", "default_start_view", "scene_start_view",
+    "camera_from_pose", "pose_from_camera", "default_start_view", "scene_start_view",
     "DEFAULT_MAX_SV", "model_max_sv", "load_view_model",
     "DEFAULT_MAX_DRAWN", "BYTES_PER_GAUSSIAN", "ViewPayload", "view_payload", "covariances",
     "view_colors", "RasterTimeModel", "calibrate_raster_time",

@@ -3,7 +3,7 @@
 Each connected browser gets its own panel and its own copy of the model's splats: on every
 camera move (throttled to one update per ``throttle_s``) and on every control change, the
 selection for *that* client camera is recomputed (:func:`clod_adapter.viewer.selection.view_payload`,
-i.e. :func:`clod_adapter.view.lod_subset`: frustum, d', the LoD rule or the budget solver),
+i.e. :func:`clod_adapter.camera_lod.lod_subset`: frustum, d', the LoD rule or the budget solver),
 coloured by the SH at that camera and sent as one splat buffer (``n x 32`` bytes).
 
 Controls: the level (``s_v`` slider from 1 to 2 x the trained ``max_sv``, or a budget in % of
@@ -26,8 +26,9 @@ from typing import Callable, Optional, Sequence
 import numpy as np
 
 from clod_adapter.gaussians import Gaussians
+from clod_adapter.io.scene import Camera
 
-from .cameras import ViewCamera, ViewPose, camera_from_pose, default_start_view, scene_start_view
+from .cameras import ViewPose, camera_from_pose, default_start_view, scene_start_view
 from .model import DEFAULT_MAX_SV
 from .selection import (DEFAULT_MAX_DRAWN, METHOD_ALL, METHOD_STATIC, ViewPayload, view_payload)
 from .timing import RasterTimeModel, calibrate_raster_time
@@ -54,7 +55,7 @@ class ViewRecord:
     """What was last sent to one client: the camera it was computed for, the payload, the
     settings, a counter (1 for the first update) and the wall time of the update (s)."""
 
-    camera: ViewCamera
+    camera: Camera
     payload: ViewPayload
     settings: dict
     version: int

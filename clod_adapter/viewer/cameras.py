@@ -18,36 +18,13 @@ import torch
 from torch import Tensor
 
 from clod_adapter.gaussians import Gaussians
+from clod_adapter.io.scene import Camera
 
-__all__ = ["ViewCamera", "ViewPose", "camera_from_pose", "pose_from_camera", "default_start_view",
+__all__ = ["ViewPose", "camera_from_pose", "pose_from_camera", "default_start_view",
            "scene_start_view", "robust_bounds"]
 
 #: vertical field of view of the start view without a scene (radians)
 DEFAULT_FOV = math.radians(50.0)
-
-
-@dataclass
-class ViewCamera:
-    """A pinhole camera with the attributes :func:`clod_adapter.view.lod_subset` and
-    :func:`clod_adapter.view.render_lod` read.
-
-    Attributes:
-        viewmat: [4, 4] float32 world-to-camera (OpenCV axes).
-        K: [3, 3] float32 intrinsics, pixels.
-        width, height: image size, pixels.
-    """
-
-    viewmat: Tensor
-    K: Tensor
-    width: int
-    height: int
-
-    @property
-    def center(self) -> Tensor:
-        """[3] camera centre, world units (:func:`clod_adapter.lod.camera_center`)."""
-        from clod_adapter.lod import camera_center
-
-        return camera_center(self.viewmat)
 
 
 @dataclass
@@ -94,7 +71,7 @@ def _matrix_to_quat(R: np.ndarray) -> np.ndarray:
 
 
 def camera_from_pose(wxyz: Sequence[float], position: Sequence[float], fov: float, width: int,
-                     height: int) -> ViewCamera:
+                     height: int) -> Camera:
     """Our camera for a viser pose.
 
     Args:
@@ -104,7 +81,7 @@ def camera_from_pose(wxyz: Sequence[float], position: Sequence[float], fov: floa
         width, height: image size, pixels (>= 1).
 
     Returns:
-        :class:`ViewCamera` with ``viewmat = T_world_camera^-1`` and a centred ``K``.
+        :class:`clod_adapter.io.scene.Camera` (no image) with ``viewmat = T_world_camera^-1`` and a centred ``K``.
 
     Raises:
         ValueError: ``fov`` outside (0, pi) or a size < 1.
@@ -120,7 +97,7 @@ def camera_from_pose(wxyz: Sequence[float], position: Sequence[float], fov: floa
     vm[:3, 3] = -R.T @ t
     f = 0.5 * int(height) / math.tan(0.5 * fov)
     K = np.array([[f, 0.0, 0.5 * int(width)], [0.0, f, 0.5 * int(height)], [0.0, 0.0, 1.0]])
-    return ViewCamera(torch.from_numpy(vm).float(), torch.from_numpy(K).float(), int(width), int(height))
+    return Camera.pinhole(torch.from_numpy(vm).float(), torch.from_numpy(K).float(), width, height, name="viewer")
 
 
 def pose_from_camera(camera, look_at: Optional[Sequence[float]] = None) -> ViewPose:

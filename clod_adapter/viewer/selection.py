@@ -1,7 +1,7 @@
 """What a viewer sends for one camera at one level of detail.
 
 The selection and the drawn attributes (positions, rotations, scales, opacities after the LoD
-rule, SH coefficients) come from :func:`clod_adapter.view.lod_subset` only, so the viewer
+rule, SH coefficients) come from :func:`clod_adapter.camera_lod.lod_subset` only, so the viewer
 draws what our renderer rasterises for that camera, whatever rule ``lod_subset`` implements.
 The viewer then turns them into what viser's splat renderer takes: world-space covariances
 ``R diag(s)^2 R^T`` and RGB colours evaluated from the SH at the camera centre
@@ -22,8 +22,8 @@ from torch import Tensor
 
 from clod_adapter.baselines import ranking_selection
 from clod_adapter.gaussians import Gaussians
-from clod_adapter.view import lod_subset
-from clod_adapter.render.projection import _quat_to_rotmat_rows
+from clod_adapter.camera_lod import lod_subset
+from clod_adapter.render.projection import quat_to_rotmat_rows
 from clod_adapter.render.sh import spherical_harmonics
 
 __all__ = ["DEFAULT_MAX_DRAWN", "BYTES_PER_GAUSSIAN", "ViewPayload", "view_payload", "covariances",
@@ -91,7 +91,7 @@ def covariances(quats: Tensor, scales: Tensor) -> Tensor:
         quats: [N, 4] wxyz (unnormalised; normalised here, as the rasteriser does).
         scales: [N, 3] activated standard deviations, world units.
     """
-    R = torch.stack(_quat_to_rotmat_rows(quats), dim=-1).reshape(-1, 3, 3)
+    R = torch.stack(quat_to_rotmat_rows(quats), dim=-1).reshape(-1, 3, 3)
     RS = R * scales[:, None, :]
     return RS @ RS.transpose(1, 2)
 
@@ -117,7 +117,7 @@ def view_payload(gaussians: Gaussians, camera, *, s_v: Optional[float] = None,
             (e.g. :func:`clod_adapter.viewer.cameras.camera_from_pose`).
         s_v: virtual distance scale >= 1, or
         budget: a count (int) or fraction of the model (float in [0, 1]); as
-            :func:`clod_adapter.view.lod_subset` (a budget is a cap at the s_v = 1 level).
+            :func:`clod_adapter.camera_lod.lod_subset` (a budget is a cap at the s_v = 1 level).
             Neither: s_v = 1.
         compare: send the static opacity cut at the count the level draws instead.
         max_drawn: cap on what is sent (>= 1): a larger level is replaced by

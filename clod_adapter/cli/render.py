@@ -20,7 +20,7 @@ import time
 from pathlib import Path
 
 from clod_adapter import jobs
-from clod_adapter.jobs import EXIT_BAD_INPUT, EXIT_INTERRUPTED, InputError, check_flag  # noqa: F401
+from clod_adapter.jobs import InputError, check_flag
 
 EXAMPLE = "clod-render runs/fern -s ../shared/data/fern --resolution 2 --path orbit -o runs/fern_render"
 JSON_NAME = "render.json"
@@ -31,18 +31,11 @@ def build_parser():
         "clod-render",
         "Render an adapted CLoD-GS model: the test views at one level of detail (PNG) and a short MP4 "
         "along the scene's cameras or an orbit while s_v sweeps.", EXAMPLE)
-    p.add_argument("ply", nargs="?", metavar="ADAPTED",
-                   help="adapted model (with sigma_d): a clod-adapt output folder or its point_cloud.ply")
-    p.add_argument("--images", "-s", "--source_path", "--source-path", dest="images", metavar="SCENE",
-                   help="scene folder: COLMAP (images/, sparse/0) or NeRF-synthetic (transforms_*.json)")
-    p.add_argument("-r", "--resolution", type=int, default=1, choices=(1, 2, 4, 8),
-                   help="use images_R/ when present, else downsample by R (default 1)")
+    jobs.add_adapted_arg(p)
+    jobs.add_scene_flags(p)
     p.add_argument("-o", "--output", metavar="OUTDIR", help="output folder, new or empty (default ./clod_render)")
-    g = p.add_mutually_exclusive_group()
-    g.add_argument("--s-v", type=float, default=None, metavar="X",
-                   help="level of detail (>= 1) of the images, and of the video instead of a sweep (default 1)")
-    g.add_argument("--budget", default=None, metavar="K",
-                   help="render at most K Gaussians per view (an integer count > 1 or a fraction <= 1) instead")
+    jobs.add_level_flags(p, "level of detail (>= 1) of the images, and of the video instead of a sweep (default 1)",
+                         "render at most K Gaussians per view (an integer count > 1 or a fraction <= 1) instead")
     p.add_argument("--views", default="test", choices=("test", "train", "all"),
                    help="which views to render as images (default test: every 8th image)")
     p.add_argument("--path", default="cameras", choices=("cameras", "orbit"),
@@ -66,11 +59,10 @@ def main(argv: list[str] | None = None) -> int:
     return jobs.run_cli("clod-render", lambda: _main(args))
 
 
-def _main(args) -> int:
+def _check_flags(args):
+    """The flags' values; returns the budget (None, a count or a fraction)."""
     if not args.ply or not args.images:
         raise InputError("give ADAPTED and --images SCENE")
-    ply, scene_root = Path(args.ply), Path(args.images)
-    out = Path(args.output or "clod_render")
     if args.s_v is not None:
         check_flag(math.isfinite(args.s_v) and args.s_v >= 1, "--s-v", "a number >= 1", args.s_v)
     budget = None
@@ -80,8 +72,64 @@ def _main(args) -> int:
     check_flag(args.fps >= 1, "--fps", ">= 1", args.fps)
     if args.max_sv is not None:
         check_flag(args.max_sv >= 1, "--max-sv", ">= 1", args.max_sv)
-    if args.threads is not None:
-        check_flag(args.threads >= 1, "--threads", ">= 1", args.threads)
+    return budget
+
+
+def _render_views(model, scene, cams, level: dict, bg, out: Path, bar) -> list:
+    """Each scene view at the level: its PNG in ``out/views`` (atomically) and its record."""
+    import numpy as np
+    from PIL import Image
+
+    from clod_adapter.io.atomic import atomic_save
+    from clod_adapter.metrics import psnr
+    from clod_adapter.camera_lod import render_lod
+
+    views = []
+    for c in cams:
+        r = render_lod(model, c, level["s_v"], budget=level["budget"], background=bg, backend="auto")
+        img = r.image.clamp(0, 1)
+        gt = scene.load_image(c).to(img.device)
+        views.append({"view": c.name, "psnr": psnr(img, gt), "gaussians": r.n_rendered, "s_v": r.s_v})
+        arr = (img.cpu().numpy() * 255 + 0.5).astype(np.uint8)
+        atomic_save(out / "views" / f"{Path(c.name).stem}.png",
+                    lambda tmp, arr=arr: Image.fromarray(arr).save(tmp, format="PNG"))
+        bar.update(1)
+    return views
+
+
+def _render_video(model, scene, args, level: dict, max_sv: float, bg, path: Path, bar) -> dict:
+    """The MP4 along the camera path (1 -> max_sv -> 1, or the fixed level), each frame captioned
+    with its s_v and count; returns its record."""
+    import numpy as np
+
+    from clod_adapter.figures import label_panels
+    from clod_adapter.video import camera_path, orbit_path, write_mp4
+    from clod_adapter.camera_lod import render_lod
+
+    n_frames, n = args.frames, len(model)
+    cams = camera_path(scene.cameras, n_frames) if args.path == "cameras" else \
+        orbit_path(scene.cameras, model.means, n_frames)
+    if args.s_v is None and level["budget"] is None:  # 1 -> max_sv -> 1
+        svs = [1.0 + (max_sv - 1.0) * 0.5 * (1 - math.cos(2 * math.pi * i / n_frames)) for i in range(n_frames)]
+    else:
+        svs = [args.s_v] * n_frames
+    frames, counts = [], []
+    for cam, s in zip(cams, svs):
+        r = render_lod(model, cam, s, budget=level["budget"], background=bg, backend="auto")
+        cap = (f"s_v = {r.s_v:.2f}   " if r.s_v is not None else "") + \
+            f"{r.n_rendered:,} Gaussians ({100 * r.n_rendered / n:.0f} %)"
+        frames.append(np.asarray(label_panels([r.image], [cap], min_width=480)))
+        counts.append(r.n_rendered)
+        bar.update(1)
+    write_mp4(path, frames, fps=args.fps)
+    return {"file": path.name, "path": args.path, "frames": n_frames, "fps": args.fps,
+            "s_v": svs, "gaussians": counts, "size": [int(frames[0].shape[1]), int(frames[0].shape[0])]}
+
+
+def _main(args) -> int:
+    budget = _check_flags(args)
+    ply, scene_root = Path(args.ply), Path(args.images)
+    out = Path(args.output or "clod_render")
     if not ply.exists():
         raise InputError(f"{ply}: no such file")
     if not scene_root.is_dir():
@@ -94,26 +142,18 @@ def _main(args) -> int:
             raise InputError(f"the MP4 {why} (or pass --no-video)")
     jobs.set_threads(args.threads)
 
-    import numpy as np
     import torch
-    from PIL import Image
 
-    from clod_adapter.io.atomic import atomic_save, atomic_write
-    from clod_adapter.io.load import resolve_model_path
+    from clod_adapter.training import max_sv_from_state
+    from clod_adapter.io.atomic import atomic_write
+    from clod_adapter.io.load import load_scene, resolve_model_path
     from clod_adapter.io.ply import read_ply
-    from clod_adapter.io.load import load_scene
-    from clod_adapter.view import render_lod
-    from clod_adapter.metrics import psnr
-    from clod_adapter.figures import label_panels
-    from clod_adapter.adapt import max_sv_from_state
-    from clod_adapter.video import camera_path, orbit_path, write_mp4
 
     t0 = time.perf_counter()
     ply = resolve_model_path(ply, prefer="point_cloud.ply")
     video_name = f"lod_{args.path}.mp4"
     jobs.check_output_dir(out, [ply], [JSON_NAME, video_name, "views"], create=False, force=args.force)
     dev = jobs.pick_device(args.device)
-    backend = "gsplat" if dev.type == "cuda" else "cpu"
     model = read_ply(ply)
     if len(model) == 0:
         raise InputError(f"{ply}: the model has no Gaussians")
@@ -126,42 +166,14 @@ def _main(args) -> int:
         raise InputError(f"{scene_root}: the scene has no views")
     max_sv = args.max_sv if args.max_sv is not None else (max_sv_from_state(ply) or 5.0)
     model = model.to(dev)
-    n = len(model)
     level = {"s_v": args.s_v if args.s_v is not None else (None if budget is not None else 1.0), "budget": budget}
     jobs.check_output_dir(out, [ply], force=True)
     (out / "views").mkdir(exist_ok=True)
     n_frames = 0 if args.no_video else args.frames
     bar = jobs.progress_bar(len(cams) + n_frames, "clod-render", unit="frame", disable=args.quiet)
-    views = []
     with torch.no_grad():
-        for c in cams:
-            r = render_lod(model, c, level["s_v"], budget=budget, background=bg, backend=backend)
-            img = r.image.clamp(0, 1)
-            gt = scene.load_image(c).to(img.device)
-            views.append({"view": c.name, "psnr": psnr(img, gt), "gaussians": r.n_rendered, "s_v": r.s_v})
-            arr = (img.cpu().numpy() * 255 + 0.5).astype(np.uint8)
-            atomic_save(out / "views" / f"{Path(c.name).stem}.png",
-                        lambda tmp, arr=arr: Image.fromarray(arr).save(tmp, format="PNG"))
-            bar.update(1)
-        video = None
-        if n_frames:
-            path = camera_path(scene.cameras, n_frames) if args.path == "cameras" else \
-                orbit_path(scene.cameras, model.means, n_frames)
-            if args.s_v is None and budget is None:  # 1 -> max_sv -> 1
-                svs = [1.0 + (max_sv - 1.0) * 0.5 * (1 - math.cos(2 * math.pi * i / n_frames)) for i in range(n_frames)]
-            else:
-                svs = [args.s_v] * n_frames
-            frames, counts = [], []
-            for cam, s in zip(path, svs):
-                r = render_lod(model, cam, s, budget=budget, background=bg, backend=backend)
-                cap = (f"s_v = {r.s_v:.2f}   " if r.s_v is not None else "") + \
-                    f"{r.n_rendered:,} Gaussians ({100 * r.n_rendered / n:.0f} %)"
-                frames.append(np.asarray(label_panels([r.image], [cap], min_width=480)))
-                counts.append(r.n_rendered)
-                bar.update(1)
-            write_mp4(out / video_name, frames, fps=args.fps)
-            video = {"file": video_name, "path": args.path, "frames": n_frames, "fps": args.fps,
-                     "s_v": svs, "gaussians": counts, "size": [int(frames[0].shape[1]), int(frames[0].shape[0])]}
+        views = _render_views(model, scene, cams, level, bg, out, bar)
+        video = _render_video(model, scene, args, level, max_sv, bg, out / video_name, bar) if n_frames else None
     bar.close()
     rep = {"model": str(ply), "scene": str(scene_root), "resolution": args.resolution, "level": level,
            "max_sv": max_sv, "views": views, "video": video, "seconds": round(time.perf_counter() - t0, 1)}

@@ -327,7 +327,7 @@ class LodView:
           at the first one's ``s_v`` (bounds it): 10-15 evaluations, 15-30 ms on fern and skull
           against 5 ms for a count budget (2 threads, shared machine);
         * window fade: at the base level (or ``level`` when given): the footprints the calibrated
-          schedule measures its levels in (:func:`clod_adapter.adapt.weighted_count`), one prefix
+          schedule measures its levels in (:func:`clod_adapter.training.weighted_count`), one prefix
           search, monotone in the budget. The level gains change what is drawn (survivors grow
           to cover for those that left), so the drawn pixel work of a coarse level is larger
           than its base cost; ``benchmarks/quality_vs_time.py`` times what is drawn. (Costing

@@ -1,4 +1,4 @@
-"""Tests for the extra input formats (issue "More inputs", part 4): PlayCanvas/SuperSplat
+"""clod_adapter.io.load and the readers behind it: PlayCanvas/SuperSplat
 compressed .ply, gsplat simple_trainer checkpoints, MaskGaussian .ply masks and the
 ``load_model`` dispatcher."""
 from __future__ import annotations

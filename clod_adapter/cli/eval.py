@@ -17,7 +17,7 @@ import sys
 from pathlib import Path
 
 from clod_adapter import jobs
-from clod_adapter.jobs import EXIT_BAD_INPUT, EXIT_INTERRUPTED, InputError, check_flag  # noqa: F401
+from clod_adapter.jobs import InputError, check_flag
 
 EXAMPLE = ("clod-eval runs/fern -s ../shared/data/fern --pretrained ../shared/data/fern/pretrained "
            "--resolution 2 -o runs/fern_report")
@@ -29,18 +29,14 @@ def build_parser():
         "Sweep an adapted CLoD-GS model over s_v and hard Gaussian budgets, compare it with baselines "
         "cut from the pretrained model at the same counts, measure popping, and write a report (CSV, "
         "JSON, plots).", EXAMPLE)
-    p.add_argument("ply", nargs="?", metavar="ADAPTED",
-                   help="adapted model (with sigma_d): a clod-adapt output folder or its point_cloud.ply")
-    p.add_argument("--images", "-s", "--source_path", "--source-path", dest="images", metavar="SCENE",
-                   help="scene folder: COLMAP (images/, sparse/0) or NeRF-synthetic (transforms_*.json)")
+    jobs.add_adapted_arg(p)
+    jobs.add_scene_flags(p)
     p.add_argument("--pretrained", metavar="PRE",
                    help="pretrained model the baselines cut: .ply (INRIA, compressed), gsplat ckpt .pt, an "
                         "official model folder or a folder holding one .ply (default: the adapted model "
                         "without sigma_d)")
     p.add_argument("--iteration", type=int, default=None, metavar="N",
                    help="with a --pretrained model folder: use point_cloud/iteration_N (default: the largest)")
-    p.add_argument("-r", "--resolution", type=int, default=1, choices=(1, 2, 4, 8),
-                   help="use images_R/ when present, else downsample by R (default 1)")
     p.add_argument("--budgets", default=None,
                    help="comma-separated budgets: values <= 1 are fractions, integers > 1 counts "
                         "(default 1,0.5,0.25,0.1 down to max_sv^-1.5, and max_sv^-1.5)")
@@ -82,12 +78,9 @@ def main(argv: list[str] | None = None) -> int:
     return jobs.run_cli("clod-eval", lambda: _main(args))
 
 
-def _main(args) -> int:
+def _check_flags(args) -> None:
     if not args.ply or not args.images:
         raise InputError("give ADAPTED and --images SCENE")
-    ply, scene_root = Path(args.ply), Path(args.images)
-    out = Path(args.output or "clod_report")
-    budgets = jobs.parse_budgets(args.budgets, "--budgets") if args.budgets is not None else None
     if args.dlod_iterations is not None:
         check_flag(args.dlod_iterations >= 0, "--dlod-iterations", ">= 0", args.dlod_iterations)
     if args.splat_transform is not None and not Path(args.splat_transform).is_file():
@@ -99,58 +92,89 @@ def _main(args) -> int:
     if args.sigma_c is not None:
         check_flag(args.sigma_c > 0, "--sigma-c", "> 0", args.sigma_c)
     check_flag(args.timing_repeats >= 0, "--timing-repeats", ">= 0", args.timing_repeats)
-    if args.threads is not None:
-        check_flag(args.threads >= 1, "--threads", ">= 1", args.threads)
     if args.lpips_weights is not None and not Path(args.lpips_weights).is_file():
         raise InputError(f"{args.lpips_weights}: no such LPIPS weights file (--lpips-weights)")
+
+
+def _read_models(args, ply: Path):
+    """(adapted .ply path, adapted model, pretrained path or None, pretrained model or None)."""
+    from clod_adapter.io.load import load_model, resolve_model_path
+    from clod_adapter.io.ply import read_ply
+
+    ply = resolve_model_path(ply, prefer="point_cloud.ply")
+    adapted = read_ply(ply)
+    if len(adapted) == 0:
+        raise InputError(f"{ply}: the model has no Gaussians")
+    if adapted.sigma_d is None:
+        raise InputError(f"{ply}: no sigma_d property; not an adapted model (run clod-adapt first)")
+    if args.pretrained is None:
+        if args.iteration is not None:
+            raise InputError("--iteration applies to a --pretrained model folder")
+        return ply, adapted, None, None
+    pre = Path(args.pretrained)
+    if not pre.exists():
+        raise InputError(f"{pre}: no such file (--pretrained)")
+    pre = resolve_model_path(pre, args.iteration, flag="--pretrained")
+    pretrained = load_model(pre)
+    if len(pretrained) == 0:
+        raise InputError(f"{pre}: the model has no Gaussians")
+    return ply, adapted, pre, pretrained
+
+
+def _lpips_spec(args):
+    """None (--no-lpips), "auto" or a checked weights file."""
+    if args.no_lpips:
+        return None
+    lpips = args.lpips_weights if args.lpips_weights is not None else "auto"
+    if lpips != "auto":
+        from clod_adapter.lpips import load_lpips
+
+        try:
+            load_lpips(lpips)
+        except ValueError as e:
+            raise InputError(str(e).splitlines()[0]) from None
+    return lpips
+
+
+def _merge_tool(args):
+    """The splat-transform executable for the decimators, or None (--no-merge, or not found: said)."""
+    if args.no_merge:
+        return None
+    from clod_adapter.baselines import find_splat_transform
+
+    tool = args.splat_transform or find_splat_transform()
+    if tool is None:
+        print("clod-eval: note: splat-transform not found; the 'decimate' and 'decimate_adaptive' baselines "
+              "are not run (install the pinned version with `npm ci` in the repository root)", file=sys.stderr)
+    return tool
+
+
+def _main(args) -> int:
+    _check_flags(args)
+    ply, scene_root = Path(args.ply), Path(args.images)
+    out = Path(args.output or "clod_report")
+    budgets = jobs.parse_budgets(args.budgets, "--budgets") if args.budgets is not None else None
     if not ply.exists():
         raise InputError(f"{ply}: no such file")
     if not scene_root.is_dir():
         raise InputError(f"{scene_root}: no such scene folder")
     jobs.set_threads(args.threads)
 
-    from clod_adapter.io.load import load_model, resolve_model_path, training_size
-    from clod_adapter.io.ply import read_ply
-    from clod_adapter.io.load import load_scene
+    from clod_adapter.training import iterations_from_state, max_sv_from_state
+    from clod_adapter.baselines import PeerError
+    from clod_adapter.io.load import load_scene, training_size
     from clod_adapter.jobs.adapt import METRICS_NAME, resolution_note
-    from clod_adapter.adapt import iterations_from_state, max_sv_from_state
-    from clod_adapter.jobs.eval import OUTPUT_NAMES
+    from clod_adapter.jobs.eval import OUTPUT_NAMES, EvalOptions, evaluate_report
 
-    ply = resolve_model_path(ply, prefer="point_cloud.ply")
     dev = jobs.pick_device(args.device)
-    adapted = read_ply(ply)
-    if len(adapted) == 0:
-        raise InputError(f"{ply}: the model has no Gaussians")
-    if adapted.sigma_d is None:
-        raise InputError(f"{ply}: no sigma_d property; not an adapted model (run clod-adapt first)")
-    pretrained, pre = None, None
-    inputs = [ply]
-    if args.pretrained is not None:
-        pre = Path(args.pretrained)
-        if not pre.exists():
-            raise InputError(f"{pre}: no such file (--pretrained)")
-        pre = resolve_model_path(pre, args.iteration, flag="--pretrained")
-        pretrained = load_model(pre)
-        if len(pretrained) == 0:
-            raise InputError(f"{pre}: the model has no Gaussians")
-        inputs.append(pre)
-    elif args.iteration is not None:
-        raise InputError("--iteration applies to a --pretrained model folder")
-    jobs.check_output_dir(out, inputs, OUTPUT_NAMES + ("report.md",), create=False, force=args.force)
+    ply, adapted, pre, pretrained = _read_models(args, ply)
+    inputs = [ply] + ([pre] if pre is not None else [])
+    jobs.check_output_dir(out, inputs, OUTPUT_NAMES, create=False, force=args.force)
     bg = (1.0, 1.0, 1.0) if args.background == "white" else (0.0, 0.0, 0.0)
     scene = load_scene(scene_root, resolution=args.resolution, background=bg)
     if not scene.cameras:
         raise InputError(f"{scene_root}: the scene has no views")
-    lpips = None
-    if not args.no_lpips:
-        lpips = args.lpips_weights if args.lpips_weights is not None else "auto"
-        if lpips != "auto":
-            from clod_adapter.lpips import load_lpips
-
-            try:
-                load_lpips(lpips)
-            except ValueError as e:
-                raise InputError(str(e).splitlines()[0]) from None
+    lpips = _lpips_spec(args)
     max_sv = args.max_sv if args.max_sv is not None else (adapted.lod.max_sv if adapted.lod else None) \
         or max_sv_from_state(ply) or 5.0
     if budgets is None:
@@ -160,40 +184,22 @@ def _main(args) -> int:
     dlod_it = args.dlod_iterations
     if dlod_it is None:
         dlod_it = iterations_from_state(ply) or 1000
-    merge_tool = None
-    if not args.no_merge:
-        from clod_adapter.baselines import find_splat_transform
-
-        merge_tool = args.splat_transform or find_splat_transform()
-        if merge_tool is None:
-            print("clod-eval: note: splat-transform not found; the 'decimate' and 'decimate_adaptive' baselines "
-                  "are not run "
-                  "(install the pinned version with `npm ci` in the repository root)", file=sys.stderr)
-    notes = []
+    merge_tool = _merge_tool(args)
     cam0 = (scene.test or scene.train)[0]
     note = _resolution_note(ply, pre, (cam0.width, cam0.height), resolution_note, training_size, METRICS_NAME)
-    if note:
-        notes.append(note)
-    jobs.check_output_dir(out, inputs, OUTPUT_NAMES + ("report.md",), force=True)  # checked above; create
-    from clod_adapter.baselines import PeerError
-
+    jobs.check_output_dir(out, inputs, OUTPUT_NAMES, force=True)  # checked above; create
+    options = EvalOptions(pretrained=pretrained, pretrained_label=str(pre) if pre else None, budgets=budgets,
+                          max_sv=max_sv, sv_steps=args.sv_steps, popping_steps=args.popping_steps, lpips=lpips,
+                          seed=args.seed, sigma_c=args.sigma_c, device=dev, progress=not args.quiet,
+                          background=bg, timing_repeats=args.timing_repeats, notes=[note] if note else [],
+                          dlod_iterations=dlod_it, merge_tool=merge_tool)
     try:
-        _report(ply, scene, out, pretrained, pre, budgets, max_sv, args, lpips, dev, bg, notes, dlod_it, merge_tool)
+        evaluate_report(ply, scene, out, options)
     except PeerError as e:  # a peer that fails stops the report: it never silently drops out
         print(f"clod-eval: error: {jobs.one_line(e)} (--no-merge runs without the decimators)", file=sys.stderr)
         return 1
     print(f"clod-eval: wrote the report to {out}")
     return 0
-
-
-def _report(ply, scene, out, pretrained, pre, budgets, max_sv, args, lpips, dev, bg, notes, dlod_it, merge_tool):
-    from clod_adapter.jobs.eval import evaluate_report
-
-    evaluate_report(ply, scene, out, pretrained=pretrained, pretrained_label=str(pre) if pre else None,
-                    budgets=budgets, max_sv=max_sv, sv_steps=args.sv_steps, popping_steps=args.popping_steps,
-                    lpips=lpips, seed=args.seed, sigma_c=args.sigma_c, device=dev, progress=not args.quiet,
-                    background=bg, timing_repeats=args.timing_repeats, notes=notes,
-                    dlod_iterations=dlod_it, merge_tool=merge_tool)
 
 
 def _resolution_note(ply, pre, size, resolution_note, training_size, metrics_name):

@@ -10,7 +10,7 @@ Gaussians that setting renders from the training views), with ``--ordered`` OUTD
 counts, PSNRs, pruning and SH results). ``--prune`` drops Gaussians no training view renders at
 any s_v >= 1; ``--sh-max-drop-db D`` lowers the SH degree while the training-view PSNR at
 s_v = 1 drops by at most D dB. Both apply to every file written. The job is
-:func:`clod_adapter.jobs.export.export` (operations: :mod:`clod_adapter.export`).
+:func:`clod_adapter.jobs.export.export` (operations: :mod:`clod_adapter.bake`).
 
 Exit status: 0 done, 2 bad input (one line on stderr naming the file or flag, nothing written),
 130 interrupted.
@@ -22,7 +22,7 @@ import sys
 from pathlib import Path
 
 from clod_adapter import jobs
-from clod_adapter.jobs import EXIT_BAD_INPUT, EXIT_INTERRUPTED, InputError, check_flag  # noqa: F401
+from clod_adapter.jobs import InputError, check_flag
 
 EXAMPLE = ("clod-export runs/fern -s ../shared/data/fern --resolution 2 -o runs/fern_export --s-v 2 "
            "--ordered --prune")
@@ -34,18 +34,11 @@ def build_parser():
         "Export an adapted CLoD-GS model: the extended .ply, a baked standard .ply for one setting, an "
         "importance-ordered .ply for prefix renderers; optionally prune never-rendered Gaussians and "
         "unneeded SH bands.", EXAMPLE)
-    p.add_argument("ply", nargs="?", metavar="ADAPTED",
-                   help="adapted model (with sigma_d): a clod-adapt output folder or its point_cloud.ply")
-    p.add_argument("--images", "-s", "--source_path", "--source-path", dest="images", metavar="SCENE",
-                   help="scene folder: COLMAP (images/, sparse/0) or NeRF-synthetic (transforms_*.json)")
-    p.add_argument("-r", "--resolution", type=int, default=1, choices=(1, 2, 4, 8),
-                   help="use images_R/ when present, else downsample by R (default 1)")
+    jobs.add_adapted_arg(p)
+    jobs.add_scene_flags(p)
     p.add_argument("-o", "--output", metavar="OUTDIR", help="output folder, new or empty")
-    g = p.add_mutually_exclusive_group()
-    g.add_argument("--s-v", type=float, default=None, metavar="X",
-                   help="bake the Gaussians rendered at s_v = X (>= 1) from the training views")
-    g.add_argument("--budget", default=None, metavar="K",
-                   help="bake the Gaussians of a per-view budget: a count (integer > 1) or a fraction (<= 1)")
+    jobs.add_level_flags(p, "bake the Gaussians rendered at s_v = X (>= 1) from the training views",
+                         "bake the Gaussians of a per-view budget: a count (integer > 1) or a fraction (<= 1)")
     p.add_argument("--ordered", action="store_true", help="write ordered.ply and score its prefixes")
     p.add_argument("--prune", action="store_true",
                    help="drop Gaussians no training view renders at any s_v >= 1")
@@ -83,8 +76,6 @@ def _main(args, argv) -> int:
     if args.sh_max_drop_db is not None:
         check_flag(math.isfinite(args.sh_max_drop_db) and args.sh_max_drop_db >= 0, "--sh-max-drop-db", ">= 0",
                    args.sh_max_drop_db)
-    if args.threads is not None:
-        check_flag(args.threads >= 1, "--threads", ">= 1", args.threads)
     if not ply.exists():
         raise InputError(f"{ply}: no such file")
     if not scene_root.is_dir():

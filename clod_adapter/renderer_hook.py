@@ -6,7 +6,7 @@ opacities, ``viewmats`` [C, 4, 4], ``Ks`` [C, 3, 3], ...) plus the per-Gaussian 
 applies Eq. 2 (``alpha'' = alpha exp(-(d' s_v)^2 / (2 ReLU(sigma_d)^2 + eps))``) and the
 ``alpha'' > tau s_v`` mask (or the exact budget selection of :mod:`clod_adapter.budget`), and hands
 the selected Gaussians to :func:`clod_adapter.render.rasterization` (gsplat on CUDA, CPU
-otherwise). The selection is the one :func:`clod_adapter.view.render_lod` makes, so both
+otherwise). The selection is the one :func:`clod_adapter.camera_lod.render_lod` makes, so both
 give the same image.
 
 Without ``sigma_d``, or with neither ``s_v`` nor ``budget``, it is exactly ``rasterization``.
@@ -20,7 +20,7 @@ from torch import Tensor
 
 from . import lod
 from .render.dispatch import rasterization
-from .view import view_lod_tensors
+from .camera_lod import view_lod_tensors
 
 __all__ = ["clod_rasterization"]
 
@@ -33,13 +33,13 @@ _NOOP_DEFAULTS = {
 }
 
 
-def _check_kwargs(packed: bool, render_mode: str, rasterize_mode: str, kwargs: dict) -> dict:
+def _refuse_unsupported(packed: bool, render_mode: str, rasterize_mode: str, kwargs: dict) -> None:
+    """Raise on a gsplat mode or keyword this hook does not implement (gsplat's defaults pass)."""
     if render_mode != "RGB":
         raise ValueError(f"clod_rasterization: only render_mode='RGB' is supported, got {render_mode!r}")
     if rasterize_mode != "classic":
         raise ValueError(f"clod_rasterization: only rasterize_mode='classic' is supported, got {rasterize_mode!r}")
     del packed  # packed / unpacked give the same image; the backends render unpacked
-    out = {}
     for k, v in kwargs.items():
         if k in _NOOP_DEFAULTS:
             if v != _NOOP_DEFAULTS[k]:
@@ -47,7 +47,6 @@ def _check_kwargs(packed: bool, render_mode: str, rasterize_mode: str, kwargs: d
                                  f"(only gsplat's default {_NOOP_DEFAULTS[k]!r})")
         else:
             raise TypeError(f"clod_rasterization: unexpected keyword argument {k!r}")
-    return out
 
 
 def clod_rasterization(
@@ -119,9 +118,9 @@ def clod_rasterization(
         ValueError: ``s_v`` and ``budget`` both given, ``s_v < 1``, ``sigma_d`` of the wrong
             shape, an unsupported mode or keyword value.
     """
-    extra = _check_kwargs(packed, render_mode, rasterize_mode, kwargs)
+    _refuse_unsupported(packed, render_mode, rasterize_mode, kwargs)
     common = dict(near_plane=near_plane, far_plane=far_plane, radius_clip=radius_clip, eps2d=eps2d,
-                  sh_degree=sh_degree, tile_size=tile_size, backend=backend, **extra)
+                  sh_degree=sh_degree, tile_size=tile_size, backend=backend)
     if s_v is not None and budget is not None:
         raise ValueError("clod_rasterization: give s_v or budget, not both")
     if sigma_d is None or (s_v is None and budget is None):

@@ -5,9 +5,9 @@ import json
 import pytest
 import torch
 
-from clod_adapter.adapt import AdaptConfig, adapt, load_state, prepare, save_state
+from clod_adapter.training import AdaptConfig, adapt, load_state, prepare, save_state
 from clod_adapter.io.ply import read_ply
-from clod_adapter.view import render_lod
+from clod_adapter.camera_lod import render_lod
 from clod_adapter.synthetic import make_cameras, make_ground_truth, perturb
 from conftest import render_views, write_tiny_scene
 
@@ -118,7 +118,7 @@ def test_pipeline_outputs(tmp_path):
 
 def test_dlod_finetune_trains_inside_no_grad(tiny):
     """clod-eval's report is a no_grad function; its per-budget ceiling must still train."""
-    from clod_adapter.dlod import finetune_subset
+    from clod_adapter.dlod_ceiling import finetune_subset
 
     model, cams, imgs = tiny
     with torch.no_grad():

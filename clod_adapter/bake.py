@@ -8,7 +8,7 @@
 * :func:`reduce_sh`: drop SH bands whose removal costs less than a set PSNR on training views.
 
 Persistence (the choice made here). A Gaussian is rendered from a view iff it is in view
-(:func:`clod_adapter.view.in_view`) and ``s_v < s*`` (:func:`clod_adapter.budget.critical_s_v`,
+(:func:`clod_adapter.camera_lod.in_view`) and ``s_v < s*`` (:func:`clod_adapter.budget.critical_s_v`,
 which folds opacity, ``sigma_d`` and the view's normalised distance into one number). Its
 persistence is the largest ``s*`` over the views that see it, i.e. the coarsest level at which
 *some* view still draws it; 0 for a Gaussian no view sees. The maximum (not the mean) is used so
@@ -26,7 +26,7 @@ from torch import Tensor
 from . import lod
 from .gaussians import Gaussians
 from .metrics import psnr
-from .view import render_lod, view_lod
+from .camera_lod import render_lod, view_lod
 
 __all__ = ["persistence", "importance_order", "bake", "prune_never_rendered", "reduce_sh",
            "truncate_sh", "BakeInfo"]

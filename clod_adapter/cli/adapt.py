@@ -5,7 +5,7 @@
                [--deterministic] [--layout inria] [--allow-mismatch]
     clod-adapt -m MODEL_FOLDER -s SCENE ...        (the official 3DGS spelling)
     clod-adapt --demo [-o OUT]
-    torchrun --nproc_per_node=N -m cli.adapt MODEL --images SCENE ...   (data-parallel; or --distributed)
+    torchrun --nproc_per_node=N -m clod_adapter.cli.adapt MODEL --images SCENE ...   (data-parallel; or --distributed)
 
 MODEL: a .ply / gsplat .pt, an official 3DGS model folder (``point_cloud/iteration_N/``, the
 latest N unless ``--iteration``) or a folder holding one .ply.
@@ -22,7 +22,7 @@ import sys
 from pathlib import Path
 
 from clod_adapter import jobs
-from clod_adapter.jobs import EXIT_BAD_INPUT, EXIT_INTERRUPTED, InputError, check_flag  # noqa: F401
+from clod_adapter.jobs import InputError, check_flag
 
 EXAMPLE = ("clod-adapt ../shared/data/fern/pretrained -s ../shared/data/fern --resolution 2 --max-sv 5 "
            "-o runs/fern")
@@ -42,15 +42,11 @@ def build_parser():
                    help="the same as MODEL (the official 3DGS flag)")
     p.add_argument("--iteration", type=int, default=None, metavar="N",
                    help="with a model folder: use point_cloud/iteration_N (default: the largest N)")
-    p.add_argument("--images", "-s", "--source_path", "--source-path", dest="images", metavar="SCENE",
-                   help="scene folder: COLMAP (images/, sparse/0) or NeRF-synthetic (transforms_*.json)")
+    jobs.add_scene_flags(p, resolution_note="; use the resolution the checkpoint was trained at")
     p.add_argument("--max-sv", type=float, default=5.0, help="largest virtual distance scale trained (default 5)")
     p.add_argument("-o", "--output", metavar="OUT",
                    help="output folder, new or empty (default: ./clod_out; demo ./clod_demo)")
     p.add_argument("--iterations", type=int, default=None, help="optimisation steps (default 1000; demo 400)")
-    p.add_argument("-r", "--resolution", type=int, default=1, choices=(1, 2, 4, 8),
-                   help="use images_R/ when present, else downsample by R (default 1); use the resolution "
-                        "the checkpoint was trained at")
     p.add_argument("--background", default="black", choices=("black", "white"),
                    help="colour behind the scene (NeRF-synthetic RGBA images are composited over it)")
     p.add_argument("--seed", type=int, default=0, help="seed of the view order and s_v sampling (default 0)")
@@ -71,8 +67,15 @@ def build_parser():
                    help="calibrated schedule: level gains to learn, letters of o (opacity), s (scale), "
                         "c (colour); default 'osc'; '' for none")
     p.add_argument("--tau", type=float, default=None, help="LoD threshold: render iff alpha'' > tau*s_v (default 0.005)")
-    p.add_argument("--eta-estimator", default="ste", choices=("ste", "sigmoid", "paper"),
-                   help="gradient of the rendered fraction in L_reg; 'paper' = hard count, no gradient")
+    p.add_argument("--eta-estimator", default=None, choices=("ste", "sigmoid", "paper"),
+                   help="paper schedule: gradient of the rendered fraction in L_reg (default 'ste'); "
+                        "'paper' = hard count, no gradient")
+    _run_flags(p)
+    return p
+
+
+def _run_flags(p) -> None:
+    """How the run goes (inputs' handling, saves, outputs, timing, processes): AdaptOptions'."""
     p.add_argument("--masks", default="auto", choices=("auto", "argmax", "gumbel", "all"),
                    help="a MaskGaussian .ply with mask scores (masks_0/masks_1): keep p(keep) > 0.5 "
                         "('argmax', the default 'auto'), one Gumbel draw as MaskGaussian's own save "
@@ -105,7 +108,7 @@ def build_parser():
     p.add_argument("--distributed", action="store_true",
                    help="data-parallel over views with torch.distributed, reading torchrun's environment "
                         "(RANK, WORLD_SIZE, MASTER_ADDR, MASTER_PORT; gloo on CPU, NCCL on GPUs); implied "
-                        "when started by torchrun: torchrun --nproc_per_node=N -m cli.adapt ...")
+                        "when started by torchrun: torchrun --nproc_per_node=N -m clod_adapter.cli.adapt ...")
     p.add_argument("--save-every", type=int, default=None, metavar="N",
                    help="also write the resumable state every N steps (default: every 10 %% of the run when "
                         "data-parallel, else only on a signal and at the end; 0: never)")
@@ -114,7 +117,24 @@ def build_parser():
     p.add_argument("--demo", action="store_true",
                    help="build the embedded synthetic scene and pretrained model in OUT/demo and adapt it")
     jobs.add_common_flags(p)
-    return p
+
+
+def _config(args, world: int):
+    """The run's AdaptConfig from the flags; its own checks (AdaptConfig.__post_init__, the one
+    place the settings' rules live) reported with the flag's name."""
+    from clod_adapter.training import AdaptConfig
+
+    iterations = args.iterations if args.iterations is not None else (400 if args.demo else 1000)
+    kw = {} if args.tau is None else {"tau": args.tau}
+    try:
+        return AdaptConfig(max_sv=args.max_sv, iterations=iterations, seed=args.seed, schedule=args.schedule,
+                           other_lr_scale=args.other_lr_scale, lambda_reg=args.lambda_reg,
+                           fade=args.fade, gains=args.gains, eta_estimator=args.eta_estimator or "ste",
+                           background=(1.0, 1.0, 1.0) if args.background == "white" else (0.0, 0.0, 0.0),
+                           views_per_step=args.views_per_step if args.views_per_step is not None else world, **kw)
+    except ValueError as e:  # "<field> must be ...": the field is the flag
+        field, _, rest = str(e).partition(" ")
+        raise InputError(f"--{field.replace('_', '-')} {rest}") from None
 
 
 #: exit status of a data-parallel run that lost one of its processes.
@@ -147,26 +167,16 @@ def _main(args) -> int:
     if args.ply and args.model_path and args.ply != args.model_path:
         raise InputError("give the model once: MODEL or -m/--model_path")
     model = args.ply or args.model_path
-    check_flag(args.max_sv >= 1, "--max-sv", ">= 1", args.max_sv)
-    if args.iterations is not None:
-        check_flag(args.iterations >= 0, "--iterations", ">= 0", args.iterations)
-    if args.other_lr_scale is not None:
-        check_flag(args.other_lr_scale >= 0, "--other-lr-scale", ">= 0", args.other_lr_scale)
     if args.lambda_reg is not None:
         check_flag(args.lambda_reg >= 0, "--lambda-reg", ">= 0", args.lambda_reg)
-    if args.gains is not None:
-        check_flag(set(args.gains) <= set("osc"), "--gains", "letters of 'osc'", repr(args.gains))
-        check_flag(not args.gains or args.schedule == "calibrated", "--gains", "used with --schedule calibrated",
-                   repr(args.gains))
-    if args.tau is not None:
-        check_flag(args.tau > 0, "--tau", "> 0", args.tau)
-    if args.threads is not None:
-        check_flag(args.threads >= 1, "--threads", ">= 1", args.threads)
+    if args.schedule == "calibrated":  # flags of the paper's count regulariser: nothing to act on
+        for flag, value in (("--lambda-reg", args.lambda_reg), ("--eta-estimator", args.eta_estimator)):
+            if value is not None:
+                raise InputError(f"{flag} acts on the paper schedule's count regulariser only; "
+                                 "the calibrated schedule has none (add --schedule paper)")
     check_flag(args.timing_repeats >= 0, "--timing-repeats", ">= 0", args.timing_repeats)
     if args.iteration is not None:
         check_flag(args.iteration >= 0, "--iteration", ">= 0", args.iteration)
-    if args.views_per_step is not None:
-        check_flag(args.views_per_step >= 1, "--views-per-step", ">= 1", args.views_per_step)
     if args.save_every is not None:
         check_flag(args.save_every >= 0, "--save-every", ">= 0", args.save_every)
     from clod_adapter.distributed import launched_by_torchrun
@@ -174,18 +184,18 @@ def _main(args) -> int:
     distributed = args.distributed or launched_by_torchrun()
     if args.distributed and not launched_by_torchrun():
         raise InputError("--distributed: RANK, WORLD_SIZE, MASTER_ADDR, MASTER_PORT are not set; start it with "
-                         "torchrun --nproc_per_node=N -m cli.adapt ...")
+                         "torchrun --nproc_per_node=N -m clod_adapter.cli.adapt ...")
     if distributed and args.demo:
         raise InputError("--demo runs in one process; build the demo first (clod-adapt --demo -o OUT), then "
-                         "torchrun ... -m cli.adapt OUT/demo/pretrained/point_cloud.ply --images OUT/demo/scene")
+                         "torchrun ... -m clod_adapter.cli.adapt OUT/demo/pretrained/point_cloud.ply --images OUT/demo/scene")
     world = int(os.environ.get("WORLD_SIZE", "1")) if distributed else 1
     jobs.set_threads(args.threads)
     # Imports after parsing so --help is instant.
-    from clod_adapter.adapt import AdaptConfig
-    from clod_adapter.jobs.adapt import run
+    from clod_adapter.jobs.adapt import AdaptOptions, run
 
     out = Path(args.output or ("clod_demo" if args.demo else "clod_out"))
     force = args.force
+    cfg = _config(args, world)  # checked before anything is written (the demo scene included)
     if args.demo:
         from clod_adapter.jobs.adapt import check_output_dir
         from clod_adapter.synthetic import build_demo_scene
@@ -194,27 +204,19 @@ def _main(args) -> int:
         scene, ply = build_demo_scene(out / "demo")
         force = True  # checked above; OUT now holds the demo scene
         print(f"clod-adapt: demo scene written to {scene}, pretrained stand-in {ply}")
-        iterations = 400 if args.iterations is None else args.iterations
     else:
         if not model or not args.images:
             raise InputError("give MODEL and --images SCENE (or -m MODEL -s SCENE, or --demo)")
         scene, ply = Path(args.images), Path(model)
-        iterations = 1000 if args.iterations is None else args.iterations
-    kw = {} if args.tau is None else {"tau": args.tau}
-    views = args.views_per_step if args.views_per_step is not None else world
-    cfg = AdaptConfig(max_sv=args.max_sv, iterations=iterations, seed=args.seed, schedule=args.schedule,
-                      other_lr_scale=args.other_lr_scale, lambda_reg=args.lambda_reg,
-                      fade=args.fade, gains=args.gains, eta_estimator=args.eta_estimator,
-                      background=(1.0, 1.0, 1.0) if args.background == "white" else (0.0, 0.0, 0.0),
-                      views_per_step=views, **kw)
-    run(ply, scene, out, cfg, resolution=args.resolution, device=args.device,
-        resume=args.resume, progress=not args.quiet, sanitize=args.sanitize,
-        deterministic=args.deterministic,
-        iterations_from_state=args.resume and args.iterations is None, force=force,
-        allow_mismatch=args.allow_mismatch, iteration=args.iteration, layout=args.layout,
-        tensorboard=args.tensorboard, timing_repeats=args.timing_repeats, masks=args.masks,
-        distributed=distributed, save_every=args.save_every,
-        views_from_state=args.resume and args.views_per_step is None, holdout_val=args.holdout_val)
+    options = AdaptOptions(resolution=args.resolution, device=args.device, resume=args.resume,
+                           progress=not args.quiet, sanitize=args.sanitize, deterministic=args.deterministic,
+                           iterations_from_state=args.resume and args.iterations is None, force=force,
+                           allow_mismatch=args.allow_mismatch, iteration=args.iteration, layout=args.layout,
+                           tensorboard=args.tensorboard, timing_repeats=args.timing_repeats, masks=args.masks,
+                           distributed=distributed, save_every=args.save_every,
+                           views_from_state=args.resume and args.views_per_step is None,
+                           holdout_val=args.holdout_val)
+    run(ply, scene, out, cfg, options)
     return 0
 
 

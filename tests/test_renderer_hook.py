@@ -8,7 +8,7 @@ from pathlib import Path
 import pytest
 import torch
 
-from clod_adapter.view import render_lod
+from clod_adapter.camera_lod import render_lod
 from clod_adapter import clod_rasterization, rasterization
 from clod_adapter.synthetic import make_cameras, make_ground_truth
 

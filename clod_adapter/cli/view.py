@@ -16,7 +16,8 @@ import sys
 import threading
 from pathlib import Path
 
-EXIT_BAD_INPUT = 2
+from clod_adapter import jobs
+from clod_adapter.jobs import EXIT_BAD_INPUT
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -27,11 +28,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument("ply", help="model: the .ply from clod-adapt (with sigma_d), or a plain 3DGS .ply / "
                                "compressed .ply / gsplat ckpt_*.pt (shown without LoD)")
-    p.add_argument("--images", metavar="SCENE",
-                   help="scene folder (COLMAP or NeRF-synthetic): start at its first test camera and "
-                        "offer its views in a dropdown")
-    p.add_argument("--resolution", type=int, default=1, choices=(1, 2, 4, 8),
-                   help="scene cameras at 1/R of the image size (default 1)")
+    jobs.add_scene_flags(p)  # the scene's first test camera starts the view; its views are offered
     p.add_argument("--port", type=int, default=8080,
                    help="port (default 8080; the next free one if taken; 0 = any free port)")
     p.add_argument("--host", default="127.0.0.1",

@@ -39,19 +39,10 @@ from .budget import critical_s_v
 from .gaussians import GAIN_NAMES, Gaussians
 from .io.atomic import atomic_save
 from .losses import clod_loss, render_loss
-from .view import render_lod, view_lod
+from .camera_lod import render_lod, view_lod
 from .metrics import psnr
+from .official import OFFICIAL_LR, scene_extent
 
-#: official 3DGS learning rates (arguments/__init__.py, OptimizationParams); means are scaled by
-#: the scene extent and decay log-linearly from init to final over the run.
-OFFICIAL_LR = {
-    "means": (1.6e-4, 1.6e-6),
-    "sh0": 2.5e-3,
-    "shN": 2.5e-3 / 20.0,
-    "opacity_logits": 5e-2,
-    "log_scales": 5e-3,
-    "quats": 1e-3,
-}
 PARAM_NAMES = ("means", "quats", "log_scales", "opacity_logits", "sh0", "shN", "sigma_d")
 SCHEDULES = ("calibrated", "paper")
 Schedule = Literal["calibrated", "paper"]
@@ -160,23 +151,18 @@ class AdaptConfig:
             self.level_weighting = "uniform" if cal else "paper"
         if self.s_v_sampling is None:
             self.s_v_sampling = "log" if cal else "uniform"
-        if not self.max_sv >= 1.0:
-            raise ValueError(f"max_sv must be >= 1, got {self.max_sv}")
+        self.lod_settings()  # max_sv, tau, fade, fade_width: LodSettings' rules, checked there
         if self.iterations < 0:
             raise ValueError(f"iterations must be >= 0, got {self.iterations}")
         if self.other_lr_scale < 0:
             raise ValueError(f"other_lr_scale must be >= 0, got {self.other_lr_scale}")
         if self.eta_estimator not in lod.ETA_ESTIMATORS:
             raise ValueError(f"eta_estimator must be one of {lod.ETA_ESTIMATORS}")
-        if self.fade not in lod.FADES:
-            raise ValueError(f"fade must be one of {lod.FADES}, got {self.fade!r}")
-        if not self.fade_width > 0:
-            raise ValueError(f"fade_width must be > 0, got {self.fade_width}")
         bad = set(self.gains) - set(GAIN_LETTERS)
         if bad:
-            raise ValueError(f"gains takes letters of 'osc' (opacity, scale, colour), got {self.gains!r}")
+            raise ValueError(f"gains must be letters of 'osc' (opacity, scale, colour), got {self.gains!r}")
         if self.gains and not cal:
-            raise ValueError("level gains need the calibrated schedule")
+            raise ValueError(f"gains must be used with the calibrated schedule, got {self.gains!r}")
         if self.ranking not in RANKINGS:
             raise ValueError(f"ranking must be one of {RANKINGS}, got {self.ranking!r}")
         if self.recalibrate_every < 0:
@@ -188,7 +174,7 @@ class AdaptConfig:
         if not 0.0 <= self.cost_exponent <= 1.0:
             raise ValueError(f"cost_exponent must be in [0, 1], got {self.cost_exponent}")
         if not (isinstance(self.views_per_step, int) and self.views_per_step >= 1):
-            raise ValueError(f"views_per_step must be an integer >= 1, got {self.views_per_step!r}")
+            raise ValueError(f"views_per_step must be >= 1 (an integer), got {self.views_per_step!r}")
         self.background = tuple(float(x) for x in self.background)
 
     @property
@@ -222,12 +208,6 @@ class AdaptState:
     def gaussians(self) -> Gaussians:
         """The model as it stands (parameters, not copies; ``lod`` settings attached)."""
         return Gaussians(**{k: v for k, v in self.params.items()}, lod=self.lod)
-
-
-def scene_extent(cameras) -> float:
-    """3DGS ``getNerfppNorm`` radius: 1.1 x max distance of a camera centre from their mean."""
-    centers = torch.stack([lod.camera_center(c.viewmat.double()) for c in cameras])
-    return float(1.1 * (centers - centers.mean(0)).norm(dim=1).max().clamp_min(1e-6))
 
 
 @torch.no_grad()
@@ -467,9 +447,6 @@ class StopFlag:
         self._old = {}
 
 
-_StopFlag = StopFlag  # old name
-
-
 @torch.no_grad()
 def weighted_count(view, share: float, cost_exponent: float) -> int:
     """How many Gaussians a level of ``share`` of the view's weighted cost draws: the longest
@@ -489,7 +466,7 @@ def view_loss(g: Gaussians, camera, gt: Tensor, s_v: float, cfg: AdaptConfig, ba
     """One training view's render and loss at ``s_v`` (the body of a step of :func:`adapt`).
 
     Returns:
-        (:class:`clod_adapter.view.LodRender`, scalar loss tensor).
+        (:class:`clod_adapter.camera_lod.LodRender`, scalar loss tensor).
     """
     if cfg.schedule == "calibrated" and cfg.cost_exponent > 0:
         # the level's exact share of the view's weighted cost, drawn with the level's gains
@@ -507,10 +484,32 @@ def view_loss(g: Gaussians, camera, gt: Tensor, s_v: float, cfg: AdaptConfig, ba
                          estimator=cfg.eta_estimator, temperature=cfg.temperature,
                          background=cfg.background, backend=backend)
     l_render = render_loss(out.image, gt)
-    loss, _ = clod_loss(l_render, out.eta, s_v, cfg.max_sv, cfg.lambda_reg)
-    if cfg.level_weighting == "uniform":
-        loss = loss / lod.scale_weight(s_v, cfg.max_sv)
+    loss, _ = clod_loss(l_render, out.eta, s_v, cfg.max_sv, cfg.lambda_reg, cfg.level_weighting)
     return out, loss
+
+
+def _draw_views(state: AdaptState, n_views: int, cfg: AdaptConfig) -> list:
+    """One step's (view index, s_v) pairs: views shuffled without replacement per epoch, each
+    with its own ``s_v``, drawn in that order from the state's generator (view, s_v, ...)."""
+    picks = []
+    for _ in range(cfg.views_per_step):
+        if not state.order:
+            state.order = torch.randperm(n_views, generator=state.generator).tolist()
+        vi = state.order.pop()
+        picks.append((vi, lod.sample_s_v(cfg.max_sv, state.generator, cfg.s_v_sampling)))
+    return picks
+
+
+def _record(h: dict, picks: list, rows: dict, ema: dict) -> None:
+    """Append one step's records to the history ``h`` and update the progress averages ``ema``."""
+    for j, (vi, s_v) in enumerate(picks):
+        loss_j, p, eta = rows[j]
+        h["s_v"].append(round(s_v, 4))
+        h["eta"].append(round(eta, 5))
+        h["loss"].append(round(loss_j, 6))
+        h["psnr"].append(round(p, 3))
+        for k, v in (("loss", h["loss"][-1]), ("psnr", p)):
+            ema[k] = v if ema[k] is None else 0.9 * ema[k] + 0.1 * v
 
 
 def adapt(
@@ -562,7 +561,7 @@ def adapt(
     Raises:
         clod_adapter.distributed.PeerLost: (``group`` given) another rank stopped answering.
     """
-    from .jobs import progress_bar
+    from .progress import progress_bar
 
     # a tqdm bar on a terminal; a plain line every 10 % in a log (stderr not a terminal)
     bar = progress_bar(cfg.iterations, "clod-adapt", unit="it", initial=state.iteration, disable=not progress)
@@ -588,12 +587,7 @@ def adapt(
                     on_interrupt(state)
                 return False
             it = state.iteration
-            picks = []
-            for _ in range(views):
-                if not state.order:
-                    state.order = torch.randperm(len(train_cameras), generator=state.generator).tolist()
-                vi = state.order.pop()
-                picks.append((vi, lod.sample_s_v(cfg.max_sv, state.generator, cfg.s_v_sampling)))
+            picks = _draw_views(state, len(train_cameras), cfg)
             for grp in state.optimizer.param_groups:
                 if grp["name"] == "means":
                     grp["lr"] = means_lr(cfg, state.extent, it)
@@ -622,15 +616,7 @@ def adapt(
                     state.iteration == cfg.iterations
                     or (cfg.recalibrate_every and state.iteration % cfg.recalibrate_every == 0)):
                 recalibrate(state, train_cameras, cfg)
-            h = state.history
-            for j, (vi, s_v) in enumerate(picks):
-                loss_j, p, eta = rows[j]
-                h["s_v"].append(round(s_v, 4))
-                h["eta"].append(round(eta, 5))
-                h["loss"].append(round(loss_j, 6))
-                h["psnr"].append(round(p, 3))
-                for k, v in (("loss", h["loss"][-1]), ("psnr", p)):
-                    ema[k] = v if ema[k] is None else 0.9 * ema[k] + 0.1 * v
+            _record(state.history, picks, rows, ema)
             # frac: the rendered fraction eta of the step (not tqdm's "time remaining")
             bar.set_postfix(loss=f"{ema['loss']:.4f}", psnr=f"{ema['psnr']:.2f}",
                             s_v=f"{picks[-1][1]:.2f}", frac=f"{rows[len(picks) - 1][2]:.3f}", refresh=False)

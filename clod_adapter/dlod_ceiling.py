@@ -14,7 +14,7 @@ Schedules (``schedule=``):
   rate and decay log-linearly to ``decay`` (0.01) x it at the last step (LightGaussian holds the
   final rate constant; the decay lets the run settle, so the end of the run is converged, see
   :func:`convergence`); every other attribute at the official constant rates
-  (:data:`clod_adapter.adapt.OFFICIAL_LR`); 5,000 steps by default.
+  (:data:`clod_adapter.official.OFFICIAL_LR`); 5,000 steps by default.
 * ``"official"``: the schedule of the first version: positions restart at the official
   *initial* rate 1.6e-4 x extent and decay to the final one over the run (a fresh 3DGS training
   schedule; too hot for a finished model: its ceiling ended below the adapted model).
@@ -32,10 +32,10 @@ from typing import Mapping, Optional, Sequence
 import torch
 from torch import Tensor
 
-from .adapt import OFFICIAL_LR, scene_extent
+from .official import OFFICIAL_LR, scene_extent
 from .gaussians import Gaussians
 from .losses import render_loss
-from .view import render_lod
+from .camera_lod import render_lod
 
 _FIELDS = ("means", "quats", "log_scales", "opacity_logits", "sh0", "shN")
 

@@ -222,7 +222,7 @@ def _check_views_per_step():
     picks = []
     for _ in range(2):
         vi = order.pop()
-        picks.append((vi, lod.sample_s_v(3.0, gen)))
+        picks.append((vi, lod.sample_s_v(3.0, gen, cfg.s_v_sampling)))
     g = ref.gaussians()
     ref.optimizer.zero_grad(set_to_none=True)
     for vi, s_v in picks:

@@ -21,21 +21,12 @@ def render_loss(img: Tensor, gt: Tensor, lambda_dssim: float = LAMBDA_DSSIM) -> 
 
 
 def clod_loss(l_render: Tensor, eta: Tensor, s_v: float, max_sv: float,
-              lambda_reg: float = 1.0, weighting: str = "paper") -> tuple[Tensor, Tensor]:
-    """CLoD-GS total loss ``w (L_render + lambda_reg L_reg)``: ``w = w_s = (1 - 0.5 s_v /
-    max_sv)^2`` (``weighting="paper"``, CLoD-GS Sec. 3.2) or ``w = 1`` (``"uniform"``: every level
-    alike).
+              lambda_reg: float = 1.0) -> tuple[Tensor, Tensor]:
+    """CLoD-GS total loss ``w_s (L_render + lambda_reg L_reg)``.
 
     Returns:
         (total, l_reg) scalar tensors.
-
-    Raises:
-        ValueError: an unknown ``weighting``.
     """
-    if weighting not in ("paper", "uniform"):
-        raise ValueError(f"weighting must be 'paper' or 'uniform', got {weighting!r}")
     l_reg = lod.reg_loss(s_v, eta)
-    total = l_render + lambda_reg * l_reg
-    if weighting == "paper":
-        total = lod.scale_weight(s_v, max_sv) * total
-    return total, l_reg
+    w_s = lod.scale_weight(s_v, max_sv)
+    return w_s * (l_render + lambda_reg * l_reg), l_reg

@@ -484,7 +484,11 @@ def view_loss(g: Gaussians, camera, gt: Tensor, s_v: float, cfg: AdaptConfig, ba
                          estimator=cfg.eta_estimator, temperature=cfg.temperature,
                          background=cfg.background, backend=backend)
     l_render = render_loss(out.image, gt)
-    loss, _ = clod_loss(l_render, out.eta, s_v, cfg.max_sv, cfg.lambda_reg, cfg.level_weighting)
+    loss, _ = clod_loss(l_render, out.eta, s_v, cfg.max_sv, cfg.lambda_reg)
+    if cfg.level_weighting == "uniform":
+        # divided out rather than not applied: the same float rounding as every model adapted so
+        # far (--deterministic runs reproduce to the last digit)
+        loss = loss / lod.scale_weight(s_v, cfg.max_sv)
     return out, loss
 
 

@@ -49,7 +49,3 @@ def test_render_loss_and_clod_loss():
     total, reg = clod_loss(l, torch.tensor(0.5, dtype=torch.float64), 4.0, 5.0, 1.0)
     assert reg.item() == pytest.approx(9 * (0.5 - 0.125) ** 2)
     assert total.item() == pytest.approx((1 - 0.4) ** 2 * (l.item() + reg.item()))
-    flat, _ = clod_loss(l, torch.tensor(0.5, dtype=torch.float64), 4.0, 5.0, 1.0, weighting="uniform")
-    assert flat.item() == pytest.approx(l.item() + reg.item())
-    with pytest.raises(ValueError, match="weighting"):
-        clod_loss(l, torch.tensor(0.5), 4.0, 5.0, 1.0, weighting="none")

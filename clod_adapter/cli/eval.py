@@ -29,8 +29,7 @@ def build_parser():
         "Sweep an adapted CLoD-GS model over s_v and hard Gaussian budgets, compare it with baselines "
         "cut from the pretrained model at the same counts, measure popping, and write a report (CSV, "
         "JSON, plots).", EXAMPLE)
-    jobs.add_adapted_arg(p)
-    jobs.add_scene_flags(p)
+    jobs.add_adapted_inputs(p)
     p.add_argument("--pretrained", metavar="PRE",
                    help="pretrained model the baselines cut: .ply (INRIA, compressed), gsplat ckpt .pt, an "
                         "official model folder or a folder holding one .ply (default: the adapted model "

@@ -34,8 +34,7 @@ def build_parser():
         "Export an adapted CLoD-GS model: the extended .ply, a baked standard .ply for one setting, an "
         "importance-ordered .ply for prefix renderers; optionally prune never-rendered Gaussians and "
         "unneeded SH bands.", EXAMPLE)
-    jobs.add_adapted_arg(p)
-    jobs.add_scene_flags(p)
+    jobs.add_adapted_inputs(p)
     p.add_argument("-o", "--output", metavar="OUTDIR", help="output folder, new or empty")
     jobs.add_level_flags(p, "bake the Gaussians rendered at s_v = X (>= 1) from the training views",
                          "bake the Gaussians of a per-view budget: a count (integer > 1) or a fraction (<= 1)")

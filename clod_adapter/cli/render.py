@@ -31,8 +31,7 @@ def build_parser():
         "clod-render",
         "Render an adapted CLoD-GS model: the test views at one level of detail (PNG) and a short MP4 "
         "along the scene's cameras or an orbit while s_v sweeps.", EXAMPLE)
-    jobs.add_adapted_arg(p)
-    jobs.add_scene_flags(p)
+    jobs.add_adapted_inputs(p)
     p.add_argument("-o", "--output", metavar="OUTDIR", help="output folder, new or empty (default ./clod_render)")
     jobs.add_level_flags(p, "level of detail (>= 1) of the images, and of the video instead of a sweep (default 1)",
                          "render at most K Gaussians per view (an integer count > 1 or a fraction <= 1) instead")

@@ -81,10 +81,12 @@ def add_scene_flags(p: argparse.ArgumentParser, *, resolution_note: str = "") ->
                    help="use images_R/ when present, else downsample by R (default 1)" + resolution_note)
 
 
-def add_adapted_arg(p: argparse.ArgumentParser) -> None:
-    """The positional ADAPTED model of the CLIs that read an adapted model."""
+def add_adapted_inputs(p: argparse.ArgumentParser) -> None:
+    """The positional ADAPTED model and the scene flags (:func:`add_scene_flags`) of the CLIs
+    that read an adapted model."""
     p.add_argument("ply", nargs="?", metavar="ADAPTED",
                    help="adapted model (with sigma_d): a clod-adapt output folder or its point_cloud.ply")
+    add_scene_flags(p)
 
 
 def add_level_flags(p: argparse.ArgumentParser, s_v_help: str, budget_help: str) -> None:

@@ -13,7 +13,7 @@ clod_adapter`` stays light and does not import torch: the CLIs set OpenMP defaul
 * adapting: :class:`AdaptConfig`, :func:`prepare`, :func:`adapt`;
 * the three jobs behind the CLIs: :func:`run_adapt_job` (``clod-adapt``, options
   :class:`AdaptOptions`), :func:`evaluate_report` (``clod-eval``, options :class:`EvalOptions`),
-  :func:`export_model` (``clod-export``).
+  :func:`export_model` (``clod-export``, options :class:`ExportOptions`).
 """
 
 __version__ = "0.1.0"
@@ -30,7 +30,7 @@ _EXPORTS = {
     "AdaptConfig": ("training", "AdaptConfig"), "prepare": ("training", "prepare"), "adapt": ("training", "adapt"),
     "run_adapt_job": ("jobs.adapt", "run"), "AdaptOptions": ("jobs.adapt", "AdaptOptions"),
     "evaluate_report": ("jobs.eval", "evaluate_report"), "EvalOptions": ("jobs.eval", "EvalOptions"),
-    "export_model": ("jobs.export", "export"),
+    "export_model": ("jobs.export", "export"), "ExportOptions": ("jobs.export", "ExportOptions"),
 }
 __all__ = sorted(_EXPORTS) + ["__version__"]
 

@@ -87,7 +87,7 @@ def _main(args, argv) -> int:
     jobs.set_threads(args.threads)
 
     from clod_adapter.io.load import resolve_model_path
-    from clod_adapter.jobs.export import EXTENDED_NAME, JSON_NAME, ORDERED_NAME, export, summary
+    from clod_adapter.jobs.export import EXTENDED_NAME, JSON_NAME, ORDERED_NAME, ExportOptions, export, summary
     from clod_adapter.io.ply import read_ply
     from clod_adapter.io.load import load_scene
 
@@ -113,10 +113,10 @@ def _main(args, argv) -> int:
     train_imgs = [scene.load_image(c) for c in scene.train]
     test_cams = scene.test or scene.train[:1]
     test_imgs = [scene.load_image(c) for c in test_cams]
-    report = export(model.to(dev), scene, train_imgs, test_cams, test_imgs, out, ply=ply,
-                    s_v=args.s_v, budget=budget, baked_name=baked_name, ordered=args.ordered,
-                    prune=args.prune, sh_max_drop_db=args.sh_max_drop_db, argv=argv, progress=not args.quiet,
-                    spz=args.spz)
+    options = ExportOptions(s_v=args.s_v, budget=budget, baked_name=baked_name, ordered=args.ordered,
+                            prune=args.prune, sh_max_drop_db=args.sh_max_drop_db, spz=args.spz,
+                            progress=not args.quiet, argv=argv)
+    report = export(model.to(dev), scene, train_imgs, test_cams, test_imgs, out, ply, options)
     print(summary(report))
     print(f"clod-export: wrote {', '.join(report['files'])} to {out} in {report['seconds']:.0f} s")
     return 0

@@ -9,7 +9,7 @@ import sys
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Callable
+from typing import Callable, Optional
 
 from . import check_output_dir, progress_bar
 
@@ -19,75 +19,118 @@ JSON_NAME = "export.json"
 PREFIX_FRACTIONS = (1.0, 0.5, 0.25, 0.1)
 
 
-def export(model, scene, train_imgs, test_cams, test_imgs, out: Path, *, ply: Path, s_v, budget,
-           baked_name, ordered, prune, sh_max_drop_db, argv=None, progress: bool = False, spz: bool = False) -> dict:
-    """Compute everything, then write the files (each atomically); returns the export.json dict.
-    ``progress``: one step per phase (a tqdm bar on a terminal, else a line per phase).
+@dataclass
+class ExportOptions:
+    """What ``clod-export`` writes besides the extended .ply.
 
-    Every output is derived from the training views only (pruning and its ``d'`` anchors, SH
-    reduction, the baked level, the importance order); the test views only score the results."""
+    Attributes:
+        s_v, budget: the level to bake (one of them, or neither: nothing baked); ``budget`` a
+            count (> 1) or a fraction of the Gaussians in view.
+        baked_name: the baked file's name (None: nothing baked).
+        ordered: also the importance-ordered .ply (:data:`ORDERED_NAME`), prefixes scored.
+        prune: drop Gaussians no training view draws at any ``s_v >= 1`` first.
+        sh_max_drop_db: drop SH bands while the training-view PSNR loses at most this (None: keep).
+        spz: also an .spz of every .ply (:data:`EXPORT_FORMATS`).
+        progress: one step per phase (a tqdm bar on a terminal, else a line per phase).
+        argv: the command line recorded in ``export.json`` (None: ``sys.argv``).
+    """
+
+    s_v: Optional[float] = None
+    budget: Optional[float] = None
+    baked_name: Optional[str] = None
+    ordered: bool = False
+    prune: bool = False
+    sh_max_drop_db: Optional[float] = None
+    spz: bool = False
+    progress: bool = False
+    argv: Optional[list] = None
+
+
+def export(model, scene, train_imgs, test_cams, test_imgs, out: Path, ply: Path,
+           options: Optional[ExportOptions] = None) -> dict:
+    """Compute everything, then write the files (each atomically); returns the export.json dict.
+
+    Phases, in order: the input's test PSNR, pruning, SH bands, the baked level, the importance
+    order (each only when ``options`` asks for it, :func:`_reduce` and :func:`_derive`), then
+    :func:`_write_files`. Every output is derived from the training views only (pruning and its
+    ``d'`` anchors, SH reduction, the baked level, the importance order); the test views only
+    score the results."""
     import torch
 
-    from .. import bake as ex
-    from ..metrics import psnr
-    from ..storage import ply_row_bytes
-
+    o = options if options is not None else ExportOptions()
     t0 = time.perf_counter()
-    phases = ["input PSNR"] + (["prune"] if prune else []) + (["SH bands"] if sh_max_drop_db is not None else []) \
-        + (["bake"] if baked_name is not None else []) + (["order"] if ordered else []) + ["write"]
-    bar = progress_bar(len(phases), "clod-export", unit="step", disable=not progress, every=1e-9)
+    phases = ["input PSNR"] + (["prune"] if o.prune else []) + (["SH bands"] if o.sh_max_drop_db is not None else []) \
+        + (["bake"] if o.baked_name is not None else []) + (["order"] if o.ordered else []) + ["write"]
+    bar = progress_bar(len(phases), "clod-export", unit="step", disable=not o.progress, every=1e-9)
     done = iter(phases)
 
     def step():
         bar.set_postfix_str(next(done))
         bar.update(1)
 
-    n_in = len(model)
-    rep: dict = {"input": str(ply), "scene": str(scene.root), "gaussians_in": n_in,
+    rep: dict = {"input": str(ply), "scene": str(scene.root), "gaussians_in": len(model),
                  "sh_degree_in": model.sh_degree,
                  "train_views": len(scene.train), "test_views": [c.name for c in test_cams],
                  "resolution": [test_cams[0].width, test_cams[0].height]}
     with torch.no_grad():
-        rep["psnr_test_sv1_in"] = _mean_psnr(ex, model, test_cams, test_imgs)
-        step()
-        if prune:
-            model, n_drop = ex.prune_never_rendered(model, scene.train, anchor_cameras=scene.train)
-            rep["prune"] = {"dropped": n_drop, "kept": len(model),
-                            "bytes_saved": n_drop * ply_row_bytes(model),
-                            "psnr_test_sv1_after": _mean_psnr(ex, model, test_cams, test_imgs)}
-            step()
-        if sh_max_drop_db is not None:
-            model, info = ex.reduce_sh(model, scene.train, train_imgs, sh_max_drop_db)
-            info["psnr_test_sv1_after"] = _mean_psnr(ex, model, test_cams, test_imgs)
-            rep["sh"] = info
-            step()
-        rep["gaussians_out"] = len(model)
-        rep["sh_degree_out"] = model.sh_degree
-        baked = None
-        if baked_name is not None:
-            baked, binfo = ex.bake(model, scene.train, s_v=s_v, budget=budget, return_info=True)
-            lod_ps = [psnr(ex.render_lod(model, c, s_v, budget=budget, estimator="paper").image, gt, cap=True)
-                      for c, gt in zip(test_cams, test_imgs)]
-            bk_ps = [psnr(ex.render_lod(baked, c).image, gt, cap=True) for c, gt in zip(test_cams, test_imgs)]
-            rep["baked"] = {"file": baked_name, "s_v": s_v, "budget": budget, "cameras": "train",
-                            "gaussians": len(baked), "mean_rendered_per_view_lod": binfo.per_view_rendered,
-                            "opacity": binfo.chosen, "psnr_vs_render_lod_train_views": binfo.psnr_vs_lod,
-                            "psnr_test_render_lod": sum(lod_ps) / len(lod_ps),
-                            "psnr_test_baked": sum(bk_ps) / len(bk_ps)}
-            step()
-        ordered_model = None
-        if ordered:
-            persist = ex.persistence(model, scene.train)
-            perm = ex.importance_order(model, scene.train, persist=persist)
-            ordered_model = model.subset(perm)
-            rep["ordered"] = {"file": ORDERED_NAME, "order_views": "train", "persistence_zero": int((persist == 0).sum()),
-                              "prefix_vs_selection_test": ex.prefix_vs_selection(model, perm, test_cams, test_imgs,
-                                                                                 PREFIX_FRACTIONS)}
-            step()
-    _write_files(out, ply, model, baked, baked_name, ordered_model, spz, rep, argv, t0)
+        model = _reduce(model, scene, train_imgs, test_cams, test_imgs, o, rep, step)
+        baked, ordered_model = _derive(model, scene, test_cams, test_imgs, o, rep, step)
+    _write_files(out, ply, model, baked, o.baked_name, ordered_model, o.spz, rep, o.argv, t0)
     step()
     bar.close()
     return rep
+
+
+def _reduce(model, scene, train_imgs, test_cams, test_imgs, o: ExportOptions, rep: dict, step):
+    """The input's test PSNR, then pruning and SH bands as asked; returns the model to export."""
+    from .. import bake as ex
+    from ..storage import ply_row_bytes
+
+    rep["psnr_test_sv1_in"] = _mean_psnr(ex, model, test_cams, test_imgs)
+    step()
+    if o.prune:
+        model, n_drop = ex.prune_never_rendered(model, scene.train, anchor_cameras=scene.train)
+        rep["prune"] = {"dropped": n_drop, "kept": len(model),
+                        "bytes_saved": n_drop * ply_row_bytes(model),
+                        "psnr_test_sv1_after": _mean_psnr(ex, model, test_cams, test_imgs)}
+        step()
+    if o.sh_max_drop_db is not None:
+        model, info = ex.reduce_sh(model, scene.train, train_imgs, o.sh_max_drop_db)
+        info["psnr_test_sv1_after"] = _mean_psnr(ex, model, test_cams, test_imgs)
+        rep["sh"] = info
+        step()
+    rep["gaussians_out"] = len(model)
+    rep["sh_degree_out"] = model.sh_degree
+    return model
+
+
+def _derive(model, scene, test_cams, test_imgs, o: ExportOptions, rep: dict, step):
+    """The baked level and the importance-ordered model as asked: (baked or None, ordered or None)."""
+    from .. import bake as ex
+    from ..metrics import psnr
+
+    baked = None
+    if o.baked_name is not None:
+        baked, binfo = ex.bake(model, scene.train, s_v=o.s_v, budget=o.budget, return_info=True)
+        lod_ps = [psnr(ex.render_lod(model, c, o.s_v, budget=o.budget, estimator="paper").image, gt, cap=True)
+                  for c, gt in zip(test_cams, test_imgs)]
+        bk_ps = [psnr(ex.render_lod(baked, c).image, gt, cap=True) for c, gt in zip(test_cams, test_imgs)]
+        rep["baked"] = {"file": o.baked_name, "s_v": o.s_v, "budget": o.budget, "cameras": "train",
+                        "gaussians": len(baked), "mean_rendered_per_view_lod": binfo.per_view_rendered,
+                        "opacity": binfo.chosen, "psnr_vs_render_lod_train_views": binfo.psnr_vs_lod,
+                        "psnr_test_render_lod": sum(lod_ps) / len(lod_ps),
+                        "psnr_test_baked": sum(bk_ps) / len(bk_ps)}
+        step()
+    ordered_model = None
+    if o.ordered:
+        persist = ex.persistence(model, scene.train)
+        perm = ex.importance_order(model, scene.train, persist=persist)
+        ordered_model = model.subset(perm)
+        rep["ordered"] = {"file": ORDERED_NAME, "order_views": "train", "persistence_zero": int((persist == 0).sum()),
+                          "prefix_vs_selection_test": ex.prefix_vs_selection(model, perm, test_cams, test_imgs,
+                                                                             PREFIX_FRACTIONS)}
+        step()
+    return baked, ordered_model
 
 
 def _write_files(out: Path, ply: Path, model, baked, baked_name, ordered_model, spz: bool, rep: dict, argv,

@@ -54,7 +54,7 @@ def label_panels(panels, captions, min_width: int = 240):
     return sheet
 
 
-def write_strip(path: Path, gaussians, camera, s_vs, background, backend: str, gt=None) -> None:
+def write_strip(path: Path, gaussians, camera, s_vs, background, gt=None) -> None:
     """Render ``camera`` at each ``s_v`` and write the images side by side as a PNG, the ground
     truth ``gt`` ([H, W, 3] in [0, 1], optional) first; each panel is captioned below with its
     s_v and the Gaussians rendered (count and % of the model)."""
@@ -65,7 +65,7 @@ def write_strip(path: Path, gaussians, camera, s_vs, background, backend: str, g
     n = max(len(gaussians), 1)
     with torch.no_grad():
         for s in s_vs:
-            out = render_lod(gaussians, camera, s, background=background, backend=backend)
+            out = render_lod(gaussians, camera, s, background=background)
             panels.append(out.image)
             caps.append(f"s_v = {s:g}\n{out.n_rendered:,} G ({100 * out.n_rendered / n:.0f} %)")
     sheet = label_panels(panels, caps)

@@ -183,7 +183,7 @@ def test_real_pairs_match(which, resolution):
     scene = load_scene(shared_path("fern"), resolution=resolution)
     imgs = [scene.load_image(c) for c in scene.train]
     with torch.no_grad():
-        m = scene_match(g, scene.train, imgs, background=(0.0, 0.0, 0.0), backend="cpu")
+        m = scene_match(g, scene.train, imgs, background=(0.0, 0.0, 0.0))
     assert m["margin_db"] > MISMATCH_MARGIN_DB + 4.0, m
     assert m["in_view_fraction"] > 0.9
 
@@ -197,7 +197,7 @@ def test_synthetic_scene_matches(tiny_src):
     scene = load_colmap_scene(tiny_src["scene"])
     with torch.no_grad():
         m = scene_match(read_ply(tiny_src["ply"]), scene.train, [scene.load_image(c) for c in scene.train],
-                        background=(0.0, 0.0, 0.0), backend="cpu")
+                        background=(0.0, 0.0, 0.0))
     assert m["margin_db"] > MISMATCH_MARGIN_DB + 4.0, m
 
 

@@ -85,7 +85,7 @@ def _render_views(model, scene, cams, level: dict, bg, out: Path, bar) -> list:
 
     views = []
     for c in cams:
-        r = render_lod(model, c, level["s_v"], budget=level["budget"], background=bg, backend="auto")
+        r = render_lod(model, c, level["s_v"], budget=level["budget"], background=bg)
         img = r.image.clamp(0, 1)
         gt = scene.load_image(c).to(img.device)
         views.append({"view": c.name, "psnr": psnr(img, gt), "gaussians": r.n_rendered, "s_v": r.s_v})
@@ -114,7 +114,7 @@ def _render_video(model, scene, args, level: dict, max_sv: float, bg, path: Path
         svs = [args.s_v] * n_frames
     frames, counts = [], []
     for cam, s in zip(cams, svs):
-        r = render_lod(model, cam, s, budget=level["budget"], background=bg, backend="auto")
+        r = render_lod(model, cam, s, budget=level["budget"], background=bg)
         cap = (f"s_v = {r.s_v:.2f}   " if r.s_v is not None else "") + \
             f"{r.n_rendered:,} Gaussians ({100 * r.n_rendered / n:.0f} %)"
         frames.append(np.asarray(label_panels([r.image], [cap], min_width=480)))

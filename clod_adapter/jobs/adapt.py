@@ -134,7 +134,7 @@ MISMATCH_MARGIN_DB = 1.0
 
 
 @torch.no_grad()
-def scene_match(gaussians, cameras, images, *, background, backend: str, views: int = 3) -> dict:
+def scene_match(gaussians, cameras, images, *, background, views: int = 3) -> dict:
     """Evidence that ``gaussians`` was trained on this scene, from up to ``views`` training views.
 
     Returns ``{"psnr", "flat_psnr", "margin_db", "in_view_fraction", "views"}``: the model's mean
@@ -149,7 +149,7 @@ def scene_match(gaussians, cameras, images, *, background, backend: str, views: 
     pm, pf = [], []
     for i in idx:
         gt = images[i]
-        img = render_lod(gaussians, cameras[i], None, background=background, backend=backend).image.clamp(0, 1)
+        img = render_lod(gaussians, cameras[i], None, background=background).image.clamp(0, 1)
         pm.append(psnr(img, gt))
         pf.append(psnr(gt.mean(dim=(0, 1), keepdim=True).expand_as(gt), gt))
     dev = gaussians.means.device
@@ -222,17 +222,17 @@ def input_iteration(ply_path: Path) -> Optional[int]:
 
 
 @torch.no_grad()
-def retime_levels(input_model, model, cameras, levels, *, tau, background, backend, repeats: int) -> dict:
+def retime_levels(input_model, model, cameras, levels, *, tau, background, repeats: int) -> dict:
     """Interleaved render timings (:func:`clod_adapter.timing.time_interleaved`) of the input
     model and of ``model`` at each s_v in ``levels``, on ``cameras``: keys ``"input"`` and each
     level."""
     from ..timing import time_interleaved
 
     jobs_ = {"input": [lambda c=c: render_lod(input_model, c, None, tau=tau, background=background,
-                                              backend=backend, estimator="paper") for c in cameras]}
+                                              estimator="paper") for c in cameras]}
     for s in levels:
-        jobs_[s] = [lambda c=c, s=s: render_lod(model, c, s, tau=tau, background=background, backend=backend,
-                                                estimator="paper") for c in cameras]
+        jobs_[s] = [lambda c=c, s=s: render_lod(model, c, s, tau=tau, background=background, estimator="paper")
+                    for c in cameras]
     return time_interleaved(jobs_, repeats=repeats, warmup=1)
 
 
@@ -516,7 +516,7 @@ def _check_scene_match(inp: _Inputs, cfg: AdaptConfig, o: AdaptOptions) -> None:
     if not bool(fr_any.any()):
         raise InputError(f"{inp.ply_path}: no Gaussian lies inside any training view of {inp.scene_root}; "
                          "is the model from another scene?")
-    match = scene_match(g, inp.scene.train, inp.train_imgs, background=cfg.background, backend="auto")
+    match = scene_match(g, inp.scene.train, inp.train_imgs, background=cfg.background)
     if match["margin_db"] < MISMATCH_MARGIN_DB:
         what = (f"{inp.ply_path}: the model does not render {inp.scene_root}: {match['psnr']:.2f} dB PSNR on "
                 f"{len(match['views'])} training views, not above a flat image of their mean colour "
@@ -550,8 +550,7 @@ def _start_state(inp: _Inputs, cfg: AdaptConfig, o: AdaptOptions, stop: StopFlag
     or the resumed one. Returns (state, cfg (the state's, when resumed), input evaluation, the
     initial model's s_v = 1 quality)."""
     bg = cfg.background
-    input_eval = evaluate_level(inp.gaussians, inp.test_cams, inp.test_imgs, None, background=bg,
-                                backend="auto") if inp.main else None
+    input_eval = evaluate_level(inp.gaussians, inp.test_cams, inp.test_imgs, None, background=bg) if inp.main else None
     # from here on a signal only sets the flag: the state is saved at the next safe point
     stop.set_abortable(False)
     if inp.resumed is not None:
@@ -559,7 +558,7 @@ def _start_state(inp: _Inputs, cfg: AdaptConfig, o: AdaptOptions, stop: StopFlag
         o.log(f"clod-adapt: resuming {inp.state_path} at iteration {state.iteration}/{cfg.iterations}")
         init_s_v1 = json.loads(saved_meta.get("init_s_v1", "null"))
     else:
-        state = prepare(inp.gaussians, inp.scene.train, cfg, inp.train_imgs, backend="auto")
+        state = prepare(inp.gaussians, inp.scene.train, cfg, inp.train_imgs)
         if "attenuation" in state.init:
             o.log(f"clod-adapt: sigma_d initialised with attenuation {state.init['attenuation']} at s_v = 1")
         elif not state.init:
@@ -570,7 +569,7 @@ def _start_state(inp: _Inputs, cfg: AdaptConfig, o: AdaptOptions, stop: StopFlag
         init_s_v1 = None
         if inp.main:
             init_eval = evaluate_level(state.gaussians().detach(), inp.test_cams, inp.test_imgs, 1.0,
-                                       tau=cfg.tau, background=bg, backend="auto")
+                                       tau=cfg.tau, background=bg)
             init_s_v1 = {"psnr": init_eval.psnr, "ssim": init_eval.ssim,
                          "psnr_drop_db": input_eval.psnr - init_eval.psnr, **state.init}
     if group is not None:
@@ -635,7 +634,7 @@ def _train(inp: _Inputs, state, cfg: AdaptConfig, o: AdaptOptions, stop: StopFla
     on_step, writer = _step_hooks(inp, cfg, o, stop, group, meta, saved)
     t_train = time.perf_counter()
     try:
-        finished = adapt(state, inp.scene.train, inp.train_imgs, cfg, backend="auto", progress=o.progress,
+        finished = adapt(state, inp.scene.train, inp.train_imgs, cfg, progress=o.progress,
                          on_interrupt=on_interrupt, stop=stop, on_step=on_step, group=group)
         if group is not None and finished:
             from ..distributed import check_in_sync
@@ -668,14 +667,13 @@ def _evaluate(inp: _Inputs, model, cfg: AdaptConfig, o: AdaptOptions, input_eval
     facts, which :func:`_run` adds)."""
     bg = cfg.background
     levels = sv_levels(cfg.max_sv)
-    evals = evaluate_levels(model, inp.test_cams, inp.test_imgs, levels, tau=cfg.tau, background=bg,
-                            backend="auto")
+    evals = evaluate_levels(model, inp.test_cams, inp.test_imgs, levels, tau=cfg.tau, background=bg)
     budget_evals = [evaluate_level(model, inp.test_cams, inp.test_imgs, None, tau=cfg.tau, background=bg,
-                                   backend="auto", budget=float(b)) for b in budget_levels(cfg.max_sv)]
+                                   budget=float(b)) for b in budget_levels(cfg.max_sv)]
     timing = None
     if o.timing_repeats > 0:  # ms/frame of the input and every level, interleaved (load hits all alike)
         timing = retime_levels(inp.gaussians, model, inp.test_cams, levels, tau=cfg.tau, background=bg,
-                               backend="auto", repeats=o.timing_repeats)
+                               repeats=o.timing_repeats)
     level_dicts = [m.to_dict() for m in evals]
     input_model = {"psnr": input_eval.psnr, "ssim": input_eval.ssim,
                    "gaussians": input_eval.gaussians, "ms_per_frame": input_eval.ms_per_frame}
@@ -710,7 +708,7 @@ def _write_outputs(inp: _Inputs, model, state, cfg: AdaptConfig, o: AdaptOptions
     write_ply(inp.out_dir / PLY_NAME, model.to("cpu"))
     with atomic_write(inp.out_dir / METRICS_NAME, "w") as f:
         json.dump(metrics, f, indent=2)
-    write_strip(inp.out_dir / STRIP_NAME, model, inp.test_cams[0], sv_levels(cfg.max_sv), bg, "auto",
+    write_strip(inp.out_dir / STRIP_NAME, model, inp.test_cams[0], sv_levels(cfg.max_sv), bg,
                 gt=inp.test_imgs[0])
     write_training_plot(inp.out_dir / TRAINING_PLOT_NAME, state.history, cfg.max_sv, cfg.views_per_step)
     if o.layout == "inria":

@@ -215,15 +215,15 @@ def _sample(fn: Callable[[], Sample]) -> Sample:
     return s
 
 
-def _render_selection(g: Gaussians, cam, sel: Selection, bg, backend) -> Sample:
-    r = render_subset(g, cam, sel.indices, sel.opacities, background=bg, backend=backend, view=sel.view)
+def _render_selection(g: Gaussians, cam, sel: Selection, bg) -> Sample:
+    r = render_subset(g, cam, sel.indices, sel.opacities, background=bg, view=sel.view)
     return Sample(r.image, r.n_rendered, sel.s_v, sel.select_ms, r.raster_ms)
 
 
-def _render_lod(g: Gaussians, cam, bg, backend, tau, s_v=None, budget=None) -> Sample:
+def _render_lod(g: Gaussians, cam, bg, tau, s_v=None, budget=None) -> Sample:
     # fractional budgets are shares of the Gaussians in view (counts are counts)
-    out = render_lod(g, cam, s_v, budget=budget, tau=tau, background=bg, backend=backend,
-                     estimator="paper", budget_in_view=isinstance(budget, float))
+    out = render_lod(g, cam, s_v, budget=budget, tau=tau, background=bg, estimator="paper",
+                     budget_in_view=isinstance(budget, float))
     return Sample(out.image, out.n_rendered, out.s_v, out.select_ms, out.raster_ms)
 
 
@@ -633,7 +633,7 @@ class _Eval:
         return out
 
     def render(self, g: Gaussians, cam, **kw) -> Sample:
-        return _render_lod(g, cam, self.bg, "auto", self.o.tau, **kw)
+        return _render_lod(g, cam, self.bg, self.o.tau, **kw)
 
     def score(self, method: str, setting: str, budget, samples: list, adapted: bool) -> None:
         g = self.adapted if adapted else self.base
@@ -695,7 +695,7 @@ def evaluate_report(adapted: Union[os.PathLike, Gaussians], scene, out_dir: os.P
     ev.bar.set_postfix_str("popping")
     pop_svs = [float(x) for x in np.linspace(1.0, ev.s_vs[-1], o.popping_steps)]
     pop = popping_curve(ev.adapted, ev.cams[0], pop_svs, discrete_model=ev.base, discrete_scores=ctx.lightgaussian,
-                        tau=o.tau, background=ev.bg, backend="auto", on_render=ev.tick)
+                        tau=o.tau, background=ev.bg, on_render=ev.tick)
     pop["camera"] = ev.cams[0].name
     pop["discrete"] = "pretrained model cut by LightGaussian significance at the continuous sweep's end counts"
     ev.bar.close()
@@ -745,7 +745,7 @@ def _eval_inputs(adapted, scene, o: EvalOptions) -> _Eval:
     train_gts = [scene.load_image(c).to(dev) for c in train_cams] if need_train else []
     sigma_c, sigma_c_rule = o.sigma_c, "given"
     if sigma_c is None:
-        sigma_c = tune_sigma_c(base, train_cams, train_gts, background=list(o.background), backend="auto")
+        sigma_c = tune_sigma_c(base, train_cams, train_gts, background=list(o.background))
         sigma_c_rule = "best training-view PSNR at 50 % over " + ", ".join(f"{c:g}" for c in SIGMA_C_CANDIDATES)
     return _Eval(o, adapted, base, ply_path, max_sv, budgets, s_vs, dev, cams, train_cams, gts, train_gts,
                  sigma_c, sigma_c_rule, lpips_fn, notes)
@@ -785,7 +785,7 @@ def _score_budget(ev: _Eval, b, ctx: RankingContext, global_scores: dict) -> Non
         samples = []
         for cam, k in zip(ev.cams, ks):
             samples.append(_sample(lambda cam=cam, k=k, sel=METHOD_REGISTRY[name].select:
-                                   _render_selection(ev.base, cam, sel(ev.base, cam, k, ctx), ev.bg, "auto")))
+                                   _render_selection(ev.base, cam, sel(ev.base, cam, k, ctx), ev.bg)))
             ev.tick()
         ev.score(name, lab, b, samples, adapted=False)
     nb = len(ev.base)
@@ -815,11 +815,11 @@ def _score_dlod(ev: _Eval, b, lab: str, share: float, global_scores: dict) -> No
     cands = {m: ev.base.subset(global_cut(global_scores[m].to(ev.dev), share)) for m in global_scores}
     cands.update({m: d for (m, lb), d in ev.decimated.items() if lb == lab})
     cands["clod"] = _adapted_cut(ev.adapted, k, fit_cams)
-    best, start, val_scores = best_start(cands, val_cams, val_gts, background=ev.bg, backend="auto",
+    best, start, val_scores = best_start(cands, val_cams, val_gts, background=ev.bg,
                                          return_scores=True)
     ev.bar.set_postfix_str(f"{lab} dlod ({best}, {ev.o.dlod_iterations} steps)")
     level, info = finetune_subset(start, ev.train_cams, ev.train_gts, iterations=ev.o.dlod_iterations,
-                                  seed=ev.o.seed, background=ev.bg, backend="auto", return_info=True)
+                                  seed=ev.o.seed, background=ev.bg, return_info=True)
     ev.dlod["levels"][lab], ev.dlod["choice"][lab] = len(level), best
     ev.dlod["info"][lab] = {"start": best, "val_psnr": val_scores, "convergence": info.convergence,
                             "loss_every_100": info.loss[::100]}
@@ -882,7 +882,7 @@ def _write_report(ev: _Eval, out_dir: Path, report: dict, pop: dict, t_start: fl
     _plot_quality(rows.rows, "ms_total", "median ms per frame (bars: fastest-slowest round)",
                   out_dir / "quality_vs_time.png", extra=_plot_time_curve(rows.rows), time_axis=True)
     _plot_popping(pop, out_dir / "popping.png")
-    write_strip(out_dir / "lod_strip.png", ev.adapted, ev.cams[0], sv_levels(ev.max_sv), ev.bg, "auto", gt=ev.gts[0])
+    write_strip(out_dir / "lod_strip.png", ev.adapted, ev.cams[0], sv_levels(ev.max_sv), ev.bg, gt=ev.gts[0])
     report["wall_seconds"] = round(time.perf_counter() - t_start, 1)
     with atomic_write(out_dir / "report.json", "w") as f:
         json.dump(_jsonable(report), f, indent=1)

@@ -1,6 +1,6 @@
 """clod_adapter.camera_lod (and the weighted training budget that uses it): levels and frame cost,
-full detail in every view, the s_v frame that projects only what its mask keeps, and in-view shares (the cost-weighted calibration is
-tested in test_whole_range.py beside the count one)."""
+full detail in every view, the s_v frame that projects only what its mask keeps, and in-view shares
+(the cost-weighted calibration is tested in test_whole_range.py beside the count one)."""
 from __future__ import annotations
 
 from dataclasses import replace

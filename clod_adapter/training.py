@@ -193,7 +193,10 @@ class AdaptState:
     """Everything needed to continue a run: parameters, Adam moments, RNG, view order.
 
     ``history`` holds one record per rendered view (``s_v``, rendered fraction ``eta``,
-    ``loss``, training-view ``psnr``), ``views_per_step`` of them per step, in schedule order."""
+    ``loss``, training-view ``psnr``), ``views_per_step`` of them per step, in schedule order.
+    ``extra``: the input's other per-Gaussian properties (e.g. MaskGaussian's mask scores), carried
+    along untrained so the model the state gives is written back with them (not saved in the
+    state file: a resumed run takes them from its input again)."""
 
     params: dict
     optimizer: torch.optim.Optimizer
@@ -204,10 +207,11 @@ class AdaptState:
     history: dict = field(default_factory=lambda: {"s_v": [], "eta": [], "loss": [], "psnr": []})
     init: dict = field(default_factory=dict)
     lod: Optional[lod.LodSettings] = None
+    extra: dict = field(default_factory=dict)
 
     def gaussians(self) -> Gaussians:
-        """The model as it stands (parameters, not copies; ``lod`` settings attached)."""
-        return Gaussians(**{k: v for k, v in self.params.items()}, lod=self.lod)
+        """The model as it stands (parameters, not copies; ``lod`` settings and ``extra`` attached)."""
+        return Gaussians(**{k: v for k, v in self.params.items()}, lod=self.lod, extra=self.extra)
 
 
 @torch.no_grad()
@@ -391,7 +395,7 @@ def prepare(gaussians: Gaussians, train_cameras, cfg: AdaptConfig, train_images=
     opt = torch.optim.Adam(_lr_groups(params, cfg, extent), eps=1e-15)
     gen = torch.Generator().manual_seed(cfg.seed)
     return AdaptState(params=params, optimizer=opt, generator=gen, extent=extent, init=init,
-                      lod=cfg.lod_settings())
+                      lod=cfg.lod_settings(), extra=dict(g.extra))
 
 
 class StopFlag:

@@ -51,6 +51,20 @@ def test_frozen_attributes_do_not_move(tiny):
     assert not torch.equal(g.sigma_d, prepare(model, cams, cfg).params["sigma_d"])
 
 
+def test_state_carries_the_inputs_extra_properties(tiny):
+    """The input's unknown per-Gaussian properties (e.g. MaskGaussian's mask scores) stay with the
+    state's model through training, untouched."""
+    from dataclasses import replace
+
+    model, cams, imgs = tiny
+    scores = torch.arange(len(model), dtype=torch.float32)
+    cfg = AdaptConfig(iterations=2)
+    st = prepare(replace(model, extra={"masks_0": scores}), cams, cfg)
+    adapt(st, cams, imgs, cfg, progress=False)
+    g = st.gaussians().detach()
+    assert list(g.extra) == ["masks_0"] and torch.equal(g.extra["masks_0"], scores)
+
+
 def test_adapt_trains_inside_no_grad(tiny):
     """A caller inside torch.no_grad() (an evaluation loop around the adaptation) still gets a
     trained model: the step turns grad on itself (found by the benchmarks, whose sweep is a

@@ -402,7 +402,7 @@ def _run(ply_path: Path, scene_root: Path, out_dir: Path, cfg: AdaptConfig, o: A
             "world_size": 1 if group is None else group.world_size}
     it0 = state.iteration
     train_s = _train(inp, state, cfg, o, stop, group, meta)
-    model = replace(state.gaussians().detach(), extra=inp.gaussians.extra)  # unknown .ply properties ride along
+    model = state.gaussians().detach()  # the input's unknown .ply properties ride along (state.extra)
     # the final state first: an interrupt during the evaluation resumes at the last iteration
     if inp.main:
         save_state(inp.state_path, state, cfg, meta)
@@ -555,6 +555,7 @@ def _start_state(inp: _Inputs, cfg: AdaptConfig, o: AdaptOptions, stop: StopFlag
     stop.set_abortable(False)
     if inp.resumed is not None:
         state, cfg, saved_meta = inp.resumed
+        state.extra = dict(inp.gaussians.extra)  # not in the state file: the input's, as at the start
         o.log(f"clod-adapt: resuming {inp.state_path} at iteration {state.iteration}/{cfg.iterations}")
         init_s_v1 = json.loads(saved_meta.get("init_s_v1", "null"))
     else:

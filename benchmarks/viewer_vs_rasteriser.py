@@ -40,8 +40,9 @@ from clod_adapter.render import rasterization  # noqa: E402
 from clod_adapter.viewer import camera_from_pose, load_view_model, model_max_sv  # noqa: E402
 from clod_adapter.viewer.app import LodViewer, apply_pose, scene_camera_list  # noqa: E402
 from clod_adapter.viewer.cameras import scene_start_view  # noqa: E402
-from clod_adapter.viewer.headless import (browser_missing, chromium_driver, compare_frames,  # noqa: E402
-                                          fit_canvas_aspect, stable_render)
+sys.path.insert(0, str(REPO / "tests"))  # the headless-browser helpers live with the tests
+from browser import (browser_missing, chromium_driver, compare_frames,  # noqa: E402
+                     fit_canvas_aspect, stable_render)
 
 
 def main() -> None:

@@ -42,7 +42,7 @@ def _png(data: bytes) -> np.ndarray:
 
 @pytest.mark.slow
 def test_viewer_in_headless_chromium(tmp_path):
-    from clod_adapter.viewer.headless import browser_missing, chromium_driver, compare_frames, stable_render
+    from browser import browser_missing, chromium_driver, compare_frames, stable_render
 
     why = browser_missing()
     if why:

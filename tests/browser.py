@@ -1,5 +1,6 @@
 """Drive the viewer in a headless browser: Debian's ``chromium`` with software WebGL (SwiftShader)
-through selenium and ``chromedriver``. Used by the browser test and the renderer benchmark.
+through selenium and ``chromedriver``: helpers of the browser test and the viewer benchmark, kept
+with the tests (not shipped in the package).
 
 Needs ``apt-get install -y chromium chromium-driver`` and ``pip install selenium`` (in the
 ``test`` extra). Playwright's own browser download is not used (it needs the internet); the

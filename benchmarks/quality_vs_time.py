@@ -190,14 +190,20 @@ def matched_settings(settings: list[Setting], info: dict) -> list[Setting]:
     return out
 
 
-def retime(settings: list[Setting], repeats: int, tick) -> None:
+def _time(settings: list[Setting], repeats: int, tick, seed: int = 0) -> dict:
+    """:func:`clod_adapter.timing.time_interleaved` of the settings' renders (each call's whole
+    wall time), keyed by position."""
     def timed(fn):
         def f():
             return _Timed(0.0, fn()[2])
         return f
 
-    res = time_interleaved({i: [timed(fn) for fn in st.renders] for i, st in enumerate(settings)},
-                           repeats=repeats, warmup=1, on_render=tick)
+    return time_interleaved({i: [timed(fn) for fn in st.renders] for i, st in enumerate(settings)},
+                            repeats=repeats, warmup=1, seed=seed, on_render=tick)
+
+
+def retime(settings: list[Setting], repeats: int, tick) -> None:
+    res = _time(settings, repeats, tick)
     for i, st in enumerate(settings):
         st.ms, st.ms_min, st.ms_max = res[i]["ms_total"], res[i]["ms_total_min"], res[i]["ms_total_max"]
 
@@ -210,13 +216,7 @@ def full_detail_ratio(settings: list[Setting], repeats: int, tick) -> float:
     pair = [next(s for s in settings if s.method == "input"),
             next(s for s in settings if s.method == "clod" and s.setting == "s_v=1")]
 
-    def timed(fn):
-        def f():
-            return _Timed(0.0, fn()[2])
-        return f
-
-    res = time_interleaved({i: [timed(fn) for fn in st.renders] for i, st in enumerate(pair)},
-                           repeats=repeats, warmup=1, seed=1, on_render=tick)
+    res = _time(pair, repeats, tick, seed=1)
     return statistics.median(b / a for a, b in zip(res[0]["per_round"], res[1]["per_round"]))
 
 

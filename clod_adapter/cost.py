@@ -37,7 +37,7 @@ __all__ = ["splat_cost", "cost_units", "cost_prefix", "order_in_view", "prefix_c
 
 #: the cost unit of :func:`splat_cost`
 COST_UNIT = "ellipse_px"
-#: gsplat 1.5.3's ``eps2d`` and tile size, as :mod:`clod_adapter.camera_lod` draws (``view.EPS2D``,
+#: gsplat 1.5.3's ``eps2d`` and tile size, as :mod:`clod_adapter.camera_lod` draws (``camera_lod.EPS2D``,
 #: ``view.TILE_SIZE``; this module does not import the view, which imports it)
 EPS2D, TILE_SIZE = 0.3, 16
 

@@ -34,7 +34,8 @@ def time_interleaved(jobs: Mapping[Hashable, Sequence[Callable[[], object]]], *,
         key -> ``{"ms_total", "ms_select", "ms_raster"}`` (median over rounds of the median over
         views), ``"ms_total_min"``, ``"ms_total_max"`` (smallest / largest per-round median),
         ``"repeats"``, ``"per_round"`` ([repeats] per-round medians over views, in round order:
-        the paired comparison of two settings is the per-round ratio), and ``"per_view"``: [V] dicts of the same three medians over rounds.
+        the paired comparison of two settings is the per-round ratio), and ``"per_view"``: [V]
+        dicts of the same three medians over rounds.
 
     Raises:
         ValueError: ``repeats`` < 1.

@@ -35,6 +35,8 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 SHARED = REPO.parent / "shared" / "data"
 RUNS = REPO / "runs" / "bench"
+if (SHARED / "lpips" / "lpips_alex_v0.1.safetensors").is_file():  # the package looks in the user cache
+    os.environ.setdefault("CLOD_LPIPS_WEIGHTS", str(SHARED / "lpips" / "lpips_alex_v0.1.safetensors"))
 
 from clod_adapter.training import AdaptConfig  # noqa: E402
 from clod_adapter.io.load import load_model  # noqa: E402
@@ -113,7 +115,7 @@ def adapt_cached(name: str, cfg: AdaptConfig, tag: str, *, split: str = "test", 
     ``RUNS/name/tag`` (``tag + "_val"`` for ``split="val"``, trained on the fit views only:
     ``clod-adapt --holdout-val``) unless a run with the same settings is there. Returns the .ply
     path."""
-    from clod_adapter.jobs.adapt import run
+    from clod_adapter.jobs.adapt import AdaptOptions, run
 
     if split not in SPLITS:
         raise ValueError(f"split must be one of {SPLITS}, got {split!r}")
@@ -137,7 +139,7 @@ def adapt_cached(name: str, cfg: AdaptConfig, tag: str, *, split: str = "test", 
                 p.unlink()
     log(f"[{name}/{tag}] adapting {ply.name} ({cfg.schedule}, max_sv {cfg.max_sv:g}, {cfg.iterations} steps"
         f"{', fit views only' if holdout else ''}) ...")
-    run(ply, scene, out, cfg, resolution=res, progress=False, log=lambda *a: None, holdout_val=holdout)
+    run(ply, scene, out, cfg, AdaptOptions(resolution=res, progress=False, log=lambda *a: None, holdout_val=holdout))
     return out / "point_cloud.ply"
 
 

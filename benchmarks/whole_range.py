@@ -29,7 +29,7 @@ from clod_adapter.training import AdaptConfig
 from clod_adapter.baselines import find_splat_transform
 from clod_adapter.io.load import load_scene
 from clod_adapter.level_metrics import budget_levels
-from clod_adapter.jobs.eval import evaluate_report
+from clod_adapter.jobs.eval import EvalOptions, evaluate_report
 
 STATIC = ("constant_sigma", "lightgaussian", "random", "decimate", "decimate_adaptive")
 SHOWN = ("clod_budget", "dlod_finetuned", "decimate", "decimate_adaptive", "lightgaussian", "constant_sigma", "random")
@@ -48,9 +48,9 @@ def evaluate(name: str, ply: Path, cfg: AdaptConfig, dlod_iterations: int, reuse
         sys.exit("benchmark: splat-transform not found (`npm ci` in the repository root installs 3.7.0)")
     out.mkdir(parents=True, exist_ok=True)
     t = time.perf_counter()
-    rep = evaluate_report(ply, scene, out, pretrained=pre, budgets=budget_levels(cfg.max_sv), max_sv=cfg.max_sv,
-                          sv_steps=13, popping_steps=31, dlod_iterations=dlod_iterations, merge_tool=tool,
-                          progress=False, log=None)
+    rep = evaluate_report(ply, scene, out, EvalOptions(
+        pretrained=pre, budgets=budget_levels(cfg.max_sv), max_sv=cfg.max_sv, sv_steps=13, popping_steps=31,
+        dlod_iterations=dlod_iterations, merge_tool=tool, progress=False, log=None))
     log(f"[{name}] clod-eval report in {time.perf_counter() - t:.0f} s -> {out}")
     return rep
 

@@ -19,7 +19,8 @@ The computation follows the official ``lpips`` package (github.com/richzhang/Per
 
 Weights come from ``lpips_alex_v0.1.safetensors`` (torchvision key layout ``features.{0,3,6,8,10}
 .{weight,bias}`` + ``lin{0..4}.weight`` [1, C, 1, 1]), looked up as: explicit path >
-``$CLOD_LPIPS_WEIGHTS`` > ``<repo>/../shared/data/lpips/lpips_alex_v0.1.safetensors``. If no file is
+``$CLOD_LPIPS_WEIGHTS`` > :data:`DEFAULT_WEIGHTS` (the user cache,
+``${XDG_CACHE_HOME:-~/.cache}/clod-adapter/lpips_alex_v0.1.safetensors``). If no file is
 found and the official ``lpips`` package imports, its weights are converted instead (that
 package downloads the torchvision AlexNet weights on first use).
 
@@ -37,7 +38,8 @@ from torch import Tensor, nn
 
 WEIGHTS_ENV = "CLOD_LPIPS_WEIGHTS"
 WEIGHTS_NAME = "lpips_alex_v0.1.safetensors"
-DEFAULT_WEIGHTS = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "lpips" / WEIGHTS_NAME
+#: where the weights are looked for when neither a path nor ``$CLOD_LPIPS_WEIGHTS`` is given
+DEFAULT_WEIGHTS = Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache") / "clod-adapter" / WEIGHTS_NAME
 
 SHIFT = (-0.030, -0.088, -0.188)
 SCALE = (0.458, 0.448, 0.450)
@@ -214,7 +216,7 @@ def resolve_weights_path(path: Optional[PathLike] = None) -> Tuple[Path, str]:
 def load_lpips(path: Optional[PathLike] = None) -> Optional[LPIPSAlex]:
     """The LPIPS-alex model (eval, frozen, CPU, cached per resolved source) or None if unavailable.
 
-    ``path`` > ``$CLOD_LPIPS_WEIGHTS`` > ``<repo>/../shared/data/lpips/lpips_alex_v0.1.safetensors``.
+    ``path`` > ``$CLOD_LPIPS_WEIGHTS`` > :data:`DEFAULT_WEIGHTS`.
     When that file does not exist, the official ``lpips`` package is tried; if that fails too,
     returns None and :func:`lpips_unavailable_reason` says why. A file that exists but is corrupt
     or of the wrong layout raises ValueError naming it.

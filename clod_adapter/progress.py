@@ -1,75 +1,60 @@
-"""Progress for long work: a tqdm bar on a terminal, one plain line every 10 % in a log
-(:func:`progress_bar`; :class:`LineProgress` is that line form, no carriage returns)."""
+"""Progress for long work: a tqdm bar on a terminal, one plain tqdm line every 10 % in a log
+(:func:`progress_bar`; :class:`LineProgress` is tqdm with that line form: no carriage returns,
+postfix changes do not print)."""
 from __future__ import annotations
 
 import math
 import sys
-import time
+
+from tqdm import tqdm
 
 __all__ = ["LineProgress", "progress_bar"]
 
+#: the log line: ``desc: n/total unit (pct %), elapsed s, left s; postfix``.
+LINE_FORMAT = "{desc}: {n_fmt}/{total_fmt} {unit} ({percentage:.0f} %), {elapsed_s:.0f} s, {remaining_s:.0f} s left{postfix}"
 
-class LineProgress:
-    """tqdm's small interface (``update``, ``set_postfix``, ``set_postfix_str``, ``close``) for
-    logs that are not a terminal: one plain line every ``every`` of the total (and at the end),
-    no carriage returns."""
 
-    def __init__(self, total: int, desc: str, unit: str = "it", initial: int = 0, every: float = 0.1,
-                 file=None) -> None:
-        self.total, self.desc, self.unit, self.n = int(total), desc, unit, int(initial)
-        self.file = file
-        self.every = every
-        self.postfix = ""
-        self.t0 = time.perf_counter()
-        self.n0 = self.n
-        self._next = self._threshold_after(self.n)
-        self.closed = False
+class _Lines:
+    """The stream tqdm writes to: each status it writes (``\\r`` + text) becomes one line."""
 
-    def _threshold_after(self, n: int) -> int:
-        if self.total <= 0:
-            return 1 << 62
-        step = max(1, int(math.ceil(self.every * self.total)))
-        return min(self.total, (n // step + 1) * step)
+    def __init__(self, stream) -> None:
+        self.stream = stream
+
+    def write(self, s: str) -> None:
+        s = s.replace("\r", "").rstrip()
+        if s:
+            self.stream.write(s + "\n")
+
+    def flush(self) -> None:
+        self.stream.flush()
+
+
+class LineProgress(tqdm):
+    """tqdm for logs that are not a terminal: one line each ``miniters`` steps and one at the
+    end (each count printed once), the postfix shown on the next line rather than printed."""
+
+    def __init__(self, *args, **kw) -> None:
+        self._shown = kw.get("initial", 0)
+        super().__init__(*args, **kw)
 
     def set_postfix(self, ordered_dict=None, refresh: bool = True, **kw) -> None:
-        items = dict(ordered_dict or {}, **kw)
-        self.postfix = ", ".join(f"{k}={v}" for k, v in items.items())
+        super().set_postfix(ordered_dict, refresh=False, **kw)
 
     def set_postfix_str(self, s: str = "", refresh: bool = True) -> None:
-        self.postfix = str(s)
+        super().set_postfix_str(s, refresh=False)
 
-    def update(self, n: int = 1) -> None:
-        self.n += n
-        if self.n >= self._next:
-            self._line()
-            self._next = self._threshold_after(self.n)
-
-    def _line(self) -> None:
-        el = time.perf_counter() - self.t0
-        done = self.n - self.n0
-        left = (self.total - self.n) * el / done if done > 0 else float("nan")
-        pct = 100.0 * self.n / self.total if self.total else 100.0
-        tail = f"; {self.postfix}" if self.postfix else ""
-        eta = f", {left:.0f} s left" if left == left else ""
-        print(f"{self.desc}: {self.n}/{self.total} {self.unit} ({pct:.0f} %), {el:.0f} s{eta}{tail}",
-              file=self.file or sys.stderr, flush=True)
-
-    def close(self) -> None:
-        self.closed = True
-
-    def __enter__(self):
-        return self
-
-    def __exit__(self, *exc) -> None:
-        self.close()
+    def display(self, msg=None, pos=None):
+        if self.n == self._shown:
+            return True
+        self._shown = self.n
+        return super().display(msg, pos)
 
 
 def progress_bar(total: int, desc: str, *, unit: str = "it", disable: bool = False, initial: int = 0,
-                 leave: bool = True, file=None, every: float = 0.1):
+                 leave: bool = True, file=None, every: float = 0.1) -> tqdm:
     """A tqdm bar when ``file`` (default stderr) is a terminal, else :class:`LineProgress` (a plain
-    line every 10 %); ``disable``: neither (a silent tqdm)."""
-    from tqdm import tqdm
-
+    line each ``every`` of the total, 10 % by default, :data:`LINE_FORMAT`); ``disable``:
+    neither (a silent tqdm)."""
     stream = file or sys.stderr
     if disable:
         return tqdm(total=total, disable=True)
@@ -77,4 +62,6 @@ def progress_bar(total: int, desc: str, *, unit: str = "it", disable: bool = Fal
     if isatty is not None and isatty():
         return tqdm(total=total, initial=initial, desc=desc, unit=unit, leave=leave, file=stream,
                     dynamic_ncols=True)
-    return LineProgress(total, desc, unit=unit, initial=initial, every=every, file=stream)
+    step = max(1, int(math.ceil(every * total))) if total > 0 else 1
+    return LineProgress(total=total, initial=initial, desc=desc, unit=unit, leave=True, file=_Lines(stream),
+                        miniters=step, mininterval=0.0, bar_format=LINE_FORMAT)

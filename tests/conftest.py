@@ -10,6 +10,9 @@ import torch
 REPO = Path(__file__).resolve().parents[1]
 #: ../shared/data beside the clone; CLOD_SHARED_DATA overrides it (e.g. for a git worktree elsewhere)
 SHARED_DATA = Path(os.environ.get("CLOD_SHARED_DATA") or REPO.parent / "shared" / "data")
+#: the shared LPIPS weights for every test and the CLIs they start (the package looks in the user cache)
+if (SHARED_DATA / "lpips" / "lpips_alex_v0.1.safetensors").is_file():
+    os.environ.setdefault("CLOD_LPIPS_WEIGHTS", str(SHARED_DATA / "lpips" / "lpips_alex_v0.1.safetensors"))
 
 torch.set_num_threads(2)
 
@@ -105,3 +108,46 @@ def pytest_collection_modifyitems(config, items):
     for item in items:
         if "slow" in item.keywords:
             item.add_marker(skip)
+
+
+# --- a tiny pretrained model, its scene and one fast adaptation (CLI tests) ----------------------------
+#: clod-adapt flags of the fast CLI runs
+FAST = ["--iterations", "2", "--max-sv", "2", "--timing-repeats", "1", "--quiet"]
+
+
+@pytest.fixture(scope="module")
+def tiny_model(tmp_path_factory) -> dict:
+    """A 300-Gaussian model and its scene (:func:`write_tiny_scene`), also as an official 3DGS
+    model folder: ``{"root", "scene", "ply", "model"}``."""
+    import shutil
+
+    root = tmp_path_factory.mktemp("jobs")
+    scene, ply = write_tiny_scene(root, n=300)
+    # the same model as an official 3DGS model folder (two iterations; the largest is taken)
+    for it in (10, 30):
+        d = root / "model" / "point_cloud" / f"iteration_{it}"
+        d.mkdir(parents=True)
+        shutil.copy(ply, d / "point_cloud.ply")
+    return {"root": root, "scene": scene, "ply": ply, "model": root / "model"}
+
+
+@pytest.fixture(scope="module")
+def tiny_adapted(tiny_model, tmp_path_factory) -> Path:
+    """One clod-adapt run from the model folder, with the official layout."""
+    out = tmp_path_factory.mktemp("adapted") / "out"
+    from clod_adapter.cli.adapt import main as adapt_main
+
+    code = adapt_main(["-m", str(tiny_model["model"]), "-s", str(tiny_model["scene"]), "-o", str(out),
+                       "--layout", "inria", *FAST])
+    assert code == 0
+    return out
+
+
+def err_line(capfd) -> str:
+    """The one stderr line a CLI wrote (asserts one line and no traceback)."""
+    err = capfd.readouterr().err.strip()
+    lines = err.splitlines()
+    assert len(lines) == 1, err
+    assert "Traceback" not in err
+    return lines[0]
+

@@ -26,7 +26,8 @@ from PIL import Image
 from clod_adapter.cli.adapt import main as adapt_main
 from clod_adapter.cli.eval import main as eval_main
 from clod_adapter.io.ply import read_ply, write_ply
-from conftest import shared_path, uint8_views
+from clod_adapter.cli.export import main as export_main
+from conftest import FAST, err_line, shared_path, uint8_views
 
 IS_ROOT = hasattr(os, "geteuid") and os.geteuid() == 0
 RUN_FAST = ["--iterations", "2", "--max-sv", "2"]
@@ -394,3 +395,143 @@ def test_eval_missing_and_corrupt_scene(tiny, capfd):
     f.write_bytes(f.read_bytes()[:13])
     _assert_bad(tiny, [ply, "--images", tiny / "scene", "--no-lpips"], capfd,
                 os.path.join("sparse", "0"), "cannot read COLMAP model", prog="clod-eval")
+
+
+# --- the CLIs' usage and the output folder (the tiny model of conftest) -------------------------
+def test_missing_arguments(tmp_path, capsys):
+    code = adapt_main(["--quiet"])
+    err = capsys.readouterr().err.strip()
+    assert code == 2 and "--images" in err
+
+
+def test_folder_without_model_is_a_one_line_error(tiny_model, tmp_path, capfd):
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    out = tmp_path / "out"
+    code = adapt_main([str(empty), "--images", str(tiny_model["scene"]), "-o", str(out), *FAST])
+    line = err_line(capfd)
+    assert code == 2 and "is a folder, expected" in line and str(empty) in line
+    assert not out.exists()
+
+
+@pytest.mark.slow
+def test_non_empty_output_is_refused(tiny_model, tmp_path, capfd):
+    out = tmp_path / "out"
+    out.mkdir()
+    (out / "metrics.json").write_text('{"earlier": true}\n')
+    args = [str(tiny_model["ply"]), "--images", str(tiny_model["scene"]), "-o", str(out), *FAST]
+    code = adapt_main(args)
+    line = err_line(capfd)
+    assert code == 2 and "output folder is not empty (metrics.json)" in line and "--force" in line
+    assert (out / "metrics.json").read_text() == '{"earlier": true}\n'
+    assert sorted(p.name for p in out.iterdir()) == ["metrics.json"]
+    assert adapt_main(args + ["--force"]) == 0
+    assert "earlier" not in (out / "metrics.json").read_text()
+
+
+def test_eval_and_export_refuse_non_empty_output(tiny_adapted, tiny_model, tmp_path, capfd):
+    out = tmp_path / "rep"
+    out.mkdir()
+    (out / "notes.txt").write_text("mine")
+    code = eval_main([str(tiny_adapted), "-s", str(tiny_model["scene"]), "-o", str(out), "--no-lpips", "--quiet"])
+    assert code == 2 and "not empty (notes.txt)" in err_line(capfd)
+    code = export_main([str(tiny_adapted), "-s", str(tiny_model["scene"]), "-o", str(out), "--quiet"])
+    assert code == 2 and "not empty (notes.txt)" in err_line(capfd)
+    assert sorted(p.name for p in out.iterdir()) == ["notes.txt"]
+
+
+def test_demo_rerun_is_refused(tmp_path, capfd):
+    out = tmp_path / "demo"
+    out.mkdir()
+    (out / "metrics.json").write_text("{}")
+    code = adapt_main(["--demo", "-o", str(out), "--quiet"])
+    assert code == 2 and "not empty" in err_line(capfd)
+    assert sorted(p.name for p in out.iterdir()) == ["metrics.json"]  # no demo scene written
+
+
+def test_model_from_another_scene_is_refused(tmp_path, capfd):
+    ply = shared_path("fixtures", "plys", "inria_sh3_9080.ply")
+    bonsai = shared_path("fixtures", "bonsai_tiny")
+    out = tmp_path / "out"
+    code = adapt_main([str(ply), "--images", str(bonsai), "-o", str(out), *FAST])
+    line = err_line(capfd)
+    assert code == 2
+    assert "does not render" in line and "flat image" in line and "another scene" in line
+    assert "--allow-mismatch" in line
+    assert not out.exists()
+
+
+@pytest.mark.slow
+def test_allow_mismatch_goes_on(tmp_path, capfd):
+    ply = shared_path("fixtures", "plys", "inria_sh3_9080.ply")
+    bonsai = shared_path("fixtures", "bonsai_tiny")
+    out = tmp_path / "out"
+    code = adapt_main([str(ply), "--images", str(bonsai), "--resolution", "4", "-o", str(out),
+                       "--allow-mismatch", *FAST])
+    o, e = capfd.readouterr()
+    assert code == 0, e
+    assert "warning:" in o and "--allow-mismatch" in o
+    m = json.loads((out / "metrics.json").read_text())
+    assert m["scene_match"]["margin_db"] < 1.0
+
+
+def test_flag_names_in_errors(tiny_model, tmp_path, capfd, tiny_adapted):
+    code = adapt_main([str(tiny_model["ply"]), "--images", str(tiny_model["scene"]), "-o", str(tmp_path / "o"),
+                       "--max-sv", "0.5", "--quiet"])
+    assert code == 2 and "--max-sv must be >= 1, got 0.5" in err_line(capfd)
+    code = eval_main([str(tiny_adapted), "-s", str(tiny_model["scene"]), "-o", str(tmp_path / "r"), "--budgets", "0,-1,abc"])
+    line = err_line(capfd)
+    assert code == 2 and "--budgets" in line and "'-1'" in line
+    code = eval_main([str(tiny_adapted), "-s", str(tiny_model["scene"]), "-o", str(tmp_path / "r"), "--budgets", "0.5,abc"])
+    line = err_line(capfd)
+    assert code == 2 and "--budgets: 'abc' is not a number" in line
+    code = export_main([str(tiny_adapted), "-s", str(tiny_model["scene"]), "-o", str(tmp_path / "x"), "--budget", "abc"])
+    assert code == 2 and "--budget: 'abc' is not a number" in err_line(capfd)
+
+
+@pytest.mark.parametrize("main", [adapt_main, eval_main, export_main])
+def test_usage_error_is_one_line(main, capfd):
+    with pytest.raises(SystemExit) as e:
+        main(["x.ply", "--resolution", "3"])
+    assert e.value.code == 2
+    line = err_line(capfd)
+    assert "--resolution" in line and "invalid choice" in line and line.endswith("(see --help)")
+
+
+def test_mis_sized_image_in_images_r_is_refused(tiny_model, tmp_path, capfd):
+    scene = tmp_path / "scene"
+    shutil.copytree(tiny_model["scene"], scene)
+    (scene / "images_2").mkdir()
+    for p in sorted((scene / "images").iterdir()):
+        Image.open(p).resize((32, 24)).save(scene / "images_2" / p.name)
+    bad = scene / "images_2" / "view003.png"
+    Image.open(bad).resize((21, 12)).save(bad)  # a third of the width, half the height of 64x48
+    out = tmp_path / "out"
+    code = adapt_main([str(tiny_model["ply"]), "--images", str(scene), "--resolution", "2", "-o", str(out), *FAST])
+    line = err_line(capfd)
+    assert code == 2 and "view003.png" in line and "21x12" in line and "32x24" in line
+    assert not out.exists()
+
+
+def _bad_eval(args, capsys, out, must):
+    code = eval_main([str(a) for a in args] + ["--quiet", "-o", str(out)])
+    err = capsys.readouterr().err.strip()
+    assert code == 2, err
+    assert len(err.splitlines()) == 1 and "Traceback" not in err
+    assert must in err, err
+    assert not out.exists()
+
+
+def test_eval_bad_inputs(tiny_model, tiny_adapted, tmp_path, capsys):
+    ad, scene, pre = tiny_adapted, tiny_model["scene"], tiny_model["ply"]
+    out = tmp_path / "rep"
+    _bad_eval([tmp_path / "missing.ply", "--images", scene], capsys, out, "missing.ply")
+    _bad_eval([ad, "--images", tmp_path / "noscene"], capsys, out, "noscene")
+    _bad_eval([pre, "--images", scene], capsys, out, "sigma_d")  # not an tiny_adapted model
+    _bad_eval([ad, "--images", scene, "--pretrained", tmp_path / "nopre.ply"], capsys, out, "nopre.ply")
+    _bad_eval([ad, "--images", scene, "--budgets", "0.5,2.5"], capsys, out, "--budgets")
+    _bad_eval([ad, "--images", scene, "--lpips-weights", tmp_path / "w.safetensors"], capsys, out, "w.safetensors")
+    junk = tmp_path / "junk.ply"
+    junk.write_bytes(b"not a ply")
+    _bad_eval([junk, "--images", scene], capsys, out, "junk.ply")
+    _bad_eval([ad], capsys, out, "--images")

@@ -61,14 +61,14 @@ def _args(scene: Path, out: Path, *extra) -> list[str]:
 def _inprocess(scene: Path, out: Path, **kw) -> dict:
     """``clod-adapt`` in this process with 1 thread (as each rank), deterministic: the same
     results bit for bit as a subprocess with OMP_NUM_THREADS=1 (tests/test_resume.py)."""
-    from clod_adapter.jobs.adapt import run
+    from clod_adapter.jobs.adapt import AdaptOptions, run
 
     threads = torch.get_num_threads()
     torch.set_num_threads(1)
     try:
         cfg = AdaptConfig(max_sv=MAX_SV, iterations=ITERATIONS, seed=SEED, views_per_step=2)
-        return run(scene / "in.ply", scene / "scene", out, cfg, device="cpu", progress=False,
-                   log=lambda *a: None, deterministic=True, timing_repeats=0, **kw)
+        return run(scene / "in.ply", scene / "scene", out, cfg, AdaptOptions(
+            device="cpu", progress=False, log=lambda *a: None, deterministic=True, timing_repeats=0, **kw))
     finally:
         torch.set_num_threads(threads)
 

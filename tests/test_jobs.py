@@ -1,6 +1,6 @@
-"""What a 3DGS user meets first (issue 12): model folders, output folders that are not empty,
-models from another scene, plain-line logs, flag names in errors, one-line usage errors,
-mis-sized images, interleaved timings, the official output layout and clod-render."""
+"""The jobs' shared layer (issue 12): model folders, the scene-match check on real pairs, plain-line
+logs, interleaved timings, the official output layout, clod-render and the exports' round trips
+(their refusals of bad input: tests/test_bad_input.py)."""
 from __future__ import annotations
 
 import json
@@ -8,62 +8,29 @@ import os
 import shutil
 import subprocess
 import sys
-from pathlib import Path
 
 import numpy as np
 import pytest
 from PIL import Image
 
 from clod_adapter.cli.adapt import main as adapt_main
-from clod_adapter.cli.eval import main as eval_main
 from clod_adapter.cli.export import main as export_main
-from clod_adapter.io.ply import read_ply, write_ply
-from conftest import REPO, shared_path, write_tiny_scene
+from clod_adapter.io.ply import read_ply
+from conftest import FAST, REPO, err_line, shared_path
 
-FAST = ["--iterations", "2", "--max-sv", "2", "--timing-repeats", "1", "--quiet"]
-
-
-@pytest.fixture(scope="module")
-def tiny_src(tmp_path_factory) -> dict:
-    root = tmp_path_factory.mktemp("jobs")
-    scene, ply = write_tiny_scene(root, n=300)
-    # the same model as an official 3DGS model folder (two iterations; the largest is taken)
-    for it in (10, 30):
-        d = root / "model" / "point_cloud" / f"iteration_{it}"
-        d.mkdir(parents=True)
-        shutil.copy(ply, d / "point_cloud.ply")
-    return {"root": root, "scene": scene, "ply": ply, "model": root / "model"}
-
-
-@pytest.fixture(scope="module")
-def adapted(tiny_src, tmp_path_factory) -> Path:
-    """One clod-adapt run from the model folder, with the official layout."""
-    out = tmp_path_factory.mktemp("adapted") / "out"
-    code = adapt_main(["-m", str(tiny_src["model"]), "-s", str(tiny_src["scene"]), "-o", str(out),
-                       "--layout", "inria", *FAST])
-    assert code == 0
-    return out
-
-
-def _err_line(capfd) -> str:
-    err = capfd.readouterr().err.strip()
-    lines = err.splitlines()
-    assert len(lines) == 1, err
-    assert "Traceback" not in err
-    return lines[0]
 
 
 # --- model folders -------------------------------------------------------------------------------
-def test_model_folder_latest_iteration_is_used(adapted, tiny_src):
-    m = json.loads((adapted / "metrics.json").read_text())
+def test_model_folder_latest_iteration_is_used(tiny_adapted, tiny_model):
+    m = json.loads((tiny_adapted / "metrics.json").read_text())
     assert m["input_ply"].endswith(os.path.join("iteration_30", "point_cloud.ply"))
 
 
-def test_resolve_model_path_cases(tiny_src, tmp_path):
+def test_resolve_model_path_cases(tiny_model, tmp_path):
     from clod_adapter.io.load import resolve_model_path
     from clod_adapter.io.ply import PlyFormatError
 
-    model = tiny_src["model"]
+    model = tiny_model["model"]
     assert resolve_model_path(model) == model / "point_cloud" / "iteration_30" / "point_cloud.ply"
     assert resolve_model_path(model, 10) == model / "point_cloud" / "iteration_10" / "point_cloud.ply"
     with pytest.raises(PlyFormatError, match="iteration_7/.*iterations: 10, 30"):
@@ -72,24 +39,14 @@ def test_resolve_model_path_cases(tiny_src, tmp_path):
     assert resolve_model_path(it_dir) == it_dir / "point_cloud.ply"  # a folder holding one .ply
     two = tmp_path / "two"
     two.mkdir()
-    shutil.copy(tiny_src["ply"], two / "a.ply")
-    shutil.copy(tiny_src["ply"], two / "b.ply")
+    shutil.copy(tiny_model["ply"], two / "a.ply")
+    shutil.copy(tiny_model["ply"], two / "b.ply")
     with pytest.raises(PlyFormatError, match="is a folder, expected .* 2 model files"):
         resolve_model_path(two)
     empty = tmp_path / "empty"
     empty.mkdir()
     with pytest.raises(PlyFormatError, match="is a folder, expected a .ply file"):
         resolve_model_path(empty)
-
-
-def test_folder_without_model_is_a_one_line_error(tiny_src, tmp_path, capfd):
-    empty = tmp_path / "empty"
-    empty.mkdir()
-    out = tmp_path / "out"
-    code = adapt_main([str(empty), "--images", str(tiny_src["scene"]), "-o", str(out), *FAST])
-    line = _err_line(capfd)
-    assert code == 2 and "is a folder, expected" in line and str(empty) in line
-    assert not out.exists()
 
 
 def test_real_official_model_folder():
@@ -106,69 +63,7 @@ def test_real_official_model_folder():
     assert note is not None and "trained at 497x372" in note and "124x93" in note and "alias" in note
 
 
-# --- output folders ------------------------------------------------------------------------------
-@pytest.mark.slow
-def test_non_empty_output_is_refused(tiny_src, tmp_path, capfd):
-    out = tmp_path / "out"
-    out.mkdir()
-    (out / "metrics.json").write_text('{"earlier": true}\n')
-    args = [str(tiny_src["ply"]), "--images", str(tiny_src["scene"]), "-o", str(out), *FAST]
-    code = adapt_main(args)
-    line = _err_line(capfd)
-    assert code == 2 and "output folder is not empty (metrics.json)" in line and "--force" in line
-    assert (out / "metrics.json").read_text() == '{"earlier": true}\n'
-    assert sorted(p.name for p in out.iterdir()) == ["metrics.json"]
-    assert adapt_main(args + ["--force"]) == 0
-    assert "earlier" not in (out / "metrics.json").read_text()
-
-
-def test_eval_and_export_refuse_non_empty_output(adapted, tiny_src, tmp_path, capfd):
-    out = tmp_path / "rep"
-    out.mkdir()
-    (out / "notes.txt").write_text("mine")
-    code = eval_main([str(adapted), "-s", str(tiny_src["scene"]), "-o", str(out), "--no-lpips", "--quiet"])
-    assert code == 2 and "not empty (notes.txt)" in _err_line(capfd)
-    code = export_main([str(adapted), "-s", str(tiny_src["scene"]), "-o", str(out), "--quiet"])
-    assert code == 2 and "not empty (notes.txt)" in _err_line(capfd)
-    assert sorted(p.name for p in out.iterdir()) == ["notes.txt"]
-
-
-def test_demo_rerun_is_refused(tmp_path, capfd):
-    out = tmp_path / "demo"
-    out.mkdir()
-    (out / "metrics.json").write_text("{}")
-    code = adapt_main(["--demo", "-o", str(out), "--quiet"])
-    assert code == 2 and "not empty" in _err_line(capfd)
-    assert sorted(p.name for p in out.iterdir()) == ["metrics.json"]  # no demo scene written
-
-
-# --- a model from another scene ------------------------------------------------------------------
-def test_model_from_another_scene_is_refused(tmp_path, capfd):
-    ply = shared_path("fixtures", "plys", "inria_sh3_9080.ply")
-    bonsai = shared_path("fixtures", "bonsai_tiny")
-    out = tmp_path / "out"
-    code = adapt_main([str(ply), "--images", str(bonsai), "-o", str(out), *FAST])
-    line = _err_line(capfd)
-    assert code == 2
-    assert "does not render" in line and "flat image" in line and "another scene" in line
-    assert "--allow-mismatch" in line
-    assert not out.exists()
-
-
-@pytest.mark.slow
-def test_allow_mismatch_goes_on(tmp_path, capfd):
-    ply = shared_path("fixtures", "plys", "inria_sh3_9080.ply")
-    bonsai = shared_path("fixtures", "bonsai_tiny")
-    out = tmp_path / "out"
-    code = adapt_main([str(ply), "--images", str(bonsai), "--resolution", "4", "-o", str(out),
-                       "--allow-mismatch", *FAST])
-    o, e = capfd.readouterr()
-    assert code == 0, e
-    assert "warning:" in o and "--allow-mismatch" in o
-    m = json.loads((out / "metrics.json").read_text())
-    assert m["scene_match"]["margin_db"] < 1.0
-
-
+# --- the scene-match check ------------------------------------------------------------------------
 @pytest.mark.slow
 @pytest.mark.parametrize("which,resolution", [("pretrained", 2), ("pretrained", 8), ("maskgaussian", 2)])
 def test_real_pairs_match(which, resolution):
@@ -188,24 +83,24 @@ def test_real_pairs_match(which, resolution):
     assert m["in_view_fraction"] > 0.9
 
 
-def test_synthetic_scene_matches(tiny_src):
+def test_synthetic_scene_matches(tiny_model):
     import torch
 
     from clod_adapter.io.colmap import load_colmap_scene
     from clod_adapter.jobs.adapt import MISMATCH_MARGIN_DB, scene_match
 
-    scene = load_colmap_scene(tiny_src["scene"])
+    scene = load_colmap_scene(tiny_model["scene"])
     with torch.no_grad():
-        m = scene_match(read_ply(tiny_src["ply"]), scene.train, [scene.load_image(c) for c in scene.train],
+        m = scene_match(read_ply(tiny_model["ply"]), scene.train, [scene.load_image(c) for c in scene.train],
                         background=(0.0, 0.0, 0.0))
     assert m["margin_db"] > MISMATCH_MARGIN_DB + 4.0, m
 
 
 # --- logs ------------------------------------------------------------------------------------------
 @pytest.mark.slow
-def test_non_tty_log_has_plain_lines(tiny_src, tmp_path):
+def test_non_tty_log_has_plain_lines(tiny_model, tmp_path):
     out = tmp_path / "out"
-    r = subprocess.run([sys.executable, "-m", "clod_adapter.cli.adapt", str(tiny_src["ply"]), "--images", str(tiny_src["scene"]),
+    r = subprocess.run([sys.executable, "-m", "clod_adapter.cli.adapt", str(tiny_model["ply"]), "--images", str(tiny_model["scene"]),
                         "-o", str(out), "--iterations", "20", "--max-sv", "2", "--timing-repeats", "1"],
                        cwd=REPO, capture_output=True, text=True, timeout=600)
     assert r.returncode == 0, r.stderr[-2000:]
@@ -233,29 +128,6 @@ def test_line_progress_every_ten_percent():
 
 
 # --- messages --------------------------------------------------------------------------------------
-def test_flag_names_in_errors(tiny_src, tmp_path, capfd, adapted):
-    code = adapt_main([str(tiny_src["ply"]), "--images", str(tiny_src["scene"]), "-o", str(tmp_path / "o"),
-                       "--max-sv", "0.5", "--quiet"])
-    assert code == 2 and "--max-sv must be >= 1, got 0.5" in _err_line(capfd)
-    code = eval_main([str(adapted), "-s", str(tiny_src["scene"]), "-o", str(tmp_path / "r"), "--budgets", "0,-1,abc"])
-    line = _err_line(capfd)
-    assert code == 2 and "--budgets" in line and "'-1'" in line
-    code = eval_main([str(adapted), "-s", str(tiny_src["scene"]), "-o", str(tmp_path / "r"), "--budgets", "0.5,abc"])
-    line = _err_line(capfd)
-    assert code == 2 and "--budgets: 'abc' is not a number" in line
-    code = export_main([str(adapted), "-s", str(tiny_src["scene"]), "-o", str(tmp_path / "x"), "--budget", "abc"])
-    assert code == 2 and "--budget: 'abc' is not a number" in _err_line(capfd)
-
-
-@pytest.mark.parametrize("main", [adapt_main, eval_main, export_main])
-def test_usage_error_is_one_line(main, capfd):
-    with pytest.raises(SystemExit) as e:
-        main(["x.ply", "--resolution", "3"])
-    assert e.value.code == 2
-    line = _err_line(capfd)
-    assert "--resolution" in line and "invalid choice" in line and line.endswith("(see --help)")
-
-
 def test_help_has_an_example_and_every_flag_has_help(capsys):
     from clod_adapter.cli import adapt, eval as eval_cli, export, render
 
@@ -271,22 +143,6 @@ def test_help_has_an_example_and_every_flag_has_help(capsys):
     with pytest.raises(SystemExit):
         adapt_main(["--version"])
     assert "clod-adapt 0." in capsys.readouterr().out
-
-
-# --- images ----------------------------------------------------------------------------------------
-def test_mis_sized_image_in_images_r_is_refused(tiny_src, tmp_path, capfd):
-    scene = tmp_path / "scene"
-    shutil.copytree(tiny_src["scene"], scene)
-    (scene / "images_2").mkdir()
-    for p in sorted((scene / "images").iterdir()):
-        Image.open(p).resize((32, 24)).save(scene / "images_2" / p.name)
-    bad = scene / "images_2" / "view003.png"
-    Image.open(bad).resize((21, 12)).save(bad)  # a third of the width, half the height of 64x48
-    out = tmp_path / "out"
-    code = adapt_main([str(tiny_src["ply"]), "--images", str(scene), "--resolution", "2", "-o", str(out), *FAST])
-    line = _err_line(capfd)
-    assert code == 2 and "view003.png" in line and "21x12" in line and "32x24" in line
-    assert not out.exists()
 
 
 # --- timings ---------------------------------------------------------------------------------------
@@ -312,40 +168,40 @@ def test_time_interleaved_rounds_and_order():
     assert res["a"]["per_view"][1]["ms_raster"] == pytest.approx(30.0)
 
 
-def test_metrics_timing_spread(adapted):
-    m = json.loads((adapted / "metrics.json").read_text())
+def test_metrics_timing_spread(tiny_adapted):
+    m = json.loads((tiny_adapted / "metrics.json").read_text())
     assert m["timing"]["method"] == "interleaved"
     for d in [m["input_model"]] + m["levels"]:
         assert d["ms_per_frame_min"] <= d["ms_per_frame"] <= d["ms_per_frame_max"]
 
 
 # --- outputs ---------------------------------------------------------------------------------------
-def test_outputs_and_inria_layout(adapted, tiny_src):
+def test_outputs_and_inria_layout(tiny_adapted, tiny_model):
     from clod_adapter.io.load import resolve_model_path
 
-    names = {p.name for p in adapted.iterdir()}
+    names = {p.name for p in tiny_adapted.iterdir()}
     assert {"point_cloud.ply", "metrics.json", "lod_strip.png", "training.png", "cameras.json", "cfg_args",
             "point_cloud"} <= names
-    plain = adapted / "point_cloud" / "iteration_32" / "point_cloud.ply"  # input iteration 30 + 2 steps
+    plain = tiny_adapted / "point_cloud" / "iteration_32" / "point_cloud.ply"  # input iteration 30 + 2 steps
     g = read_ply(plain)
     assert g.sigma_d is None and len(g) == 300  # exact INRIA layout (SIBR reads a fixed struct)
-    cams = json.loads((adapted / "cameras.json").read_text())
+    cams = json.loads((tiny_adapted / "cameras.json").read_text())
     assert len(cams) == 10 and {"id", "img_name", "width", "height", "position", "rotation", "fx", "fy"} <= set(cams[0])
     assert (cams[0]["width"], cams[0]["height"]) == (64, 48)
-    assert "source_path=" in (adapted / "cfg_args").read_text()
+    assert "source_path=" in (tiny_adapted / "cfg_args").read_text()
     # the clod tools take the output folder and use the extended file, not the plain copy
-    assert resolve_model_path(adapted, prefer="point_cloud.ply") == adapted / "point_cloud.ply"
-    strip = Image.open(adapted / "lod_strip.png")
+    assert resolve_model_path(tiny_adapted, prefer="point_cloud.ply") == tiny_adapted / "point_cloud.ply"
+    strip = Image.open(tiny_adapted / "lod_strip.png")
     assert strip.width >= 3 * 240  # ground truth + s_v = 1, 2, each enlarged to >= 240 px
 
 
-def test_clod_render_views_and_video(adapted, tiny_src, tmp_path, capsys):
+def test_clod_render_views_and_video(tiny_adapted, tiny_model, tmp_path, capsys):
     ffmpeg = pytest.importorskip("imageio_ffmpeg", reason="clod-render's MP4 needs the [video] extra (imageio-ffmpeg)")
 
     from clod_adapter.cli.render import main as render_main
 
     out = tmp_path / "render"
-    code = render_main([str(adapted), "-s", str(tiny_src["scene"]), "-o", str(out), "--frames", "12",
+    code = render_main([str(tiny_adapted), "-s", str(tiny_model["scene"]), "-o", str(out), "--frames", "12",
                         "--path", "orbit", "--quiet"])
     assert code == 0, capsys.readouterr().err
     assert sorted(p.name for p in (out / "views").iterdir()) == ["view000.png", "view008.png"]
@@ -356,11 +212,11 @@ def test_clod_render_views_and_video(adapted, tiny_src, tmp_path, capsys):
     assert np.isfinite([v["psnr"] for v in rep["views"]]).all()
 
 
-def test_export_spz_round_trip(adapted, tiny_src, tmp_path):
+def test_export_spz_round_trip(tiny_adapted, tiny_model, tmp_path):
     """--spz through gsply (optional extra [spz]: numba + llvmlite, ~300 MB, so not in [test])."""
     gsply = pytest.importorskip("gsply", reason="clod-export --spz needs the [spz] extra (gsply)")
     out = tmp_path / "exp"
-    assert export_main([str(adapted), "-s", str(tiny_src["scene"]), "-o", str(out), "--spz", "--quiet"]) == 0
+    assert export_main([str(tiny_adapted), "-s", str(tiny_model["scene"]), "-o", str(out), "--spz", "--quiet"]) == 0
     spz = out / "point_cloud_clod.spz"
     assert spz.stat().st_size < (out / "point_cloud_clod.ply").stat().st_size / 3
     back = gsply.read_spz(spz)
@@ -369,14 +225,14 @@ def test_export_spz_round_trip(adapted, tiny_src, tmp_path):
     assert back.shN.shape[0] == len(g)
 
 
-def test_tensorboard_flag(tiny_src, tmp_path, capfd):
+def test_tensorboard_flag(tiny_model, tmp_path, capfd):
     out = tmp_path / "out"
-    args = [str(tiny_src["ply"]), "--images", str(tiny_src["scene"]), "-o", str(out), "--tensorboard", *FAST]
+    args = [str(tiny_model["ply"]), "--images", str(tiny_model["scene"]), "-o", str(out), "--tensorboard", *FAST]
     try:
         import torch.utils.tensorboard  # noqa: F401
     except Exception:
         assert adapt_main(args) == 2
-        assert "--tensorboard: the tensorboard package is not installed" in _err_line(capfd)
+        assert "--tensorboard: the tensorboard package is not installed" in err_line(capfd)
         assert not out.exists()
         return
     assert adapt_main(args) == 0

@@ -16,7 +16,7 @@ from clod_adapter.training import AdaptConfig
 from clod_adapter.gaussians import Gaussians
 from clod_adapter.io.load import DEFAULT_MASK_POLICY, MASK_POLICIES, apply_masks, load_model
 from clod_adapter.io.ply import PlyFormatError, ply_property_names, read_ply, write_ply
-from clod_adapter.jobs.adapt import run
+from clod_adapter.jobs.adapt import AdaptOptions, run
 from conftest import write_tiny_scene
 
 
@@ -159,7 +159,7 @@ def test_masked_checkpoint_adapts_and_round_trips_mask_properties(tmp_path, caps
     lines = []
     out = tmp_path / "out"
     cfg = AdaptConfig(max_sv=2.0, iterations=1, seed=0)
-    metrics = run(masked, scene, out, cfg, progress=False, log=lines.append, timing_repeats=0, layout="inria")
+    metrics = run(masked, scene, out, cfg, AdaptOptions(progress=False, log=lines.append, timing_repeats=0, layout="inria"))
     said = [ln for ln in lines if "MaskGaussian masks" in ln]
     assert said == [f"clod-adapt: MaskGaussian masks masks_0/masks_1 (soft scores): argmax (keep p(keep) > 0.5), "
                     f"kept {k:,} of {n:,} Gaussians ({100 * k / n:.1f} %) (--masks argmax|gumbel|all)"]

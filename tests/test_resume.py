@@ -134,11 +134,11 @@ def test_signal_then_resume_is_bit_exact(scene, tmp_path, sig):
 
 def _inprocess_run(scene: Path, out: Path, **kw):
     from clod_adapter.training import AdaptConfig
-    from clod_adapter.jobs.adapt import run
+    from clod_adapter.jobs.adapt import AdaptOptions, run
 
     cfg = AdaptConfig(max_sv=MAX_SV, iterations=ITERATIONS, seed=SEED)
-    return run(scene / "in.ply", scene / "scene", out, cfg, device="cpu", progress=False,
-               log=lambda *a: None, deterministic=True, **kw)
+    return run(scene / "in.ply", scene / "scene", out, cfg, AdaptOptions(
+        device="cpu", progress=False, log=lambda *a: None, deterministic=True, **kw))
 
 
 @pytest.mark.slow

@@ -107,13 +107,12 @@ def test_load_state_rejects_other_files(tmp_path):
 
 
 def test_pipeline_outputs(tmp_path):
-    from clod_adapter.jobs.adapt import run
+    from clod_adapter.jobs.adapt import AdaptOptions, run
 
     scene, ply = write_tiny_scene(tmp_path, n=900)
     before = ply.read_bytes()
     out = tmp_path / "out"
-    run(ply, scene, out, AdaptConfig(max_sv=3.0, iterations=30), progress=False,
-            log=lambda *a: None)
+    run(ply, scene, out, AdaptConfig(max_sv=3.0, iterations=30), AdaptOptions(progress=False, log=lambda *a: None))
     assert ply.read_bytes() == before  # input untouched
     for name in ("point_cloud.ply", "adapt_state.safetensors", "metrics.json", "lod_strip.png"):
         assert (out / name).is_file()

@@ -46,7 +46,7 @@ def build_parser():
     p.add_argument("--popping-steps", type=int, default=61, help="frames of the popping sweep (default 61)")
     p.add_argument("--lpips-weights", metavar="PATH",
                    help="LPIPS-alex weights (.safetensors); default $CLOD_LPIPS_WEIGHTS, then "
-                        "../shared/data/lpips/; LPIPS is skipped with a note when none exists")
+                        "~/.cache/clod-adapter/; LPIPS is skipped with a note when none exists")
     p.add_argument("--no-lpips", action="store_true", help="skip LPIPS")
     p.add_argument("--sigma-c", type=float, default=None,
                    help="constant sigma_d of the constant-sigma baseline (default: the best of a grid on "

@@ -298,14 +298,14 @@ class AdaptOptions:
 
 
 def run(ply_path: os.PathLike, scene_root: os.PathLike, out_dir: os.PathLike, cfg: AdaptConfig,
-        options: Optional[AdaptOptions] = None, **option_values) -> dict:
+        options: Optional[AdaptOptions] = None) -> dict:
     """Run the whole job; returns the metrics dict (also written to ``metrics.json``).
 
     ``ply_path`` is a model file, an official 3DGS model folder (``point_cloud/iteration_N/``,
     the largest N unless ``iteration``) or a folder holding one .ply
     (:func:`clod_adapter.io.load.resolve_model_path`). ``out_dir`` must be empty or new unless
-    ``force`` (replace files of the same name) or ``resume``. ``options`` (or its fields given
-    by name, ``option_values``): :class:`AdaptOptions`.
+    ``force`` (replace files of the same name) or ``resume``. ``options``: :class:`AdaptOptions`
+    (default: its defaults).
 
     The job runs as named phases, in order: :func:`_read_inputs` (load and check every input;
     nothing is written before all of them pass), :func:`_start_state` (the input's quality, the
@@ -334,9 +334,7 @@ def run(ply_path: os.PathLike, scene_root: os.PathLike, out_dir: os.PathLike, cf
         clod_adapter.distributed.PeerLost: (``distributed``) another process died or stopped
             answering; the message says which state is on disk.
     """
-    o = options if options is not None else AdaptOptions(**option_values)
-    if options is not None and option_values:
-        o = replace(options, **option_values)
+    o = options if options is not None else AdaptOptions()
     with StopFlag(abortable=True) as stop, deterministic_mode(o.deterministic):
         group = None
         try:

@@ -60,7 +60,7 @@ import math
 import os
 import statistics
 import time
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable, Optional, Sequence, Union
 
@@ -177,7 +177,7 @@ def _finite(x):
 
 def resolve_lpips(spec: LpipsSpec) -> tuple[Optional[Callable], str]:
     """LPIPS scorer and a note. ``spec``: ``"auto"`` (argument-less
-    :func:`clod_adapter.lpips.load_lpips`: ``$CLOD_LPIPS_WEIGHTS``, then the shared default),
+    :func:`clod_adapter.lpips.load_lpips`: ``$CLOD_LPIPS_WEIGHTS``, then the user cache),
     a weights path, a callable ``f(img [H,W,3], gt [H,W,3]) -> scalar``, or None (skip)."""
     if spec is None:
         return None, "LPIPS skipped (disabled)"
@@ -632,8 +632,8 @@ class _Eval:
             self.tick()
         return out
 
-    def render(self, g: Gaussians, cam, **kw) -> Sample:
-        return _render_lod(g, cam, self.bg, self.o.tau, **kw)
+    def render(self, g: Gaussians, cam, s_v: Optional[float] = None, budget=None) -> Sample:
+        return _render_lod(g, cam, self.bg, self.o.tau, s_v=s_v, budget=budget)
 
     def score(self, method: str, setting: str, budget, samples: list, adapted: bool) -> None:
         g = self.adapted if adapted else self.base
@@ -643,7 +643,7 @@ class _Eval:
 
 @torch.no_grad()
 def evaluate_report(adapted: Union[os.PathLike, Gaussians], scene, out_dir: os.PathLike,
-                    options: Optional[EvalOptions] = None, **option_values) -> dict:
+                    options: Optional[EvalOptions] = None) -> dict:
     """Evaluate an adapted CLoD model against baselines and write the report to ``out_dir``.
 
     Phases, in order: :func:`_eval_inputs` (models, views, settings), :func:`_score_sweep` (the
@@ -657,7 +657,7 @@ def evaluate_report(adapted: Union[os.PathLike, Gaussians], scene, out_dir: os.P
         scene: a :class:`clod_adapter.io.scene.Scene` (test views: ``scene.test``, or the first
             training view when there are none; LightGaussian scores use ``scene.train``).
         out_dir: output folder (must exist or be creatable; the CLI checks it first).
-        options: :class:`EvalOptions` (or its fields given by name, ``option_values``).
+        options: :class:`EvalOptions` (default: its defaults).
 
     Returns:
         the report dict (also ``report.json``): ``rows`` (aggregated, :data:`CSV_COLUMNS`),
@@ -668,9 +668,7 @@ def evaluate_report(adapted: Union[os.PathLike, Gaussians], scene, out_dir: os.P
     """
     from . import progress_bar
 
-    o = options if options is not None else EvalOptions(**option_values)
-    if options is not None and option_values:
-        o = replace(options, **option_values)
+    o = options if options is not None else EvalOptions()
     t_start = time.perf_counter()
     ev = _eval_inputs(adapted, scene, o)
     extra = len(BASELINES) + (len(DECIMATORS) if o.merge_tool else 0) + (1 if o.dlod_iterations > 0 else 0)

@@ -31,7 +31,8 @@ from common import (LABELS, RUNS, adapt_cached, add_split_arg, fmt_pct, load_inp
                     setup_threads, split_suffix, table)
 
 from clod_adapter.training import AdaptConfig
-from clod_adapter.baselines import (find_splat_transform, lightgaussian_significance, merge_decimate,
+from clod_adapter.splat_transform import find_splat_transform
+from clod_adapter.baselines import (lightgaussian_significance, merge_decimate,
                                     ranking_selection, render_subset)
 from clod_adapter.budget import budget_count
 from clod_adapter.io.ply import read_ply

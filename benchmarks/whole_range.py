@@ -26,7 +26,7 @@ from pathlib import Path
 from common import LABELS, RUNS, adapt_cached, fmt_pct, metrics_of, resolve_input, setup_threads, table
 
 from clod_adapter.training import AdaptConfig
-from clod_adapter.baselines import find_splat_transform
+from clod_adapter.splat_transform import find_splat_transform
 from clod_adapter.io.load import load_scene
 from clod_adapter.level_metrics import budget_levels
 from clod_adapter.jobs.eval import EvalOptions, evaluate_report

@@ -3,7 +3,8 @@
 * :func:`persistence` / :func:`importance_order`: one global order in which every prefix is a
   level of detail (for prefix / budget renderers).
 * :func:`bake`: the Gaussians one setting (``s_v`` or a budget) renders from a camera set, as a
-  standard INRIA model (no decay).
+  standard INRIA model (no decay); :func:`lod_set_s_vs`: the settings of a discrete LoD set's
+  levels (each baked so, for the web engines' streamed LoD files).
 * :func:`prune_never_rendered`: drop Gaussians no training view renders at any ``s_v >= 1``.
 * :func:`reduce_sh`: drop SH bands whose removal costs less than a set PSNR on training views.
 
@@ -28,7 +29,7 @@ from .gaussians import Gaussians
 from .metrics import psnr
 from .camera_lod import render_lod, view_lod
 
-__all__ = ["persistence", "importance_order", "bake", "prune_never_rendered", "reduce_sh",
+__all__ = ["persistence", "importance_order", "bake", "lod_set_s_vs", "prune_never_rendered", "reduce_sh",
            "truncate_sh", "BakeInfo"]
 
 
@@ -153,6 +154,18 @@ def bake(gaussians: Gaussians, cameras: Sequence, s_v: Optional[float] = None, b
 
 
 @torch.no_grad()
+def lod_set_s_vs(max_sv: float) -> list[float]:
+    """The ``s_v`` of a discrete LoD set's levels, finest first: 1, then each ``s_v`` whose target
+    share of the Gaussians in view, ``s_v^-1.5`` (:func:`clod_adapter.lod.target_fraction`),
+    is half the previous level's: ``2^(2k/3)`` = 1, 1.59, 2.52, 4, 6.35, ... up to ``max_sv``
+    (the trained range; 4 levels for the default 5). ``max_sv < 1.59`` gives ``[1.0]``."""
+    out, k = [], 0
+    while 2.0 ** (2.0 * k / 3.0) <= float(max_sv) * (1.0 + 1e-9):
+        out.append(round(2.0 ** (2.0 * k / 3.0), 4))
+        k += 1
+    return out or [1.0]
+
+
 def prune_never_rendered(gaussians: Gaussians, cameras: Sequence, *,
                          anchor_cameras: Optional[Sequence] = None, tau: Optional[float] = None,
                          eps: Optional[float] = None) -> tuple[Gaussians, int]:

@@ -34,6 +34,7 @@ from .budget import select_budget
 from .gaussians import Gaussians
 from .render.projection import ALPHA_THRESHOLD, GAUSSIAN_EXTEND, project_visible
 from .camera_lod import LodView, view_lod
+from .splat_transform import PeerError, run_splat_transform
 
 #: LightGaussian's volume exponent (``--v_pow 0.1`` in their prune scripts).
 LIGHTGAUSSIAN_V_POW = 0.1
@@ -270,77 +271,8 @@ def random_scores(n: int, seed: int = 0, device="cpu") -> Tensor:
 
 
 # --- merging decimator (splat-transform) -------------------------------------------------------
-#: environment variable naming the splat-transform executable (it wins over every other place).
-SPLAT_TRANSFORM_ENV = "CLOD_SPLAT_TRANSFORM"
-#: the pinned version (root ``package.json``; installed into ``node_modules/`` by :data:`NPM_INSTALL`).
-SPLAT_TRANSFORM_VERSION = "3.7.0"
-#: the one documented install command, run from the repository root (CI runs it too).
-NPM_INSTALL = "npm ci"
 #: ``merge_decimate`` modes and the splat-transform flag each one runs.
 MERGE_MODES = {"decimate": "--decimate", "adaptive": "--decimate-adaptive"}
-
-
-def project_root() -> Optional["Path"]:
-    """The folder holding ``pyproject.toml`` above this package's ``__file__`` (the checkout of
-    an editable install), or None for an installed copy without one."""
-    from pathlib import Path
-
-    for d in Path(__file__).resolve().parents:
-        if (d / "pyproject.toml").is_file():
-            return d
-    return None
-
-
-def _local_bin(folder: "Path") -> Optional[str]:
-    """``folder/node_modules/.bin/splat-transform`` (``.cmd`` on Windows) when executable."""
-    import os
-
-    for name in ("splat-transform", "splat-transform.cmd") if os.name == "nt" else ("splat-transform",):
-        exe = folder / "node_modules" / ".bin" / name
-        if exe.is_file() and os.access(exe, os.X_OK):
-            return str(exe)
-    return None
-
-
-class PeerError(RuntimeError):
-    """A peer tool (splat-transform) is missing or failed: one line saying which and why."""
-
-
-def find_splat_transform() -> Optional[str]:
-    """Path of PlayCanvas ``splat-transform`` (npm ``@playcanvas/splat-transform``, pinned to
-    :data:`SPLAT_TRANSFORM_VERSION` by the root ``package.json``), looked up in this order:
-
-    1. ``$CLOD_SPLAT_TRANSFORM`` when set (an executable file, else None: no fallback);
-    2. ``node_modules/.bin/splat-transform`` under the project root (:func:`project_root`, where
-       ``npm ci`` installs it);
-    3. ``node_modules/.bin/splat-transform`` under the current directory;
-    4. ``splat-transform`` on PATH.
-
-    Returns:
-        the executable's path, or None when none is found.
-    """
-    import os
-    import shutil
-    from pathlib import Path
-
-    env = os.environ.get(SPLAT_TRANSFORM_ENV)
-    if env:
-        return env if os.path.isfile(env) and os.access(env, os.X_OK) else None
-    for folder in (project_root(), Path.cwd()):
-        exe = _local_bin(folder) if folder is not None else None
-        if exe is not None:
-            return exe
-    return shutil.which("splat-transform")
-
-
-def _failure_line(text: str) -> str:
-    """The line of splat-transform's output that says what failed: the last ``✗ ...`` line that
-    is not its closing ``✗ failed in ...`` summary, else the last non-empty line."""
-    lines = [ln.strip() for ln in text.splitlines() if ln.strip()]
-    for ln in reversed(lines):
-        if ln.startswith("\u2717") and not ln[1:].strip().startswith("failed in"):
-            return ln
-    return lines[-1] if lines else "no output"
 
 
 def merge_decimate(gaussians: Gaussians, count: int, *, mode: Literal["decimate", "adaptive"] = "decimate",
@@ -360,7 +292,8 @@ def merge_decimate(gaussians: Gaussians, count: int, *, mode: Literal["decimate"
         gaussians: the model, N Gaussians (``sigma_d`` and gains are not written).
         count: target number of Gaussians, clamped to [1, N].
         mode: ``"decimate"`` or ``"adaptive"``.
-        tool: the splat-transform executable (default :func:`find_splat_transform`).
+        tool: the splat-transform executable (default
+            :func:`clod_adapter.splat_transform.find_splat_transform`).
         timeout: seconds before the run is abandoned.
 
     Returns:
@@ -373,7 +306,6 @@ def merge_decimate(gaussians: Gaussians, count: int, *, mode: Literal["decimate"
             started, times out, exits non-zero (the message holds its error line), writes no
             file, or returns another number of Gaussians than asked; one line saying which.
     """
-    import subprocess
     import tempfile
     from pathlib import Path
 
@@ -382,30 +314,14 @@ def merge_decimate(gaussians: Gaussians, count: int, *, mode: Literal["decimate"
 
     if mode not in MERGE_MODES:
         raise ValueError(f"merge_decimate: mode must be one of {', '.join(MERGE_MODES)}, got {mode!r}")
-    exe = tool or find_splat_transform()
-    if exe is None:
-        import os
-
-        env = os.environ.get(SPLAT_TRANSFORM_ENV)
-        where = (f"${SPLAT_TRANSFORM_ENV}={env} is not an executable file" if env else
-                 "not in node_modules/.bin nor on PATH")
-        raise PeerError(f"splat-transform not found ({where}); install the pinned version with "
-                           f"`{NPM_INSTALL}` in the repository root")
     count = max(1, min(int(count), len(gaussians)))
     with tempfile.TemporaryDirectory(prefix="clod-merge-") as tmp:
         src, dst = Path(tmp) / "in.ply", Path(tmp) / "out.ply"
         write_ply(src, gaussians.with_sigma_d(None).to("cpu"))
-        cmd = [exe, "-g", "cpu", "-w", str(src), MERGE_MODES[mode], str(count), str(dst)]
-        try:
-            res = subprocess.run(cmd, capture_output=True, text=True, errors="replace", timeout=timeout)
-        except subprocess.TimeoutExpired:
-            raise PeerError(f"splat-transform {MERGE_MODES[mode]} {count} timed out after {timeout:g} s") from None
-        except OSError as e:
-            raise PeerError(f"splat-transform could not be started ({exe}): {e}") from None
-        if res.returncode != 0:
-            raise PeerError(f"splat-transform exited {res.returncode}: {_failure_line(res.stderr or res.stdout)}")
+        run_splat_transform(["-w", str(src), MERGE_MODES[mode], str(count), str(dst)], tool=tool, timeout=timeout,
+                            what=f"{MERGE_MODES[mode]} {count}")
         if not dst.is_file():
-            raise PeerError(f"splat-transform exited 0 but wrote no file: {_failure_line(res.stderr or res.stdout)}")
+            raise PeerError("splat-transform exited 0 but wrote no file")
         try:
             out = load_model(dst)
         except (OSError, ValueError) as e:

@@ -16,7 +16,7 @@ from typing import Optional
 import numpy as np
 
 __all__ = ["CHROMIUM", "CHROMEDRIVER", "browser_missing", "chromium_driver", "stable_render",
-           "fit_canvas_aspect", "compare_frames"]
+           "fit_canvas_aspect", "compare_frames", "serve_folder"]
 
 CHROMIUM = shutil.which("chromium") or "/usr/bin/chromium"
 CHROMEDRIVER = shutil.which("chromedriver") or "/usr/bin/chromedriver"
@@ -101,3 +101,29 @@ def compare_frames(ours: np.ndarray, theirs: np.ndarray, lit: float = 2 / 255) -
     return {"psnr": float(10 * np.log10(1 / max(d2.mean(), 1e-12))),
             "psnr_covered": float(10 * np.log10(1 / max(cov_mse, 1e-12))),
             "mad": float(np.abs(ours.astype(np.float64) - theirs).mean()), "covered": float(covered.mean())}
+
+
+def serve_folder(root: os.PathLike | str):
+    """A context manager serving ``root`` over http on 127.0.0.1 (a free port; requests not
+    logged), yielding the base URL: module scripts and fetches need http, not file://."""
+    import contextlib
+    import functools
+    import threading
+    from http.server import SimpleHTTPRequestHandler, ThreadingHTTPServer
+
+    class Quiet(SimpleHTTPRequestHandler):
+        def log_message(self, *args) -> None:
+            pass
+
+    @contextlib.contextmanager
+    def run():
+        srv = ThreadingHTTPServer(("127.0.0.1", 0), functools.partial(Quiet, directory=str(root)))
+        t = threading.Thread(target=srv.serve_forever, daemon=True)
+        t.start()
+        try:
+            yield f"http://127.0.0.1:{srv.server_address[1]}"
+        finally:
+            srv.shutdown()
+            srv.server_close()
+
+    return run()

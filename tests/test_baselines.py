@@ -11,8 +11,9 @@ from pathlib import Path
 import pytest
 import torch
 
-from clod_adapter import baselines
-from clod_adapter.baselines import SPLAT_TRANSFORM_ENV, find_splat_transform, merge_decimate
+from clod_adapter import baselines, splat_transform
+from clod_adapter.baselines import merge_decimate
+from clod_adapter.splat_transform import SPLAT_TRANSFORM_ENV, find_splat_transform
 from clod_adapter.synthetic import make_ground_truth
 
 TOOL = find_splat_transform()
@@ -74,13 +75,13 @@ def test_find_splat_transform_order(tmp_path, monkeypatch):
     cwd_exe = fake(tmp_path / "cwd" / "node_modules" / ".bin")
     path_exe = fake(tmp_path / "path")
     monkeypatch.setenv(SPLAT_TRANSFORM_ENV, env_exe)
-    monkeypatch.setattr(baselines, "project_root", lambda: tmp_path / "root")
+    monkeypatch.setattr(splat_transform, "project_root", lambda: tmp_path / "root")
     monkeypatch.chdir(tmp_path / "cwd")
     monkeypatch.setenv("PATH", str(tmp_path / "path"))
     assert find_splat_transform() == env_exe
     monkeypatch.delenv(SPLAT_TRANSFORM_ENV)
     assert find_splat_transform() == root_exe
-    monkeypatch.setattr(baselines, "project_root", lambda: None)
+    monkeypatch.setattr(splat_transform, "project_root", lambda: None)
     assert find_splat_transform() == cwd_exe
     monkeypatch.chdir(tmp_path)
     assert find_splat_transform() == path_exe
@@ -89,9 +90,9 @@ def test_find_splat_transform_order(tmp_path, monkeypatch):
 
 
 def test_project_root_holds_pyproject():
-    root = baselines.project_root()
+    root = splat_transform.project_root()
     assert root is not None and (root / "pyproject.toml").is_file()
-    assert Path(baselines.__file__).resolve().is_relative_to(root)
+    assert Path(splat_transform.__file__).resolve().is_relative_to(root)
 
 
 # --- failures ------------------------------------------------------------------------------------

@@ -195,7 +195,7 @@ def test_cli_runs(tiny, tmp_path, capsys):
 # --- splat-transform's decimators in the report --------------------------------------------------
 @pytest.mark.slow
 def test_report_runs_both_decimators_and_a_failing_peer_stops_it(tiny, tmp_path):
-    from clod_adapter.baselines import PeerError, find_splat_transform
+    from clod_adapter.splat_transform import PeerError, find_splat_transform
 
     tool = find_splat_transform()
     if tool is None:

@@ -139,7 +139,7 @@ def _merge_tool(args):
     """The splat-transform executable for the decimators, or None (--no-merge, or not found: said)."""
     if args.no_merge:
         return None
-    from clod_adapter.baselines import find_splat_transform
+    from clod_adapter.splat_transform import find_splat_transform
 
     tool = args.splat_transform or find_splat_transform()
     if tool is None:
@@ -160,7 +160,7 @@ def _main(args) -> int:
     jobs.set_threads(args.threads)
 
     from clod_adapter.training import iterations_from_state, max_sv_from_state
-    from clod_adapter.baselines import PeerError
+    from clod_adapter.splat_transform import PeerError
     from clod_adapter.io.load import load_scene, training_size
     from clod_adapter.jobs.adapt import METRICS_NAME, resolution_note
     from clod_adapter.jobs.eval import OUTPUT_NAMES, EvalOptions, evaluate_report

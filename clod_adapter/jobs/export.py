@@ -1,5 +1,6 @@
 """The ``clod-export`` job: the extended .ply, a baked standard .ply for one setting, an
-importance-ordered .ply, optional pruning and SH reduction, and ``export.json`` (the operations
+importance-ordered .ply, a streamed-SOG LoD set of baked levels (through splat-transform),
+optional pruning and SH reduction, and ``export.json`` (the operations
 are :mod:`clod_adapter.bake`; the CLI, ``clod_adapter/cli/export.py``, only parses and checks flags).
 Everything is computed first, then each file is written atomically."""
 from __future__ import annotations
@@ -31,6 +32,9 @@ class ExportOptions:
         prune: drop Gaussians no training view draws at any ``s_v >= 1`` first.
         sh_max_drop_db: drop SH bands while the training-view PSNR loses at most this (None: keep).
         spz: also an .spz of every .ply (:data:`EXPORT_FORMATS`).
+        lod_dir: where to write a streamed-SOG LoD set (``lod-meta.json`` + chunk folders, the
+            format PlayCanvas / SuperSplat / Babylon.js stream) of the model's levels, each baked
+            at one of :func:`clod_adapter.bake.lod_set_s_vs` (None: no set).
         progress: one step per phase (a tqdm bar on a terminal, else a line per phase).
         argv: the command line recorded in ``export.json`` (None: ``sys.argv``).
     """
@@ -42,6 +46,7 @@ class ExportOptions:
     prune: bool = False
     sh_max_drop_db: Optional[float] = None
     spz: bool = False
+    lod_dir: Optional[Path] = None
     progress: bool = False
     argv: Optional[list] = None
 
@@ -60,7 +65,8 @@ def export(model, scene, train_imgs, test_cams, test_imgs, out: Path, ply: Path,
     o = options if options is not None else ExportOptions()
     t0 = time.perf_counter()
     phases = ["input PSNR"] + (["prune"] if o.prune else []) + (["SH bands"] if o.sh_max_drop_db is not None else []) \
-        + (["bake"] if o.baked_name is not None else []) + (["order"] if o.ordered else []) + ["write"]
+        + (["bake"] if o.baked_name is not None else []) + (["order"] if o.ordered else []) \
+        + (["LoD levels"] if o.lod_dir is not None else []) + ["write"]
     bar = progress_bar(len(phases), "clod-export", unit="step", disable=not o.progress, every=1e-9)
     done = iter(phases)
 
@@ -75,7 +81,8 @@ def export(model, scene, train_imgs, test_cams, test_imgs, out: Path, ply: Path,
     with torch.no_grad():
         model = _reduce(model, scene, train_imgs, test_cams, test_imgs, o, rep, step)
         baked, ordered_model = _derive(model, scene, test_cams, test_imgs, o, rep, step)
-    _write_files(out, ply, model, baked, o.baked_name, ordered_model, o.spz, rep, o.argv, t0)
+        levels = _lod_levels(model, scene, test_cams, test_imgs, rep, step) if o.lod_dir is not None else None
+    _write_files(out, ply, model, baked, o.baked_name, ordered_model, o.spz, rep, o.argv, t0, levels, o.lod_dir)
     step()
     bar.close()
     return rep
@@ -133,10 +140,46 @@ def _derive(model, scene, test_cams, test_imgs, o: ExportOptions, rep: dict, ste
     return baked, ordered_model
 
 
+def _lod_levels(model, scene, test_cams, test_imgs, rep: dict, step) -> list:
+    """The LoD set's levels: the model baked (:func:`clod_adapter.bake.bake`, training views) at
+    each of :func:`clod_adapter.bake.lod_set_s_vs` of its ``max_sv``, each scored on the test
+    views as a plain model; ``rep["lod_meta"]`` says so. Returns the baked models, finest first."""
+    from .. import bake as ex
+    from ..metrics import psnr
+
+    max_sv = model.lod.max_sv if model.lod is not None else 5.0
+    levels, rows = [], []
+    for k, s in enumerate(ex.lod_set_s_vs(max_sv)):
+        g = ex.bake(model, scene.train, s_v=s)
+        ps = [psnr(ex.render_lod(g, c).image, gt, cap=True) for c, gt in zip(test_cams, test_imgs)]
+        levels.append(g)
+        rows.append({"level": k, "s_v": s, "gaussians": len(g), "psnr_test": sum(ps) / len(ps)})
+    rep["lod_meta"] = {"levels": rows, "cameras": "train", "tool": "splat-transform"}
+    step()
+    return levels
+
+
+def _write_lod_set(levels: list, lod_dir: Path, rep: dict) -> None:
+    """The levels as plain .ply files in a scratch folder, then splat-transform's LoD set in
+    ``lod_dir`` (:func:`clod_adapter.splat_transform.write_lod_set`); ``rep["lod_meta"]`` gets
+    the folder, the names written and what the tool reads back."""
+    import tempfile
+
+    from ..io.ply import write_ply
+    from ..splat_transform import SPLAT_TRANSFORM_VERSION, write_lod_set
+
+    with tempfile.TemporaryDirectory(prefix="clod-lod-") as tmp:
+        plys = [write_ply(Path(tmp) / f"lod{k}.ply", g) for k, g in enumerate(levels)]
+        info, names = write_lod_set(plys, lod_dir, overwrite=True)
+    rep["lod_meta"].update({"dir": str(lod_dir), "files": names, "info": info,
+                            "tool_version": SPLAT_TRANSFORM_VERSION})
+
+
 def _write_files(out: Path, ply: Path, model, baked, baked_name, ordered_model, spz: bool, rep: dict, argv,
-                 t0: float) -> None:
+                 t0: float, levels: Optional[list] = None, lod_dir: Optional[Path] = None) -> None:
     """The export's files, each atomically: the extended .ply, the baked level, the ordered .ply,
-    their .spz copies, then ``export.json`` (``rep``, completed here with bytes and files)."""
+    their .spz copies, the LoD set (its chunk folders, then ``lod-meta.json``), then
+    ``export.json`` (``rep``, completed here with bytes and files)."""
     from ..io.atomic import atomic_write
 
     check_output_dir(out, [ply], force=True)  # checked before; create it now
@@ -147,7 +190,11 @@ def _write_files(out: Path, ply: Path, model, baked, baked_name, ordered_model, 
             if m is not None:
                 files.append(EXPORT_FORMATS[fmt].write(out / Path(name).with_suffix(EXPORT_FORMATS[fmt].suffix).name,
                                                        m))
-    rep["bytes"] = {"input": ply.stat().st_size, **{f: (out / f).stat().st_size for f in files}}
+    if levels is not None:
+        _write_lod_set(levels, lod_dir, rep)
+        if Path(lod_dir).resolve() == out.resolve():
+            files += rep["lod_meta"]["files"]
+    rep["bytes"] = {"input": ply.stat().st_size, **{f: _bytes(out / f) for f in files}}
     rep["seconds"] = round(time.perf_counter() - t0, 2)
     rep["command"] = "clod-export " + " ".join(sys.argv[1:] if argv is None else argv)
     files.append(JSON_NAME)
@@ -198,6 +245,11 @@ def write_spz(path: Path, model) -> str:
     return path.name
 
 
+def _bytes(path: Path) -> int:
+    """Size of a file, or of every file under a folder (a LoD set's chunk folder)."""
+    return path.stat().st_size if path.is_file() else sum(p.stat().st_size for p in path.rglob("*") if p.is_file())
+
+
 def _mean_psnr(ex, model, cams, imgs) -> float:
     from ..metrics import psnr
 
@@ -219,6 +271,13 @@ def summary(rep: dict) -> str:
         b = rep["baked"]
         lines.append(f"baked: {b['gaussians']} Gaussians, opacity {b['opacity']}, test PSNR {b['psnr_test_baked']:.2f} "
                      f"(render_lod {b['psnr_test_render_lod']:.2f})")
+    if "lod_meta" in rep:
+        for r in rep["lod_meta"]["levels"]:
+            lines.append(f"LoD set level {r['level']} (s_v = {r['s_v']:g}): {r['gaussians']:,} Gaussians, "
+                         f"test PSNR {r['psnr_test']:.2f} dB")
+        if "dir" in rep["lod_meta"]:
+            lines.append(f"LoD set: {Path(rep['lod_meta']['dir']) / 'lod-meta.json'} (splat-transform reads "
+                         f"{rep['lod_meta']['info'].get('lodCounts')} per level)")
     if "ordered" in rep:
         for r in rep["ordered"]["prefix_vs_selection_test"]:
             lines.append(f"prefix {r['fraction']:.0%} ({r['count']}): {r['psnr_prefix']:.2f} dB vs selection "

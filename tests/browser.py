@@ -16,7 +16,7 @@ from typing import Optional
 import numpy as np
 
 __all__ = ["CHROMIUM", "CHROMEDRIVER", "browser_missing", "chromium_driver", "stable_render",
-           "fit_canvas_aspect", "compare_frames", "serve_folder"]
+           "fit_canvas_aspect", "compare_frames", "serve_folder", "open_web_viewer", "web_viewer_frame", "web_viewer_popping"]
 
 CHROMIUM = shutil.which("chromium") or "/usr/bin/chromium"
 CHROMEDRIVER = shutil.which("chromedriver") or "/usr/bin/chromedriver"
@@ -26,9 +26,10 @@ CHROMIUM_FLAGS = ("--headless=new", "--use-angle=swiftshader", "--enable-unsafe-
                   "--force-device-scale-factor=1")
 
 
-def browser_missing() -> Optional[str]:
-    """Why a headless browser cannot be driven here (None: it can)."""
-    for mod in ("viser", "selenium"):
+def browser_missing(modules: tuple = ("viser", "selenium")) -> Optional[str]:
+    """Why a headless browser cannot be driven here (None: it can); ``modules``: the Python
+    packages the caller needs besides chromium and chromedriver."""
+    for mod in modules:
         try:
             __import__(mod)
         except ImportError:
@@ -127,3 +128,69 @@ def serve_folder(root: os.PathLike | str):
             srv.server_close()
 
     return run()
+
+
+def open_web_viewer(driver, url: str, timeout: float = 180.0) -> None:
+    """Load a ``clod-export --web`` page and wait until its model is on the GPU
+    (``window.__clodReady``)."""
+    from selenium.webdriver.support.ui import WebDriverWait
+
+    driver.get(url)
+    WebDriverWait(driver, timeout, poll_frequency=0.5).until(
+        lambda d: d.execute_script("return window.__clodReady === true"))
+
+
+def web_viewer_frame(driver, s_v: Optional[float] = None, static: Optional[bool] = None,
+                     settle: int = 3, timeout: float = 120.0) -> tuple[np.ndarray, dict]:
+    """Set the page's level and/or static toggle, let ``settle`` frames render, and return
+    ([H, W, 3] float32 canvas in [0, 1], the page's state: ``sv``, ``drawn``, ``inFrustum``,
+    ``level``, ``frameMs``, ...)."""
+    import base64
+    import io
+    import json
+    import time
+
+    from PIL import Image
+
+    if s_v is not None:
+        driver.execute_script(f"window.clod.setSv({float(s_v)})")
+    if static is not None:
+        driver.execute_script(f"window.clod.setStatic({'true' if static else 'false'})")
+    f0 = driver.execute_script("return window.clod.frames()")
+    t0 = time.monotonic()
+    while driver.execute_script("return window.clod.frames()") < f0 + settle:
+        if time.monotonic() - t0 > timeout:
+            raise TimeoutError("the page stopped rendering")
+        time.sleep(0.05)
+    data = driver.execute_script("return document.getElementById('c').toDataURL('image/png')")
+    img = Image.open(io.BytesIO(base64.b64decode(data.split(",", 1)[1]))).convert("RGB")
+    state = json.loads(driver.execute_script("return JSON.stringify(window.clod.state)"))
+    return np.asarray(img, dtype=np.float32) / 255.0, state
+
+
+def web_viewer_popping(driver, max_sv: float, steps: int = 31) -> dict:
+    """The popping measure of ``clod-eval`` (:func:`clod_adapter.jobs.eval.popping_curve`) in a
+    ``clod-export --web`` page, from its current camera: ``steps`` frames at ``s_v`` spaced
+    linearly from 1 to ``max_sv`` against one switch between the page's static cuts at the
+    first and the last frame's drawn counts.
+
+    Returns:
+        ``s_v`` [steps], ``drawn`` [steps], ``ms`` [steps] (the page's median frame time after
+        each step), ``frames`` [steps] images, ``step`` [steps - 1] mean |dI| between consecutive
+        frames, ``jump`` (the static switch's mean |dI|) and ``ratio`` = jump / max(step).
+    """
+    s_vs = [1.0 + (max_sv - 1.0) * i / (steps - 1) for i in range(steps)]
+    frames, drawn, ms = [], [], []
+    for s in s_vs:
+        img, st = web_viewer_frame(driver, s_v=s, static=False)
+        frames.append(img)
+        drawn.append(st["drawn"])
+        ms.append(st["frameMs"])
+    change = lambda a, b: float(np.abs(a.astype(np.float64) - b).mean())  # noqa: E731
+    first, _ = web_viewer_frame(driver, s_v=s_vs[0], static=True)
+    last, _ = web_viewer_frame(driver, s_v=s_vs[-1], static=True)
+    web_viewer_frame(driver, s_v=1.0, static=False)
+    step = [change(a, b) for a, b in zip(frames, frames[1:])]
+    jump = change(first, last)
+    return {"s_v": s_vs, "drawn": drawn, "ms": ms, "frames": frames, "step": step, "jump": jump,
+            "ratio": jump / max(max(step), 1e-12)}

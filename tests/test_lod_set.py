@@ -90,7 +90,7 @@ def test_playcanvas_draws_each_level(lod_set, tiny_model, tmp_path):
 
     from clod_adapter.io.load import load_scene
 
-    why = browser_missing()
+    why = browser_missing(("selenium",))
     if why:
         pytest.skip(f"no headless browser: {why}")
     engine = find_playcanvas()

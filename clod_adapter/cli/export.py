@@ -1,14 +1,17 @@
 """``clod-export``: write an adapted CLoD-GS model in forms other renderers can use.
 
     clod-export ADAPTED.ply --images SCENE [--resolution R] -o OUTDIR
-                [--s-v X | --budget K] [--ordered] [--lod-meta [DIR]] [--prune] [--sh-max-drop-db D]
+                [--s-v X | --budget K] [--ordered] [--lod-meta [DIR]] [--web [DIR]] [--prune]
+                [--sh-max-drop-db D]
 
 Writes OUTDIR/point_cloud_clod.ply (the extended .ply, INRIA layout + ``sigma_d``), with
 ``--s-v``/``--budget`` OUTDIR/baked_sv{X}.ply / baked_budget{K}.ply (standard INRIA .ply of the
 Gaussians that setting renders from the training views), with ``--ordered`` OUTDIR/ordered.ply
 (Gaussians sorted so every prefix is a level of detail), with ``--lod-meta`` a streamed-SOG LoD
 set of the model's levels (``lod-meta.json`` + chunk folders, built by splat-transform 3.7.0;
-into DIR, or OUTDIR; ``--lod-meta DIR`` alone also makes DIR the output folder) and always
+into DIR, or OUTDIR), with ``--web`` a static page drawing the continuous LoD per frame on the
+GPU with the vendored PlayCanvas engine (index.html, clod.mjs, the engine, model.ply, clod.bin,
+clod.json; into DIR, or OUTDIR; serve it with ``python -m http.server``) and always
 OUTDIR/export.json (sizes,
 counts, PSNRs, pruning and SH results). ``--prune`` drops Gaussians no training view renders at
 any s_v >= 1; ``--sh-max-drop-db D`` lowers the SH degree while the training-view PSNR at
@@ -47,6 +50,10 @@ def build_parser():
                         "of the model's levels, each baked at s_v = 1, 1.59, 2.52, 4, ... (the share in view "
                         "halving per level) up to max_sv, through splat-transform (`npm ci`); into DIR, "
                         "default OUTDIR")
+    p.add_argument("--web", nargs="?", const="", default=None, metavar="DIR",
+                   help="write a static web page drawing the continuous LoD per frame on the GPU (PlayCanvas engine "
+                        "vendored from npm by `npm ci`; a slider for s_v, a static-cut toggle, drawn count and "
+                        "frame time); into DIR, default OUTDIR; open it with `python -m http.server` in DIR")
     p.add_argument("--prune", action="store_true",
                    help="drop Gaussians no training view renders at any s_v >= 1")
     p.add_argument("--sh-max-drop-db", type=float, default=None, metavar="D",
@@ -70,12 +77,13 @@ def main(argv: list[str] | None = None) -> int:
 
 
 def _main(args, argv) -> int:
-    if not args.output and args.lod_meta:
-        args.output = args.lod_meta  # `--lod-meta DIR` alone: DIR holds everything
+    if not args.output:  # `--lod-meta DIR` or `--web DIR` alone: DIR holds everything
+        args.output = args.lod_meta or args.web
     if not args.ply or not args.images or not args.output:
         raise InputError("give ADAPTED, --images SCENE and -o OUTDIR")
     ply, scene_root, out = Path(args.ply), Path(args.images), Path(args.output)
     lod_dir = None if args.lod_meta is None else Path(args.lod_meta or args.output)
+    web_dir = None if args.web is None else Path(args.web or args.output)
     if args.s_v is not None:
         check_flag(math.isfinite(args.s_v) and args.s_v >= 1, "--s-v", "a number >= 1", args.s_v)
     budget = None
@@ -101,6 +109,11 @@ def _main(args, argv) -> int:
         if find_splat_transform() is None:
             raise InputError(f"--lod-meta: splat-transform not found; install the pinned version with `{NPM_INSTALL}` "
                              "in the repository root (or set $CLOD_SPLAT_TRANSFORM)")
+    if web_dir is not None:
+        from clod_adapter.viewer.web import find_playcanvas
+
+        if find_playcanvas() is None:
+            raise InputError("--web: the PlayCanvas engine is not installed; run `npm ci` in the repository root")
     jobs.set_threads(args.threads)
 
     from clod_adapter.io.load import resolve_model_path
@@ -117,11 +130,14 @@ def _main(args, argv) -> int:
     names = [EXTENDED_NAME, JSON_NAME] + ([ORDERED_NAME] if args.ordered else []) + ([baked_name] if baked_name else [])
     if args.spz:
         names += [Path(n).with_suffix(".spz").name for n in names if n.endswith(".ply")]
-    if lod_dir is not None and lod_dir.resolve() == out.resolve():
-        names.append("lod-meta.json")
+    extra = [(lod_dir, ["lod-meta.json"]), (web_dir, ["index.html"])]
+    for d, files in extra:
+        if d is not None and d.resolve() == out.resolve():
+            names += files
     jobs.check_output_dir(out, [ply], names, create=False, force=args.force)
-    if lod_dir is not None and lod_dir.resolve() != out.resolve():
-        jobs.check_output_dir(lod_dir, [ply], ["lod-meta.json"], create=False, force=args.force)
+    for d, files in extra:
+        if d is not None and d.resolve() != out.resolve():
+            jobs.check_output_dir(d, [ply], files, create=False, force=args.force)
     dev = jobs.pick_device(args.device)
     model = read_ply(ply)
     if len(model) == 0:
@@ -136,7 +152,7 @@ def _main(args, argv) -> int:
     test_imgs = [scene.load_image(c) for c in test_cams]
     options = ExportOptions(s_v=args.s_v, budget=budget, baked_name=baked_name, ordered=args.ordered,
                             prune=args.prune, sh_max_drop_db=args.sh_max_drop_db, spz=args.spz,
-                            lod_dir=lod_dir, progress=not args.quiet, argv=argv)
+                            lod_dir=lod_dir, web_dir=web_dir, progress=not args.quiet, argv=argv)
     report = export(model.to(dev), scene, train_imgs, test_cams, test_imgs, out, ply, options)
     print(summary(report))
     print(f"clod-export: wrote {', '.join(report['files'])} to {out} in {report['seconds']:.0f} s")

@@ -1,6 +1,6 @@
 """The ``clod-export`` job: the extended .ply, a baked standard .ply for one setting, an
-importance-ordered .ply, a streamed-SOG LoD set of baked levels (through splat-transform),
-optional pruning and SH reduction, and ``export.json`` (the operations
+importance-ordered .ply, a streamed-SOG LoD set of baked levels (through splat-transform), a
+static web page drawing the continuous LoD on the GPU (PlayCanvas), optional pruning and SH reduction, and ``export.json`` (the operations
 are :mod:`clod_adapter.bake`; the CLI, ``clod_adapter/cli/export.py``, only parses and checks flags).
 Everything is computed first, then each file is written atomically."""
 from __future__ import annotations
@@ -35,6 +35,8 @@ class ExportOptions:
         lod_dir: where to write a streamed-SOG LoD set (``lod-meta.json`` + chunk folders, the
             format PlayCanvas / SuperSplat / Babylon.js stream) of the model's levels, each baked
             at one of :func:`clod_adapter.bake.lod_set_s_vs` (None: no set).
+        web_dir: where to write the web viewer (:func:`clod_adapter.viewer.web.write_web_viewer`;
+            None: none).
         progress: one step per phase (a tqdm bar on a terminal, else a line per phase).
         argv: the command line recorded in ``export.json`` (None: ``sys.argv``).
     """
@@ -47,6 +49,7 @@ class ExportOptions:
     sh_max_drop_db: Optional[float] = None
     spz: bool = False
     lod_dir: Optional[Path] = None
+    web_dir: Optional[Path] = None
     progress: bool = False
     argv: Optional[list] = None
 
@@ -66,7 +69,8 @@ def export(model, scene, train_imgs, test_cams, test_imgs, out: Path, ply: Path,
     t0 = time.perf_counter()
     phases = ["input PSNR"] + (["prune"] if o.prune else []) + (["SH bands"] if o.sh_max_drop_db is not None else []) \
         + (["bake"] if o.baked_name is not None else []) + (["order"] if o.ordered else []) \
-        + (["LoD levels"] if o.lod_dir is not None else []) + ["write"]
+        + (["LoD levels"] if o.lod_dir is not None else []) + (["web ranking"] if o.web_dir is not None else []) \
+        + ["write"]
     bar = progress_bar(len(phases), "clod-export", unit="step", disable=not o.progress, every=1e-9)
     done = iter(phases)
 
@@ -82,7 +86,9 @@ def export(model, scene, train_imgs, test_cams, test_imgs, out: Path, ply: Path,
         model = _reduce(model, scene, train_imgs, test_cams, test_imgs, o, rep, step)
         baked, ordered_model = _derive(model, scene, test_cams, test_imgs, o, rep, step)
         levels = _lod_levels(model, scene, test_cams, test_imgs, rep, step) if o.lod_dir is not None else None
-    _write_files(out, ply, model, baked, o.baked_name, ordered_model, o.spz, rep, o.argv, t0, levels, o.lod_dir)
+        web = _web_inputs(model, scene, test_cams, step) if o.web_dir is not None else None
+    derived = {"baked": baked, "ordered": ordered_model, "levels": levels, "web": web}
+    _write_files(out, ply, model, derived, o, rep, t0)
     step()
     bar.close()
     return rep
@@ -141,22 +147,49 @@ def _derive(model, scene, test_cams, test_imgs, o: ExportOptions, rep: dict, ste
 
 
 def _lod_levels(model, scene, test_cams, test_imgs, rep: dict, step) -> list:
-    """The LoD set's levels: the model baked (:func:`clod_adapter.bake.bake`, training views) at
-    each of :func:`clod_adapter.bake.lod_set_s_vs` of its ``max_sv``, each scored on the test
-    views as a plain model; ``rep["lod_meta"]`` says so. Returns the baked models, finest first."""
+    """The LoD set's levels: the model cut at each of :func:`clod_adapter.bake.lod_set_s_vs` of
+    its ``max_sv`` (:func:`clod_adapter.bake.lod_level`, reference distances from the training
+    views), each scored on the test views as a plain model; ``rep["lod_meta"]`` says so. Returns
+    the levels, finest first."""
     from .. import bake as ex
     from ..metrics import psnr
+    from ..training import reference_distances
 
     max_sv = model.lod.max_sv if model.lod is not None else 5.0
+    d_ref = reference_distances(model, scene.train)
     levels, rows = [], []
     for k, s in enumerate(ex.lod_set_s_vs(max_sv)):
-        g = ex.bake(model, scene.train, s_v=s)
+        g = ex.lod_level(model, scene.train, s, d_ref=d_ref)
         ps = [psnr(ex.render_lod(g, c).image, gt, cap=True) for c, gt in zip(test_cams, test_imgs)]
         levels.append(g)
         rows.append({"level": k, "s_v": s, "gaussians": len(g), "psnr_test": sum(ps) / len(ps)})
-    rep["lod_meta"] = {"levels": rows, "cameras": "train", "tool": "splat-transform"}
+    rep["lod_meta"] = {"levels": rows, "cut": "critical s_v at the reference distance (training views)",
+                       "tool": "splat-transform"}
     step()
     return levels
+
+
+def _web_inputs(model, scene, test_cams, step) -> dict:
+    """What the web page needs besides the model: its cameras (the test views, then the
+    training views) and the static cut's ranking (LightGaussian significance on the training
+    views, :func:`clod_adapter.baselines.lightgaussian_significance`)."""
+    from ..baselines import lightgaussian_significance
+
+    scores = lightgaussian_significance(model.with_sigma_d(None), scene.train)
+    step()
+    return {"cameras": list(test_cams) + [c for c in scene.train if c not in test_cams], "scores": scores}
+
+
+def _write_web(model, web_dir: Path, web: dict, rep: dict) -> list[str]:
+    """The web viewer (:func:`clod_adapter.viewer.web.write_web_viewer`) into ``web_dir``;
+    ``rep["web"]`` says what was written. Returns the names written."""
+    from ..viewer.web import PLAYCANVAS_VERSION, write_web_viewer
+
+    names = write_web_viewer(model, web_dir, web["cameras"], web["scores"])
+    rep["web"] = {"dir": str(web_dir), "files": names, "engine": f"playcanvas {PLAYCANVAS_VERSION}",
+                  "cameras": len(web["cameras"]), "static_cut": "lightgaussian significance (training views)",
+                  "open": f"cd {web_dir} && python -m http.server, then http://localhost:8000/"}
+    return names
 
 
 def _write_lod_set(levels: list, lod_dir: Path, rep: dict) -> None:
@@ -175,28 +208,32 @@ def _write_lod_set(levels: list, lod_dir: Path, rep: dict) -> None:
                             "tool_version": SPLAT_TRANSFORM_VERSION})
 
 
-def _write_files(out: Path, ply: Path, model, baked, baked_name, ordered_model, spz: bool, rep: dict, argv,
-                 t0: float, levels: Optional[list] = None, lod_dir: Optional[Path] = None) -> None:
-    """The export's files, each atomically: the extended .ply, the baked level, the ordered .ply,
-    their .spz copies, the LoD set (its chunk folders, then ``lod-meta.json``), then
-    ``export.json`` (``rep``, completed here with bytes and files)."""
+def _write_files(out: Path, ply: Path, model, derived: dict, o: ExportOptions, rep: dict, t0: float) -> None:
+    """The export's files, each atomically: the extended .ply, the baked level, the ordered .ply
+    (``derived``), their .spz copies, the LoD set (its chunk folders, then
+    ``lod-meta.json``), the web viewer, then ``export.json`` (``rep``, completed here with bytes
+    and files)."""
     from ..io.atomic import atomic_write
 
     check_output_dir(out, [ply], force=True)  # checked before; create it now
-    models = [(EXTENDED_NAME, model), (baked_name, baked), (ORDERED_NAME, ordered_model)]
+    models = [(EXTENDED_NAME, model), (o.baked_name, derived["baked"]), (ORDERED_NAME, derived["ordered"])]
     files = []
-    for fmt in ("ply",) + (("spz",) if spz else ()):
+    for fmt in ("ply",) + (("spz",) if o.spz else ()):
         for name, m in models:
             if m is not None:
                 files.append(EXPORT_FORMATS[fmt].write(out / Path(name).with_suffix(EXPORT_FORMATS[fmt].suffix).name,
                                                        m))
-    if levels is not None:
-        _write_lod_set(levels, lod_dir, rep)
-        if Path(lod_dir).resolve() == out.resolve():
+    if derived["levels"] is not None:
+        _write_lod_set(derived["levels"], o.lod_dir, rep)
+        if Path(o.lod_dir).resolve() == out.resolve():
             files += rep["lod_meta"]["files"]
+    if derived["web"] is not None:
+        names = _write_web(model, o.web_dir, derived["web"], rep)
+        if Path(o.web_dir).resolve() == out.resolve():
+            files += names
     rep["bytes"] = {"input": ply.stat().st_size, **{f: _bytes(out / f) for f in files}}
     rep["seconds"] = round(time.perf_counter() - t0, 2)
-    rep["command"] = "clod-export " + " ".join(sys.argv[1:] if argv is None else argv)
+    rep["command"] = "clod-export " + " ".join(sys.argv[1:] if o.argv is None else o.argv)
     files.append(JSON_NAME)
     rep["files"] = files
     with atomic_write(out / JSON_NAME, "w") as f:
@@ -278,6 +315,8 @@ def summary(rep: dict) -> str:
         if "dir" in rep["lod_meta"]:
             lines.append(f"LoD set: {Path(rep['lod_meta']['dir']) / 'lod-meta.json'} (splat-transform reads "
                          f"{rep['lod_meta']['info'].get('lodCounts')} per level)")
+    if "web" in rep:
+        lines.append(f"web viewer: {rep['web']['open']}")
     if "ordered" in rep:
         for r in rep["ordered"]["prefix_vs_selection_test"]:
             lines.append(f"prefix {r['fraction']:.0%} ({r['count']}): {r['psnr_prefix']:.2f} dB vs selection "

@@ -42,11 +42,102 @@ def playcanvas_pose(camera) -> dict:
 
     Returns:
         ``{"position": [x, y, z] (world units), "rotation": [x, y, z, w] (unit quaternion,
-        PlayCanvas ``Quat`` order), "fov": vertical field of view in degrees}``.
+        PlayCanvas ``Quat`` order), "fov": vertical field of view in degrees, "K": [fx, fy, cx, cy]
+        (pixels; the page projects with them when its canvas has the camera's size)}``.
     """
     from .cameras import pose_from_camera
 
     p = pose_from_camera(camera)
     w, x, y, z = (float(v) for v in p.wxyz)
+    K = camera.K
     return {"position": [float(v) for v in p.position], "rotation": [w, z, -y, -x],
-            "fov": math.degrees(p.fov)}
+            "fov": math.degrees(p.fov), "K": [float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2])]}
+
+
+#: the per-splat streams of ``clod.bin``, in order (each [N] float32).
+WEB_STREAMS = ("x", "y", "z", "sigma_d", "opacity_logit", "opacity_gain", "scale_gain", "f_dc_gain_0",
+               "f_dc_gain_1", "f_dc_gain_2", "static_rank")
+#: the page's files (``web_page/`` in this package) and what ``clod-export --web`` adds beside them.
+PAGE_FILES = ("index.html", "clod.mjs")
+MODEL_NAME, DATA_NAME, CONFIG_NAME = "model.ply", "clod.bin", "clod.json"
+
+
+def web_streams(model, static_scores) -> dict:
+    """The per-splat data the page's shader reads (:data:`WEB_STREAMS`), [N] float32 numpy each:
+    the centres (the page's frustum and normaliser), the raw ``sigma_d`` and opacity logit, the
+    level gains (0 where the model has none) and each splat's rank in ``static_scores`` [N]
+    (0 = kept first; the page's static cut of the same count)."""
+    import numpy as np
+    import torch
+
+    n = len(model)
+    zero = torch.zeros(n)
+    rank = torch.empty(n, dtype=torch.float32)
+    rank[torch.sort(-static_scores.detach().double().cpu(), stable=True).indices] = torch.arange(n, dtype=torch.float32)
+    sh0g = model.sh0_gain.reshape(n, 3) if model.sh0_gain is not None else torch.zeros(n, 3)
+    cols = {"x": model.means[:, 0], "y": model.means[:, 1], "z": model.means[:, 2], "sigma_d": model.sigma_d,
+            "opacity_logit": model.opacity_logits,
+            "opacity_gain": model.opacity_logit_gain if model.opacity_logit_gain is not None else zero,
+            "scale_gain": model.log_scale_gain if model.log_scale_gain is not None else zero,
+            "f_dc_gain_0": sh0g[:, 0], "f_dc_gain_1": sh0g[:, 1], "f_dc_gain_2": sh0g[:, 2], "static_rank": rank}
+    return {k: np.ascontiguousarray(cols[k].detach().float().cpu().numpy()) for k in WEB_STREAMS}
+
+
+def write_web_viewer(model, out_dir: Path, cameras, static_scores, *, engine: Optional[Path] = None) -> list[str]:
+    """A self-contained static page that draws ``model``'s continuous LoD on the GPU with the
+    PlayCanvas engine: the page (``index.html``, ``clod.mjs``), the engine (copied from npm's
+    ``node_modules``), the model's base attributes as a standard ``model.ply``, the per-splat
+    LoD data ``clod.bin`` (:func:`web_streams`) and ``clod.json`` (counts, the LoD settings,
+    ``cameras`` as PlayCanvas poses). Each file is written atomically.
+
+    Args:
+        model: an adapted :class:`clod_adapter.gaussians.Gaussians` (``sigma_d`` required).
+        out_dir: the folder (created when missing).
+        cameras: the poses the page offers (e.g. the scene's test and training cameras).
+        static_scores: [N] the ranking of the page's static cut (higher = kept first).
+        engine: the engine file (default :func:`find_playcanvas`).
+
+    Returns:
+        the names written into ``out_dir``.
+
+    Raises:
+        FileNotFoundError: no engine (``npm ci`` installs it).
+        ValueError: the model has no ``sigma_d``.
+    """
+    import json
+    import shutil
+    from importlib import resources
+
+    from ..io.atomic import atomic_write
+    from ..io.ply import write_ply
+    from ..lod import FADE_RAMP_S_V, LodSettings
+
+    if model.sigma_d is None:
+        raise ValueError("write_web_viewer: the model has no sigma_d (run clod-adapt first)")
+    engine = engine or find_playcanvas()
+    if engine is None:
+        raise FileNotFoundError("PlayCanvas engine not found: run `npm ci` in the repository root")
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    m = model.detach().to("cpu")
+    write_ply(out_dir / MODEL_NAME, m.with_sigma_d(None))
+    streams = web_streams(m, static_scores)
+    with atomic_write(out_dir / DATA_NAME, "wb") as f:
+        for k in WEB_STREAMS:
+            f.write(streams[k].tobytes())
+    st = m.lod or LodSettings()
+    cfg = {"model": MODEL_NAME, "data": DATA_NAME, "count": len(m), "streams": list(WEB_STREAMS),
+           "settings": {**st.to_dict(), "fade_ramp_s_v": FADE_RAMP_S_V},
+           "engine": {"name": "playcanvas", "version": PLAYCANVAS_VERSION},
+           "cameras": [{"name": getattr(c, "name", f"view{i}"), "width": int(c.width), "height": int(c.height),
+                        **playcanvas_pose(c)} for i, c in enumerate(cameras)]}
+    with atomic_write(out_dir / CONFIG_NAME, "w") as f:
+        json.dump(cfg, f, indent=1)
+    page = resources.files("clod_adapter.viewer") / "web_page"
+    for name in PAGE_FILES:
+        with atomic_write(out_dir / name, "wb") as f:
+            f.write(page.joinpath(name).read_bytes())
+    with atomic_write(out_dir / ENGINE_FILE, "wb") as f:
+        with open(engine, "rb") as src:
+            shutil.copyfileobj(src, f)
+    return [*PAGE_FILES, ENGINE_FILE, MODEL_NAME, DATA_NAME, CONFIG_NAME]

@@ -1,0 +1,150 @@
+"""The continuous LoD in the browser (``clod-export --web``), measured in headless chromium.
+
+For each input (default: fern and skull) this writes the web page of the default adaptation
+(cached, common.py; the static cut ranked by LightGaussian significance on the fit views, as
+``clod-export --web`` does), opens it in Debian's chromium with SwiftShader (software WebGL: the
+frame time is a CPU proxy for fill cost, not a GPU figure) at each evaluation view's size and
+intrinsics, and measures against our CPU renderer (``render_lod``) of the same camera:
+
+* the frame at ``s_v = 1`` (PSNR, every evaluation view; goal >= 25 dB);
+* the frames at ``s_v = 1, 2, 5``: the page's drawn count and PSNR against ``render_lod``;
+* popping (the first view): 31 frames at ``s_v`` from 1 to max_sv (linear, as ``clod-eval``),
+  the largest frame-to-frame mean |dI| against one switch between the page's static cuts at the
+  first and last counts (goal: ratio >= 10), beside the same sweep on the CPU;
+* the page's frame time along that sweep (median of its last 30 frames after each step).
+
+Writes ``runs/bench/web_viewer{_val}/summary.md`` and ``docs/web_viewer.png`` (the first view of
+the first input at s_v = 1, 2, 5 and the static cut at s_v = 5's count). Exits 1 when a goal is
+missed::
+
+    python benchmarks/web_viewer.py                 # fern and skull, test views
+"""
+from __future__ import annotations
+
+import statistics
+import sys
+import tempfile
+from pathlib import Path
+from urllib.parse import urlencode
+
+from common import REPO, RUNS, adapt_cached, load_input, parse_inputs_args, scene_views, split_suffix
+
+import numpy as np
+import torch
+
+from clod_adapter.baselines import lightgaussian_significance
+from clod_adapter.camera_lod import render_lod
+from clod_adapter.io.load import load_model
+from clod_adapter.training import AdaptConfig
+from clod_adapter.viewer.web import find_playcanvas, write_web_viewer
+
+sys.path.insert(0, str(REPO / "tests"))  # the headless-browser helpers live with the tests
+from browser import (browser_missing, chromium_driver, compare_frames, open_web_viewer,  # noqa: E402
+                     serve_folder, web_viewer_frame, web_viewer_popping)
+
+MIN_PSNR_DB = 25.0
+MIN_POPPING_RATIO = 10.0
+LEVELS = (1.0, 2.0, 5.0)
+
+
+def cpu_popping(g, cam, max_sv: float, steps: int = 31) -> float:
+    """The same sweep's ratio with ``render_lod`` (continuous only; the jump is the page's)."""
+    frames = [render_lod(g, cam, 1.0 + (max_sv - 1.0) * i / (steps - 1)).image.clamp(0, 1).numpy()
+              for i in range(steps)]
+    return max(float(np.abs(a.astype(np.float64) - b).mean()) for a, b in zip(frames, frames[1:]))
+
+
+def run_input(name: str, split: str, log, shots: list) -> dict:
+    ply = adapt_cached(name, AdaptConfig(), "default", split=split, log=log)
+    _, scene, _ = load_input(name, split)
+    fit, cams = scene_views(scene, split)
+    g = load_model(ply)
+    max_sv = g.lod.max_sv
+    res = {"name": name, "views": [], "n": len(g)}
+    with tempfile.TemporaryDirectory(prefix="clod-web-") as d, torch.no_grad():
+        site = Path(d) / "site"
+        write_web_viewer(g, site, cams, lightgaussian_significance(g.with_sigma_d(None), fit))
+        w0, h0 = cams[0].width, cams[0].height
+        driver = chromium_driver(Path(d) / "profile", window=(w0 + 60, h0 + 240))
+        try:
+            with serve_folder(site) as base:
+                for i, cam in enumerate(cams):
+                    open_web_viewer(driver, f"{base}/index.html?{urlencode({'w': cam.width, 'h': cam.height, 'cam': i})}")
+                    row = {"view": cam.name}
+                    for s in LEVELS:
+                        img, st = web_viewer_frame(driver, s_v=s)
+                        cpu = render_lod(g, cam, s)
+                        row[s] = {"psnr": compare_frames(cpu.image.clamp(0, 1).numpy(), img)["psnr"],
+                                  "drawn": st["drawn"], "cpu_drawn": cpu.n_rendered}
+                        if i == 0 and not shots:
+                            shots.append((f"s_v = {s:g}: {st['drawn']:,} drawn", img))
+                    if i == 0:
+                        if len(shots) == len(LEVELS):
+                            img, st = web_viewer_frame(driver, s_v=5.0, static=True)
+                            shots.append((f"static cut, {st['drawn']:,}", img))
+                            web_viewer_frame(driver, static=False)
+                        pop = web_viewer_popping(driver, max_sv)
+                        res["popping"] = {k: pop[k] for k in ("step", "jump", "ratio", "ms", "drawn")}
+                        res["popping"]["cpu_max_step"] = cpu_popping(g, cam, max_sv)
+                    res["views"].append(row)
+                    log(f"[{name}] {cam.name}: s_v=1 {row[1.0]['psnr']:.2f} dB vs render_lod")
+        finally:
+            driver.quit()
+    return res
+
+
+def figure(shots: list, path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(1, len(shots), figsize=(3.2 * len(shots), 2.6))
+    for ax, (title, img) in zip(np.atleast_1d(axes), shots):
+        ax.imshow(img)
+        ax.set_title(title, fontsize=9)
+        ax.axis("off")
+    fig.suptitle("clod-export --web: PlayCanvas in headless chromium (SwiftShader), fern test view", fontsize=10)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def main(argv=None) -> int:
+    a = parse_inputs_args(__doc__, argv)
+    why = browser_missing(("selenium",))
+    if why or find_playcanvas() is None:
+        sys.exit(f"web_viewer: {why or 'PlayCanvas engine not found (`npm ci`)'}")
+    log = lambda *x: print(*x, flush=True)  # noqa: E731
+    shots: list = []
+    results = [run_input(n, a.split, log, shots) for n in a.inputs]
+    lines, missed = [], 0
+    lines += ["| input | views | s_v = 1 PSNR vs render_lod (min / median) | s_v = 2 | s_v = 5 | drawn s_v = 1 / 2 / 5 "
+              "(page; render_lod) | popping ratio (CPU same sweep) | frame ms s_v = 1 -> max_sv |",
+              "|---|---:|---|---|---|---|---|---|"]
+    for r in results:
+        p1 = [v[1.0]["psnr"] for v in r["views"]]
+        med = {s: statistics.median(v[s]["psnr"] for v in r["views"]) for s in LEVELS}
+        v0 = r["views"][0]
+        pop = r["popping"]
+        cpu_ratio = pop["jump"] / max(pop["cpu_max_step"], 1e-12)
+        ok = min(p1) >= MIN_PSNR_DB and pop["ratio"] >= MIN_POPPING_RATIO
+        missed += not ok
+        lines.append(f"| {r['name']} | {len(r['views'])} | {min(p1):.2f} / {med[1.0]:.2f} | {med[2.0]:.2f} | "
+                     f"{med[5.0]:.2f} | " + " / ".join(f"{v0[s]['drawn']:,}" for s in LEVELS) + "; "
+                     + " / ".join(f"{v0[s]['cpu_drawn']:,}" for s in LEVELS)
+                     + f" | {pop['ratio']:.1f} (largest step {max(pop['step']):.4f}, switch {pop['jump']:.4f}; "
+                     f"CPU {cpu_ratio:.1f}) | {pop['ms'][0]:.0f} -> {pop['ms'][-1]:.0f} (min {min(pop['ms']):.0f}) |")
+    out = RUNS / f"web_viewer{split_suffix(a.split)}"
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "summary.md").write_text("\n".join(lines) + "\n")
+    if shots:
+        figure(shots, REPO / "docs" / "web_viewer.png")
+    print("\n".join(lines))
+    print(f"goals (PSNR >= {MIN_PSNR_DB} dB on every view, popping ratio >= {MIN_POPPING_RATIO}): "
+          f"{len(results) - missed} of {len(results)} inputs met")
+    return 1 if missed else 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

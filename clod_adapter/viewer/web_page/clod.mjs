@@ -1,0 +1,262 @@
+// clod-adapter's continuous level of detail on the GPU, in the PlayCanvas engine (vendored beside
+// this file by `clod-export --web`). The LoD rule of clod_adapter/lod.py (CLoD-GS Eq. 2 with the
+// window fade, the fade ramp near s_v = 1 and the learned level gains) runs per splat and per frame
+// in a work-buffer modifier (PlayCanvas's per-splat shader hook); s_v, the camera, the distance
+// normaliser and the level are uniforms. Per-splat data (sigma_d, opacity logit, the gains, a
+// static importance rank) are two RGBA32F extra streams filled from clod.bin.
+//
+// Approximations against render_lod (README "In the browser"): the normaliser max d over the
+// frustum and the drawn share (hence the level of the gains) are computed here on the CPU from the
+// splat centres inside the frustum (every centre up to 200,000 splats, an even stride beyond),
+// where render_lod counts the Gaussians whose projected footprint reaches the image.
+import * as pc from './playcanvas.min.mjs';
+
+const q = new URLSearchParams(location.search);
+const cfg = await (await fetch('clod.json')).json();
+const raw = new Float32Array(await (await fetch(cfg.data)).arrayBuffer());
+const N = cfg.count;
+const col = Object.fromEntries(cfg.streams.map((name, i) => [name, raw.subarray(i * N, (i + 1) * N)]));
+const st = cfg.settings;
+const SH_C0 = 0.28209479177387814;
+
+// --- the rule's scalars (clod_adapter/lod.py) ----------------------------------------------------
+const ramp = (s) => Math.min(1, Math.max(Math.log(Math.max(s, 1)) / Math.log(st.fade_ramp_s_v), 0));
+const fadeWidthAt = (s) => st.fade_width * ramp(s);                 // lod.fade_width_at
+const fullDetailShare = (s) => 1 - ramp(s);                         // lod.full_detail_share
+const level = (s) => (st.max_sv > 1 ? Math.min(Math.max(Math.log(Math.max(s, 1)) / Math.log(st.max_sv), 0), 1) : 0);
+const levelOfFraction = (f) => (f > 0 ? level(Math.pow(Math.min(f, 1), -2 / 3)) : (st.max_sv > 1 ? 1 : 0));
+const logSigmoid = (x) => -Math.max(-x, 0) - Math.log1p(Math.exp(-Math.abs(x)));
+
+const GLSL = /* glsl */ `
+uniform vec3 uClodCam;
+uniform float uClodInvDmax;
+uniform float uClodSv;
+uniform float uClodLogTauS;
+uniform float uClodEps;
+uniform float uClodFadeW;
+uniform float uClodT;
+uniform float uClodLevel;
+uniform float uClodStatic;
+uniform float uClodStaticRank;
+uniform float uClodEq2;
+
+// the drawn weight of a splat: lod.lod_margin and lod.fade_weight, blended over the ramp
+// ((1 - t) + t fade, t = 1 - full_detail_share); "eq2" models: Eq. 2's attenuation where the mask
+// keeps them; the static cut keeps ranks below a threshold
+float clodWeight(vec3 center, vec4 a, vec4 b) {
+    if (uClodStatic > 0.5) return b.w < uClodStaticRank ? 1.0 : 0.0;
+    if (uClodT <= 0.0) return 1.0;
+    float x = length(center - uClodCam) * uClodInvDmax * uClodSv;
+    float sd = max(a.x, 0.0);
+    float logAlpha = -max(-a.y, 0.0) - log(1.0 + exp(-abs(a.y)));
+    float att = x * x / (2.0 * sd * sd + uClodEps);
+    float m = logAlpha - att - uClodLogTauS;
+    if (uClodEq2 > 0.5) return m > 0.0 ? exp(-att) : 0.0;
+    float f = uClodFadeW > 0.0 ? clamp(m / uClodFadeW, 0.0, 1.0) : (m > 0.0 ? 1.0 : 0.0);
+    return (1.0 - uClodT) + uClodT * f;
+}
+
+void modifySplatCenter(inout vec3 center) {
+}
+
+void modifySplatRotationScale(vec3 originalCenter, vec3 modifiedCenter, inout vec4 rotation, inout vec3 scale) {
+    vec4 a = texelFetch(clodA, splat.uv, 0);
+    vec4 b = texelFetch(clodB, splat.uv, 0);
+    float lv = uClodStatic > 0.5 ? 0.0 : uClodLevel;
+    scale *= clodWeight(originalCenter, a, b) > 0.0 ? exp(lv * a.w) : 0.0;  // a splat left out has no footprint
+}
+
+void modifySplatColor(vec3 center, inout vec4 color) {
+    vec4 a = texelFetch(clodA, splat.uv, 0);
+    vec4 b = texelFetch(clodB, splat.uv, 0);
+    float lv = uClodStatic > 0.5 ? 0.0 : uClodLevel;
+    color.rgb += lv * ${SH_C0} * b.xyz;                                     // sh0 gain
+    color.a = clodWeight(center, a, b) / (1.0 + exp(-(a.y + lv * a.z)));   // opacity gain, fade
+}
+`;
+
+// --- the engine ----------------------------------------------------------------------------------
+const canvas = document.getElementById('c');
+const fixed = q.has('w') && q.has('h');
+const device = await pc.createGraphicsDevice(canvas, { deviceTypes: ['webgl2'], antialias: false,
+                                                        preserveDrawingBuffer: true });
+const opts = new pc.AppOptions();
+opts.graphicsDevice = device;
+opts.mouse = new pc.Mouse(canvas);
+opts.componentSystems = [pc.CameraComponentSystem, pc.GSplatComponentSystem];
+opts.resourceHandlers = [pc.TextureHandler, pc.GSplatHandler];
+const app = new pc.AppBase(canvas);
+app.init(opts);
+if (fixed) {
+    app.setCanvasFillMode(pc.FILLMODE_NONE);
+    app.setCanvasResolution(pc.RESOLUTION_FIXED, +q.get('w'), +q.get('h'));
+} else {
+    app.setCanvasFillMode(pc.FILLMODE_FILL_WINDOW);
+    app.setCanvasResolution(pc.RESOLUTION_AUTO);
+    window.addEventListener('resize', () => app.resizeCanvas());
+}
+// reorder: false keeps the file's order (the engine sorts a .ply along a Morton curve by default),
+// so splat i of the resource is row i of clod.bin
+const asset = new pc.Asset('model', 'gsplat', { url: cfg.model }, { reorder: false });
+app.assets.add(asset);
+await new Promise((resolve, reject) => {
+    asset.ready(resolve);
+    asset.on('error', reject);
+    app.assets.load(asset);
+});
+const resource = asset.resource;
+resource.format.addExtraStreams([{ name: 'clodA', format: pc.PIXELFORMAT_RGBA32F },
+                                 { name: 'clodB', format: pc.PIXELFORMAT_RGBA32F }]);
+const fill = (name, cols) => {
+    const tex = resource.getTexture(name);
+    const data = tex.lock();
+    for (let i = 0; i < N; i++) {
+        for (let c = 0; c < 4; c++) data[4 * i + c] = cols[c][i];
+    }
+    tex.unlock();
+};
+const zeros = new Float32Array(N);
+fill('clodA', [col.sigma_d, col.opacity_logit, col.opacity_gain || zeros, col.scale_gain || zeros]);
+fill('clodB', [col.f_dc_gain_0 || zeros, col.f_dc_gain_1 || zeros, col.f_dc_gain_2 || zeros, col.static_rank]);
+
+const splats = new pc.Entity('model');
+splats.addComponent('gsplat', { asset, unified: true });
+app.root.addChild(splats);
+splats.gsplat.setWorkBufferModifier({ glsl: GLSL });
+splats.gsplat.workBufferUpdate = pc.WORKBUFFER_UPDATE_ALWAYS;
+
+const camera = new pc.Entity('camera');
+camera.addComponent('camera', { clearColor: new pc.Color(0, 0, 0, 1), nearClip: 0.01, farClip: 1e4 });
+app.root.addChild(camera);
+
+// --- state: s_v, the static toggle, the camera ----------------------------------------------------
+const state = { sv: 1, static: false, cam: 0, drawn: 0, inFrustum: 0, level: 0, dmax: 0, frameMs: NaN, updates: 0 };
+const stride = Math.max(1, Math.ceil(N / 200000));
+const inv = new pc.Mat4();
+const p = new pc.Vec3();
+const ranks = new Float32Array(N);
+
+// the pinhole K of a camera (fx, fy, cx, cy in pixels) when the canvas has its size, else one focal
+// length from the vertical field of view and a centred principal point (a resized window)
+function intrinsics() {
+    const c = cfg.cameras[state.cam], W = canvas.width, H = canvas.height;
+    if (W === c.width && H === c.height) return c.K;
+    const f = 0.5 * H / Math.tan(0.5 * c.fov * Math.PI / 180);
+    return [f, f, 0.5 * W, 0.5 * H];
+}
+
+// OpenGL projection of a pinhole K (x right, y up, looking down -z; clip depth near..far)
+function pinholeProjection(mat) {
+    const [fx, fy, cx, cy] = intrinsics(), W = canvas.width, H = canvas.height;
+    const n = camera.camera.nearClip, f = camera.camera.farClip;
+    mat.set([2 * fx / W, 0, 0, 0, 0, 2 * fy / H, 0, 0, 1 - 2 * cx / W, 2 * cy / H - 1, -(f + n) / (f - n), -1,
+             0, 0, -2 * f * n / (f - n), 0]);
+}
+
+function setCamera(i) {
+    state.cam = (i + cfg.cameras.length) % cfg.cameras.length;
+    const c = cfg.cameras[state.cam];
+    camera.setPosition(...c.position);
+    camera.setRotation(new pc.Quat(...c.rotation));
+    camera.camera.fov = c.fov;
+    camera.camera.calculateProjection = pinholeProjection;
+    document.getElementById('camname').textContent = c.name;
+    update();
+}
+
+// the frustum (lod.in_frustum), the normaliser, the drawn count and the level
+function update() {
+    const W = canvas.width, H = canvas.height;
+    const [fx, fy, cx, cy] = intrinsics();
+    inv.copy(camera.getWorldTransform()).invert();
+    const cp = camera.getPosition();
+    const s = state.sv;
+    const logTauS = Math.log(st.tau * s);
+    const inside = new Uint8Array(N);
+    let dmax = 0, nIn = 0;
+    for (let i = 0; i < N; i += stride) {
+        p.set(col.x[i], col.y[i], col.z[i]);
+        inv.transformPoint(p, p);
+        const z = -p.z;  // OpenGL view space looks down -z
+        if (!(z > 0.01)) continue;
+        const u = fx * p.x / z + cx, v = -fy * p.y / z + cy;
+        if (u >= 0 && u < W && v >= 0 && v < H) {
+            inside[i] = 1;
+            nIn++;
+            const dx = col.x[i] - cp.x, dy = col.y[i] - cp.y, dz = col.z[i] - cp.z;
+            dmax = Math.max(dmax, Math.sqrt(dx * dx + dy * dy + dz * dz));
+        }
+    }
+    let drawn = 0;
+    const eq2 = st.fade === 'eq2';
+    const invD = 1 / Math.max(dmax, 1e-12);
+    for (let i = 0; i < N; i += stride) {
+        if (!inside[i]) continue;
+        if (s <= 1 && !eq2) { drawn++; continue; }
+        const dx = col.x[i] - cp.x, dy = col.y[i] - cp.y, dz = col.z[i] - cp.z;
+        const x = Math.sqrt(dx * dx + dy * dy + dz * dz) * invD * s;
+        const sd = Math.max(col.sigma_d[i], 0);
+        if (logSigmoid(col.opacity_logit[i]) - x * x / (2 * sd * sd + st.eps) - logTauS > 0) drawn++;
+    }
+    const t = eq2 ? 1 : 1 - fullDetailShare(s);
+    const share = nIn ? drawn / nIn : 1;
+    state.level = s <= 1 || eq2 ? 0 : t * levelOfFraction(share);
+    state.drawn = Math.round(drawn * stride);
+    state.inFrustum = Math.round(nIn * stride);
+    state.dmax = dmax;
+    // the static cut: the same count in view, by importance rank
+    let k = 0;
+    for (let i = 0; i < N; i += stride) if (inside[i]) ranks[k++] = col.static_rank[i];
+    const sorted = ranks.subarray(0, k).sort();
+    const staticRank = drawn >= k ? Infinity : (drawn > 0 ? sorted[drawn - 1] + 0.5 : -1);
+    const g = splats.gsplat;
+    g.setParameter('uClodCam', [cp.x, cp.y, cp.z]);
+    g.setParameter('uClodInvDmax', invD);
+    g.setParameter('uClodSv', s);
+    g.setParameter('uClodLogTauS', logTauS);
+    g.setParameter('uClodEps', Math.max(st.eps, 1e-20));
+    g.setParameter('uClodFadeW', fadeWidthAt(s));
+    g.setParameter('uClodT', s <= 1 && !eq2 ? 0 : t);
+    g.setParameter('uClodEq2', eq2 ? 1 : 0);
+    g.setParameter('uClodLevel', state.level);
+    g.setParameter('uClodStatic', state.static ? 1 : 0);
+    g.setParameter('uClodStaticRank', Math.min(staticRank, 3.0e38));
+    state.updates++;
+    document.getElementById('svv').textContent = s.toFixed(2);
+    document.getElementById('share').textContent = `${(100 * Math.pow(s, -1.5)).toFixed(1)} %`;
+    document.getElementById('drawn').textContent = state.drawn.toLocaleString();
+    document.getElementById('infrustum').textContent = state.inFrustum.toLocaleString();
+    document.getElementById('total').textContent = N.toLocaleString();
+}
+
+// --- the page: slider, toggle, cameras, frame time -------------------------------------------------
+const slider = document.getElementById('sv');
+const svMax = st.max_sv * 1.2;
+const svOfSlider = (v) => Math.exp(Math.log(svMax) * v / 1000);  // log scale: 1 .. 1.2 max_sv
+slider.addEventListener('input', () => { state.sv = svOfSlider(+slider.value); update(); });
+document.getElementById('static').addEventListener('change', (e) => { state.static = e.target.checked; update(); });
+document.getElementById('prev').addEventListener('click', () => setCamera(state.cam - 1));
+document.getElementById('next').addEventListener('click', () => setCamera(state.cam + 1));
+const times = [];
+let last = performance.now();
+app.on('frameend', () => {
+    const now = performance.now();
+    times.push(now - last);
+    last = now;
+    if (times.length > 30) times.shift();
+    const sorted = [...times].sort((a, b) => a - b);
+    state.frameMs = sorted[Math.floor(sorted.length / 2)];
+    document.getElementById('ms').textContent = state.frameMs.toFixed(1);
+});
+app.start();
+setCamera(+(q.get('cam') || 0));
+
+// the page's API (tests, scripts): set the level or the toggle, read what is drawn
+window.clod = {
+    state,
+    setSv(s) { state.sv = Math.max(1, +s); slider.value = Math.round(1000 * Math.log(state.sv) / Math.log(svMax)); update(); },
+    setStatic(on) { state.static = !!on; document.getElementById('static').checked = state.static; update(); },
+    setCamera,
+    frames: () => app.frame,
+};
+window.__clodReady = true;

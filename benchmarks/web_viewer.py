@@ -13,9 +13,9 @@ intrinsics, and measures against our CPU renderer (``render_lod``) of the same c
   first and last counts (goal: ratio >= 10), beside the same sweep on the CPU;
 * the page's frame time along that sweep (median of its last 30 frames after each step).
 
-Writes ``runs/bench/web_viewer{_val}/summary.md`` and ``docs/web_viewer.png`` (the first view of
-the first input at s_v = 1, 2, 5 and the static cut at s_v = 5's count). Exits 1 when a goal is
-missed::
+Writes ``runs/bench/web_viewer{_val}/summary.md``, ``docs/web_viewer.png`` (the first view of the
+first input at s_v = 1, 2, 5 and the static cut at s_v = 5's count) and ``docs/web_viewer_page.png``
+(the page at s_v = 2, its panel included). Exits 1 when a goal is missed::
 
     python benchmarks/web_viewer.py                 # fern and skull, test views
 """
@@ -71,18 +71,20 @@ def run_input(name: str, split: str, log, shots: list) -> dict:
                 for i, cam in enumerate(cams):
                     open_web_viewer(driver, f"{base}/index.html?{urlencode({'w': cam.width, 'h': cam.height, 'cam': i})}")
                     row = {"view": cam.name}
+                    first = i == 0 and not shots  # the figure: the first view of the first input
                     for s in LEVELS:
                         img, st = web_viewer_frame(driver, s_v=s)
                         cpu = render_lod(g, cam, s)
                         row[s] = {"psnr": compare_frames(cpu.image.clamp(0, 1).numpy(), img)["psnr"],
                                   "drawn": st["drawn"], "cpu_drawn": cpu.n_rendered}
-                        if i == 0 and not shots:
+                        if first:
                             shots.append((f"s_v = {s:g}: {st['drawn']:,} drawn", img))
+                    if first:
+                        img, st = web_viewer_frame(driver, s_v=5.0, static=True)
+                        shots.append((f"static cut, {st['drawn']:,} drawn", img))
+                        web_viewer_frame(driver, s_v=2.0, static=False)
+                        driver.save_screenshot(str(REPO / "docs" / "web_viewer_page.png"))
                     if i == 0:
-                        if len(shots) == len(LEVELS):
-                            img, st = web_viewer_frame(driver, s_v=5.0, static=True)
-                            shots.append((f"static cut, {st['drawn']:,}", img))
-                            web_viewer_frame(driver, static=False)
                         pop = web_viewer_popping(driver, max_sv)
                         res["popping"] = {k: pop[k] for k in ("step", "jump", "ratio", "ms", "drawn")}
                         res["popping"]["cpu_max_step"] = cpu_popping(g, cam, max_sv)

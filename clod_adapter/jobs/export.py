@@ -1,7 +1,8 @@
 """The ``clod-export`` job: the extended .ply, a baked standard .ply for one setting, an
-importance-ordered .ply, a streamed-SOG LoD set of baked levels (through splat-transform), a
-static web page drawing the continuous LoD on the GPU (PlayCanvas), optional pruning and SH reduction, and ``export.json`` (the operations
-are :mod:`clod_adapter.bake`; the CLI, ``clod_adapter/cli/export.py``, only parses and checks flags).
+importance-ordered .ply, a streamed-SOG LoD set of the model's levels (through splat-transform),
+a static web page drawing the continuous LoD on the GPU (PlayCanvas), optional pruning and SH
+reduction, and ``export.json`` (the operations are :mod:`clod_adapter.bake`; the CLI,
+``clod_adapter/cli/export.py``, only parses and checks flags).
 Everything is computed first, then each file is written atomically."""
 from __future__ import annotations
 
@@ -33,8 +34,9 @@ class ExportOptions:
         sh_max_drop_db: drop SH bands while the training-view PSNR loses at most this (None: keep).
         spz: also an .spz of every .ply (:data:`EXPORT_FORMATS`).
         lod_dir: where to write a streamed-SOG LoD set (``lod-meta.json`` + chunk folders, the
-            format PlayCanvas / SuperSplat / Babylon.js stream) of the model's levels, each baked
-            at one of :func:`clod_adapter.bake.lod_set_s_vs` (None: no set).
+            format PlayCanvas / SuperSplat / Babylon.js stream) of the model's levels
+            (:func:`clod_adapter.bake.lod_level` at each of :func:`clod_adapter.bake.lod_set_s_vs`;
+            None: no set).
         web_dir: where to write the web viewer (:func:`clod_adapter.viewer.web.write_web_viewer`;
             None: none).
         progress: one step per phase (a tqdm bar on a terminal, else a line per phase).
@@ -177,7 +179,8 @@ def _web_inputs(model, scene, test_cams, step) -> dict:
 
     scores = lightgaussian_significance(model.with_sigma_d(None), scene.train)
     step()
-    return {"cameras": list(test_cams) + [c for c in scene.train if c not in test_cams], "scores": scores}
+    test_names = {c.name for c in test_cams}
+    return {"cameras": list(test_cams) + [c for c in scene.train if c.name not in test_names], "scores": scores}
 
 
 def _write_web(model, web_dir: Path, web: dict, rep: dict) -> list[str]:

@@ -1,12 +1,15 @@
-"""What the web engines need from us: the vendored PlayCanvas engine (npm ``playcanvas``, pinned
-to :data:`PLAYCANVAS_VERSION` by the root ``package.json``, installed by ``npm ci``; copied
-into an export at build time, never fetched from a CDN) and our cameras in its axes.
+"""``clod-export --web``: a static page drawing the continuous LoD per frame on the GPU with the
+PlayCanvas engine (npm ``playcanvas``, pinned to :data:`PLAYCANVAS_VERSION` by the root
+``package.json``, installed by ``npm ci``; copied into the export, never fetched from a CDN).
+The page is ``web_page/`` (``index.html``, ``clod.mjs``: the LoD rule of :mod:`clod_adapter.lod`
+as a PlayCanvas work-buffer modifier); :func:`write_web_viewer` adds the engine, the model and
+its per-splat LoD data.
 
 Conventions (PlayCanvas 2.x): a camera looks down its -Z axis with +Y up (OpenGL); ours
 (gsplat ``viewmats``, COLMAP) look down +Z with +Y down (OpenCV). The same world frame is kept
 (the splat entity is not rotated), so a camera-to-world rotation ``R_cv`` becomes
-``R_cv diag(1, -1, -1)``. PlayCanvas's ``fov`` is vertical, in degrees, for a centred
-principal point (ours may be off-centre by a fraction of a pixel to a few pixels: not modelled).
+``R_cv diag(1, -1, -1)``. PlayCanvas's ``fov`` is vertical, in degrees; the page replaces the
+engine's projection by each view's pinhole ``K`` when the canvas has the view's size.
 """
 from __future__ import annotations
 
@@ -14,7 +17,7 @@ import math
 from pathlib import Path
 from typing import Optional
 
-__all__ = ["PLAYCANVAS_VERSION", "find_playcanvas", "playcanvas_pose"]
+__all__ = ["PLAYCANVAS_VERSION", "find_playcanvas", "playcanvas_pose", "web_streams", "write_web_viewer"]
 
 #: the pinned engine (root ``package.json``).
 PLAYCANVAS_VERSION = "2.23.3"

@@ -77,15 +77,18 @@ def scene_views(scene, split: str) -> tuple[list, list]:
     raise ValueError(f"split must be one of {SPLITS}, got {split!r}")
 
 
-def parse_inputs_args(doc: str, argv=None, inputs=("fern", "skull"), split: str = "test"):
+def parse_inputs_args(doc: str, argv=None, inputs=("fern", "skull"), split: str = "test", extra=()):
     """The common command line of the per-input benchmarks (``--inputs``, ``--split``,
-    ``--threads``), parsed, with the threads set."""
+    ``--threads``, and ``extra``: (flag, add_argument keywords) pairs), parsed, with the threads
+    set."""
     import argparse
 
     ap = argparse.ArgumentParser(description=doc.split("\n\n")[0])
     ap.add_argument("--inputs", nargs="+", default=list(inputs), choices=sorted(LABELS))
     add_split_arg(ap, default=split)
     ap.add_argument("--threads", type=int, default=2)
+    for flag, kw in extra:
+        ap.add_argument(flag, **kw)
     a = ap.parse_args(argv)
     setup_threads(a.threads)
     return a

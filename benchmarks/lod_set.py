@@ -11,11 +11,12 @@ For each input (default: fern and skull, a 360-degree capture) this takes the de
   ``--decimate-adaptive``) of level k down to our level k + 1's count.
 
 Every level is read back out of its ``lod-meta.json`` (``splat-transform SET -L k out.ply``: the
-SOG-compressed data a viewer streams) and drawn whole by our CPU rasteriser from the evaluation
-views (``--split test``: the test views, the README's table; ``val``: validation views).
+SOG-compressed data a viewer streams; ``--no-sog``: the plain .ply levels, ``set_bytes`` 0) and
+drawn whole by our CPU rasteriser from the evaluation views (``--split test``: the test views, the README's table; ``val``: validation views).
 Goal (issue 18: the exported levels >= the decimators at equal count): at every level below
 full detail, PSNR >= the better decimator's; the script prints the margins and exits 1 when one
-is missed. Outputs ``runs/bench/lod_set{_val}/lod_set.csv`` and ``summary.md``::
+is missed. Outputs ``runs/bench/lod_set{_val}/<input>.csv`` (one per input run) and
+``summary.md`` (every input with a .csv there; ``--summary-only`` rewrites it without running)::
 
     python benchmarks/lod_set.py                 # fern and skull, test views
     python benchmarks/lod_set.py --inputs skull --split val
@@ -61,7 +62,7 @@ def score(g, cams, gts) -> tuple[float, float]:
             sum(float(ssim(i, t)) for i, t in zip(ims, gts)) / len(ims))
 
 
-def build_set(name: str, levels: list, root: Path, tmp: Path) -> tuple[Path, int]:
+def build_set(name: str, levels: list, root: Path, tmp: Path, sh_iterations=None) -> tuple[Path, int]:
     """Write ``levels`` as a LoD set under ``root/name``; (its lod-meta.json, its bytes)."""
     plys = [write_ply(tmp / f"{name}_{k}.ply", g) for k, g in enumerate(levels)]
     out = root / name
@@ -69,11 +70,11 @@ def build_set(name: str, levels: list, root: Path, tmp: Path) -> tuple[Path, int
         import shutil
 
         shutil.rmtree(out)
-    write_lod_set(plys, out)
+    write_lod_set(plys, out, sh_iterations=sh_iterations)
     return out / "lod-meta.json", sum(p.stat().st_size for p in out.rglob("*") if p.is_file())
 
 
-def run_input(name: str, split: str, log) -> list[dict]:
+def run_input(name: str, split: str, log, sh_iterations=None, sog: bool = True) -> list[dict]:
     ply = adapt_cached(name, AdaptConfig(), "default", split=split, log=log)
     g0, scene, gts = load_input(name, split)
     fit, cams = scene_views(scene, split)
@@ -95,8 +96,11 @@ def run_input(name: str, split: str, log) -> list[dict]:
     root = RUNS / f"lod_set{split_suffix(split)}" / name
     with tempfile.TemporaryDirectory(prefix="clod-lodset-") as d, torch.no_grad():
         for method, levels in sets.items():
-            meta, nbytes = build_set(method, levels, root, Path(d))
-            for k, g in enumerate(read_levels(meta, len(levels), Path(d))):
+            nbytes = 0
+            if sog:
+                meta, nbytes = build_set(method, levels, root, Path(d), sh_iterations)
+                levels = read_levels(meta, len(levels), Path(d))
+            for k, g in enumerate(levels):
                 p, s = score(g, cams, gts)
                 rows.append({"input": name, "method": method, "level": k, "s_v": s_vs[k] if method == "clod" else "",
                              "gaussians": len(g), "psnr": round(p, 3), "ssim": round(s, 4), "set_bytes": nbytes})
@@ -120,26 +124,35 @@ def margins(rows: list[dict]) -> list[dict]:
 
 
 def main(argv=None) -> int:
-    a = parse_inputs_args(__doc__, argv)
+    a = parse_inputs_args(__doc__, argv, extra=[
+        ("--sog-sh-iterations", {"type": int, "default": None, "help": "splat-transform --sh-iterations"}),
+        ("--summary-only", {"action": "store_true", "help": "rewrite summary.md from the .csv files there"}),
+        ("--no-sog", {"action": "store_true", "help": "score the levels as plain .ply files, without building and "
+                                                      "reading back the SOG sets (their SH k-means is slow on the CPU)"})])
     if find_splat_transform() is None:
         sys.exit("benchmark: splat-transform not found (`npm ci` in the repository root installs 3.7.0)")
     log = lambda *x: print(*x, flush=True)  # noqa: E731
-    rows = [r for name in a.inputs for r in run_input(name, a.split, log)]
     out = RUNS / f"lod_set{split_suffix(a.split)}"
     out.mkdir(parents=True, exist_ok=True)
-    with open(out / "lod_set.csv", "w", newline="") as f:
-        w = csv.DictWriter(f, fieldnames=COLUMNS)
-        w.writeheader()
-        w.writerows(rows)
+    for name in [] if a.summary_only else a.inputs:
+        with open(out / f"{name}.csv", "w", newline="") as f:
+            w = csv.DictWriter(f, fieldnames=COLUMNS)
+            w.writeheader()
+            w.writerows(run_input(name, a.split, log, a.sog_sh_iterations, sog=not a.no_sog))
+    names = [n for n in LABELS if (out / f"{n}.csv").is_file()]
+    rows = [r for n in names for r in csv.DictReader(open(out / f"{n}.csv"))]
+    for r in rows:
+        r.update(level=int(r["level"]), gaussians=int(r["gaussians"]), psnr=float(r["psnr"]), ssim=float(r["ssim"]),
+                 set_bytes=int(r["set_bytes"]))
     lines = []
-    for name in a.inputs:
+    for name in names:
         rs = [r for r in rows if r["input"] == name]
         levels = sorted({r["level"] for r in rs})
         body = []
         for method in ["clod", *PEERS]:
             cells = {r["level"]: r for r in rs if r["method"] == method}
             body.append([method] + [f"{cells[k]['psnr']:.2f} / {cells[k]['ssim']:.3f} ({cells[k]['gaussians']:,})"
-                                    for k in levels] + [f"{cells[0]['set_bytes'] / 1e6:.2f}"])
+                                    for k in levels] + [f"{cells[0]['set_bytes'] / 1e6:.2f}" if cells[0]["set_bytes"] else "- (plain .ply)"])
         lines += [f"#### {LABELS[name]}", "",
                   table(["LoD set"] + [f"level {k}" for k in levels] + ["MB"], body), ""]
     ms = margins(rows)

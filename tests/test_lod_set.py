@@ -40,7 +40,8 @@ def lod_set(tiny_adapted, tiny_model, tmp_path_factory) -> Path:
     if TOOL is None:
         pytest.skip("splat-transform not found: run `npm ci` in the repository root")
     out = tmp_path_factory.mktemp("lodset") / "web"
-    assert export_main([str(tiny_adapted), "-s", str(tiny_model["scene"]), "--lod-meta", str(out), "--quiet"]) == 0
+    assert export_main([str(tiny_adapted), "-s", str(tiny_model["scene"]), "--lod-meta", str(out),
+                        "--sog-sh-iterations", "2", "--quiet"]) == 0
     return out
 
 
@@ -120,3 +121,13 @@ def test_playcanvas_draws_each_level(lod_set, tiny_model, tmp_path):
     assert min(lit) > 0.05, lit  # every level draws something where the camera looks
     for a, b in zip(frames, frames[1:]):
         assert float(np.abs(a - b).mean()) > 1e-3  # the levels differ
+
+
+def test_sog_sh_iterations_needs_lod_meta(tiny_adapted, tiny_model, tmp_path, capfd):
+    out = tmp_path / "x"
+    code = export_main([str(tiny_adapted), "-s", str(tiny_model["scene"]), "-o", str(out), "--sog-sh-iterations", "2",
+                        "--quiet"])
+    assert code == 2 and "--sog-sh-iterations applies to --lod-meta only" in err_line(capfd) and not out.exists()
+    code = export_main([str(tiny_adapted), "-s", str(tiny_model["scene"]), "--lod-meta", str(out),
+                        "--sog-sh-iterations", "0", "--quiet"])
+    assert code == 2 and "--sog-sh-iterations" in err_line(capfd) and not out.exists()

@@ -50,6 +50,9 @@ def build_parser():
                         "of the model's levels, each baked at s_v = 1, 1.59, 2.52, 4, ... (the share in view "
                         "halving per level) up to max_sv, through splat-transform (`npm ci`); into DIR, "
                         "default OUTDIR")
+    p.add_argument("--sog-sh-iterations", type=int, default=None, metavar="N",
+                   help="k-means iterations of the LoD set's SH palette (splat-transform --sh-iterations; default "
+                        "its 10). On the CPU this dominates: fewer iterations for large SH-3 models")
     p.add_argument("--web", nargs="?", const="", default=None, metavar="DIR",
                    help="write a static web page drawing the continuous LoD per frame on the GPU (PlayCanvas engine "
                         "vendored from npm by `npm ci`; a slider for s_v, a static-cut toggle, drawn count and "
@@ -91,6 +94,10 @@ def _main(args, argv) -> int:
         budget = jobs.parse_budget(args.budget, "--budget")
         if budget == 0:
             raise InputError(f"--budget must be > 0 (a count or a fraction <= 1), got {args.budget}")
+    if args.sog_sh_iterations is not None:
+        check_flag(args.sog_sh_iterations >= 1, "--sog-sh-iterations", ">= 1", args.sog_sh_iterations)
+        if args.lod_meta is None:
+            raise InputError("--sog-sh-iterations applies to --lod-meta only")
     if args.sh_max_drop_db is not None:
         check_flag(math.isfinite(args.sh_max_drop_db) and args.sh_max_drop_db >= 0, "--sh-max-drop-db", ">= 0",
                    args.sh_max_drop_db)
@@ -152,7 +159,7 @@ def _main(args, argv) -> int:
     test_imgs = [scene.load_image(c) for c in test_cams]
     options = ExportOptions(s_v=args.s_v, budget=budget, baked_name=baked_name, ordered=args.ordered,
                             prune=args.prune, sh_max_drop_db=args.sh_max_drop_db, spz=args.spz,
-                            lod_dir=lod_dir, web_dir=web_dir, progress=not args.quiet, argv=argv)
+                            lod_dir=lod_dir, sog_sh_iterations=args.sog_sh_iterations, web_dir=web_dir, progress=not args.quiet, argv=argv)
     report = export(model.to(dev), scene, train_imgs, test_cams, test_imgs, out, ply, options)
     print(summary(report))
     print(f"clod-export: wrote {', '.join(report['files'])} to {out} in {report['seconds']:.0f} s")

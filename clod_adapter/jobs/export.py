@@ -37,6 +37,8 @@ class ExportOptions:
             format PlayCanvas / SuperSplat / Babylon.js stream) of the model's levels
             (:func:`clod_adapter.bake.lod_level` at each of :func:`clod_adapter.bake.lod_set_s_vs`;
             None: no set).
+        sog_sh_iterations: splat-transform's ``--sh-iterations`` for the LoD set (None: its
+            default, 10; :func:`clod_adapter.splat_transform.write_lod_set`).
         web_dir: where to write the web viewer (:func:`clod_adapter.viewer.web.write_web_viewer`;
             None: none).
         progress: one step per phase (a tqdm bar on a terminal, else a line per phase).
@@ -51,6 +53,7 @@ class ExportOptions:
     sh_max_drop_db: Optional[float] = None
     spz: bool = False
     lod_dir: Optional[Path] = None
+    sog_sh_iterations: Optional[int] = None
     web_dir: Optional[Path] = None
     progress: bool = False
     argv: Optional[list] = None
@@ -195,7 +198,7 @@ def _write_web(model, web_dir: Path, web: dict, rep: dict) -> list[str]:
     return names
 
 
-def _write_lod_set(levels: list, lod_dir: Path, rep: dict) -> None:
+def _write_lod_set(levels: list, lod_dir: Path, rep: dict, sh_iterations: Optional[int]) -> None:
     """The levels as plain .ply files in a scratch folder, then splat-transform's LoD set in
     ``lod_dir`` (:func:`clod_adapter.splat_transform.write_lod_set`); ``rep["lod_meta"]`` gets
     the folder, the names written and what the tool reads back."""
@@ -206,7 +209,7 @@ def _write_lod_set(levels: list, lod_dir: Path, rep: dict) -> None:
 
     with tempfile.TemporaryDirectory(prefix="clod-lod-") as tmp:
         plys = [write_ply(Path(tmp) / f"lod{k}.ply", g) for k, g in enumerate(levels)]
-        info, names = write_lod_set(plys, lod_dir, overwrite=True)
+        info, names = write_lod_set(plys, lod_dir, overwrite=True, sh_iterations=sh_iterations)
     rep["lod_meta"].update({"dir": str(lod_dir), "files": names, "info": info,
                             "tool_version": SPLAT_TRANSFORM_VERSION})
 
@@ -227,7 +230,7 @@ def _write_files(out: Path, ply: Path, model, derived: dict, o: ExportOptions, r
                 files.append(EXPORT_FORMATS[fmt].write(out / Path(name).with_suffix(EXPORT_FORMATS[fmt].suffix).name,
                                                        m))
     if derived["levels"] is not None:
-        _write_lod_set(derived["levels"], o.lod_dir, rep)
+        _write_lod_set(derived["levels"], o.lod_dir, rep, o.sog_sh_iterations)
         if Path(o.lod_dir).resolve() == out.resolve():
             files += rep["lod_meta"]["files"]
     if derived["web"] is not None:

@@ -79,6 +79,40 @@ def main(argv: list[str] | None = None) -> int:
     return jobs.run_cli("clod-export", lambda: _main(args, argv))
 
 
+def _check_tools(spz: bool, lod_dir, web_dir) -> None:
+    """The optional tools the asked outputs need: gsply (``--spz``), splat-transform
+    (``--lod-meta``), the PlayCanvas engine (``--web``); a one-line error naming the flag."""
+    if spz:
+        try:
+            import gsply  # noqa: F401
+        except ImportError:
+            raise InputError("--spz: needs the gsply package (pip install -e \".[spz]\")") from None
+    if lod_dir is not None:
+        from clod_adapter.splat_transform import NPM_INSTALL, find_splat_transform
+
+        if find_splat_transform() is None:
+            raise InputError(f"--lod-meta: splat-transform not found; install the pinned version with `{NPM_INSTALL}` "
+                             "in the repository root (or set $CLOD_SPLAT_TRANSFORM)")
+    if web_dir is not None:
+        from clod_adapter.viewer.web import find_playcanvas
+
+        if find_playcanvas() is None:
+            raise InputError("--web: the PlayCanvas engine is not installed; run `npm ci` in the repository root")
+
+
+def _check_outputs(out: Path, ply: Path, names: list, folders: list, force: bool) -> None:
+    """``out`` with ``names``, and each (folder, its names) of ``folders`` that is given: new or
+    empty (or ``force``), not the input; a folder equal to ``out`` adds its names to ``out``'s."""
+    names = list(names)
+    for d, files in folders:
+        if d is not None and d.resolve() == out.resolve():
+            names += files
+    jobs.check_output_dir(out, [ply], names, create=False, force=force)
+    for d, files in folders:
+        if d is not None and d.resolve() != out.resolve():
+            jobs.check_output_dir(d, [ply], files, create=False, force=force)
+
+
 def _main(args, argv) -> int:
     if not args.output:  # `--lod-meta DIR` or `--web DIR` alone: DIR holds everything
         args.output = args.lod_meta or args.web
@@ -105,22 +139,7 @@ def _main(args, argv) -> int:
         raise InputError(f"{ply}: no such file")
     if not scene_root.is_dir():
         raise InputError(f"{scene_root}: no such scene folder")
-    if args.spz:
-        try:
-            import gsply  # noqa: F401
-        except ImportError:
-            raise InputError("--spz: needs the gsply package (pip install -e \".[spz]\")") from None
-    if lod_dir is not None:
-        from clod_adapter.splat_transform import NPM_INSTALL, find_splat_transform
-
-        if find_splat_transform() is None:
-            raise InputError(f"--lod-meta: splat-transform not found; install the pinned version with `{NPM_INSTALL}` "
-                             "in the repository root (or set $CLOD_SPLAT_TRANSFORM)")
-    if web_dir is not None:
-        from clod_adapter.viewer.web import find_playcanvas
-
-        if find_playcanvas() is None:
-            raise InputError("--web: the PlayCanvas engine is not installed; run `npm ci` in the repository root")
+    _check_tools(args.spz, lod_dir, web_dir)
     jobs.set_threads(args.threads)
 
     from clod_adapter.io.load import resolve_model_path
@@ -137,14 +156,7 @@ def _main(args, argv) -> int:
     names = [EXTENDED_NAME, JSON_NAME] + ([ORDERED_NAME] if args.ordered else []) + ([baked_name] if baked_name else [])
     if args.spz:
         names += [Path(n).with_suffix(".spz").name for n in names if n.endswith(".ply")]
-    extra = [(lod_dir, ["lod-meta.json"]), (web_dir, ["index.html"])]
-    for d, files in extra:
-        if d is not None and d.resolve() == out.resolve():
-            names += files
-    jobs.check_output_dir(out, [ply], names, create=False, force=args.force)
-    for d, files in extra:
-        if d is not None and d.resolve() != out.resolve():
-            jobs.check_output_dir(d, [ply], files, create=False, force=args.force)
+    _check_outputs(out, ply, names, [(lod_dir, ["lod-meta.json"]), (web_dir, ["index.html"])], args.force)
     dev = jobs.pick_device(args.device)
     model = read_ply(ply)
     if len(model) == 0:
@@ -159,7 +171,8 @@ def _main(args, argv) -> int:
     test_imgs = [scene.load_image(c) for c in test_cams]
     options = ExportOptions(s_v=args.s_v, budget=budget, baked_name=baked_name, ordered=args.ordered,
                             prune=args.prune, sh_max_drop_db=args.sh_max_drop_db, spz=args.spz,
-                            lod_dir=lod_dir, sog_sh_iterations=args.sog_sh_iterations, web_dir=web_dir, progress=not args.quiet, argv=argv)
+                            lod_dir=lod_dir, sog_sh_iterations=args.sog_sh_iterations, web_dir=web_dir,
+                            progress=not args.quiet, argv=argv)
     report = export(model.to(dev), scene, train_imgs, test_cams, test_imgs, out, ply, options)
     print(summary(report))
     print(f"clod-export: wrote {', '.join(report['files'])} to {out} in {report['seconds']:.0f} s")

@@ -94,6 +94,21 @@ def parse_inputs_args(doc: str, argv=None, inputs=("fern", "skull"), split: str 
     return a
 
 
+def run_per_input(doc: str, run_input, argv=None, inputs=("fern", "skull")) -> None:
+    """The main of a validation-view study: ``--inputs`` and ``--threads`` parsed, then
+    ``run_input(name)`` for each input without autograd."""
+    import argparse
+
+    ap = argparse.ArgumentParser(description=doc.split("\n\n")[0])
+    ap.add_argument("--inputs", nargs="+", default=list(inputs), choices=sorted(LABELS))
+    ap.add_argument("--threads", type=int, default=2)
+    a = ap.parse_args(argv)
+    setup_threads(a.threads)
+    with torch.no_grad():
+        for name in a.inputs:
+            run_input(name)
+
+
 def split_suffix(split: str) -> str:
     """Suffix of cache tags and output names: ``""`` for test, ``"_val"`` for val."""
     return "" if split == "test" else f"_{split}"

@@ -9,11 +9,7 @@ Prints one line per level::
 """
 from __future__ import annotations
 
-import argparse
-
-from common import adapt_cached, load_input, scene_views, setup_threads
-
-import torch
+from common import adapt_cached, load_input, run_per_input, scene_views
 
 from clod_adapter.bake import bake, lod_level, lod_set_s_vs
 from clod_adapter.baselines import merge_decimate
@@ -40,13 +36,7 @@ def run_input(name: str) -> None:
 
 
 def main(argv=None) -> None:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--inputs", nargs="+", default=["fern", "skull"])
-    a = ap.parse_args(argv)
-    setup_threads(2)
-    with torch.no_grad():
-        for name in a.inputs:
-            run_input(name)
+    run_per_input(__doc__, run_input, argv)
 
 
 if __name__ == "__main__":

@@ -17,10 +17,9 @@ Prints one line per ``s_v`` (PSNR, mean drawn share of the Gaussians in view)::
 """
 from __future__ import annotations
 
-import argparse
 import dataclasses
 
-from common import adapt_cached, load_input, scene_views, setup_threads
+from common import adapt_cached, load_input, run_per_input, scene_views
 
 import torch
 
@@ -77,13 +76,7 @@ def run_input(name: str) -> None:
 
 
 def main(argv=None) -> None:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--inputs", nargs="+", default=["fern", "skull"])
-    a = ap.parse_args(argv)
-    setup_threads(2)
-    with torch.no_grad():
-        for name in a.inputs:
-            run_input(name)
+    run_per_input(__doc__, run_input, argv)
 
 
 if __name__ == "__main__":

@@ -35,6 +35,7 @@ import torch
 from clod_adapter.baselines import lightgaussian_significance
 from clod_adapter.camera_lod import render_lod
 from clod_adapter.io.load import load_model
+from clod_adapter.jobs.eval import image_change
 from clod_adapter.training import AdaptConfig
 from clod_adapter.viewer.web import find_playcanvas, write_web_viewer
 
@@ -48,10 +49,10 @@ LEVELS = (1.0, 2.0, 5.0)
 
 
 def cpu_popping(g, cam, max_sv: float, steps: int = 31) -> float:
-    """The same sweep's ratio with ``render_lod`` (continuous only; the jump is the page's)."""
-    frames = [render_lod(g, cam, 1.0 + (max_sv - 1.0) * i / (steps - 1)).image.clamp(0, 1).numpy()
-              for i in range(steps)]
-    return max(float(np.abs(a.astype(np.float64) - b).mean()) for a, b in zip(frames, frames[1:]))
+    """The largest step (mean |dI|) of the same sweep through ``render_lod``; the CPU ratio is the
+    page's static switch over it."""
+    frames = [render_lod(g, cam, 1.0 + (max_sv - 1.0) * i / (steps - 1)).image for i in range(steps)]
+    return max(image_change(a, b) for a, b in zip(frames, frames[1:]))
 
 
 def run_input(name: str, split: str, log, shots: list) -> dict:

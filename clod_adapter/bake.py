@@ -188,6 +188,13 @@ def lod_level(gaussians: Gaussians, cameras: Sequence, s_v: float, *, d_ref: Opt
         cameras: the views the reference distances come from (the training views).
         s_v: the level's virtual distance scale (>= 1).
         d_ref: [N] reference distances when already computed (default: from ``cameras``).
+
+    Returns:
+        the level: ``Gaussians`` with ``sigma_d``, gains and settings dropped (a plain model of
+        the kept rows, in the model's order; float32 like the input).
+
+    Raises:
+        ValueError: the model has no ``sigma_d``.
     """
     from .budget import critical_s_v
     from .training import reference_distances

@@ -16,7 +16,7 @@ from typing import Optional
 import numpy as np
 
 __all__ = ["CHROMIUM", "CHROMEDRIVER", "browser_missing", "chromium_driver", "stable_render",
-           "fit_canvas_aspect", "compare_frames", "serve_folder", "open_web_viewer", "web_viewer_frame", "web_viewer_popping"]
+           "fit_canvas_aspect", "compare_frames", "serve_folder", "open_web_viewer", "web_viewer_frame", "web_viewer_popping", "frame_change"]
 
 CHROMIUM = shutil.which("chromium") or "/usr/bin/chromium"
 CHROMEDRIVER = shutil.which("chromedriver") or "/usr/bin/chromedriver"
@@ -168,6 +168,16 @@ def web_viewer_frame(driver, s_v: Optional[float] = None, static: Optional[bool]
     return np.asarray(img, dtype=np.float32) / 255.0, state
 
 
+def frame_change(a: np.ndarray, b: np.ndarray) -> float:
+    """:func:`clod_adapter.jobs.eval.image_change` (clod-eval's popping step: mean |dI|) of two
+    [H, W, 3] float images in [0, 1]."""
+    import torch
+
+    from clod_adapter.jobs.eval import image_change
+
+    return image_change(torch.from_numpy(a), torch.from_numpy(b))
+
+
 def web_viewer_popping(driver, max_sv: float, steps: int = 31) -> dict:
     """The popping measure of ``clod-eval`` (:func:`clod_adapter.jobs.eval.popping_curve`) in a
     ``clod-export --web`` page, from its current camera: ``steps`` frames at ``s_v`` spaced
@@ -186,7 +196,7 @@ def web_viewer_popping(driver, max_sv: float, steps: int = 31) -> dict:
         frames.append(img)
         drawn.append(st["drawn"])
         ms.append(st["frameMs"])
-    change = lambda a, b: float(np.abs(a.astype(np.float64) - b).mean())  # noqa: E731
+    change = frame_change
     first, _ = web_viewer_frame(driver, s_v=s_vs[0], static=True)
     last, _ = web_viewer_frame(driver, s_v=s_vs[-1], static=True)
     web_viewer_frame(driver, s_v=1.0, static=False)

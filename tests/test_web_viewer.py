@@ -8,7 +8,6 @@ from __future__ import annotations
 
 import json
 import math
-from pathlib import Path
 from urllib.parse import urlencode
 
 import numpy as np
@@ -87,15 +86,11 @@ def fern_web(tmp_path_factory) -> dict:
     return {"adapted": ad / "point_cloud.ply", "web": web, "scene": fern}
 
 
-def _image_change(a: np.ndarray, b: np.ndarray) -> float:
-    return float(np.abs(a.astype(np.float64) - b).mean())
-
-
 @pytest.mark.slow
 @needs_engine
 def test_continuous_lod_in_headless_chromium(fern_web, tmp_path):
-    from browser import (browser_missing, chromium_driver, compare_frames, open_web_viewer, serve_folder,
-                         web_viewer_frame, web_viewer_popping)
+    from browser import (browser_missing, chromium_driver, compare_frames, frame_change, open_web_viewer,
+                         serve_folder, web_viewer_frame, web_viewer_popping)
 
     from clod_adapter.camera_lod import render_lod
     from clod_adapter.io.load import load_model, load_scene
@@ -124,7 +119,7 @@ def test_continuous_lod_in_headless_chromium(fern_web, tmp_path):
     assert drawn[0] > drawn[1] > drawn[2] > 0, drawn
     cpu = render_lod(g, cam, 2.0)
     assert abs(states[2.0]["drawn"] - cpu.n_rendered) <= 0.1 * cpu.n_rendered  # the page's count is the rule's
-    d12, d15 = _image_change(frames[1.0], frames[2.0]), _image_change(frames[1.0], frames[5.0])
+    d12, d15 = frame_change(frames[1.0], frames[2.0]), frame_change(frames[1.0], frames[5.0])
     assert 1e-3 < d12 < d15  # fewer drawn, further from full detail
     print(f"popping: largest step {max(pop['step']):.5f}, static switch {pop['jump']:.5f}, ratio {pop['ratio']:.1f}; "
           f"frame ms along the sweep {min(pop['ms']):.0f}-{max(pop['ms']):.0f}")

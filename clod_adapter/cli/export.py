@@ -156,7 +156,9 @@ def _main(args, argv) -> int:
     names = [EXTENDED_NAME, JSON_NAME] + ([ORDERED_NAME] if args.ordered else []) + ([baked_name] if baked_name else [])
     if args.spz:
         names += [Path(n).with_suffix(".spz").name for n in names if n.endswith(".ply")]
-    _check_outputs(out, ply, names, [(lod_dir, ["lod-meta.json"]), (web_dir, ["index.html"])], args.force)
+    from clod_adapter.splat_transform import LOD_META_NAME
+
+    _check_outputs(out, ply, names, [(lod_dir, [LOD_META_NAME]), (web_dir, ["index.html"])], args.force)
     dev = jobs.pick_device(args.device)
     model = read_ply(ply)
     if len(model) == 0:

@@ -110,8 +110,11 @@ def test_continuous_lod_in_headless_chromium(fern_web, tmp_path):
             for s in (1.0, 2.0, 5.0):
                 frames[s], states[s] = web_viewer_frame(driver, s_v=s)
             pop = web_viewer_popping(driver, max_sv)
+            engine = driver.execute_script("return window.clod.engine()")
     finally:
         driver.quit()
+    # half-float work buffer (the default 8-bit one quantises the level's continuous change) and no size culling
+    assert engine == {"dataFormat": "large", "minPixelSize": 0}, engine
     full = compare_frames(render_lod(g, cam, 1.0).image.clamp(0, 1).numpy(), frames[1.0])
     print(f"web vs CPU at s_v = 1: {full['psnr']:.2f} dB")
     assert full["psnr"] >= MIN_PSNR_DB, full

@@ -87,6 +87,15 @@ opts.componentSystems = [pc.CameraComponentSystem, pc.GSplatComponentSystem];
 opts.resourceHandlers = [pc.TextureHandler, pc.GSplatHandler];
 const app = new pc.AppBase(canvas);
 app.init(opts);
+// the work buffer in half floats: the engine's default "compact" layout stores each splat's opacity
+// in 8 bits, its log-scale in 8 bits (8.6 % steps) and its colour in 11/11/10 bits, so the level
+// gains' continuous drift reached the frames as per-splat jumps; "large" keeps colour, opacity and
+// scale as half floats (fern's first test view: the largest step of the 31-step sweep 10.73e-3 ->
+// 10.38e-3, render_lod's 8.61e-3)
+app.scene.gsplat.dataFormat = pc.GSPLATDATA_LARGE;
+// no size culling: render_lod draws every splat whose footprint reaches the image (the engine drops
+// splats whose quad is under 2 px by default, and the level's scale gains move splats across it)
+app.scene.gsplat.minPixelSize = 0;
 if (fixed) {
     app.setCanvasFillMode(pc.FILLMODE_NONE);
     app.setCanvasResolution(pc.RESOLUTION_FIXED, +q.get('w'), +q.get('h'));
@@ -258,5 +267,7 @@ window.clod = {
     setStatic(on) { state.static = !!on; document.getElementById('static').checked = state.static; update(); },
     setCamera,
     frames: () => app.frame,
+    // the engine settings the rule's fidelity depends on (the work buffer's precision, size culling)
+    engine: () => ({ dataFormat: app.scene.gsplat.dataFormat, minPixelSize: app.scene.gsplat.minPixelSize }),
 };
 window.__clodReady = true;

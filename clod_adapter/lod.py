@@ -39,6 +39,7 @@ float16/bfloat16 inputs do not overflow.
 from __future__ import annotations
 
 import math
+import weakref
 from dataclasses import asdict, dataclass
 from typing import Literal, Optional
 
@@ -107,6 +108,32 @@ def _work_dtype(*ts: Tensor) -> torch.dtype:
     return dt
 
 
+#: cached [3, N] column copies of centre tensors (:func:`centre_columns`), id -> (weakref, version, cols)
+_COLUMNS: dict = {}
+_COLUMNS_MAX = 8
+
+
+def centre_columns(means: Tensor, dtype: torch.dtype) -> Tensor:
+    """[3, N] contiguous copy of ``means`` [N, 3] (detached, in ``dtype``), cached per tensor and
+    in-place version (``Tensor._version``: an optimiser step makes a new copy). The per-frame terms
+    (:func:`in_frustum`, :func:`normalized_distances`) run on these rows: elementwise work on three
+    contiguous [N] rows is 4-9x faster on the CPU than the same arithmetic on [N, 3] (a [N, 3] x
+    [3, 3] product took 0.6 ms at 60,000 Gaussians, the rows 0.07 ms)."""
+    key = id(means)
+    hit = _COLUMNS.get(key)
+    if hit is not None and hit[0]() is means and hit[1] == means._version and hit[2].dtype == dtype \
+            and hit[2].device == means.device:
+        return hit[2]
+    cols = means.detach().to(dtype).t().contiguous()
+    if len(_COLUMNS) >= _COLUMNS_MAX:
+        _COLUMNS.pop(next(iter(_COLUMNS)))
+    try:
+        _COLUMNS[key] = (weakref.ref(means), means._version, cols)
+    except TypeError:  # not weak-referenceable: no caching
+        pass
+    return cols
+
+
 def in_frustum(means: Tensor, viewmat: Tensor, K: Tensor, width: int, height: int,
                near_plane: float = 0.01) -> Tensor:
     """Which Gaussian centres lie inside a pinhole camera's view frustum.
@@ -119,19 +146,26 @@ def in_frustum(means: Tensor, viewmat: Tensor, K: Tensor, width: int, height: in
         near_plane: minimum camera-space depth (gsplat's default 0.01).
 
     Returns:
-        [N] bool: ``z > near_plane`` and the projected centre inside ``[0, width) x [0, height)``.
+        [N] bool: ``z > near_plane`` and the projected centre ``(fx x / z + cx, fy y / z + cy)``
+        inside ``[0, width) x [0, height)``, tested without the division (``0 <= fx x + cx z <
+        width z`` for ``z > 0``); a non-finite centre is outside.
     """
     dt = _work_dtype(means, viewmat)
-    R = viewmat[:3, :3].to(dt)
-    t = viewmat[:3, 3].to(dt)
-    pc = means.detach().to(dt) @ R.T + t
-    z = pc[:, 2]
-    front = z > near_plane
-    zs = torch.where(front, z, torch.ones_like(z))
-    u = K[0, 0].to(dt) * pc[:, 0] / zs + K[0, 2].to(dt)
-    v = K[1, 1].to(dt) * pc[:, 1] / zs + K[1, 2].to(dt)
-    inside = (u >= 0) & (u < width) & (v >= 0) & (v < height)
-    return front & inside & torch.isfinite(u) & torch.isfinite(v)
+    cols = centre_columns(means, dt)
+    R = viewmat[:3, :3].detach().to(dt).tolist()
+    t = viewmat[:3, 3].detach().to(dt).tolist()
+
+    def row(i: int) -> Tensor:  # camera-space coordinate i of every centre
+        r = cols[0] * R[i][0]
+        return r.add_(cols[1], alpha=R[i][1]).add_(cols[2], alpha=R[i][2]).add_(t[i])
+
+    z = row(2)
+    ok = z > near_plane
+    for i, (f, c, size) in enumerate(((float(K[0, 0]), float(K[0, 2]), width), (float(K[1, 1]), float(K[1, 2]), height))):
+        a = row(i).mul_(f).add_(z, alpha=c)  # = (pixel coordinate) * z
+        ok &= a >= 0
+        ok &= a < z * float(size)
+    return ok
 
 
 def camera_center(viewmat: Tensor) -> Tensor:
@@ -155,14 +189,17 @@ def normalized_distances(means: Tensor, center: Tensor, frustum: Tensor) -> Tens
         zero Gaussians an empty tensor is returned. The normaliser is clamped to >= 1e-12 so a
         camera sitting on every Gaussian gives d' = 0, never NaN.
     """
-    # |mu - c|: a [N, 3] x [3] product instead of vector_norm's last-dim reduction (2-2.5x
-    # faster on CPU, this runs every frame); with autograd, d = 0 gets gradient 0, not NaN
-    diff = means - center.to(means.dtype)
-    sq = diff.square() @ torch.ones(3, dtype=diff.dtype, device=diff.device)
-    if sq.requires_grad:
+    if means.requires_grad and torch.is_grad_enabled():
+        # |mu - c| with autograd: d = 0 gets gradient 0, not NaN
+        diff = means - center.to(means.dtype)
+        sq = diff.square() @ torch.ones(3, dtype=diff.dtype, device=diff.device)
         d = torch.where(sq > 0, sq.clamp_min(torch.finfo(sq.dtype).tiny).sqrt(), torch.zeros_like(sq))
     else:
-        d = sq.sqrt()
+        # no gradient: on the cached rows of the centres (this runs every frame)
+        cols = centre_columns(means, means.dtype)
+        c = center.detach().to(means.dtype).tolist()
+        d = (cols[0] - c[0]).square_()
+        d.add_((cols[1] - c[1]).square_()).add_((cols[2] - c[2]).square_()).sqrt_()
     if d.numel() == 0:
         return d
     dd = d.detach()

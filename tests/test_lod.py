@@ -1,5 +1,7 @@
 """The CLoD-GS mechanism (clod_adapter.lod): Eq. 2, the mask, eta estimators, L_reg, w_s."""
 
+import math
+
 import pytest
 import torch
 
@@ -179,3 +181,44 @@ def test_lod_mask_equals_margin_sign():
         if s_v <= 5.0:  # a real mix of kept and dropped, so agreement means something
             assert 0 < int(ref.sum()) < n
         assert int((got != ref).sum()) == 0, f"s_v={s_v}: {int((got != ref).sum())} differ"
+
+
+def _in_frustum_reference(means, vm, K, w, h, near=0.01):
+    """The division form of the frustum test (the earlier implementation), float64."""
+    pc = means.double() @ vm[:3, :3].double().T + vm[:3, 3].double()
+    z = pc[:, 2]
+    zs = torch.where(z > near, z, torch.ones_like(z))
+    u = K[0, 0].double() * pc[:, 0] / zs + K[0, 2].double()
+    v = K[1, 1].double() * pc[:, 1] / zs + K[1, 2].double()
+    return (z > near) & (u >= 0) & (u < w) & (v >= 0) & (v < h)
+
+
+def test_frustum_and_distances_fast_path_match_references():
+    g = torch.Generator().manual_seed(3)
+    means = torch.randn(5000, 3, generator=g, dtype=torch.float64) * 3
+    means[:7] = torch.tensor([float("nan"), float("inf"), -float("inf"), 0, 0, 0, 0]).double()[:, None]
+    ang = 0.3
+    vm = torch.eye(4, dtype=torch.float64)
+    vm[:3, :3] = torch.tensor([[math.cos(ang), 0, math.sin(ang)], [0, 1, 0], [-math.sin(ang), 0, math.cos(ang)]])
+    vm[:3, 3] = torch.tensor([0.2, -0.1, 4.0])
+    K = torch.tensor([[80.0, 0, 40], [0, 90.0, 30], [0, 0, 1]], dtype=torch.float64)
+    fr = lod.in_frustum(means, vm, K, 80, 60)
+    ref = _in_frustum_reference(means, vm, K, 80, 60)
+    assert 500 < int(ref.sum()) < 5000 and not fr[:3].any()  # non-finite centres are outside
+    assert torch.equal(fr, ref)
+    # the no-gradient distances (cached rows) equal the autograd form
+    c = lod.camera_center(vm)
+    fast = lod.normalized_distances(means[7:], c, fr[7:])
+    slow = lod.normalized_distances(means[7:].clone().requires_grad_(True), c, fr[7:]).detach()
+    torch.testing.assert_close(fast, slow, rtol=1e-12, atol=1e-12)
+
+
+def test_centre_columns_follow_in_place_updates():
+    means = torch.rand(100, 3)
+    a = lod.centre_columns(means, torch.float32)
+    assert lod.centre_columns(means, torch.float32) is a  # cached
+    means.add_(1.0)  # an optimiser step: the version changes, the rows are made again
+    b = lod.centre_columns(means, torch.float32)
+    assert b is not a and torch.equal(b, means.t())
+    d = lod.normalized_distances(means, torch.zeros(3), torch.ones(100, dtype=torch.bool))
+    torch.testing.assert_close(d * means.norm(dim=1).max(), means.norm(dim=1))

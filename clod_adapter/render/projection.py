@@ -117,11 +117,13 @@ def project_geometry(
 
     # --- cheap culling on depth (and ``keep``) without autograd -----------------------------
     with torch.no_grad():
-        z_all = means.detach() @ R[2].detach() + T[2].detach()
-        ok = (z_all >= near_plane) & (z_all <= far_plane)
-        if keep is not None:
-            ok &= keep
-        ids = ok.nonzero().squeeze(1)
+        if keep is not None:  # depth of the kept rows only (an LoD level keeps few of N)
+            ids = keep.nonzero().squeeze(1)
+            z = means.detach().index_select(0, ids) @ R[2].detach() + T[2].detach()
+            ids = ids[(z >= near_plane) & (z <= far_plane)]
+        else:
+            z_all = means.detach() @ R[2].detach() + T[2].detach()
+            ids = ((z_all >= near_plane) & (z_all <= far_plane)).nonzero().squeeze(1)
 
     m = means.index_select(0, ids)
     q = quats.index_select(0, ids)

@@ -60,7 +60,7 @@ from clod_adapter.timing import time_interleaved
 from clod_adapter.camera_lod import render_lod, view_lod
 
 #: ``s_v`` levels and cost budgets of the adapted model.
-S_VS = (1.0, 1.25, 1.5, 2.0, 2.5, 3.0, 4.0, 5.0, 6.0, 7.5, 10.0, 15.0, 20.0, 30.0)
+S_VS = (1.0, 1.1, 1.2, 1.3, 1.4, 1.5, 1.75, 2.0, 2.5, 3.0, 4.0, 5.0, 6.0, 7.5, 10.0, 12.5, 15.0, 17.5, 20.0, 25.0, 30.0)
 COST_SHARES = (0.6, 0.4, 0.25, 0.15, 0.1, 0.06, 0.04)
 #: static cuts: shares of the Gaussians in view (rankings) or of the model (decimators).
 STATIC_SHARES = (0.75, 0.5, 0.3, 0.2, 0.1, 0.05, 0.02, 0.01)

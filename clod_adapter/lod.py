@@ -125,8 +125,11 @@ def centre_columns(means: Tensor, dtype: torch.dtype) -> Tensor:
             and hit[2].device == means.device:
         return hit[2]
     cols = means.detach().to(dtype).t().contiguous()
-    if len(_COLUMNS) >= _COLUMNS_MAX:
-        _COLUMNS.pop(next(iter(_COLUMNS)))
+    try:  # oldest first; another thread (the viewer's) may be evicting too
+        while len(_COLUMNS) >= _COLUMNS_MAX:
+            _COLUMNS.pop(next(iter(_COLUMNS)), None)
+    except (RuntimeError, StopIteration):
+        pass
     try:
         _COLUMNS[key] = (weakref.ref(means), means._version, cols)
     except TypeError:  # not weak-referenceable: no caching

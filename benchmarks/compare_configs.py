@@ -1,0 +1,93 @@
+"""Two adaptation settings against each other at equal frame time, and their popping.
+
+For choosing a default: each input (default: skull and fern) is adapted with ``clod-adapt``'s
+defaults and with ``--config KEY=VALUE`` (cached, common.py; ``--split val``: fit views only), and
+both models are rendered from the evaluation views along the same ``s_v`` grid as
+``quality_vs_time.py``, every setting of both and the input timed in the same interleaved rounds.
+Printed per input: each model's best PSNR within 90 / 75 / 50 / 25 / 15 / 10 % of the input's
+frame time (the frontier line of ``quality_vs_time.py``) and the popping of ``clod-eval`` from
+the first view (the largest of 31 linear steps from ``s_v`` 1 to max_sv, mean |dI|, and the
+switch between the opacity cuts at the first and last counts over it)::
+
+    python benchmarks/compare_configs.py --config fade_width=0.75            # validation views
+"""
+from __future__ import annotations
+
+import statistics
+import sys
+import time
+
+from common import adapt_cached, load_input, parse_inputs_args, scene_views
+
+import torch
+
+from clod_adapter.camera_lod import render_lod
+from clod_adapter.frontier import Point, best_within
+from clod_adapter.io.load import load_model
+from clod_adapter.jobs.eval import popping_curve
+from clod_adapter.metrics import psnr
+from clod_adapter.timing import time_interleaved
+from clod_adapter.training import AdaptConfig
+
+from quality_vs_time import S_VS
+
+SHARES = (0.9, 0.75, 0.5, 0.25, 0.15, 0.1)
+
+
+class _Timed:
+    def __init__(self, ms: float) -> None:
+        self.select_ms, self.raster_ms = 0.0, ms
+
+
+def _timed(g, cam, s_v):
+    def f():
+        t0 = time.perf_counter()
+        render_lod(g, cam, s_v)
+        return _Timed((time.perf_counter() - t0) * 1e3)
+    return f
+
+
+def run_input(name: str, split: str, configs: dict, repeats: int) -> None:
+    g0, scene, gts = load_input(name, split)
+    fit, cams = scene_views(scene, split)
+    models = {tag: load_model(adapt_cached(name, AdaptConfig(**kw), tag, split=split)) for tag, kw in configs.items()}
+    sets = {("input", 1.0): [_timed(g0, c, None) for c in cams]}
+    scores = {}
+    with torch.no_grad():
+        for tag, g in models.items():
+            for s in S_VS:
+                sets[(tag, s)] = [_timed(g, c, s) for c in cams]
+                scores[(tag, s)] = statistics.mean(psnr(render_lod(g, c, s).image.clamp(0, 1), t)
+                                                   for c, t in zip(cams, gts))
+        p_in = statistics.mean(psnr(render_lod(g0, c).image.clamp(0, 1), t) for c, t in zip(cams, gts))
+        res = time_interleaved(sets, repeats=repeats, warmup=1)
+        ms_in = res[("input", 1.0)]["ms_total"]
+        print(f"[{name}] input {p_in:.2f} dB, {ms_in:.1f} ms ({len(cams)} {split} views)")
+        for tag, g in models.items():
+            pts = [Point("clod", f"s_v={s:g}", res[(tag, s)]["ms_total"], scores[(tag, s)]) for s in S_VS]
+            best = [best_within(pts, sh * ms_in) for sh in SHARES]
+            pop = popping_curve(g, cams[0], [1 + (g.lod.max_sv - 1) * i / 30 for i in range(31)])
+            print(f"[{name}] {tag:>24}: best within " + " / ".join(f"{100 * sh:.0f}" for sh in SHARES) + " %: "
+                  + " / ".join("-" if b is None else f"{b.psnr:.2f}" for b in best)
+                  + f" dB; popping {pop['continuous_max']:.5f} vs switch {pop['discrete_max']:.5f}: {pop['ratio']:.1f}x")
+            print(f"[{name}] {tag:>24}: " + " ".join(f"{s:g}:{scores[(tag, s)]:.2f}/{100 * res[(tag, s)]['ms_total'] / ms_in:.0f}%"
+                                                for s in S_VS))
+
+
+def main() -> int:
+    a = parse_inputs_args(__doc__, inputs=("skull", "fern"), split="val", extra=[
+        ("--config", {"nargs": "+", "required": True, "metavar": "KEY=VALUE", "help": "the other AdaptConfig settings"}),
+        ("--repeats", {"type": int, "default": 5, "help": "interleaved timing rounds (default 5)"})])
+    kw = {}
+    for item in a.config:
+        k, v = item.split("=", 1)
+        d = getattr(AdaptConfig(), k)
+        kw[k] = type(d)(v) if d is not None else v
+    tag = "_".join(f"{k}-{v}" for k, v in sorted(kw.items()))
+    for name in a.inputs:
+        run_input(name, a.split, {"default": {}, tag: kw}, a.repeats)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

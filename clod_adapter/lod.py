@@ -118,7 +118,9 @@ def centre_columns(means: Tensor, dtype: torch.dtype) -> Tensor:
     in-place version (``Tensor._version``: an optimiser step makes a new copy). The per-frame terms
     (:func:`in_frustum`, :func:`normalized_distances`) run on these rows: elementwise work on three
     contiguous [N] rows is 4-9x faster on the CPU than the same arithmetic on [N, 3] (a [N, 3] x
-    [3, 3] product took 0.6 ms at 60,000 Gaussians, the rows 0.07 ms)."""
+    [3, 3] product took 0.6 ms at 60,000 Gaussians, the rows 0.07 ms). A write through
+    ``tensor.data`` does not change the version: code that edits centres that way (none here) must
+    pass a new tensor."""
     key = id(means)
     hit = _COLUMNS.get(key)
     if hit is not None and hit[0]() is means and hit[1] == means._version and hit[2].dtype == dtype \

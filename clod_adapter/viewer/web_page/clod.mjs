@@ -90,8 +90,7 @@ app.init(opts);
 // the work buffer in half floats: the engine's default "compact" layout stores each splat's opacity
 // in 8 bits, its log-scale in 8 bits (8.6 % steps) and its colour in 11/11/10 bits, so the level
 // gains' continuous drift reached the frames as per-splat jumps; "large" keeps colour, opacity and
-// scale as half floats (fern's first test view: the largest step of the 31-step sweep 10.73e-3 ->
-// 10.38e-3, render_lod's 8.61e-3)
+// scale as half floats (benchmarks/web_popping_steps.py; README "In the browser")
 app.scene.gsplat.dataFormat = pc.GSPLATDATA_LARGE;
 // no size culling: render_lod draws every splat whose footprint reaches the image (the engine drops
 // splats whose quad is under 2 px by default, and the level's scale gains move splats across it)

@@ -53,9 +53,9 @@ def run_input(name: str, split: str) -> None:
     step_q8 = [image_change(a, b) for a, b in zip(q8, q8[1:])]
     print(f"[{name}] {cam.name}: static switch {pop['jump']:.5f}; ratio page {pop['ratio']:.2f}, render_lod "
           f"{pop['jump'] / max(step_cpu):.2f}, render_lod in 8 bits {pop['jump'] / max(step_q8):.2f}")
-    print(f"[{name}]   s_v  level   page  render_lod  8-bit  page/render_lod   (steps x 1e3)")
+    print(f"[{name}]   s_v  level (page, render_lod)   page  render_lod  8-bit  page/render_lod   (steps x 1e3)")
     for i, (s, o) in enumerate(zip(pop["s_v"][:-1], outs)):
-        print(f"[{name}] {s:5.2f}  {o.level:5.3f}  {1e3 * pop['step'][i]:5.2f}  {1e3 * step_cpu[i]:10.2f}  "
+        print(f"[{name}] {s:5.2f}  {pop['level'][i]:5.3f} {o.level:5.3f}  {1e3 * pop['step'][i]:5.2f}  {1e3 * step_cpu[i]:10.2f}  "
               f"{1e3 * step_q8[i]:5.2f}  {pop['step'][i] / max(step_cpu[i], 1e-12):15.2f}")
 
 

@@ -125,6 +125,7 @@ class LodView:
     _proj: Optional[tuple] = field(default=None, repr=False)  # (geom, row_of, visible, candidates or None)
     _d_norm: Optional[Tensor] = field(default=None, repr=False)
     _critical: Optional[Tensor] = field(default=None, repr=False)
+    _ramp: Optional[float] = field(default=None, repr=False)
     _opacities: Optional[Tensor] = field(default=None, repr=False)
 
     # --- per-camera terms ----------------------------------------------------------------------
@@ -200,6 +201,20 @@ class LodView:
                                           self.settings.tau, self.settings.eps)
         return self._critical
 
+    @property
+    def ramp_s_v(self) -> float:
+        """Where this view's ramp from full detail to the LoD rule ends (window fade; world-free
+        scalar >= 1.1): :func:`clod_adapter.lod.ramp_s_v` of the share of the Gaussians in the
+        frustum that Eq. 2's mask keeps at ``s_v = 1``."""
+        if self._ramp is None:
+            self._require_sigma()
+            st = self.settings
+            with torch.no_grad():
+                keep = lod.lod_mask(self.opacities, self.d_norm, self.sigma_d, 1.0, st.tau, st.eps) & self.frustum
+                n_fr = self.n_frustum
+                self._ramp = lod.ramp_s_v(float(keep.sum()) / n_fr if n_fr else 1.0, st.max_sv)
+        return self._ramp
+
     def _require_sigma(self) -> None:
         if self.sigma_d is None:
             raise ValueError("render_lod: s_v/budget given but the model has no sigma_d")
@@ -259,7 +274,8 @@ class LodView:
                                     self._share_in_frustum(self.visible))
             d = self.d_norm.detach()
             mask = lod.lod_mask(opac, d, sd, s_used, st.tau, st.eps)
-            if st.fade == "window" and lod.full_detail_share(s_used) > 0.0:
+            if st.fade == "window" and s_used < lod.ramp_cap(st.max_sv) and \
+                    lod.full_detail_share(s_used, self.ramp_s_v) > 0.0:
                 mask &= self.visible
                 return self._near_full_detail(mask, torch.nonzero(mask, as_tuple=False).squeeze(1), s_used, level)
             mask &= self._projection(mask)[2]  # only what the LoD mask keeps is projected
@@ -287,15 +303,15 @@ class LodView:
         return LodSelection(idx, drawn, mask, s_used, float(level), eta)
 
     def _near_full_detail(self, mask: Tensor, idx: Tensor, s_v: float, level: Optional[float]) -> LodSelection:
-        """Window fade, ``1 <= s_v < FADE_RAMP_S_V``: every Gaussian in view is drawn, those the
-        mask keeps with weight ``(1 - t) + t fade`` and the others with ``1 - t``, ``t`` =
+        """Window fade, ``1 <= s_v <`` :attr:`ramp_s_v`: every Gaussian in view is drawn, those the
+        mask keeps with weight ``(1 - t) + t fade`` and the others with ``1 - t``, ``t`` = 1 -
         :func:`clod_adapter.lod.full_detail_share` of ``s_v`` (0 at ``s_v = 1``: exactly the
         input; 1 at the ramp's end: the LoD rule). So full detail is the whole model in every
         view (a Gaussian whose critical ``s_v`` is below 1 in this view, e.g. a view whose
         frustum is shallower than the training views', fades out over the ramp instead of
         being missing), and the image stays continuous in ``s_v``."""
         st = self.settings
-        t = 1.0 - lod.full_detail_share(s_v)
+        t = 1.0 - lod.full_detail_share(s_v, self.ramp_s_v)
         n_fr = self.n_frustum
         if level is None:
             level = t * lod.level_of_fraction(idx.numel() / n_fr if n_fr else 1.0, st.max_sv)

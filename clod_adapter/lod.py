@@ -338,11 +338,35 @@ def fade_width_at(s_v: float, width: float = DEFAULT_FADE_WIDTH) -> float:
     return float(width) * min(1.0, max(math.log(max(float(s_v), 1.0)) / math.log(FADE_RAMP_S_V), 0.0))
 
 
-def full_detail_share(s_v: float) -> float:
+def full_detail_share(s_v: float, ramp: float = FADE_RAMP_S_V) -> float:
     """How much of full detail the window-fade drawing keeps at ``s_v``: 1 at ``s_v = 1``
-    (every Gaussian in view, whatever its ``sigma_d``), falling with ``ln s_v`` to 0 at
-    :data:`FADE_RAMP_S_V` (the LoD rule alone), 0 beyond (:meth:`clod_adapter.camera_lod.LodView.select`)."""
-    return 1.0 - min(1.0, max(math.log(max(float(s_v), 1.0)) / math.log(FADE_RAMP_S_V), 0.0))
+    (every Gaussian in view, whatever its ``sigma_d``), falling with ``ln s_v`` to 0 at ``ramp``
+    (the LoD rule alone; a view's :func:`ramp_s_v`, at least :data:`FADE_RAMP_S_V`), 0 beyond
+    (:meth:`clod_adapter.camera_lod.LodView.select`)."""
+    return 1.0 - min(1.0, max(math.log(max(float(s_v), 1.0)) / math.log(max(float(ramp), FADE_RAMP_S_V)), 0.0))
+
+
+def ramp_cap(max_sv: float) -> float:
+    """The longest ramp :func:`ramp_s_v` gives: ``sqrt(max_sv)`` (half the trained range in
+    ``ln s_v``), at least :data:`FADE_RAMP_S_V`."""
+    return max(FADE_RAMP_S_V, math.sqrt(max(float(max_sv), 1.0)))
+
+
+def ramp_s_v(share_at_1: float, max_sv: float) -> float:
+    """Where a view's ramp from full detail to the LoD rule ends (:func:`full_detail_share`):
+    ``FADE_RAMP_S_V * share_at_1^(-2/3)``, within [:data:`FADE_RAMP_S_V`, :func:`ramp_cap`].
+
+    ``share_at_1`` (in [0, 1]) is the share of the Gaussians in the frustum that Eq. 2's mask
+    keeps at ``s_v = 1`` in this view. Where it is near 1 (the view's normaliser as in the
+    training views) the ramp is the fixed 1.1; where a view's normaliser is shorter (a
+    360-degree capture looking at a near wall: skull's first test view keeps 61 %) full detail
+    draws Gaussians the rule has already left out, and the ramp lasts until the target share
+    ``s_v^-1.5`` has fallen by the same factor, so they fade out over as many ``s_v`` steps as
+    the rule's own exits instead of all at once (``benchmarks/web_popping_steps.py``)."""
+    sh = float(share_at_1)
+    if not sh > 0.0:
+        return ramp_cap(max_sv)
+    return min(max(FADE_RAMP_S_V * min(sh, 1.0) ** (-2.0 / 3.0), FADE_RAMP_S_V), ramp_cap(max_sv))
 
 
 def level(s_v: float | Tensor, max_sv: float) -> float:

@@ -186,21 +186,22 @@ def web_viewer_popping(driver, max_sv: float, steps: int = 31) -> dict:
 
     Returns:
         ``s_v`` [steps], ``drawn`` [steps], ``ms`` [steps] (the page's median frame time after
-        each step), ``frames`` [steps] images, ``step`` [steps - 1] mean |dI| between consecutive
+        each step), ``level`` [steps] (the page's level of the gains), ``frames`` [steps] images, ``step`` [steps - 1] mean |dI| between consecutive
         frames, ``jump`` (the static switch's mean |dI|) and ``ratio`` = jump / max(step).
     """
     s_vs = [1.0 + (max_sv - 1.0) * i / (steps - 1) for i in range(steps)]
-    frames, drawn, ms = [], [], []
+    frames, drawn, ms, levels = [], [], [], []
     for s in s_vs:
         img, st = web_viewer_frame(driver, s_v=s, static=False)
         frames.append(img)
         drawn.append(st["drawn"])
         ms.append(st["frameMs"])
+        levels.append(st["level"])
     change = frame_change
     first, _ = web_viewer_frame(driver, s_v=s_vs[0], static=True)
     last, _ = web_viewer_frame(driver, s_v=s_vs[-1], static=True)
     web_viewer_frame(driver, s_v=1.0, static=False)
     step = [change(a, b) for a, b in zip(frames, frames[1:])]
     jump = change(first, last)
-    return {"s_v": s_vs, "drawn": drawn, "ms": ms, "frames": frames, "step": step, "jump": jump,
+    return {"s_v": s_vs, "drawn": drawn, "ms": ms, "level": levels, "frames": frames, "step": step, "jump": jump,
             "ratio": jump / max(max(step), 1e-12)}

@@ -56,16 +56,37 @@ def test_full_detail_is_the_whole_model_in_every_view(scene):
         # a budget capped at full detail draws the same
         capped = render_lod(tiny, cam, budget=1.0, budget_in_view=True)
         assert torch.allclose(capped.image, plain.image, atol=1e-6)
+        # this view's ramp is longer than the fixed one: the rule keeps under half at s_v = 1
+        kept1 = float((lod.lod_mask(v.opacities, v.d_norm, v.sigma_d, 1.0) & v.frustum).sum()) / v.n_frustum
+        assert v.ramp_s_v == pytest.approx(lod.ramp_s_v(kept1, tiny.lod.max_sv))
+        assert v.ramp_s_v > lod.FADE_RAMP_S_V
         # continuous over the ramp: small steps of s_v change the image little, and the LoD
         # rule alone holds from the ramp's end
         prev, steps = full.image, []
-        for s in torch.linspace(1.0, lod.FADE_RAMP_S_V, 11)[1:].tolist():
+        for s in torch.linspace(1.0, v.ramp_s_v, 11)[1:].tolist():
             img = render_lod(tiny, cam, s).image
             steps.append(float((img - prev).abs().mean()))
             prev = img
         assert max(steps) < 0.25 * float((full.image - prev).abs().mean()) + 1e-6
-        end = render_lod(tiny, cam, lod.FADE_RAMP_S_V * 1.0001)
-        assert end.n_rendered == int(((v.critical > lod.FADE_RAMP_S_V * 1.0001) & v.visible).sum())
+        inside = render_lod(tiny, cam, 0.5 * (1.0 + v.ramp_s_v))  # within the ramp: the whole view drawn
+        assert inside.n_rendered == plain.n_rendered
+        end = render_lod(tiny, cam, v.ramp_s_v * 1.0001)
+        assert end.n_rendered == int(((v.critical > v.ramp_s_v * 1.0001) & v.visible).sum())
+
+
+def test_ramp_s_v_follows_the_share_kept_at_s_v_1():
+    # lod.ramp_s_v: the fixed ramp where the rule keeps every Gaussian at s_v = 1, longer by
+    # share^(-2/3) where it keeps less, capped at sqrt(max_sv); full_detail_share over it
+    assert lod.ramp_s_v(1.0, 5.0) == pytest.approx(lod.FADE_RAMP_S_V)
+    assert lod.ramp_s_v(0.6, 5.0) == pytest.approx(lod.FADE_RAMP_S_V * 0.6 ** (-2 / 3))
+    assert lod.ramp_s_v(0.01, 5.0) == pytest.approx(5.0 ** 0.5)
+    assert lod.ramp_s_v(0.0, 5.0) == pytest.approx(5.0 ** 0.5)
+    assert lod.ramp_s_v(0.5, 1.0) == pytest.approx(lod.FADE_RAMP_S_V)  # untrained range: the fixed ramp
+    r = lod.ramp_s_v(0.6, 5.0)
+    assert lod.full_detail_share(1.0, r) == 1.0 and lod.full_detail_share(r, r) == 0.0
+    assert lod.full_detail_share(r ** 0.5, r) == pytest.approx(0.5)
+    assert lod.full_detail_share(lod.FADE_RAMP_S_V, r) > 0.0
+    assert lod.full_detail_share(1.05, 1.0) == lod.full_detail_share(1.05)  # never shorter than the fixed ramp
 
 
 def test_s_v_frame_projects_only_its_mask_and_draws_the_same(scene):

@@ -20,13 +20,13 @@ from conftest import err_line, shared_path
 
 ENGINE = find_playcanvas()
 needs_engine = pytest.mark.skipif(ENGINE is None, reason="PlayCanvas engine not found: run `npm ci` in the repository root")
-#: the frame at s_v = 1 against our CPU render (issue 19); measured 25.07 dB on fern's first test view
+#: the frame at s_v = 1 against our CPU render (issue 19's goal); measured 26.19 dB on this test's
+#: short adaptation, fern's first test view (gsplat's kernel in the engine's shaders, blending in half floats)
 MIN_PSNR_DB = 25.0
-#: the popping ratio (one static switch over the largest step of the 31-step sweep). The issue's
-#: goal is 10; measured in the browser 8.2-8.8 on the trained fern model's three test views (our CPU
-#: renderer: 10.0-10.4 on the same sweeps; README "In the browser"), 9.4 on this test's short
-#: adaptation: the guard is below the goal, the miss is reported, not hidden
-MIN_POPPING_RATIO = 7.5
+#: the popping ratio (one static switch over the largest step of the 31-step sweep): issue 19's goal.
+#: Measured 11.1 on this test's short adaptation; on the trained models 9.8 (fern, below the goal)
+#: and 11.7 (skull) (README "In the browser", benchmarks/web_viewer.py)
+MIN_POPPING_RATIO = 10.0
 
 
 @needs_engine
@@ -92,7 +92,7 @@ def test_continuous_lod_in_headless_chromium(fern_web, tmp_path):
     from browser import (browser_missing, chromium_driver, compare_frames, frame_change, open_web_viewer,
                          serve_folder, web_viewer_frame, web_viewer_popping)
 
-    from clod_adapter.camera_lod import render_lod
+    from clod_adapter.camera_lod import render_lod, view_lod
     from clod_adapter.io.load import load_model, load_scene
 
     why = browser_missing(("selenium",))
@@ -113,8 +113,12 @@ def test_continuous_lod_in_headless_chromium(fern_web, tmp_path):
             engine = driver.execute_script("return window.clod.engine()")
     finally:
         driver.quit()
-    # half-float work buffer (the default 8-bit one quantises the level's continuous change) and no size culling
-    assert engine == {"dataFormat": "large", "minPixelSize": 0}, engine
+    # half-float work buffer (the default 8-bit one quantises the level's continuous change), no size
+    # culling, and blending in a half-float target (the 8-bit canvas rounds each of a pixel's blends)
+    assert engine["dataFormat"] == "large" and engine["minPixelSize"] == 0, engine
+    assert engine["halfFloatBlend"] is True, engine
+    # the page's ramp from full detail is the view's (lod.ramp_s_v; its share from the centres in the frustum)
+    assert states[2.0]["ramp"] == pytest.approx(view_lod(g, cam).ramp_s_v, rel=0.02)
     full = compare_frames(render_lod(g, cam, 1.0).image.clamp(0, 1).numpy(), frames[1.0])
     print(f"web vs CPU at s_v = 1: {full['psnr']:.2f} dB")
     assert full["psnr"] >= MIN_PSNR_DB, full

@@ -20,9 +20,13 @@ const st = cfg.settings;
 const SH_C0 = 0.28209479177387814;
 
 // --- the rule's scalars (clod_adapter/lod.py) ----------------------------------------------------
-const ramp = (s) => Math.min(1, Math.max(Math.log(Math.max(s, 1)) / Math.log(st.fade_ramp_s_v), 0));
+const ramp = (s, r = st.fade_ramp_s_v) => Math.min(1, Math.max(Math.log(Math.max(s, 1)) / Math.log(Math.max(r, st.fade_ramp_s_v)), 0));
 const fadeWidthAt = (s) => st.fade_width * ramp(s);                 // lod.fade_width_at
-const fullDetailShare = (s) => 1 - ramp(s);                         // lod.full_detail_share
+const fullDetailShare = (s, r) => 1 - ramp(s, r);                   // lod.full_detail_share
+const rampCap = Math.max(st.fade_ramp_s_v, Math.sqrt(Math.max(st.max_sv, 1)));     // lod.ramp_cap
+const rampSv = (share1) => (share1 > 0                                           // lod.ramp_s_v
+    ? Math.min(Math.max(st.fade_ramp_s_v * Math.pow(Math.min(share1, 1), -2 / 3), st.fade_ramp_s_v), rampCap)
+    : rampCap);
 const level = (s) => (st.max_sv > 1 ? Math.min(Math.max(Math.log(Math.max(s, 1)) / Math.log(st.max_sv), 0), 1) : 0);
 const levelOfFraction = (f) => (f > 0 ? level(Math.pow(Math.min(f, 1), -2 / 3)) : (st.max_sv > 1 ? 1 : 0));
 const logSigmoid = (x) => -Math.max(-x, 0) - Math.log1p(Math.exp(-Math.abs(x)));
@@ -87,6 +91,32 @@ opts.componentSystems = [pc.CameraComponentSystem, pc.GSplatComponentSystem];
 opts.resourceHandlers = [pc.TextureHandler, pc.GSplatHandler];
 const app = new pc.AppBase(canvas);
 app.init(opts);
+// gsplat 1.5.3's kernel in the engine's splat shaders (two of its GLSL chunks, edited by string so
+// a changed engine fails here loudly): the engine draws each splat's quad out to 2 sqrt 2 sigma and
+// renormalises exp(-r^2 / 2) to reach 0 at that edge; gsplat draws alpha = min(0.999, opacity
+// exp(-r^2 / 2)) wherever it is >= 1/255, i.e. out to 3.33 sigma for opacity 1. So the quad is
+// widened by 3.33 / 2.83 (the kernel's coordinate with it) and the plain Gaussian is drawn; the
+// engine's own 1/255 discard stays.
+const chunks = pc.ShaderChunks.get(device, pc.SHADERLANGUAGE_GLSL);
+const edit = (name, pairs) => {
+    let code = chunks.get(name);
+    for (const [from, to] of pairs) {
+        if (!code.includes(from)) throw new Error(`clod.mjs: the engine's ${name} chunk has changed (no "${from}")`);
+        code = code.replace(from, to);
+    }
+    chunks.set(name, code);
+};
+const EXTENT = '1.1774';  // 3.33 / (2 sqrt 2)
+edit('gsplatCornerVS', [
+    ['float l1 = 2.0 * min(sqrt(2.0 * lambda1), vmin);', `float l1 = 2.0 * min(${EXTENT} * sqrt(2.0 * lambda1), vmin);`],
+    ['float l2 = 2.0 * min(sqrt(2.0 * lambda2), vmin);', `float l2 = 2.0 * min(${EXTENT} * sqrt(2.0 * lambda2), vmin);`],
+    ['corner.uv = source.cornerUV;', `corner.uv = source.cornerUV * ${EXTENT};`],
+]);
+edit('gsplatPS', [
+    ['if (A > 1.0) {\n\t\tdiscard;\n\t}', ''],
+    ['mediump float alpha = normExp(A) * gaussianColor.a;', 'float alpha = min(0.999, exp(-4.0 * A) * gaussianColor.a);'],
+    ['mediump float A = dot(gaussianUV, gaussianUV);', 'float A = dot(gaussianUV, gaussianUV);'],
+]);
 // the work buffer in half floats: the engine's default "compact" layout stores each splat's opacity
 // in 8 bits, its log-scale in 8 bits (8.6 % steps) and its colour in 11/11/10 bits, so the level
 // gains' continuous drift reached the frames as per-splat jumps; "large" keeps colour, opacity and
@@ -137,8 +167,45 @@ const camera = new pc.Entity('camera');
 camera.addComponent('camera', { clearColor: new pc.Color(0, 0, 0, 1), nearClip: 0.01, farClip: 1e4 });
 app.root.addChild(camera);
 
+// blending in half floats: the camera draws into an RGBA16F target, copied once per frame to the
+// canvas. Drawn straight to the 8-bit canvas, each of a pixel's ~50 blends is rounded to 1/255, and
+// while the level gains move every splat a little per step those roundings change everywhere
+// (the page's steps were 1.1-1.2x render_lod's there; benchmarks/web_popping_steps.py). The camera
+// keeps its sRGB output, so the splats blend in gamma space as render_lod does (the engine's
+// CameraFrame blends in linear light). Where the format is not renderable the canvas is drawn as before.
+const blendFormat = device.getRenderableHdrFormat([pc.PIXELFORMAT_RGBA16F], false, 1, true);
+let target = null;
+function makeTarget() {
+    if (blendFormat === undefined) return;
+    const W = canvas.width, H = canvas.height;
+    if (target && target.width === W && target.height === H) return;
+    target?.destroyTextureBuffers();
+    target?.destroy();
+    const tex = new pc.Texture(device, { name: 'clodBlend', width: W, height: H, format: blendFormat, mipmaps: false,
+                                         minFilter: pc.FILTER_NEAREST, magFilter: pc.FILTER_NEAREST,
+                                         addressU: pc.ADDRESS_CLAMP_TO_EDGE, addressV: pc.ADDRESS_CLAMP_TO_EDGE });
+    target = new pc.RenderTarget({ name: 'clodBlend', colorBuffer: tex, depth: true });
+    camera.camera.renderTarget = target;
+}
+const copyShader = pc.ShaderUtils.createShader(device, {
+    uniqueName: 'clodCopy', attributes: { vertex_position: pc.SEMANTIC_POSITION }, vertexChunk: 'fullscreenQuadVS',
+    fragmentGLSL: 'uniform sampler2D clodSource;\n' +
+        'void main(void) { gl_FragColor = vec4(texelFetch(clodSource, ivec2(gl_FragCoord.xy), 0).rgb, 1.0); }',
+});
+const sourceId = device.scope.resolve('clodSource');
+makeTarget();
+device.on('resizecanvas', makeTarget);
+app.on('postrender', () => {
+    if (!target) return;
+    device.setBlendState(pc.BlendState.NOBLEND);
+    device.setDepthState(pc.DepthState.NODEPTH);
+    device.setCullMode(pc.CULLFACE_NONE);
+    sourceId.setValue(target.colorBuffer);
+    pc.drawQuadWithShader(device, null, copyShader);
+});
+
 // --- state: s_v, the static toggle, the camera ----------------------------------------------------
-const state = { sv: 1, static: false, cam: 0, drawn: 0, inFrustum: 0, level: 0, dmax: 0, frameMs: NaN, updates: 0 };
+const state = { sv: 1, static: false, cam: 0, drawn: 0, inFrustum: 0, level: 0, dmax: 0, ramp: 1.1, frameMs: NaN, updates: 0 };
 const stride = Math.max(1, Math.ceil(N / 200000));
 const inv = new pc.Mat4();
 const p = new pc.Vec3();
@@ -195,18 +262,22 @@ function update() {
             dmax = Math.max(dmax, Math.sqrt(dx * dx + dy * dy + dz * dz));
         }
     }
-    let drawn = 0;
+    // drawn: Eq. 2's mask at s (everything in view at s = 1); kept1: the mask at s_v = 1 (the ramp)
+    let drawn = 0, kept1 = 0;
     const eq2 = st.fade === 'eq2';
     const invD = 1 / Math.max(dmax, 1e-12);
+    const logTau = Math.log(st.tau);
     for (let i = 0; i < N; i += stride) {
         if (!inside[i]) continue;
-        if (s <= 1 && !eq2) { drawn++; continue; }
         const dx = col.x[i] - cp.x, dy = col.y[i] - cp.y, dz = col.z[i] - cp.z;
-        const x = Math.sqrt(dx * dx + dy * dy + dz * dz) * invD * s;
+        const x1 = Math.sqrt(dx * dx + dy * dy + dz * dz) * invD, x = x1 * s;
         const sd = Math.max(col.sigma_d[i], 0);
-        if (logSigmoid(col.opacity_logit[i]) - x * x / (2 * sd * sd + st.eps) - logTauS > 0) drawn++;
+        const la = logSigmoid(col.opacity_logit[i]), den = 2 * sd * sd + st.eps;
+        if (la - x1 * x1 / den - logTau > 0) kept1++;
+        if ((s <= 1 && !eq2) || la - x * x / den - logTauS > 0) drawn++;
     }
-    const t = eq2 ? 1 : 1 - fullDetailShare(s);
+    state.ramp = nIn ? rampSv(kept1 / nIn) : st.fade_ramp_s_v;
+    const t = eq2 ? 1 : 1 - fullDetailShare(s, state.ramp);
     const share = nIn ? drawn / nIn : 1;
     state.level = s <= 1 || eq2 ? 0 : t * levelOfFraction(share);
     state.drawn = Math.round(drawn * stride);
@@ -267,6 +338,7 @@ window.clod = {
     setCamera,
     frames: () => app.frame,
     // the engine settings the rule's fidelity depends on (the work buffer's precision, size culling)
-    engine: () => ({ dataFormat: app.scene.gsplat.dataFormat, minPixelSize: app.scene.gsplat.minPixelSize }),
+    engine: () => ({ dataFormat: app.scene.gsplat.dataFormat, minPixelSize: app.scene.gsplat.minPixelSize,
+                     blendFormat: target ? target.colorBuffer.format : null, halfFloatBlend: target?.colorBuffer.format === pc.PIXELFORMAT_RGBA16F }),
 };
 window.__clodReady = true;

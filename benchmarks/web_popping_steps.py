@@ -3,7 +3,9 @@
 For each input (default: fern) the default adaptation's ``clod-export --web`` page is opened in
 headless chromium (SwiftShader) at the first test view, and the 31-step ``s_v`` sweep of the
 popping measure (:func:`browser.web_viewer_popping`) is taken from the page and through
-``render_lod`` (float frames, and the same frames rounded to 8 bits). Printed per step: ``s_v``,
+``render_lod`` (float frames, and the same frames rounded to 8 bits); then one step of 0.001 at
+``s_v = 1.5`` (the level of the gains moving) and 4.5 (the level at 1), page against ``render_lod``.
+Printed per step: ``s_v``,
 the level of the gains, the page's and the CPU's mean |dI|, and the ratios (the page's static
 switch over each sweep's largest step)::
 
@@ -28,7 +30,8 @@ from clod_adapter.training import AdaptConfig
 from clod_adapter.viewer.web import find_playcanvas, write_web_viewer
 
 sys.path.insert(0, str(REPO / "tests"))  # the headless-browser helpers live with the tests
-from browser import browser_missing, chromium_driver, open_web_viewer, serve_folder, web_viewer_popping  # noqa: E402
+from browser import (browser_missing, chromium_driver, frame_change, open_web_viewer, serve_folder,  # noqa: E402
+                     web_viewer_frame, web_viewer_popping)
 
 
 def run_input(name: str, split: str) -> None:
@@ -44,6 +47,12 @@ def run_input(name: str, split: str) -> None:
             with serve_folder(site) as base:
                 open_web_viewer(driver, f"{base}/index.html?{urlencode({'w': cam.width, 'h': cam.height, 'cam': 0})}")
                 pop = web_viewer_popping(driver, g.lod.max_sv)
+                small = []  # the page's change for a step of 0.001 in s_v, while the level moves and after
+                for s0 in (1.5, 4.5):
+                    a, _ = web_viewer_frame(driver, s_v=s0)
+                    b, _ = web_viewer_frame(driver, s_v=s0 + 1e-3)
+                    cpu_ab = [render_lod(g, cam, s).image.clamp(0, 1) for s in (s0, s0 + 1e-3)]
+                    small.append((s0, frame_change(a, b), image_change(*cpu_ab)))
         finally:
             driver.quit()
         outs = [render_lod(g, cam, s) for s in pop["s_v"]]
@@ -53,6 +62,8 @@ def run_input(name: str, split: str) -> None:
     step_q8 = [image_change(a, b) for a, b in zip(q8, q8[1:])]
     print(f"[{name}] {cam.name}: static switch {pop['jump']:.5f}; ratio page {pop['ratio']:.2f}, render_lod "
           f"{pop['jump'] / max(step_cpu):.2f}, render_lod in 8 bits {pop['jump'] / max(step_q8):.2f}")
+    for s0, page, cpu_d in small:
+        print(f"[{name}] s_v {s0} -> {s0 + 1e-3:.3f}: page {page:.5f}, render_lod {cpu_d:.5f} (mean |dI|)")
     print(f"[{name}]   s_v  level (page, render_lod)   page  render_lod  8-bit  page/render_lod   (steps x 1e3)")
     for i, (s, o) in enumerate(zip(pop["s_v"][:-1], outs)):
         print(f"[{name}] {s:5.2f}  {pop['level'][i]:5.3f} {o.level:5.3f}  {1e3 * pop['step'][i]:5.2f}  {1e3 * step_cpu[i]:10.2f}  "

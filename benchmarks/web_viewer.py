@@ -11,7 +11,10 @@ intrinsics, and measures against our CPU renderer (``render_lod``) of the same c
 * popping (the first view): 31 frames at ``s_v`` from 1 to max_sv (linear, as ``clod-eval``),
   the largest frame-to-frame mean |dI| against one switch between the page's static cuts at the
   first and last counts (goal: ratio >= 10), beside the same sweep on the CPU;
-* the page's frame time along that sweep (median of its last 30 frames after each step).
+* the page's frame time along that sweep (median of its last 30 frames after each step);
+* what blending in half floats (``?blend=16``) costs and buys: the page's frame time at ``s_v = 1``
+  and max_sv with it and without (the default: straight to the 8-bit canvas), interleaved rounds,
+  each one's frame at ``s_v = 1`` against ``render_lod``, and its popping ratio on the first view.
 
 Writes ``runs/bench/web_viewer{_val}/summary.md``, ``docs/web_viewer.png`` (the first view of the
 first input at s_v = 1, 2, 5 and the static cut at s_v = 5's count) and ``docs/web_viewer_page.png``
@@ -91,9 +94,37 @@ def run_input(name: str, split: str, log, shots: list) -> dict:
                         res["popping"]["cpu_max_step"] = cpu_popping(g, cam, max_sv)
                     res["views"].append(row)
                     log(f"[{name}] {cam.name}: s_v=1 {row[1.0]['psnr']:.2f} dB vs render_lod")
+                cam = cams[0]
+                res["blend"] = blend_cost(driver, f"{base}/index.html?{urlencode({'w': cam.width, 'h': cam.height, 'cam': 0})}",
+                                          render_lod(g, cam, 1.0).image.clamp(0, 1).numpy(), max_sv)
+                b = res["blend"]
+                log(f"[{name}] blending: frame ms s_v = 1 / max_sv, half-float target {b['16f'][0]:.0f} / {b['16f'][1]:.0f}, "
+                    f"8-bit canvas {b['8'][0]:.0f} / {b['8'][1]:.0f}; s_v = 1 vs render_lod {b['psnr16f']:.2f} / {b['psnr8']:.2f} dB; "
+                    f"popping with the half-float target {b['ratio16f']:.1f}")
         finally:
             driver.quit()
     return res
+
+
+def blend_cost(driver, url: str, ref: np.ndarray, max_sv: float, rounds: int = 3, settle: int = 30) -> dict:
+    """The page's frame time drawn straight to its 8-bit canvas (the default) and with ``?blend=16``
+    (blending in a half-float target): median over ``rounds`` interleaved rounds of the page's own median frame
+    time after ``settle`` frames at ``s_v = 1`` and at max_sv; and each frame at ``s_v = 1``
+    against ``ref`` (render_lod's, [H, W, 3] in [0, 1]); then the popping ratio with ``?blend=16``."""
+    ms: dict = {"16f": ([], []), "8": ([], [])}
+    psnr = {}
+    for _ in range(rounds):
+        for mode in ("16f", "8"):
+            open_web_viewer(driver, url + ("&blend=16" if mode == "16f" else ""))
+            for j, s in enumerate((1.0, max_sv)):
+                img, st = web_viewer_frame(driver, s_v=s, settle=settle)
+                ms[mode][j].append(st["frameMs"])
+                if j == 0:
+                    psnr[mode] = compare_frames(ref, img)["psnr"]
+    open_web_viewer(driver, url + "&blend=16")
+    pop16 = web_viewer_popping(driver, max_sv)
+    return {"16f": [statistics.median(x) for x in ms["16f"]], "8": [statistics.median(x) for x in ms["8"]],
+            "psnr16f": psnr["16f"], "psnr8": psnr["8"], "ratio16f": pop16["ratio"]}
 
 
 def figure(shots: list, path: Path) -> None:
@@ -123,13 +154,14 @@ def main(argv=None) -> int:
     results = [run_input(n, a.split, log, shots) for n in a.inputs]
     lines, missed = [], 0
     lines += ["| input | views | s_v = 1 PSNR vs render_lod (min / median) | s_v = 2 | s_v = 5 | drawn s_v = 1 / 2 / 5 "
-              "(page; render_lod) | popping ratio (CPU same sweep) | frame ms s_v = 1 -> max_sv |",
-              "|---|---:|---|---|---|---|---|---|"]
+              "(page; render_lod) | popping ratio (CPU same sweep) | frame ms s_v = 1 -> max_sv | "
+              "blending: frame ms s_v = 1 / max_sv and s_v = 1 PSNR, ?blend=16 (half-float target, and its popping ratio); default 8-bit canvas |",
+              "|---|---:|---|---|---|---|---|---|---|"]
     for r in results:
         p1 = [v[1.0]["psnr"] for v in r["views"]]
         med = {s: statistics.median(v[s]["psnr"] for v in r["views"]) for s in LEVELS}
         v0 = r["views"][0]
-        pop = r["popping"]
+        pop, b = r["popping"], r["blend"]
         cpu_ratio = pop["jump"] / max(pop["cpu_max_step"], 1e-12)
         ok = min(p1) >= MIN_PSNR_DB and pop["ratio"] >= MIN_POPPING_RATIO
         missed += not ok
@@ -137,7 +169,9 @@ def main(argv=None) -> int:
                      f"{med[5.0]:.2f} | " + " / ".join(f"{v0[s]['drawn']:,}" for s in LEVELS) + "; "
                      + " / ".join(f"{v0[s]['cpu_drawn']:,}" for s in LEVELS)
                      + f" | {pop['ratio']:.1f} (largest step {max(pop['step']):.4f}, switch {pop['jump']:.4f}; "
-                     f"CPU {cpu_ratio:.1f}) | {pop['ms'][0]:.0f} -> {pop['ms'][-1]:.0f} (min {min(pop['ms']):.0f}) |")
+                     f"CPU {cpu_ratio:.1f}) | {pop['ms'][0]:.0f} -> {pop['ms'][-1]:.0f} (min {min(pop['ms']):.0f}) | "
+                     f"{b['16f'][0]:.0f} / {b['16f'][1]:.0f} ms, {b['psnr16f']:.2f} dB, popping {b['ratio16f']:.1f}; "
+                     f"{b['8'][0]:.0f} / {b['8'][1]:.0f} ms, {b['psnr8']:.2f} dB |")
     out = RUNS / f"web_viewer{split_suffix(a.split)}"
     out.mkdir(parents=True, exist_ok=True)
     (out / "summary.md").write_text("\n".join(lines) + "\n")

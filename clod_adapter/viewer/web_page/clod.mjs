@@ -112,6 +112,12 @@ edit('gsplatCornerVS', [
     ['float l2 = 2.0 * min(sqrt(2.0 * lambda2), vmin);', `float l2 = 2.0 * min(${EXTENT} * sqrt(2.0 * lambda2), vmin);`],
     ['corner.uv = source.cornerUV;', `corner.uv = source.cornerUV * ${EXTENT};`],
 ]);
+// the engine's opacity-aware quad (each splat's quad clipped to where opacity exp(-r^2 / 2) falls to
+// 1/255, gsplat's extent), measured against the widened quad: no splat's quad grows beyond that
+edit('gsplatCommonVS', [
+    ['float clip = min(1.0, sqrt(max(0.0, log(alpha / alphaClipValue))) * 0.5);',
+     `float clip = min(1.0, sqrt(max(0.0, log(alpha / alphaClipValue))) * ${(0.5 / 1.1774).toFixed(6)});`],
+]);
 edit('gsplatPS', [
     ['if (A > 1.0) {\n\t\tdiscard;\n\t}', ''],
     ['mediump float alpha = normExp(A) * gaussianColor.a;', 'float alpha = min(0.999, exp(-4.0 * A) * gaussianColor.a);'],
@@ -167,13 +173,15 @@ const camera = new pc.Entity('camera');
 camera.addComponent('camera', { clearColor: new pc.Color(0, 0, 0, 1), nearClip: 0.01, farClip: 1e4 });
 app.root.addChild(camera);
 
-// blending in half floats: the camera draws into an RGBA16F target, copied once per frame to the
-// canvas. Drawn straight to the 8-bit canvas, each of a pixel's ~50 blends is rounded to 1/255, and
-// while the level gains move every splat a little per step those roundings change everywhere
-// (the page's steps were 1.1-1.2x render_lod's there; benchmarks/web_popping_steps.py). The camera
+// ?blend=16: blending in half floats. The camera draws into an RGBA16F target, copied once per frame
+// to the canvas, instead of straight into the 8-bit canvas, where each of a pixel's ~50 blends is
+// rounded to 1/255 and, while the level gains move every splat a little per step, those roundings
+// change everywhere (the page's popping steps 5-10 % larger than render_lod's there). The camera
 // keeps its sRGB output, so the splats blend in gamma space as render_lod does (the engine's
-// CameraFrame blends in linear light). Where the format is not renderable the canvas is drawn as before.
-const blendFormat = device.getRenderableHdrFormat([pc.PIXELFORMAT_RGBA16F], false, 1, true);
+// CameraFrame blends in linear light). Off by default: SwiftShader's frame took 26 % longer at full
+// detail and 51 % at max_sv with it (benchmarks/web_viewer.py), for +0.13 dB against render_lod.
+const blendFormat = q.get('blend') === '16'
+    ? device.getRenderableHdrFormat([pc.PIXELFORMAT_RGBA16F], false, 1, true) : undefined;
 let target = null;
 function makeTarget() {
     if (blendFormat === undefined) return;

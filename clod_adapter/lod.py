@@ -64,7 +64,9 @@ Fade = Literal["window", "eq2"]
 DEFAULT_FADE_WIDTH = 0.5
 #: the fade window opens from zero width at ``s_v = 1`` to its full width at this ``s_v``, so
 #: full detail draws every Gaussian that passes the mask at its own opacity (and the image stays
-#: continuous in ``s_v``: a Gaussian's weight ``m / width`` still reaches 0 where it leaves).
+#: continuous in ``s_v``: a Gaussian's weight ``m / width`` still reaches 0 where it leaves); the
+#: blend from full detail to the rule (:func:`full_detail_share`) lasts at least this long, longer
+#: in a view whose mask keeps less than all at ``s_v = 1`` (:func:`ramp_s_v`).
 FADE_RAMP_S_V = 1.1
 
 

@@ -91,7 +91,7 @@ opts.componentSystems = [pc.CameraComponentSystem, pc.GSplatComponentSystem];
 opts.resourceHandlers = [pc.TextureHandler, pc.GSplatHandler];
 const app = new pc.AppBase(canvas);
 app.init(opts);
-// gsplat 1.5.3's kernel in the engine's splat shaders (two of its GLSL chunks, edited by string so
+// gsplat 1.5.3's kernel in the engine's splat shaders (three of its GLSL chunks, edited by string so
 // a changed engine fails here loudly): the engine draws each splat's quad out to 2 sqrt 2 sigma and
 // renormalises exp(-r^2 / 2) to reach 0 at that edge; gsplat draws alpha = min(0.999, opacity
 // exp(-r^2 / 2)) wherever it is >= 1/255, i.e. out to 3.33 sigma for opacity 1. So the quad is
@@ -176,10 +176,11 @@ app.root.addChild(camera);
 // ?blend=16: blending in half floats. The camera draws into an RGBA16F target, copied once per frame
 // to the canvas, instead of straight into the 8-bit canvas, where each of a pixel's ~50 blends is
 // rounded to 1/255 and, while the level gains move every splat a little per step, those roundings
-// change everywhere (the page's popping steps 5-10 % larger than render_lod's there). The camera
-// keeps its sRGB output, so the splats blend in gamma space as render_lod does (the engine's
-// CameraFrame blends in linear light). Off by default: SwiftShader's frame took 26 % longer at full
-// detail and 51 % at max_sv with it (benchmarks/web_viewer.py), for +0.13 dB against render_lod.
+// change everywhere (on fern the page's popping steps are 12-16 % larger than render_lod's there,
+// 2-10 % with this target; benchmarks/web_popping_steps.py). The camera keeps its sRGB output, so
+// the splats blend in gamma space as render_lod does (the engine's CameraFrame blends in linear
+// light). Off by default: SwiftShader's frame took 27-66 % longer with it on fern and skull, for
+// +0.13 / +0.86 dB against render_lod at s_v = 1 (benchmarks/web_viewer.py; README "In the browser").
 const blendFormat = q.get('blend') === '16'
     ? device.getRenderableHdrFormat([pc.PIXELFORMAT_RGBA16F], false, 1, true) : undefined;
 let target = null;

@@ -7,9 +7,12 @@ popping measure (:func:`browser.web_viewer_popping`) is taken from the page and 
 ``s_v = 1.5`` (the level of the gains moving) and 4.5 (the level at 1), page against ``render_lod``.
 Printed per step: ``s_v``,
 the level of the gains, the page's and the CPU's mean |dI|, and the ratios (the page's static
-switch over each sweep's largest step)::
+switch over each sweep's largest step). ``--query KEY=VALUE ...`` adds page options (e.g.
+``work=half``: the engine's half-float work buffer instead of the page's float32 one;
+``blend=16``)::
 
     python benchmarks/web_popping_steps.py --inputs fern
+    python benchmarks/web_popping_steps.py --inputs fern --query work=half
 """
 from __future__ import annotations
 
@@ -34,7 +37,7 @@ from browser import (browser_missing, chromium_driver, frame_change, open_web_vi
                      web_viewer_frame, web_viewer_popping)
 
 
-def run_input(name: str, split: str) -> None:
+def run_input(name: str, split: str, query: dict) -> None:
     g = load_model(adapt_cached(name, AdaptConfig(), "default", split=split))
     _, scene, _ = load_input(name, split)
     fit, cams = scene_views(scene, split)
@@ -45,7 +48,7 @@ def run_input(name: str, split: str) -> None:
         driver = chromium_driver(Path(d) / "profile", window=(cam.width + 60, cam.height + 240))
         try:
             with serve_folder(site) as base:
-                open_web_viewer(driver, f"{base}/index.html?{urlencode({'w': cam.width, 'h': cam.height, 'cam': 0})}")
+                open_web_viewer(driver, f"{base}/index.html?{urlencode({'w': cam.width, 'h': cam.height, 'cam': 0, **query})}")
                 pop = web_viewer_popping(driver, g.lod.max_sv)
                 small = []  # the page's change for a step of 0.001 in s_v, while the level moves and after
                 for s0 in (1.5, 4.5):
@@ -60,6 +63,7 @@ def run_input(name: str, split: str) -> None:
     q8 = [torch.round(f * 255) / 255 for f in cpu]
     step_cpu = [image_change(a, b) for a, b in zip(cpu, cpu[1:])]
     step_q8 = [image_change(a, b) for a, b in zip(q8, q8[1:])]
+    print(f"[{name}] page options {query or 'default'}")
     print(f"[{name}] {cam.name}: static switch {pop['jump']:.5f}; ratio page {pop['ratio']:.2f}, render_lod "
           f"{pop['jump'] / max(step_cpu):.2f}, render_lod in 8 bits {pop['jump'] / max(step_q8):.2f}")
     for s0, page, cpu_d in small:
@@ -71,12 +75,13 @@ def run_input(name: str, split: str) -> None:
 
 
 def main() -> int:
-    a = parse_inputs_args(__doc__, inputs=("fern",))
+    a = parse_inputs_args(__doc__, inputs=("fern",), extra=[("--query", {"nargs": "*", "default": [],
+                                                                       "help": "page options KEY=VALUE"})])
     why = browser_missing(("selenium",))
     if why or find_playcanvas() is None:
         sys.exit(f"web_popping_steps: {why or 'PlayCanvas engine not found (`npm ci`)'}")
     for name in a.inputs:
-        run_input(name, a.split)
+        run_input(name, a.split, dict(kv.split("=", 1) for kv in a.query))
     return 0
 
 

@@ -127,6 +127,7 @@ class LodView:
     _critical: Optional[Tensor] = field(default=None, repr=False)
     _ramp: Optional[float] = field(default=None, repr=False)
     _opacities: Optional[Tensor] = field(default=None, repr=False)
+    _n_frustum: Optional[int] = field(default=None, repr=False)
 
     # --- per-camera terms ----------------------------------------------------------------------
     @property
@@ -141,7 +142,9 @@ class LodView:
     def n_frustum(self) -> int:
         """Gaussian centres inside the view frustum: the population of the level's share (no
         projection needed, so an ``s_v`` frame projects only what its LoD mask keeps)."""
-        return int(self.frustum.sum())
+        if self._n_frustum is None:
+            self._n_frustum = int(self.frustum.sum())
+        return self._n_frustum
 
     def _projection(self, candidates: Optional[Tensor] = None) -> tuple:
         """(geometry, row_of [N], visible [N]) of the Gaussians in front of the camera (all of them,
@@ -182,7 +185,7 @@ class LodView:
     def opacities(self) -> Tensor:
         """[N] activated base opacities."""
         if self._opacities is None:
-            self._opacities = torch.sigmoid(self.opacity_logits)
+            self._opacities = lod.activated(self.opacity_logits, "sigmoid")
         return self._opacities
 
     @property
@@ -468,8 +471,7 @@ class LodView:
     def _share_in_frustum(self, mask: Tensor) -> Tensor:
         """[] float: the share of the frustum's Gaussians that ``mask`` [N] bool holds, 0 for an
         empty frustum (counts, not a compacted copy: this runs every frame)."""
-        n = self.frustum.sum()
-        return ((mask & self.frustum).sum() / n.clamp_min(1)).to(self.means.dtype)
+        return ((mask & self.frustum).sum() / max(self.n_frustum, 1)).to(self.means.dtype)
 
     # --- drawing -------------------------------------------------------------------------------
     def drawn_attributes(self, sel: LodSelection) -> tuple[Tensor, Tensor, Tensor, Tensor]:
@@ -562,11 +564,15 @@ def view_lod_tensors(means: Tensor, quats: Tensor, scales: Tensor, opacity_logit
     viewmat = viewmat.to(means.device, dt)
     K = K.to(means.device, dt)
     w, h = int(width), int(height)
-    frustum = lod.in_frustum(means, viewmat, K, w, h, NEAR_PLANE)
+    d_norm = None
+    if means.requires_grad and torch.is_grad_enabled():  # d' keeps its gradient (on first use)
+        frustum = lod.in_frustum(means, viewmat, K, w, h, NEAR_PLANE)
+    else:  # both terms in one pass (the C++ kernel where it builds)
+        frustum, d_norm = lod.frame_terms(means, viewmat, K, w, h, NEAR_PLANE)
     return LodView(means=means, quats=quats, scales=scales, opacity_logits=opacity_logits, colors=colors,
                    sigma_d=sigma_d, gains={k: v for k, v in (gains or {}).items() if v is not None},
                    settings=_settings(settings, tau, eps), viewmat=viewmat, K=K, width=w, height=h,
-                   frustum=frustum, project_ms=(time.perf_counter() - t0) * 1e3)
+                   frustum=frustum, project_ms=(time.perf_counter() - t0) * 1e3, _d_norm=d_norm)
 
 
 def view_lod(gaussians: Gaussians, camera, *, tau: Optional[float] = None,
@@ -575,7 +581,7 @@ def view_lod(gaussians: Gaussians, camera, *, tau: Optional[float] = None,
     ``camera``: any object with ``viewmat`` [4, 4] (world-to-camera, OpenCV axes), ``K`` [3, 3]
     (pixels), ``width``, ``height`` (e.g. :class:`clod_adapter.io.scene.Camera`)."""
     g = gaussians
-    return view_lod_tensors(g.means, g.quats, g.scales, g.opacity_logits, ShParts(g.sh0, g.shN), camera.viewmat, camera.K,
+    return view_lod_tensors(g.means, g.quats, lod.activated(g.log_scales, "exp"), g.opacity_logits, ShParts(g.sh0, g.shN), camera.viewmat, camera.K,
                             camera.width, camera.height, sigma_d=g.sigma_d,
                             gains={k: getattr(g, k) for k in ("opacity_logit_gain", "log_scale_gain", "sh0_gain")},
                             settings=g.lod, tau=tau, eps=eps)
@@ -727,7 +733,7 @@ def render_lod(
                                         backend=backend)
     t3 = time.perf_counter()
     return LodRender(image=image, alpha=alpha, mask=sel.mask, n_rendered=int(sel.indices.numel()),
-                     n_frustum=int(view.frustum.sum()), eta=sel.eta, s_v=sel.s_v, level=sel.level,
+                     n_frustum=view.n_frustum, eta=sel.eta, s_v=sel.s_v, level=sel.level,
                      project_ms=view.project_ms, select_ms=(t2 - t1) * 1e3 - (view.project_ms - p0),
                      raster_ms=(t3 - t2) * 1e3, meta=meta)
 

@@ -46,6 +46,8 @@ from typing import Literal, Optional
 import torch
 from torch import Tensor
 
+from .render.native import load as load_kernels, wanted as kernels_wanted
+
 #: default LoD threshold: 3DGS prunes opacities below 0.005, so at s_v = 1 every Gaussian of a
 #: pretrained model passes (``alpha > tau``) when ``sigma_d`` is initialised large.
 DEFAULT_TAU = 0.005
@@ -110,35 +112,52 @@ def _work_dtype(*ts: Tensor) -> torch.dtype:
     return dt
 
 
-#: cached [3, N] column copies of centre tensors (:func:`centre_columns`), id -> (weakref, version, cols)
-_COLUMNS: dict = {}
-_COLUMNS_MAX = 8
+#: per-tensor derived values (:func:`_cached`): (id, name) -> (weakref, version, value)
+_CACHE: dict = {}
+_CACHE_MAX = 16
+
+
+def _cached(t: Tensor, name: str, make) -> Tensor:
+    """``make(t)``, cached per tensor, in-place version (``Tensor._version``: an optimiser step
+    makes a new value) and ``name``. Only for values without gradient. A write through
+    ``tensor.data`` does not change the version: code that edits a model that way (none here)
+    must pass a new tensor."""
+    key = (id(t), name)
+    hit = _CACHE.get(key)
+    if hit is not None and hit[0]() is t and hit[1] == t._version and hit[2].device == t.device:
+        return hit[2]
+    val = make(t)
+    try:  # oldest first; another thread (the viewer's) may be evicting too
+        while len(_CACHE) >= _CACHE_MAX:
+            _CACHE.pop(next(iter(_CACHE)), None)
+    except (RuntimeError, StopIteration):
+        pass
+    try:
+        _CACHE[key] = (weakref.ref(t), t._version, val)
+    except TypeError:  # not weak-referenceable: no caching
+        pass
+    return val
 
 
 def centre_columns(means: Tensor, dtype: torch.dtype) -> Tensor:
     """[3, N] contiguous copy of ``means`` [N, 3] (detached, in ``dtype``), cached per tensor and
-    in-place version (``Tensor._version``: an optimiser step makes a new copy). The per-frame terms
-    (:func:`in_frustum`, :func:`normalized_distances`) run on these rows: elementwise work on three
+    in-place version (:func:`_cached`). The per-frame terms (:func:`in_frustum`,
+    :func:`normalized_distances`, :func:`frame_terms`) run on these rows: elementwise work on three
     contiguous [N] rows is 4-9x faster on the CPU than the same arithmetic on [N, 3] (a [N, 3] x
-    [3, 3] product took 0.6 ms at 60,000 Gaussians, the rows 0.07 ms). A write through
-    ``tensor.data`` does not change the version: code that edits centres that way (none here) must
-    pass a new tensor."""
-    key = id(means)
-    hit = _COLUMNS.get(key)
-    if hit is not None and hit[0]() is means and hit[1] == means._version and hit[2].dtype == dtype \
-            and hit[2].device == means.device:
-        return hit[2]
-    cols = means.detach().to(dtype).t().contiguous()
-    try:  # oldest first; another thread (the viewer's) may be evicting too
-        while len(_COLUMNS) >= _COLUMNS_MAX:
-            _COLUMNS.pop(next(iter(_COLUMNS)), None)
-    except (RuntimeError, StopIteration):
-        pass
-    try:
-        _COLUMNS[key] = (weakref.ref(means), means._version, cols)
-    except TypeError:  # not weak-referenceable: no caching
-        pass
-    return cols
+    [3, 3] product took 0.6 ms at 60,000 Gaussians, the rows 0.07 ms)."""
+    return _cached(means, f"columns:{dtype}", lambda m: m.detach().to(dtype).t().contiguous())
+
+
+def activated(raw: Tensor, fn: str) -> Tensor:
+    """``torch.exp(raw)`` (``fn="exp"``: scales of ``log_scales``) or ``torch.sigmoid(raw)``
+    (``fn="sigmoid"``: opacities of ``opacity_logits``), same shape and dtype. Without
+    autograd (``raw`` needs no gradient, or grad mode is off) the value is cached per tensor and
+    version (:func:`_cached`): a frame of a fixed model then does not re-activate all N rows
+    (0.3 ms for [60,000, 3] scales on 2 threads, a tenth of a coarse level's selection)."""
+    f = {"exp": torch.exp, "sigmoid": torch.sigmoid}[fn]
+    if raw.requires_grad and torch.is_grad_enabled():
+        return f(raw)
+    return _cached(raw, fn, lambda t: f(t.detach()))
 
 
 def in_frustum(means: Tensor, viewmat: Tensor, K: Tensor, width: int, height: int,
@@ -217,6 +236,38 @@ def normalized_distances(means: Tensor, center: Tensor, frustum: Tensor) -> Tens
     return d / dmax.clamp_min(1e-12)
 
 
+def frame_terms(means: Tensor, viewmat: Tensor, K: Tensor, width: int, height: int,
+                near_plane: float = 0.01) -> tuple[Tensor, Tensor]:
+    """The two per-frame terms every LoD frame starts from, in one call: ``(frustum [N] bool,
+    d_norm [N])`` as :func:`in_frustum` and :func:`normalized_distances` give them (same
+    arguments; ``d_norm`` in the centres' work dtype, no gradient).
+
+    On the CPU this is one pass of the C++ kernel ``csrc/lod_terms.cpp`` (in double; one
+    thread below 65,536 Gaussians, so a 60k-Gaussian frame does not pay OpenMP's wake-up of the
+    second thread for each of the ~25 torch operations of the twin: ``python
+    benchmarks/frame_terms.py``); elsewhere, or without the extension, the two functions
+    themselves (its twin, held to it by ``tests/test_lod_terms.py``). A centre within rounding
+    of a frustum edge may fall on the other side in the two forms.
+
+    Raises:
+        ValueError: ``means`` requires grad with autograd on (use :func:`normalized_distances`).
+    """
+    if means.requires_grad and torch.is_grad_enabled():
+        raise ValueError("frame_terms: no gradient; call normalized_distances for d' with autograd")
+    dt = _work_dtype(means, viewmat)
+    if means.shape[0] and kernels_wanted(means.device.type == "cpu"):
+        cols = centre_columns(means, dt)
+        vm = viewmat.detach().to(torch.float64)
+        Kd = K.detach().to(torch.float64)
+        c = camera_center(vm).tolist()
+        fr, d = load_kernels().lod_frustum_distances(
+            cols, vm[:3, :3].reshape(-1).tolist(), vm[:3, 3].tolist(), float(Kd[0, 0]), float(Kd[0, 2]),
+            float(Kd[1, 1]), float(Kd[1, 2]), int(width), int(height), float(near_plane), c)
+        return fr, d.to(means.dtype)
+    fr = in_frustum(means, viewmat, K, width, height, near_plane)
+    return fr, normalized_distances(means.detach(), camera_center(viewmat.detach()), fr)
+
+
 def lod_log_attenuation(d_norm: Tensor, sigma_d: Tensor, s_v: float | Tensor,
                         eps: float = DEFAULT_EPS) -> Tensor:
     """Log of Eq. 2's factor: ``-(d' s_v)^2 / (2 ReLU(sigma_d)^2 + eps)``; [N], <= 0.
@@ -279,9 +330,16 @@ def lod_mask(opacities: Tensor, d_norm: Tensor, sigma_d: Tensor, s_v: float | Te
     ``log alpha > (d' s_v)^2 / (2 ReLU(sigma_d)^2 + eps) + log(tau s_v)`` and evaluated with
     in-place operations (about half the passes over [N]: it runs every frame). A Gaussian
     exactly at the boundary may differ from ``lod_margin > 0`` in the last bit of rounding.
+    On the CPU with a float ``s_v`` this is one pass of the C++ kernel ``csrc/lod_terms.cpp``
+    (in double), where it builds (:mod:`clod_adapter.render.native`); the torch form above is
+    its twin (``tests/test_lod_terms.py``).
     """
     with torch.no_grad():
         dt = _work_dtype(d_norm, sigma_d)
+        if isinstance(s_v, (int, float)) and kernels_wanted(d_norm.device.type == "cpu"):
+            m = load_kernels().lod_mask(opacities.detach().to(dt).contiguous(), d_norm.detach().to(dt).contiguous(),
+                                       sigma_d.detach().to(dt).contiguous(), float(s_v), float(tau), float(eps))
+            return m & frustum if frustum is not None else m
         den = torch.relu(sigma_d.detach().to(dt)).square_().mul_(2.0).add_(max(float(eps), EPS_FLOOR))
         s = torch.as_tensor(s_v, dtype=dt, device=d_norm.device)
         thr = (d_norm.detach().to(dt) * s).square_().div_(den).add_(torch.log(tau * s))

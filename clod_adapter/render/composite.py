@@ -1,12 +1,13 @@
 """Per-pixel alpha compositing of projected 2D Gaussians (CPU).
 
 Single-camera equivalent of gsplat 1.5.3 ``rasterize_to_pixels`` (classic
-mode): the C++/OpenMP extension (``csrc/composite.cpp``), built with
-``torch.utils.cpp_extension.load`` on first use and cached (honours
-``TORCH_EXTENSIONS_DIR``), or, when it cannot be built, its pure-PyTorch
-reference twin :func:`clod_adapter.render._torch_impl.rasterize_to_pixels_torch`
-(one-time warning). Tests and benchmarks hold the two against each other with
-:func:`use_impl` (as gsplat's ``cuda/_torch_impl.py``); it is not a user option.
+mode): the C++/OpenMP kernel (``csrc/composite.cpp``, built with the project's
+other kernels by :mod:`clod_adapter.render.native`), or, when it cannot be built,
+its pure-PyTorch reference twin
+:func:`clod_adapter.render._torch_impl.rasterize_to_pixels_torch` (one-time
+warning). Tests and benchmarks hold the two against each other with
+:func:`use_impl` (:func:`clod_adapter.render.native.use_impl`: one switch for
+every kernel, as gsplat's ``cuda/_torch_impl.py``); it is not a user option.
 
 Rules (gsplat ``RasterizeToPixels3DGSFwd.cu``): pixel (x, y) centre is
 (x + 0.5, y + 0.5); delta = mean - centre; sigma = 0.5 (a dx^2 + c dy^2) + b dx dy;
@@ -17,11 +18,8 @@ T = next_T.  render_alphas = 1 - T_final, render_colors += T_final * bg.
 """
 from __future__ import annotations
 
-import contextlib
 import os
-import threading
 import warnings
-from pathlib import Path
 from typing import Optional, Tuple
 
 import torch
@@ -36,74 +34,19 @@ __all__ = [
 
 from ._torch_impl import ALPHA_THRESHOLD, MAX_ALPHA, TRANSMITTANCE_THRESHOLD, rasterize_to_pixels_torch  # noqa: F401
 
-_CSRC = Path(__file__).resolve().parent / "csrc" / "composite.cpp"
-_EXT = None
-_EXT_ERROR: Optional[BaseException] = None
-_EXT_LOCK = threading.Lock()
+from .native import available as _available, error as _error, impl as _impl, load as _load, wanted as _wanted
+from .native import use_impl  # noqa: F401  (one switch for every kernel and its twin)
+
 _WARNED = False
-#: which compositor :func:`rasterize_to_pixels` runs: "auto" (C++ when it builds), "cpp", "torch"
-_IMPL = "auto"
-
-
-@contextlib.contextmanager
-def use_impl(name: str):
-    """Within the block, :func:`rasterize_to_pixels` runs ``name`` ("auto" | "cpp" | "torch"):
-    for tests and benchmarks that compare the C++ compositor with its twin."""
-    global _IMPL
-    if name not in ("auto", "cpp", "torch"):
-        raise ValueError(f"unknown compositor {name!r}")
-    prev, _IMPL = _IMPL, name
-    try:
-        yield
-    finally:
-        _IMPL = prev
 
 
 def _load_extension():
-    """Build (or load the cached build of) the C++ extension; None on failure."""
-    global _EXT, _EXT_ERROR
-    if _EXT is not None or _EXT_ERROR is not None:
-        return _EXT
-    with _EXT_LOCK:
-        if _EXT is not None or _EXT_ERROR is not None:
-            return _EXT
-        try:
-            from torch.utils.cpp_extension import load
-
-            import sys
-            import time
-
-            # loading a cached build takes well under a second; anything longer is a (re)build,
-            # which takes 1-3 min on 2 cores: say so instead of sitting silent
-            t0 = time.perf_counter()
-            folder = os.environ.get("TORCH_EXTENSIONS_DIR") or "torch's extension cache"
-            notice = threading.Timer(2.0, lambda: print(
-                f"clod-adapter: building the C++ compositor (first use or changed source; about 1-3 min on "
-                f"2 cores; cached in {folder})...", file=sys.stderr, flush=True))
-            notice.daemon = True
-            notice.start()
-            try:
-                _EXT = load(
-                    name="clod_composite",
-                    sources=[str(_CSRC)],
-                    extra_cflags=["-O3", "-fopenmp", "-ffp-contract=off"],
-                    extra_ldflags=["-fopenmp"],
-                    verbose=bool(os.environ.get("CLOD_VERBOSE_BUILD")),
-                )
-            finally:
-                notice.cancel()
-            if time.perf_counter() - t0 > 2.0:
-                print(f"clod-adapter: compositor ready after {time.perf_counter() - t0:.0f} s", file=sys.stderr,
-                      flush=True)
-        except Exception as e:  # no compiler, no headers, ...
-            _EXT_ERROR = e
-            _EXT = None
-    return _EXT
+    return _load()
 
 
 def cpp_extension_available() -> bool:
     """True when the C++ compositor builds/loads on this machine."""
-    return _load_extension() is not None
+    return _available()
 
 
 #: None: follow the ``CLOD_DETERMINISTIC`` environment variable; True/False: override it.
@@ -228,23 +171,13 @@ def rasterize_to_pixels(
             f"isect_offsets has shape {tuple(isect_offsets.shape)}, expected ({th}, {tw})")
     if means2d.dtype not in (torch.float32, torch.float64):
         raise TypeError("means2d must be float32 or float64")
-    impl = _IMPL
-    if impl == "torch":
-        use_cpp = False
-    elif impl == "cpp":
-        if _load_extension() is None:
-            raise RuntimeError(f"C++ compositor unavailable: {_EXT_ERROR!r}")
-        use_cpp = True
-    elif impl == "auto":
-        use_cpp = means2d.device.type == "cpu" and _load_extension() is not None
-        if not use_cpp and _EXT_ERROR is not None and not _WARNED:
-            _WARNED = True
-            warnings.warn(
-                "clod_adapter: C++ compositor unavailable "
-                f"({_EXT_ERROR!r}); falling back to the slower PyTorch twin.",
-                RuntimeWarning, stacklevel=2)
-    else:
-        raise ValueError(f"unknown impl {impl!r}")
+    use_cpp = _wanted(means2d.device.type == "cpu")
+    if not use_cpp and _impl() == "auto" and _error() is not None and not _WARNED:
+        _WARNED = True
+        warnings.warn(
+            "clod_adapter: C++ compositor unavailable "
+            f"({_error()!r}); falling back to the slower PyTorch twin.",
+            RuntimeWarning, stacklevel=2)
     if use_cpp:
         return _rasterize_cpp(means2d, conics, colors, opacities, width, height,
                               tile_size, isect_offsets, flatten_ids, backgrounds)

@@ -625,7 +625,16 @@ std::vector<torch::Tensor> composite_backward(
 
 }  // namespace
 
+// lod_terms.cpp (the per-frame LoD terms; one extension, one build)
+std::vector<torch::Tensor> lod_frustum_distances(torch::Tensor cols, std::vector<double> R, std::vector<double> t,
+                                                 double fx, double cx, double fy, double cy, int64_t width,
+                                                 int64_t height, double near_plane, std::vector<double> center);
+torch::Tensor lod_mask_cpu(torch::Tensor opacities, torch::Tensor d_norm, torch::Tensor sigma_d, double s_v,
+                           double tau, double eps);
+
 PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
     m.def("forward", &composite_forward, "CPU Gaussian compositor forward");
     m.def("backward", &composite_backward, "CPU Gaussian compositor backward");
+    m.def("lod_frustum_distances", &lod_frustum_distances, "frustum test and d' of the LoD (lod.frame_terms)");
+    m.def("lod_mask", &lod_mask_cpu, "Eq. 2 mask alpha'' > tau s_v (lod.lod_mask)");
 }

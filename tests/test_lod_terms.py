@@ -1,0 +1,142 @@
+"""The per-frame LoD terms' C++ kernel (``csrc/lod_terms.cpp``) against its torch twin
+(:func:`clod_adapter.lod.in_frustum` + :func:`normalized_distances`, :func:`lod_mask`), and the
+activation cache of a fixed model (:func:`clod_adapter.lod.activated`)."""
+import math
+
+import pytest
+import torch
+
+from clod_adapter import lod
+from clod_adapter.render import native
+
+pytestmark = pytest.mark.skipif(not native.available(), reason="the C++ kernels do not build here")
+
+W, H = 96, 64
+K = torch.tensor([[80.0, 0.0, 47.5], [0.0, 80.0, 31.5], [0.0, 0.0, 1.0]])
+
+
+def _viewmat(seed: int) -> torch.Tensor:
+    g = torch.Generator().manual_seed(seed)
+    q = torch.nn.functional.normalize(torch.randn(4, generator=g), dim=0)
+    w, x, y, z = q.tolist()
+    R = torch.tensor([[1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+                      [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+                      [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)]])
+    vm = torch.eye(4)
+    vm[:3, :3] = R
+    vm[:3, 3] = torch.randn(3, generator=g)
+    return vm
+
+
+def _both(fn, *args):
+    with native.use_impl("cpp"):
+        a = fn(*args)
+    with native.use_impl("torch"):
+        b = fn(*args)
+    return a, b
+
+
+def _edge_distance(means, vm):
+    """Per centre, the pixel distance of its projection to the nearest image edge (inf behind)."""
+    pc = means.double() @ vm[:3, :3].double().T + vm[:3, 3].double()
+    z = pc[:, 2]
+    u = K[0, 0].double() * pc[:, 0] / z + K[0, 2].double()
+    v = K[1, 1].double() * pc[:, 1] / z + K[1, 2].double()
+    e = torch.stack([u.abs(), (u - W).abs(), v.abs(), (v - H).abs()]).amin(0)
+    return torch.where(torch.isfinite(e), e, torch.zeros_like(e))
+
+
+@pytest.mark.parametrize("n", [0, 1, 1000, 200_000])  # 200,000: several parallel chunks
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_frame_terms_kernel_matches_its_twin(n, dtype):
+    g = torch.Generator().manual_seed(n)
+    means = (torch.randn(n, 3, generator=g) * 3).to(dtype)
+    vm = _viewmat(n).to(dtype)
+    (fa, da), (fb, db) = _both(lod.frame_terms, means, vm, K.to(dtype), W, H)
+    assert fa.dtype == torch.bool and da.dtype == dtype and fa.shape == da.shape == (n,)
+    if n == 0:
+        return
+    near_edge = _edge_distance(means, vm.double()) < 1e-3
+    assert torch.equal(fa[~near_edge], fb[~near_edge])
+    assert 0 < int(fa.sum()) < n or n == 1
+    tol = 1e-6 if dtype == torch.float32 else 1e-12
+    assert torch.allclose(da, db, rtol=tol, atol=tol)
+    if fa.any():
+        assert float(da[fa].max()) == pytest.approx(1.0, abs=tol)
+
+
+def test_frame_terms_extreme_centres():
+    vm = torch.eye(4)
+    vm[2, 3] = 2.0
+    means = torch.tensor([[0.0, 0.0, 0.0], [float("nan"), 0.0, 0.0], [0.0, float("inf"), 1.0],
+                          [0.0, 0.0, float("inf")], [0.0, 0.0, -5.0], [1e30, 1e30, 1e30], [0.1, 0.1, 3.0]])
+    (fa, da), (fb, db) = _both(lod.frame_terms, means, vm, K, W, H)
+    assert fa.tolist() == fb.tolist() == [True, False, False, False, False, False, True]
+    ok = torch.arange(7) != 5
+    assert torch.allclose(da[ok], db[ok], equal_nan=True)
+    # |mu - c| of a centre at 1e30: the twin's float32 square overflows to inf, the kernel's
+    # double arithmetic keeps the distance
+    assert math.isinf(float(db[5])) and float(da[5]) == pytest.approx(math.sqrt(3) * 1e30 / math.sqrt(0.02 + 25.0), rel=1e-5)
+    assert float(da[6]) == 1.0 and torch.isfinite(da[[0, 4, 6]]).all()
+    # an empty frustum normalises by the largest distance of all (the twin's rule)
+    (fa, da), (fb, db) = _both(lod.frame_terms, means[[0, 4]] - torch.tensor([0.0, 0.0, 10.0]), vm, K, W, H)
+    assert not fa.any() and not fb.any() and torch.allclose(da, db) and float(da.max()) == 1.0
+    # every centre on the camera: d' = 0, never NaN
+    (fa, da), _ = _both(lod.frame_terms, torch.tensor([[0.0, 0.0, -2.0]] * 3), vm, K, W, H)
+    assert torch.equal(da, torch.zeros(3))
+
+
+def test_frame_terms_refuses_autograd():
+    means = torch.randn(5, 3, requires_grad=True)
+    with pytest.raises(ValueError, match="no gradient"):
+        lod.frame_terms(means, torch.eye(4), K, W, H)
+
+
+@pytest.mark.parametrize("s_v", [1.0, 1.7, 5.0, 30.0, 1e6])
+def test_lod_mask_kernel_matches_its_twin(s_v):
+    n = 100_000
+    g = torch.Generator().manual_seed(7)
+    op = torch.rand(n, generator=g, dtype=torch.float64)
+    op[:10] = 0.0
+    d = torch.rand(n, generator=g, dtype=torch.float64)
+    d[10:20] = 0.0
+    sd = torch.randn(n, generator=g, dtype=torch.float64) * 0.5  # a quarter below 0: ReLU -> dead
+    sd[20:30] = 0.0
+    sd[30:40] = 1e-30
+    sd[40:50] = 1e30
+    (ma, mb) = _both(lod.lod_mask, op, d, sd, s_v, 0.005, 1e-8)
+    margin = lod.lod_margin(op, d, sd, s_v, 0.005, 1e-8)
+    tie = margin.abs() < 1e-9
+    assert torch.equal(ma[~tie], mb[~tie]) and torch.equal(ma[~tie], (margin > 0)[~tie])
+    assert not ma[:10].any()  # opacity 0 is never drawn
+    # float32 inputs: the kernel computes in double, the twin in float32: they agree off the boundary
+    (ma, mb) = _both(lod.lod_mask, op.float(), d.float(), sd.float(), s_v, 0.005, 1e-8)
+    assert torch.equal(ma[margin.abs() > 1e-4], mb[margin.abs() > 1e-4])
+
+
+def test_lod_mask_tensor_s_v_and_frustum_use_the_twin_rule():
+    op, d, sd = torch.tensor([0.9, 0.9]), torch.tensor([0.1, 0.9]), torch.tensor([0.5, 0.01])
+    fr = torch.tensor([False, True])
+    with native.use_impl("cpp"):
+        assert lod.lod_mask(op, d, sd, torch.tensor(2.0)).tolist() == [True, False]
+        assert lod.lod_mask(op, d, sd, 2.0, frustum=fr).tolist() == [False, False]
+
+
+def test_activated_caches_per_version_and_keeps_autograd():
+    raw = torch.randn(50, 3)
+    a = lod.activated(raw, "exp")
+    assert torch.equal(a, torch.exp(raw)) and lod.activated(raw, "exp") is a
+    s = lod.activated(raw, "sigmoid")
+    assert torch.equal(s, torch.sigmoid(raw)) and s is not a
+    raw.add_(1.0)  # an optimiser step: a new version, a new value
+    b = lod.activated(raw, "exp")
+    assert b is not a and torch.allclose(b, torch.exp(raw))
+    p = torch.randn(4, requires_grad=True)
+    y = lod.activated(p, "sigmoid")
+    assert y.requires_grad
+    y.sum().backward()
+    assert torch.allclose(p.grad, torch.sigmoid(p) * (1 - torch.sigmoid(p)))
+    with torch.no_grad():
+        assert not lod.activated(p, "sigmoid").requires_grad
+    with pytest.raises(KeyError):
+        lod.activated(raw, "relu")

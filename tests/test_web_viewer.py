@@ -20,13 +20,16 @@ from conftest import err_line, shared_path
 
 ENGINE = find_playcanvas()
 needs_engine = pytest.mark.skipif(ENGINE is None, reason="PlayCanvas engine not found: run `npm ci` in the repository root")
-#: the frame at s_v = 1 against our CPU render (issue 19's goal); measured 26.07 dB on this test's
-#: short adaptation, fern's first test view (gsplat's kernel in the engine's splat shaders)
-MIN_PSNR_DB = 25.0
-#: the popping ratio (one static switch over the largest step of the 31-step sweep): issue 19's goal.
-#: Measured 10.6 on this test's short adaptation; on the trained models 9.2 (fern, below the goal)
-#: and 11.5 (skull) (README "In the browser", benchmarks/web_viewer.py)
-MIN_POPPING_RATIO = 10.0
+#: the frame at s_v = 1 against our CPU render (issue 19's goal is 25 dB): measured 35.74 dB on this
+#: test's short adaptation, fern's first test view, with gsplat's kernel and its 0.3 px^2 low-pass
+#: filter in the engine's splat shaders (26.07 dB with the engine's quarter-size filter)
+MIN_PSNR_DB = 33.0
+#: the popping ratio (one static switch over the largest step of the 31-step sweep). Issue 19's goal
+#: of 10x is a property of the trained models (benchmarks/web_viewer.py: fern 11.1, skull 11.6); this
+#: test's 80-step adaptation pops 9.99x in render_lod itself and 9.75x in the page. The test holds
+#: the page to render_lod on the same sweep (PAGE_POPPING_SHARE) and to a floor below its measure.
+MIN_POPPING_RATIO = 9.0
+PAGE_POPPING_SHARE = 0.95
 
 
 @needs_engine
@@ -137,5 +140,10 @@ def test_continuous_lod_in_headless_chromium(fern_web, tmp_path):
     assert 1e-3 < d12 < d15  # fewer drawn, further from full detail
     print(f"popping: largest step {max(pop['step']):.5f}, static switch {pop['jump']:.5f}, ratio {pop['ratio']:.1f}; "
           f"frame ms along the sweep {min(pop['ms']):.0f}-{max(pop['ms']):.0f}")
-    assert pop["ratio"] >= MIN_POPPING_RATIO, pop["ratio"]
+    from clod_adapter.jobs.eval import image_change
+
+    sweep = [render_lod(g, cam, s).image.clamp(0, 1) for s in pop["s_v"]]
+    cpu_ratio = pop["jump"] / max(image_change(a, b) for a, b in zip(sweep, sweep[1:]))
+    print(f"popping ratio: page {pop['ratio']:.2f}, render_lod on the same sweep {cpu_ratio:.2f}")
+    assert pop["ratio"] >= MIN_POPPING_RATIO and pop["ratio"] >= PAGE_POPPING_SHARE * cpu_ratio, (pop["ratio"], cpu_ratio)
     assert pop["drawn"] == sorted(pop["drawn"], reverse=True) and all(t > 0 and math.isfinite(t) for t in pop["ms"])

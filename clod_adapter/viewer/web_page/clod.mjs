@@ -111,6 +111,15 @@ edit('gsplatCornerVS', [
     ['float l1 = 2.0 * min(sqrt(2.0 * lambda1), vmin);', `float l1 = 2.0 * min(${EXTENT} * sqrt(2.0 * lambda1), vmin);`],
     ['float l2 = 2.0 * min(sqrt(2.0 * lambda2), vmin);', `float l2 = 2.0 * min(${EXTENT} * sqrt(2.0 * lambda2), vmin);`],
     ['corner.uv = source.cornerUV;', `corner.uv = source.cornerUV * ${EXTENT};`],
+    // gsplat's low-pass filter: eps2d = 0.3 px^2 added to the projected covariance. The engine's
+    // corner math runs in half pixels (its focal length is viewport_size * projMat00 = 2 f, its quad
+    // offsets are scaled by 1 / width for NDC), so its "+ 0.3" is 0.075 px^2: a quarter of gsplat's
+    // filter, which left every thin splat narrower and sharper than render_lod draws it (the page's
+    // s_v = 1 frame was 27 dB from render_lod's on fern, the differences along every edge; 36 dB
+    // with this) and made its footprint follow the level's scale gain several times more steeply
+    // (benchmarks/web_popping_steps.py). 4 x 0.3 in those units is gsplat's 0.3 px^2.
+    ['float diagonal1 = cov[0][0] + 0.3;', 'float diagonal1 = cov[0][0] + 1.2;'],
+    ['float diagonal2 = cov[1][1] + 0.3;', 'float diagonal2 = cov[1][1] + 1.2;'],
 ]);
 // the engine's opacity-aware quad (each splat's quad clipped to where opacity exp(-r^2 / 2) falls to
 // 1/255, gsplat's extent), measured against the widened quad: no splat's quad grows beyond that
@@ -123,69 +132,10 @@ edit('gsplatPS', [
     ['mediump float alpha = normExp(A) * gaussianColor.a;', 'float alpha = min(0.999, exp(-4.0 * A) * gaussianColor.a);'],
     ['mediump float A = dot(gaussianUV, gaussianUV);', 'float A = dot(gaussianUV, gaussianUV);'],
 ]);
-// the work buffer in 32-bit floats. The engine re-stores every splat's colour, opacity, rotation and
-// scale in its work buffer each frame: its default "compact" layout in 8 bits for the opacity and the
-// log-scale (8.6 % steps) and 11/11/10 bits for the colour, its "large" layout in half floats (steps
-// of 2^-11, about a tenth of what one s_v step of 0.001 moves a splat's fade weight or its level gain
-// near s_v = 1.5). Quantised, the continuous drift of the fade and the gains reaches the frame as
-// per-splat jumps that do not cancel the way the exact changes do (benchmarks/web_popping_steps.py;
-// README "In the browser"). Here the "large" layout is replaced by one that keeps every value a
-// float32 (colour RGBA32F; centre, rotation and scale as float bits in RGBA32U, RGBA32U and R32U):
-// 36 bytes a splat instead of 24. ?work=half keeps the engine's own half-float layout, to compare.
-const FLOAT_READ = /* glsl */ `
-uvec4 cachedTransformA;
-uvec4 cachedTransformB;
-vec4 cachedColor;
-vec3 getCenter() {
-    cachedTransformA = loadDataTransformA();
-    cachedTransformB = loadDataTransformB();
-    return uintBitsToFloat(cachedTransformA.xyz);
-}
-float getOpacity() {
-    cachedColor = loadDataColor();
-    return cachedColor.a;
-}
-vec3 getColor() {
-    return cachedColor.rgb;
-}
-vec4 getRotation() {
-    vec3 r = vec3(uintBitsToFloat(cachedTransformA.w), uintBitsToFloat(cachedTransformB.xy));
-    return vec4(r, sqrt(max(0.0, 1.0 - dot(r, r)))).wxyz;
-}
-vec3 getScale() {
-    return vec3(uintBitsToFloat(cachedTransformB.zw), uintBitsToFloat(loadDataTransformC().x));
-}
-`;
-const FLOAT_WRITE = /* glsl */ `
-void writeSplat(vec3 center, vec4 rotation, vec3 scale, vec4 color) {
-    writeDataColor(color);
-    #ifndef GSPLAT_COLOR_ONLY
-        vec4 q = rotation.w < 0.0 ? -rotation : rotation;  // w >= 0: read back as sqrt(1 - |xyz|^2)
-        writeDataTransformA(uvec4(floatBitsToUint(center), floatBitsToUint(q.x)));
-        writeDataTransformB(uvec4(floatBitsToUint(q.yz), floatBitsToUint(scale.xy)));
-        writeDataTransformC(uvec4(floatBitsToUint(scale.z), 0u, 0u, 0u));
-    #endif
-}
-`;
-const workFloat = q.get('work') !== 'half';
-if (workFloat) {
-    const gs = app.scene.gsplat;
-    if (typeof gs._createFormat !== 'function') throw new Error("clod.mjs: the engine's GSplatParams._createFormat has changed");
-    const engineFormat = gs._createFormat.bind(gs);
-    gs._createFormat = (dataFormat) => {
-        if (dataFormat !== pc.GSPLATDATA_LARGE) return engineFormat(dataFormat);
-        const format = new pc.GSplatFormat(device, [
-            { name: 'dataColor', format: pc.PIXELFORMAT_RGBA32F },
-            { name: 'dataTransformA', format: pc.PIXELFORMAT_RGBA32U },
-            { name: 'dataTransformB', format: pc.PIXELFORMAT_RGBA32U },
-            { name: 'dataTransformC', format: pc.PIXELFORMAT_R32U },
-        ], { readGLSL: FLOAT_READ, readWGSL: '' });
-        format.setWriteCode(FLOAT_WRITE, '');
-        format.allowStreamRemoval = true;
-        format.dataFormat = dataFormat;
-        return format;
-    };
-}
+// the work buffer in half floats: the engine's default "compact" layout stores each splat's opacity
+// in 8 bits, its log-scale in 8 bits (8.6 % steps) and its colour in 11/11/10 bits, so the level
+// gains' continuous drift reached the frames as per-splat jumps; "large" keeps colour, opacity and
+// scale as half floats (benchmarks/web_popping_steps.py; README "In the browser")
 app.scene.gsplat.dataFormat = pc.GSPLATDATA_LARGE;
 // no size culling: render_lod draws every splat whose footprint reaches the image (the engine drops
 // splats whose quad is under 2 px by default, and the level's scale gains move splats across it)
@@ -406,9 +356,7 @@ window.clod = {
     setCamera,
     frames: () => app.frame,
     // the engine settings the rule's fidelity depends on (the work buffer's precision, size culling)
-    engine: () => ({ dataFormat: app.scene.gsplat.dataFormat, workFloat32: workFloat,
-                     workColorFormat: app.scene.gsplat._format.getStream('dataColor').format === pc.PIXELFORMAT_RGBA32F ? 'RGBA32F' : 'other',
-                     minPixelSize: app.scene.gsplat.minPixelSize,
+    engine: () => ({ dataFormat: app.scene.gsplat.dataFormat, minPixelSize: app.scene.gsplat.minPixelSize,
                      blendFormat: target ? target.colorBuffer.format : null, halfFloatBlend: target?.colorBuffer.format === pc.PIXELFORMAT_RGBA16F }),
 };
 window.__clodReady = true;

@@ -184,12 +184,11 @@ app.root.addChild(camera);
 
 // ?blend=16: blending in half floats. The camera draws into an RGBA16F target, copied once per frame
 // to the canvas, instead of straight into the 8-bit canvas, where each of a pixel's ~50 blends is
-// rounded to 1/255 and, while the level gains move every splat a little per step, those roundings
-// change everywhere (on fern the page's popping steps are 12-16 % larger than render_lod's there,
-// 2-10 % with this target; benchmarks/web_popping_steps.py). The camera keeps its sRGB output, so
-// the splats blend in gamma space as render_lod does (the engine's CameraFrame blends in linear
-// light). Off by default: SwiftShader's frame took 27-66 % longer with it on fern and skull, for
-// +0.13 / +0.86 dB against render_lod at s_v = 1 (benchmarks/web_viewer.py; README "In the browser").
+// rounded to 1/255 (the s_v = 1 frame against render_lod: 44.4 dB on fern's first view against 35.7
+// in the canvas; popping 11.8x against 11.1x; benchmarks/web_viewer.py). The camera keeps its sRGB
+// output, so the splats blend in gamma space as render_lod does (the engine's CameraFrame blends in
+// linear light). Off by default: SwiftShader's frame took 20-60 % longer with it on fern and skull
+// (README "In the browser").
 const blendFormat = q.get('blend') === '16'
     ? device.getRenderableHdrFormat([pc.PIXELFORMAT_RGBA16F], false, 1, true) : undefined;
 let target = null;

@@ -24,11 +24,12 @@ needs_engine = pytest.mark.skipif(ENGINE is None, reason="PlayCanvas engine not 
 #: test's short adaptation, fern's first test view, with gsplat's kernel and its 0.3 px^2 low-pass
 #: filter in the engine's splat shaders (26.07 dB with the engine's quarter-size filter)
 MIN_PSNR_DB = 33.0
-#: the popping ratio (one static switch over the largest step of the 31-step sweep). Issue 19's goal
-#: of 10x is a property of the trained models (benchmarks/web_viewer.py: fern 11.1, skull 11.6); this
-#: test's 80-step adaptation pops 9.99x in render_lod itself and 9.75x in the page. The test holds
-#: the page to render_lod on the same sweep (PAGE_POPPING_SHARE) and to a floor below its measure.
-MIN_POPPING_RATIO = 9.0
+#: the popping ratio (one static switch over the largest step of the 31-step sweep): issue 19's goal.
+#: Measured 10.82 on this test's 300-step adaptation (render_lod on the same sweep: 11.19); an 80-step
+#: one pops 9.75x (render_lod 9.99x: the rule itself needs some training to get there); the trained
+#: models 11.1 (fern) and 11.6 (skull) (benchmarks/web_viewer.py). The page is also held to
+#: render_lod's ratio on the same sweep (PAGE_POPPING_SHARE; measured 0.967).
+MIN_POPPING_RATIO = 10.0
 PAGE_POPPING_SHARE = 0.95
 
 
@@ -75,15 +76,16 @@ def test_web_without_the_engine_is_a_one_line_error(tiny_adapted, tiny_model, tm
 
 @pytest.fixture(scope="module")
 def fern_web(tmp_path_factory) -> dict:
-    """A short adaptation of fern's checkpoint (80 steps: the rule is what is tested, not the
-    training) and its ``clod-export --web`` page."""
+    """A short adaptation of fern's checkpoint (300 steps: enough training for the rule
+    to pop 10x less than a static switch, see MIN_POPPING_RATIO) and its ``clod-export --web``
+    page."""
     from clod_adapter.cli.adapt import main as adapt_main
 
     fern = shared_path("fern")
     root = tmp_path_factory.mktemp("fernweb")
     ad = root / "adapted"
     assert adapt_main([str(shared_path("fern", "pretrained")), "-s", str(fern), "-r", "2", "-o", str(ad),
-                       "--iterations", "80", "--timing-repeats", "0", "--quiet"]) == 0
+                       "--iterations", "300", "--timing-repeats", "0", "--quiet"]) == 0
     web = root / "web"
     assert export_main([str(ad), "-s", str(fern), "-r", "2", "--web", str(web), "--quiet"]) == 0
     return {"adapted": ad / "point_cloud.ply", "web": web, "scene": fern}

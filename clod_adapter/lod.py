@@ -122,9 +122,13 @@ def _cached(t: Tensor, name: str, make) -> Tensor:
     makes a new value) and ``name``. Only for values without gradient. A write through
     ``tensor.data`` does not change the version: code that edits a model that way (none here)
     must pass a new tensor."""
+    try:
+        version = t._version
+    except RuntimeError:  # an inference tensor (torch.inference_mode) has no version: no caching
+        return make(t)
     key = (id(t), name)
     hit = _CACHE.get(key)
-    if hit is not None and hit[0]() is t and hit[1] == t._version and hit[2].device == t.device:
+    if hit is not None and hit[0]() is t and hit[1] == version and hit[2].device == t.device:
         return hit[2]
     val = make(t)
     try:  # oldest first; another thread (the viewer's) may be evicting too
@@ -133,7 +137,7 @@ def _cached(t: Tensor, name: str, make) -> Tensor:
     except (RuntimeError, StopIteration):
         pass
     try:
-        _CACHE[key] = (weakref.ref(t), t._version, val)
+        _CACHE[key] = (weakref.ref(t), version, val)
     except TypeError:  # not weak-referenceable: no caching
         pass
     return val

@@ -140,3 +140,24 @@ def test_activated_caches_per_version_and_keeps_autograd():
         assert not lod.activated(p, "sigmoid").requires_grad
     with pytest.raises(KeyError):
         lod.activated(raw, "relu")
+
+
+def test_render_under_inference_mode_matches():
+    """Tensors made under ``torch.inference_mode`` have no version counter: nothing is cached, the
+    frame is the same."""
+    from clod_adapter.camera_lod import render_lod
+    from clod_adapter.synthetic import make_ground_truth
+
+    g = make_ground_truth(200, seed=3).with_sigma_d(torch.full((200,), 0.5))
+
+    class Cam:
+        viewmat, K, width, height = torch.eye(4), K, W, H
+
+    Cam.viewmat = Cam.viewmat.clone()
+    Cam.viewmat[2, 3] = 4.0
+    with torch.no_grad():
+        ref = render_lod(g, Cam, 2.0).image
+    with torch.inference_mode():
+        gi = make_ground_truth(200, seed=3).with_sigma_d(torch.full((200,), 0.5))
+        out = render_lod(gi, Cam, 2.0).image
+    assert torch.allclose(ref, out) and float(ref.abs().sum()) > 0

@@ -115,9 +115,10 @@ edit('gsplatCornerVS', [
     // corner math runs in half pixels (its focal length is viewport_size * projMat00 = 2 f, its quad
     // offsets are scaled by 1 / width for NDC), so its "+ 0.3" is 0.075 px^2: a quarter of gsplat's
     // filter, which left every thin splat narrower and sharper than render_lod draws it (the page's
-    // s_v = 1 frame was 27 dB from render_lod's on fern, the differences along every edge; 36 dB
-    // with this) and made its footprint follow the level's scale gain several times more steeply
-    // (benchmarks/web_popping_steps.py). 4 x 0.3 in those units is gsplat's 0.3 px^2.
+    // s_v = 1 frames on fern were 26.1-26.3 dB from render_lod's, the differences along every edge;
+    // 35.7-35.9 dB with this: benchmarks/web_viewer.py) and made its footprint follow the level's
+    // scale gain several times more steeply (popping 9.2x -> 11.1x on fern). 4 x 0.3 in those units
+    // is gsplat's 0.3 px^2.
     ['float diagonal1 = cov[0][0] + 0.3;', 'float diagonal1 = cov[0][0] + 1.2;'],
     ['float diagonal2 = cov[1][1] + 0.3;', 'float diagonal2 = cov[1][1] + 1.2;'],
 ]);

@@ -8,11 +8,10 @@ popping measure (:func:`browser.web_viewer_popping`) is taken from the page and 
 Printed per step: ``s_v``,
 the level of the gains, the page's and the CPU's mean |dI|, and the ratios (the page's static
 switch over each sweep's largest step). ``--query KEY=VALUE ...`` adds page options (e.g.
-``work=half``: the engine's half-float work buffer instead of the page's float32 one;
-``blend=16``)::
+``blend=16``: blending in a half-float target)::
 
     python benchmarks/web_popping_steps.py --inputs fern
-    python benchmarks/web_popping_steps.py --inputs fern --query work=half
+    python benchmarks/web_popping_steps.py --inputs fern --query blend=16
 """
 from __future__ import annotations
 

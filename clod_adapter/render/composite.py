@@ -40,10 +40,6 @@ from .native import use_impl  # noqa: F401  (one switch for every kernel and its
 _WARNED = False
 
 
-def _load_extension():
-    return _load()
-
-
 def cpp_extension_available() -> bool:
     """True when the C++ compositor builds/loads on this machine."""
     return _available()
@@ -95,7 +91,7 @@ class _CompositeCpp(torch.autograd.Function):
     @staticmethod
     def forward(ctx, means2d, conics, colors, opacities, backgrounds,
                 width, height, tile_size, offsets, ids):
-        ext = _load_extension()
+        ext = _load()
         out_col, out_alpha, T_final, last_ids = ext.forward(
             means2d, conics, colors, opacities, backgrounds,
             int(width), int(height), int(tile_size), offsets, ids, _num_threads())
@@ -114,7 +110,7 @@ class _CompositeCpp(torch.autograd.Function):
         bg_opt = bg if ctx.has_bg else None
         if v_col is None:
             v_col = torch.zeros(height, width, colors.shape[1], dtype=means2d.dtype)
-        ext = _load_extension()
+        ext = _load()
         g_means, g_conics, g_colors, g_opac = ext.backward(
             means2d, conics, colors, opacities, bg_opt,
             width, height, tile_size, offsets, ids, T_final, last_ids,

@@ -19,7 +19,7 @@ import time
 from pathlib import Path
 from typing import Optional
 
-__all__ = ["load", "available", "error", "impl", "use_impl"]
+__all__ = ["load", "available", "error", "impl", "use_impl", "wanted"]
 
 _CSRC = Path(__file__).resolve().parent / "csrc"
 SOURCES = (_CSRC / "composite.cpp", _CSRC / "lod_terms.cpp")

@@ -139,7 +139,7 @@ def resolve_input(name: str) -> tuple[Path, Path, int]:
 
 
 #: AdaptConfig keys added after runs were cached, with the value those runs had.
-LEGACY_CONFIG = {"s_v_sampling": "uniform"}
+LEGACY_CONFIG = {"s_v_sampling": "uniform", "level_max": 1.0}
 
 
 def adapt_cached(name: str, cfg: AdaptConfig, tag: str, *, split: str = "test", log=print) -> Path:

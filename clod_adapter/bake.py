@@ -206,7 +206,7 @@ def lod_level(gaussians: Gaussians, cameras: Sequence, s_v: float, *, d_ref: Opt
     d = reference_distances(gaussians, cameras) if d_ref is None else d_ref
     keep = torch.nonzero(critical_s_v(gaussians.opacities, d, gaussians.sigma_d, st.tau, st.eps) > s_v,
                          as_tuple=False).squeeze(1)
-    return gaussians.at_level(lod.level(s_v, st.max_sv)).with_sigma_d(None).subset(keep).clone()
+    return gaussians.at_level(lod.level(s_v, st.max_sv, st.level_max)).with_sigma_d(None).subset(keep).clone()
 
 
 def prune_never_rendered(gaussians: Gaussians, cameras: Sequence, *,

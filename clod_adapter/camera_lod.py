@@ -295,7 +295,7 @@ class LodView:
             return LodSelection(idx, drawn, mask, s_used, 0.0, eta)
         if level is None:
             n_fr = self.n_frustum
-            level = lod.level_of_fraction(idx.numel() / n_fr if n_fr else 1.0, st.max_sv)
+            level = lod.level_of_fraction(idx.numel() / n_fr if n_fr else 1.0, st.max_sv, st.level_max)
         margin = lod.lod_margin(opac.index_select(0, idx), self.d_norm.detach().index_select(0, idx),
                                 sd.index_select(0, idx), s_used, st.tau, st.eps)
         logits = self.opacity_logits.index_select(0, idx)
@@ -317,7 +317,7 @@ class LodView:
         t = 1.0 - lod.full_detail_share(s_v, self.ramp_s_v)
         n_fr = self.n_frustum
         if level is None:
-            level = t * lod.level_of_fraction(idx.numel() / n_fr if n_fr else 1.0, st.max_sv)
+            level = t * lod.level_of_fraction(idx.numel() / n_fr if n_fr else 1.0, st.max_sv, st.level_max)
         all_idx = torch.nonzero(self.visible, as_tuple=False).squeeze(1)
         margin = lod.lod_margin(self.opacities.index_select(0, all_idx),
                                 self.d_norm.detach().index_select(0, all_idx),

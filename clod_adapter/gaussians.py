@@ -135,7 +135,7 @@ class Gaussians:
         return any(getattr(self, k) is not None for k in GAIN_NAMES)
 
     def at_level(self, ell: float) -> "Gaussians":
-        """The model's attributes at level ``ell`` in [0, 1]: base attributes plus ``ell`` times
+        """The model's attributes at level ``ell`` (>= 0; 1 at ``max_sv``, :func:`clod_adapter.lod.level`): base attributes plus ``ell`` times
         the level gains (differentiable in both). ``ell = 0`` or no gains: ``self``."""
         if ell == 0.0 or not self.has_gains:
             return self

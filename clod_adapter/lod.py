@@ -77,8 +77,12 @@ class LodSettings:
     """How an adapted model is drawn at a level of detail (stored in its .ply header).
 
     Attributes:
-        max_sv: the largest virtual distance scale trained; level gains saturate there
-            (:func:`level`).
+        max_sv: the largest virtual distance scale trained: the level of the gains is 1 where
+            the drawn share is ``max_sv^-1.5`` (:func:`level_of_fraction`).
+        level_max: the largest level of the gains (>= 1): below ``max_sv^-1.5`` of the
+            Gaussians in view the level goes on growing with ``ln`` of the share up to this, in
+            training and drawing alike (fewer survivors, grown further). Files written before it
+            existed were trained with the level held at 1 and read as 1.
         tau: LoD threshold (mask ``alpha'' > tau s_v``).
         eps: Eq. 2's epsilon.
         fade: ``"window"`` or ``"eq2"`` (module docstring).
@@ -90,6 +94,7 @@ class LodSettings:
     eps: float = DEFAULT_EPS
     fade: Fade = "eq2"
     fade_width: float = DEFAULT_FADE_WIDTH
+    level_max: float = 1.0
 
     def __post_init__(self) -> None:
         if not self.max_sv >= 1.0:
@@ -100,6 +105,8 @@ class LodSettings:
             raise ValueError(f"fade must be one of {FADES}, got {self.fade!r}")
         if not self.fade_width > 0:
             raise ValueError(f"fade_width must be > 0, got {self.fade_width}")
+        if not (self.level_max >= 1.0 and math.isfinite(self.level_max)):
+            raise ValueError(f"level_max must be finite and >= 1, got {self.level_max}")
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -433,24 +440,28 @@ def ramp_s_v(share_at_1: float, max_sv: float) -> float:
     return min(max(FADE_RAMP_S_V * min(sh, 1.0) ** (-2.0 / 3.0), FADE_RAMP_S_V), ramp_cap(max_sv))
 
 
-def level(s_v: float | Tensor, max_sv: float) -> float:
-    """Level coordinate ``l = clamp(ln s_v / ln max_sv, 0, 1)`` of the learned level gains:
-    0 at full detail (``s_v = 1``, the input's attributes), 1 at the trained maximum and beyond.
-    ``max_sv = 1`` gives 0 everywhere."""
+def level(s_v: float | Tensor, max_sv: float, level_max: float = 1.0) -> float:
+    """Level coordinate ``l = clamp(ln s_v / ln max_sv, 0, level_max)`` of the learned level
+    gains: 0 at full detail (``s_v = 1``, the input's attributes), 1 at the trained maximum,
+    ``level_max`` (:attr:`LodSettings.level_max`; default 1: held at 1 beyond ``max_sv``) at
+    ``max_sv^level_max`` and beyond. ``max_sv = 1`` gives 0 everywhere."""
     if not max_sv > 1.0:
         return 0.0
     s = float(s_v)
-    return min(max(math.log(max(s, 1.0)) / math.log(max_sv), 0.0), 1.0)
+    return min(max(math.log(max(s, 1.0)) / math.log(max_sv), 0.0), float(level_max))
 
 
-def level_of_fraction(fraction: float, max_sv: float) -> float:
+def level_of_fraction(fraction: float, max_sv: float, level_max: float = 1.0) -> float:
     """The level of the gains when ``fraction`` of the Gaussians in view is drawn:
     :func:`level` of ``fraction^(-2/3)`` (the ``s_v`` whose target fraction it is). Taken from the
     drawn share, not from ``s_v``, so a model draws the same gains for the same share whatever the
-    view and however exactly its ``sigma_d`` follows ``s_v^-1.5``."""
+    view and however exactly its ``sigma_d`` follows ``s_v^-1.5``. With cost levels a step's
+    count share reaches ``max_sv^-1.5`` from ``s_v`` about 3.2 on (the weighted share is the
+    target, not the count), so ``level_max = 1`` holds the gains of the coarsest trained levels
+    at one value; above 1 they grow on (README "What each part buys")."""
     if not fraction > 0.0:
-        return level(float("inf"), max_sv) if max_sv > 1.0 else 0.0
-    return level(min(float(fraction), 1.0) ** (-2.0 / 3.0), max_sv)
+        return float(level_max) if max_sv > 1.0 else 0.0
+    return level(min(float(fraction), 1.0) ** (-2.0 / 3.0), max_sv, level_max)
 
 
 def s_v_for_fraction(fraction: float) -> float:

@@ -105,6 +105,11 @@ class AdaptConfig:
             uniform: the levels near full detail trained as often as the coarse ones; calibrated
             default: on the validation views of skull and fern +0.1 to +0.6 dB at 11 of the 12
             decimator counts, README "What the log-uniform s_v sampling bought").
+        level_max: the largest level of the gains (:attr:`clod_adapter.lod.LodSettings.level_max`,
+            >= 1): with cost levels a step's count share falls below ``max_sv^-1.5`` from ``s_v``
+            about 3.2 on, where the default 1 holds the gains at one level. 2 lets them grow on:
+            +0.3 to +1.9 dB at ``s_v`` 10-30 on every scene, but -0.2 to -0.5 dB at ``s_v`` 2-5
+            on skull (README "How far the gains grow").
         views_per_step: training views per optimisation step, each at its own ``s_v``; the
             step uses the mean of their gradients (default 1). In a data-parallel run
             (:mod:`clod_adapter.distributed`) view ``j`` of a step is rendered by rank
@@ -134,6 +139,7 @@ class AdaptConfig:
     views_per_step: int = 1
     cost_exponent: float = 0.5
     s_v_sampling: Optional[str] = None
+    level_max: float = 1.0
 
     def __post_init__(self) -> None:
         if self.schedule not in SCHEDULES:
@@ -176,6 +182,7 @@ class AdaptConfig:
         if not (isinstance(self.views_per_step, int) and self.views_per_step >= 1):
             raise ValueError(f"views_per_step must be >= 1 (an integer), got {self.views_per_step!r}")
         self.background = tuple(float(x) for x in self.background)
+        self.level_max = float(self.level_max)
 
     @property
     def gain_names(self) -> tuple:
@@ -185,7 +192,7 @@ class AdaptConfig:
     def lod_settings(self) -> lod.LodSettings:
         """The :class:`clod_adapter.lod.LodSettings` the adapted model is drawn with."""
         return lod.LodSettings(max_sv=self.max_sv, tau=self.tau, eps=self.eps, fade=self.fade,
-                               fade_width=self.fade_width)
+                               fade_width=self.fade_width, level_max=self.level_max)
 
 
 @dataclass
@@ -735,6 +742,7 @@ def load_state(path: os.PathLike, device: str | torch.device = "cpu") -> tuple[A
     cfg_d = json.loads(meta["config"])
     cfg_d["background"] = tuple(cfg_d.get("background", (0, 0, 0)))
     cfg_d.setdefault("schedule", "paper")  # states written before the calibrated schedule
+    cfg_d.setdefault("level_max", 1.0)  # states written before level_max: trained with the level held at 1
 
     try:
         cfg = AdaptConfig(**cfg_d)

@@ -479,6 +479,10 @@ def test_flag_names_in_errors(tiny_model, tmp_path, capfd, tiny_adapted):
     code = adapt_main([str(tiny_model["ply"]), "--images", str(tiny_model["scene"]), "-o", str(tmp_path / "o"),
                        "--max-sv", "0.5", "--quiet"])
     assert code == 2 and "--max-sv must be >= 1, got 0.5" in err_line(capfd)
+    code = adapt_main([str(tiny_model["ply"]), "--images", str(tiny_model["scene"]), "-o", str(tmp_path / "o"),
+                       "--level-max", "0.5", "--quiet"])
+    assert code == 2 and "--level-max must be finite and >= 1, got 0.5" in err_line(capfd)
+    assert not (tmp_path / "o").exists()
     code = eval_main([str(tiny_adapted), "-s", str(tiny_model["scene"]), "-o", str(tmp_path / "r"), "--budgets", "0,-1,abc"])
     line = err_line(capfd)
     assert code == 2 and "--budgets" in line and "'-1'" in line

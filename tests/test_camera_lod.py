@@ -113,3 +113,22 @@ def test_in_view_share_budgets(scene):
         assert out.n_rendered == round(0.25 * v.n_in_view)
         whole = render_lod(g, cam, budget=0.25, min_s_v=0.0)  # a share of the model
         assert whole.n_rendered == round(0.25 * len(g))
+
+
+def test_level_grows_to_level_max_below_the_trained_share(scene):
+    # below max_sv^-1.5 of the frustum's Gaussians the gains' level goes on growing with ln of
+    # the drawn share, up to LodSettings.level_max; 1 holds it there (models trained before it)
+    g, cams = scene
+    for lm in (1.0, 2.0):
+        gl = replace(g, lod=lod.LodSettings(fade="window", max_sv=5.0, level_max=lm))
+        for cam in cams[:2]:
+            v = view_lod(gl, cam)
+            for k in (1, 3, max(1, round(0.05 * v.n_frustum))):
+                sel = v.select(budget=k, min_s_v=0.0)
+                want = lod.level_of_fraction(sel.indices.numel() / v.n_frustum, 5.0, lm)
+                assert sel.level == pytest.approx(want)
+                assert 1.0 <= sel.level <= lm
+                if lm > 1.0 and k / v.n_frustum < 5.0 ** -3:
+                    assert sel.level == 2.0
+            out = render_lod(gl, cam, 1e6)  # nothing left: the largest level
+            assert out.n_rendered == 0 and out.level == lm

@@ -237,3 +237,13 @@ def test_tensorboard_flag(tiny_model, tmp_path, capfd):
         return
     assert adapt_main(args) == 0
     assert any((out / "tensorboard").iterdir())
+
+
+def test_level_max_flag_reaches_the_model_header(tiny_model, tmp_path):
+    from clod_adapter.io.load import load_model
+
+    out = tmp_path / "lm"
+    assert adapt_main([str(tiny_model["ply"]), "--images", str(tiny_model["scene"]), "-o", str(out),
+                       "--level-max", "2", *FAST]) == 0
+    g = load_model(out / "point_cloud.ply")
+    assert g.lod.level_max == 2.0 and g.lod.max_sv == 2.0

@@ -313,3 +313,16 @@ def test_truncated_empty_and_garbage(tmp_path):
         read_ply(tmp_path / "junk.ply")
     with pytest.raises(FileNotFoundError, match="nope.ply"):
         read_ply(tmp_path / "nope.ply")
+
+
+def test_lod_comment_round_trip_and_legacy():
+    from clod_adapter.io.ply import lod_comment, parse_lod_comment
+    from clod_adapter.lod import LodSettings
+
+    st = LodSettings(max_sv=7.5, fade="window", level_max=2.5)
+    assert parse_lod_comment([lod_comment(st)]) == st
+    # a file written before level_max existed was trained with the level held at 1: drawn so
+    legacy = "clod_lod max_sv=5.0 tau=0.005 eps=1e-08 fade=window fade_width=0.5"
+    assert parse_lod_comment([legacy]).level_max == 1.0
+    with pytest.raises(PlyFormatError, match="level_max"):
+        parse_lod_comment([legacy + " level_max=0.5"], "m.ply")

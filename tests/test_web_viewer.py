@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import json
 import math
+import shutil
 from urllib.parse import urlencode
 
 import numpy as np
@@ -114,12 +115,22 @@ def test_continuous_lod_in_headless_chromium(fern_web, tmp_path):
             frames, states = {}, {}
             for s in (1.0, 2.0, 5.0):
                 frames[s], states[s] = web_viewer_frame(driver, s_v=s)
+            _, states[3 * max_sv] = web_viewer_frame(driver, s_v=3 * max_sv, settle=1)
             pop = web_viewer_popping(driver, max_sv)
             engine = driver.execute_script("return window.clod.engine()")
             # ?blend=16: blending in a half-float target (slower, finer), the same rule
             open_web_viewer(driver, f"{base}/index.html?{urlencode({'w': w, 'h': h, 'cam': 0, 'blend': 16})}")
             engine16 = driver.execute_script("return window.clod.engine()")
             frame16, _ = web_viewer_frame(driver, s_v=1.0)
+        # the same page for a model whose gains grow past level 1 (LodSettings.level_max = 2)
+        web2 = tmp_path / "web_level_max"
+        shutil.copytree(fern_web["web"], web2)
+        cfg = json.loads((web2 / "clod.json").read_text())
+        cfg["settings"]["level_max"] = 2.0
+        (web2 / "clod.json").write_text(json.dumps(cfg))
+        with serve_folder(web2) as base:
+            open_web_viewer(driver, f"{base}/index.html?{urlencode({'w': w, 'h': h, 'cam': 0})}")
+            _, state2 = web_viewer_frame(driver, s_v=3 * max_sv, settle=1)
     finally:
         driver.quit()
     # half-float work buffer (the default 8-bit one quantises the level's continuous change) and no
@@ -134,6 +145,14 @@ def test_continuous_lod_in_headless_chromium(fern_web, tmp_path):
     assert full["psnr"] >= MIN_PSNR_DB, full
     full16 = compare_frames(render_lod(g, cam, 1.0).image.clamp(0, 1).numpy(), frame16)
     assert full["psnr"] - 0.5 < full16["psnr"] and full16["psnr"] >= MIN_PSNR_DB, (full16, full)
+    # the page's level of the gains: lod.level_of_fraction of its drawn share (past the view's
+    # ramp, so not scaled down), held at 1 beyond max_sv or growing on up to level_max
+    from clod_adapter import lod
+
+    for s, st_, lm in ((5.0, states[5.0], 1.0), (3 * max_sv, states[3 * max_sv], 1.0), (3 * max_sv, state2, 2.0)):
+        want = lod.level_of_fraction(st_["drawn"] / st_["inFrustum"], max_sv, lm)
+        assert st_["level"] == pytest.approx(want, rel=1e-4, abs=1e-6), (s, lm, st_)
+    assert g.lod.level_max == 1.0 and states[3 * max_sv]["level"] == 1.0 and 1.0 < state2["level"] <= 2.0
     drawn = [states[s]["drawn"] for s in (1.0, 2.0, 5.0)]
     assert drawn[0] > drawn[1] > drawn[2] > 0, drawn
     cpu = render_lod(g, cam, 2.0)

@@ -83,6 +83,14 @@ def test_fade_weight_and_level():
     assert lod.level(1.0, 5.0) == 0.0 and lod.level(5.0, 5.0) == 1.0 and lod.level(9.0, 5.0) == 1.0
     assert lod.level(math.sqrt(5.0), 5.0) == pytest.approx(0.5)
     assert lod.level(3.0, 1.0) == 0.0
+    # level_max: the gains grow on linearly in ln s_v beyond max_sv, up to the cap
+    assert lod.level(25.0, 5.0, 3.0) == pytest.approx(2.0) and lod.level(1e6, 5.0, 3.0) == 3.0
+    assert lod.level_of_fraction(5.0 ** -3.0, 5.0, 3.0) == pytest.approx(2.0)
+    assert lod.level_of_fraction(0.0, 5.0, 3.0) == 3.0 and lod.level_of_fraction(0.0, 5.0) == 1.0
+    assert lod.level_of_fraction(0.5, 5.0, 3.0) == lod.level_of_fraction(0.5, 5.0)  # unchanged within the trained range
+    for bad in (0.5, math.inf, math.nan):
+        with pytest.raises(ValueError, match="level_max"):
+            lod.LodSettings(level_max=bad)
     assert lod.s_v_for_fraction(5.0 ** -1.5) == pytest.approx(5.0)
     with pytest.raises(ValueError):
         lod.s_v_for_fraction(0.0)

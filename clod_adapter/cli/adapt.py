@@ -66,6 +66,10 @@ def build_parser():
     p.add_argument("--gains", default=None, metavar="LETTERS",
                    help="calibrated schedule: level gains to learn, letters of o (opacity), s (scale), "
                         "c (colour); default 'osc'; '' for none")
+    p.add_argument("--level-max", type=float, default=1.0, metavar="L",
+                   help="calibrated schedule: largest level of the gains (default 1: held at 1 below max_sv^-1.5 "
+                        "of the Gaussians in view); 2 grows them on (better far below, worse mid-range on skull; "
+                        "README 'How far the gains grow')")
     p.add_argument("--tau", type=float, default=None, help="LoD threshold: render iff alpha'' > tau*s_v (default 0.005)")
     p.add_argument("--eta-estimator", default=None, choices=("ste", "sigmoid", "paper"),
                    help="paper schedule: gradient of the rendered fraction in L_reg (default 'ste'); "
@@ -131,7 +135,8 @@ def _config(args, world: int):
                            other_lr_scale=args.other_lr_scale, lambda_reg=args.lambda_reg,
                            fade=args.fade, gains=args.gains, eta_estimator=args.eta_estimator or "ste",
                            background=(1.0, 1.0, 1.0) if args.background == "white" else (0.0, 0.0, 0.0),
-                           views_per_step=args.views_per_step if args.views_per_step is not None else world, **kw)
+                           views_per_step=args.views_per_step if args.views_per_step is not None else world,
+                           level_max=args.level_max, **kw)
     except ValueError as e:  # "<field> must be ...": the field is the flag
         field, _, rest = str(e).partition(" ")
         raise InputError(f"--{field.replace('_', '-')} {rest}") from None

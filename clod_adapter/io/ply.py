@@ -67,7 +67,7 @@ def parse_lod_comment(comments, path: PathLike = "<ply>") -> "LodSettings | None
         try:
             for item in tok[1:]:
                 k, v = item.split("=", 1)
-                if k in ("max_sv", "tau", "eps", "fade_width"):
+                if k in ("max_sv", "tau", "eps", "fade_width", "level_max"):
                     kw[k] = float(v)
                 elif k == "fade":
                     kw[k] = v

@@ -27,8 +27,9 @@ const rampCap = Math.max(st.fade_ramp_s_v, Math.sqrt(Math.max(st.max_sv, 1)));  
 const rampSv = (share1) => (share1 > 0                                           // lod.ramp_s_v
     ? Math.min(Math.max(st.fade_ramp_s_v * Math.pow(Math.min(share1, 1), -2 / 3), st.fade_ramp_s_v), rampCap)
     : rampCap);
-const level = (s) => (st.max_sv > 1 ? Math.min(Math.max(Math.log(Math.max(s, 1)) / Math.log(st.max_sv), 0), 1) : 0);
-const levelOfFraction = (f) => (f > 0 ? level(Math.pow(Math.min(f, 1), -2 / 3)) : (st.max_sv > 1 ? 1 : 0));
+const levelMax = st.level_max ?? 1;                                                 // LodSettings.level_max
+const level = (s) => (st.max_sv > 1 ? Math.min(Math.max(Math.log(Math.max(s, 1)) / Math.log(st.max_sv), 0), levelMax) : 0);
+const levelOfFraction = (f) => (f > 0 ? level(Math.pow(Math.min(f, 1), -2 / 3)) : (st.max_sv > 1 ? levelMax : 0));
 const logSigmoid = (x) => -Math.max(-x, 0) - Math.log1p(Math.exp(-Math.abs(x)));
 
 const GLSL = /* glsl */ `

@@ -122,6 +122,19 @@ edit('gsplatCornerVS', [
     // is gsplat's 0.3 px^2.
     ['float diagonal1 = cov[0][0] + 0.3;', 'float diagonal1 = cov[0][0] + 1.2;'],
     ['float diagonal2 = cov[1][1] + 0.3;', 'float diagonal2 = cov[1][1] + 1.2;'],
+    // no cap on a splat's extent: the engine caps each axis of the quad at the viewport's smaller
+    // side (at most 1024), which squeezes a splat larger than the screen into it, so its falloff
+    // lands on the screen instead of its flat middle. gsplat has no cap (the rasteriser clips to
+    // the image): skull's model holds a dim, dark Gaussian some 30 units across around the scene,
+    // which darkens every frame of render_lod by ~8 % and the capped page only in a blob; its
+    // s_v = 1 frames were 28.8 dB from render_lod's in test view 49 (benchmarks/web_viewer.py)
+    ['float vmin = min(1024.0, min(viewport_size.x, viewport_size.y));', 'float vmin = 1e6;'],
+    // ... and gsplat's Jacobian: x/z and y/z clamped to 1.3 x the half field of view (tan = 1 /
+    // projMat; the principal point taken as centred), so a splat beside the image does not smear
+    // across it; without the cap above the engine's unclamped form drew one thin splat of skull's
+    // beside test view 09 over the whole frame
+    ['vec2 J2 = -J1 / vp.z * vp.xy;',
+     'vec2 clodLim = 1.3 / abs(vec2(center.projMat00, center.projMat11));\n\tvec2 J2 = -J1 * clamp(vp.xy / vp.z, -clodLim, clodLim);'],
 ]);
 // the engine's opacity-aware quad (each splat's quad clipped to where opacity exp(-r^2 / 2) falls to
 // 1/255, gsplat's extent), measured against the widened quad: no splat's quad grows beyond that

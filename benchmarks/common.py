@@ -138,6 +138,25 @@ def resolve_input(name: str) -> tuple[Path, Path, int]:
     return Path(parts[0]), Path(parts[1]), int(parts[2]) if len(parts) == 3 else 1
 
 
+def parse_config(items) -> tuple[dict, str]:
+    """``KEY=VALUE`` strings (the benchmarks' ``--config``) as AdaptConfig settings, each value
+    converted to its default's type, and the cache tag naming them (``"default"`` for none).
+
+    Raises:
+        SystemExit: a key AdaptConfig does not have, or an item without ``=``.
+    """
+    from clod_adapter.training import AdaptConfig
+
+    base, config = AdaptConfig(), {}
+    for kv in items:
+        k, eq, v = kv.partition("=")
+        if not eq or not hasattr(base, k):
+            sys.exit(f"benchmark: --config {kv!r}: expected KEY=VALUE with an AdaptConfig key")
+        d = getattr(base, k)
+        config[k] = type(d)(v) if d is not None else v
+    return config, ("default" if not config else "_".join(f"{k}-{v}" for k, v in sorted(config.items())))
+
+
 #: AdaptConfig keys added after runs were cached, with the value those runs had.
 LEGACY_CONFIG = {"s_v_sampling": "uniform", "level_max": 1.0}
 

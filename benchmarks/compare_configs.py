@@ -17,7 +17,7 @@ import statistics
 import sys
 import time
 
-from common import adapt_cached, load_input, parse_inputs_args, scene_views
+from common import adapt_cached, load_input, parse_config, parse_inputs_args, scene_views
 
 import torch
 
@@ -78,12 +78,7 @@ def main() -> int:
     a = parse_inputs_args(__doc__, inputs=("skull", "fern"), split="val", extra=[
         ("--config", {"nargs": "+", "required": True, "metavar": "KEY=VALUE", "help": "the other AdaptConfig settings"}),
         ("--repeats", {"type": int, "default": 5, "help": "interleaved timing rounds (default 5)"})])
-    kw = {}
-    for item in a.config:
-        k, v = item.split("=", 1)
-        d = getattr(AdaptConfig(), k)
-        kw[k] = type(d)(v) if d is not None else v
-    tag = "_".join(f"{k}-{v}" for k, v in sorted(kw.items()))
+    kw, tag = parse_config(a.config)
     for name in a.inputs:
         run_input(name, a.split, {"default": {}, tag: kw}, a.repeats)
     return 0

@@ -45,7 +45,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable
 
-from common import LABELS, RUNS, add_split_arg, adapt_cached, load_input, scene_views, setup_threads, \
+from common import LABELS, RUNS, add_split_arg, adapt_cached, load_input, parse_config, scene_views, setup_threads, \
     split_suffix
 
 import torch
@@ -331,11 +331,7 @@ def main() -> None:
                          "cached under a tag naming them")
     add_split_arg(ap, "test")
     args = ap.parse_args()
-    config = {}
-    for kv in args.config:
-        k, v = kv.split("=", 1)
-        config[k] = type(getattr(AdaptConfig(), k))(v) if getattr(AdaptConfig(), k) is not None else v
-    tag = "default" if not config else "_".join(f"{k}-{v}" for k, v in sorted(config.items()))
+    config, tag = parse_config(args.config)
     setup_threads(args.threads)
     out = RUNS / f"quality_vs_time{split_suffix(args.split)}" / tag
     out.mkdir(parents=True, exist_ok=True)

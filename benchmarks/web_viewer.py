@@ -35,7 +35,7 @@ import tempfile
 from pathlib import Path
 from urllib.parse import urlencode
 
-from common import REPO, RUNS, adapt_cached, load_input, parse_inputs_args, scene_views, split_suffix
+from common import REPO, RUNS, adapt_cached, load_input, parse_config, parse_inputs_args, scene_views, split_suffix
 
 import numpy as np
 import torch
@@ -63,8 +63,8 @@ def cpu_popping(g, cam, max_sv: float, steps: int = 31) -> float:
     return max(image_change(a, b) for a, b in zip(frames, frames[1:]))
 
 
-def run_input(name: str, split: str, log, shots: list, config: dict, full_only: bool = False) -> dict:
-    tag = "default" if not config else "_".join(f"{k}-{v}" for k, v in sorted(config.items()))
+def run_input(name: str, split: str, log, shots: list, config: dict, tag: str = "default",
+              full_only: bool = False) -> dict:
     ply = adapt_cached(name, AdaptConfig(**config), tag, split=split, log=log)
     _, scene, _ = load_input(name, split)
     fit, cams = scene_views(scene, split)
@@ -156,16 +156,13 @@ def main(argv=None) -> int:
     a = parse_inputs_args(__doc__, argv, extra=(
         ("--full-detail-only", {"action": "store_true", "help": "only the frames at s_v = 1, every view"}),
         ("--config", {"nargs": "*", "default": [], "metavar": "KEY=VALUE", "help": "AdaptConfig settings"})))
-    config = {}
-    for kv in a.config:
-        k, _, v = kv.partition("=")
-        config[k] = type(getattr(AdaptConfig(), k))(v) if getattr(AdaptConfig(), k) is not None else v
+    config, tag = parse_config(a.config)
     why = browser_missing(("selenium",))
     if why or find_playcanvas() is None:
         sys.exit(f"web_viewer: {why or 'PlayCanvas engine not found (`npm ci`)'}")
     log = lambda *x: print(*x, flush=True)  # noqa: E731
     shots: list = []
-    results = [run_input(n, a.split, log, shots, config, a.full_detail_only) for n in a.inputs]
+    results = [run_input(n, a.split, log, shots, config, tag, a.full_detail_only) for n in a.inputs]
     if a.full_detail_only:
         lines = ["| input | views | s_v = 1 PSNR vs render_lod, each view | min / median |", "|---|---:|---|---|"]
         p1s = []

@@ -135,8 +135,9 @@ class Gaussians:
         return any(getattr(self, k) is not None for k in GAIN_NAMES)
 
     def at_level(self, ell: float) -> "Gaussians":
-        """The model's attributes at level ``ell`` (>= 0; 1 at ``max_sv``, :func:`clod_adapter.lod.level`): base attributes plus ``ell`` times
-        the level gains (differentiable in both). ``ell = 0`` or no gains: ``self``."""
+        """The model's attributes at level ``ell`` (>= 0; 1 at ``max_sv``, up to
+        ``LodSettings.level_max``: :func:`clod_adapter.lod.level`): base attributes plus ``ell``
+        times the level gains (differentiable in both). ``ell = 0`` or no gains: ``self``."""
         if ell == 0.0 or not self.has_gains:
             return self
         upd = {}

@@ -107,9 +107,9 @@ class AdaptConfig:
             decimator counts, README "What the log-uniform s_v sampling bought").
         level_max: the largest level of the gains (:attr:`clod_adapter.lod.LodSettings.level_max`,
             >= 1): with cost levels a step's count share falls below ``max_sv^-1.5`` from ``s_v``
-            about 3.2 on, where the default 1 holds the gains at one level. 2 lets them grow on:
-            +0.3 to +1.9 dB at ``s_v`` 10-30 on every scene, but -0.2 to -0.5 dB at ``s_v`` 2-5
-            on skull (README "How far the gains grow").
+            about 3.2 on, where the default 1 holds the gains at one level. 2 lets them grow on
+            (test views: +0.3 to +1.5 dB at ``s_v`` 15-30 on every scene, but -0.2 to -0.5 dB at
+            ``s_v`` 2-5 on skull; README "How far the gains grow").
         views_per_step: training views per optimisation step, each at its own ``s_v``; the
             step uses the mean of their gradients (default 1). In a data-parallel run
             (:mod:`clod_adapter.distributed`) view ``j`` of a step is rendered by rank

@@ -110,6 +110,11 @@ class AdaptConfig:
             about 3.2 on, where the default 1 holds the gains at one level. 2 lets them grow on
             (test views: +0.3 to +1.5 dB at ``s_v`` 15-30 on every scene, but -0.2 to -0.5 dB at
             ``s_v`` 2-5 on skull; README "How far the gains grow").
+        trained_order_share: calibrated schedule: at the final recalibration (and every
+            ``recalibrate_every`` steps), the learned order is kept for this share of the
+            Gaussians, the top of it by count (the ones kept longest); the rest, the ones that
+            leave first, are ordered by the starting ranking (``ranking``) again
+            (:func:`merged_order`). 1 (default): the learned order throughout.
         views_per_step: training views per optimisation step, each at its own ``s_v``; the
             step uses the mean of their gradients (default 1). In a data-parallel run
             (:mod:`clod_adapter.distributed`) view ``j`` of a step is rendered by rank
@@ -140,6 +145,7 @@ class AdaptConfig:
     cost_exponent: float = 0.5
     s_v_sampling: Optional[str] = None
     level_max: float = 1.0
+    trained_order_share: float = 1.0
 
     def __post_init__(self) -> None:
         if self.schedule not in SCHEDULES:
@@ -183,6 +189,9 @@ class AdaptConfig:
             raise ValueError(f"views_per_step must be >= 1 (an integer), got {self.views_per_step!r}")
         self.background = tuple(float(x) for x in self.background)
         self.level_max = float(self.level_max)
+        self.trained_order_share = float(self.trained_order_share)
+        if not 0.0 <= self.trained_order_share <= 1.0:
+            raise ValueError(f"trained_order_share must be in [0, 1], got {self.trained_order_share}")
 
     @property
     def gain_names(self) -> tuple:
@@ -298,6 +307,28 @@ def calibrated_sigma_d(score: Tensor, opacities: Tensor, stats: dict, cfg: Adapt
                                  cost=stats["cost"].double().clamp_min(1e-12) ** beta if beta > 0 else None)
 
 
+def merged_order(learned: Tensor, start: Tensor, share: float) -> Tensor:
+    """[N] float64 ranking score (higher = kept longer) that keeps the ``learned`` order for its
+    top ``share`` of the Gaussians (by count; ``round(share N)`` of them) and ranks every other
+    one by ``start`` below them. Ties are broken by index, as in :func:`lod.calibrate_sigma_d`.
+
+    Args:
+        learned: [N] learned ranking score (e.g. the reference critical ``s_v``).
+        start: [N] starting ranking score (e.g. LightGaussian significance).
+        share: in [0, 1]; 1 returns the learned order, 0 the starting one.
+    """
+    n = learned.numel()
+    def ranks(score):  # 0 = kept longest
+        r = torch.empty(n, dtype=torch.float64, device=score.device)
+        r[torch.sort(-score.detach().double(), stable=True).indices] = torch.arange(
+            n, dtype=torch.float64, device=score.device)
+        return r
+    r_learned = ranks(learned)
+    keep = r_learned < round(share * n)
+    # kept: scores in (n, 2n]; the others: (0, n], by the starting order
+    return torch.where(keep, 2.0 * n - r_learned, n - ranks(start))
+
+
 @torch.no_grad()
 def recalibrate(state: "AdaptState", cameras, cfg: AdaptConfig) -> None:
     """Re-map ``sigma_d`` from the order it has learned (the reference critical s_v at each
@@ -306,6 +337,8 @@ def recalibrate(state: "AdaptState", cameras, cfg: AdaptConfig) -> None:
     g = state.gaussians().detach()
     stats = view_statistics(g, cameras)
     s_ref = critical_s_v(g.opacities, stats["d_ref"], g.sigma_d, cfg.tau, cfg.eps)
+    if cfg.trained_order_share < 1.0:
+        s_ref = merged_order(s_ref, ranking_scores(g, cameras, cfg.ranking), cfg.trained_order_share)
     new = calibrated_sigma_d(s_ref, g.opacities, stats, cfg)
     state.params["sigma_d"].data.copy_(new.to(state.params["sigma_d"]))
 

@@ -137,3 +137,48 @@ def test_dlod_finetune_trains_inside_no_grad(tiny):
     with torch.no_grad():
         out = finetune_subset(model, cams, imgs, iterations=3)
     assert not torch.equal(out.sh0, model.sh0)
+
+
+def test_merged_order_keeps_the_learned_top_and_the_start_order_below():
+    from clod_adapter.training import merged_order
+
+    learned = torch.tensor([5.0, 1.0, 4.0, 2.0, 3.0, 0.0])  # learned order: 0, 2, 4, 3, 1, 5
+    start = torch.tensor([0.0, 6.0, 1.0, 5.0, 2.0, 3.0])    # start order: 1, 3, 5, 4, 2, 0
+
+    def order(score):
+        return torch.sort(-score, stable=True).indices.tolist()
+
+    assert order(merged_order(learned, start, 1.0)) == [0, 2, 4, 3, 1, 5]
+    assert order(merged_order(learned, start, 0.0)) == [1, 3, 5, 4, 2, 0]
+    # top 2 of the learned order (0, 2) first, then the other four in the start order
+    assert order(merged_order(learned, start, 2 / 6)) == [0, 2, 1, 3, 5, 4]
+
+
+def test_trained_order_share_is_validated():
+    with pytest.raises(ValueError, match="trained_order_share"):
+        AdaptConfig(trained_order_share=1.5)
+
+
+def test_trained_order_share_zero_restores_the_starting_order(tiny):
+    """The final recalibration with ``trained_order_share = 0`` ranks every Gaussian by the
+    starting ranking again (the same sigma_d as the calibrated start), and 1 keeps the learned one."""
+    from clod_adapter.budget import critical_s_v
+    from clod_adapter.training import reference_distances
+
+    model, cams, imgs = tiny
+    orders = {}
+    for share in (0.0, 1.0):
+        cfg = AdaptConfig(iterations=20, trained_order_share=share)
+        st = prepare(model, cams, cfg)
+        start = st.params["sigma_d"].detach().clone()
+        adapt(st, cams, imgs, cfg, progress=False)
+        g = st.gaussians().detach()
+        d_ref = reference_distances(g, cams)
+        s_ref = critical_s_v(g.opacities, d_ref, g.sigma_d, cfg.tau, cfg.eps)
+        s_start = critical_s_v(g.opacities, d_ref, start, cfg.tau, cfg.eps)
+        orders[share] = (torch.argsort(-s_ref, stable=True), torch.argsort(-s_start, stable=True))
+    learned0, start0 = orders[0.0]
+    learned1, start1 = orders[1.0]
+    assert torch.equal(start0, start1)
+    assert (learned0 == start0).float().mean() > 0.99
+    assert (learned1 == start1).float().mean() < 0.9  # training moved the order; share 1 keeps it

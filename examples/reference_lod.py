@@ -136,7 +136,7 @@ def draw(m, viewmat, K, width, height, s_v: float) -> dict:
     p = keep.sum() / n_f if n_f else 1.0
     if st["fade"] == "eq2":
         ids, level = np.flatnonzero(keep), 0.0
-        att = np.exp(-(d[ids] * s_v) ** 2 / (2.0 * np.maximum(m["sigma_d"][ids], 0.0) ** 2 + st["eps"]))
+        att = np.exp(-(d[ids] * s_v) ** 2 / (2.0 * np.maximum(m["sigma_d"][ids], 0.0) ** 2 + max(st["eps"], 1e-20)))
         op = sigmoid(m["opacity_logits"][ids]) * att
     else:
         w = st["fade_width"] * min(1.0, math.log(s_v) / math.log(RAMP_MIN))

@@ -63,8 +63,11 @@ def _compare(g, ref_model, cam, s_v):
     where = f"{cam.name} s_v={s_v:g}"
     assert np.array_equal(sel.indices.numpy(), out["ids"]), where
     assert sel.level == pytest.approx(out["level"], abs=1e-9), where
-    np.testing.assert_allclose(sel.opacities.detach().numpy(), out["opacities"], rtol=1e-4, atol=2e-5, err_msg=where)  # float32 margins
-    np.testing.assert_allclose(torch.log(scales).detach().numpy(), out["log_scales"], rtol=1e-5, atol=1e-5, err_msg=where)
+    # opacities: float32 margins against float64 ones (a fade of m / 0.5 near m = 0)
+    np.testing.assert_allclose(sel.opacities.detach().numpy(), out["opacities"], rtol=1e-4, atol=2e-5,
+                               err_msg=where)
+    np.testing.assert_allclose(torch.log(scales).detach().numpy(), out["log_scales"], rtol=1e-5, atol=1e-5,
+                               err_msg=where)
     np.testing.assert_allclose(colors[:, 0].detach().numpy(), out["sh0"], rtol=1e-5, atol=1e-5, err_msg=where)
     return sel, out
 

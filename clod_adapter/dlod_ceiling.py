@@ -144,7 +144,8 @@ def finetune_subset(gaussians: Gaussians, train_cameras: Sequence, train_images:
         seed: seed of the view order.
         background: RGB behind the scene.
         backend: rasteriser backend.
-        progress: show a tqdm bar.
+        progress: show progress (:func:`clod_adapter.progress.progress_bar`: a tqdm bar on a
+            terminal, a line every 10 % of the steps in a log).
         schedule: ``"recovery"`` (default) or ``"official"`` (the first version's behaviour).
         decay: ``"recovery"``: the position rate at the end over the one at the start.
         return_info: also return a :class:`FinetuneInfo` (loss per step, convergence).
@@ -152,7 +153,7 @@ def finetune_subset(gaussians: Gaussians, train_cameras: Sequence, train_images:
     Returns:
         the fine-tuned model (detached copy), or ``(model, FinetuneInfo)`` with ``return_info``.
     """
-    from tqdm.auto import tqdm
+    from .progress import progress_bar
 
     if schedule not in FINETUNE_SCHEDULES:
         raise ValueError(f"schedule must be one of {FINETUNE_SCHEDULES}, got {schedule!r}")
@@ -170,7 +171,8 @@ def finetune_subset(gaussians: Gaussians, train_cameras: Sequence, train_images:
     gen = torch.Generator().manual_seed(seed)
     order: list = []
     losses: list = []
-    for it in tqdm(range(iterations), desc=desc, disable=not progress, leave=False):
+    bar = progress_bar(iterations, desc, unit="step", disable=not progress, leave=False)
+    for it in range(iterations):
         for grp in opt.param_groups:
             if grp["name"] == "means":
                 grp["lr"] = lr_of(it)
@@ -186,6 +188,8 @@ def finetune_subset(gaussians: Gaussians, train_cameras: Sequence, train_images:
                 loss.backward()
         losses.append(float(loss.detach()))
         opt.step()
+        bar.update(1)
+    bar.close()
     result = Gaussians(**{k: v.detach() for k, v in params.items()})
     if not return_info:
         return result

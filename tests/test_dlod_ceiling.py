@@ -97,3 +97,14 @@ def test_best_start_picks_the_higher_validation_psnr(tiny):
         best_start({}, val, val_imgs)
     with pytest.raises(ValueError):
         best_start({"good": good}, [], [])
+
+
+def test_finetune_shows_progress_lines_in_a_log(tiny, capsys):
+    """A long ceiling fine-tune (clod-eval --dlod-iterations 5000: 20 minutes) prints a line every
+    10 % of its steps when stderr is a log, not a terminal."""
+    _, model, cams, imgs = tiny
+    finetune_subset(model, cams, imgs, iterations=10, progress=True, desc="dlod test")
+    lines = [ln for ln in capsys.readouterr().err.splitlines() if ln.startswith("dlod test:")]
+    assert len(lines) >= 10 and lines[-1].startswith("dlod test: 10/10 step"), lines
+    finetune_subset(model, cams, imgs, iterations=3)
+    assert "dlod" not in capsys.readouterr().err

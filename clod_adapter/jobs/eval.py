@@ -817,7 +817,8 @@ def _score_dlod(ev: _Eval, b, lab: str, share: float, global_scores: dict) -> No
                                          return_scores=True)
     ev.bar.set_postfix_str(f"{lab} dlod ({best}, {ev.o.dlod_iterations} steps)")
     level, info = finetune_subset(start, ev.train_cams, ev.train_gts, iterations=ev.o.dlod_iterations,
-                                  seed=ev.o.seed, background=ev.bg, return_info=True)
+                                  seed=ev.o.seed, background=ev.bg, return_info=True, progress=ev.o.progress,
+                                  desc=f"clod-eval dlod_finetuned {lab} (from {best})")
     ev.dlod["levels"][lab], ev.dlod["choice"][lab] = len(level), best
     ev.dlod["info"][lab] = {"start": best, "val_psnr": val_scores, "convergence": info.convergence,
                             "loss_every_100": info.loss[::100]}

@@ -107,7 +107,9 @@ def convergence(losses: Sequence[float], window: float = CONVERGENCE_WINDOW,
 @dataclass
 class FinetuneInfo:
     """What :func:`finetune_subset` did: the schedule, the per-step training loss (one view per
-    step), the position rate at the first and last step, and :func:`convergence` of the loss."""
+    step), the position rate at the first and last step, and :func:`convergence` of the loss;
+    with validation views, ``val_psnr`` ([step, mean PSNR dB] pairs, step 0 = the start) and
+    ``best_step``, the step of the model returned."""
 
     schedule: str
     iterations: int
@@ -115,6 +117,8 @@ class FinetuneInfo:
     means_lr_first: Optional[float] = None
     means_lr_last: Optional[float] = None
     convergence: dict = field(default_factory=dict)
+    val_psnr: list = field(default_factory=list)
+    best_step: Optional[int] = None
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -129,7 +133,8 @@ def finetune_subset(gaussians: Gaussians, train_cameras: Sequence, train_images:
                     iterations: int = RECOVERY_ITERATIONS, lr_scale: float = 1.0, seed: int = 0,
                     background=(0.0, 0.0, 0.0), backend: str = "auto", progress: bool = False,
                     desc: str = "dlod", schedule: str = "recovery", decay: float = RECOVERY_DECAY,
-                    return_info: bool = False):
+                    return_info: bool = False, val_cameras: Optional[Sequence] = None,
+                    val_images: Optional[Sequence[Tensor]] = None, val_every: int = 500):
     """Fine-tune every attribute of ``gaussians`` (a fixed subset, no LoD, no densification).
 
     Each step renders one training view (shuffled, without replacement per epoch) with the whole
@@ -149,10 +154,16 @@ def finetune_subset(gaussians: Gaussians, train_cameras: Sequence, train_images:
         schedule: ``"recovery"`` (default) or ``"official"`` (the first version's behaviour).
         decay: ``"recovery"``: the position rate at the end over the one at the start.
         return_info: also return a :class:`FinetuneInfo` (loss per step, convergence).
+        val_cameras, val_images: validation views (not among the training views) and their
+            [H, W, 3] images: the model is scored on them at the start, every ``val_every`` steps
+            and after the last, and the best of those checkpoints is returned (the start when no
+            step beats it: a fine-tune that fits the training views at the cost of held-out ones,
+            as on skull, does not end below where it began).
 
     Returns:
         the fine-tuned model (detached copy), or ``(model, FinetuneInfo)`` with ``return_info``.
     """
+    from .metrics import psnr
     from .progress import progress_bar
 
     if schedule not in FINETUNE_SCHEDULES:
@@ -171,6 +182,22 @@ def finetune_subset(gaussians: Gaussians, train_cameras: Sequence, train_images:
     gen = torch.Generator().manual_seed(seed)
     order: list = []
     losses: list = []
+    val_history: list = []
+    best = None  # (psnr, step, params)
+
+    def validate(step: int) -> None:
+        nonlocal best
+        if not val_cameras:
+            return
+        with torch.no_grad():
+            m = Gaussians(**{k: v.detach() for k, v in params.items()})
+            p = sum(psnr(render_lod(m, c, None, background=background, backend=backend).image, gt, cap=True)
+                    for c, gt in zip(val_cameras, val_images)) / len(val_cameras)
+        val_history.append([step, p])
+        if best is None or p > best[0]:
+            best = (p, step, {k: v.detach().clone() for k, v in params.items()})
+
+    validate(0)
     bar = progress_bar(iterations, desc, unit="step", disable=not progress, leave=False)
     for it in range(iterations):
         for grp in opt.param_groups:
@@ -189,14 +216,19 @@ def finetune_subset(gaussians: Gaussians, train_cameras: Sequence, train_images:
         losses.append(float(loss.detach()))
         opt.step()
         bar.update(1)
+        if val_every > 0 and (it + 1) % val_every == 0 and it + 1 < iterations:
+            validate(it + 1)
     bar.close()
-    result = Gaussians(**{k: v.detach() for k, v in params.items()})
+    if iterations:
+        validate(iterations)
+    result = Gaussians(**{k: v.detach() for k, v in (best[2] if best is not None else params).items()})
     if not return_info:
         return result
     info = FinetuneInfo(schedule=schedule, iterations=iterations, loss=losses,
                         means_lr_first=lr_of(0) if iterations else None,
                         means_lr_last=lr_of(iterations - 1) if iterations else None,
-                        convergence=convergence(losses))
+                        convergence=convergence(losses), val_psnr=val_history,
+                        best_step=best[1] if best is not None else None)
     return result, info
 
 

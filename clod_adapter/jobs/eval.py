@@ -803,7 +803,9 @@ def _score_budget(ev: _Eval, b, ctx: RankingContext, global_scores: dict) -> Non
 
 def _score_dlod(ev: _Eval, b, lab: str, share: float, global_scores: dict) -> None:
     """The dlod ceiling at one budget: the best start by PSNR on validation views (training
-    views; the test views only score the result), fine-tuned with the recovery schedule."""
+    views; the test views only score the result), fine-tuned with the recovery schedule on the
+    other training views, keeping the checkpoint (every 500 steps, the start included) with the
+    best validation PSNR."""
     from ..dlod_ceiling import best_start, finetune_subset, global_cut
     from ..io.scene import validation_split
 
@@ -816,12 +818,15 @@ def _score_dlod(ev: _Eval, b, lab: str, share: float, global_scores: dict) -> No
     best, start, val_scores = best_start(cands, val_cams, val_gts, background=ev.bg,
                                          return_scores=True)
     ev.bar.set_postfix_str(f"{lab} dlod ({best}, {ev.o.dlod_iterations} steps)")
-    level, info = finetune_subset(start, ev.train_cams, ev.train_gts, iterations=ev.o.dlod_iterations,
+    fit_gts = [ev.train_gts[ev.train_cams.index(c)] for c in fit_cams]
+    level, info = finetune_subset(start, fit_cams, fit_gts, iterations=ev.o.dlod_iterations,
                                   seed=ev.o.seed, background=ev.bg, return_info=True, progress=ev.o.progress,
-                                  desc=f"clod-eval dlod_finetuned {lab} (from {best})")
+                                  desc=f"clod-eval dlod_finetuned {lab} (from {best})",
+                                  val_cameras=val_cams, val_images=val_gts)
     ev.dlod["levels"][lab], ev.dlod["choice"][lab] = len(level), best
     ev.dlod["info"][lab] = {"start": best, "val_psnr": val_scores, "convergence": info.convergence,
-                            "loss_every_100": info.loss[::100]}
+                            "loss_every_100": info.loss[::100], "val_psnr_during": info.val_psnr,
+                            "best_step": info.best_step}
     ev.score("dlod_finetuned", lab, b, ev.run(lambda c, m=level: ev.render(m, c)), adapted=False)
 
 

@@ -21,7 +21,7 @@ class _Lines:
         self.stream = stream
 
     def write(self, s: str) -> None:
-        s = s.replace("\r", "").rstrip()
+        s = s.replace("\r", "").replace("\x1b[A", "").rstrip()  # no cursor moves in a log
         if s:
             self.stream.write(s + "\n")
 
@@ -63,5 +63,9 @@ def progress_bar(total: int, desc: str, *, unit: str = "it", disable: bool = Fal
         return tqdm(total=total, initial=initial, desc=desc, unit=unit, leave=leave, file=stream,
                     dynamic_ncols=True)
     step = max(1, int(math.ceil(every * total))) if total > 0 else 1
+    # maxinterval inf: tqdm's monitor thread otherwise sets miniters to 1 once a bar has not
+    # printed for 10 s, and every step became a line (clod-eval's 5,000-step ceiling: 5,000
+    # lines); position 0: a bar opened inside another one moves no cursor in a log
     return LineProgress(total=total, initial=initial, desc=desc, unit=unit, leave=True, file=_Lines(stream),
-                        miniters=step, mininterval=0.0, bar_format=LINE_FORMAT)
+                        miniters=step, mininterval=0.0, maxinterval=float("inf"), position=0,
+                        bar_format=LINE_FORMAT)

@@ -127,6 +127,29 @@ def test_line_progress_every_ten_percent():
     assert len(lines) == 10 and lines[-1].startswith("job: 37/37 it (100 %)") and "frac=0.5" in lines[-1]
 
 
+def test_line_progress_nested_and_slow_stays_one_line_per_ten_percent():
+    """A bar opened inside another (clod-eval's ceiling inside its render bar) writes no cursor
+    moves, and tqdm's monitor thread, which drops ``miniters`` to 1 for a bar that has not
+    printed for ``maxinterval`` seconds, never fires for a log bar."""
+    import io
+
+    from clod_adapter.jobs import progress_bar
+
+    buf = io.StringIO()
+    outer = progress_bar(10, "outer", file=buf)
+    inner = progress_bar(50, "inner", file=buf)
+    assert inner.maxinterval == float("inf")  # (cur_t - last_print_t) >= maxinterval: never
+    for _ in range(50):
+        inner.update(1)
+    inner.close()
+    outer.update(1)
+    outer.close()
+    text = buf.getvalue()
+    assert "\x1b" not in text and "[A" not in text
+    inner_lines = [ln for ln in text.splitlines() if ln.startswith("inner:")]
+    assert len(inner_lines) == 10 and inner_lines[-1].startswith("inner: 50/50 it (100 %)")
+
+
 # --- messages --------------------------------------------------------------------------------------
 def test_help_has_an_example_and_every_flag_has_help(capsys):
     from clod_adapter.cli import adapt, eval as eval_cli, export, render

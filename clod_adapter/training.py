@@ -318,6 +318,7 @@ def merged_order(learned: Tensor, start: Tensor, share: float) -> Tensor:
         share: in [0, 1]; 1 returns the learned order, 0 the starting one.
     """
     n = learned.numel()
+
     def ranks(score):  # 0 = kept longest
         r = torch.empty(n, dtype=torch.float64, device=score.device)
         r[torch.sort(-score.detach().double(), stable=True).indices] = torch.arange(

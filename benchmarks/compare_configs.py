@@ -46,7 +46,9 @@ class _Timed:
         self.select_ms, self.raster_ms = 0.0, ms
 
 
-def _timed(g, cam, s_v):
+def timed_render(g, cam, s_v):
+    """A zero-argument job for :func:`clod_adapter.timing.time_interleaved`: one whole
+    ``render_lod(g, cam, s_v)`` frame, timed as raster ms (``s_v`` None: the model as it is)."""
     def f():
         t0 = time.perf_counter()
         render_lod(g, cam, s_v)
@@ -60,12 +62,12 @@ def run_input(name: str, split: str, configs: dict, repeats: int) -> tuple[list,
     g0, scene, gts = load_input(name, split)
     fit, cams = scene_views(scene, split)
     models = {tag: load_model(adapt_cached(name, AdaptConfig(**kw), tag, split=split)) for tag, kw in configs.items()}
-    sets = {("input", 1.0): [_timed(g0, c, None) for c in cams]}
+    sets = {("input", 1.0): [timed_render(g0, c, None) for c in cams]}
     scores = {}
     with torch.no_grad():
         for tag, g in models.items():
             for s in S_VS:
-                sets[(tag, s)] = [_timed(g, c, s) for c in cams]
+                sets[(tag, s)] = [timed_render(g, c, s) for c in cams]
                 scores[(tag, s)] = statistics.mean(psnr(render_lod(g, c, s).image.clamp(0, 1), t)
                                                    for c, t in zip(cams, gts))
         p_in = statistics.mean(psnr(render_lod(g0, c).image.clamp(0, 1), t) for c, t in zip(cams, gts))

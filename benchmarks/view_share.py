@@ -21,9 +21,9 @@ from __future__ import annotations
 
 import statistics
 import sys
-import time
 
 from common import adapt_cached, load_input, parse_inputs_args, scene_views
+from compare_configs import timed_render
 
 import torch
 
@@ -38,19 +38,6 @@ from clod_adapter.training import AdaptConfig, weighted_count
 S_VS = (1.5, 1.75, 2.0, 2.5, 3.0, 4.0, 5.0, 6.0, 7.5, 10.0, 15.0, 20.0, 30.0, 50.0)
 SHARES = (0.9, 0.75, 0.6, 0.5, 0.4, 0.3, 0.25, 0.2, 0.15, 0.1)
 MODES = ("distance", "share", "cost")
-
-
-class _Timed:
-    def __init__(self, ms: float) -> None:
-        self.select_ms, self.raster_ms = 0.0, ms
-
-
-def _timed(g, cam, s):
-    def f():
-        t0 = time.perf_counter()
-        render_lod(g, cam, s)
-        return _Timed((time.perf_counter() - t0) * 1e3)
-    return f
 
 
 def view_scale(g, cam, s_v: float, mode: str, cost_exponent: float) -> float:
@@ -70,7 +57,7 @@ def run_input(name: str, split: str, repeats: int) -> None:
     g = load_model(adapt_cached(name, cfg, "default", split=split))
     g0, scene, gts = load_input(name, split)
     _, cams = scene_views(scene, split)
-    jobs = {("input", 1.0): [_timed(g0, c, None) for c in cams]}
+    jobs = {("input", 1.0): [timed_render(g0, c, None) for c in cams]}
     scores, drawn = {}, {}
     with torch.no_grad():
         for mode in MODES:
@@ -79,7 +66,7 @@ def run_input(name: str, split: str, repeats: int) -> None:
                 outs = [render_lod(g, c, e) for c, e in zip(cams, scales)]
                 scores[(mode, s)] = statistics.mean(psnr(o.image.clamp(0, 1), t) for o, t in zip(outs, gts))
                 drawn[(mode, s)] = [o.n_rendered for o in outs]
-                jobs[(mode, s)] = [_timed(g, c, e) for c, e in zip(cams, scales)]
+                jobs[(mode, s)] = [timed_render(g, c, e) for c, e in zip(cams, scales)]
         res = time_interleaved(jobs, repeats=repeats, warmup=1)
     ms_in = res[("input", 1.0)]["ms_total"]
     print(f"[{name}] input {ms_in:.1f} ms ({len(cams)} {split} views)")

@@ -810,7 +810,8 @@ def _score_dlod(ev: _Eval, b, lab: str, share: float, global_scores: dict) -> No
     from ..io.scene import validation_split
 
     fit_cams, val_cams = validation_split(ev.train_cams)
-    val_gts = [ev.train_gts[ev.train_cams.index(c)] for c in val_cams]
+    gt_of = {id(c): gt for c, gt in zip(ev.train_cams, ev.train_gts)}  # the split returns these objects
+    val_gts, fit_gts = [gt_of[id(c)] for c in val_cams], [gt_of[id(c)] for c in fit_cams]
     k = max(1, int(round(share * len(ev.base))))
     cands = {m: ev.base.subset(global_cut(global_scores[m].to(ev.dev), share)) for m in global_scores}
     cands.update({m: d for (m, lb), d in ev.decimated.items() if lb == lab})
@@ -818,7 +819,6 @@ def _score_dlod(ev: _Eval, b, lab: str, share: float, global_scores: dict) -> No
     best, start, val_scores = best_start(cands, val_cams, val_gts, background=ev.bg,
                                          return_scores=True)
     ev.bar.set_postfix_str(f"{lab} dlod ({best}, {ev.o.dlod_iterations} steps)")
-    fit_gts = [ev.train_gts[ev.train_cams.index(c)] for c in fit_cams]
     level, info = finetune_subset(start, fit_cams, fit_gts, iterations=ev.o.dlod_iterations,
                                   seed=ev.o.seed, background=ev.bg, return_info=True, progress=ev.o.progress,
                                   desc=f"clod-eval dlod_finetuned {lab} (from {best})",

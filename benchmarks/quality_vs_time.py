@@ -323,7 +323,7 @@ def plot(path: Path, results: dict) -> None:
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--inputs", nargs="+", default=["fern", "maskgaussian", "skull"])
-    ap.add_argument("--repeats", type=int, default=3, help="interleaved timing rounds (default 3)")
+    ap.add_argument("--repeats", type=int, default=5, help="interleaved timing rounds (default 5)")
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--no-lpips", action="store_true")
     ap.add_argument("--config", nargs="*", default=[], metavar="KEY=VALUE",

@@ -122,7 +122,9 @@ class LodView:
     height: int
     frustum: Tensor
     project_ms: float = 0.0
-    _proj: Optional[tuple] = field(default=None, repr=False)  # (geom, row_of, visible, candidates or None)
+    _proj: Optional[tuple] = field(default=None, repr=False)  # (geom, visible ids, candidate ids or None, their rows)
+    _visible: Optional[Tensor] = field(default=None, repr=False)  # [N] bool of the full projection
+    _rows: Optional[Tensor] = field(default=None, repr=False)  # [N] row of the full projection
     _d_norm: Optional[Tensor] = field(default=None, repr=False)
     _critical: Optional[Tensor] = field(default=None, repr=False)
     _ramp: Optional[float] = field(default=None, repr=False)
@@ -147,31 +149,34 @@ class LodView:
         return self._n_frustum
 
     def _projection(self, candidates: Optional[Tensor] = None) -> tuple:
-        """(geometry, row_of [N], visible [N]) of the Gaussians in front of the camera (all of them,
-        or only ``candidates`` [N] bool: rows and ``visible`` cover just those). Computed once and
-        reused; a full projection serves any later request."""
+        """(geometry, ids [m] int64 ascending of the rows whose footprint reaches the image) of
+        the Gaussians in front of the camera: all of them, or only ``candidates`` ([k] int64
+        indices, ascending: the geometry's rows and ``ids`` cover just those, and nothing of
+        size N is built). Computed once and reused; a full projection serves any later
+        request."""
         have = self._proj
-        if have is not None and (have[3] is None or have[3] is candidates):
-            return have[:3]
+        if have is not None and (have[2] is None or have[2] is candidates):
+            return have[:2]
         t0 = time.perf_counter()
-        n, w, h = self.n, self.width, self.height
+        w, h = self.width, self.height
         geom = project_geometry(self.means, self.quats, self.scales, self.viewmat, self.K, w, h, NEAR_PLANE,
                                 FAR_PLANE, candidates)
         with torch.no_grad():
-            vis_ids = finish_projection(geom, None, w, h, EPS2D).ids
-            visible = torch.zeros(n, dtype=torch.bool, device=self.means.device)
-            visible[vis_ids] = True
-            row_of = torch.full((n,), -1, dtype=torch.long, device=self.means.device)
-            row_of[geom.ids] = torch.arange(geom.ids.numel(), device=self.means.device)
-        self._proj = (geom, row_of, visible, candidates)
+            vis = finish_projection(geom, None, w, h, EPS2D)
+        self._proj = (geom, vis.ids, candidates, vis.rows)
+        self._visible = self._rows = None
         self.project_ms += (time.perf_counter() - t0) * 1e3
-        return self._proj[:3]
+        return self._proj[:2]
 
     @property
     def visible(self) -> Tensor:
         """[N] bool: the footprint reaches the image (gsplat 1.5.3 culling, opacity-free 3.33-sigma
         extent): the population budgets and in-view shares refer to. Projects the whole model."""
-        return self._projection()[2]
+        vis_ids = self._projection()[1]
+        if self._visible is None:
+            self._visible = torch.zeros(self.n, dtype=torch.bool, device=self.means.device)
+            self._visible[vis_ids] = True
+        return self._visible
 
     @property
     def _geom(self):
@@ -179,7 +184,12 @@ class LodView:
 
     @property
     def _row_of(self) -> Tensor:
-        return self._projection()[1]
+        """[N] int64: the row of each Gaussian in the whole model's projection (-1: behind)."""
+        geom = self._projection()[0]
+        if self._rows is None:
+            self._rows = torch.full((self.n,), -1, dtype=torch.long, device=self.means.device)
+            self._rows[geom.ids] = torch.arange(geom.ids.numel(), device=self.means.device)
+        return self._rows
 
     @property
     def opacities(self) -> Tensor:
@@ -212,10 +222,10 @@ class LodView:
         if self._ramp is None:
             self._require_sigma()
             st = self.settings
-            with torch.no_grad():
-                keep = lod.lod_mask(self.opacities, self.d_norm, self.sigma_d, 1.0, st.tau, st.eps) & self.frustum
-                n_fr = self.n_frustum
-                self._ramp = lod.ramp_s_v(float(keep.sum()) / n_fr if n_fr else 1.0, st.max_sv)
+            _, self._n_frustum, n_keep = lod.lod_keep(self.opacities, self.d_norm, self.sigma_d, 1.0, self.frustum,
+                                                      st.tau, st.eps, with_ids=False)
+            n_fr = self._n_frustum
+            self._ramp = lod.ramp_s_v(n_keep / n_fr if n_fr else 1.0, st.max_sv)
         return self._ramp
 
     def _require_sigma(self) -> None:
@@ -246,7 +256,7 @@ class LodView:
             budget_in_view = False
         dev = self.means.device
         if s_v is None and budget is None:
-            idx = torch.nonzero(self.visible, as_tuple=False).squeeze(1)
+            idx = self._projection()[1]
             return LodSelection(idx, self.opacities.index_select(0, idx), self.visible, None, 0.0,
                                 torch.ones((), dtype=self.means.dtype, device=dev))
         self._require_sigma()
@@ -272,23 +282,27 @@ class LodView:
         else:
             s_used = float(s_v)
             if s_used <= 1.0 and st.fade == "window" and level is None:  # full detail: the input as it is
-                idx = torch.nonzero(self.visible, as_tuple=False).squeeze(1)
+                idx = self._projection()[1]
                 return LodSelection(idx, opac.index_select(0, idx), self.visible, 1.0, 0.0,
                                     self._share_in_frustum(self.visible))
             d = self.d_norm.detach()
-            mask = lod.lod_mask(opac, d, sd, s_used, st.tau, st.eps)
             if st.fade == "window" and s_used < lod.ramp_cap(st.max_sv) and \
                     lod.full_detail_share(s_used, self.ramp_s_v) > 0.0:
-                mask &= self.visible
+                mask = lod.lod_mask(opac, d, sd, s_used, st.tau, st.eps) & self.visible
                 return self._near_full_detail(mask, torch.nonzero(mask, as_tuple=False).squeeze(1), s_used, level)
-            mask &= self._projection(mask)[2]  # only what the LoD mask keeps is projected
-            idx = torch.nonzero(mask, as_tuple=False).squeeze(1)
+            # what the LoD mask keeps, as indices (only those are projected) and the frustum counts
+            keep, self._n_frustum, _ = lod.lod_keep(opac, d, sd, s_used, self.frustum, st.tau, st.eps)
+            idx = self._projection(keep)[1]
+            if self._proj[2] is None:  # a projection of the whole model served: the kept among its visible
+                idx = keep[self.visible.index_select(0, keep)]
+            mask = torch.zeros(self.n, dtype=torch.bool, device=dev)
+            mask[idx] = True
             if estimator != "paper" and torch.is_grad_enabled() and sd.requires_grad:
                 m_eta = (lod.lod_margin(opac.detach(), d, sd, s_used, st.tau, st.eps) if eta_grad_sigma_only
                          else lod.lod_margin(opac, self.d_norm, sd, s_used, st.tau, st.eps))
                 eta = lod.rendered_fraction(m_eta, self.frustum, estimator, temperature)
             else:
-                eta = self._share_in_frustum(mask)
+                eta = (self.frustum.index_select(0, idx).sum() / max(self.n_frustum, 1)).to(self.means.dtype)
         if st.fade == "eq2":
             drawn = lod.lod_opacities(opac.index_select(0, idx), self.d_norm.index_select(0, idx),
                                       sd.index_select(0, idx), s_used, st.eps)
@@ -486,11 +500,15 @@ class LodView:
                 self._colors_at(idx, sel.level))
 
     def _colors_at(self, idx: Tensor, level: float) -> Tensor:
-        col = self.colors.index_select(0, idx)
         g = self.gains.get("sh0_gain")
-        if g is not None and level > 0 and col.ndim == 3:
-            col = torch.cat([col[:, :1] + level * g.index_select(0, idx), col[:, 1:]], dim=1)
-        return col
+        if g is None or level <= 0 or self.colors.ndim != 3:
+            return self.colors.index_select(0, idx)
+        gain = level * g.index_select(0, idx)
+        if isinstance(self.colors, ShParts):  # the gain on sh0 before the one concatenation
+            c = self.colors
+            return torch.cat([c.sh0.index_select(0, idx) + gain, c.shN.index_select(0, idx)], dim=1)
+        col = self.colors.index_select(0, idx)
+        return torch.cat([col[:, :1] + gain, col[:, 1:]], dim=1)
 
     def rasterize(self, sel: LodSelection, *, background: Optional[Tensor] = None,
                   sh_degree: Optional[int] = None, backend: Backend = "auto", colors: Optional[Tensor] = None):
@@ -524,15 +542,25 @@ class LodView:
             rc, ra, meta = rasterization(means, quats, scales, sel.opacities, col, self.viewmat[None],
                                          self.K[None], w, h, sh_degree=sh, backgrounds=bg, backend="gsplat")
             return rc[0], ra[0], meta
-        geom_all, row_of, _ = self._projection(self._proj[3] if self._proj is not None else None)
-        rows = row_of.index_select(0, idx)
+        have = self._proj
+        geom_all = self._projection(have[2] if have is not None else None)[0]
+        if idx is self._proj[1]:  # the projection's visible rows themselves (full detail, an ``s_v`` frame)
+            rows = self._proj[3]
+        elif self._proj[2] is None:  # the whole model's projection: its row map
+            rows = self._row_of.index_select(0, idx)
+        else:  # a candidate projection (a few rows): ``idx`` lies in its ascending ids
+            rows = torch.searchsorted(geom_all.ids, idx)
+            m = geom_all.ids.numel()
+            if idx.numel() and (m == 0 or not torch.equal(geom_all.ids.index_select(0, rows.clamp_max(m - 1)), idx)):
+                geom_all = self._projection()[0]  # another selection's candidates: project the whole model
+                rows = self._row_of.index_select(0, idx)
         geom = geom_all.subset(rows)
         cov_scale = None
         g = self.gains.get("log_scale_gain")
         if g is not None and sel.level > 0:
             cov_scale = torch.exp(2.0 * sel.level * g.index_select(0, idx))
         proj = finish_projection(geom, sel.opacities, w, h, EPS2D, 0.0, cov_scale)
-        local = torch.searchsorted(idx, proj.ids)  # positions of the drawn rows in ``sel``
+        local = proj.rows  # positions of the drawn rows in ``sel`` (``geom`` has one row per index)
         op = sel.opacities.index_select(0, local)
         if colors is not None:
             col = colors.index_select(0, proj.ids)

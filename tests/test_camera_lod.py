@@ -96,13 +96,34 @@ def test_s_v_frame_projects_only_its_mask_and_draws_the_same(scene):
         for cam in cams[:2]:
             lazy = view_lod(g, cam)
             sel = lazy.select(s)
-            assert lazy._proj[3] is not None  # a partial projection
+            assert lazy._proj[2] is not None  # a partial projection
             full = view_lod(g, cam)
             want = lod.lod_mask(full.opacities, full.d_norm, full.sigma_d, s) & full.visible
-            assert torch.equal(sel.indices, torch.nonzero(want).squeeze(1))
+            assert torch.equal(sel.indices, torch.nonzero(want).squeeze(1)) and torch.equal(sel.mask, want)
+            # the same selection when the whole model was projected first (the kept among its visible)
+            sel_full = full.select(s)
+            assert full._proj[2] is None and torch.equal(sel_full.indices, sel.indices)
+            assert torch.equal(sel_full.mask, want) and float(sel_full.eta) == float(sel.eta)
+            assert float(sel.eta) == pytest.approx(float((want & full.frustum).sum()) / float(full.frustum.sum()))
             a = render_lod(g, cam, s).image
             b = full.rasterize(full.select(s))[0]
             assert torch.allclose(a, b, atol=1e-6)
+
+
+def test_a_selection_drawn_after_another_selection_projected(scene):
+    # select(3) then select(8) on one view: the second's candidate projection lacks rows of the
+    # first; drawing the first then projects the whole model instead of reading wrong rows
+    g, cams = scene
+    g = replace(g, lod=lod.LodSettings(fade="window", max_sv=5.0))
+    cam = cams[0]
+    v = view_lod(g, cam)
+    sel3 = v.select(3.0)
+    sel8 = v.select(8.0)
+    assert sel8.indices.numel() < sel3.indices.numel() and v._proj[2] is not None
+    img3 = v.rasterize(sel3)[0]
+    assert v._proj[2] is None  # fell back to the whole model's projection
+    assert torch.allclose(img3, render_lod(g, cam, 3.0).image, atol=1e-6)
+    assert torch.allclose(v.rasterize(sel8)[0], render_lod(g, cam, 8.0).image, atol=1e-6)
 
 
 def test_in_view_share_budgets(scene):

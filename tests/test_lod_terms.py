@@ -114,6 +114,26 @@ def test_lod_mask_kernel_matches_its_twin(s_v):
     assert torch.equal(ma[margin.abs() > 1e-4], mb[margin.abs() > 1e-4])
 
 
+@pytest.mark.parametrize("s_v", [1.0, 3.0, 30.0])
+@pytest.mark.parametrize("n", [0, 5, 100_000])
+def test_lod_keep_kernel_matches_its_twin_and_the_mask(s_v, n):
+    g = torch.Generator().manual_seed(n + 3)
+    op = torch.rand(n, generator=g, dtype=torch.float64)
+    d = torch.rand(n, generator=g, dtype=torch.float64)
+    sd = torch.randn(n, generator=g, dtype=torch.float64) * 0.5
+    fr = torch.rand(n, generator=g) < 0.7
+    margin = lod.lod_margin(op, d, sd, s_v, 0.005, 1e-8)
+    assert margin.abs().min() > 1e-9 if n else True  # no ties: kernel and twin agree exactly
+    (ia, fa, ka), (ib, fb, kb) = _both(lod.lod_keep, op, d, sd, s_v, fr, 0.005, 1e-8)
+    want = torch.nonzero(margin > 0).squeeze(1)
+    assert ia.dtype == ib.dtype == torch.long and torch.equal(ia, want) and torch.equal(ib, want)
+    assert fa == fb == int(fr.sum()) and ka == kb == int(((margin > 0) & fr).sum())
+    (na, fa2, ka2), (nb, fb2, kb2) = _both(lambda *a: lod.lod_keep(*a, with_ids=False), op, d, sd, s_v, fr, 0.005, 1e-8)
+    assert na is None and nb is None and (fa2, ka2) == (fb2, kb2) == (fa, ka)
+    if n == 100_000:
+        assert 0 < ia.numel() < n and 0 < ka < fa < n
+
+
 def test_lod_mask_tensor_s_v_and_frustum_use_the_twin_rule():
     op, d, sd = torch.tensor([0.9, 0.9]), torch.tensor([0.1, 0.9]), torch.tensor([0.5, 0.01])
     fr = torch.tensor([False, True])

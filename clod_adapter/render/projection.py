@@ -33,13 +33,15 @@ MAX_RADIUS = float(2 ** 30)
 
 
 class VisibleProjection(NamedTuple):
-    """Projection restricted to the Gaussians with radii > 0 (``ids`` into the inputs)."""
+    """Projection restricted to the Gaussians with radii > 0 (``ids`` into the inputs; ``rows``:
+    their positions in the :class:`ProjectedGeometry` it was finished from, or None)."""
 
     ids: Tensor  # [V] int64
     radii: Tensor  # [V, 2] int32
     means2d: Tensor  # [V, 2]
     depths: Tensor  # [V]
     conics: Tensor  # [V, 3]
+    rows: Optional[Tensor] = None  # [V] int64
 
 
 def quat_to_rotmat_rows(quats: Tensor) -> Tuple[Tensor, ...]:
@@ -105,9 +107,9 @@ def project_geometry(
     keep: Optional[Tensor] = None,
 ) -> ProjectedGeometry:
     """Stage 1 of :func:`project_visible`: depth culling and the EWA terms (steps 1 and 3 of
-    the module docstring) for the Gaussians with ``near_plane <= z <= far_plane`` (and ``keep``
-    [N] bool, when given). ``means`` [N, 3], ``quats`` [N, 4] wxyz, ``scales`` [N, 3] activated,
-    ``viewmat`` [4, 4], ``K`` [3, 3]."""
+    the module docstring) for the Gaussians with ``near_plane <= z <= far_plane`` (and in
+    ``keep``, when given: [N] bool, or [k] int64 indices, ascending). ``means`` [N, 3],
+    ``quats`` [N, 4] wxyz, ``scales`` [N, 3] activated, ``viewmat`` [4, 4], ``K`` [3, 3]."""
     _check(means, quats, scales, None, viewmat, K)
     dt = means.dtype
     viewmat = viewmat.to(dt)
@@ -118,7 +120,7 @@ def project_geometry(
     # --- cheap culling on depth (and ``keep``) without autograd -----------------------------
     with torch.no_grad():
         if keep is not None:  # depth of the kept rows only (an LoD level keeps few of N)
-            ids = keep.nonzero().squeeze(1)
+            ids = keep if keep.dtype == torch.long else keep.nonzero().squeeze(1)
             z = means.detach().index_select(0, ids) @ R[2].detach() + T[2].detach()
             ids = ids[(z >= near_plane) & (z <= far_plane)]
         else:
@@ -235,7 +237,7 @@ def finish_projection(
     c11 = c11.index_select(0, sel)
     inv_det = 1.0 / det.index_select(0, sel)
     conics = torch.stack([c11 * inv_det, -c01 * inv_det, c00 * inv_det], dim=-1)
-    return VisibleProjection(geom.ids.index_select(0, sel), radii, means2d, depths, conics)
+    return VisibleProjection(geom.ids.index_select(0, sel), radii, means2d, depths, conics, sel)
 
 
 def project_visible(

@@ -629,6 +629,9 @@ std::vector<torch::Tensor> composite_backward(
 std::vector<torch::Tensor> lod_frustum_distances(torch::Tensor cols, std::vector<double> R, std::vector<double> t,
                                                  double fx, double cx, double fy, double cy, int64_t width,
                                                  int64_t height, double near_plane, std::vector<double> center);
+std::tuple<torch::Tensor, int64_t, int64_t> lod_keep_cpu(torch::Tensor opacities, torch::Tensor d_norm,
+                                                         torch::Tensor sigma_d, torch::Tensor frustum, double s_v, double tau, double eps,
+                                                         bool with_ids);
 torch::Tensor lod_mask_cpu(torch::Tensor opacities, torch::Tensor d_norm, torch::Tensor sigma_d, double s_v,
                            double tau, double eps);
 
@@ -637,4 +640,5 @@ PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
     m.def("backward", &composite_backward, "CPU Gaussian compositor backward");
     m.def("lod_frustum_distances", &lod_frustum_distances, "frustum test and d' of the LoD (lod.frame_terms)");
     m.def("lod_mask", &lod_mask_cpu, "Eq. 2 mask alpha'' > tau s_v (lod.lod_mask)");
+    m.def("lod_keep", &lod_keep_cpu, "ids of Eq. 2's mask and the frustum counts (lod.lod_keep)");
 }

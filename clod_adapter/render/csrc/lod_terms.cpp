@@ -14,6 +14,7 @@
 #include <cmath>
 #include <cstdint>
 #include <limits>
+#include <tuple>
 #include <vector>
 
 namespace {
@@ -23,42 +24,50 @@ constexpr int64_t kGrainLog = 16384;  // the mask's log is ~15 ns an element
 constexpr double kEpsFloor = 1e-20;  // lod.EPS_FLOOR
 
 template <typename S>
-void frustum_distances_impl(int64_t n, const S* x, const S* y, const S* z, const double* R, const double* t,
-                            double fx, double cx, double fy, double cy, double width, double height,
-                            double near_plane, double c0, double c1, double c2, bool* frustum, S* d_out) {
+void frustum_distances_impl(int64_t n, const S* __restrict__ x, const S* __restrict__ y, const S* __restrict__ z,
+                            const double* R_, const double* t_, double fx, double cx, double fy, double cy,
+                            double width, double height, double near_plane, double c0, double c1, double c2,
+                            bool* __restrict__ frustum, S* __restrict__ d_out) {
+    const double R[9] = {R_[0], R_[1], R_[2], R_[3], R_[4], R_[5], R_[6], R_[7], R_[8]};  // locals: no aliasing
+    const double t[3] = {t_[0], t_[1], t_[2]};
     const int64_t chunks = std::max<int64_t>(1, (n + kGrain - 1) / kGrain);
-    std::vector<double> fr_max(chunks, 0.0), all_max(chunks, -std::numeric_limits<double>::infinity());
-    std::vector<char> any(chunks, 0), nan_all(chunks, 0);
+    std::vector<double> fr_max(chunks, 0.0);
+    std::vector<char> any(chunks, 0);
     at::parallel_for(0, chunks, 1, [&](int64_t c_begin, int64_t c_end) {
         for (int64_t c = c_begin; c < c_end; ++c) {
-            double fm = 0.0, am = -std::numeric_limits<double>::infinity();
-            char an = 0, nn = 0;
-            const int64_t e = std::min(n, (c + 1) * kGrain);
-            for (int64_t i = c * kGrain; i < e; ++i) {  // branch-free: the compiler vectorises it
+            const int64_t b0 = c * kGrain, e = std::min(n, (c + 1) * kGrain);
+            for (int64_t i = b0; i < e; ++i) {  // no reduction here: the compiler vectorises it
                 const double px = x[i], py = y[i], pz = z[i];
                 const double cz = R[6] * px + R[7] * py + R[8] * pz + t[2];
                 const double cxs = R[0] * px + R[1] * py + R[2] * pz + t[0];
                 const double cys = R[3] * px + R[4] * py + R[5] * pz + t[1];
                 const double a = fx * cxs + cx * cz, b = fy * cys + cy * cz;  // pixel * z
-                const bool ok = (cz > near_plane) & (a >= 0.0) & (a < cz * width) & (b >= 0.0) & (b < cz * height);
-                frustum[i] = ok;
+                frustum[i] = (cz > near_plane) & (a >= 0.0) & (a < cz * width) & (b >= 0.0) & (b < cz * height);
                 const double dx = px - c0, dy = py - c1, dz = pz - c2;
-                const S ds = static_cast<S>(std::sqrt(dx * dx + dy * dy + dz * dz));
-                d_out[i] = ds;  // the twin takes its maximum of these stored values
-                const double dd = static_cast<double>(ds);
-                an |= static_cast<char>(ok);
-                nn |= static_cast<char>(dd != dd);
-                fm = std::max(fm, ok ? dd : 0.0);  // a centre in the frustum is finite
-                am = std::max(am, dd);             // NaN never wins here (std::max keeps the first)
+                d_out[i] = static_cast<S>(std::sqrt(dx * dx + dy * dy + dz * dz));  // the twin's max is of these
             }
-            fr_max[c] = fm; all_max[c] = am; any[c] = an; nan_all[c] = nn;
+            double fm = 0.0;
+            char an = 0;
+            for (int64_t i = b0; i < e; ++i) {
+                const double v = frustum[i] ? static_cast<double>(d_out[i]) : 0.0;  // in the frustum: finite
+                an |= static_cast<char>(frustum[i]);
+                fm = v > fm ? v : fm;
+            }
+            fr_max[c] = fm; any[c] = an;
         }
     });
     bool has_frustum = false, has_nan = false;
     double fm = 0.0, am = -std::numeric_limits<double>::infinity();
     for (int64_t c = 0; c < chunks; ++c) {
-        has_frustum |= any[c] != 0; has_nan |= nan_all[c] != 0;
-        fm = std::max(fm, fr_max[c]); am = std::max(am, all_max[c]);
+        has_frustum |= any[c] != 0;
+        fm = std::max(fm, fr_max[c]);
+    }
+    if (!has_frustum) {  // no centre in the frustum (rare): the maximum over all, NaN noticed
+        for (int64_t i = 0; i < n; ++i) {
+            const double dd = static_cast<double>(d_out[i]);
+            has_nan |= dd != dd;
+            am = std::max(am, dd);  // NaN never wins here (std::max keeps the first)
+        }
     }
     // the twin: max over the frustum, else over all (NaN -> 1, inf -> the dtype's max), >= 1e-12
     double dmax = has_frustum ? fm : (has_nan ? std::numeric_limits<double>::quiet_NaN() : am);
@@ -81,6 +90,50 @@ void lod_mask_impl(int64_t n, const S* opac, const S* d_norm, const S* sigma_d, 
             const double thr = x * x / (2.0 * sd * sd + e) + log_ts;
             // log(alpha) <= 0: a threshold >= 0 rejects without the log (most of a coarse level)
             out[i] = thr < 0.0 && std::log(static_cast<double>(opac[i])) > thr;  // log(0) = -inf, NaN: never drawn
+        }
+    });
+}
+
+
+// ids of lod_mask_impl's mask (ascending) and two counts over the frustum, without a [N] mask in
+// torch: the mask, then per chunk the counts, then each chunk writes its ids at its offset (all in
+// parallel chunks of kGrain; the twin's nonzero and two sums are each a pass over [N] that wakes
+// OpenMP's second thread).
+template <typename S>
+void lod_keep_impl(int64_t n, const S* opac, const S* d_norm, const S* sigma_d, const bool* frustum, double s_v,
+                   double tau, double eps, bool with_ids, const torch::TensorOptions& opts, torch::Tensor& ids,
+                   int64_t& n_frustum, int64_t& n_kept_frustum) {
+    std::vector<char> keep(static_cast<size_t>(n));
+    bool* mask = reinterpret_cast<bool*>(keep.data());
+    lod_mask_impl<S>(n, opac, d_norm, sigma_d, s_v, tau, eps, mask);
+    const int64_t chunks = std::max<int64_t>(1, (n + kGrain - 1) / kGrain);
+    std::vector<int64_t> nf(chunks, 0), nk(chunks, 0), nm(chunks, 0);
+    at::parallel_for(0, chunks, 1, [&](int64_t c_begin, int64_t c_end) {
+        for (int64_t c = c_begin; c < c_end; ++c) {
+            int64_t f = 0, k = 0, m = 0;
+            const int64_t e = std::min(n, (c + 1) * kGrain);
+            for (int64_t i = c * kGrain; i < e; ++i) {
+                const int64_t fi = frustum[i] ? 1 : 0, mi = mask[i] ? 1 : 0;
+                f += fi; k += fi & mi; m += mi;
+            }
+            nf[c] = f; nk[c] = k; nm[c] = m;
+        }
+    });
+    std::vector<int64_t> offset(chunks + 1, 0);
+    n_frustum = 0; n_kept_frustum = 0;
+    for (int64_t c = 0; c < chunks; ++c) {
+        n_frustum += nf[c]; n_kept_frustum += nk[c];
+        offset[c + 1] = offset[c] + nm[c];
+    }
+    ids = torch::empty({with_ids ? offset[chunks] : 0}, opts.dtype(torch::kLong));
+    if (!with_ids) return;
+    int64_t* out = ids.data_ptr<int64_t>();
+    at::parallel_for(0, chunks, 1, [&](int64_t c_begin, int64_t c_end) {
+        for (int64_t c = c_begin; c < c_end; ++c) {
+            int64_t j = offset[c];
+            const int64_t e = std::min(n, (c + 1) * kGrain);
+            for (int64_t i = c * kGrain; i < e; ++i)
+                if (mask[i]) out[j++] = i;
         }
     });
 }
@@ -123,4 +176,27 @@ torch::Tensor lod_mask_cpu(torch::Tensor opacities, torch::Tensor d_norm, torch:
                                 sigma_d.data_ptr<scalar_t>(), s_v, tau, eps, out.data_ptr<bool>());
     });
     return out;
+}
+
+// opacities, d_norm, sigma_d: [N] contiguous CPU, one float dtype; frustum [N] bool. Returns
+// (ids [k] int64 ascending where alpha'' > tau s_v (empty unless with_ids), frustum.sum(),
+// (mask & frustum).sum()).
+std::tuple<torch::Tensor, int64_t, int64_t> lod_keep_cpu(torch::Tensor opacities, torch::Tensor d_norm,
+                                                         torch::Tensor sigma_d, torch::Tensor frustum, double s_v,
+                                                         double tau, double eps, bool with_ids) {
+    TORCH_CHECK(opacities.is_contiguous() && d_norm.is_contiguous() && sigma_d.is_contiguous() &&
+                frustum.is_contiguous(), "contiguous inputs");
+    TORCH_CHECK(opacities.scalar_type() == d_norm.scalar_type() && sigma_d.scalar_type() == d_norm.scalar_type(),
+                "one dtype");
+    TORCH_CHECK(frustum.scalar_type() == torch::kBool, "frustum must be bool");
+    const int64_t n = d_norm.numel();
+    TORCH_CHECK(opacities.numel() == n && sigma_d.numel() == n && frustum.numel() == n, "[N] inputs");
+    torch::Tensor ids;
+    int64_t nf = 0, nk = 0;
+    AT_DISPATCH_FLOATING_TYPES(d_norm.scalar_type(), "lod_keep_cpu", [&] {
+        lod_keep_impl<scalar_t>(n, opacities.data_ptr<scalar_t>(), d_norm.data_ptr<scalar_t>(),
+                                sigma_d.data_ptr<scalar_t>(), frustum.data_ptr<bool>(), s_v, tau, eps, with_ids,
+                                d_norm.options(), ids, nf, nk);
+    });
+    return std::make_tuple(ids, nf, nk);
 }

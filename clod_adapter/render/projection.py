@@ -202,7 +202,8 @@ def finish_projection(
             scaled ``scales`` would (up to rounding); None = 1.
 
     Returns:
-        :class:`VisibleProjection` with ``ids`` into the original inputs.
+        :class:`VisibleProjection` with ``ids`` into the original inputs and ``rows`` [V] int64,
+        the kept rows' positions in ``geom`` (ascending).
     """
     aa, ab, bb, axb2 = geom.aa, geom.ab, geom.bb, geom.axb2
     if cov_scale is not None:

@@ -16,9 +16,9 @@ against the input in the same interleaved rounds (2 threads)::
 from __future__ import annotations
 
 import statistics
-import time
 
 from common import load_input, parse_inputs_args, scene_views
+from compare_configs import timed_render
 
 import torch
 
@@ -48,19 +48,6 @@ def blend_weight(g, cameras) -> tuple:
     return w, cost
 
 
-class _Timed:
-    def __init__(self, ms: float) -> None:
-        self.select_ms, self.raster_ms = 0.0, ms
-
-
-def _timed(m, cam):
-    def f():
-        t0 = time.perf_counter()
-        render_lod(m, cam)
-        return _Timed((time.perf_counter() - t0) * 1e3)
-    return f
-
-
 def run_input(name: str, split: str, keeps: list, recover: int) -> None:
     g0, scene, gts = load_input(name, split)
     fit, cams = scene_views(scene, split)
@@ -78,7 +65,7 @@ def run_input(name: str, split: str, keeps: list, recover: int) -> None:
     with torch.no_grad():
         ps = {k: statistics.mean(psnr(render_lod(m, c).image.clamp(0, 1), t) for c, t in zip(cams, gts))
               for k, m in models.items()}
-        r = time_interleaved({k: [_timed(m, c) for c in cams] for k, m in models.items()}, repeats=3, warmup=1)
+        r = time_interleaved({k: [timed_render(m, c, None) for c in cams] for k, m in models.items()}, repeats=3, warmup=1)
     base = r["input"]["per_round"]
     print(f"[{name}] {len(cams)} {split} views; input {ps['input']:.2f} dB")
     for k, m in models.items():

@@ -17,7 +17,6 @@ Prints one line per ``s_v`` (PSNR, mean drawn share of the Gaussians in view)::
 """
 from __future__ import annotations
 
-import dataclasses
 
 from common import adapt_cached, load_input, run_per_input, scene_views
 
@@ -46,7 +45,9 @@ def static_cut(view, order, k: int, level: float):
     op = view.opacity_logits.index_select(0, idx)
     if "opacity_logit_gain" in view.gains:
         op = op + level * view.gains["opacity_logit_gain"].index_select(0, idx)
-    return view.rasterize(dataclasses.replace(view.subset(idx, torch.sigmoid(op)), level=level))[0]
+    sel = view.subset(idx, torch.sigmoid(op))
+    sel.level = level
+    return view.rasterize(sel)[0]
 
 
 def run_input(name: str) -> None:

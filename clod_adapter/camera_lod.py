@@ -72,25 +72,35 @@ class ShParts:
         return torch.cat([self.sh0.index_select(0, idx), self.shN.index_select(0, idx)], dim=1)
 
 
-@dataclass
 class LodSelection:
     """What one camera draws (:meth:`LodView.select`).
 
     Attributes:
         indices: [k] int64 indices into the model, ascending.
         opacities: [k] the opacities the rasteriser is given (after the LoD rule; autograd).
-        mask: [N] bool, ``indices`` as a mask.
+        mask: [N] bool, ``indices`` as a mask (built on first use when the selection was made
+            without one: an ``s_v`` frame does not need it).
         s_v: the virtual distance scale used (solved in budget mode; None without LoD).
         level: level of the gains in [0, 1] (0: the base attributes).
         eta: scalar tensor, rendered fraction of the frustum (gradient per the estimator).
     """
 
-    indices: Tensor
-    opacities: Tensor
-    mask: Tensor
-    s_v: Optional[float]
-    level: float
-    eta: Tensor
+    __slots__ = ("indices", "opacities", "_mask", "_n", "s_v", "level", "eta")
+
+    def __init__(self, indices: Tensor, opacities: Tensor, mask: Optional[Tensor], s_v: Optional[float],
+                 level: float, eta: Tensor, n: Optional[int] = None) -> None:
+        if mask is None and n is None:
+            raise ValueError("LodSelection: give the mask or the model's size n")
+        self.indices, self.opacities, self._mask = indices, opacities, mask
+        self._n = int(mask.numel()) if mask is not None else int(n)
+        self.s_v, self.level, self.eta = s_v, level, eta
+
+    @property
+    def mask(self) -> Tensor:
+        if self._mask is None:
+            self._mask = torch.zeros(self._n, dtype=torch.bool, device=self.indices.device)
+            self._mask[self.indices] = True
+        return self._mask
 
 
 @dataclass
@@ -295,8 +305,7 @@ class LodView:
             idx = self._projection(keep)[1]
             if self._proj[2] is None:  # a projection of the whole model served: the kept among its visible
                 idx = keep[self.visible.index_select(0, keep)]
-            mask = torch.zeros(self.n, dtype=torch.bool, device=dev)
-            mask[idx] = True
+            mask = None  # built on use (LodSelection.mask): an s_v frame does not need the [N] mask
             if estimator != "paper" and torch.is_grad_enabled() and sd.requires_grad:
                 m_eta = (lod.lod_margin(opac.detach(), d, sd, s_used, st.tau, st.eps) if eta_grad_sigma_only
                          else lod.lod_margin(opac, self.d_norm, sd, s_used, st.tau, st.eps))
@@ -306,18 +315,14 @@ class LodView:
         if st.fade == "eq2":
             drawn = lod.lod_opacities(opac.index_select(0, idx), self.d_norm.index_select(0, idx),
                                       sd.index_select(0, idx), s_used, st.eps)
-            return LodSelection(idx, drawn, mask, s_used, 0.0, eta)
+            return LodSelection(idx, drawn, mask, s_used, 0.0, eta, self.n)
         if level is None:
             n_fr = self.n_frustum
             level = lod.level_of_fraction(idx.numel() / n_fr if n_fr else 1.0, st.max_sv, st.level_max)
-        margin = lod.lod_margin(opac.index_select(0, idx), self.d_norm.detach().index_select(0, idx),
-                                sd.index_select(0, idx), s_used, st.tau, st.eps)
-        logits = self.opacity_logits.index_select(0, idx)
-        g = self.gains.get("opacity_logit_gain")
-        if g is not None and level > 0:
-            logits = logits + level * g.index_select(0, idx)
-        drawn = torch.sigmoid(logits) * lod.fade_weight(margin, lod.fade_width_at(s_used, st.fade_width))
-        return LodSelection(idx, drawn, mask, s_used, float(level), eta)
+        drawn = lod.window_opacities(idx, opac, self.opacity_logits, self.d_norm.detach(), sd, s_used, level,
+                                     self.gains.get("opacity_logit_gain"), st.tau, st.eps,
+                                     lod.fade_width_at(s_used, st.fade_width))
+        return LodSelection(idx, drawn, mask, s_used, float(level), eta, self.n)
 
     def _near_full_detail(self, mask: Tensor, idx: Tensor, s_v: float, level: Optional[float]) -> LodSelection:
         """Window fade, ``1 <= s_v <`` :attr:`ramp_s_v`: every Gaussian in view is drawn, those the
@@ -647,7 +652,8 @@ class LodRender:
         image: [H, W, 3] rendered colours (float32, not clamped).
         alpha: [H, W, 1] accumulated opacity.
         mask: [N] bool, Gaussians handed to the rasteriser: in view and passing the LoD mask (or
-            the budget selection).
+            the budget selection); built on first use from ``indices``.
+        indices: [n_rendered] int64, the same Gaussians as indices, ascending.
         n_rendered: ``mask.sum()``, the render cost.
         n_frustum: number of Gaussian centres inside the view frustum.
         eta: scalar tensor, rendered fraction of the frustum (gradient per the estimator; 1.0
@@ -662,7 +668,7 @@ class LodRender:
 
     image: Tensor
     alpha: Tensor
-    mask: Tensor
+    selection: LodSelection = field(repr=False)
     n_rendered: int
     n_frustum: int
     eta: Tensor
@@ -672,6 +678,14 @@ class LodRender:
     select_ms: float = 0.0
     raster_ms: float = 0.0
     meta: dict = field(default_factory=dict)
+
+    @property
+    def mask(self) -> Tensor:
+        return self.selection.mask
+
+    @property
+    def indices(self) -> Tensor:
+        return self.selection.indices
 
 
 def render_lod(
@@ -760,7 +774,7 @@ def render_lod(
                                         sh_degree=gaussians.sh_degree if sh_degree is None else sh_degree,
                                         backend=backend)
     t3 = time.perf_counter()
-    return LodRender(image=image, alpha=alpha, mask=sel.mask, n_rendered=int(sel.indices.numel()),
+    return LodRender(image=image, alpha=alpha, selection=sel, n_rendered=int(sel.indices.numel()),
                      n_frustum=view.n_frustum, eta=sel.eta, s_v=sel.s_v, level=sel.level,
                      project_ms=view.project_ms, select_ms=(t2 - t1) * 1e3 - (view.project_ms - p0),
                      raster_ms=(t3 - t2) * 1e3, meta=meta)

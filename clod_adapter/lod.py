@@ -444,6 +444,40 @@ def full_detail_share(s_v: float, ramp: float = FADE_RAMP_S_V) -> float:
     return 1.0 - min(1.0, max(math.log(max(float(s_v), 1.0)) / math.log(max(float(ramp), FADE_RAMP_S_V)), 0.0))
 
 
+def window_opacities(ids: Tensor, opacities: Tensor, opacity_logits: Tensor, d_norm: Tensor, sigma_d: Tensor,
+                     s_v: float, level: float = 0.0, opacity_logit_gain: Optional[Tensor] = None,
+                     tau: float = DEFAULT_TAU, eps: float = DEFAULT_EPS,
+                     width: float = DEFAULT_FADE_WIDTH) -> Tensor:
+    """The window fade's drawn opacities of the rows ``ids`` [k] int64:
+    ``sigmoid(opacity_logits + level g) * fade_weight(lod_margin(...), width)`` (``g`` the
+    opacity-logit gain, left out when None); [k], the dtype of ``d_norm``/``sigma_d``'s work dtype.
+
+    ``opacities`` (activated, the margin's alpha), ``opacity_logits``, ``d_norm``, ``sigma_d`` and
+    the gain are [N]; ``width`` is the window's width at this ``s_v`` (:func:`fade_width_at`).
+    With autograd on any input, or off the CPU, this is the torch form (the gradient reaches
+    ``sigma_d`` through the margin, the gains through the logits); otherwise one pass of the C++
+    kernel ``csrc/lod_terms.cpp`` over the k rows (in double), its twin
+    (``tests/test_lod_terms.py``). Source: CLoD-GS Eq. 2 (the margin); the window fade is this
+    project's (README "How the whole range is kept").
+    """
+    dt = _work_dtype(d_norm, sigma_d)
+    grad = torch.is_grad_enabled() and any(t is not None and t.requires_grad for t in
+                                           (opacities, opacity_logits, d_norm, sigma_d, opacity_logit_gain))
+    if not grad and kernels_wanted(d_norm.device.type == "cpu"):
+        g = opacity_logit_gain if opacity_logit_gain is not None and level > 0 else None
+        return load_kernels().lod_window_opacities(
+            ids.contiguous(), opacities.detach().to(dt).contiguous(), opacity_logits.detach().to(dt).contiguous(),
+            g.detach().to(dt).contiguous() if g is not None else torch.empty(0, dtype=dt),
+            d_norm.detach().to(dt).contiguous(), sigma_d.detach().to(dt).contiguous(),
+            float(s_v), float(level), float(tau), float(eps), float(width))
+    margin = lod_margin(opacities.index_select(0, ids), d_norm.index_select(0, ids),
+                        sigma_d.index_select(0, ids), s_v, tau, eps)
+    logits = opacity_logits.index_select(0, ids)
+    if opacity_logit_gain is not None and level > 0:
+        logits = logits + level * opacity_logit_gain.index_select(0, ids)
+    return torch.sigmoid(logits) * fade_weight(margin, width)
+
+
 def ramp_cap(max_sv: float) -> float:
     """The longest ramp :func:`ramp_s_v` gives: ``sqrt(max_sv)`` (half the trained range in
     ``ln s_v``), at least :data:`FADE_RAMP_S_V`."""

@@ -152,7 +152,10 @@ def test_base_opacity_cost_bounds_the_drawn_cost():
         sel = view.select(budget_cost=share, min_s_v=0.0)
         est = splat_cost(view, sel.indices, level=sel.level)
         drawn = splat_cost(view, sel.indices, level=sel.level, opacities=sel.opacities)
-        assert bool((drawn <= est + 1e-9).all())
+        # the drawn opacities come from the C++ kernel in double (lod.window_opacities): within
+        # float32 rounding of the base ones where the fade is 1
+        assert bool((drawn <= est * (1 + 1e-5) + 1e-9).all())
+        assert bool((drawn < est * 0.99).any())  # the fade shrinks some footprints
 
 
 def test_cost_prefix_static_cut():

@@ -181,3 +181,45 @@ def test_render_under_inference_mode_matches():
         gi = make_ground_truth(200, seed=3).with_sigma_d(torch.full((200,), 0.5))
         out = render_lod(gi, Cam, 2.0).image
     assert torch.allclose(ref, out) and float(ref.abs().sum()) > 0
+
+
+@pytest.mark.parametrize("n", [0, 7, 100_000])  # 100,000 kept of 150,000: several parallel chunks
+@pytest.mark.parametrize("width,level", [(0.5, 0.7), (0.0, 0.0), (0.2, 1.0)])
+@pytest.mark.parametrize("with_gain", [True, False])
+def test_window_opacities_kernel_matches_its_twin(n, width, level, with_gain):
+    g = torch.Generator().manual_seed(n + 3)
+    N = int(n * 1.5) + 1
+    logits = torch.randn(N, generator=g) * 3
+    logits[::11] = -200.0  # alpha underflows to 0: log alpha = -inf, drawn 0
+    op = torch.sigmoid(logits)
+    d = torch.rand(N, generator=g)
+    sd = torch.randn(N, generator=g) * 0.5  # negative: ReLU -> 0, a dead Gaussian
+    gain = torch.randn(N, generator=g) if with_gain else None
+    ids = torch.randperm(N, generator=g)[:n].sort().values
+    a, b = _both(lod.window_opacities, ids, op, logits, d, sd, 3.0, level, gain, 0.005, 1e-8, width)
+    assert a.shape == b.shape == (n,) and a.dtype == b.dtype == torch.float32
+    if n == 0:
+        return
+    assert torch.isfinite(a).all() and float(a.min()) >= 0.0 and float(a.max()) <= 1.0
+    assert 0 < int((a > 0).sum()) < n or n < 10
+    m = lod.lod_margin(op[ids], d[ids], sd[ids], 3.0)
+    exact = m.abs() > 1e-4  # off the hard mask's edge (width 0)
+    # the twin's margin is float32 (terms of magnitude <= ~20 inside the window: ~2e-6 / width)
+    assert torch.allclose(a[exact], b[exact], rtol=1e-5, atol=3e-5)
+    assert torch.equal(a[exact] > 0, b[exact] > 0)
+
+
+def test_window_opacities_with_autograd_is_the_torch_form():
+    """With a gradient wanted the kernel is not used: sigma_d and the gain get gradients."""
+    n = 50
+    g = torch.Generator().manual_seed(1)
+    logits = torch.randn(n, generator=g)
+    d = torch.rand(n, generator=g)
+    sd = (torch.rand(n, generator=g) * 0.5 + 0.2).requires_grad_(True)
+    gain = torch.randn(n, generator=g).requires_grad_(True)
+    ids = torch.arange(0, n, 2)
+    with native.use_impl("cpp"):
+        out = lod.window_opacities(ids, torch.sigmoid(logits), logits, d, sd, 2.0, 0.5, gain, width=0.5)
+    out.sum().backward()
+    assert out.requires_grad and sd.grad is not None and gain.grad is not None
+    assert float(gain.grad[ids].abs().sum()) > 0 and float(gain.grad[1::2].abs().sum()) == 0.0

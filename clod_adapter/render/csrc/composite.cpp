@@ -634,6 +634,9 @@ std::tuple<torch::Tensor, int64_t, int64_t> lod_keep_cpu(torch::Tensor opacities
                                                          bool with_ids);
 torch::Tensor lod_mask_cpu(torch::Tensor opacities, torch::Tensor d_norm, torch::Tensor sigma_d, double s_v,
                            double tau, double eps);
+torch::Tensor lod_window_opacities_cpu(torch::Tensor ids, torch::Tensor opacities, torch::Tensor logits,
+                                       torch::Tensor gain, torch::Tensor d_norm, torch::Tensor sigma_d,
+                                       double s_v, double level, double tau, double eps, double width);
 
 PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
     m.def("forward", &composite_forward, "CPU Gaussian compositor forward");
@@ -641,4 +644,5 @@ PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
     m.def("lod_frustum_distances", &lod_frustum_distances, "frustum test and d' of the LoD (lod.frame_terms)");
     m.def("lod_mask", &lod_mask_cpu, "Eq. 2 mask alpha'' > tau s_v (lod.lod_mask)");
     m.def("lod_keep", &lod_keep_cpu, "ids of Eq. 2's mask and the frustum counts (lod.lod_keep)");
+    m.def("lod_window_opacities", &lod_window_opacities_cpu, "the window fade's drawn opacities (lod.window_opacities)");
 }

@@ -1,7 +1,8 @@
 // Per-frame LoD terms of CLoD-GS (Cheng et al., ICLR 2026, Sec. 3 and Eq. 2) in one pass each.
 //
 // Twins: clod_adapter.lod.in_frustum + normalized_distances (frustum_distances) and
-// clod_adapter.lod.lod_mask (lod_mask); tests/test_lod_terms.py holds them together.
+// clod_adapter.lod.lod_mask (lod_mask), lod_keep (lod_keep) and window_opacities
+// (lod_window_opacities); tests/test_lod_terms.py holds them together.
 // Every frame of a level of detail runs these over all N Gaussians before it knows what it draws.
 // As ~30 elementwise torch operations at N = 60,000 each one pays OpenMP's wake-up of the
 // second thread (about 0.1 ms under OMP_WAIT_POLICY=PASSIVE); here they are one or two parallel
@@ -138,6 +139,30 @@ void lod_keep_impl(int64_t n, const S* opac, const S* d_norm, const S* sigma_d, 
     });
 }
 
+
+// The window fade's drawn opacities of the kept rows ids [k]: sigmoid(logit + level g) *
+// clamp(m / width, 0, 1), m = log alpha + log-attenuation - log(tau s_v) (width <= 0: m > 0),
+// one pass over k (the twin is about ten elementwise operations over [k], each waking OpenMP's
+// second thread). alpha = 0 gives m = -inf: 0.
+template <typename S>
+void window_opacities_impl(int64_t k, const int64_t* ids, const S* opac, const S* logits, const S* gain,
+                           const S* d_norm, const S* sigma_d, double s_v, double level, double tau, double eps,
+                           double width, S* out) {
+    const double log_ts = std::log(tau * s_v), e = std::max(eps, kEpsFloor);
+    at::parallel_for(0, k, kGrainLog, [&](int64_t b, int64_t end) {
+        for (int64_t j = b; j < end; ++j) {
+            const int64_t i = ids[j];
+            const double sd = std::max(static_cast<double>(sigma_d[i]), 0.0);
+            const double x = static_cast<double>(d_norm[i]) * s_v;
+            const double m = std::log(static_cast<double>(opac[i])) - x * x / (2.0 * sd * sd + e) - log_ts;
+            const double w = width > 0.0 ? std::min(std::max(m / width, 0.0), 1.0) : (m > 0.0 ? 1.0 : 0.0);
+            double l = static_cast<double>(logits[i]);
+            if (gain != nullptr) l += level * static_cast<double>(gain[i]);
+            out[j] = static_cast<S>(w / (1.0 + std::exp(-l)));
+        }
+    });
+}
+
 }  // namespace
 
 // cols [3, N] contiguous float/double (the centres' rows, lod.centre_columns); R [9] row-major and
@@ -199,4 +224,30 @@ std::tuple<torch::Tensor, int64_t, int64_t> lod_keep_cpu(torch::Tensor opacities
                                 d_norm.options(), ids, nf, nk);
     });
     return std::make_tuple(ids, nf, nk);
+}
+
+// ids [k] int64 (rows of the [N] inputs, in range); opacities (activated), opacity_logits, d_norm,
+// sigma_d [N] contiguous CPU, one float dtype; gain [N] the opacity-logit gain or an empty tensor.
+// Returns [k]: the window fade's drawn opacities (lod.window_opacities).
+torch::Tensor lod_window_opacities_cpu(torch::Tensor ids, torch::Tensor opacities, torch::Tensor logits,
+                                       torch::Tensor gain, torch::Tensor d_norm, torch::Tensor sigma_d,
+                                       double s_v, double level, double tau, double eps, double width) {
+    TORCH_CHECK(ids.scalar_type() == torch::kLong && ids.dim() == 1 && ids.is_contiguous(), "ids must be [k] int64");
+    const int64_t n = d_norm.numel();
+    const bool has_gain = gain.numel() > 0;
+    for (const torch::Tensor* t : {&opacities, &logits, &d_norm, &sigma_d}) {
+        TORCH_CHECK(t->is_contiguous() && t->numel() == n && t->scalar_type() == d_norm.scalar_type(),
+                    "[N] contiguous inputs of one dtype");
+    }
+    TORCH_CHECK(!has_gain || (gain.is_contiguous() && gain.numel() == n && gain.scalar_type() == d_norm.scalar_type()),
+                "gain must be [N] of the inputs' dtype or empty");
+    const int64_t k = ids.numel();
+    auto out = torch::empty({k}, d_norm.options());
+    AT_DISPATCH_FLOATING_TYPES(d_norm.scalar_type(), "lod_window_opacities_cpu", [&] {
+        window_opacities_impl<scalar_t>(k, ids.data_ptr<int64_t>(), opacities.data_ptr<scalar_t>(),
+                                        logits.data_ptr<scalar_t>(), has_gain ? gain.data_ptr<scalar_t>() : nullptr,
+                                        d_norm.data_ptr<scalar_t>(), sigma_d.data_ptr<scalar_t>(), s_v, level, tau,
+                                        eps, width, out.data_ptr<scalar_t>());
+    });
+    return out;
 }

@@ -1,0 +1,148 @@
+"""Would merged Gaussians pay? A study of a coarse tier of *merged* Gaussians beside the adapted
+model, at equal frame time (issue 18: "coarse levels may need merged Gaussians ... rather than
+survivors only").
+
+For each input (default: skull and fern; validation views by default, a design question) it
+builds everything ``quality_vs_time.py`` builds (the input, the adapted model along the ``s_v``
+grid, the static peers: LightGaussian and opacity cuts, splat-transform 3.7.0's ``--decimate``
+and ``--decimate-adaptive``), and adds, for each ``--parents`` share ``f``, a *parent tier*:
+``splat-transform --decimate`` of the input to ``f`` of its Gaussians (moment-matched merges of
+nearest pairs), adapted by ``clod-adapt`` with its defaults as if it were an input (cached in
+``runs/bench/<input>/merge_tier_<f><_val>``), drawn along the same ``s_v`` grid. Every setting
+of every method is scored and timed in the same interleaved rounds.
+
+Printed per input: the best PSNR within 75 / 50 / 25 / 15 / 10 % of the input's frame time of
+
+* the adapted model alone (today's one model),
+* the adapted model and the parent tier together: the better of the two at each time (what one
+  model holding both, drawing the parents' level once the children's is worse, would reach
+  *at best*: the cross-fade between the two, where both are drawn, is not modelled, and the
+  parents add ``f`` to the file),
+* the best static cut,
+
+and the goal margins of ``quality_vs_time.py`` at 50 / 25 / 10 % (ours >= best static + 1 dB)
+for both. No goal is enforced (a study: exit 0)::
+
+    python benchmarks/merge_tier.py                        # skull, fern; validation views
+    python benchmarks/merge_tier.py --inputs skull --parents 0.04 0.08 0.15 --split test
+
+Written: ``runs/bench/merge_tier<_val>/{<input>.csv, summary.md}``.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import time
+
+from common import RUNS, add_split_arg, resolve_input, setup_threads, split_suffix
+
+import quality_vs_time as qvt
+
+from clod_adapter.frontier import Point, best_within
+from clod_adapter.io.atomic import atomic_write
+from clod_adapter.io.load import load_model
+from clod_adapter.io.ply import write_ply
+from clod_adapter.storage import ply_bytes
+from clod_adapter.training import AdaptConfig
+
+SHARES = (0.75, 0.5, 0.25, 0.15, 0.1)
+
+
+def adapt_parents(name: str, parents, share: float, split: str, log) -> "object":
+    """The parent tier: the decimated input adapted with clod-adapt's defaults (cached)."""
+    from clod_adapter.jobs.adapt import AdaptOptions, run
+
+    _, scene, res = resolve_input(name)
+    out = RUNS / name / f"merge_tier_{share:g}{split_suffix(split)}"
+    ply = out / "point_cloud.ply"
+    if (out / "metrics.json").is_file() and ply.is_file():
+        log(f"[{name}] reusing the parent tier {out}")
+        return load_model(ply)
+    out.mkdir(parents=True, exist_ok=True)
+    src = out.parent / f"merge_tier_{share:g}_input.ply"
+    write_ply(src, parents)
+    for p in out.iterdir():
+        if p.is_file():
+            p.unlink()
+    t = time.perf_counter()
+    log(f"[{name}] adapting the parent tier ({len(parents):,} merged Gaussians) ...")
+    run(src, scene, out, AdaptConfig(),
+        AdaptOptions(resolution=res, progress=False, log=lambda *a: None, holdout_val=split == "val"))
+    log(f"[{name}] parent tier adapted in {time.perf_counter() - t:.0f} s")
+    return load_model(ply)
+
+
+def line(points, inp_ms: float) -> list:
+    return [best_within(points, sh * inp_ms) for sh in SHARES]
+
+
+def fmt(best: list) -> str:
+    return " / ".join("-" if p is None else f"{p.psnr:.2f}" for p in best)
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--inputs", nargs="+", default=["skull", "fern"])
+    ap.add_argument("--parents", nargs="+", type=float, default=[0.04, 0.15],
+                    help="shares of the input's Gaussians the parent tiers hold (default 0.04 0.15)")
+    ap.add_argument("--repeats", type=int, default=3)
+    ap.add_argument("--threads", type=int, default=2)
+    add_split_arg(ap, "val")
+    args = ap.parse_args()
+    setup_threads(args.threads)
+    out = RUNS / f"merge_tier{split_suffix(args.split)}"
+    out.mkdir(parents=True, exist_ok=True)
+    log = lambda *a: print(*a, flush=True)  # noqa: E731
+    md = []
+    for name in args.inputs:
+        t0 = time.perf_counter()
+        settings, info = qvt.build_settings(name, args.split, log, {}, "default")
+        for f in args.parents:
+            m = qvt.merge_decimate(info["g0"], max(1, int(round(f * info["n0"]))), mode="decimate")
+            gp = adapt_parents(name, m, f, args.split, log)
+            size = ply_bytes(gp)
+            for s in qvt.S_VS:
+                settings.append(qvt.Setting(f"tier{f:g}", f"s_v={s:g}",
+                                            [qvt.lod_render(gp, c, s_v=s) for c in info["cams"]], size))
+        n = [0]
+
+        def tick():
+            n[0] += 1
+        qvt.score(settings, info["gts"], None, tick)
+        log(f"[{name}] {len(settings)} settings x {len(info['gts'])} views scored; timing x{args.repeats} ...")
+        qvt.retime(settings, args.repeats, tick)
+        inp = next(s for s in settings if s.method == "input")
+        qvt.write_csv(out / f"{name}.csv", name, settings, inp.ms, info["views"])
+        pts = lambda pred: [Point(s.method, s.setting, s.ms, s.psnr) for s in settings if pred(s)]  # noqa: E731
+        ours = pts(lambda s: s.method == "clod" and s.setting.startswith("s_v="))
+        static = pts(lambda s: s.method in qvt.PEERS and not s.setting.startswith("match:"))
+        rows = [("adapted model alone", line(ours, inp.ms))]
+        for f in args.parents:
+            tier = pts(lambda s, f=f: s.method == f"tier{f:g}")
+            rows.append((f"with a parent tier of {100 * f:g} % (upper bound)", line(ours + tier, inp.ms)))
+            rows.append((f"the parent tier alone ({100 * f:g} %)", line(tier, inp.ms)))
+        rows.append(("best static cut", line(static, inp.ms)))
+        log(f"[{name}] input {inp.psnr:.2f} dB in {inp.ms:.1f} ms ({len(info['gts'])} {args.split} views, "
+            f"{time.perf_counter() - t0:.0f} s); best PSNR within "
+            f"{' / '.join(f'{100 * s:g}' for s in SHARES)} % of its frame:")
+        st = dict(rows)["best static cut"]
+        tab = ["| model | " + " | ".join(f"within {100 * s:g} %" for s in SHARES) + " | goals 50 / 25 / 10 % (margin dB) |",
+               "|---|" + "---:|" * len(SHARES) + "---|"]
+        for label, best in rows:
+            marg = []
+            for i, sh in enumerate(SHARES):
+                if sh in (0.5, 0.25, 0.1) and label != "best static cut":
+                    a, b = best[i], st[i]
+                    marg.append("-" if a is None else f"{a.psnr - (b.psnr if b else -99) - qvt.MARGIN_DB:+.2f}")
+            log(f"  {label:48s} {fmt(best)}" + (f"   goal margins {' / '.join(marg)}" if marg else ""))
+            tab.append(f"| {label} | " + " | ".join("-" if p is None else f"{p.psnr:.2f} ({p.method} {p.setting})"
+                                                   for p in best) + f" | {' / '.join(marg)} |")
+        md.append(f"### {name} ({args.split} views; input {inp.psnr:.2f} dB in {inp.ms:.1f} ms)\n\n" + "\n".join(tab) + "\n")
+    with atomic_write(out / "summary.md", "w") as fh:
+        fh.write("\n".join(md))
+    (out / "args.json").write_text(json.dumps(vars(args)))
+    log(f"-> {out}")
+
+
+if __name__ == "__main__":
+    main()

@@ -34,10 +34,11 @@ import argparse
 import json
 import time
 
-from common import RUNS, add_split_arg, resolve_input, setup_threads, split_suffix
+from common import RUNS, add_split_arg, resolve_input, scene_views, setup_threads, split_suffix
 
 import quality_vs_time as qvt
 
+from clod_adapter import tiers
 from clod_adapter.frontier import Point, best_within
 from clod_adapter.io.atomic import atomic_write
 from clod_adapter.io.load import load_model
@@ -66,7 +67,7 @@ def adapt_parents(name: str, parents, share: float, split: str, log) -> "object"
             p.unlink()
     t = time.perf_counter()
     log(f"[{name}] adapting the parent tier ({len(parents):,} merged Gaussians) ...")
-    run(src, scene, out, AdaptConfig(),
+    run(src, scene, out, AdaptConfig(parent_share=0.0),
         AdaptOptions(resolution=res, progress=False, log=lambda *a: None, holdout_val=split == "val"))
     log(f"[{name}] parent tier adapted in {time.perf_counter() - t:.0f} s")
     return load_model(ply)
@@ -96,7 +97,8 @@ def main() -> None:
     md = []
     for name in args.inputs:
         t0 = time.perf_counter()
-        settings, info = qvt.build_settings(name, args.split, log, {}, "default")
+        settings, info = qvt.build_settings(name, args.split, log, {"parent_share": 0.0}, "notier")
+        chosen = {}
         for f in args.parents:
             m = qvt.merge_decimate(info["g0"], max(1, int(round(f * info["n0"]))), mode="decimate")
             gp = adapt_parents(name, m, f, args.split, log)
@@ -104,6 +106,18 @@ def main() -> None:
             for s in qvt.S_VS:
                 settings.append(qvt.Setting(f"tier{f:g}", f"s_v={s:g}",
                                             [qvt.lod_render(gp, c, s_v=s) for c in info["cams"]], size))
+            # the one model clod-adapt builds: the switch chosen on fit views (never the scored ones)
+            fit = scene_views(info["scene"], args.split)[0]
+            sub = fit[:: max(1, len(fit) // tiers.CHOOSE_VIEWS)][: tiers.CHOOSE_VIEWS]
+            ch = tiers.choose(info["ga"], gp, sub, [info["scene"].load_image(c) for c in sub],
+                              log=lambda msg, name=name: log(f"[{name}] {msg}"))
+            if ch.tier_s_v is not None:
+                gt = tiers.attach(info["ga"], gp, ch.tier_s_v, ch.tier_start)
+                chosen[f] = (ch.tier_s_v, ch.tier_start)
+                for s in qvt.S_VS:
+                    settings.append(qvt.Setting(f"tiered{f:g}", f"s_v={s:g}",
+                                                [qvt.lod_render(gt, c, s_v=s) for c in info["cams"]],
+                                                ply_bytes(info["ga"]) + size))
         n = [0]
 
         def tick():
@@ -121,6 +135,10 @@ def main() -> None:
             tier = pts(lambda s, f=f: s.method == f"tier{f:g}")
             rows.append((f"with a parent tier of {100 * f:g} % (upper bound)", line(ours + tier, inp.ms)))
             rows.append((f"the parent tier alone ({100 * f:g} %)", line(tier, inp.ms)))
+            if f in chosen:
+                one = pts(lambda s, f=f: s.method == f"tiered{f:g}")
+                rows.append((f"one model with the tier ({100 * f:g} %, switch s_v = {chosen[f][0]:g}, "
+                             f"parents from {chosen[f][1]:g})", line(one, inp.ms)))
         rows.append(("best static cut", line(static, inp.ms)))
         log(f"[{name}] input {inp.psnr:.2f} dB in {inp.ms:.1f} ms ({len(info['gts'])} {args.split} views, "
             f"{time.perf_counter() - t0:.0f} s); best PSNR within "

@@ -40,7 +40,7 @@ from .render.dispatch import Backend
 from .budget import budget_count, critical_s_v, select_budget
 from .cost import FrameTimeModel
 from .gaussians import Gaussians
-from .render.projection import finish_projection, project_geometry
+from .render.projection import VisibleProjection, finish_projection, project_geometry
 
 #: gsplat 1.5.3 defaults used by every LoD render.
 EPS2D, NEAR_PLANE, FAR_PLANE, TILE_SIZE = 0.3, 0.01, 1e10, 16
@@ -530,7 +530,7 @@ class LodView:
                 features.
             colors: [N, D] features to draw instead of the model's colours (the renderer hook).
         """
-        from .render.cpu import rasterize_projected, sh_colors
+        from .render.cpu import rasterize_projected
         from .render.dispatch import rasterization, resolve_backend
 
         idx = sel.indices
@@ -547,6 +547,23 @@ class LodView:
             rc, ra, meta = rasterization(means, quats, scales, sel.opacities, col, self.viewmat[None],
                                          self.K[None], w, h, sh_degree=sh, backgrounds=bg, backend="gsplat")
             return rc[0], ra[0], meta
+        proj, col, op = self._finished(sel, sh, colors)
+        bg = None if background is None else background.reshape(-1)
+        rc, ra, offsets, flat = rasterize_projected(proj, col, op, w, h, TILE_SIZE, bg)
+        meta = {"visible_ids": proj.ids, "radii": proj.radii, "means2d": proj.means2d, "depths": proj.depths,
+                "conics": proj.conics, "isect_offsets": offsets, "flatten_ids": flat,
+                "n_visible": int(proj.ids.numel()), "width": w, "height": h, "tile_size": TILE_SIZE}
+        return rc, ra, meta
+
+    def _finished(self, sel: LodSelection, sh: Optional[int], colors: Optional[Tensor] = None):
+        """CPU drawing of ``sel`` up to compositing: (VisibleProjection of the drawn rows, their
+        colours [V, D], opacities [V]); the projection's rows are finished with the drawn
+        opacities and the level's scales (no second projection)."""
+        from .render.cpu import sh_colors
+
+        idx = sel.indices
+        w, h = self.width, self.height
+        feats = self.colors if colors is None else colors
         have = self._proj
         geom_all = self._projection(have[2] if have is not None else None)[0]
         if idx is self._proj[1]:  # the projection's visible rows themselves (full detail, an ``s_v`` frame)
@@ -574,12 +591,7 @@ class LodView:
         else:
             coeffs = self._colors_at(proj.ids, sel.level)
             col = sh_colors(sh, self.means.index_select(0, proj.ids), coeffs, lod.camera_center(self.viewmat))
-        bg = None if background is None else background.reshape(-1)
-        rc, ra, offsets, flat = rasterize_projected(proj, col, op, w, h, TILE_SIZE, bg)
-        meta = {"visible_ids": proj.ids, "radii": proj.radii, "means2d": proj.means2d, "depths": proj.depths,
-                "conics": proj.conics, "isect_offsets": offsets, "flatten_ids": flat,
-                "n_visible": int(proj.ids.numel()), "width": w, "height": h, "tile_size": TILE_SIZE}
-        return rc, ra, meta
+        return proj, col, op
 
 
 def view_lod_tensors(means: Tensor, quats: Tensor, scales: Tensor, opacity_logits: Tensor, colors: Tensor,
@@ -664,6 +676,8 @@ class LodRender:
             LoD selection (frustum, d', Eq. 2 mask or budget solve, drawn opacities), and of the
             rasterisation (finishing the projection of the drawn set, colours, compositing), ms.
         meta: the rasteriser's meta dict (per-Gaussian arrays index ``meta["visible_ids"]``).
+        n_parents: parents of the model's parent tier drawn (in ``n_rendered``; ``mask`` and
+            ``indices`` are the model's own Gaussians).
     """
 
     image: Tensor
@@ -678,6 +692,7 @@ class LodRender:
     select_ms: float = 0.0
     raster_ms: float = 0.0
     meta: dict = field(default_factory=dict)
+    n_parents: int = 0
 
     @property
     def mask(self) -> Tensor:
@@ -717,6 +732,10 @@ def render_lod(
     Eq. 2's ``alpha''`` (the paper), ``"window"`` with the attributes at the level
     (:meth:`Gaussians.at_level`) and only the Gaussians about to leave faded
     (:func:`clod_adapter.lod.fade_weight`). A model without settings is drawn as the paper does.
+    A model with a parent tier (``gaussians.parents``, ``lod.tier_s_v > 0``) cross-fades to its
+    parents beyond ``tier_s_v`` at a given ``s_v`` (:func:`clod_adapter.lod.tier_weight`: both
+    drawn in one image, the Gaussians' opacities times ``1 - u``, the parents' times ``u``, the
+    parents at their own ``s_v``); budgets draw the Gaussians alone.
 
     Args:
         gaussians: the model (N Gaussians). ``sigma_d`` is required when ``s_v`` or ``budget`` is given.
@@ -760,6 +779,10 @@ def render_lod(
         ValueError: ``s_v`` or a budget given but the model has no ``sigma_d``; ``s_v < 1``;
             more than one of ``s_v``, ``budget``, ``budget_cost``, ``budget_ms`` given.
     """
+    st = gaussians.lod
+    if (s_v is not None and gaussians.parents is not None and st is not None and st.tier_s_v > 0
+            and lod.tier_weight(float(s_v), st)[0] > 0):
+        return _render_tiered(gaussians, camera, float(s_v), tau, eps, background, sh_degree, backend, view)
     if view is None:
         view = view_lod(gaussians, camera, tau=tau, eps=eps)
     p0, t1 = view.project_ms, time.perf_counter()
@@ -778,6 +801,83 @@ def render_lod(
                      n_frustum=view.n_frustum, eta=sel.eta, s_v=sel.s_v, level=sel.level,
                      project_ms=view.project_ms, select_ms=(t2 - t1) * 1e3 - (view.project_ms - p0),
                      raster_ms=(t3 - t2) * 1e3, meta=meta)
+
+
+def _render_tiered(gaussians: Gaussians, camera, s_v: float, tau, eps, background, sh_degree, backend,
+                   view: Optional[LodView]) -> LodRender:
+    """:func:`render_lod` at an ``s_v`` where the parent tier is drawn (cross-fade or alone)."""
+    st = gaussians.lod
+    u, s_p = lod.tier_weight(s_v, st)
+    t1 = time.perf_counter()
+    vp = view_lod(gaussians.parents, camera, tau=tau, eps=eps)
+    sel_p = vp.select(s_p)
+    parts = [(vp, sel_p)]
+    if u < 1.0:
+        sel_p.opacities = sel_p.opacities * u
+        vc = view if view is not None else view_lod(gaussians, camera, tau=tau, eps=eps)
+        sel_c = vc.select(s_v)
+        sel_c.opacities = sel_c.opacities * (1.0 - u)
+        parts.insert(0, (vc, sel_c))
+    else:
+        vc = None
+        sel_c = LodSelection(torch.zeros(0, dtype=torch.long, device=gaussians.means.device),
+                             gaussians.opacity_logits.new_zeros(0), None, s_v, 0.0, sel_p.eta.new_zeros(()),
+                             len(gaussians))
+    t2 = time.perf_counter()
+    bg = None
+    if background is not None:
+        bg = torch.as_tensor(background, dtype=gaussians.means.dtype, device=gaussians.means.device)
+    image, alpha, meta = rasterize_views(parts, background=bg, sh_degree=sh_degree, backend=backend)
+    t3 = time.perf_counter()
+    proj_ms = sum(v.project_ms for v, _ in parts)
+    n_p = int(sel_p.indices.numel())
+    main = sel_c if vc is not None else sel_p
+    return LodRender(image=image, alpha=alpha, selection=sel_c, n_rendered=int(sel_c.indices.numel()) + n_p,
+                     n_frustum=(vc or vp).n_frustum, eta=main.eta, s_v=s_v, level=main.level,
+                     project_ms=proj_ms, select_ms=(t2 - t1) * 1e3 - proj_ms, raster_ms=(t3 - t2) * 1e3,
+                     meta=meta, n_parents=n_p)
+
+
+def rasterize_views(parts: Sequence[tuple[LodView, LodSelection]], *, background: Optional[Tensor] = None,
+                    sh_degree: Optional[int] = None, backend: Backend = "auto"):
+    """Draw the selections of several models seen from one camera (one :class:`LodView` each,
+    same camera) as one image, composited together in depth order: ``(image [H, W, D], alpha
+    [H, W, 1], meta)``. ``meta["visible_ids"]`` numbers the models' Gaussians one after the other
+    (the second model's ids offset by the first's N, ...). Used for a model and its parent tier
+    during their cross-fade (:func:`render_lod`). CPU: each view's projection is finished as in
+    :meth:`LodView.rasterize` and the rows concatenated; CUDA: gsplat rasterises the
+    concatenated drawn attributes."""
+    from .render.cpu import rasterize_projected
+    from .render.dispatch import rasterization, resolve_backend
+
+    v0 = parts[0][0]
+    w, h = v0.width, v0.height
+    sh = sh_degree
+    if sh is None and v0.colors.ndim == 3:
+        sh = int(math.isqrt(v0.colors.shape[1]) - 1)
+    if resolve_backend(backend, v0.means) == "gsplat":
+        attrs = [v.drawn_attributes(sel) for v, sel in parts]
+        cat = [torch.cat([a[i] for a in attrs]) for i in range(4)]
+        op = torch.cat([sel.opacities for _, sel in parts])
+        bg = None if background is None else background.reshape(1, -1)
+        rc, ra, meta = rasterization(*cat[:3], op, cat[3], v0.viewmat[None], v0.K[None], w, h, sh_degree=sh,
+                                     backgrounds=bg, backend="gsplat")
+        return rc[0], ra[0], meta
+    projs, cols, ops, off = [], [], [], 0
+    for v, sel in parts:
+        p, c, o = v._finished(sel, sh)
+        projs.append(p._replace(ids=p.ids + off, rows=None))
+        cols.append(c)
+        ops.append(o)
+        off += v.n
+    proj = VisibleProjection(*(torch.cat([getattr(p, f) for p in projs]) for f in
+                               ("ids", "radii", "means2d", "depths", "conics")))
+    bg = None if background is None else background.reshape(-1)
+    rc, ra, offsets, flat = rasterize_projected(proj, torch.cat(cols), torch.cat(ops), w, h, TILE_SIZE, bg)
+    meta = {"visible_ids": proj.ids, "radii": proj.radii, "means2d": proj.means2d, "depths": proj.depths,
+            "conics": proj.conics, "isect_offsets": offsets, "flatten_ids": flat,
+            "n_visible": int(proj.ids.numel()), "width": w, "height": h, "tile_size": TILE_SIZE}
+    return rc, ra, meta
 
 
 @dataclass

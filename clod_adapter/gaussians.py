@@ -62,6 +62,10 @@ class Gaussians:
         lod: how the model is drawn at a level of detail, or None (defaults; the paper's Eq. 2).
         extra: [N] tensors by .ply property name (any dtype), carried along but not trained or
             rendered (e.g. ``masks_0``, ``masks_1``); empty by default.
+        parents: the parent tier, or None: an adapted model of merged Gaussians (M of them, its
+            own ``sigma_d`` and gains) that the coarse levels cross-fade to from
+            ``lod.tier_s_v`` on (:func:`clod_adapter.lod.tier_weight`; README "Merged parents").
+            Moved and copied with the model; a :meth:`subset` drops it.
     """
 
     means: Tensor
@@ -76,6 +80,7 @@ class Gaussians:
     sh0_gain: Optional[Tensor] = None
     lod: Optional[LodSettings] = None
     extra: dict[str, Tensor] = field(default_factory=dict)
+    parents: Optional["Gaussians"] = None
 
     def __post_init__(self) -> None:
         n = self.means.shape[0]
@@ -160,24 +165,30 @@ class Gaussians:
                        extra={k: fn(v) for k, v in self.extra.items()})
 
     def to(self, device: torch.device | str) -> "Gaussians":
-        return self._map(lambda v: v.to(device))
+        return self._map_all(lambda v: v.to(device))
 
     def detach(self) -> "Gaussians":
-        return self._map(lambda v: v.detach())
+        return self._map_all(lambda v: v.detach())
 
     def clone(self) -> "Gaussians":
-        return self._map(lambda v: v.detach().clone())
+        return self._map_all(lambda v: v.detach().clone())
+
+    def _map_all(self, fn) -> "Gaussians":
+        """:meth:`_map`, the parent tier included."""
+        out = self._map(fn)
+        return out if self.parents is None else replace(out, parents=self.parents._map_all(fn))
 
     def subset(self, index: Tensor) -> "Gaussians":
-        """Gaussians selected by a boolean mask [N] or an index tensor [M] (int64)."""
-        return self._map(lambda v: v[index])
+        """Gaussians selected by a boolean mask [N] or an index tensor [M] (int64), without a
+        parent tier (its Gaussians merge the whole model's)."""
+        return replace(self._map(lambda v: v[index]), parents=None)
 
     def with_sigma_d(self, sigma_d: Optional[Tensor]) -> "Gaussians":
         """The model with ``sigma_d`` replaced; ``None`` also drops the level gains and settings
         (the plain 3DGS model)."""
         if sigma_d is None:
             return replace(self, sigma_d=None, opacity_logit_gain=None, log_scale_gain=None,
-                           sh0_gain=None, lod=None)
+                           sh0_gain=None, lod=None, parents=None)
         return replace(self, sigma_d=sigma_d)
 
 

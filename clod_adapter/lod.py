@@ -87,6 +87,12 @@ class LodSettings:
         eps: Eq. 2's epsilon.
         fade: ``"window"`` or ``"eq2"`` (module docstring).
         fade_width: ``w`` of the window fade, log-opacity units (> 0).
+        tier_s_v: where the model's parent tier (``Gaussians.parents``: merged Gaussians, an
+            adapted model of their own) takes over: from this ``s_v`` the image cross-fades from
+            the Gaussians to their parents (0: no tier; :func:`tier_weight`).
+        tier_start: the parents' own ``s_v`` at ``tier_s_v`` (>= 1); beyond, they are drawn at
+            ``tier_start * s_v / tier_s_v``.
+        tier_fade: the cross-fade lasts from ``tier_s_v`` to ``tier_fade * tier_s_v`` (> 1).
     """
 
     max_sv: float = 5.0
@@ -95,6 +101,9 @@ class LodSettings:
     fade: Fade = "eq2"
     fade_width: float = DEFAULT_FADE_WIDTH
     level_max: float = 1.0
+    tier_s_v: float = 0.0
+    tier_start: float = 1.0
+    tier_fade: float = 1.25
 
     def __post_init__(self) -> None:
         if not self.max_sv >= 1.0:
@@ -107,6 +116,12 @@ class LodSettings:
             raise ValueError(f"fade_width must be > 0, got {self.fade_width}")
         if not (self.level_max >= 1.0 and math.isfinite(self.level_max)):
             raise ValueError(f"level_max must be finite and >= 1, got {self.level_max}")
+        if not (self.tier_s_v == 0.0 or (self.tier_s_v >= 1.0 and math.isfinite(self.tier_s_v))):
+            raise ValueError(f"tier_s_v must be 0 (no tier) or finite and >= 1, got {self.tier_s_v}")
+        if not (self.tier_start >= 1.0 and math.isfinite(self.tier_start)):
+            raise ValueError(f"tier_start must be finite and >= 1, got {self.tier_start}")
+        if not (self.tier_fade > 1.0 and math.isfinite(self.tier_fade)):
+            raise ValueError(f"tier_fade must be finite and > 1, got {self.tier_fade}")
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -476,6 +491,20 @@ def window_opacities(ids: Tensor, opacities: Tensor, opacity_logits: Tensor, d_n
     if opacity_logit_gain is not None and level > 0:
         logits = logits + level * opacity_logit_gain.index_select(0, ids)
     return torch.sigmoid(logits) * fade_weight(margin, width)
+
+
+def tier_weight(s_v: float, settings: LodSettings) -> tuple[float, float]:
+    """The parent tier's share of the image at ``s_v`` and the parents' own ``s_v``:
+    ``(u, s_parents)``. ``u`` is 0 up to ``tier_s_v`` (the Gaussians alone), grows with
+    ``ln s_v`` to 1 at ``tier_fade * tier_s_v`` (the parents alone); between, the Gaussians are
+    drawn with their opacities times ``1 - u`` and the parents with theirs times ``u``, so the
+    image is continuous in ``s_v``. ``s_parents = tier_start * s_v / tier_s_v``. A model without
+    a tier (``tier_s_v = 0``): ``(0, 1)``."""
+    st = settings
+    if st.tier_s_v <= 0.0 or s_v <= st.tier_s_v:
+        return 0.0, 1.0
+    u = min(1.0, math.log(float(s_v) / st.tier_s_v) / math.log(st.tier_fade))
+    return u, st.tier_start * float(s_v) / st.tier_s_v
 
 
 def ramp_cap(max_sv: float) -> float:

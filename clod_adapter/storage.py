@@ -12,7 +12,7 @@ import numpy as np
 import plyfile
 
 from .gaussians import Gaussians
-from .io.ply import ply_comments, ply_vertex_dtype
+from .io.ply import PARENT_ELEMENT, ply_comments, ply_vertex_dtype
 
 __all__ = ["ply_bytes", "ply_row_bytes"]
 
@@ -39,8 +39,8 @@ def ply_bytes(gaussians: Gaussians, *, with_normals: bool = True) -> int:
     it is byte-for-byte the header ``write_ply`` writes; no data is allocated.
 
     Args:
-        gaussians: the model (N Gaussians; ``sigma_d``, level gains and ``extra`` counted when
-            present, as ``write_ply`` writes them).
+        gaussians: the model (N Gaussians; ``sigma_d``, level gains, ``extra`` and the parent
+            tier's element counted when present, as ``write_ply`` writes them).
         with_normals: count the (zero) ``nx ny nz`` properties, as ``write_ply``'s default.
 
     Returns:
@@ -49,9 +49,12 @@ def ply_bytes(gaussians: Gaussians, *, with_normals: bool = True) -> int:
     Raises:
         ValueError: an ``extra`` name is also a property of the layout (as ``write_ply``).
     """
-    dtype = ply_vertex_dtype(gaussians, with_normals=with_normals)
-    n = len(gaussians)
-    props = plyfile.PlyElement.describe(np.empty(0, dtype=dtype), "vertex").properties
-    element = plyfile.PlyElement("vertex", props, n)
-    header = plyfile.PlyData([element], text=False, byte_order="<", comments=ply_comments(gaussians)).header
-    return len(header.encode("ascii")) + 1 + n * int(dtype.itemsize)
+    models = [("vertex", gaussians)] + ([(PARENT_ELEMENT, gaussians.parents)] if gaussians.parents is not None else [])
+    elements, rows = [], 0
+    for name, g in models:  # the parent tier is a second element of the vertex layout
+        dtype = ply_vertex_dtype(g, with_normals=with_normals)
+        props = plyfile.PlyElement.describe(np.empty(0, dtype=dtype), name).properties
+        elements.append(plyfile.PlyElement(name, props, len(g)))
+        rows += len(g) * int(dtype.itemsize)
+    header = plyfile.PlyData(elements, text=False, byte_order="<", comments=ply_comments(gaussians)).header
+    return len(header.encode("ascii")) + 1 + rows

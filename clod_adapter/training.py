@@ -115,6 +115,13 @@ class AdaptConfig:
             Gaussians, the top of it by count (the ones kept longest); the rest, the ones that
             leave first, are ordered by the starting ranking (``ranking``) again
             (:func:`merged_order`). 1 (default): the learned order throughout.
+        parent_share: the parent tier (:mod:`clod_adapter.tiers`): after the adaptation, the
+            input merged by splat-transform's ``--decimate`` to this share of its Gaussians is
+            adapted too and attached where it beats the model at equal predicted frame time
+            (left out when it does not, for models under
+            :data:`clod_adapter.tiers.PARENT_MIN_GAUSSIANS` Gaussians, and when splat-transform
+            is not installed). 0: no tier. Default 0.04 (calibrated), 0 (paper). Chosen on the
+            validation views of skull and fern: ``python benchmarks/merge_tier.py``.
         views_per_step: training views per optimisation step, each at its own ``s_v``; the
             step uses the mean of their gradients (default 1). In a data-parallel run
             (:mod:`clod_adapter.distributed`) view ``j`` of a step is rendered by rank
@@ -146,6 +153,7 @@ class AdaptConfig:
     s_v_sampling: Optional[str] = None
     level_max: float = 1.0
     trained_order_share: float = 1.0
+    parent_share: Optional[float] = None
 
     def __post_init__(self) -> None:
         if self.schedule not in SCHEDULES:
@@ -163,6 +171,11 @@ class AdaptConfig:
             self.level_weighting = "uniform" if cal else "paper"
         if self.s_v_sampling is None:
             self.s_v_sampling = "log" if cal else "uniform"
+        if self.parent_share is None:
+            self.parent_share = 0.04 if cal else 0.0
+        self.parent_share = float(self.parent_share)
+        if not 0.0 <= self.parent_share < 1.0:
+            raise ValueError(f"parent_share must be in [0, 1), got {self.parent_share}")
         self.lod_settings()  # max_sv, tau, fade, fade_width: LodSettings' rules, checked there
         if self.iterations < 0:
             raise ValueError(f"iterations must be >= 0, got {self.iterations}")

@@ -70,6 +70,10 @@ def build_parser():
                    help="calibrated schedule: largest level of the gains (default 1: held at 1 below max_sv^-1.5 "
                         "of the Gaussians in view); 2 grows them on (better far below, worse mid-range on skull; "
                         "README 'How far the gains grow')")
+    p.add_argument("--parent-share", type=float, default=None, metavar="SHARE",
+                   help="calibrated schedule: also adapt the input merged by splat-transform --decimate to SHARE of "
+                        "its Gaussians and cross-fade to it at the coarse levels where it pays (default 0.04; 0: "
+                        "none; left out under 10,000 Gaussians or without splat-transform; README 'Merged parents')")
     p.add_argument("--tau", type=float, default=None, help="LoD threshold: render iff alpha'' > tau*s_v (default 0.005)")
     p.add_argument("--eta-estimator", default=None, choices=("ste", "sigmoid", "paper"),
                    help="paper schedule: gradient of the rendered fraction in L_reg (default 'ste'); "
@@ -136,7 +140,7 @@ def _config(args, world: int):
                            fade=args.fade, gains=args.gains, eta_estimator=args.eta_estimator or "ste",
                            background=(1.0, 1.0, 1.0) if args.background == "white" else (0.0, 0.0, 0.0),
                            views_per_step=args.views_per_step if args.views_per_step is not None else world,
-                           level_max=args.level_max, **kw)
+                           level_max=args.level_max, parent_share=args.parent_share, **kw)
     except ValueError as e:  # "<field> must be ...": the field is the flag
         field, _, rest = str(e).partition(" ")
         raise InputError(f"--{field.replace('_', '-')} {rest}") from None

@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import os
 from pathlib import Path
+from dataclasses import replace
 from typing import Union
 
 import numpy as np
@@ -45,12 +46,17 @@ _F_REST_COUNTS = {0: 0, 9: 1, 24: 2, 45: 3}  # number of f_rest properties -> SH
 GAIN_PROPERTIES = {"opacity_logit_gain": ["opacity_gain"], "log_scale_gain": ["scale_gain"],
                    "sh0_gain": ["f_dc_gain_0", "f_dc_gain_1", "f_dc_gain_2"]}
 LOD_COMMENT = "clod_lod"
+#: the element holding an adapted model's parent tier (``Gaussians.parents``): the vertex
+#: element's layout; viewers that read only ``vertex`` draw the model without it
+PARENT_ELEMENT = "lod_parent"
 
 
 def lod_comment(settings: LodSettings) -> str:
     """The header comment that stores ``settings`` (``clod_lod key=value ...``)."""
+    items = {k: v for k, v in settings.to_dict().items()
+             if not k.startswith("tier_") or settings.tier_s_v > 0}  # a model without a tier: as before
     return LOD_COMMENT + " " + " ".join(f"{k}={v!r}" if isinstance(v, float) else f"{k}={v}"
-                                        for k, v in settings.to_dict().items())
+                                        for k, v in items.items())
 
 
 def parse_lod_comment(comments, path: PathLike = "<ply>") -> "LodSettings | None":
@@ -67,7 +73,7 @@ def parse_lod_comment(comments, path: PathLike = "<ply>") -> "LodSettings | None
         try:
             for item in tok[1:]:
                 k, v = item.split("=", 1)
-                if k in ("max_sv", "tau", "eps", "fade_width", "level_max"):
+                if k in ("max_sv", "tau", "eps", "fade_width", "level_max", "tier_s_v", "tier_start", "tier_fade"):
                     kw[k] = float(v)
                 elif k == "fade":
                     kw[k] = v
@@ -230,7 +236,27 @@ def read_ply(path: PathLike, *, allow_nonfinite: bool = False) -> Gaussians:
     names = [el.name for el in ply.elements]
     if "vertex" not in names:
         raise PlyFormatError(path, f"no 'vertex' element (elements: {', '.join(names) or 'none'})")
-    vertex = ply["vertex"]
+    lod_settings = parse_lod_comment(getattr(ply, "comments", []), path)
+    g = _read_element(path, ply["vertex"], lod_settings, allow_nonfinite)
+    if PARENT_ELEMENT in names:
+        if g.sigma_d is None or lod_settings is None or lod_settings.tier_s_v <= 0:
+            raise PlyFormatError(path, f"a '{PARENT_ELEMENT}' element without an adapted model and a "
+                                       f"'tier_s_v' in its '{LOD_COMMENT}' comment")
+        parents = _read_element(path, ply[PARENT_ELEMENT], _parent_settings(lod_settings), allow_nonfinite)
+        if parents.sigma_d is None or parents.sh_degree != g.sh_degree:
+            raise PlyFormatError(path, f"the '{PARENT_ELEMENT}' element needs sigma_d and the vertex "
+                                       f"element's SH degree")
+        g = replace(g, parents=parents)
+    return g
+
+
+def _parent_settings(settings: LodSettings) -> LodSettings:
+    """The parent tier's settings: the model's, without a tier of its own."""
+    return replace(settings, tier_s_v=0.0, tier_start=1.0, tier_fade=LodSettings.tier_fade)
+
+
+def _read_element(path: Path, vertex, lod_settings, allow_nonfinite: bool) -> Gaussians:
+    """One element of INRIA-layout rows (``vertex``, or the parent tier) as :class:`Gaussians`."""
     data = vertex.data  # numpy structured array (a memmap for binary files)
     scalar_fields = {
         p.name for p in vertex.properties if not isinstance(p, plyfile.PlyListProperty)
@@ -247,17 +273,16 @@ def read_ply(path: PathLike, *, allow_nonfinite: bool = False) -> Gaussians:
     wanted = ply_property_names(degree, with_normals=False, with_sigma_d=with_sigma_d)
     for props in gains_present.values():
         wanted += props
-    lod_settings = parse_lod_comment(getattr(ply, "comments", []), path)
     missing = [f for f in wanted if f not in scalar_fields]
     if missing:
         shown = ", ".join(missing[:8]) + (", ..." if len(missing) > 8 else "")
-        raise PlyFormatError(path, f"vertex element lacks required propert{'y' if len(missing) == 1 else 'ies'} {shown}")
+        raise PlyFormatError(path, f"{vertex.name} element lacks required propert{'y' if len(missing) == 1 else 'ies'} {shown}")
 
     extra = _extra_properties(vertex, data, degree)
 
     n = len(data)
     src, where = _as_2d(data, wanted)  # [N, F'] view (or one converted copy) + column of each name
-    del data, vertex, ply  # the memory map stays alive only through ``src`` until we are done
+    del data, vertex  # the memory map stays alive only through ``src`` until we are done
     means, sh0, shN, opacity, log_scales, quats, sigma_d, gains = _columns(src, where, wanted, n, n_rest,
                                                                           with_sigma_d, gains_present)
     del src
@@ -415,6 +440,19 @@ def write_ply(path: PathLike, gaussians: Gaussians, *, with_normals: bool = True
     """
     path = Path(path)
     g = gaussians
+    elements = [plyfile.PlyElement.describe(_vertex_rows(g, with_normals), "vertex")]
+    if g.parents is not None:
+        if g.lod is None or g.lod.tier_s_v <= 0 or g.sigma_d is None or g.parents.sigma_d is None:
+            raise ValueError("write_ply: a parent tier needs an adapted model and parents, and lod.tier_s_v > 0")
+        elements.append(plyfile.PlyElement.describe(_vertex_rows(g.parents, with_normals), PARENT_ELEMENT))
+    ply = plyfile.PlyData(elements, text=False, byte_order="<", comments=ply_comments(g))
+    with atomic_write(path, "wb") as f:
+        ply.write(f)
+    return path
+
+
+def _vertex_rows(g: Gaussians, with_normals: bool) -> np.ndarray:
+    """The structured rows of one element (:func:`write_ply`'s layout)."""
     n = g.num_gaussians
     km1 = g.shN.shape[1]
     names, gain_fields = _float_layout(g, with_normals)
@@ -451,9 +489,4 @@ def write_ply(path: PathLike, gaussians: Gaussians, *, with_normals: bool = True
         for k, a in cols.items():
             full[k] = a
         vertex = full
-
-    element = plyfile.PlyElement.describe(vertex, "vertex")
-    ply = plyfile.PlyData([element], text=False, byte_order="<", comments=ply_comments(g))
-    with atomic_write(path, "wb") as f:
-        ply.write(f)
-    return path
+    return vertex

@@ -344,7 +344,11 @@ def run(ply_path: os.PathLike, scene_root: os.PathLike, out_dir: os.PathLike, cf
                 group = dd.init(pick_device(o.device))
                 if not group.is_main:  # rank 0 speaks for the run
                     o = replace(o, log=lambda *a, **k: None, progress=False)
-            return _run(Path(ply_path), Path(scene_root), Path(out_dir), cfg, o, stop, group)
+            metrics = _run(Path(ply_path), Path(scene_root), Path(out_dir), cfg, o, stop, group)
+            if cfg.parent_share > 0 and "rank" not in metrics:
+                metrics = _add_parent_tier(Path(ply_path), Path(scene_root), Path(out_dir), cfg, o, stop, group,
+                                           metrics)
+            return metrics
         except KeyboardInterrupt:
             if not getattr(stop, "state_saved", False):
                 o.log("\nclod-adapt: interrupted before training started; nothing written")
@@ -431,6 +435,74 @@ def _run(ply_path: Path, scene_root: Path, out_dir: Path, cfg: AdaptConfig, o: A
     o.log(f"clod-adapt: wrote {', '.join(written)} to {inp.out_dir} in {metrics['wall_seconds']:.0f} s "
           f"({metrics['seconds_per_iteration']:.3f} s per iteration)")
     return metrics
+
+
+PARENT_DIR = "parents"
+PARENT_INPUT_NAME = "parents_input.ply"
+
+
+def _add_parent_tier(ply_path: Path, scene_root: Path, out_dir: Path, cfg: AdaptConfig, o: AdaptOptions,
+                     stop: StopFlag, group, metrics: dict) -> dict:
+    """Phase 6 (``cfg.parent_share > 0``, :mod:`clod_adapter.tiers`): the input merged by
+    splat-transform to ``parent_share`` of its Gaussians (``out_dir/parents_input.ply``), adapted
+    by the same job into ``out_dir/parents/`` (its own state, metrics and strip), and attached to
+    ``point_cloud.ply`` where it beats the model at equal predicted frame time on the training
+    views (:func:`clod_adapter.tiers.choose`). Left out, with a note in ``metrics["tier"]``, for a
+    model under :data:`clod_adapter.tiers.PARENT_MIN_GAUSSIANS` Gaussians, a data-parallel run,
+    or without splat-transform."""
+    from .. import tiers
+    from ..io.ply import read_ply
+
+    t0 = time.perf_counter()
+    n = int(metrics["num_gaussians"])
+    info = {"parent_share": cfg.parent_share, "used": False}
+
+    def done(why: Optional[str] = None) -> dict:
+        if why:
+            info["why"] = why
+            o.log(f"clod-adapt: no parent tier: {why}")
+        info["seconds"] = round(time.perf_counter() - t0, 1)
+        metrics["tier"] = info
+        with atomic_write(out_dir / METRICS_NAME, "w") as f:
+            json.dump({k: v for k, v in metrics.items() if k != "wall_seconds"}, f, indent=2)
+        return metrics
+
+    if n < tiers.PARENT_MIN_GAUSSIANS:
+        return done(f"{n:,} Gaussians, under {tiers.PARENT_MIN_GAUSSIANS:,}")
+    if group is not None:
+        return done("not built in a data-parallel run")
+    quiet = replace(o, log=lambda *a, **k: None)
+    try:
+        parents_in = tiers.decimated(_read_model(resolve_model_path(ply_path, o.iteration), cfg, quiet)[0],
+                                     cfg.parent_share)
+    except RuntimeError as e:
+        return done(f"splat-transform: {e}")
+    write_ply(out_dir / PARENT_INPUT_NAME, parents_in)
+    pdir = out_dir / PARENT_DIR
+    o.log(f"clod-adapt: parent tier: {len(parents_in):,} merged Gaussians (splat-transform --decimate), "
+          f"adapting them into {pdir} ...")
+    # the merged input derives from the checked one: no second scene check (a coarse merge may
+    # not clear its margin on a tiny model)
+    po = replace(o, resume=o.resume and (pdir / STATE_NAME).is_file(), force=True, allow_mismatch=True,
+                 log=lambda *a, **k: o.log("  [parents]", *a, **k), iteration=None)
+    _run(out_dir / PARENT_INPUT_NAME, scene_root, pdir, replace(cfg, parent_share=0.0), po, stop, None)
+    model, parents = read_ply(out_dir / PLY_NAME), read_ply(pdir / PLY_NAME)
+    scene = load_scene(scene_root, resolution=o.resolution, background=cfg.background)
+    if o.holdout_val:
+        from ..io.scene import holdout_validation
+
+        scene = holdout_validation(scene)
+    cams = list(scene.train)[:: max(1, len(scene.train) // tiers.CHOOSE_VIEWS)][: tiers.CHOOSE_VIEWS]
+    choice = tiers.choose(model, parents, cams, [scene.load_image(c) for c in cams], background=cfg.background,
+                          log=lambda m: o.log("clod-adapt: " + m))
+    info.update({"parents": len(parents), "curves": choice.curves, "views": len(cams)})
+    if choice.tier_s_v is None:
+        return done("no level of the parents beats the model at equal predicted time on the training views")
+    write_ply(out_dir / PLY_NAME, tiers.attach(model, parents, choice.tier_s_v, choice.tier_start))
+    info.update({"used": True, "tier_s_v": choice.tier_s_v, "tier_start": choice.tier_start})
+    o.log(f"clod-adapt: parent tier of {len(parents):,} attached to {out_dir / PLY_NAME} (from s_v = "
+          f"{choice.tier_s_v:g}) in {time.perf_counter() - t0:.0f} s")
+    return done()
 
 
 def _read_model(ply_path: Path, cfg: AdaptConfig, o: AdaptOptions):

@@ -83,7 +83,14 @@ def export(model, scene, train_imgs, test_cams, test_imgs, out: Path, ply: Path,
         bar.set_postfix_str(next(done))
         bar.update(1)
 
-    rep: dict = {"input": str(ply), "scene": str(scene.root), "gaussians_in": len(model),
+    if model.parents is not None:  # the exported files carry the model's own Gaussians (README "Merged parents")
+        from dataclasses import replace
+
+        rep_tier = {"parents_left_out": len(model.parents)}
+        model = replace(model, parents=None, lod=replace(model.lod, tier_s_v=0.0))
+    else:
+        rep_tier = {}
+    rep: dict = {**rep_tier, "input": str(ply), "scene": str(scene.root), "gaussians_in": len(model),
                  "sh_degree_in": model.sh_degree,
                  "train_views": len(scene.train), "test_views": [c.name for c in test_cams],
                  "resolution": [test_cams[0].width, test_cams[0].height]}

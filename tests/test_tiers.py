@@ -1,0 +1,140 @@
+"""The parent tier (clod_adapter.tiers): the cross-fade rule, drawing, the .ply element, the choice."""
+from dataclasses import replace
+
+import pytest
+import torch
+
+from clod_adapter import lod, tiers
+from clod_adapter.camera_lod import render_lod
+from clod_adapter.io.ply import PlyFormatError, lod_comment, read_ply, write_ply
+from clod_adapter.synthetic import make_cameras, make_ground_truth
+
+
+def _adapted(n, seed):
+    g = make_ground_truth(n, seed=seed)
+    gen = torch.Generator().manual_seed(seed + 7)
+    g = g.with_sigma_d(0.2 + torch.rand(len(g), generator=gen))
+    return replace(g, lod=lod.LodSettings(fade="window"),
+                   log_scale_gain=0.3 * torch.rand(len(g), generator=gen),
+                   opacity_logit_gain=torch.randn(len(g), generator=gen))
+
+
+@pytest.fixture(scope="module")
+def tiered():
+    children, parents = _adapted(1200, 0), _adapted(150, 1)
+    return tiers.attach(children, parents, 3.0, 1.5), make_cameras(1, 2)
+
+
+def test_tier_weight_rule():
+    st = lod.LodSettings(fade="window", tier_s_v=4.0, tier_start=1.5, tier_fade=1.25)
+    assert lod.tier_weight(1.0, st) == (0.0, 1.0) and lod.tier_weight(4.0, st)[0] == 0.0
+    u, sp = lod.tier_weight(4.4, st)
+    assert 0.0 < u < 1.0 and sp == pytest.approx(1.5 * 4.4 / 4.0)
+    assert lod.tier_weight(5.0, st)[0] == pytest.approx(1.0) and lod.tier_weight(9.0, st)[0] == 1.0
+    us = [lod.tier_weight(s, st)[0] for s in torch.linspace(4.0, 5.2, 25).tolist()]
+    assert all(b >= a for a, b in zip(us, us[1:]))
+    assert lod.tier_weight(30.0, lod.LodSettings())[0] == 0.0  # no tier
+    for bad in (dict(tier_s_v=0.5), dict(tier_s_v=2.0, tier_start=0.9), dict(tier_s_v=2.0, tier_fade=1.0)):
+        with pytest.raises(ValueError):
+            lod.LodSettings(**bad)
+
+
+def test_drawing_below_beyond_and_across_the_switch(tiered):
+    g, cams = tiered
+    children = replace(g, parents=None)
+    for cam in cams:
+        below = render_lod(g, cam, 2.9)
+        assert torch.equal(below.image, render_lod(children, cam, 2.9).image) and below.n_parents == 0
+        beyond = render_lod(g, cam, 4.0)  # u = 1 from 3 * 1.25 on: the parents alone at 1.5 * 4 / 3
+        assert torch.equal(beyond.image, render_lod(g.parents, cam, 2.0).image)
+        assert beyond.n_parents == beyond.n_rendered > 0 and beyond.indices.numel() == 0
+        mid = render_lod(g, cam, 3.3)
+        kids = render_lod(children, cam, 3.3).n_rendered
+        assert mid.n_rendered == kids + mid.n_parents and mid.n_parents > 0 and kids > 0
+        # the cross-fade starts from the model's image and ends at the parents'
+        a = render_lod(g, cam, 3.0 * 1.0001).image
+        assert float((a - below.image).abs().mean()) < float((beyond.image - below.image).abs().mean())
+        assert float((render_lod(g, cam, 3.0).image - render_lod(children, cam, 3.0).image).abs().max()) == 0.0
+
+
+def test_ply_round_trip_keeps_the_tier(tiered, tmp_path):
+    g, cams = tiered
+    p = write_ply(tmp_path / "t.ply", g)
+    back = read_ply(p)
+    assert back.parents is not None and len(back.parents) == len(g.parents)
+    assert back.lod.tier_s_v == 3.0 and back.lod.tier_start == 1.5 and back.parents.lod.tier_s_v == 0.0
+    assert torch.equal(back.parents.sigma_d, g.parents.sigma_d) and torch.equal(back.parents.means, g.parents.means)
+    assert torch.equal(render_lod(back, cams[0], 3.4).image, render_lod(g, cams[0], 3.4).image)
+    # a model without a tier writes the header it always did
+    assert "tier" not in lod_comment(lod.LodSettings(fade="window"))
+    # the element alone, without a tier in the header: refused, naming the file
+    bad = replace(g, lod=replace(g.lod, tier_s_v=0.0))
+    with pytest.raises(ValueError):
+        write_ply(tmp_path / "bad.ply", bad)
+    import plyfile
+
+    ply = plyfile.PlyData.read(str(p))
+    ply.comments = [c.replace("tier_s_v=3.0", "tier_s_v=0.0") for c in ply.comments]
+    ply.write(str(tmp_path / "bad2.ply"))
+    with pytest.raises(PlyFormatError, match="bad2.ply.*lod_parent"):
+        read_ply(tmp_path / "bad2.ply")
+
+
+def test_model_operations_carry_or_drop_the_tier(tiered):
+    g, _ = tiered
+    assert g.detach().parents is not None and g.clone().parents is not None
+    assert g.subset(torch.arange(10)).parents is None and g.with_sigma_d(None).parents is None
+
+
+def test_choose_takes_over_where_the_parents_are_as_good(tiered):
+    g, cams = tiered
+    children = replace(g, parents=None)
+    imgs = [render_lod(make_ground_truth(1200, seed=0), c).image.clamp(0, 1) for c in cams]
+    same = tiers.choose(children, children, cams, imgs)  # parents identical to the model: the first switch
+    assert same.tier_s_v == tiers.SWITCH_S_V[0] and same.tier_start >= tiers.SWITCH_S_V[0]
+    assert len(same.curves["gaussians"]) == len(tiers.SWITCH_S_V)
+    assert len(same.curves["parents"]) == len(tiers.PARENT_S_V)
+    dark = replace(children, opacity_logits=torch.full_like(children.opacity_logits, -12.0))
+    none = tiers.choose(children, dark, cams, imgs)  # parents that draw nothing never pay
+    assert none.tier_s_v is None
+
+
+def test_attach_refuses_a_plain_model():
+    plain = make_ground_truth(50, seed=3)
+    with pytest.raises(ValueError, match="adapted"):
+        tiers.attach(plain, _adapted(20, 4), 3.0)
+
+
+def test_storage_counts_the_parent_element(tiered, tmp_path):
+    from clod_adapter.storage import ply_bytes
+
+    g, _ = tiered
+    assert ply_bytes(g) == write_ply(tmp_path / "s.ply", g).stat().st_size > ply_bytes(replace(g, parents=None))
+
+
+def test_adapt_job_builds_the_tier_or_says_why_not(tiny_model, tmp_path, monkeypatch):
+    """clod-adapt: under PARENT_MIN_GAUSSIANS no tier (and metrics.json says why); over it, the
+    merged input is adapted into OUT/parents and, when it pays, stored as the lod_parent element."""
+    import json
+
+    from clod_adapter.cli.adapt import main
+    from clod_adapter.splat_transform import find_splat_transform
+    from conftest import FAST
+
+    args = [str(tiny_model["ply"]), "--images", str(tiny_model["scene"]), *FAST]
+    assert main(args + ["-o", str(tmp_path / "small")]) == 0
+    tier = json.loads((tmp_path / "small" / "metrics.json").read_text())["tier"]
+    assert tier["used"] is False and "under 10,000" in tier["why"]
+    assert read_ply(tmp_path / "small" / "point_cloud.ply").parents is None
+    if find_splat_transform() is None:
+        pytest.skip("splat-transform is not installed (npm ci): the tier's merge needs it")
+    monkeypatch.setattr(tiers, "PARENT_MIN_GAUSSIANS", 100)
+    out = tmp_path / "tier"
+    assert main(args + ["-o", str(out), "--parent-share", "0.2"]) == 0
+    tier = json.loads((out / "metrics.json").read_text())["tier"]
+    assert tier["parents"] == 60 and (out / "parents" / "point_cloud.ply").is_file()
+    assert len(tier["curves"]["gaussians"]) == len(tiers.SWITCH_S_V)
+    g = read_ply(out / "point_cloud.ply")
+    assert (g.parents is not None) == tier["used"]
+    if tier["used"]:
+        assert g.lod.tier_s_v == tier["tier_s_v"] and len(g.parents) == 60

@@ -530,7 +530,6 @@ class LodView:
                 features.
             colors: [N, D] features to draw instead of the model's colours (the renderer hook).
         """
-        from .render.cpu import rasterize_projected
         from .render.dispatch import rasterization, resolve_backend
 
         idx = sel.indices
@@ -547,13 +546,7 @@ class LodView:
             rc, ra, meta = rasterization(means, quats, scales, sel.opacities, col, self.viewmat[None],
                                          self.K[None], w, h, sh_degree=sh, backgrounds=bg, backend="gsplat")
             return rc[0], ra[0], meta
-        proj, col, op = self._finished(sel, sh, colors)
-        bg = None if background is None else background.reshape(-1)
-        rc, ra, offsets, flat = rasterize_projected(proj, col, op, w, h, TILE_SIZE, bg)
-        meta = {"visible_ids": proj.ids, "radii": proj.radii, "means2d": proj.means2d, "depths": proj.depths,
-                "conics": proj.conics, "isect_offsets": offsets, "flatten_ids": flat,
-                "n_visible": int(proj.ids.numel()), "width": w, "height": h, "tile_size": TILE_SIZE}
-        return rc, ra, meta
+        return _composite([(self, sel)], background, sh, colors)
 
     def _finished(self, sel: LodSelection, sh: Optional[int], colors: Optional[Tensor] = None):
         """CPU drawing of ``sel`` up to compositing: (VisibleProjection of the drawn rows, their
@@ -666,7 +659,8 @@ class LodRender:
         mask: [N] bool, Gaussians handed to the rasteriser: in view and passing the LoD mask (or
             the budget selection); built on first use from ``indices``.
         indices: [n_rendered] int64, the same Gaussians as indices, ascending.
-        n_rendered: ``mask.sum()``, the render cost.
+        n_rendered: Gaussians handed to the rasteriser, the render cost (``mask.sum()``, plus
+            ``n_parents``).
         n_frustum: number of Gaussian centres inside the view frustum.
         eta: scalar tensor, rendered fraction of the frustum (gradient per the estimator; 1.0
             without LoD).
@@ -847,7 +841,6 @@ def rasterize_views(parts: Sequence[tuple[LodView, LodSelection]], *, background
     during their cross-fade (:func:`render_lod`). CPU: each view's projection is finished as in
     :meth:`LodView.rasterize` and the rows concatenated; CUDA: gsplat rasterises the
     concatenated drawn attributes."""
-    from .render.cpu import rasterize_projected
     from .render.dispatch import rasterization, resolve_backend
 
     v0 = parts[0][0]
@@ -863,17 +856,27 @@ def rasterize_views(parts: Sequence[tuple[LodView, LodSelection]], *, background
         rc, ra, meta = rasterization(*cat[:3], op, cat[3], v0.viewmat[None], v0.K[None], w, h, sh_degree=sh,
                                      backgrounds=bg, backend="gsplat")
         return rc[0], ra[0], meta
+    return _composite(parts, background, sh)
+
+
+def _composite(parts, background, sh, colors=None):
+    """CPU: each (view, selection)'s finished rows (:meth:`LodView._finished`), concatenated (a
+    later view's ids offset by the earlier views' N) and composited as one image."""
+    from .render.cpu import rasterize_projected
+
     projs, cols, ops, off = [], [], [], 0
     for v, sel in parts:
-        p, c, o = v._finished(sel, sh)
-        projs.append(p._replace(ids=p.ids + off, rows=None))
+        p, c, o = v._finished(sel, sh, colors)
+        projs.append(p._replace(ids=p.ids + off) if off else p)
         cols.append(c)
         ops.append(o)
         off += v.n
-    proj = VisibleProjection(*(torch.cat([getattr(p, f) for p in projs]) for f in
-                               ("ids", "radii", "means2d", "depths", "conics")))
+    proj = projs[0] if len(projs) == 1 else VisibleProjection(
+        *(torch.cat([getattr(p, f) for p in projs]) for f in ("ids", "radii", "means2d", "depths", "conics")))
+    col, op = (cols[0], ops[0]) if len(parts) == 1 else (torch.cat(cols), torch.cat(ops))
+    w, h = parts[0][0].width, parts[0][0].height
     bg = None if background is None else background.reshape(-1)
-    rc, ra, offsets, flat = rasterize_projected(proj, torch.cat(cols), torch.cat(ops), w, h, TILE_SIZE, bg)
+    rc, ra, offsets, flat = rasterize_projected(proj, col, op, w, h, TILE_SIZE, bg)
     meta = {"visible_ids": proj.ids, "radii": proj.radii, "means2d": proj.means2d, "depths": proj.depths,
             "conics": proj.conics, "isect_offsets": offsets, "flatten_ids": flat,
             "n_visible": int(proj.ids.numel()), "width": w, "height": h, "tile_size": TILE_SIZE}

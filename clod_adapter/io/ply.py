@@ -210,7 +210,9 @@ def read_ply(path: PathLike, *, allow_nonfinite: bool = False) -> Gaussians:
     Required vertex properties: x y z, f_dc_0..2, f_rest_0..M-1 with M in {0, 9, 24, 45}
     (SH degree 0..3), opacity, scale_0..2, rot_0..3. Optional: nx ny nz (ignored), ``sigma_d``,
     the level gains. Every other scalar vertex property goes, in file order, to ``extra`` as an
-    [N] tensor of its own type (not checked for NaN/Inf).
+    [N] tensor of its own type (not checked for NaN/Inf). A second element ``lod_parent``
+    (:data:`PARENT_ELEMENT`, the same layout) is the model's parent tier, read into
+    ``Gaussians.parents`` (README "Merged parents").
     Any numeric property type is accepted and converted to float32 (float32 input is copied
     bit-exactly). The file is memory-mapped (plyfile's default) and converted in one vectorised
     pass; the input is never modified.
@@ -227,8 +229,9 @@ def read_ply(path: PathLike, *, allow_nonfinite: bool = False) -> Gaussians:
     Raises:
         FileNotFoundError: ``path`` does not exist.
         PlyFormatError: not a parseable .ply (empty, bad header, truncated data), no ``vertex``
-            element, a required property missing, an f_rest count that is no SH degree, or a
-            NaN/Inf value (unless ``allow_nonfinite``).
+            element, a required property missing, an f_rest count that is no SH degree, a NaN/Inf
+            value (unless ``allow_nonfinite``), or a ``lod_parent`` element without ``sigma_d``,
+            the vertex element's SH degree or a ``tier_s_v`` in the header.
     """
     path = Path(path)
     ply = open_ply(path)
@@ -421,7 +424,8 @@ def write_ply(path: PathLike, gaussians: Gaussians, *, with_normals: bool = True
     ``sigma_d`` when ``gaussians.sigma_d`` is not None (the extended file), then the level gains
     present (``opacity_gain``, ``scale_gain``, ``f_dc_gain_0..2``), then ``gaussians.extra`` by
     name with its own type (e.g. ``masks_0``, ``masks_1``); ``gaussians.lod`` is written as the
-    ``clod_lod`` header comment. Normals are written
+    ``clod_lod`` header comment; ``gaussians.parents`` (the parent tier) as a second element,
+    ``lod_parent``, in the same layout. Normals are written
     as zeros (as the official ``save_ply``). ``shN`` [N,K-1,3] is written channel-major
     (``f_rest_{c*(K-1)+k}``). Tensors on any device / dtype are converted to float32 CPU; the
     vertex block is one contiguous structured array, so read -> write -> read is bit-exact.
@@ -436,7 +440,8 @@ def write_ply(path: PathLike, gaussians: Gaussians, *, with_normals: bool = True
 
     Raises:
         FileNotFoundError: the parent directory does not exist.
-        ValueError: an ``extra`` name is also a property of the layout written.
+        ValueError: an ``extra`` name is also a property of the layout written; a parent tier
+            without ``sigma_d`` on both models or without ``lod.tier_s_v > 0``.
     """
     path = Path(path)
     g = gaussians

@@ -138,3 +138,19 @@ def test_adapt_job_builds_the_tier_or_says_why_not(tiny_model, tmp_path, monkeyp
     assert (g.parents is not None) == tier["used"]
     if tier["used"]:
         assert g.lod.tier_s_v == tier["tier_s_v"] and len(g.parents) == 60
+
+
+def test_export_leaves_the_tier_out_and_says_so(tiny_adapted, tiny_model, tmp_path):
+    """clod-export draws the model's own Gaussians: a tiered input exports without its parents
+    (export.json: parents_left_out) instead of failing."""
+    import json
+
+    from clod_adapter.cli.export import main as export_main
+
+    g = read_ply(tiny_adapted / "point_cloud.ply")
+    tiered = tiers.attach(g, g.subset(torch.arange(0, len(g), 5)), 2.0, 1.0)
+    src = write_ply(tmp_path / "tiered.ply", tiered)
+    out = tmp_path / "exp"
+    assert export_main([str(src), "-s", str(tiny_model["scene"]), "-o", str(out), "--quiet"]) == 0
+    rep = json.loads((out / "export.json").read_text())
+    assert rep["parents_left_out"] == len(tiered.parents) and rep["gaussians_in"] == len(g)

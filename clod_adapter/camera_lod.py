@@ -661,7 +661,8 @@ class LodRender:
         indices: [n_rendered] int64, the same Gaussians as indices, ascending.
         n_rendered: Gaussians handed to the rasteriser, the render cost (``mask.sum()``, plus
             ``n_parents``).
-        n_frustum: number of Gaussian centres inside the view frustum.
+        n_frustum: number of Gaussian centres inside the view frustum (the parent tier's when
+            only it is drawn).
         eta: scalar tensor, rendered fraction of the frustum (gradient per the estimator; 1.0
             without LoD).
         s_v: the virtual distance scale used (the solved one in budget mode; None: no LoD).
@@ -729,7 +730,7 @@ def render_lod(
     A model with a parent tier (``gaussians.parents``, ``lod.tier_s_v > 0``) cross-fades to its
     parents beyond ``tier_s_v`` at a given ``s_v`` (:func:`clod_adapter.lod.tier_weight`: both
     drawn in one image, the Gaussians' opacities times ``1 - u``, the parents' times ``u``, the
-    parents at their own ``s_v``); budgets draw the Gaussians alone.
+    parents at their own ``s_v``); budgets, and a given ``level``, draw the Gaussians alone.
 
     Args:
         gaussians: the model (N Gaussians). ``sigma_d`` is required when ``s_v`` or ``budget`` is given.
@@ -774,9 +775,10 @@ def render_lod(
             more than one of ``s_v``, ``budget``, ``budget_cost``, ``budget_ms`` given.
     """
     st = gaussians.lod
-    if (s_v is not None and gaussians.parents is not None and st is not None and st.tier_s_v > 0
-            and lod.tier_weight(float(s_v), st)[0] > 0):
-        return _render_tiered(gaussians, camera, float(s_v), tau, eps, background, sh_degree, backend, view)
+    if (s_v is not None and level is None and gaussians.parents is not None and st is not None
+            and st.tier_s_v > 0 and lod.tier_weight(float(s_v), st)[0] > 0):
+        return _render_tiered(gaussians, camera, float(s_v), tau, eps, background,
+                              gaussians.sh_degree if sh_degree is None else sh_degree, backend, view)
     if view is None:
         view = view_lod(gaussians, camera, tau=tau, eps=eps)
     p0, t1 = view.project_ms, time.perf_counter()

@@ -465,7 +465,8 @@ def window_opacities(ids: Tensor, opacities: Tensor, opacity_logits: Tensor, d_n
                      width: float = DEFAULT_FADE_WIDTH) -> Tensor:
     """The window fade's drawn opacities of the rows ``ids`` [k] int64:
     ``sigmoid(opacity_logits + level g) * fade_weight(lod_margin(...), width)`` (``g`` the
-    opacity-logit gain, left out when None); [k], the dtype of ``d_norm``/``sigma_d``'s work dtype.
+    opacity-logit gain, left out when None or at ``level <= 0``); returns [k] in [0, 1], float32
+    (float64 when ``d_norm`` or ``sigma_d`` is float64).
 
     ``opacities`` (activated, the margin's alpha), ``opacity_logits``, ``d_norm``, ``sigma_d`` and
     the gain are [N]; ``width`` is the window's width at this ``s_v`` (:func:`fade_width_at`).

@@ -55,6 +55,8 @@ def test_drawing_below_beyond_and_across_the_switch(tiered):
         a = render_lod(g, cam, 3.0 * 1.0001).image
         assert float((a - below.image).abs().mean()) < float((beyond.image - below.image).abs().mean())
         assert float((render_lod(g, cam, 3.0).image - render_lod(children, cam, 3.0).image).abs().max()) == 0.0
+        # a given level of the gains draws the model's own Gaussians, as budgets do
+        assert torch.equal(render_lod(g, cam, 4.0, level=0.5).image, render_lod(children, cam, 4.0, level=0.5).image)
 
 
 def test_ply_round_trip_keeps_the_tier(tiered, tmp_path):

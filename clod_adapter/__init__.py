@@ -8,7 +8,8 @@ clod_adapter`` stays light and does not import torch: the CLIs set OpenMP defaul
   :class:`LodSettings`;
 * scenes: :func:`load_scene`, :class:`Camera`, :class:`Scene`;
 * rendering at a level of detail: :func:`render_lod`, :func:`lod_subset`, :func:`view_lod`,
-  :class:`LodView`, :func:`clod_rasterization` (gsplat ``rasterization`` + LoD),
+  :class:`LodView`, :func:`clod_rasterization` (gsplat ``rasterization`` + LoD; its LoD
+  arguments for a model: :func:`clod_kwargs`),
   :func:`rasterization` (gsplat-compatible, no LoD);
 * adapting: :class:`AdaptConfig`, :func:`prepare`, :func:`adapt`;
 * the three jobs behind the CLIs: :func:`run_adapt_job` (``clod-adapt``, options
@@ -26,6 +27,7 @@ _EXPORTS = {
     "render_lod": ("camera_lod", "render_lod"), "lod_subset": ("camera_lod", "lod_subset"),
     "view_lod": ("camera_lod", "view_lod"), "LodView": ("camera_lod", "LodView"),
     "clod_rasterization": ("renderer_hook", "clod_rasterization"),
+    "clod_kwargs": ("renderer_hook", "clod_kwargs"),
     "rasterization": ("render", "rasterization"),
     "AdaptConfig": ("training", "AdaptConfig"), "prepare": ("training", "prepare"), "adapt": ("training", "adapt"),
     "run_adapt_job": ("jobs.adapt", "run"), "AdaptOptions": ("jobs.adapt", "AdaptOptions"),

@@ -26,9 +26,9 @@ import torch
 from torch import Tensor
 
 from . import lod
-from .gaussians import Gaussians
+from .gaussians import Gaussians, concat
 from .metrics import psnr
-from .camera_lod import render_lod, view_lod
+from .camera_lod import render_lod, tier_parts, tiered, view_lod
 
 __all__ = ["persistence", "importance_order", "bake", "lod_set_s_vs", "lod_level", "prune_never_rendered",
            "reduce_sh", "truncate_sh", "BakeInfo"]
@@ -81,6 +81,7 @@ class BakeInfo:
     psnr_vs_lod: dict = field(default_factory=dict)
     n_kept: int = 0
     per_view_rendered: float = 0.0
+    n_parents: int = 0
 
 
 def _logit(a: Tensor) -> Tensor:
@@ -106,6 +107,10 @@ def bake(gaussians: Gaussians, cameras: Sequence, s_v: Optional[float] = None, b
     * ``"auto"`` (default): both are rendered from ``cameras`` and the one closer (PSNR) to
       ``render_lod`` at the setting is kept (measured on fern: see docs/export_fern.md).
 
+    A model with a parent tier, at an ``s_v`` past its ``tier_s_v``: the kept Gaussians followed
+    by the kept parents, each at its own mean level, their opacities weighted by the cross-fade
+    (``1 - u`` and ``u``, :func:`clod_adapter.camera_lod.tier_parts`; ``BakeInfo.n_parents``).
+
     Returns:
         The baked ``Gaussians``, or ``(Gaussians, BakeInfo)`` with ``return_info``.
     """
@@ -114,44 +119,81 @@ def bake(gaussians: Gaussians, cameras: Sequence, s_v: Optional[float] = None, b
         raise ValueError(f"bake: opacity must be auto, original or mean, got {opacity!r}")
     if (s_v is None) == (budget is None):
         raise ValueError("bake: give exactly one of s_v and budget")
-    n = len(gaussians)
-    dev = gaussians.means.device
-    keep = torch.zeros(n, dtype=torch.bool, device=dev)
-    drawn_sum = torch.zeros(n, dtype=torch.float64, device=dev)
-    cnt = torch.zeros(n, dtype=torch.float64, device=dev)
-    settings, rendered, levels = [], [], []
+    tier = budget is None and tiered(gaussians, s_v)
+    members = [gaussians] + ([gaussians.parents] if tier else [])
+    u = lod.tier_weight(float(s_v), gaussians.lod)[0] if tier else 0.0
+    weights = [1.0 - u, u] if tier else [1.0]
+    acc = [_Drawn.of(m) for m in members]
+    settings, rendered = [], []
     for cam in cameras:
-        sel = view_lod(gaussians, cam, tau=tau, eps=eps).select(s_v, budget=budget, estimator="paper")
-        keep[sel.indices] = True
-        drawn_sum[sel.indices] += sel.opacities.double()
-        cnt[sel.indices] += 1.0
-        settings.append(sel.s_v)
-        levels.append(sel.level)
-        rendered.append(int(sel.indices.numel()))
-    idx = torch.nonzero(keep, as_tuple=False).squeeze(1)
-    at = gaussians.at_level(sum(levels) / max(len(levels), 1))
-    mean_drawn = (drawn_sum / cnt.clamp_min(1)).to(at.opacity_logits.dtype)
-    cands = {"original": at.opacity_logits.detach().clone(), "mean": _logit(mean_drawn)}
+        if tier:
+            _, sel_c, sel_p = tier_parts(float(s_v), gaussians.lod,
+                                         lambda: view_lod(gaussians, cam, tau=tau, eps=eps),
+                                         lambda: view_lod(gaussians.parents, cam, tau=tau, eps=eps))
+            sels = [sel_c, sel_p]
+            settings.append(float(s_v))
+        else:
+            sels = [view_lod(gaussians, cam, tau=tau, eps=eps).select(s_v, budget=budget, estimator="paper")]
+            settings.append(sels[0].s_v)
+        for a, sel in zip(acc, sels):
+            if sel is not None:
+                a.add(sel)
+        rendered.append(sum(int(sel.indices.numel()) for sel in sels if sel is not None))
+    cands = {"original": [], "mean": []}
+    for m, a, w in zip(members, acc, weights):
+        at = m.at_level(sum(a.levels) / max(len(a.levels), 1))
+        orig = at.opacity_logits.detach().clone() if w >= 1.0 else _logit(torch.sigmoid(at.opacity_logits) * w)
+        mean_drawn = (a.drawn_sum / a.cnt.clamp_min(1)).to(at.opacity_logits.dtype)
+        for name, logits in (("original", orig), ("mean", _logit(mean_drawn))):
+            cands[name].append(replace(at, opacity_logits=logits).with_sigma_d(None).subset(a.indices))
+    cands = {k: concat(v) for k, v in cands.items()}
     names = list(cands) if opacity == "auto" else [opacity]
     scores = {}
     if opacity == "auto" or return_info:
         refs = [render_lod(gaussians, cam, s, tau=tau, eps=eps, background=background, backend=backend,
                            estimator="paper").image for cam, s in zip(cameras, settings)]
-        for name in cands:
+        for name, g in cands.items():
             if opacity != "auto" and name != opacity:
                 continue
-            g = replace(at, opacity_logits=cands[name]).with_sigma_d(None).subset(idx)
             ps = [psnr(render_lod(g, cam, background=background, backend=backend).image,
                        ref.clamp(0, 1), cap=True) for cam, ref in zip(cameras, refs)]
             scores[name] = sum(ps) / max(len(ps), 1)
         if opacity == "auto":
             names = [max(scores, key=lambda k: (scores[k], k == "original"))]
     chosen = names[0]
-    out = replace(at, opacity_logits=cands[chosen]).with_sigma_d(None).subset(idx).clone()
+    out = cands[chosen].clone()
     if return_info:
-        return out, BakeInfo(chosen=chosen, psnr_vs_lod=scores, n_kept=int(idx.numel()),
-                             per_view_rendered=sum(rendered) / max(len(rendered), 1))
+        return out, BakeInfo(chosen=chosen, psnr_vs_lod=scores, n_kept=len(out),
+                             per_view_rendered=sum(rendered) / max(len(rendered), 1),
+                             n_parents=int(acc[1].indices.numel()) if tier else 0)
     return out
+
+
+@dataclass
+class _Drawn:
+    """What :func:`bake`'s cameras draw of one model: which rows, their summed drawn opacities,
+    how many views draw each, and each view's level."""
+
+    keep: Tensor
+    drawn_sum: Tensor
+    cnt: Tensor
+    levels: list
+
+    @classmethod
+    def of(cls, g: Gaussians) -> "_Drawn":
+        n, dev = len(g), g.means.device
+        return cls(torch.zeros(n, dtype=torch.bool, device=dev), torch.zeros(n, dtype=torch.float64, device=dev),
+                   torch.zeros(n, dtype=torch.float64, device=dev), [])
+
+    def add(self, sel) -> None:
+        self.keep[sel.indices] = True
+        self.drawn_sum[sel.indices] += sel.opacities.double()
+        self.cnt[sel.indices] += 1.0
+        self.levels.append(sel.level)
+
+    @property
+    def indices(self) -> Tensor:
+        return torch.nonzero(self.keep, as_tuple=False).squeeze(1)
 
 
 @torch.no_grad()

@@ -29,7 +29,7 @@ from __future__ import annotations
 import math
 import time
 from dataclasses import dataclass, field, replace
-from typing import Optional, Sequence
+from typing import Callable, Optional, Sequence
 
 import torch
 from torch import Tensor
@@ -774,9 +774,7 @@ def render_lod(
         ValueError: ``s_v`` or a budget given but the model has no ``sigma_d``; ``s_v < 1``;
             more than one of ``s_v``, ``budget``, ``budget_cost``, ``budget_ms`` given.
     """
-    st = gaussians.lod
-    if (s_v is not None and level is None and gaussians.parents is not None and st is not None
-            and st.tier_s_v > 0 and lod.tier_weight(float(s_v), st)[0] > 0):
+    if tiered(gaussians, s_v, level):
         return _render_tiered(gaussians, camera, float(s_v), tau, eps, background,
                               gaussians.sh_degree if sh_degree is None else sh_degree, backend, view)
     if view is None:
@@ -799,23 +797,45 @@ def render_lod(
                      raster_ms=(t3 - t2) * 1e3, meta=meta)
 
 
-def _render_tiered(gaussians: Gaussians, camera, s_v: float, tau, eps, background, sh_degree, backend,
-                   view: Optional[LodView]) -> LodRender:
-    """:func:`render_lod` at an ``s_v`` where the parent tier is drawn (cross-fade or alone)."""
+def tiered(gaussians: Gaussians, s_v: Optional[float], level: Optional[float] = None) -> bool:
+    """Whether ``render_lod(gaussians, ..., s_v)`` draws the model's parent tier: an ``s_v``
+    given (no budget, no ``level``) past the model's ``tier_s_v`` (:func:`clod_adapter.lod.tier_weight`)."""
     st = gaussians.lod
-    u, s_p = lod.tier_weight(s_v, st)
-    t1 = time.perf_counter()
-    vp = view_lod(gaussians.parents, camera, tau=tau, eps=eps)
+    return (s_v is not None and level is None and gaussians.parents is not None and st is not None
+            and st.tier_s_v > 0 and lod.tier_weight(float(s_v), st)[0] > 0)
+
+
+def tier_parts(s_v: float, settings: lod.LodSettings, children: Callable[[], LodView],
+               parents: Callable[[], LodView]):
+    """What a tiered model draws at ``s_v`` (README "Merged parents", docs/lod_rule.md "The parent
+    tier"): ``(parts, sel_children, sel_parents)``, ``parts`` the ``(view, selection)`` pairs for
+    :func:`rasterize_views`. With ``(u, s_p) = lod.tier_weight(s_v, settings)``: the parents'
+    selection at ``s_p`` with its drawn opacities times ``u`` and, while ``u < 1``, the
+    Gaussians' at ``s_v`` times ``1 - u`` (first in ``parts``; ``sel_children`` None once
+    ``u = 1``). ``children`` / ``parents`` build the two :class:`LodView` of the camera (called
+    only when needed)."""
+    u, s_p = lod.tier_weight(s_v, settings)
+    vp = parents()
     sel_p = vp.select(s_p)
     parts = [(vp, sel_p)]
+    sel_c = None
     if u < 1.0:
         sel_p.opacities = sel_p.opacities * u
-        vc = view if view is not None else view_lod(gaussians, camera, tau=tau, eps=eps)
+        vc = children()
         sel_c = vc.select(s_v)
         sel_c.opacities = sel_c.opacities * (1.0 - u)
         parts.insert(0, (vc, sel_c))
-    else:
-        vc = None
+    return parts, sel_c, sel_p
+
+
+def _render_tiered(gaussians: Gaussians, camera, s_v: float, tau, eps, background, sh_degree, backend,
+                   view: Optional[LodView]) -> LodRender:
+    """:func:`render_lod` at an ``s_v`` where the parent tier is drawn (cross-fade or alone)."""
+    t1 = time.perf_counter()
+    parts, sel_c, sel_p = tier_parts(s_v, gaussians.lod,
+                                     lambda: view if view is not None else view_lod(gaussians, camera, tau=tau, eps=eps),
+                                     lambda: view_lod(gaussians.parents, camera, tau=tau, eps=eps))
+    if sel_c is None:
         sel_c = LodSelection(torch.zeros(0, dtype=torch.long, device=gaussians.means.device),
                              gaussians.opacity_logits.new_zeros(0), None, s_v, 0.0, sel_p.eta.new_zeros(()),
                              len(gaussians))
@@ -827,9 +847,9 @@ def _render_tiered(gaussians: Gaussians, camera, s_v: float, tau, eps, backgroun
     t3 = time.perf_counter()
     proj_ms = sum(v.project_ms for v, _ in parts)
     n_p = int(sel_p.indices.numel())
-    main = sel_c if vc is not None else sel_p
+    main = parts[0][1]
     return LodRender(image=image, alpha=alpha, selection=sel_c, n_rendered=int(sel_c.indices.numel()) + n_p,
-                     n_frustum=(vc or vp).n_frustum, eta=main.eta, s_v=s_v, level=main.level,
+                     n_frustum=parts[0][0].n_frustum, eta=main.eta, s_v=s_v, level=main.level,
                      project_ms=proj_ms, select_ms=(t2 - t1) * 1e3 - proj_ms, raster_ms=(t3 - t2) * 1e3,
                      meta=meta, n_parents=n_p)
 
@@ -896,7 +916,12 @@ class LodSubset:
         colors: [k, K, 3] SH coefficients (gsplat ``colors`` layout, at the level): the drawn
             attributes.
         s_v: the virtual distance scale used (solved in budget mode; None without LoD).
-        n_in_view: Gaussians in view (the population budgets and fractions refer to).
+        n_in_view: Gaussians in view (the population budgets and fractions refer to; on a
+            parents-only frame, the parents in view).
+        parent_indices: [p] int64 indices into ``Gaussians.parents`` of the parent tier's
+            drawn rows, or None (no tier drawn). Where the tier is drawn (:func:`tier_parts`)
+            the attribute rows are the model's ``indices`` (opacities times ``1 - u``) followed
+            by these parents (opacities times ``u``).
     """
 
     indices: Tensor
@@ -907,6 +932,7 @@ class LodSubset:
     colors: Tensor
     s_v: Optional[float]
     n_in_view: int
+    parent_indices: Optional[Tensor] = None
 
 
 @torch.no_grad()
@@ -916,12 +942,23 @@ def lod_subset(gaussians: Gaussians, camera, s_v: Optional[float] = None, *,
                budget_ms: Optional[float] = None, time_model: Optional[FrameTimeModel] = None) -> LodSubset:
     """The Gaussians :func:`render_lod` hands to the rasteriser for ``camera`` and their drawn
     attributes (same arguments; no gradient). For viewers and exporters that rasterise
-    elsewhere. No ``s_v`` and no budget (``budget``, ``budget_cost``, ``budget_ms``): every
+    elsewhere. A model with a parent tier, at an ``s_v`` past its ``tier_s_v``: the Gaussians
+    and the parents it draws there, concatenated (:class:`LodSubset` ``parent_indices``). No ``s_v`` and no budget (``budget``, ``budget_cost``, ``budget_ms``): every
     Gaussian in view, unchanged.
 
     Raises:
         ValueError: as :func:`render_lod`.
     """
+    if tiered(gaussians, s_v):
+        parts, sel_c, sel_p = tier_parts(float(s_v), gaussians.lod,
+                                         lambda: view_lod(gaussians, camera, tau=tau, eps=eps),
+                                         lambda: view_lod(gaussians.parents, camera, tau=tau, eps=eps))
+        attrs = [v.drawn_attributes(sel) for v, sel in parts]
+        cat = [torch.cat([a[i] for a in attrs]) for i in range(4)]
+        idx = sel_c.indices if sel_c is not None else sel_p.indices.new_zeros(0)
+        return LodSubset(indices=idx, means=cat[0], quats=cat[1], scales=cat[2],
+                         opacities=torch.cat([sel.opacities for _, sel in parts]), colors=cat[3],
+                         s_v=float(s_v), n_in_view=parts[0][0].n_in_view, parent_indices=sel_p.indices)
     view = view_lod(gaussians, camera, tau=tau, eps=eps)
     sel = view.select(s_v, budget=budget, min_s_v=min_s_v, estimator="paper", budget_cost=budget_cost,
                       budget_ms=budget_ms, time_model=time_model)

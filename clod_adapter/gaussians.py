@@ -21,7 +21,7 @@ MaskGaussian's ``masks_0``/``masks_1``), so that they survive a read, an adaptat
 from __future__ import annotations
 
 from dataclasses import dataclass, field, fields, replace
-from typing import Optional
+from typing import Optional, Sequence
 
 import torch
 from torch import Tensor
@@ -190,6 +190,27 @@ class Gaussians:
             return replace(self, sigma_d=None, opacity_logit_gain=None, log_scale_gain=None,
                            sh0_gain=None, lod=None, parents=None)
         return replace(self, sigma_d=sigma_d)
+
+
+def concat(models: Sequence[Gaussians]) -> Gaussians:
+    """Plain models (no ``sigma_d``, gains or tier; the same SH degree and :attr:`Gaussians.extra`
+    keys) one after the other: [N_1 + N_2 + ...] rows, in order.
+
+    Raises:
+        ValueError: no model, a model with LoD data, or differing SH degrees / extra keys.
+    """
+    if not models:
+        raise ValueError("concat: no models")
+    for m in models:
+        if m.sigma_d is not None or m.has_gains or m.parents is not None:
+            raise ValueError("concat: plain models only (sigma_d, gains and tier dropped: with_sigma_d(None))")
+    if len({m.sh_degree for m in models}) > 1 or len({tuple(sorted(m.extra)) for m in models}) > 1:
+        raise ValueError("concat: the models differ in SH degree or extra properties")
+    if len(models) == 1:
+        return models[0]
+    names = ("means", "quats", "log_scales", "opacity_logits", "sh0", "shN")
+    return Gaussians(**{k: torch.cat([getattr(m, k) for m in models]) for k in names},
+                     extra={k: torch.cat([m.extra[k] for m in models]) for k in models[0].extra})
 
 
 #: the level-gain fields of :class:`Gaussians`.

@@ -9,6 +9,11 @@ the selected Gaussians to :func:`clod_adapter.render.rasterization` (gsplat on C
 otherwise). The selection is the one :func:`clod_adapter.camera_lod.render_lod` makes, so both
 give the same image.
 
+A model with a parent tier (README "Merged parents") passes its parents too (``parents=``), and
+at an ``s_v`` past ``lod_settings.tier_s_v`` both are drawn as ``render_lod`` draws them
+(:func:`clod_adapter.camera_lod.tier_parts`). :func:`clod_kwargs` gives every LoD keyword of an
+adapted model.
+
 Without ``sigma_d``, or with neither ``s_v`` nor ``budget``, it is exactly ``rasterization``.
 """
 from __future__ import annotations
@@ -20,9 +25,53 @@ from torch import Tensor
 
 from . import lod
 from .render.dispatch import rasterization
-from .camera_lod import view_lod_tensors
+from .camera_lod import rasterize_views, tier_parts, view_lod_tensors
 
-__all__ = ["clod_rasterization"]
+__all__ = ["clod_rasterization", "clod_kwargs"]
+
+_GAINS = ("opacity_logit_gain", "log_scale_gain", "sh0_gain")
+#: the tensors a ``parents=`` mapping must hold (activated ``scales`` / ``opacities``, as the model's)
+PARENT_KEYS = ("means", "quats", "scales", "opacities", "colors", "sigma_d")
+
+
+def clod_kwargs(model) -> Dict[str, Any]:
+    """Every LoD keyword argument of :func:`clod_rasterization` for an adapted model
+    (:class:`clod_adapter.gaussians.Gaussians`, e.g. ``load_model(".../point_cloud.ply")``):
+    ``sigma_d`` [N], ``lod_settings``, ``opacity_logits`` [N], the level gains (``opacity_logit_gain`` [N],
+    ``log_scale_gain`` [N], ``sh0_gain`` [N, 1, 3]; None where the model has none) and, for a
+    model with a parent tier, ``parents`` (a dict of the parents' :data:`PARENT_KEYS` tensors,
+    their gains and their own ``lod_settings``). Add ``s_v=`` or ``budget=``.
+
+    Raises:
+        ValueError: the model has no ``sigma_d`` (not adapted by ``clod-adapt``).
+    """
+    if model.sigma_d is None:
+        raise ValueError("clod_kwargs: the model has no sigma_d (run clod-adapt first)")
+    kw: Dict[str, Any] = {"sigma_d": model.sigma_d, "lod_settings": model.lod, "opacity_logits": model.opacity_logits,
+                          **{k: getattr(model, k) for k in _GAINS}}
+    p = model.parents
+    if p is not None:
+        kw["parents"] = {**{k: getattr(p, k) for k in PARENT_KEYS}, **{k: getattr(p, k) for k in _GAINS},
+                         "opacity_logits": p.opacity_logits, "lod_settings": p.lod}
+    return kw
+
+
+def _logits(opacities: Tensor, logits: Optional[Tensor] = None) -> Tensor:
+    if logits is not None:
+        if logits.shape != opacities.shape:
+            raise ValueError(f"clod_rasterization: opacity_logits must be {list(opacities.shape)}, got {list(logits.shape)}")
+        return logits
+    a = opacities.clamp(1e-30, 1.0)
+    return torch.log(a) - torch.log1p(-a.clamp_max(1.0 - 1e-7))  # the view works on raw logits
+
+
+def _check_parents(parents: Dict[str, Any]) -> None:
+    missing = [k for k in PARENT_KEYS if parents.get(k) is None]
+    if missing:
+        raise ValueError(f"clod_rasterization: parents needs {', '.join(missing)}")
+    m = parents["means"].shape[0]
+    if tuple(parents["sigma_d"].shape) != (m,):
+        raise ValueError(f"clod_rasterization: parents' sigma_d must be [{m}], got {tuple(parents['sigma_d'].shape)}")
 
 # gsplat.rasterization keyword arguments accepted when they hold gsplat's default (no effect here).
 _NOOP_DEFAULTS = {
@@ -77,6 +126,8 @@ def clod_rasterization(
     opacity_logit_gain: Optional[Tensor] = None,
     log_scale_gain: Optional[Tensor] = None,
     sh0_gain: Optional[Tensor] = None,
+    parents: Optional[Dict[str, Any]] = None,
+    opacity_logits: Optional[Tensor] = None,
     tau: Optional[float] = None,
     eps: Optional[float] = None,
     min_s_v: float = 1.0,
@@ -101,6 +152,15 @@ def clod_rasterization(
             adapted .ply's ``Gaussians.lod``); None: the paper's Eq. 2 drawing.
         opacity_logit_gain, log_scale_gain: [N] level gains, sh0_gain: [N, 1, 3] (SH colours
             only): the adapted model's (None: none).
+        parents: the model's parent tier (:func:`clod_kwargs`): ``means`` [M, 3], ``quats``
+            [M, 4], ``scales`` [M, 3], ``opacities`` [M] (activated), ``colors`` (as ``colors``,
+            M rows), ``sigma_d`` [M], optional gains and ``lod_settings`` (the parents' own).
+            Drawn at an ``s_v`` past ``lod_settings.tier_s_v`` (cross-fade, then alone, at the
+            parents' ``s_v = tier_start s_v / tier_s_v``); budgets draw the model alone.
+        opacity_logits: [N] the raw opacities ``opacities`` came from: the rule works on logits
+            (the gains shift them), and float32 ``sigmoid`` rounds every logit above ~16.6 to 1,
+            which ``log(o / (1 - o))`` cannot undo (None: recovered from ``opacities``, exact
+            below that). ``parents`` may hold its own.
         tau, eps: LoD threshold and Eq. 2's epsilon (default: ``lod_settings``', else 0.005 / 1e-8).
         min_s_v: budget mode: lowest ``s_v`` used (1 = full detail; 0: exactly ``budget``).
         backend: ``"auto"`` | ``"cpu"`` | ``"gsplat"`` (see ``clod_adapter.render.rasterization``).
@@ -111,12 +171,15 @@ def clod_rasterization(
         the rasteriser's. With LoD, each camera is rasterised with its own subset: for C = 1
         meta is that call's meta (its per-Gaussian arrays index ``lod_indices[0]``), for C > 1
         ``meta["cameras"]`` lists the per-camera metas; in both cases meta also has
-        ``lod_s_v`` (list of C floats), ``lod_n_rendered`` (list of C ints) and
-        ``lod_indices`` (list of C [k_c] int64 tensors into the N input Gaussians).
+        ``lod_s_v`` (list of C floats), ``lod_n_rendered`` (list of C ints: parents included),
+        ``lod_indices`` (list of C [k_c] int64 tensors into the N input Gaussians),
+        ``lod_n_parents`` (list of C ints) and ``lod_parent_indices`` (list of C [p_c] int64
+        tensors into the M parents; empty where the tier is not drawn). Where the tier is drawn,
+        the camera's meta numbers the parents after the N Gaussians (``visible_ids``).
 
     Raises:
         ValueError: ``s_v`` and ``budget`` both given, ``s_v < 1``, ``sigma_d`` of the wrong
-            shape, an unsupported mode or keyword value.
+            shape, ``parents`` missing a tensor, an unsupported mode or keyword value.
     """
     _refuse_unsupported(packed, render_mode, rasterize_mode, kwargs)
     common = dict(near_plane=near_plane, far_plane=far_plane, radius_clip=radius_clip, eps2d=eps2d,
@@ -141,23 +204,45 @@ def clod_rasterization(
     per_cam_colors = sh_degree is None and colors.ndim == 3
     w, h = int(width), int(height)
     gains = {"opacity_logit_gain": opacity_logit_gain, "log_scale_gain": log_scale_gain, "sh0_gain": sh0_gain}
-    a = opacities.clamp(1e-30, 1.0)
-    logits = torch.log(a) - torch.log1p(-a.clamp_max(1.0 - 1e-7))  # the view works on raw logits
-    imgs, alphas, metas, svs, counts, indices = [], [], [], [], [], []
+    logits = _logits(opacities, opacity_logits)
+    tier = (s_v is not None and parents is not None and lod_settings is not None and lod_settings.tier_s_v > 0
+            and lod.tier_weight(float(s_v), lod_settings)[0] > 0)
+    if tier:
+        _check_parents(parents)
+        p_logits = _logits(parents["opacities"], parents.get("opacity_logits"))
+        p_gains = {k: parents.get(k) for k in _GAINS}
+    imgs, alphas, metas, svs, counts, indices, n_par, par_idx = [], [], [], [], [], [], [], []
     for c in range(C):
         col = colors[c] if per_cam_colors else colors
-        view = view_lod_tensors(means, quats, scales, logits, col, viewmats[c], Ks[c], w, h, sigma_d=sigma_d,
-                                gains=gains, settings=lod_settings, tau=tau, eps=eps)
-        sel = view.select(s_v, budget=budget, min_s_v=min_s_v, estimator="paper")
+
+        def child_view(col=col, c=c):
+            return view_lod_tensors(means, quats, scales, logits, col, viewmats[c], Ks[c], w, h, sigma_d=sigma_d,
+                                    gains=gains, settings=lod_settings, tau=tau, eps=eps)
+
         bg = None if backgrounds is None else backgrounds[c]
-        rc, ra, meta = view.rasterize(sel, background=bg, sh_degree=sh_degree, backend=backend,
-                                      colors=None if sh_degree is not None else col)
+        if tier:
+            p_col = parents["colors"][c] if per_cam_colors else parents["colors"]
+            parts, sel, sel_p = tier_parts(float(s_v), lod_settings, child_view, lambda p_col=p_col, c=c: view_lod_tensors(
+                parents["means"], parents["quats"], parents["scales"], p_logits, p_col, viewmats[c], Ks[c], w, h,
+                sigma_d=parents["sigma_d"], gains=p_gains, settings=parents.get("lod_settings"), tau=tau, eps=eps))
+            rc, ra, meta = rasterize_views(parts, background=bg, sh_degree=sh_degree, backend=backend)
+            idx = sel.indices if sel is not None else sel_p.indices.new_zeros(0)
+            p_idx = sel_p.indices
+        else:
+            view = child_view()
+            sel = view.select(s_v, budget=budget, min_s_v=min_s_v, estimator="paper")
+            rc, ra, meta = view.rasterize(sel, background=bg, sh_degree=sh_degree, backend=backend,
+                                          colors=None if sh_degree is not None else col)
+            idx, p_idx = sel.indices, sel.indices.new_zeros(0)
         imgs.append(rc[None])
         alphas.append(ra[None])
         metas.append(meta)
-        svs.append(sel.s_v)
-        counts.append(int(sel.indices.numel()))
-        indices.append(sel.indices)
+        svs.append(float(s_v) if tier else sel.s_v)
+        counts.append(int(idx.numel() + p_idx.numel()))
+        indices.append(idx)
+        n_par.append(int(p_idx.numel()))
+        par_idx.append(p_idx)
     out_meta: Dict[str, Any] = dict(metas[0]) if C == 1 else {"cameras": metas, "n_cameras": C}
-    out_meta.update(lod_s_v=svs, lod_n_rendered=counts, lod_indices=indices)
+    out_meta.update(lod_s_v=svs, lod_n_rendered=counts, lod_indices=indices, lod_n_parents=n_par,
+                    lod_parent_indices=par_idx)
     return torch.cat(imgs, 0), torch.cat(alphas, 0), out_meta

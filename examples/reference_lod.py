@@ -4,6 +4,8 @@ and as the library's check that the page says all it does (``tests/test_referenc
 
     python examples/reference_lod.py MODEL.ply [--s-v 2]        # prints what one camera draws
 
+:func:`draw` is one model's rule; :func:`draw_tiered` adds a file's parent tier (``lod_parent``).
+
 Everything is float64. Cameras: ``viewmat`` [4, 4] world-to-camera (OpenCV axes, z forward),
 ``K`` [3, 3] pixels, ``width``/``height`` pixels (gsplat 1.5.3 conventions).
 """
@@ -17,15 +19,32 @@ from plyfile import PlyData
 
 NEAR, FAR, EPS2D, EXTEND = 0.01, 1e10, 0.3, 3.33
 RAMP_MIN = 1.1  # the window opens and the ramp ends no earlier than here
-DEFAULTS = {"max_sv": 5.0, "tau": 0.005, "eps": 1e-8, "fade": "eq2", "fade_width": 0.5, "level_max": 1.0}
+DEFAULTS = {"max_sv": 5.0, "tau": 0.005, "eps": 1e-8, "fade": "eq2", "fade_width": 0.5, "level_max": 1.0,
+            "tier_s_v": 0.0, "tier_start": 1.0, "tier_fade": 1.25}
+TIER_KEYS = ("tier_s_v", "tier_start", "tier_fade")
 
 
 def read_model(path) -> dict:
     """The arrays and settings of an extended .ply (docs/lod_rule.md, "The file"): ``means``
     [N, 3], ``quats`` [N, 4] wxyz, ``log_scales`` [N, 3], ``opacity_logits`` [N], ``sh0`` [N, 3],
-    ``sigma_d`` [N], gains ``g_o`` [N], ``g_s`` [N], ``g_c`` [N, 3] (0 when absent), ``settings``."""
+    ``sigma_d`` [N], gains ``g_o`` [N], ``g_s`` [N], ``g_c`` [N, 3] (0 when absent), ``settings``;
+    and ``parents``, the same for the ``lod_parent`` element (docs/lod_rule.md "The parent
+    tier"; its settings the model's without the tier keys), when the file has one."""
     ply = PlyData.read(str(path))
-    v = ply["vertex"].data
+    settings = dict(DEFAULTS)
+    for c in ply.comments:
+        parts = c.split()
+        if parts and parts[0] == "clod_lod":
+            for kv in parts[1:]:
+                k, _, val = kv.partition("=")
+                settings[k] = val if k == "fade" else float(val)
+    m = _element(ply["vertex"].data, settings)
+    if "lod_parent" in [e.name for e in ply.elements] and settings["tier_s_v"] > 0:
+        m["parents"] = _element(ply["lod_parent"].data, {**settings, **{k: DEFAULTS[k] for k in TIER_KEYS}})
+    return m
+
+
+def _element(v, settings) -> dict:
     names = v.dtype.names
 
     def cols(*keys):
@@ -34,13 +53,6 @@ def read_model(path) -> dict:
     def gain(*keys):
         return cols(*keys) if all(k in names for k in keys) else np.zeros((len(v), len(keys)))
 
-    settings = dict(DEFAULTS)
-    for c in ply.comments:
-        parts = c.split()
-        if parts and parts[0] == "clod_lod":
-            for kv in parts[1:]:
-                k, _, val = kv.partition("=")
-                settings[k] = val if k == "fade" else float(val)
     return {"means": cols("x", "y", "z"), "quats": cols("rot_0", "rot_1", "rot_2", "rot_3"),
             "log_scales": cols("scale_0", "scale_1", "scale_2"), "opacity_logits": cols("opacity")[:, 0],
             "sh0": cols("f_dc_0", "f_dc_1", "f_dc_2"), "sigma_d": cols("sigma_d")[:, 0],
@@ -159,6 +171,26 @@ def draw(m, viewmat, K, width, height, s_v: float) -> dict:
             "sh0": m["sh0"][ids] + level * m["g_c"][ids]}
 
 
+def draw_tiered(m, viewmat, K, width, height, s_v: float) -> dict:
+    """The model and its parent tier at ``s_v`` (docs/lod_rule.md "The parent tier"):
+    ``{"model": draw(m, ..., s_v) or None, "parents": draw(parents, ..., s_v_p) or None, "u": u}``,
+    the model's drawn opacities times ``1 - u`` and the parents' times ``u`` (None: not drawn).
+    A model without a tier: its own ``draw`` and no parents."""
+    st = m["settings"]
+    u, s_p = 0.0, 1.0
+    if "parents" in m and st["tier_s_v"] > 0 and s_v > st["tier_s_v"]:
+        u = min(1.0, math.log(s_v / st["tier_s_v"]) / math.log(st["tier_fade"]))
+        s_p = st["tier_start"] * s_v / st["tier_s_v"]
+    out = {"model": None, "parents": None, "u": u}
+    if u < 1.0:
+        out["model"] = draw(m, viewmat, K, width, height, s_v)
+        out["model"]["opacities"] = out["model"]["opacities"] * (1.0 - u)
+    if u > 0.0:
+        out["parents"] = draw(m["parents"], viewmat, K, width, height, s_p)
+        out["parents"]["opacities"] = out["parents"]["opacities"] * u
+    return out
+
+
 def main(argv=None) -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("ply")
@@ -171,9 +203,12 @@ def main(argv=None) -> None:
     viewmat = np.eye(4)
     viewmat[:3, 3] = -(centre - np.array([0.0, 0.0, 2.5 * radius]))
     K = np.array([[500.0, 0, 320], [0, 500.0, 240], [0, 0, 1]])
-    out = draw(m, viewmat, K, 640, 480, a.s_v)
-    print(f"{a.ply}: {len(m['means'])} Gaussians, {m['settings']}; s_v = {a.s_v:g} draws {out['ids'].size} "
-          f"at level {out['level']:.3f}, mean opacity {out['opacities'].mean() if out['ids'].size else 0:.3f}")
+    both = draw_tiered(m, viewmat, K, 640, 480, a.s_v)
+    print(f"{a.ply}: {len(m['means'])} Gaussians, {m['settings']}")
+    for name, out in (("model", both["model"]), ("parents", both["parents"])):
+        if out is not None:
+            print(f"  s_v = {a.s_v:g}, {name}: draws {out['ids'].size} at level {out['level']:.3f}, "
+                  f"mean opacity {out['opacities'].mean() if out['ids'].size else 0:.3f}")
 
 
 if __name__ == "__main__":

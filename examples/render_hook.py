@@ -8,8 +8,8 @@ carries ``sigma_d``); otherwise (or with ``--synthetic``) a small synthetic mode
 ``clod_adapter.synthetic`` and given a made-up ``sigma_d``. The camera is the first test view of
 ``--scene`` (COLMAP or NeRF-synthetic folder) when given, else the synthetic camera grid's centre
 view, else a camera looking at the model's median from its -z side. One camera is rendered at
-s_v = 1, 2, 4 and at a budget of a quarter of the Gaussians at s_v = 1; the four images are
-written side by side to ``--out``, each captioned below with its setting and the Gaussians drawn
+s_v = 1, 2, 4, at a budget of a quarter of the Gaussians at s_v = 1 and, for a model with a parent
+tier, at twice its ``tier_s_v`` (the parents drawn); the images are written side by side to ``--out``, each captioned below with its setting and the Gaussians drawn
 (the scene's own resolution unless ``--resolution R`` downsamples it).
 """
 from __future__ import annotations
@@ -24,7 +24,7 @@ import torch
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from clod_adapter import clod_rasterization  # noqa: E402
+from clod_adapter import clod_kwargs, clod_rasterization  # noqa: E402
 
 DEFAULT_PLY = REPO / "runs" / "fern" / "point_cloud.ply"
 
@@ -90,20 +90,24 @@ def main(argv=None) -> int:
     with torch.no_grad():
         base = (model.means, model.quats, model.scales, model.opacities, model.colors,
                 cam.viewmat[None], cam.K[None], cam.width, cam.height)
-        kw = dict(sh_degree=model.sh_degree, sigma_d=model.sigma_d, backend="cpu")
+        kw = dict(sh_degree=model.sh_degree, **clod_kwargs(model), backend="cpu")
         clod_rasterization(*base, **kw, s_v=1.0)  # warm-up (builds / loads the CPU compositor)
         tiles, caps, n1 = [], [], None
-        for label, extra in [("s_v=1", {"s_v": 1.0}), ("s_v=2", {"s_v": 2.0}), ("s_v=4", {"s_v": 4.0}),
-                             ("budget", None)]:
+        levels = [("s_v=1", {"s_v": 1.0}), ("s_v=2", {"s_v": 2.0}), ("s_v=4", {"s_v": 4.0}), ("budget", None)]
+        tier_s_v = model.lod.tier_s_v if model.lod is not None and model.parents is not None else 0.0
+        if tier_s_v > 0:  # past the switch: the parent tier (README "Merged parents")
+            levels.append((f"s_v={2 * tier_s_v:g}", {"s_v": 2 * tier_s_v}))
+        for label, extra in levels:
             if extra is None:
                 extra = {"budget": max(1, n1 // 4)}
                 label = f"budget={extra['budget']}"
             t0 = time.perf_counter()
             col, _, meta = clod_rasterization(*base, **kw, **extra)
             ms = (time.perf_counter() - t0) * 1e3
-            n = meta["lod_n_rendered"][0]
+            n, n_par = meta["lod_n_rendered"][0], meta["lod_n_parents"][0]
             n1 = n if n1 is None else n1
-            print(f"{label:>12}: {n:8d} Gaussians rendered (s_v {meta['lod_s_v'][0]:.3f}), {ms:8.1f} ms")
+            par = f" ({n_par:,} of them parents)" if n_par else ""
+            print(f"{label:>12}: {n:8d} Gaussians rendered{par} (s_v {meta['lod_s_v'][0]:.3f}), {ms:8.1f} ms")
             tiles.append(col[0])
             caps.append(f"{label}\n{n:,} Gaussians")
     from clod_adapter.figures import label_panels

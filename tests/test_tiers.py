@@ -142,17 +142,76 @@ def test_adapt_job_builds_the_tier_or_says_why_not(tiny_model, tmp_path, monkeyp
         assert g.lod.tier_s_v == tier["tier_s_v"] and len(g.parents) == 60
 
 
-def test_export_leaves_the_tier_out_and_says_so(tiny_adapted, tiny_model, tmp_path):
-    """clod-export draws the model's own Gaussians: a tiered input exports without its parents
-    (export.json: parents_left_out) instead of failing."""
+def test_export_carries_the_tier(tiny_adapted, tiny_model, tmp_path):
+    """clod-export of a tiered model: the extended .ply keeps the parents (pruned and SH-reduced
+    with the model), a level baked past the switch holds the parents it draws and renders as
+    render_lod does, the ordered .ply is the model's own; export.json says which is which."""
     import json
 
     from clod_adapter.cli.export import main as export_main
+    from clod_adapter.io.load import load_scene
+    from clod_adapter.metrics import psnr
 
     g = read_ply(tiny_adapted / "point_cloud.ply")
     tiered = tiers.attach(g, g.subset(torch.arange(0, len(g), 5)), 2.0, 1.0)
     src = write_ply(tmp_path / "tiered.ply", tiered)
     out = tmp_path / "exp"
-    assert export_main([str(src), "-s", str(tiny_model["scene"]), "-o", str(out), "--quiet"]) == 0
+    assert export_main([str(src), "-s", str(tiny_model["scene"]), "-o", str(out), "--quiet", "--s-v", "2.2",
+                        "--ordered", "--prune", "--sh-max-drop-db", "0.5"]) == 0
     rep = json.loads((out / "export.json").read_text())
-    assert rep["parents_left_out"] == len(tiered.parents) and rep["gaussians_in"] == len(g)
+    assert rep["tier"]["parents_in"] == len(tiered.parents) and rep["tier"]["tier_s_v"] == 2.0
+    ext = read_ply(out / "point_cloud_clod.ply")
+    assert ext.parents is not None and len(ext.parents) == rep["tier"]["parents_out"] > 0
+    assert ext.parents.sh_degree == ext.sh_degree == rep["sh_degree_out"] and ext.lod.tier_s_v == 2.0
+    assert read_ply(out / "ordered.ply").parents is None
+    baked = read_ply(out / rep["baked"]["file"])
+    n_par = rep["baked"]["of_them_parents"]
+    assert 0 < n_par < len(baked) and baked.sigma_d is None  # s_v = 2.2 is in the cross-fade (2 to 2.5): both
+    cam = load_scene(tiny_model["scene"]).train[0]
+    ref = render_lod(ext, cam, 2.2).image
+    # measured 45.9 dB for the baked file; 26.1 dB for the model drawn without its tier
+    assert psnr(render_lod(baked, cam).image, ref.clamp(0, 1)) > 35.0
+    assert psnr(render_lod(replace(ext, parents=None), cam, 2.2).image, ref.clamp(0, 1)) < 35.0
+
+
+@pytest.mark.parametrize("s_v", [2.5, 3.3, 4.0])
+def test_renderer_hook_and_lod_subset_draw_the_tier(tiered, s_v):
+    """clod_rasterization (with clod_kwargs' parents) and lod_subset draw what render_lod draws,
+    below the switch, in the cross-fade and beyond it."""
+    from clod_adapter import clod_kwargs, clod_rasterization
+    from clod_adapter.camera_lod import lod_subset
+
+    g, cams = tiered
+    cam = cams[0]
+    ref = render_lod(g, cam, s_v, backend="cpu")
+    col, alp, meta = clod_rasterization(g.means, g.quats, g.scales, g.opacities, g.colors, cam.viewmat[None],
+                                        cam.K[None], cam.width, cam.height, sh_degree=g.sh_degree,
+                                        **clod_kwargs(g), s_v=s_v, backend="cpu")
+    torch.testing.assert_close(col[0], ref.image, rtol=0, atol=1e-6)
+    torch.testing.assert_close(alp[0], ref.alpha, rtol=0, atol=1e-6)
+    assert meta["lod_n_rendered"] == [ref.n_rendered] and meta["lod_n_parents"] == [ref.n_parents]
+    assert torch.equal(meta["lod_indices"][0], ref.indices)
+    assert (ref.n_parents > 0) == (s_v > 3.0)
+    sub = lod_subset(g, cam, s_v)
+    assert sub.means.shape[0] == sub.opacities.shape[0] == ref.n_rendered
+    assert torch.equal(sub.indices, ref.indices)
+    assert (sub.parent_indices is not None and sub.parent_indices.numel() == ref.n_parents) == (s_v > 3.0)
+    # the cross-fade's weights: the parents' rows at u times their own drawn opacity
+    if ref.n_parents and ref.indices.numel():
+        u, s_p = lod.tier_weight(s_v, g.lod)
+        alone = lod_subset(g.parents, cam, s_p)
+        torch.testing.assert_close(sub.opacities[-ref.n_parents:], u * alone.opacities)
+
+
+def test_renderer_hook_refuses_incomplete_parents(tiered):
+    from clod_adapter import clod_kwargs, clod_rasterization
+
+    g, cams = tiered
+    cam = cams[0]
+    kw = clod_kwargs(g)
+    del kw["parents"]["sigma_d"]
+    with pytest.raises(ValueError, match="parents needs sigma_d"):
+        clod_rasterization(g.means, g.quats, g.scales, g.opacities, g.colors, cam.viewmat[None], cam.K[None],
+                           cam.width, cam.height, sh_degree=g.sh_degree, **kw, s_v=4.0, backend="cpu")
+    with pytest.raises(ValueError, match="no sigma_d"):
+        clod_kwargs(make_ground_truth(10, seed=2))

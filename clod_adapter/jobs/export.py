@@ -9,7 +9,7 @@ from __future__ import annotations
 import json
 import sys
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Callable, Optional
 
@@ -83,17 +83,15 @@ def export(model, scene, train_imgs, test_cams, test_imgs, out: Path, ply: Path,
         bar.set_postfix_str(next(done))
         bar.update(1)
 
-    if model.parents is not None:  # the exported files carry the model's own Gaussians (README "Merged parents")
-        from dataclasses import replace
-
-        rep_tier = {"parents_left_out": len(model.parents)}
-        model = replace(model, parents=None, lod=replace(model.lod, tier_s_v=0.0))
-    else:
-        rep_tier = {}
-    rep: dict = {**rep_tier, "input": str(ply), "scene": str(scene.root), "gaussians_in": len(model),
+    rep: dict = {"input": str(ply), "scene": str(scene.root), "gaussians_in": len(model),
                  "sh_degree_in": model.sh_degree,
                  "train_views": len(scene.train), "test_views": [c.name for c in test_cams],
                  "resolution": [test_cams[0].width, test_cams[0].height]}
+    if model.parents is not None:  # README "Merged parents"
+        rep["tier"] = {"parents_in": len(model.parents), "tier_s_v": model.lod.tier_s_v,
+                       "tier_start": model.lod.tier_start,
+                       "drawn_by": ["extended .ply", "baked level", "web page"],
+                       "left_out_of": ["ordered .ply (the model's own order)", "LoD set (levels up to max_sv)"]}
     with torch.no_grad():
         model = _reduce(model, scene, train_imgs, test_cams, test_imgs, o, rep, step)
         baked, ordered_model = _derive(model, scene, test_cams, test_imgs, o, rep, step)
@@ -113,17 +111,24 @@ def _reduce(model, scene, train_imgs, test_cams, test_imgs, o: ExportOptions, re
 
     rep["psnr_test_sv1_in"] = _mean_psnr(ex, model, test_cams, test_imgs)
     step()
+    parents = model.parents
     if o.prune:
         model, n_drop = ex.prune_never_rendered(model, scene.train, anchor_cameras=scene.train)
         rep["prune"] = {"dropped": n_drop, "kept": len(model),
                         "bytes_saved": n_drop * ply_row_bytes(model),
                         "psnr_test_sv1_after": _mean_psnr(ex, model, test_cams, test_imgs)}
+        if parents is not None:  # the parents' own never-drawn rows (their d' anchors kept)
+            parents, n_drop_p = ex.prune_never_rendered(parents, scene.train, anchor_cameras=scene.train)
+            rep["prune"]["parents_dropped"] = n_drop_p
         step()
     if o.sh_max_drop_db is not None:
         model, info = ex.reduce_sh(model, scene.train, train_imgs, o.sh_max_drop_db)
         info["psnr_test_sv1_after"] = _mean_psnr(ex, model, test_cams, test_imgs)
         rep["sh"] = info
         step()
+    if parents is not None:  # the tier follows the model (same SH degree, README "Merged parents")
+        model = replace(model, parents=ex.truncate_sh(parents, model.sh_degree))
+        rep["tier"]["parents_out"] = len(parents)
     rep["gaussians_out"] = len(model)
     rep["sh_degree_out"] = model.sh_degree
     return model
@@ -141,7 +146,7 @@ def _derive(model, scene, test_cams, test_imgs, o: ExportOptions, rep: dict, ste
                   for c, gt in zip(test_cams, test_imgs)]
         bk_ps = [psnr(ex.render_lod(baked, c).image, gt, cap=True) for c, gt in zip(test_cams, test_imgs)]
         rep["baked"] = {"file": o.baked_name, "s_v": o.s_v, "budget": o.budget, "cameras": "train",
-                        "gaussians": len(baked), "mean_rendered_per_view_lod": binfo.per_view_rendered,
+                        "gaussians": len(baked), "of_them_parents": binfo.n_parents, "mean_rendered_per_view_lod": binfo.per_view_rendered,
                         "opacity": binfo.chosen, "psnr_vs_render_lod_train_views": binfo.psnr_vs_lod,
                         "psnr_test_render_lod": sum(lod_ps) / len(lod_ps),
                         "psnr_test_baked": sum(bk_ps) / len(bk_ps)}

@@ -44,14 +44,16 @@ class ViewPayload:
     """The Gaussians sent to one client camera (k of them) and how they were chosen.
 
     Attributes:
-        indices: [k] int64 indices into the model, ascending.
+        indices: [k] int64 indices into the model, ascending (where a parent tier is drawn,
+            :func:`clod_adapter.camera_lod.lod_subset`, only the model's own rows: the arrays
+            below hold them followed by the parents drawn).
         means: [k, 3] float32 centres; covariances: [k, 3, 3] float32 world-space covariances;
         rgbs: [k, 3] float32 colours at the camera (>= 0, not clipped above);
         opacities: [k, 1] float32 drawn opacities (after the LoD rule for ``method="clod"``).
         method: ``"clod"`` (the LoD level), ``"static_opacity_cut"`` (the comparison) or
             ``"all_in_view"`` (a model without ``sigma_d``).
         n_total: Gaussians in the model; n_in_view: in view of the camera.
-        n_level: what the requested level selects before the cap (the LoD count; for
+        n_level: what the requested level selects before the cap (the LoD count, parents included; for
             ``"all_in_view"`` the in-view count).
         s_v: the virtual distance scale drawn (solved in budget mode or under the cap; None
             without LoD).
@@ -144,12 +146,12 @@ def view_payload(gaussians: Gaussians, camera, *, s_v: Optional[float] = None,
         if s_v is None and budget is None:
             s_v = 1.0
         sub = lod_subset(g, camera, s_v=s_v, budget=budget)
-        n_level, capped = int(sub.indices.numel()), False
+        n_level, capped = int(sub.means.shape[0]), False  # a parent tier's rows included
         if n_level > max_drawn:
             sub, capped = lod_subset(g, camera, budget=int(max_drawn)), True
         used_sv = sub.s_v
         if compare:
-            sel = ranking_selection(g.with_sigma_d(None), camera, g.opacities, int(sub.indices.numel()))
+            sel = ranking_selection(g.with_sigma_d(None), camera, g.opacities, int(sub.means.shape[0]))
             idx, opac, method = sel.indices, sel.opacities, METHOD_STATIC
             means, quats, scales, sh = g.means[idx], g.quats[idx], g.scales[idx], g.colors[idx]
         else:

@@ -1,8 +1,9 @@
 """``render_lod`` against ``docs/lod_rule.md`` on the real scenes: each input's default adaptation
-(cached, common.py) drawn from every test view at ``s_v`` 1 ... 30 by the library and by the page's
-numpy implementation (``examples/reference_lod.py``, which reads the .ply itself). Prints the
-Gaussians drawn by one and not the other and the largest opacity difference; exits 1 when a single
-Gaussian differs::
+(cached, common.py) drawn from every test view at ``s_v`` 1 ... 30 by the library
+(:func:`clod_adapter.camera_lod.lod_subset`: the model's Gaussians and, past its ``tier_s_v``, its
+parent tier) and by the page's numpy implementation (``examples/reference_lod.py``
+``draw_tiered``, which reads the .ply itself). Prints the Gaussians (and parents) drawn by one and
+not the other and the largest opacity difference; exits 1 when a single one differs::
 
     python benchmarks/reference_rule.py                 # fern, skull
 """
@@ -16,7 +17,7 @@ from common import adapt_cached, load_input, parse_inputs_args, scene_views
 import numpy as np
 import torch
 
-from clod_adapter.camera_lod import view_lod
+from clod_adapter.camera_lod import lod_subset
 from clod_adapter.io.load import load_model
 from clod_adapter.training import AdaptConfig
 
@@ -30,19 +31,26 @@ def run_input(name: str, split: str) -> int:
     ply = adapt_cached(name, AdaptConfig(), "default", split=split)
     g, m = load_model(ply), ref.read_model(ply)
     _, scene, _ = load_input(name, split)
-    differ = drawn = 0
+    differ = drawn = drawn_p = 0
     max_op = 0.0
+    empty = np.zeros(0, np.int64)
     for cam in scene_views(scene, split)[1]:
         for s in S_VS:
-            sel = view_lod(g, cam).select(s)
-            out = ref.draw(m, cam.viewmat.double().numpy(), cam.K.double().numpy(), cam.width, cam.height, s)
-            a, b = sel.indices.numpy(), out["ids"]
-            differ += np.setxor1d(a, b).size
+            sub = lod_subset(g, cam, s)
+            out = ref.draw_tiered(m, cam.viewmat.double().numpy(), cam.K.double().numpy(), cam.width, cam.height, s)
+            a = sub.indices.numpy()
+            b = out["model"]["ids"] if out["model"] is not None else empty
+            ap = sub.parent_indices.numpy() if sub.parent_indices is not None else empty
+            bp = out["parents"]["ids"] if out["parents"] is not None else empty
+            differ += np.setxor1d(a, b).size + np.setxor1d(ap, bp).size
             drawn += a.size
-            if np.array_equal(a, b) and a.size:
-                max_op = max(max_op, float(np.abs(sel.opacities.numpy() - out["opacities"]).max()))
-    print(f"[{name}] {drawn:,} drawn over the {split} views x {len(S_VS)} s_v: {differ} differ; "
-          f"largest opacity difference {max_op:.1e}")
+            drawn_p += ap.size
+            if np.array_equal(a, b) and np.array_equal(ap, bp) and a.size + ap.size:
+                ops = np.concatenate([o["opacities"] for o in (out["model"], out["parents"]) if o is not None])
+                max_op = max(max_op, float(np.abs(sub.opacities.numpy() - ops).max()))
+    tier = f", tier from s_v = {g.lod.tier_s_v:g}" if g.parents is not None else ", no tier"
+    print(f"[{name}] {drawn:,} Gaussians and {drawn_p:,} parents drawn over the {split} views x {len(S_VS)} "
+          f"s_v{tier}: {differ} differ; largest opacity difference {max_op:.1e}")
     return differ
 
 

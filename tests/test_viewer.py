@@ -109,6 +109,26 @@ def test_payload_is_lod_subset_with_view_colours():
     assert b.n_drawn == lod_subset(g, cam, budget=0.1).indices.numel() == round(0.1 * len(g))
 
 
+def test_a_parent_tier_is_sent_past_its_switch():
+    """clod-view draws the tier as render_lod does (lod_subset's rows: the model's, then the
+    parents'), and its slider reaches where the parents are drawn at 2 max_sv."""
+    from dataclasses import replace
+
+    from clod_adapter import lod, tiers
+    from clod_adapter.viewer.app import LodViewer
+
+    g = replace(lod_model(), lod=lod.LodSettings(fade="window"))
+    t = tiers.attach(g, replace(lod_model(300, seed=1), lod=g.lod), 3.0, 1.5)
+    cam = start_camera(t)
+    for sv in (2.0, 3.3, 6.0):
+        p, sub = view_payload(t, cam, s_v=sv), lod_subset(t, cam, s_v=sv)
+        assert p.n_level == p.n_drawn == sub.means.shape[0] and np.array_equal(p.means, sub.means.numpy())
+        assert (sub.parent_indices is not None) == (sv > 3.0) and torch.equal(p.indices, sub.indices)
+    assert view_payload(t, cam, s_v=6.0).indices.numel() == 0 < view_payload(t, cam, s_v=6.0).n_drawn
+    assert LodViewer(t, calibrate=False).sv_max == pytest.approx(2 * 5.0 * 3.0 / 1.5)
+    assert LodViewer(g, calibrate=False).sv_max == 10.0
+
+
 def test_covariances_match_rotation_and_scales():
     g = make_ground_truth(50, seed=3)
     cov = covariances(g.quats, g.scales)

@@ -6,8 +6,8 @@ selection for *that* client camera is recomputed (:func:`clod_adapter.viewer.sel
 i.e. :func:`clod_adapter.camera_lod.lod_subset`: frustum, d', the LoD rule or the budget solver),
 coloured by the SH at that camera and sent as one splat buffer (``n x 32`` bytes).
 
-Controls: the level (``s_v`` slider from 1 to 2 x the trained ``max_sv``, or a budget in % of
-the model), "compare: static opacity cut" (the pretrained-style cut at the same count, shown
+Controls: the level (``s_v`` slider from 1 to 2 x the trained ``max_sv``, further with a parent
+tier, or a budget in % of the model), "compare: static opacity cut" (the pretrained-style cut at the same count, shown
 instead of the LoD level), a scene-camera dropdown when cameras are given, and a read-out of the
 Gaussians drawn, their share of the model, the ``s_v`` drawn and our CPU rasteriser's estimated
 time for that count. The read-out is an HTML element ``#clod-readout`` whose ``data-*``
@@ -244,7 +244,8 @@ class LodViewer:
     Args:
         gaussians: the model (CPU); with ``sigma_d`` for LoD, without it every Gaussian in view.
         max_sv: the trained maximum ``s_v`` (:func:`clod_adapter.viewer.model.model_max_sv`); the
-            slider runs from 1 to ``2 * max_sv``.
+            slider runs from 1 to ``2 * max_sv`` (a model with a parent tier: to where its parents
+            are drawn at ``2 * max_sv``, ``2 max_sv tier_s_v / tier_start``).
         scene_cameras: ``(name, camera)`` pairs for the camera dropdown; the first is the start
             view. Empty: the start view is outside the model's bounding box
             (:func:`clod_adapter.viewer.cameras.default_start_view`).
@@ -266,7 +267,9 @@ class LodViewer:
             raise ValueError(f"max_drawn must be >= 1, got {max_drawn}")
         self.gaussians = gaussians.detach().to("cpu")
         self.max_sv = float(max_sv)
-        self.sv_max = round(2.0 * self.max_sv, 2)
+        st = self.gaussians.lod
+        reach = st.tier_s_v / st.tier_start if self.gaussians.parents is not None and st.tier_s_v > 0 else 1.0
+        self.sv_max = round(2.0 * self.max_sv * max(reach, 1.0), 2)  # a parent tier: to its parents' 2 max_sv
         self.scene_cameras = list(scene_cameras)
         self.background = tuple(float(c) for c in background)
         self.max_drawn = int(max_drawn)

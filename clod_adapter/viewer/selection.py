@@ -77,8 +77,8 @@ class ViewPayload:
 
     @property
     def n_drawn(self) -> int:
-        """Gaussians sent (and drawn)."""
-        return int(self.indices.numel())
+        """Gaussians sent (and drawn; a parent tier's included)."""
+        return int(self.means.shape[0])
 
     @property
     def message_bytes(self) -> int:

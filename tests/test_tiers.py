@@ -215,3 +215,17 @@ def test_renderer_hook_refuses_incomplete_parents(tiered):
                            cam.width, cam.height, sh_degree=g.sh_degree, **kw, s_v=4.0, backend="cpu")
     with pytest.raises(ValueError, match="no sigma_d"):
         clod_kwargs(make_ground_truth(10, seed=2))
+
+
+def test_eval_sweep_reaches_the_parents_range():
+    """clod-eval's default s_v sweep: the even part to 1.2 max_sv, then a tiered model's levels
+    from the middle of its cross-fade to where the parents are drawn at 1.2 x their max_sv."""
+    from clod_adapter.jobs.eval import sv_grid
+
+    plain = sv_grid(5.0, 25)
+    st = lod.LodSettings(fade="window", tier_s_v=5.0, tier_start=1.25)
+    g = sv_grid(5.0, 25, lod_settings=st)
+    assert g[:25] == plain and len(g) > 25 and g[-1] == pytest.approx(1.2 * 5.0 * 5.0 / 1.25)
+    assert all(b > a for a, b in zip(g, g[1:])) and sv_grid(5.0, 25, lod_settings=lod.LodSettings()) == plain
+    fern_like = sv_grid(5.0, 25, lod_settings=replace(st, tier_s_v=7.5, tier_start=3.0))
+    assert fern_like[25] == pytest.approx(7.5 * 1.25 ** 0.5) and len(fern_like) == 31

@@ -141,15 +141,25 @@ LpipsSpec = Union[str, os.PathLike, Callable, None]
 
 
 # --- small helpers ----------------------------------------------------------------------------
-def sv_grid(max_sv: float, steps: int = 25, overshoot: float = 1.2) -> list[float]:
+def sv_grid(max_sv: float, steps: int = 25, overshoot: float = 1.2, lod_settings=None,
+            tier_steps: int = 6) -> list[float]:
     """``steps`` values of ``s_v`` evenly spaced from 1 to ``overshoot * max_sv`` (past the
-    trained maximum)."""
+    trained maximum); for a model with a parent tier (``lod_settings.tier_s_v > 0``, README
+    "Merged parents") then ``tier_steps`` values spaced evenly in ``ln s_v`` from the middle of
+    its cross-fade (``tier_s_v sqrt(tier_fade)``) to where the parents are drawn at
+    ``overshoot`` times their own ``max_sv`` (``overshoot max_sv tier_s_v / tier_start``), those
+    beyond the even part."""
     if steps < 2:
         raise ValueError(f"need at least 2 s_v steps, got {steps}")
     if not max_sv >= 1:
         raise ValueError(f"max_sv must be >= 1, got {max_sv}")
     top = max(overshoot * max_sv, 1.0 + 1e-3)
-    return [float(x) for x in np.linspace(1.0, top, steps)]
+    grid = [float(x) for x in np.linspace(1.0, top, steps)]
+    st = lod_settings
+    if st is not None and st.tier_s_v > 0:
+        lo, hi = st.tier_s_v * math.sqrt(st.tier_fade), overshoot * max_sv * st.tier_s_v / st.tier_start
+        grid += [float(x) for x in np.geomspace(lo, max(hi, lo), tier_steps) if x > top * (1 + 1e-9)]
+    return grid
 
 
 def budget_label(b: float | int) -> str:
@@ -547,7 +557,8 @@ class EvalOptions:
             model's own attributes without ``sigma_d`` (noted in the report).
         pretrained_label: the report's name for a ``pretrained`` given as Gaussians.
         budgets: fractions (<= 1) and/or counts (integers > 1), see :func:`normalize_budgets`.
-        s_vs: the s_v sweep; default :func:`sv_grid` ``(max_sv, sv_steps)``.
+        s_vs: the s_v sweep; default :func:`sv_grid` ``(max_sv, sv_steps)``, a parent tier's
+            levels added.
         max_sv: the trained maximum (default: from the model's header or
             ``adapt_state.safetensors`` beside the .ply, else 5).
         popping_steps: frames of the popping sweep, s_v from 1 to the sweep's end.
@@ -691,7 +702,8 @@ def evaluate_report(adapted: Union[os.PathLike, Gaussians], scene, out_dir: os.P
     ev.bar.set_postfix_str(f"timing x{o.timing_repeats}")
     _retime(ev.rows, o.timing_repeats, o.seed, on_render=ev.tick)
     ev.bar.set_postfix_str("popping")
-    pop_svs = [float(x) for x in np.linspace(1.0, ev.s_vs[-1], o.popping_steps)]
+    top = ev.s_vs[-1] if o.s_vs is not None else sv_grid(ev.max_sv, 2)[-1]  # the even part (a tier's points beyond)
+    pop_svs = [float(x) for x in np.linspace(1.0, top, o.popping_steps)]
     pop = popping_curve(ev.adapted, ev.cams[0], pop_svs, discrete_model=ev.base, discrete_scores=ctx.lightgaussian,
                         tau=o.tau, background=ev.bg, on_render=ev.tick)
     pop["camera"] = ev.cams[0].name
@@ -730,7 +742,8 @@ def _eval_inputs(adapted, scene, o: EvalOptions) -> _Eval:
         base = o.pretrained if isinstance(o.pretrained, Gaussians) else read_ply(o.pretrained)
         base = base.with_sigma_d(None)
     budgets = normalize_budgets(o.budgets)
-    s_vs = sv_grid(max_sv, o.sv_steps) if o.s_vs is None else [float(s) for s in o.s_vs]
+    tier = adapted.lod if adapted.parents is not None else None
+    s_vs = sv_grid(max_sv, o.sv_steps, lod_settings=tier) if o.s_vs is None else [float(s) for s in o.s_vs]
     lpips_fn, lpips_note = resolve_lpips(o.lpips)
     if lpips_fn is not None and hasattr(lpips_fn, "to"):
         lpips_fn = lpips_fn.to(dev)

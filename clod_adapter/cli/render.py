@@ -43,8 +43,9 @@ def build_parser():
     p.add_argument("--frames", type=int, default=90, help="video frames (default 90)")
     p.add_argument("--fps", type=int, default=30, help="video frames per second (default 30)")
     p.add_argument("--max-sv", type=float, default=None,
-                   help="top of the video's s_v sweep (default: the trained maximum from "
-                        "adapt_state.safetensors beside the model, else 5)")
+                   help="top of the video's s_v sweep (default: the trained maximum from the model's "
+                        "header, else adapt_state.safetensors beside it, else 5; a model with a parent tier: "
+                        "where its parents reach that maximum, swept in ln s_v)")
     p.add_argument("--no-video", action="store_true", help="only the images")
     p.add_argument("--background", default="black", choices=("black", "white"),
                    help="colour behind the scene (NeRF-synthetic RGBA images are composited over it)")
@@ -97,8 +98,9 @@ def _render_views(model, scene, cams, level: dict, bg, out: Path, bar) -> list:
 
 
 def _render_video(model, scene, args, level: dict, max_sv: float, bg, path: Path, bar) -> dict:
-    """The MP4 along the camera path (1 -> max_sv -> 1, or the fixed level), each frame captioned
-    with its s_v and count; returns its record."""
+    """The MP4 along the camera path (1 -> max_sv -> 1, or the fixed level; a model with a parent
+    tier, without ``--max-sv``: 1 -> ``max_sv tier_s_v / tier_start`` -> 1, even in ``ln s_v``), each
+    frame captioned with its s_v and count; returns its record."""
     import numpy as np
 
     from clod_adapter.figures import label_panels
@@ -108,7 +110,12 @@ def _render_video(model, scene, args, level: dict, max_sv: float, bg, path: Path
     n_frames, n = args.frames, len(model)
     cams = camera_path(scene.cameras, n_frames) if args.path == "cameras" else \
         orbit_path(scene.cameras, model.means, n_frames)
-    if args.s_v is None and level["budget"] is None:  # 1 -> max_sv -> 1
+    st = model.lod
+    if args.s_v is None and level["budget"] is None and model.parents is not None and st.tier_s_v > 0 \
+            and args.max_sv is None:  # a parent tier: 1 -> where its parents reach their max_sv -> 1, in ln s_v
+        top = max_sv * max(st.tier_s_v / st.tier_start, 1.0)
+        svs = [top ** (0.5 * (1 - math.cos(2 * math.pi * i / n_frames))) for i in range(n_frames)]
+    elif args.s_v is None and level["budget"] is None:  # 1 -> max_sv -> 1
         svs = [1.0 + (max_sv - 1.0) * 0.5 * (1 - math.cos(2 * math.pi * i / n_frames)) for i in range(n_frames)]
     else:
         svs = [args.s_v] * n_frames
@@ -163,7 +170,8 @@ def _main(args) -> int:
     cams = {"test": scene.test or scene.train[:1], "train": scene.train, "all": scene.cameras}[args.views]
     if not cams:
         raise InputError(f"{scene_root}: the scene has no views")
-    max_sv = args.max_sv if args.max_sv is not None else (max_sv_from_state(ply) or 5.0)
+    max_sv = args.max_sv if args.max_sv is not None else \
+        (model.lod.max_sv if model.lod is not None else (max_sv_from_state(ply) or 5.0))
     model = model.to(dev)
     level = {"s_v": args.s_v if args.s_v is not None else (None if budget is not None else 1.0), "budget": budget}
     jobs.check_output_dir(out, [ply], force=True)

@@ -345,7 +345,9 @@ function updateModel(m, s, mul, isStatic) {
     const t = eq2 ? 1 : 1 - r.fullDetailShare(s, m.ramp);
     const share = nIn ? drawn / nIn : 1;
     m.level = s <= 1 || eq2 ? 0 : t * r.levelOfFraction(share);
-    m.drawn = Math.round(drawn * stride);
+    // what is drawn with a footprint: within the ramp (t < 1) every splat in view, at weight
+    // (1 - t) + t fade, as render_lod's n_rendered; the static cut and the level take the mask's count
+    m.drawn = Math.round((!eq2 && t < 1 ? nIn : drawn) * stride);
     m.inFrustum = Math.round(nIn * stride);
     m.dmax = dmax;
     // the static cut: the same count in view, by importance rank

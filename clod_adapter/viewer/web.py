@@ -63,6 +63,8 @@ WEB_STREAMS = ("x", "y", "z", "sigma_d", "opacity_logit", "opacity_gain", "scale
 #: the page's files (``web_page/`` in this package) and what ``clod-export --web`` adds beside them.
 PAGE_FILES = ("index.html", "clod.mjs")
 MODEL_NAME, DATA_NAME, CONFIG_NAME = "model.ply", "clod.bin", "clod.json"
+#: a parent tier's files (the same layout as the model's)
+PARENTS_MODEL_NAME, PARENTS_DATA_NAME = "parents.ply", "parents.bin"
 
 
 def web_streams(model, static_scores) -> dict:
@@ -91,10 +93,16 @@ def write_web_viewer(model, out_dir: Path, cameras, static_scores, *, engine: Op
     PlayCanvas engine: the page (``index.html``, ``clod.mjs``), the engine (copied from npm's
     ``node_modules``), the model's base attributes as a standard ``model.ply``, the per-splat
     LoD data ``clod.bin`` (:func:`web_streams`) and ``clod.json`` (counts, the LoD settings,
-    ``cameras`` as PlayCanvas poses). Each file is written atomically.
+    ``cameras`` as PlayCanvas poses). A model with a parent tier (``model.parents``,
+    ``lod.tier_s_v > 0``) also gets ``parents.ply`` and ``parents.bin`` (the same for its M
+    parents; their static rank by opacity, unused: the page's static cut draws the model's own
+    Gaussians) and a ``"tier"`` entry in ``clod.json`` (``model``, ``data``, ``count`` = M,
+    the parents' own ``settings``); the page cross-fades to them as
+    :func:`clod_adapter.camera_lod.render_lod` does. Each file is written atomically.
 
     Args:
-        model: an adapted :class:`clod_adapter.gaussians.Gaussians` (``sigma_d`` required).
+        model: an adapted :class:`clod_adapter.gaussians.Gaussians` (``sigma_d`` required),
+            with or without a parent tier.
         out_dir: the folder (created when missing).
         cameras: the poses the page offers (e.g. the scene's test and training cameras).
         static_scores: [N] the ranking of the page's static cut (higher = kept first).
@@ -105,7 +113,7 @@ def write_web_viewer(model, out_dir: Path, cameras, static_scores, *, engine: Op
 
     Raises:
         FileNotFoundError: no engine (``npm ci`` installs it).
-        ValueError: the model has no ``sigma_d``.
+        ValueError: the model (or its parent tier) has no ``sigma_d``.
     """
     import json
     import shutil
@@ -123,17 +131,29 @@ def write_web_viewer(model, out_dir: Path, cameras, static_scores, *, engine: Op
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     m = model.detach().to("cpu")
-    write_ply(out_dir / MODEL_NAME, m.with_sigma_d(None))
-    streams = web_streams(m, static_scores)
-    with atomic_write(out_dir / DATA_NAME, "wb") as f:
-        for k in WEB_STREAMS:
-            f.write(streams[k].tobytes())
-    st = m.lod or LodSettings()
+    tier = m.parents if m.parents is not None and m.lod is not None and m.lod.tier_s_v > 0 else None
+    if tier is not None and tier.sigma_d is None:
+        raise ValueError("write_web_viewer: the parent tier has no sigma_d")
+
+    def write_model(g, scores, ply_name, data_name):
+        write_ply(out_dir / ply_name, g.with_sigma_d(None))
+        streams = web_streams(g, scores)
+        with atomic_write(out_dir / data_name, "wb") as f:
+            for k in WEB_STREAMS:
+                f.write(streams[k].tobytes())
+        return {**(g.lod or LodSettings()).to_dict(), "fade_ramp_s_v": FADE_RAMP_S_V}
+
+    settings = write_model(m, static_scores, MODEL_NAME, DATA_NAME)
     cfg = {"model": MODEL_NAME, "data": DATA_NAME, "count": len(m), "streams": list(WEB_STREAMS),
-           "settings": {**st.to_dict(), "fade_ramp_s_v": FADE_RAMP_S_V},
+           "settings": settings,
            "engine": {"name": "playcanvas", "version": PLAYCANVAS_VERSION},
            "cameras": [{"name": getattr(c, "name", f"view{i}"), "width": int(c.width), "height": int(c.height),
                         **playcanvas_pose(c)} for i, c in enumerate(cameras)]}
+    names = [MODEL_NAME, DATA_NAME]
+    if tier is not None:
+        cfg["tier"] = {"model": PARENTS_MODEL_NAME, "data": PARENTS_DATA_NAME, "count": len(tier),
+                       "settings": write_model(tier, tier.opacity_logits, PARENTS_MODEL_NAME, PARENTS_DATA_NAME)}
+        names += [PARENTS_MODEL_NAME, PARENTS_DATA_NAME]
     with atomic_write(out_dir / CONFIG_NAME, "w") as f:
         json.dump(cfg, f, indent=1)
     page = resources.files("clod_adapter.viewer") / "web_page"
@@ -143,4 +163,4 @@ def write_web_viewer(model, out_dir: Path, cameras, static_scores, *, engine: Op
     with atomic_write(out_dir / ENGINE_FILE, "wb") as f:
         with open(engine, "rb") as src:
             shutil.copyfileobj(src, f)
-    return [*PAGE_FILES, ENGINE_FILE, MODEL_NAME, DATA_NAME, CONFIG_NAME]
+    return [*PAGE_FILES, ENGINE_FILE, *names, CONFIG_NAME]

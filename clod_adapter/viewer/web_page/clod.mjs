@@ -3,34 +3,43 @@
 // window fade, the fade ramp near s_v = 1 and the learned level gains) runs per splat and per frame
 // in a work-buffer modifier (PlayCanvas's per-splat shader hook); s_v, the camera, the distance
 // normaliser and the level are uniforms. Per-splat data (sigma_d, opacity logit, the gains, a
-// static importance rank) are two RGBA32F extra streams filled from clod.bin.
+// static importance rank) are two RGBA32F extra streams filled from clod.bin. A model with a parent
+// tier (clod.json's "tier": merged Gaussians, an adapted model of their own) cross-fades to it as
+// render_lod does: the parents are a second entity running the same modifier with their own
+// settings at their own s_v, each entity's drawn weights scaled by its share of the image.
 //
 // Approximations against render_lod (README "In the browser"): the normaliser max d over the
 // frustum and the drawn share (hence the level of the gains) are computed here on the CPU from the
 // splat centres inside the frustum (every centre up to 200,000 splats, an even stride beyond),
-// where render_lod counts the Gaussians whose projected footprint reaches the image.
+// where render_lod counts the Gaussians whose projected footprint reaches the image; the parents'
+// from their own centres likewise (so their drawn count runs a few % under render_lod's n_parents).
 import * as pc from './playcanvas.min.mjs';
 
 const q = new URLSearchParams(location.search);
 const cfg = await (await fetch('clod.json')).json();
-const raw = new Float32Array(await (await fetch(cfg.data)).arrayBuffer());
-const N = cfg.count;
-const col = Object.fromEntries(cfg.streams.map((name, i) => [name, raw.subarray(i * N, (i + 1) * N)]));
 const st = cfg.settings;
 const SH_C0 = 0.28209479177387814;
 
-// --- the rule's scalars (clod_adapter/lod.py) ----------------------------------------------------
-const ramp = (s, r = st.fade_ramp_s_v) => Math.min(1, Math.max(Math.log(Math.max(s, 1)) / Math.log(Math.max(r, st.fade_ramp_s_v)), 0));
-const fadeWidthAt = (s) => st.fade_width * ramp(s);                 // lod.fade_width_at
-const fullDetailShare = (s, r) => 1 - ramp(s, r);                   // lod.full_detail_share
-const rampCap = Math.max(st.fade_ramp_s_v, Math.sqrt(Math.max(st.max_sv, 1)));     // lod.ramp_cap
-const rampSv = (share1) => (share1 > 0                                           // lod.ramp_s_v
-    ? Math.min(Math.max(st.fade_ramp_s_v * Math.pow(Math.min(share1, 1), -2 / 3), st.fade_ramp_s_v), rampCap)
-    : rampCap);
-const levelMax = st.level_max ?? 1;                                                 // LodSettings.level_max
-const level = (s) => (st.max_sv > 1 ? Math.min(Math.max(Math.log(Math.max(s, 1)) / Math.log(st.max_sv), 0), levelMax) : 0);
-const levelOfFraction = (f) => (f > 0 ? level(Math.pow(Math.min(f, 1), -2 / 3)) : (st.max_sv > 1 ? levelMax : 0));
+// --- the rule's scalars (clod_adapter/lod.py) for one model's settings ---------------------------
+function rule(st) {
+    const ramp = (s, r = st.fade_ramp_s_v) => Math.min(1, Math.max(Math.log(Math.max(s, 1)) / Math.log(Math.max(r, st.fade_ramp_s_v)), 0));
+    const rampCap = Math.max(st.fade_ramp_s_v, Math.sqrt(Math.max(st.max_sv, 1)));     // lod.ramp_cap
+    const levelMax = st.level_max ?? 1;                                                 // LodSettings.level_max
+    const level = (s) => (st.max_sv > 1 ? Math.min(Math.max(Math.log(Math.max(s, 1)) / Math.log(st.max_sv), 0), levelMax) : 0);
+    return {
+        fadeWidthAt: (s) => st.fade_width * ramp(s),                                    // lod.fade_width_at
+        fullDetailShare: (s, r) => 1 - ramp(s, r),                                      // lod.full_detail_share
+        rampSv: (share1) => (share1 > 0                                                 // lod.ramp_s_v
+            ? Math.min(Math.max(st.fade_ramp_s_v * Math.pow(Math.min(share1, 1), -2 / 3), st.fade_ramp_s_v), rampCap)
+            : rampCap),
+        levelOfFraction: (f) => (f > 0 ? level(Math.pow(Math.min(f, 1), -2 / 3)) : (st.max_sv > 1 ? levelMax : 0)),
+    };
+}
 const logSigmoid = (x) => -Math.max(-x, 0) - Math.log1p(Math.exp(-Math.abs(x)));
+// the parent tier's share of the image and the parents' own s_v (lod.tier_weight): 0 up to
+// tier_s_v, growing with ln s_v to 1 at tier_fade tier_s_v
+const tierWeight = (s) => (!(st.tier_s_v > 0) || s <= st.tier_s_v ? [0, 1]
+    : [Math.min(1, Math.log(s / st.tier_s_v) / Math.log(st.tier_fade)), st.tier_start * s / st.tier_s_v]);
 
 const GLSL = /* glsl */ `
 uniform vec3 uClodCam;
@@ -44,10 +53,12 @@ uniform float uClodLevel;
 uniform float uClodStatic;
 uniform float uClodStaticRank;
 uniform float uClodEq2;
+uniform float uClodTierMul;
 
 // the drawn weight of a splat: lod.lod_margin and lod.fade_weight, blended over the ramp
 // ((1 - t) + t fade, t = 1 - full_detail_share); "eq2" models: Eq. 2's attenuation where the mask
-// keeps them; the static cut keeps ranks below a threshold
+// keeps them; the static cut keeps ranks below a threshold. The shader multiplies it by
+// uClodTierMul: 1 - u for the model, u for its parent tier during the cross-fade
 float clodWeight(vec3 center, vec4 a, vec4 b) {
     if (uClodStatic > 0.5) return b.w < uClodStaticRank ? 1.0 : 0.0;
     if (uClodT <= 0.0) return 1.0;
@@ -68,7 +79,8 @@ void modifySplatRotationScale(vec3 originalCenter, vec3 modifiedCenter, inout ve
     vec4 a = texelFetch(clodA, splat.uv, 0);
     vec4 b = texelFetch(clodB, splat.uv, 0);
     float lv = uClodStatic > 0.5 ? 0.0 : uClodLevel;
-    scale *= clodWeight(originalCenter, a, b) > 0.0 ? exp(lv * a.w) : 0.0;  // a splat left out has no footprint
+    float w = clodWeight(originalCenter, a, b) * uClodTierMul;
+    scale *= w > 0.0 ? exp(lv * a.w) : 0.0;                                 // a splat left out has no footprint
 }
 
 void modifySplatColor(vec3 center, inout vec4 color) {
@@ -76,7 +88,7 @@ void modifySplatColor(vec3 center, inout vec4 color) {
     vec4 b = texelFetch(clodB, splat.uv, 0);
     float lv = uClodStatic > 0.5 ? 0.0 : uClodLevel;
     color.rgb += lv * ${SH_C0} * b.xyz;                                     // sh0 gain
-    color.a = clodWeight(center, a, b) / (1.0 + exp(-(a.y + lv * a.z)));   // opacity gain, fade
+    color.a = clodWeight(center, a, b) * uClodTierMul / (1.0 + exp(-(a.y + lv * a.z)));  // opacity gain, fade, tier
 }
 `;
 
@@ -163,35 +175,47 @@ if (fixed) {
     app.setCanvasResolution(pc.RESOLUTION_AUTO);
     window.addEventListener('resize', () => app.resizeCanvas());
 }
-// reorder: false keeps the file's order (the engine sorts a .ply along a Morton curve by default),
-// so splat i of the resource is row i of clod.bin
-const asset = new pc.Asset('model', 'gsplat', { url: cfg.model }, { reorder: false });
-app.assets.add(asset);
-await new Promise((resolve, reject) => {
-    asset.ready(resolve);
-    asset.on('error', reject);
-    app.assets.load(asset);
-});
-const resource = asset.resource;
-resource.format.addExtraStreams([{ name: 'clodA', format: pc.PIXELFORMAT_RGBA32F },
-                                 { name: 'clodB', format: pc.PIXELFORMAT_RGBA32F }]);
-const fill = (name, cols) => {
-    const tex = resource.getTexture(name);
-    const data = tex.lock();
-    for (let i = 0; i < N; i++) {
-        for (let c = 0; c < 4; c++) data[4 * i + c] = cols[c][i];
-    }
-    tex.unlock();
-};
-const zeros = new Float32Array(N);
-fill('clodA', [col.sigma_d, col.opacity_logit, col.opacity_gain || zeros, col.scale_gain || zeros]);
-fill('clodB', [col.f_dc_gain_0 || zeros, col.f_dc_gain_1 || zeros, col.f_dc_gain_2 || zeros, col.static_rank]);
 
-const splats = new pc.Entity('model');
-splats.addComponent('gsplat', { asset, unified: true });
-app.root.addChild(splats);
-splats.gsplat.setWorkBufferModifier({ glsl: GLSL });
-splats.gsplat.workBufferUpdate = pc.WORKBUFFER_UPDATE_ALWAYS;
+// --- the models: the adapted model and its parent tier (cfg.tier) ------------------------------------
+// reorder: false keeps the file's order (the engine sorts a .ply along a Morton curve by default),
+// so splat i of the resource is row i of its .bin. Both are unified gsplat entities, so the engine
+// sorts their splats together by depth, as render_lod composites a model and its parents.
+async function loadModel(name, spec, st) {
+    const N = spec.count;
+    const raw = new Float32Array(await (await fetch(spec.data)).arrayBuffer());
+    const col = Object.fromEntries(cfg.streams.map((k, i) => [k, raw.subarray(i * N, (i + 1) * N)]));
+    const asset = new pc.Asset(name, 'gsplat', { url: spec.model }, { reorder: false });
+    app.assets.add(asset);
+    await new Promise((resolve, reject) => {
+        asset.ready(resolve);
+        asset.on('error', reject);
+        app.assets.load(asset);
+    });
+    const resource = asset.resource;
+    resource.format.addExtraStreams([{ name: 'clodA', format: pc.PIXELFORMAT_RGBA32F },
+                                     { name: 'clodB', format: pc.PIXELFORMAT_RGBA32F }]);
+    const fill = (tname, cols) => {
+        const tex = resource.getTexture(tname);
+        const data = tex.lock();
+        for (let i = 0; i < N; i++) {
+            for (let c = 0; c < 4; c++) data[4 * i + c] = cols[c][i];
+        }
+        tex.unlock();
+    };
+    const zeros = new Float32Array(N);
+    fill('clodA', [col.sigma_d, col.opacity_logit, col.opacity_gain || zeros, col.scale_gain || zeros]);
+    fill('clodB', [col.f_dc_gain_0 || zeros, col.f_dc_gain_1 || zeros, col.f_dc_gain_2 || zeros, col.static_rank]);
+    const entity = new pc.Entity(name);
+    entity.addComponent('gsplat', { asset, unified: true });
+    app.root.addChild(entity);
+    entity.gsplat.setWorkBufferModifier({ glsl: GLSL });
+    entity.gsplat.workBufferUpdate = pc.WORKBUFFER_UPDATE_ALWAYS;
+    return { N, col, st, r: rule(st), entity, stride: Math.max(1, Math.ceil(N / 200000)), ranks: new Float32Array(N),
+             drawn: 0, inFrustum: 0, level: 0, dmax: 0, ramp: st.fade_ramp_s_v };
+}
+const model = await loadModel('model', cfg, st);
+const parents = cfg.tier ? await loadModel('parents', cfg.tier, cfg.tier.settings) : null;
+const N = model.N;
 
 const camera = new pc.Entity('camera');
 camera.addComponent('camera', { clearColor: new pc.Color(0, 0, 0, 1), nearClip: 0.01, farClip: 1e4 });
@@ -237,11 +261,14 @@ app.on('postrender', () => {
 });
 
 // --- state: s_v, the static toggle, the camera ----------------------------------------------------
-const state = { sv: 1, static: false, cam: 0, drawn: 0, inFrustum: 0, level: 0, dmax: 0, ramp: 1.1, frameMs: NaN, updates: 0 };
-const stride = Math.max(1, Math.ceil(N / 200000));
+// drawn, inFrustum, level, dmax, ramp: the model's own Gaussians (drawn = 0 where the parents alone
+// are drawn; the others then keep their last frame's values); tierU: the parents' share of the image
+// (lod.tier_weight's u), parentSv: their own s_v, drawnParents: their drawn count (0 without a tier
+// or below its switch), parents: their other values as the model's
+const state = { sv: 1, static: false, cam: 0, drawn: 0, inFrustum: 0, level: 0, dmax: 0, ramp: 1.1, frameMs: NaN, updates: 0,
+                tierU: 0, parentSv: 1, drawnParents: 0, parents: null };
 const inv = new pc.Mat4();
 const p = new pc.Vec3();
-const ranks = new Float32Array(N);
 
 // the pinhole K of a camera (fx, fy, cx, cy in pixels) when the canvas has its size, else one focal
 // length from the vertical field of view and a centred principal point (a resized window)
@@ -271,13 +298,19 @@ function setCamera(i) {
     update();
 }
 
-// the frustum (lod.in_frustum), the normaliser, the drawn count and the level
-function update() {
+// one model at s: the frustum (lod.in_frustum), the normaliser, the drawn count, the level and the
+// uniforms of its modifier; mul: its share of the image (the tier's cross-fade). An entity with mul 0
+// is disabled (the engine leaves it out of its work buffer and sort) and nothing is computed for it.
+function updateModel(m, s, mul, isStatic) {
+    const { N, col, st, r, stride, ranks } = m;
+    m.entity.enabled = mul > 0;
+    if (!(mul > 0)) {
+        m.drawn = 0;
+        return;
+    }
     const W = canvas.width, H = canvas.height;
     const [fx, fy, cx, cy] = intrinsics();
-    inv.copy(camera.getWorldTransform()).invert();
     const cp = camera.getPosition();
-    const s = state.sv;
     const logTauS = Math.log(st.tau * s);
     const inside = new Uint8Array(N);
     let dmax = 0, nIn = 0;
@@ -308,42 +341,72 @@ function update() {
         if (la - x1 * x1 / den - logTau > 0) kept1++;
         if ((s <= 1 && !eq2) || la - x * x / den - logTauS > 0) drawn++;
     }
-    state.ramp = nIn ? rampSv(kept1 / nIn) : st.fade_ramp_s_v;
-    const t = eq2 ? 1 : 1 - fullDetailShare(s, state.ramp);
+    m.ramp = nIn ? r.rampSv(kept1 / nIn) : st.fade_ramp_s_v;
+    const t = eq2 ? 1 : 1 - r.fullDetailShare(s, m.ramp);
     const share = nIn ? drawn / nIn : 1;
-    state.level = s <= 1 || eq2 ? 0 : t * levelOfFraction(share);
-    state.drawn = Math.round(drawn * stride);
-    state.inFrustum = Math.round(nIn * stride);
-    state.dmax = dmax;
+    m.level = s <= 1 || eq2 ? 0 : t * r.levelOfFraction(share);
+    // what is drawn with a footprint: within the ramp (t < 1) every splat in view, at weight
+    // (1 - t) + t fade, as render_lod's n_rendered; the static cut and the level take the mask's count
+    m.drawn = Math.round((!eq2 && t < 1 ? nIn : drawn) * stride);
+    m.inFrustum = Math.round(nIn * stride);
+    m.dmax = dmax;
     // the static cut: the same count in view, by importance rank
-    let k = 0;
-    for (let i = 0; i < N; i += stride) if (inside[i]) ranks[k++] = col.static_rank[i];
-    const sorted = ranks.subarray(0, k).sort();
-    const staticRank = drawn >= k ? Infinity : (drawn > 0 ? sorted[drawn - 1] + 0.5 : -1);
-    const g = splats.gsplat;
+    let staticRank = Infinity;
+    if (isStatic) {
+        let k = 0;
+        for (let i = 0; i < N; i += stride) if (inside[i]) ranks[k++] = col.static_rank[i];
+        const sorted = ranks.subarray(0, k).sort();
+        staticRank = drawn >= k ? Infinity : (drawn > 0 ? sorted[drawn - 1] + 0.5 : -1);
+    }
+    const g = m.entity.gsplat;
     g.setParameter('uClodCam', [cp.x, cp.y, cp.z]);
     g.setParameter('uClodInvDmax', invD);
     g.setParameter('uClodSv', s);
     g.setParameter('uClodLogTauS', logTauS);
     g.setParameter('uClodEps', Math.max(st.eps, 1e-20));
-    g.setParameter('uClodFadeW', fadeWidthAt(s));
+    g.setParameter('uClodFadeW', r.fadeWidthAt(s));
     g.setParameter('uClodT', s <= 1 && !eq2 ? 0 : t);
     g.setParameter('uClodEq2', eq2 ? 1 : 0);
-    g.setParameter('uClodLevel', state.level);
-    g.setParameter('uClodStatic', state.static ? 1 : 0);
+    g.setParameter('uClodLevel', m.level);
+    g.setParameter('uClodStatic', isStatic ? 1 : 0);
     g.setParameter('uClodStaticRank', Math.min(staticRank, 3.0e38));
+    g.setParameter('uClodTierMul', mul);
+}
+
+// the frame's levels: the model at s_v with weight 1 - u, its parents at their own s_v with weight u
+// (lod.tier_weight; render_lod's cross-fade); the static cut: the model's own Gaussians alone
+function update() {
+    inv.copy(camera.getWorldTransform()).invert();
+    const s = state.sv;
+    const [u, sp] = parents ? tierWeight(s) : [0, 1];
+    updateModel(model, s, state.static ? 1 : 1 - u, state.static);
+    if (parents) updateModel(parents, sp, state.static ? 0 : u, false);
+    Object.assign(state, { drawn: model.drawn, inFrustum: model.inFrustum, level: model.level, dmax: model.dmax,
+                           ramp: model.ramp, tierU: u, parentSv: sp, drawnParents: parents ? parents.drawn : 0 });
+    if (parents) {
+        const { drawn, inFrustum, level, dmax, ramp } = parents;
+        state.parents = { drawn, inFrustum, level, dmax, ramp };
+    }
     state.updates++;
     document.getElementById('svv').textContent = s.toFixed(2);
     document.getElementById('share').textContent = `${(100 * Math.pow(s, -1.5)).toFixed(1)} %`;
     document.getElementById('drawn').textContent = state.drawn.toLocaleString();
     document.getElementById('infrustum').textContent = state.inFrustum.toLocaleString();
     document.getElementById('total').textContent = N.toLocaleString();
+    if (parents) {
+        document.getElementById('tierw').textContent = u.toFixed(2);
+        document.getElementById('psv').textContent = sp.toFixed(2);
+        document.getElementById('pdrawn').textContent = state.drawnParents.toLocaleString();
+        document.getElementById('ptotal').textContent = parents.N.toLocaleString();
+    }
 }
 
 // --- the page: slider, toggle, cameras, frame time -------------------------------------------------
 const slider = document.getElementById('sv');
-const svMax = st.max_sv * 1.2;
-const svOfSlider = (v) => Math.exp(Math.log(svMax) * v / 1000);  // log scale: 1 .. 1.2 max_sv
+// log scale from 1 to 1.2 max_sv, or with a tier on until the parents reach 1.2 times their own max_sv
+const svMax = Math.max(st.max_sv * 1.2, parents ? st.tier_s_v * 1.2 * parents.st.max_sv / st.tier_start : 0);
+const svOfSlider = (v) => Math.exp(Math.log(svMax) * v / 1000);
+if (parents) document.getElementById('tier').hidden = false;
 slider.addEventListener('input', () => { state.sv = svOfSlider(+slider.value); update(); });
 document.getElementById('static').addEventListener('change', (e) => { state.static = e.target.checked; update(); });
 document.getElementById('prev').addEventListener('click', () => setCamera(state.cam - 1));
@@ -368,6 +431,7 @@ window.clod = {
     setSv(s) { state.sv = Math.max(1, +s); slider.value = Math.round(1000 * Math.log(state.sv) / Math.log(svMax)); update(); },
     setStatic(on) { state.static = !!on; document.getElementById('static').checked = state.static; update(); },
     setCamera,
+    svMax,  // the slider's top
     frames: () => app.frame,
     // the engine settings the rule's fidelity depends on (the work buffer's precision, size culling)
     engine: () => ({ dataFormat: app.scene.gsplat.dataFormat, minPixelSize: app.scene.gsplat.minPixelSize,

@@ -155,10 +155,16 @@ def test_export_carries_the_tier(tiny_adapted, tiny_model, tmp_path):
     g = read_ply(tiny_adapted / "point_cloud.ply")
     tiered = tiers.attach(g, g.subset(torch.arange(0, len(g), 5)), 2.0, 1.0)
     src = write_ply(tmp_path / "tiered.ply", tiered)
+    from clod_adapter.viewer.web import find_playcanvas
+
     out = tmp_path / "exp"
+    web = ["--web", str(out / "web")] if find_playcanvas() is not None else []
     assert export_main([str(src), "-s", str(tiny_model["scene"]), "-o", str(out), "--quiet", "--s-v", "2.2",
-                        "--ordered", "--prune", "--sh-max-drop-db", "0.5"]) == 0
+                        "--ordered", "--prune", "--sh-max-drop-db", "0.5", *web]) == 0
     rep = json.loads((out / "export.json").read_text())
+    if web:  # the page gets the tier too (its drawing: tests/test_web_viewer.py)
+        cfg = json.loads((out / "web" / "clod.json").read_text())
+        assert cfg["tier"]["count"] == rep["tier"]["parents_out"] and (out / "web" / "parents.ply").is_file()
     assert rep["tier"]["parents_in"] == len(tiered.parents) and rep["tier"]["tier_s_v"] == 2.0
     ext = read_ply(out / "point_cloud_clod.ply")
     assert ext.parents is not None and len(ext.parents) == rep["tier"]["parents_out"] > 0

@@ -385,7 +385,7 @@ class LodView:
         Returns:
             the count k (0 <= k <= :attr:`n_in_view`), non-decreasing in the budget.
         """
-        from .cost import DEFAULT_FRAME_TIME_MODEL, Footprints, level_opacities, order_in_view, prefix_count
+        from .cost import DEFAULT_FRAME_TIME_MODEL, prefix_count
 
         if (budget_cost is None) == (budget_ms is None):
             raise ValueError("cost_count: give budget_cost or budget_ms")
@@ -393,16 +393,11 @@ class LodView:
         if not b >= 0:
             raise ValueError(f"render_lod: cost budgets must be >= 0, got {b}")
         tm = time_model or DEFAULT_FRAME_TIME_MODEL
-        order = order_in_view(self.critical, self.visible)
+        order, fp, weights = self._cost_weights(level)
         n_vis = order.numel()
         if n_vis == 0:
             return 0
         eq2 = self.settings.fade == "eq2"
-        # window fade: the footprints at the base level (or the level given): the unit the
-        # calibrated levels are measured in; Eq. 2: base opacities first, then the exact search
-        lv = float(level) if (level is not None and not eq2) else 0.0
-        fp = Footprints(self, order, lv)
-        weights = fp.cost(level_opacities(self, order, lv))
         if budget_ms is not None:
             weights = tm.per_splat_ms(weights)
             limit = b - tm.c0_ms
@@ -416,6 +411,24 @@ class LodView:
             unit = (lambda c: c) if budget_ms is None else tm.per_splat_ms
             k = self._eq2_cost_count(order, fp, k, limit, unit, min_s_v)
         return k
+
+    def _cost_weights(self, level: Optional[float] = None):
+        """``(order, footprints, costs)`` of the Gaussians in view in the count budgets' order:
+        window fade at the base level (or ``level`` given), the unit the calibrated levels are
+        measured in; Eq. 2 at the base opacities (:meth:`cost_count` then searches exactly)."""
+        from .cost import Footprints, level_opacities, order_in_view
+
+        order = order_in_view(self.critical, self.visible)
+        if order.numel() == 0:
+            return order, None, self.means.new_zeros(0)
+        lv = float(level) if (level is not None and self.settings.fade != "eq2") else 0.0
+        fp = Footprints(self, order, lv)
+        return order, fp, fp.cost(level_opacities(self, order, lv))
+
+    def full_cost(self) -> float:
+        """The cost (:func:`clod_adapter.cost.splat_cost`, pixels) of every Gaussian in view at full
+        detail: what a ``budget_cost`` share is a share of."""
+        return float(torch.cumsum(self._cost_weights()[2].double(), 0)[-1]) if self.n_in_view else 0.0
 
     def _eq2_cost_count(self, order: Tensor, fp, k_lo: int, limit: float, unit, min_s_v: float) -> int:
         """:meth:`cost_count` for Eq. 2 drawing: the largest k whose prefix of ``order``, drawn with
@@ -783,6 +796,11 @@ def render_lod(
     sel = view.select(s_v, budget=budget, min_s_v=min_s_v, budget_in_view=budget_in_view, level=level,
                       estimator=estimator, temperature=temperature, eta_grad_sigma_only=eta_grad_sigma_only,
                       budget_cost=budget_cost, budget_ms=budget_ms, time_model=time_model)
+    par = None if level is not None else cost_budget_parents(gaussians, camera, view, sel, budget_cost=budget_cost,
+                                                             budget_ms=budget_ms, time_model=time_model, tau=tau, eps=eps)
+    if par is not None:  # the parents alone, within the budget
+        return _render_parts(gaussians, [par], None, par[1], par[1].s_v * gaussians.lod.tier_s_v / gaussians.lod.tier_start,
+                             t1, background, gaussians.sh_degree if sh_degree is None else sh_degree, backend)
     t2 = time.perf_counter()
     bg = None
     if background is not None:
@@ -828,6 +846,34 @@ def tier_parts(s_v: float, settings: lod.LodSettings, children: Callable[[], Lod
     return parts, sel_c, sel_p
 
 
+#: a cost budget on a tiered model draws the parents once the model's own solution passes this
+#: times ``tier_s_v`` (:func:`cost_budget_parents`); None: ``tier_fade``, where the ``s_v`` rule
+#: draws the parents alone (chosen on validation views: ``benchmarks/budget_tier.py``, README
+#: "Merged parents")
+COST_BUDGET_SWITCH: Optional[float] = None
+
+
+def cost_budget_parents(gaussians: Gaussians, camera, view: LodView, sel: LodSelection, *, budget_cost=None,
+                        budget_ms=None, time_model=None, tau=None, eps=None):
+    """A cost budget (``budget_cost`` / ``budget_ms``) on a model with a parent tier: where the
+    model's own solution ``sel`` (of ``view``) lands where the ``s_v`` rule draws the parents alone
+    (past ``tier_fade x tier_s_v``; :data:`COST_BUDGET_SWITCH`), the parents drawn alone
+    within the same budget, from their ``tier_start`` level on (a ``budget_cost`` share is taken of
+    the model's :meth:`LodView.full_cost`); ``(parents' view, their selection)``, else None (the
+    model's own selection stands)."""
+    st = gaussians.lod
+    if gaussians.parents is None or st is None or st.tier_s_v <= 0 or (budget_cost is None and budget_ms is None) \
+            or sel.s_v is None:
+        return None
+    if not sel.s_v > (st.tier_fade if COST_BUDGET_SWITCH is None else COST_BUDGET_SWITCH) * st.tier_s_v:
+        return None
+    vp = view_lod(gaussians.parents, camera, tau=tau, eps=eps)
+    if budget_ms is not None:
+        return vp, vp.select(budget_ms=budget_ms, time_model=time_model, min_s_v=st.tier_start)
+    b = float(budget_cost) if budget_cost > 1.0 else float(budget_cost) * view.full_cost()
+    return vp, vp.select(budget_cost=max(b, 1.0 + 1e-6), min_s_v=st.tier_start)
+
+
 def _render_tiered(gaussians: Gaussians, camera, s_v: float, tau, eps, background, sh_degree, backend,
                    view: Optional[LodView]) -> LodRender:
     """:func:`render_lod` at an ``s_v`` where the parent tier is drawn (cross-fade or alone)."""
@@ -835,6 +881,14 @@ def _render_tiered(gaussians: Gaussians, camera, s_v: float, tau, eps, backgroun
     parts, sel_c, sel_p = tier_parts(s_v, gaussians.lod,
                                      lambda: view if view is not None else view_lod(gaussians, camera, tau=tau, eps=eps),
                                      lambda: view_lod(gaussians.parents, camera, tau=tau, eps=eps))
+    return _render_parts(gaussians, parts, sel_c, sel_p, s_v, t1, background, sh_degree, backend)
+
+
+def _render_parts(gaussians: Gaussians, parts, sel_c: Optional[LodSelection], sel_p: LodSelection, s_v: float,
+                  t1: float, background, sh_degree, backend) -> LodRender:
+    """:class:`LodRender` of a frame that draws the parent tier: ``parts`` for
+    :func:`rasterize_views`, the model's selection (None: none) and the parents'; ``s_v`` the
+    model's ``s_v`` it stands for; ``t1`` when the selection began."""
     if sel_c is None:
         sel_c = LodSelection(torch.zeros(0, dtype=torch.long, device=gaussians.means.device),
                              gaussians.opacity_logits.new_zeros(0), None, s_v, 0.0, sel_p.eta.new_zeros(()),
@@ -962,6 +1016,15 @@ def lod_subset(gaussians: Gaussians, camera, s_v: Optional[float] = None, *,
     view = view_lod(gaussians, camera, tau=tau, eps=eps)
     sel = view.select(s_v, budget=budget, min_s_v=min_s_v, estimator="paper", budget_cost=budget_cost,
                       budget_ms=budget_ms, time_model=time_model)
+    par = cost_budget_parents(gaussians, camera, view, sel, budget_cost=budget_cost, budget_ms=budget_ms,
+                              time_model=time_model, tau=tau, eps=eps)
+    if par is not None:  # the parents alone, within the budget
+        vp, sel_p = par
+        means, quats, scales, colors = vp.drawn_attributes(sel_p)
+        return LodSubset(indices=sel.indices.new_zeros(0), means=means, quats=quats, scales=scales,
+                         opacities=sel_p.opacities, colors=colors,
+                         s_v=sel_p.s_v * gaussians.lod.tier_s_v / gaussians.lod.tier_start,
+                         n_in_view=vp.n_in_view, parent_indices=sel_p.indices)
     means, quats, scales, colors = view.drawn_attributes(sel)
     return LodSubset(indices=sel.indices, means=means, quats=quats, scales=scales, opacities=sel.opacities,
                      colors=colors, s_v=sel.s_v, n_in_view=view.n_in_view)

@@ -235,3 +235,28 @@ def test_eval_sweep_reaches_the_parents_range():
     assert all(b > a for a, b in zip(g, g[1:])) and sv_grid(5.0, 25, lod_settings=lod.LodSettings()) == plain
     fern_like = sv_grid(5.0, 25, lod_settings=replace(st, tier_s_v=7.5, tier_start=3.0))
     assert fern_like[25] == pytest.approx(7.5 * 1.25 ** 0.5) and len(fern_like) == 31
+
+
+def test_cost_budgets_draw_the_parents_where_the_rule_would(tiered):
+    """budget_cost / budget_ms on a tiered model: the model's own prefix while its solved s_v is
+    short of tier_fade x tier_s_v; past it, the parents alone within the same budget (a share of
+    the model's full cost), from their tier_start level on; lod_subset hands over the same rows."""
+    from clod_adapter.camera_lod import lod_subset, view_lod
+
+    g, cams = tiered
+    children = replace(g, parents=None)
+    cam = cams[0]
+    big = render_lod(g, cam, budget_cost=0.9)
+    assert big.n_parents == 0 and torch.equal(big.image, render_lod(children, cam, budget_cost=0.9).image)
+    low = render_lod(g, cam, budget_cost=0.05)
+    alone = render_lod(children, cam, budget_cost=0.05)
+    assert alone.s_v > g.lod.tier_fade * g.lod.tier_s_v  # the model alone would sit where the rule draws parents
+    assert low.n_parents == low.n_rendered > 0 and low.indices.numel() == 0
+    absolute = 0.05 * view_lod(children, cam).full_cost()
+    ref = render_lod(g.parents, cam, budget_cost=absolute, min_s_v=g.lod.tier_start)
+    assert torch.equal(low.image, ref.image) and low.s_v == pytest.approx(ref.s_v * 3.0 / 1.5)
+    sub = lod_subset(g, cam, budget_cost=0.05)
+    assert sub.parent_indices.numel() == low.n_parents and sub.indices.numel() == 0
+    ms = [render_lod(g, cam, budget_ms=b) for b in (2.5, 2.8, 3.0)]  # ms over the fitted 2.42 ms constant
+    assert 0 < ms[0].n_parents == ms[0].n_rendered < ms[1].n_parents == ms[1].n_rendered  # parents alone
+    assert ms[2].n_parents == 0 and ms[2].n_rendered > ms[1].n_rendered  # the model's own prefix again

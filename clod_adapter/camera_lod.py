@@ -776,9 +776,15 @@ def render_lod(
             absolute cost (:meth:`LodView.cost_count`). ``min_s_v`` applies as to ``budget``.
         budget_ms: a budget in predicted rasterisation ms (``raster_ms``; the projection is not
             in it): the longest such prefix whose :class:`clod_adapter.cost.FrameTimeModel`
-            prediction (``time_model``, default the fitted one) fits.
+            prediction (``time_model``, default the fitted one) fits. On a model with a parent
+            tier, a cost budget whose prefix lands where the ``s_v`` rule draws the parents alone
+            draws the parents alone within it (:func:`cost_budget_parents`).
         view: this model's :class:`LodView` for ``camera`` when the caller has built it (its
             projection and critical ``s_v`` are reused); default: built here.
+
+    A model with a parent tier (``gaussians.parents``) at an ``s_v`` past ``lod.tier_s_v`` draws
+    it (:func:`tier_parts`: the cross-fade, then the parents alone); count budgets and a given
+    ``level`` draw the model's own Gaussians.
 
     Returns:
         :class:`LodRender`.
@@ -799,8 +805,8 @@ def render_lod(
     par = None if level is not None else cost_budget_parents(gaussians, camera, view, sel, budget_cost=budget_cost,
                                                              budget_ms=budget_ms, time_model=time_model, tau=tau, eps=eps)
     if par is not None:  # the parents alone, within the budget
-        return _render_parts(gaussians, [par], None, par[1], par[1].s_v * gaussians.lod.tier_s_v / gaussians.lod.tier_start,
-                             t1, background, gaussians.sh_degree if sh_degree is None else sh_degree, backend)
+        return _render_parts(gaussians, [par[:2]], None, par[1], par[2], t1, background,
+                             gaussians.sh_degree if sh_degree is None else sh_degree, backend)
     t2 = time.perf_counter()
     bg = None
     if background is not None:
@@ -859,8 +865,8 @@ def cost_budget_parents(gaussians: Gaussians, camera, view: LodView, sel: LodSel
     model's own solution ``sel`` (of ``view``) lands where the ``s_v`` rule draws the parents alone
     (past ``tier_fade x tier_s_v``; :data:`COST_BUDGET_SWITCH`), the parents drawn alone
     within the same budget, from their ``tier_start`` level on (a ``budget_cost`` share is taken of
-    the model's :meth:`LodView.full_cost`); ``(parents' view, their selection)``, else None (the
-    model's own selection stands)."""
+    the model's :meth:`LodView.full_cost`): ``(parents' view, their selection, the model's s_v
+    their level stands for)``, else None (the model's own selection stands)."""
     st = gaussians.lod
     if gaussians.parents is None or st is None or st.tier_s_v <= 0 or (budget_cost is None and budget_ms is None) \
             or sel.s_v is None:
@@ -869,9 +875,11 @@ def cost_budget_parents(gaussians: Gaussians, camera, view: LodView, sel: LodSel
         return None
     vp = view_lod(gaussians.parents, camera, tau=tau, eps=eps)
     if budget_ms is not None:
-        return vp, vp.select(budget_ms=budget_ms, time_model=time_model, min_s_v=st.tier_start)
-    b = float(budget_cost) if budget_cost > 1.0 else float(budget_cost) * view.full_cost()
-    return vp, vp.select(budget_cost=max(b, 1.0 + 1e-6), min_s_v=st.tier_start)
+        sel_p = vp.select(budget_ms=budget_ms, time_model=time_model, min_s_v=st.tier_start)
+    else:
+        b = float(budget_cost) if budget_cost > 1.0 else float(budget_cost) * view.full_cost()
+        sel_p = vp.select(budget_cost=max(b, 1.0 + 1e-6), min_s_v=st.tier_start)
+    return vp, sel_p, sel_p.s_v * st.tier_s_v / st.tier_start
 
 
 def _render_tiered(gaussians: Gaussians, camera, s_v: float, tau, eps, background, sh_degree, backend,
@@ -997,8 +1005,9 @@ def lod_subset(gaussians: Gaussians, camera, s_v: Optional[float] = None, *,
     """The Gaussians :func:`render_lod` hands to the rasteriser for ``camera`` and their drawn
     attributes (same arguments; no gradient). For viewers and exporters that rasterise
     elsewhere. A model with a parent tier, at an ``s_v`` past its ``tier_s_v``: the Gaussians
-    and the parents it draws there, concatenated (:class:`LodSubset` ``parent_indices``). No ``s_v`` and no budget (``budget``, ``budget_cost``, ``budget_ms``): every
-    Gaussian in view, unchanged.
+    and the parents it draws there, concatenated (:class:`LodSubset` ``parent_indices``); at a
+    cost budget past it, the parents alone (:func:`cost_budget_parents`). No ``s_v`` and no
+    budget (``budget``, ``budget_cost``, ``budget_ms``): every Gaussian in view, unchanged.
 
     Raises:
         ValueError: as :func:`render_lod`.
@@ -1019,12 +1028,11 @@ def lod_subset(gaussians: Gaussians, camera, s_v: Optional[float] = None, *,
     par = cost_budget_parents(gaussians, camera, view, sel, budget_cost=budget_cost, budget_ms=budget_ms,
                               time_model=time_model, tau=tau, eps=eps)
     if par is not None:  # the parents alone, within the budget
-        vp, sel_p = par
+        vp, sel_p, s_equiv = par
         means, quats, scales, colors = vp.drawn_attributes(sel_p)
         return LodSubset(indices=sel.indices.new_zeros(0), means=means, quats=quats, scales=scales,
-                         opacities=sel_p.opacities, colors=colors,
-                         s_v=sel_p.s_v * gaussians.lod.tier_s_v / gaussians.lod.tier_start,
-                         n_in_view=vp.n_in_view, parent_indices=sel_p.indices)
+                         opacities=sel_p.opacities, colors=colors, s_v=s_equiv, n_in_view=vp.n_in_view,
+                         parent_indices=sel_p.indices)
     means, quats, scales, colors = view.drawn_attributes(sel)
     return LodSubset(indices=sel.indices, means=means, quats=quats, scales=scales, opacities=sel.opacities,
                      colors=colors, s_v=sel.s_v, n_in_view=view.n_in_view)

@@ -140,6 +140,7 @@ class LodView:
     _ramp: Optional[float] = field(default=None, repr=False)
     _opacities: Optional[Tensor] = field(default=None, repr=False)
     _n_frustum: Optional[int] = field(default=None, repr=False)
+    _costs: Optional[tuple] = field(default=None, repr=False)  # (level, order, footprints, costs): _cost_weights
 
     # --- per-camera terms ----------------------------------------------------------------------
     @property
@@ -418,12 +419,15 @@ class LodView:
         measured in; Eq. 2 at the base opacities (:meth:`cost_count` then searches exactly)."""
         from .cost import Footprints, level_opacities, order_in_view
 
+        lv = float(level) if (level is not None and self.settings.fade != "eq2") else 0.0
+        if self._costs is not None and self._costs[0] == lv:  # a cost budget, then the tier's full cost
+            return self._costs[1:]
         order = order_in_view(self.critical, self.visible)
         if order.numel() == 0:
             return order, None, self.means.new_zeros(0)
-        lv = float(level) if (level is not None and self.settings.fade != "eq2") else 0.0
         fp = Footprints(self, order, lv)
-        return order, fp, fp.cost(level_opacities(self, order, lv))
+        self._costs = (lv, order, fp, fp.cost(level_opacities(self, order, lv)))
+        return self._costs[1:]
 
     def full_cost(self) -> float:
         """The cost (:func:`clod_adapter.cost.splat_cost`, pixels) of every Gaussian in view at full

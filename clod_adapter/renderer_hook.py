@@ -154,13 +154,14 @@ def clod_rasterization(
             only): the adapted model's (None: none).
         parents: the model's parent tier (:func:`clod_kwargs`): ``means`` [M, 3], ``quats``
             [M, 4], ``scales`` [M, 3], ``opacities`` [M] (activated), ``colors`` (as ``colors``,
-            M rows), ``sigma_d`` [M], optional gains and ``lod_settings`` (the parents' own).
+            M rows), ``sigma_d`` [M], optional gains, ``opacity_logits`` and ``lod_settings``
+            (the parents' own).
             Drawn at an ``s_v`` past ``lod_settings.tier_s_v`` (cross-fade, then alone, at the
             parents' ``s_v = tier_start s_v / tier_s_v``); budgets draw the model alone.
         opacity_logits: [N] the raw opacities ``opacities`` came from: the rule works on logits
-            (the gains shift them), and float32 ``sigmoid`` rounds every logit above ~16.6 to 1,
-            which ``log(o / (1 - o))`` cannot undo (None: recovered from ``opacities``, exact
-            below that). ``parents`` may hold its own.
+            (the gains shift them), and a float32 opacity near 1 keeps few digits of ``1 - o``
+            (exactly 1 above a logit of ~16.6), so ``log(o / (1 - o))`` returns logits above ~14
+            off by up to ~2 (None: recovered so). ``parents`` may hold its own.
         tau, eps: LoD threshold and Eq. 2's epsilon (default: ``lod_settings``', else 0.005 / 1e-8).
         min_s_v: budget mode: lowest ``s_v`` used (1 = full detail; 0: exactly ``budget``).
         backend: ``"auto"`` | ``"cpu"`` | ``"gsplat"`` (see ``clod_adapter.render.rasterization``).

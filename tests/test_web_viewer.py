@@ -87,7 +87,7 @@ def fern_web(tmp_path_factory) -> dict:
     root = tmp_path_factory.mktemp("fernweb")
     ad = root / "adapted"
     assert adapt_main([str(shared_path("fern", "pretrained")), "-s", str(fern), "-r", "2", "-o", str(ad),
-                       "--iterations", "300", "--timing-repeats", "0", "--quiet"]) == 0
+                       "--iterations", "300", "--timing-repeats", "0", "--parent-share", "0", "--quiet"]) == 0
     web = root / "web"
     assert export_main([str(ad), "-s", str(fern), "-r", "2", "--web", str(web), "--quiet"]) == 0
     return {"adapted": ad / "point_cloud.ply", "web": web, "scene": fern}

@@ -8,10 +8,15 @@ pixels, :func:`clod_adapter.cost.splat_cost`), LightGaussian significance and op
 keeps the top ``--keeps`` of the model; with ``--recover N`` the ``weight`` cut at the first keep
 is then fine-tuned (every attribute, LightGaussian's recovery schedule,
 :func:`clod_adapter.dlod_ceiling.finetune_subset`) for N steps on the fit views. Every model is
-scored on the validation views (PSNR; the input fits them, it was trained on them) and timed
+scored on the validation views (PSNR; the input fits them, it was trained on them), or with
+``--split test`` on the test views (the recovery then fits every training view), and timed
 against the input in the same interleaved rounds (2 threads)::
 
     python benchmarks/prune_study.py --inputs fern --recover 600
+    python benchmarks/prune_study.py --inputs fern --split test --keeps 0.6 0.7 --recover 1000
+
+``clod-adapt --keep-share`` (:mod:`clod_adapter.pruning`) is the ``weight`` cut with this
+recovery, its checkpoint chosen on held-out training views.
 """
 from __future__ import annotations
 
@@ -27,25 +32,19 @@ from clod_adapter.camera_lod import render_lod, view_lod
 from clod_adapter.cost import splat_cost
 from clod_adapter.dlod_ceiling import finetune_subset, global_cut
 from clod_adapter.metrics import psnr
-from clod_adapter.render import rasterization
+from clod_adapter.pruning import blend_weights
 from clod_adapter.timing import time_interleaved
 
 
 def blend_weight(g, cameras) -> tuple:
-    """([N] summed blending weight, [N] summed footprint pixels) over ``cameras``."""
-    w = torch.zeros(len(g), dtype=torch.float64)
+    """([N] summed blending weight (:func:`clod_adapter.pruning.blend_weights`), [N] summed
+    footprint pixels) over ``cameras``."""
     cost = torch.zeros(len(g), dtype=torch.float64)
     for c in cameras:
-        feats = torch.ones(len(g), 1, requires_grad=True)
-        with torch.enable_grad():
-            img, _, _ = rasterization(g.means, g.quats, g.scales, g.opacities, feats, c.viewmat[None], c.K[None],
-                                      c.width, c.height)
-            img.sum().backward()
-        w += feats.grad[:, 0].double()
         v = view_lod(g, c)
         ids = torch.nonzero(v.visible).squeeze(1)
         cost.index_add_(0, ids, splat_cost(v, ids).double())
-    return w, cost
+    return blend_weights(g, cameras), cost
 
 
 def run_input(name: str, split: str, keeps: list, recover: int) -> None:

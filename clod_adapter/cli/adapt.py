@@ -74,6 +74,15 @@ def build_parser():
                    help="calibrated schedule: also adapt the input merged by splat-transform --decimate to SHARE of "
                         "its Gaussians and cross-fade to it at the coarse levels where it pays (default 0.04; 0: "
                         "none; left out under 10,000 Gaussians or without splat-transform; README 'Merged parents')")
+    p.add_argument("--keep-share", type=float, default=1.0, metavar="SHARE",
+                   help="leave out what the scene does not need first: keep SHARE of the input's Gaussians, the top "
+                        "by blending weight over the training views, and recover them (every attribute, "
+                        "--recovery-steps) before the LoD is learned; full detail is then the kept model "
+                        "(default 1: every Gaussian, full detail exactly the input; "
+                        "README 'Leaving Gaussians out first')")
+    p.add_argument("--recovery-steps", type=int, default=1000, metavar="N",
+                   help="with --keep-share < 1: recovery steps, kept when the last one beats the static cut on held-out "
+                        "training views (default 1000; 0: the static cut)")
     p.add_argument("--tau", type=float, default=None, help="LoD threshold: render iff alpha'' > tau*s_v (default 0.005)")
     p.add_argument("--eta-estimator", default=None, choices=("ste", "sigmoid", "paper"),
                    help="paper schedule: gradient of the rendered fraction in L_reg (default 'ste'); "
@@ -140,7 +149,8 @@ def _config(args, world: int):
                            fade=args.fade, gains=args.gains, eta_estimator=args.eta_estimator or "ste",
                            background=(1.0, 1.0, 1.0) if args.background == "white" else (0.0, 0.0, 0.0),
                            views_per_step=args.views_per_step if args.views_per_step is not None else world,
-                           level_max=args.level_max, parent_share=args.parent_share, **kw)
+                           level_max=args.level_max, parent_share=args.parent_share,
+                           keep_share=args.keep_share, recovery_steps=args.recovery_steps, **kw)
     except ValueError as e:  # "<field> must be ...": the field is the flag
         field, _, rest = str(e).partition(" ")
         raise InputError(f"--{field.replace('_', '-')} {rest}") from None

@@ -8,6 +8,8 @@ Outputs (all written atomically) in ``out_dir``:
   and max_sv^-1.5 of the Gaussians in view (PSNR, SSIM, mean rendered Gaussians, ms per frame) and the input
   model's PSNR/SSIM;
 * ``lod_strip.png``: one test view rendered at several s_v, side by side.
+* with ``keep_share < 1`` (:mod:`clod_adapter.pruning`), first: ``kept_input.ply`` (the input less what
+  the training views need least, recovered: what the LoD is learned on) and ``leave_out.json``.
 """
 from __future__ import annotations
 
@@ -344,7 +346,14 @@ def run(ply_path: os.PathLike, scene_root: os.PathLike, out_dir: os.PathLike, cf
                 group = dd.init(pick_device(o.device))
                 if not group.is_main:  # rank 0 speaks for the run
                     o = replace(o, log=lambda *a, **k: None, progress=False)
-            metrics = _run(Path(ply_path), Path(scene_root), Path(out_dir), cfg, o, stop, group)
+            src, left = Path(ply_path), None
+            if cfg.keep_share < 1.0:  # phase 0: leave out what the scene does not need
+                src, left = _leave_out(src, Path(scene_root), Path(out_dir), cfg, o, stop, group)
+            ro = o if left is None else replace(o, force=True, iteration=None,  # the folder was checked
+                                                resume=o.resume and (Path(out_dir) / STATE_NAME).is_file())
+            metrics = _run(src, Path(scene_root), Path(out_dir), cfg, ro, stop, group)
+            if left is not None and "rank" not in metrics:
+                metrics = _record_leave_out(Path(out_dir), metrics, left)
             if cfg.parent_share > 0 and "rank" not in metrics:
                 metrics = _add_parent_tier(Path(ply_path), Path(scene_root), Path(out_dir), cfg, o, stop, group,
                                            metrics)
@@ -437,6 +446,58 @@ def _run(ply_path: Path, scene_root: Path, out_dir: Path, cfg: AdaptConfig, o: A
     return metrics
 
 
+#: phase 0's files (``keep_share < 1``): the kept, recovered input the LoD is learned on, and
+#: what :func:`clod_adapter.pruning.leave_out` did (read back by ``--resume``)
+KEPT_INPUT_NAME = "kept_input.ply"
+LEAVE_OUT_NAME = "leave_out.json"
+
+
+def _leave_out(ply_path: Path, scene_root: Path, out_dir: Path, cfg: AdaptConfig, o: AdaptOptions,
+               stop: StopFlag, group) -> tuple[Path, dict]:
+    """Phase 0 (``cfg.keep_share < 1``, :mod:`clod_adapter.pruning`): every input checked as
+    :func:`_read_inputs` checks it (nothing written before), then the input less what the
+    training views need least, recovered, written to ``out_dir/kept_input.ply`` (the input the
+    following phases adapt) with ``leave_out.json``. With ``resume`` and both files there, they
+    are reused. Returns (the kept input's path, the ``metrics.json`` ``leave_out`` record).
+
+    Raises:
+        InputError: a data-parallel run, or any input :func:`_read_inputs` refuses.
+    """
+    from .. import pruning
+
+    kept_path, info_path = out_dir / KEPT_INPUT_NAME, out_dir / LEAVE_OUT_NAME
+    if group is not None:
+        raise InputError("--keep-share is not available in a data-parallel run: leave out in a single-process "
+                         f"run first (its {KEPT_INPUT_NAME} is a plain input)")
+    if o.resume and kept_path.is_file() and info_path.is_file():
+        o.log(f"clod-adapt: resuming with the kept input {kept_path}")
+        return kept_path, json.loads(info_path.read_text())
+    inp = _read_inputs(ply_path, scene_root, out_dir, cfg, replace(o, resume=False), stop, group)
+    input_eval = evaluate_level(inp.gaussians, inp.test_cams, inp.test_imgs, None, background=cfg.background)
+    kept, info = pruning.leave_out(inp.gaussians, inp.scene.train, inp.train_imgs, keep_share=cfg.keep_share,
+                                   recovery_steps=cfg.recovery_steps, background=cfg.background, seed=cfg.seed,
+                                   progress=o.progress, log=lambda m: o.log("clod-adapt: " + m))
+    kept_eval = evaluate_level(kept, inp.test_cams, inp.test_imgs, None, background=cfg.background)
+    record = {**info.as_dict(), "input_ply": str(inp.ply_path), "kept_ply": str(kept_path),
+              "input_test": {"psnr": input_eval.psnr, "ssim": input_eval.ssim},
+              "kept_test": {"psnr": kept_eval.psnr, "ssim": kept_eval.ssim}}
+    o.log(f"clod-adapt: leave out: {len(kept):,} of {len(inp.gaussians):,} Gaussians kept; test PSNR "
+          f"{kept_eval.psnr:.2f} dB against the input's {input_eval.psnr:.2f} ({info.seconds:.0f} s)")
+    write_ply(kept_path, kept.to("cpu"))
+    with atomic_write(info_path, "w") as f:
+        json.dump(record, f, indent=2)
+    return kept_path, record
+
+
+def _record_leave_out(out_dir: Path, metrics: dict, record: dict) -> dict:
+    """``metrics.json`` with phase 0's record (``leave_out``) and ``input_ply`` the input given,
+    not the kept one the phases after it read."""
+    metrics = {**metrics, "input_ply": record["input_ply"], "leave_out": record}
+    with atomic_write(out_dir / METRICS_NAME, "w") as f:
+        json.dump({k: v for k, v in metrics.items() if k != "wall_seconds"}, f, indent=2)
+    return metrics
+
+
 PARENT_DIR = "parents"
 PARENT_INPUT_NAME = "parents_input.ply"
 
@@ -485,7 +546,7 @@ def _add_parent_tier(ply_path: Path, scene_root: Path, out_dir: Path, cfg: Adapt
     # not clear its margin on a tiny model)
     po = replace(o, resume=o.resume and (pdir / STATE_NAME).is_file(), force=True, allow_mismatch=True,
                  log=lambda *a, **k: o.log("  [parents]", *a, **k), iteration=None)
-    _run(out_dir / PARENT_INPUT_NAME, scene_root, pdir, replace(cfg, parent_share=0.0), po, stop, None)
+    _run(out_dir / PARENT_INPUT_NAME, scene_root, pdir, replace(cfg, parent_share=0.0, keep_share=1.0), po, stop, None)
     model, parents = read_ply(out_dir / PLY_NAME), read_ply(pdir / PLY_NAME)
     scene = load_scene(scene_root, resolution=o.resolution, background=cfg.background)
     if o.holdout_val:

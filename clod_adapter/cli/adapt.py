@@ -81,8 +81,8 @@ def build_parser():
                         "(default 1: every Gaussian, full detail exactly the input; "
                         "README 'Leaving Gaussians out first')")
     p.add_argument("--recovery-steps", type=int, default=1000, metavar="N",
-                   help="with --keep-share < 1: recovery steps, kept when the last one beats the static cut on held-out "
-                        "training views (default 1000; 0: the static cut)")
+                   help="with --keep-share < 1: recovery steps, kept when the last one beats the static cut on "
+                        "held-out training views (default 1000; 0: the static cut)")
     p.add_argument("--tau", type=float, default=None, help="LoD threshold: render iff alpha'' > tau*s_v (default 0.005)")
     p.add_argument("--eta-estimator", default=None, choices=("ste", "sigmoid", "paper"),
                    help="paper schedule: gradient of the rendered fraction in L_reg (default 'ste'); "

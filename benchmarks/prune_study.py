@@ -16,7 +16,7 @@ against the input in the same interleaved rounds (2 threads)::
     python benchmarks/prune_study.py --inputs fern --split test --keeps 0.6 0.7 --recover 1000
 
 ``clod-adapt --keep-share`` (:mod:`clod_adapter.pruning`) is the ``weight`` cut with this
-recovery, its checkpoint chosen on held-out training views.
+recovery, kept when it beats the cut on held-out training views.
 """
 from __future__ import annotations
 

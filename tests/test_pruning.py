@@ -75,6 +75,7 @@ def test_adapt_job_leaves_out_first(tiny_model, tmp_path, capfd):
     assert rec["kept"] == 150 and rec["input"] == 300 and m["num_gaussians"] == 150
     assert m["input_ply"] == str(tiny_model["ply"]) and rec["kept_ply"] == str(out / "kept_input.ply")
     assert m["config"]["keep_share"] == 0.5 and set(rec["input_test"]) == {"psnr", "ssim"}
+    assert rec["kept_test"]["psnr"] == m["input_model"]["psnr"] != rec["input_test"]["psnr"]
     assert len(read_ply(out / "point_cloud.ply")) == 150 and len(read_ply(out / "kept_input.ply")) == 150
     assert json.loads((out / "leave_out.json").read_text())["kept"] == 150
     stamp = (out / "kept_input.ply").stat().st_mtime_ns

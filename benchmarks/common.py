@@ -1,11 +1,13 @@
-"""Shared by the quality benchmarks (whole_range.py, max_sv_sweep.py, robustness.py, ablation.py):
-the inputs, one cached adaptation per (input, settings), and budget evaluations.
+"""Shared by the benchmarks (``quality_vs_time.py``) and the studies (``studies/``): the inputs,
+one cached adaptation per (input, settings), and the common command line.
 
 Inputs (``INPUTS``):
 
 * ``fern``: the vanilla 3DGS fern checkpoint, ``../shared/data/fern`` at ``images_2``;
-* ``maskgaussian``: the MaskGaussian-pruned fern checkpoint (19,383 Gaussians) on the same scene;
-* ``demo``: the embedded synthetic scene of ``clod-adapt --demo`` (another scene, built here).
+* ``maskgaussian``: the MaskGaussian-pruned fern checkpoint on the same scene;
+* ``skull``: the vanilla 3DGS skull checkpoint, a 360-degree capture, ``../shared/data/skull``;
+* ``demo``: the embedded synthetic scene of ``clod-adapt --demo`` (another scene, built here);
+* any checkpoint and scene: ``--input NAME=PLY:SCENE[:RES]`` (:func:`add_inputs_args`).
 
 Adaptations are cached under ``RUNS/<input>/<tag>/`` (the ``clod-adapt`` output folder): a run
 whose ``metrics.json`` holds the same settings is reused, so the benchmarks share them.
@@ -50,9 +52,8 @@ INPUTS = {
     "skull": (SHARED / "skull" / "pretrained/point_cloud/iteration_5000/point_cloud.ply", SHARED / "skull", 1),
     "demo": (None, None, 1),
 }
-LABELS = {"fern": "fern (vanilla 3DGS, 39,977 G)", "maskgaussian": "fern, MaskGaussian (19,383 G)",
-          "skull": "skull (360-degree, vanilla 3DGS, 59,954 G)",
-          "demo": "synthetic demo scene (6,000 G)"}
+LABELS = {"fern": "fern (forward-facing, vanilla 3DGS)", "maskgaussian": "fern, MaskGaussian-pruned",
+          "skull": "skull (360-degree, vanilla 3DGS)", "demo": "synthetic demo scene"}
 
 
 SPLITS = ("test", "val")
@@ -77,19 +78,66 @@ def scene_views(scene, split: str) -> tuple[list, list]:
     raise ValueError(f"split must be one of {SPLITS}, got {split!r}")
 
 
+def register_input(spec: str) -> str:
+    """Register ``NAME=PLY:SCENE[:RES]`` (a user's checkpoint and scene, ``RES`` the image
+    downsampling, default 1) as an input of the benchmarks, and return ``NAME``.
+
+    Raises:
+        SystemExit: the spec has no ``NAME=``, no ``PLY:SCENE``, or a name of a shared input.
+    """
+    name, eq, rest = spec.partition("=")
+    parts = rest.split(":")
+    if not eq or not name or len(parts) not in (2, 3) or not all(parts[:2]):
+        sys.exit(f"benchmark: --input {spec!r}: expected NAME=PLY:SCENE[:RES]")
+    if name in INPUTS and INPUTS[name][0] is not None and str(INPUTS[name][0]) != parts[0]:
+        sys.exit(f"benchmark: --input {spec!r}: {name!r} is a shared input's name; choose another")
+    try:
+        res = int(parts[2]) if len(parts) == 3 else 1
+    except ValueError:
+        sys.exit(f"benchmark: --input {spec!r}: RES must be an integer")
+    INPUTS[name] = (Path(parts[0]), Path(parts[1]), res)
+    LABELS.setdefault(name, f"{name} ({Path(parts[0]).name})")
+    return name
+
+
+def add_inputs_args(ap, default) -> None:
+    """``--inputs NAME ...`` (the shared inputs: fern, maskgaussian, skull, demo) and
+    ``--input NAME=PLY:SCENE[:RES]`` (repeatable: any checkpoint and scene) on a parser; read
+    them back with :func:`selected_inputs`."""
+    ap.add_argument("--inputs", nargs="+", default=None, metavar="NAME",
+                    help=f"shared inputs ({', '.join(sorted(LABELS))}; default: {' '.join(default)}; "
+                         "none when --input is given)")
+    ap.add_argument("--input", action="append", default=[], metavar="NAME=PLY:SCENE[:RES]",
+                    help="any pretrained checkpoint and its scene folder (RES: image downsampling, default 1); "
+                         "repeatable")
+    ap.set_defaults(_default_inputs=list(default))
+
+
+def selected_inputs(args) -> list[str]:
+    """The input names of a parsed command line (:func:`add_inputs_args`): ``--inputs`` (or the
+    default when neither flag is given), then each ``--input``, registered."""
+    names = list(args.inputs) if args.inputs is not None else ([] if args.input else list(args._default_inputs))
+    for n in names:
+        if n not in INPUTS:
+            sys.exit(f"benchmark: unknown input {n!r} (shared: {', '.join(sorted(LABELS))}; "
+                     "or --input NAME=PLY:SCENE[:RES])")
+    return names + [register_input(s) for s in args.input]
+
+
 def parse_inputs_args(doc: str, argv=None, inputs=("fern", "skull"), split: str = "test", extra=()):
-    """The common command line of the per-input benchmarks (``--inputs``, ``--split``,
-    ``--threads``, and ``extra``: (flag, add_argument keywords) pairs), parsed, with the threads
-    set."""
+    """The common command line of the per-input benchmarks (``--inputs``, ``--input``,
+    ``--split``, ``--threads``, and ``extra``: (flag, add_argument keywords) pairs), parsed, with
+    the threads set; ``.inputs`` holds the selected names (:func:`selected_inputs`)."""
     import argparse
 
     ap = argparse.ArgumentParser(description=doc.split("\n\n")[0])
-    ap.add_argument("--inputs", nargs="+", default=list(inputs), choices=sorted(LABELS))
+    add_inputs_args(ap, inputs)
     add_split_arg(ap, default=split)
     ap.add_argument("--threads", type=int, default=2)
     for flag, kw in extra:
         ap.add_argument(flag, **kw)
     a = ap.parse_args(argv)
+    a.inputs = selected_inputs(a)
     setup_threads(a.threads)
     return a
 
@@ -100,12 +148,13 @@ def run_per_input(doc: str, run_input, argv=None, inputs=("fern", "skull")) -> N
     import argparse
 
     ap = argparse.ArgumentParser(description=doc.split("\n\n")[0])
-    ap.add_argument("--inputs", nargs="+", default=list(inputs), choices=sorted(LABELS))
+    add_inputs_args(ap, inputs)
     ap.add_argument("--threads", type=int, default=2)
     a = ap.parse_args(argv)
+    names = selected_inputs(a)
     setup_threads(a.threads)
     with torch.no_grad():
-        for name in a.inputs:
+        for name in names:
             run_input(name)
 
 
@@ -119,7 +168,8 @@ def setup_threads(n: int = 2) -> None:
 
 
 def resolve_input(name: str) -> tuple[Path, Path, int]:
-    """(pretrained .ply, scene folder, resolution) of an input name or ``PLY:SCENE[:RES]``."""
+    """(pretrained .ply, scene folder, resolution) of an input name (shared, or registered by
+    ``--input NAME=PLY:SCENE[:RES]``) or ``PLY:SCENE[:RES]``."""
     if name in INPUTS:
         ply, scene, res = INPUTS[name]
         if name == "demo":

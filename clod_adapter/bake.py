@@ -220,7 +220,7 @@ def lod_level(gaussians: Gaussians, cameras: Sequence, s_v: float, *, d_ref: Opt
 
     View-independent, unlike :func:`bake` (the union of what each view draws): an engine that
     streams a LoD set picks a level per chunk by distance itself, and on a 360-degree capture the
-    union over the training views keeps nearly everything (``benchmarks/lod_set_cuts.py``, skull's
+    union over the training views keeps nearly everything (``benchmarks/studies/lod_set_cuts.py``, skull's
     validation views: 91 / 84 / 45 % of the model at ``s_v`` = 1.59 / 2.52 / 4, 3.5-6.8 dB below
     the decimator at equal count; this cut: 46 / 17 / 6 %, -2.0 / -1.7 / +0.3 dB; fern: both
     +2.7 to +4.0 dB).

@@ -835,7 +835,7 @@ def tiered(gaussians: Gaussians, s_v: Optional[float], level: Optional[float] = 
 
 def tier_parts(s_v: float, settings: lod.LodSettings, children: Callable[[], LodView],
                parents: Callable[[], LodView]):
-    """What a tiered model draws at ``s_v`` (README "Merged parents", docs/lod_rule.md "The parent
+    """What a tiered model draws at ``s_v`` (docs/method.md "Merged parents", docs/lod_rule.md "The parent
     tier"): ``(parts, sel_children, sel_parents)``, ``parts`` the ``(view, selection)`` pairs for
     :func:`rasterize_views`. With ``(u, s_p) = lod.tier_weight(s_v, settings)``: the parents'
     selection at ``s_p`` with its drawn opacities times ``u`` and, while ``u < 1``, the
@@ -858,8 +858,8 @@ def tier_parts(s_v: float, settings: lod.LodSettings, children: Callable[[], Lod
 
 #: a cost budget on a tiered model draws the parents once the model's own solution passes this
 #: times ``tier_s_v`` (:func:`cost_budget_parents`); None: ``tier_fade``, where the ``s_v`` rule
-#: draws the parents alone (chosen on validation views: ``benchmarks/budget_tier.py``, README
-#: "Merged parents")
+#: draws the parents alone (chosen on validation views: ``benchmarks/studies/budget_tier.py``,
+#: docs/method.md "Merged parents")
 COST_BUDGET_SWITCH: Optional[float] = None
 
 

@@ -9,10 +9,10 @@ transmittance is <= 1e-4). Per Gaussian, that work is
 best predicted by the **clipped ellipse area** (unit ``"ellipse_px"``, :data:`COST_UNIT`): the
 area in pixels of its ``alpha >= 1/255`` ellipse (``pi * 2 ln(255 opacity) * sqrt(det cov2d)``,
 extent capped at 3.33 sigma as the radii are) times the share of its box ``mean2d +- radius``
-inside the image. ``benchmarks/cost_model.py`` fits the frame time against it, against the
+inside the image. ``benchmarks/studies/cost_model.py`` fits the frame time against it, against the
 tile-intersection count (``"tiles"``, what the binning emits) and against the clipped box
-(``"bbox_px"``); the ellipse had the smallest relative errors (README "Budgets in frame
-time").
+(``"bbox_px"``); the ellipse had the smallest relative errors (docs/method.md "Budgets:
+count, cost, time").
 
 * :func:`splat_cost`: [k] per-Gaussian cost of a :class:`clod_adapter.camera_lod.LodView`'s rows,
   from the projection the view already has (no second projection);
@@ -260,7 +260,7 @@ class FrameTimeModel:
     view's projection of the whole model (``LodRender.project_ms``) and the selection are paid
     before any budget applies and are not in it.
 
-    Defaults: fitted by ``python benchmarks/cost_model.py`` (fern images_2 and skull, 3 cameras
+    Defaults: fitted by ``python benchmarks/studies/cost_model.py`` (fern images_2 and skull, 3 cameras
     each, full models and random / LightGaussian / opacity-ranked subsets of 1.5-100 % of the
     Gaussians in view; 2 threads, minimum of 5 interleaved rounds) on the 2-core development
     machine, shared with other jobs: ``c0_ms = 2.42``, ``per_cost_ms = 5.53e-6`` (per ellipse pixel),

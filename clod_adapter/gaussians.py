@@ -7,8 +7,8 @@ SH coefficients split as ``sh0`` [N, 1, 3] and ``shN`` [N, K-1, 3] with K = (deg
 (gsplat's ``colors`` layout [N, K, 3]), and the CLoD-GS distance decay ``sigma_d`` [N]
 (Cheng et al., ICLR 2026, Eq. 2; ``None`` for a model that has not been adapted).
 
-An adapted model may also carry *level gains* (this project's extension, README "How the
-whole range is kept"): raw offsets added at level ``l`` in [0, 1] (:func:`clod_adapter.lod.level`)
+An adapted model may also carry *level gains* (this project's extension, docs/method.md "The
+calibrated schedule"): raw offsets added at level ``l`` in [0, 1] (:func:`clod_adapter.lod.level`)
 as ``opacity_logits + l * opacity_logit_gain``, ``log_scales + l * log_scale_gain`` (one scalar
 for the three axes) and ``sh0 + l * sh0_gain``. At full detail (``l = 0``) the model is exactly
 its base attributes. ``lod`` holds the settings it is drawn with (:class:`clod_adapter.lod.LodSettings`).
@@ -64,7 +64,7 @@ class Gaussians:
             rendered (e.g. ``masks_0``, ``masks_1``); empty by default.
         parents: the parent tier, or None: an adapted model of merged Gaussians (M of them, its
             own ``sigma_d`` and gains) that the coarse levels cross-fade to from
-            ``lod.tier_s_v`` on (:func:`clod_adapter.lod.tier_weight`; README "Merged parents").
+            ``lod.tier_s_v`` on (:func:`clod_adapter.lod.tier_weight`; docs/method.md "Merged parents").
             Moved and copied with the model; a :meth:`subset` drops it.
     """
 

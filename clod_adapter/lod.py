@@ -271,7 +271,7 @@ def frame_terms(means: Tensor, viewmat: Tensor, K: Tensor, width: int, height: i
     On the CPU this is one pass of the C++ kernel ``csrc/lod_terms.cpp`` (in double; one
     thread below 65,536 Gaussians, so a 60k-Gaussian frame does not pay OpenMP's wake-up of the
     second thread for each of the ~25 torch operations of the twin: ``python
-    benchmarks/frame_terms.py``); elsewhere, or without the extension, the two functions
+    benchmarks/studies/frame_terms.py``); elsewhere, or without the extension, the two functions
     themselves (its twin, held to it by ``tests/test_lod_terms.py``). A centre within rounding
     of a frustum edge may fall on the other side in the two forms.
 
@@ -385,7 +385,7 @@ def lod_keep(opacities: Tensor, d_norm: Tensor, sigma_d: Tensor, s_v: float, fru
     level without a [N] mask: on the CPU one call of the C++ kernel ``csrc/lod_terms.cpp``
     (the mask in double, then per chunk the counts and the ids, in parallel), where the twin's
     ``nonzero`` and two sums are each a pass over [N] that wakes OpenMP's second thread (``python
-    benchmarks/frame_terms.py``: 0.47 against 0.97 ms at 60,000 Gaussians, 2 threads); the torch
+    benchmarks/studies/frame_terms.py``: 0.47 against 0.97 ms at 60,000 Gaussians, 2 threads); the torch
     form here is its twin (``tests/test_lod_terms.py``). Source: CLoD-GS Eq. 2 (the mask).
     """
     with torch.no_grad():
@@ -474,7 +474,7 @@ def window_opacities(ids: Tensor, opacities: Tensor, opacity_logits: Tensor, d_n
     ``sigma_d`` through the margin, the gains through the logits); otherwise one pass of the C++
     kernel ``csrc/lod_terms.cpp`` over the k rows (in double), its twin
     (``tests/test_lod_terms.py``). Source: CLoD-GS Eq. 2 (the margin); the window fade is this
-    project's (README "How the whole range is kept").
+    project's (docs/method.md "The calibrated schedule").
     """
     dt = _work_dtype(d_norm, sigma_d)
     grad = torch.is_grad_enabled() and any(t is not None and t.requires_grad for t in
@@ -524,7 +524,7 @@ def ramp_s_v(share_at_1: float, max_sv: float) -> float:
     360-degree capture looking at a near wall: skull's first test view keeps 61 %) full detail
     draws Gaussians the rule has already left out, and the ramp lasts until the target share
     ``s_v^-1.5`` has fallen by the same factor, so they fade out over as many ``s_v`` steps as
-    the rule's own exits instead of all at once (``benchmarks/web_popping_steps.py``)."""
+    the rule's own exits instead of all at once (``benchmarks/studies/web_popping_steps.py``)."""
     sh = float(share_at_1)
     if not sh > 0.0:
         return ramp_cap(max_sv)
@@ -549,7 +549,7 @@ def level_of_fraction(fraction: float, max_sv: float, level_max: float = 1.0) ->
     view and however exactly its ``sigma_d`` follows ``s_v^-1.5``. With cost levels a step's
     count share reaches ``max_sv^-1.5`` from ``s_v`` about 3.2 on (the weighted share is the
     target, not the count), so ``level_max = 1`` holds the gains of the coarsest trained levels
-    at one value; above 1 they grow on (README "What each part buys")."""
+    at one value; above 1 they grow on (docs/studies.md)."""
     if not fraction > 0.0:
         return float(level_max) if max_sv > 1.0 else 0.0
     return level(min(float(fraction), 1.0) ** (-2.0 / 3.0), max_sv, level_max)

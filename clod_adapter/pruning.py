@@ -1,6 +1,6 @@
 """Leaving out what a scene does not need before its level of detail is learned (opt-in:
-``clod-adapt --keep-share``, :attr:`clod_adapter.training.AdaptConfig.keep_share`; README
-"Leaving Gaussians out first").
+``clod-adapt --keep-share``, :attr:`clod_adapter.training.AdaptConfig.keep_share`;
+docs/method.md "Leaving Gaussians out first").
 
 The input's Gaussians are ranked by their *blending weight*: ``sum alpha_i T_i`` over every
 pixel of every training view, the share of the training images each one paints (the importance
@@ -13,7 +13,7 @@ last step scores above the static cut on the held-out views, else the static cut
 recovery). Start and end only, not the best step between: the pretrained input was trained on
 those views too, so the kept Gaussians still reproduce them from memory and a re-fit drifts away
 from that, which biases their best step early. The full-detail level is then the kept model, no
-longer the input: that is why it is not the default (README "Leaving Gaussians out first": for
+longer the input: that is why it is not the default (docs/method.md "Leaving Gaussians out first": for
 the same reason the validation views cannot choose it).
 """
 from __future__ import annotations
@@ -29,7 +29,7 @@ from .dlod_ceiling import finetune_subset, global_cut
 from .gaussians import Gaussians
 
 #: recovery steps by default (LightGaussian recovers 5,000 on a GPU; 1,000 on fern's test views
-#: gave back all but 0.03 dB of a 40 % cut: README "Leaving Gaussians out first")
+#: gave back all but 0.03 dB of a 40 % cut: docs/studies.md)
 RECOVERY_STEPS = 1000
 
 

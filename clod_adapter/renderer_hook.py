@@ -9,7 +9,7 @@ the selected Gaussians to :func:`clod_adapter.render.rasterization` (gsplat on C
 otherwise). The selection is the one :func:`clod_adapter.camera_lod.render_lod` makes, so both
 give the same image.
 
-A model with a parent tier (README "Merged parents") passes its parents too (``parents=``), and
+A model with a parent tier (docs/method.md "Merged parents") passes its parents too (``parents=``), and
 at an ``s_v`` past ``lod_settings.tier_s_v`` both are drawn as ``render_lod`` draws them
 (:func:`clod_adapter.camera_lod.tier_parts`). :func:`clod_kwargs` gives every LoD keyword of an
 adapted model.

@@ -1,8 +1,8 @@
-"""The parent tier: merged Gaussians that the coarse levels cross-fade to (issue 18).
+"""The parent tier: merged Gaussians that the coarse levels cross-fade to.
 
 A selection keeps survivors; at the cheap end of a frame budget survivors are few and, grown by
 the level gains, large, and a merging decimator covers the same image with fewer, better-placed
-splats (``python benchmarks/merge_tier.py``: on skull's and fern's validation views the
+splats (``python benchmarks/studies/merge_tier.py``: on skull's and fern's validation views the
 adapted model plus an adapted ``--decimate`` to 4 % is 2.3-3.6 dB above the adapted model alone
 within 25 / 15 / 10 % of the input's frame time, and level with it above 50 %). So a model may
 carry a *parent tier* (``Gaussians.parents``): the input merged by PlayCanvas splat-transform's

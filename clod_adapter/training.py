@@ -68,8 +68,8 @@ class AdaptConfig:
         sigma_d_lr: Adam learning rate of sigma_d (paper: 1e-2).
         other_lr_scale: factor on the official 3DGS learning rates of the base attributes
             (calibrated: 0, frozen, so full detail stays the input; paper: 0.1).
-        lambda_reg: weight of L_reg (paper schedule; default 0.05, README "Choosing
-            lambda_reg"; the paper's 1 is for training from scratch). The calibrated schedule
+        lambda_reg: weight of L_reg (paper schedule; default 0.05, docs/studies.md; the
+            paper's 1 is for training from scratch). The calibrated schedule
             has no count regulariser (0): its count follows s_v^-1.5 by calibration.
         tau: LoD threshold (mask alpha'' > tau s_v).
         eps: Eq. 2's epsilon.
@@ -89,7 +89,7 @@ class AdaptConfig:
             or ``"opacity"``.
         recalibrate_every: calibrated: re-map ``sigma_d`` from its learned order every this
             many steps, and after the last; 0 (default): only after the last (on fern, every 100
-            steps cost 0.2-1.4 dB at 50-5 % of the Gaussians: README ablation).
+            steps cost 0.2-1.4 dB at 50-5 % of the Gaussians: docs/studies.md).
         level_weighting: ``"paper"`` (w_s = (1 - 0.5 s_v / max_sv)^2) or ``"uniform"``
             (calibrated default: every level counts alike).
         cost_exponent: calibrated schedule: what a level's share ``s_v^-1.5`` measures: the
@@ -104,12 +104,12 @@ class AdaptConfig:
             ``"uniform"`` (the paper's ``U(1, max_sv)``; paper default) or ``"log"`` (``ln s_v``
             uniform: the levels near full detail trained as often as the coarse ones; calibrated
             default: on the validation views of skull and fern +0.1 to +0.6 dB at 11 of the 12
-            decimator counts, README "What the log-uniform s_v sampling bought").
+            decimator counts, docs/studies.md).
         level_max: the largest level of the gains (:attr:`clod_adapter.lod.LodSettings.level_max`,
             >= 1): with cost levels a step's count share falls below ``max_sv^-1.5`` from ``s_v``
             about 3.2 on, where the default 1 holds the gains at one level. 2 lets them grow on
             (test views: +0.3 to +1.5 dB at ``s_v`` 15-30 on every scene, but -0.2 to -0.5 dB at
-            ``s_v`` 2-5 on skull; README "How far the gains grow").
+            ``s_v`` 2-5 on skull; docs/studies.md).
         trained_order_share: calibrated schedule: at the final recalibration (and every
             ``recalibrate_every`` steps), the learned order is kept for this share of the
             Gaussians, the top of it by count (the ones kept longest); the rest, the ones that
@@ -121,15 +121,15 @@ class AdaptConfig:
             (left out when it does not, for models under
             :data:`clod_adapter.tiers.PARENT_MIN_GAUSSIANS` Gaussians, and when splat-transform
             is not installed). 0: no tier. Default 0.04 (calibrated), 0 (paper). Chosen on the
-            validation views of skull and fern: ``python benchmarks/merge_tier.py``.
+            validation views of skull and fern: ``python benchmarks/studies/merge_tier.py``.
         keep_share: leave out what the scene does not need first (:mod:`clod_adapter.pruning`):
             keep this share of the input's Gaussians, the top by blending weight over the training
             views, recovered for ``recovery_steps`` before the level of detail is learned; full
             detail is then the kept model, not the input. 1 (default): every Gaussian, full detail
-            exactly the input (README "Leaving Gaussians out first": on the shared scenes' test
-            views 0.6 gives full detail at -0.07 dB in 77 % of fern's frame and +0.01 dB in 76 %
-            of skull's, -0.83 dB on MaskGaussian fern, and the validation views cannot choose it,
-            since the input was trained on them).
+            exactly the input (docs/method.md "Leaving Gaussians out first"; docs/studies.md: on
+            the shared scenes' test views 0.6 gives full detail at -0.07 dB in 77 % of fern's
+            frame and +0.01 dB in 76 % of skull's, -0.83 dB on MaskGaussian fern, and the
+            validation views cannot choose it, since the input was trained on them).
         recovery_steps: with ``keep_share < 1``: recovery steps of the kept Gaussians (every
             attribute, LightGaussian's schedule), kept when the last step scores above the
             static cut on held-out training views (else the static cut). Default 1000.

@@ -2,8 +2,8 @@
 image within 1e-3, and matching gradients, at s_v = 1, 3, 5 and at budgets 50 % / 10 %.
 
 Runs only where CUDA and gsplat 1.5.3 are present (``pip install -e ".[gpu]"``); skips with the
-reason elsewhere. Not run in CI (no GPU there) and, as of this writing, never run at all: no GPU
-was lent to the sessions that wrote it (README, "GPU").
+reason elsewhere. Not run in CI (no GPU there) and, as of this writing, never run at all: no CUDA
+machine has run it (docs/guide.md, "GPU").
 """
 import pytest
 import torch

@@ -216,3 +216,14 @@ def test_report_runs_both_decimators_and_a_failing_peer_stops_it(tiny, tmp_path)
         evaluate_report(tiny["root"] / "ad" / "point_cloud.ply", tiny["scene"], tmp_path / "dec2", EvalOptions(
             pretrained=tiny["root"] / "pre.ply", budgets=[0.5], sv_steps=3, max_sv=3.0, popping_steps=5,
             lpips=None, progress=False, log=None, merge_tool=str(bad), timing_repeats=0))
+
+
+def test_format_table_columns_never_run_into_each_other():
+    """A long method name and setting stay two words (``decimate_adaptive budget=0.0894427``)."""
+    from clod_adapter.jobs.eval import format_table
+
+    rows = [{"method": "decimate_adaptive", "setting": "budget=0.0894427", "s_v": None, "gaussians": 514.0,
+             "fraction": 0.086, "psnr": 17.8, "ssim": 0.5467, "lpips": None, "ms_total": 3.1}]
+    head, line = format_table(rows).splitlines()
+    assert line.split()[:3] == ["decimate_adaptive", "budget=0.0894427", "-"]
+    assert head.split()[:2] == ["method", "setting"]

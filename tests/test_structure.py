@@ -155,10 +155,10 @@ def test_no_root_export_shadowed_by_a_submodule():
     assert sorted(set(clod_adapter._EXPORTS) & submodules) == []
 
 
-#: the training and evaluation logic (README "How the code is laid out"): above the model, the
+#: the training and evaluation logic (docs/guide.md "How the code is laid out"): above the model, the
 #: mechanism and the I/O, below the jobs.
 LOGIC = {"training", "official", "distributed", "losses", "baselines", "dlod_ceiling", "level_metrics", "timing",
-         "frontier", "bake", "tiers", "pruning"}
+         "frontier", "quality_vs_time", "bake", "tiers", "pruning"}
 
 
 def layer(module: str) -> int:

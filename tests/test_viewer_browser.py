@@ -4,7 +4,7 @@ selenium through /usr/bin/chromedriver.
 CI installs them with ``apt-get install -y chromium chromium-driver`` (see .ci/run); the test
 skips with the reason where they (or viser / selenium) are absent. The camera starts outside the
 model (inside it every software frame takes seconds). Set ``CLOD_VIEWER_SCREENSHOT=docs/viewer.png``
-to keep the screenshots as the README's picture.
+to keep the screenshots as the picture in docs/guide.md "Viewer".
 """
 from __future__ import annotations
 
@@ -22,7 +22,7 @@ from clod_adapter.synthetic import make_ground_truth
 
 WAIT_S = 120  # software WebGL on 2 shared cores: generous
 WINDOW = (960, 600)
-# viser's splat shader vs our rasteriser on the pixels either one covers (see README "Viewer");
+# viser's splat shader vs our rasteriser on the pixels either one covers (see docs/guide.md "Viewer");
 # measured 27.8-28.0 dB at s_v = 1 and 27.1 dB at s_v = 10 on this scene (3 runs)
 MIN_COVERED_PSNR_DB = 22.0
 

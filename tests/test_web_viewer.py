@@ -29,7 +29,7 @@ MIN_PSNR_DB = 33.0
 #: the popping ratio (one static switch over the largest step of the 31-step sweep): issue 19's goal.
 #: Measured 10.97 on this test's 300-step adaptation (render_lod on the same sweep: 11.38); an 80-step
 #: one pops 9.75x (render_lod 9.99x: the rule itself needs some training to get there); the trained
-#: models: benchmarks/web_viewer.py. The page is also held to render_lod's ratio on the same sweep
+#: models: benchmarks/studies/web_viewer.py. The page is also held to render_lod's ratio on the same sweep
 #: (PAGE_POPPING_SHARE; measured 0.964).
 MIN_POPPING_RATIO = 10.0
 PAGE_POPPING_SHARE = 0.95
@@ -178,7 +178,7 @@ def test_page_draws_splats_larger_than_the_screen(tiny_adapted, tiny_model, tmp_
     # render_lod (gsplat) draws it uncapped; the engine caps a quad at the viewport, which squeezed
     # it into a blob (17.9 dB here; skull's test view 49 was 28.8 dB from render_lod). The page
     # lifts the cap and clamps the Jacobian as gsplat does (without the clamp the uncapped engine
-    # smeared a thin splat beside skull's view 09 over the frame: benchmarks/web_viewer.py)
+    # smeared a thin splat beside skull's view 09 over the frame: benchmarks/studies/web_viewer.py)
     from dataclasses import replace
 
     from browser import browser_missing, chromium_driver, compare_frames, open_web_viewer, serve_folder, web_viewer_frame

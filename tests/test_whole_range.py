@@ -18,7 +18,7 @@ from clod_adapter.metrics import psnr
 from clod_adapter.synthetic import make_cameras, make_ground_truth, perturb
 from conftest import render_views
 
-#: full-detail tolerance of the calibrated schedule (README: the base attributes are frozen and
+#: full-detail tolerance of the calibrated schedule (docs/method.md: the base attributes are frozen and
 #: the fade window is closed at s_v = 1, so s_v = 1 draws the input model; only a Gaussian seen
 #: much farther than its reference distance can fall under the mask there).
 FULL_DETAIL_TOL_DB = 0.02

@@ -53,7 +53,7 @@ def build_parser():
     p.add_argument("--schedule", default="calibrated", choices=("calibrated", "paper"),
                    help="training recipe: 'calibrated' (default; sigma_d mapped from a ranking so s_v draws "
                         "s_v^-1.5 of the Gaussians, window fade, level gains) or 'paper' (CLoD-GS: Eq. 2 fading, "
-                        "L_reg); README 'How the whole range is kept'")
+                        "L_reg); docs/method.md")
     p.add_argument("--other-lr-scale", type=float, default=None,
                    help="factor on the official 3DGS learning rates of the base attributes; 0 freezes them "
                         "(default: 0 calibrated, full detail stays the input; 0.1 paper)")
@@ -69,17 +69,17 @@ def build_parser():
     p.add_argument("--level-max", type=float, default=1.0, metavar="L",
                    help="calibrated schedule: largest level of the gains (default 1: held at 1 below max_sv^-1.5 "
                         "of the Gaussians in view); 2 grows them on (better far below, worse mid-range on skull; "
-                        "README 'How far the gains grow')")
+                        "docs/studies.md)")
     p.add_argument("--parent-share", type=float, default=None, metavar="SHARE",
                    help="calibrated schedule: also adapt the input merged by splat-transform --decimate to SHARE of "
                         "its Gaussians and cross-fade to it at the coarse levels where it pays (default 0.04; 0: "
-                        "none; left out under 10,000 Gaussians or without splat-transform; README 'Merged parents')")
+                        "none; left out under 10,000 Gaussians or without splat-transform; docs/method.md)")
     p.add_argument("--keep-share", type=float, default=1.0, metavar="SHARE",
                    help="leave out what the scene does not need first: keep SHARE of the input's Gaussians, the top "
                         "by blending weight over the training views, and recover them (every attribute, "
                         "--recovery-steps) before the LoD is learned; full detail is then the kept model "
                         "(default 1: every Gaussian, full detail exactly the input; "
-                        "README 'Leaving Gaussians out first')")
+                        "docs/method.md)")
     p.add_argument("--recovery-steps", type=int, default=1000, metavar="N",
                    help="with --keep-share < 1: recovery steps, kept when the last one beats the static cut on "
                         "held-out training views (default 1000; 0: the static cut)")

@@ -4,8 +4,10 @@
               [--budgets 1,0.5,0.25,0.1] [--sv-steps 25] [--max-sv X] [--lpips-weights PATH]
               [--sigma-c C] [--timing-repeats 3] [--device auto|cpu|cuda] [--force] -o REPORT
 
-Writes REPORT/{report.csv, report_per_view.csv, report.json, report.md, quality_vs_gaussians.png,
-quality_vs_time.png, popping.png, lod_strip.png} (see :mod:`clod_adapter.jobs.eval`).
+Writes REPORT/{report.md (opens with the verdict: where the adapted model is ahead of the best peer
+at equal frame time and at equal drawn count, and by how much), quality_vs_time.png,
+quality_vs_time.csv, report.csv, report_per_view.csv, report.json, quality_vs_gaussians.png,
+levels_vs_time.png, popping.png, lod_strip.png} (see :mod:`clod_adapter.jobs.eval`).
 
 Exit status: 0 done, 2 bad input (one line on stderr naming the file or flag, nothing written),
 130 interrupted.
@@ -19,16 +21,17 @@ from pathlib import Path
 from clod_adapter import jobs
 from clod_adapter.jobs import InputError, check_flag
 
-EXAMPLE = ("clod-eval runs/fern -s ../shared/data/fern --pretrained ../shared/data/fern/pretrained "
-           "--resolution 2 -o runs/fern_report")
+EXAMPLE = ("clod-eval runs/skull --images ../shared/data/skull --pretrained ../shared/data/skull/pretrained "
+           "-o runs/skull_report")
 
 
 def build_parser():
     p = jobs.make_parser(
         "clod-eval",
-        "Sweep an adapted CLoD-GS model over s_v and hard Gaussian budgets, compare it with baselines "
-        "cut from the pretrained model at the same counts, measure popping, and write a report (CSV, "
-        "JSON, plots).", EXAMPLE)
+        "Quality against frame time of an adapted CLoD-GS model: compare it with the peers a user already "
+        "has (LightGaussian and opacity cuts, splat-transform's decimators) at equal frame time and equal "
+        "drawn count, sweep it over s_v and budgets, measure popping, and write a report with a verdict "
+        "(Markdown, CSV, JSON, plots).", EXAMPLE)
     jobs.add_adapted_inputs(p)
     p.add_argument("--pretrained", metavar="PRE",
                    help="pretrained model the baselines cut: .ply (INRIA, compressed), gsplat ckpt .pt, an "
@@ -55,9 +58,10 @@ def build_parser():
                    help="interleaved timing rounds after the quality pass (default 3; 0: time the quality "
                         "pass itself)")
     p.add_argument("--seed", type=int, default=0, help="seed of the random baseline and the timing order (default 0)")
-    p.add_argument("--dlod-iterations", type=int, default=None, metavar="N",
-                   help="steps of the per-budget ceiling dlod_finetuned (one fine-tuned model per budget; "
-                        "default: the adaptation's iterations from adapt_state.safetensors, else 1000; 0 skips)")
+    p.add_argument("--dlod-iterations", type=int, default=0, metavar="N",
+                   help="add the per-budget ceiling dlod_finetuned: one model per budget, the best static start "
+                        "fine-tuned for N steps on the training views (the slowest part of a report: minutes per "
+                        "budget; default 0: left out)")
     p.add_argument("--splat-transform", metavar="EXE", default=None,
                    help="splat-transform executable for the decimator baselines 'decimate' and 'decimate_adaptive' (default: "
                         "$CLOD_SPLAT_TRANSFORM, else node_modules/.bin/splat-transform as installed by `npm ci` "
@@ -80,8 +84,7 @@ def main(argv: list[str] | None = None) -> int:
 def _check_flags(args) -> None:
     if not args.ply or not args.images:
         raise InputError("give ADAPTED and --images SCENE")
-    if args.dlod_iterations is not None:
-        check_flag(args.dlod_iterations >= 0, "--dlod-iterations", ">= 0", args.dlod_iterations)
+    check_flag(args.dlod_iterations >= 0, "--dlod-iterations", ">= 0", args.dlod_iterations)
     if args.splat_transform is not None and not Path(args.splat_transform).is_file():
         raise InputError(f"{args.splat_transform}: no such file (--splat-transform)")
     check_flag(args.sv_steps >= 2, "--sv-steps", ">= 2", args.sv_steps)
@@ -159,7 +162,7 @@ def _main(args) -> int:
         raise InputError(f"{scene_root}: no such scene folder")
     jobs.set_threads(args.threads)
 
-    from clod_adapter.training import iterations_from_state, max_sv_from_state
+    from clod_adapter.training import max_sv_from_state
     from clod_adapter.splat_transform import PeerError
     from clod_adapter.io.load import load_scene, training_size
     from clod_adapter.jobs.adapt import METRICS_NAME, resolution_note
@@ -181,8 +184,6 @@ def _main(args) -> int:
 
         budgets = budget_levels(max_sv)
     dlod_it = args.dlod_iterations
-    if dlod_it is None:
-        dlod_it = iterations_from_state(ply) or 1000
     merge_tool = _merge_tool(args)
     cam0 = (scene.test or scene.train)[0]
     note = _resolution_note(ply, pre, (cam0.width, cam0.height), resolution_note, training_size, METRICS_NAME)
@@ -193,11 +194,11 @@ def _main(args) -> int:
                           background=bg, timing_repeats=args.timing_repeats, notes=[note] if note else [],
                           dlod_iterations=dlod_it, merge_tool=merge_tool)
     try:
-        evaluate_report(ply, scene, out, options)
+        report = evaluate_report(ply, scene, out, options)
     except PeerError as e:  # a peer that fails stops the report: it never silently drops out
         print(f"clod-eval: error: {jobs.one_line(e)} (--no-merge runs without the decimators)", file=sys.stderr)
         return 1
-    print(f"clod-eval: wrote the report to {out}")
+    print(f"clod-eval: wrote the report to {out} in {report['wall_seconds']:.0f} s (verdict: {out / 'report.md'})")
     return 0
 
 

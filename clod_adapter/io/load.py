@@ -24,7 +24,7 @@ sigmoid(masks_0 - masks_1)``. ``read_ply`` keeps the scores in ``Gaussians.extra
 (:data:`MASK_POLICIES`):
 
 * ``"argmax"`` (the default, ``"auto"``; chosen by measurement, see
-  ``benchmarks/maskgaussian_masks.py``): keep ``p(keep) > 0.5``, i.e. ``masks_0 > masks_1``, the
+  ``benchmarks/studies/maskgaussian_masks.py``): keep ``p(keep) > 0.5``, i.e. ``masks_0 > masks_1``, the
   mode of the sampled mask; deterministic;
 * ``"gumbel"``: one hard Gumbel-softmax draw as the official save does, from a
   ``torch.Generator`` seeded with ``mask_seed`` (deterministic for a seed);
@@ -65,7 +65,7 @@ MaskMode = Literal["auto", "argmax", "gumbel", "all", "ignore"]
 MASK_PROPERTIES = ("masks_0", "masks_1", "mask")
 #: the mask policies (module docstring); ``"auto"`` means :data:`DEFAULT_MASK_POLICY`, ``"ignore"`` is ``"all"``.
 MASK_POLICIES = ("argmax", "gumbel", "all")
-#: the policy for learned (soft) mask scores, by ``benchmarks/maskgaussian_masks.py`` (README).
+#: the policy for learned (soft) mask scores, by ``benchmarks/studies/maskgaussian_masks.py`` (docs/studies.md).
 DEFAULT_MASK_POLICY = "argmax"
 _MASK_WHAT = {"argmax": "keep p(keep) > 0.5", "gumbel": "one Gumbel draw, seed {seed}", "all": "keep all"}
 _TORCH_SUFFIXES = {".pt", ".pth", ".ckpt"}

@@ -212,7 +212,7 @@ def read_ply(path: PathLike, *, allow_nonfinite: bool = False) -> Gaussians:
     the level gains. Every other scalar vertex property goes, in file order, to ``extra`` as an
     [N] tensor of its own type (not checked for NaN/Inf). A second element ``lod_parent``
     (:data:`PARENT_ELEMENT`, the same layout) is the model's parent tier, read into
-    ``Gaussians.parents`` (README "Merged parents").
+    ``Gaussians.parents`` (docs/method.md "Merged parents").
     Any numeric property type is accepted and converted to float32 (float32 input is copied
     bit-exactly). The file is memory-mapped (plyfile's default) and converted in one vectorised
     pass; the input is never modified.

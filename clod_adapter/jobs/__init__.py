@@ -26,7 +26,7 @@ def thread_defaults(environ=os.environ) -> None:
     OpenMP threads that finish a parallel region spin for a while (GNU libgomp: about 300,000
     iterations, ~0.1-1 ms) waiting for the next one. The rasteriser runs many short parallel
     regions per image, so on a machine whose cores are busy with other work the spinning threads
-    compete with the threads that have work: measured 5-15x slower (``benchmarks/omp_wait.py``).
+    compete with the threads that have work: measured 5-15x slower (``benchmarks/studies/omp_wait.py``).
     ``PASSIVE`` makes idle threads sleep at once. libgomp reads the variable when it is loaded
     (when torch is first imported), so this must run before ``import torch``; the thread count
     stays torch's default (the number of cores) unless ``OMP_NUM_THREADS`` or ``--threads`` says

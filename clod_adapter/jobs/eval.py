@@ -15,6 +15,10 @@
   training views (:mod:`clod_adapter.dlod_ceiling`); its storage is the sum of the levels;
 * ``pretrained``: the pretrained model in full (reference);
 
+then runs the quality-against-frame-time comparison with the peers a user already has
+(:func:`clod_adapter.quality_vs_time.compare`, the same code as ``benchmarks/quality_vs_time.py``:
+the adapted model along ``s_v`` and at cost budgets, LightGaussian and opacity cuts, the
+decimators, the equal-count points; its one-paragraph verdict opens ``report.md``);
 scores each render (PSNR, SSIM in the 3DGS form, LPIPS-alex when weights exist), times it
 (:mod:`clod_adapter.timing`: after the quality pass, which warms up, ``timing_repeats`` rounds
 render every method x setting x view once in a shuffled order, so load from other processes hits
@@ -25,7 +29,11 @@ and rasterisation, with the smallest and largest round as the spread) and measur
 * ``report.csv``: one row per method x setting, aggregated over views (:data:`CSV_COLUMNS`);
 * ``report_per_view.csv``: one row per method x setting x view (:data:`PER_VIEW_COLUMNS`);
 * ``report.json``: the rows, the popping measurement, the settings and notes;
-* ``quality_vs_gaussians.png``, ``quality_vs_time.png``, ``popping.png``, ``lod_strip.png``.
+* ``quality_vs_time.png`` (PSNR against the share of the input's frame time, the comparison's
+  every method and frontier), ``quality_vs_time.csv`` (its every point);
+* ``report.md``: the verdict and the comparison's cells, then the tables per budget and level;
+* ``quality_vs_gaussians.png``, ``levels_vs_time.png`` (the levels and budgets above against
+  ms), ``popping.png``, ``lod_strip.png``.
 
 CSV columns (fixed order; empty cell = not applicable / unavailable):
 
@@ -69,6 +77,7 @@ import torch
 from torch import Tensor
 
 from .. import __version__, lod
+from .. import quality_vs_time as qvt
 from ..training import max_sv_from_state
 from ..baselines import (SIGMA_C_CANDIDATES, Selection, constant_sigma_selection,
                         lightgaussian_significance, tune_sigma_c,
@@ -134,7 +143,7 @@ BASELINES = tuple(k for k, m in METHOD_REGISTRY.items() if m.select is not None)
 DECIMATORS = {k: m.decimate for k, m in METHOD_REGISTRY.items() if m.decimate is not None}
 METHODS = tuple(METHOD_REGISTRY)
 OUTPUT_NAMES = ("report.csv", "report_per_view.csv", "report.json", "report.md", "quality_vs_gaussians.png",
-                "quality_vs_time.png", "popping.png", "lod_strip.png")
+                "levels_vs_time.png", "quality_vs_time.png", "quality_vs_time.csv", "popping.png", "lod_strip.png")
 DEFAULT_BUDGETS = (1.0, 0.5, 0.25, 0.1)
 
 LpipsSpec = Union[str, os.PathLike, Callable, None]
@@ -144,8 +153,8 @@ LpipsSpec = Union[str, os.PathLike, Callable, None]
 def sv_grid(max_sv: float, steps: int = 25, overshoot: float = 1.2, lod_settings=None,
             tier_steps: int = 6) -> list[float]:
     """``steps`` values of ``s_v`` evenly spaced from 1 to ``overshoot * max_sv`` (past the
-    trained maximum); for a model with a parent tier (``lod_settings.tier_s_v > 0``, README
-    "Merged parents") then ``tier_steps`` values spaced evenly in ``ln s_v`` from the middle of
+    trained maximum); for a model with a parent tier (``lod_settings.tier_s_v > 0``, docs/method.md
+    "the merged parent tier") then ``tier_steps`` values spaced evenly in ``ln s_v`` from the middle of
     its cross-fade (``tier_s_v sqrt(tier_fade)``) to where the parents are drawn at
     ``overshoot`` times their own ``max_sv`` (``overshoot max_sv tier_s_v / tier_start``), those
     beyond the even part."""
@@ -484,11 +493,13 @@ def _plot_popping(pop: dict, path: Path) -> None:
 
 def format_table(rows: list[dict]) -> str:
     """Short text table of the aggregated rows."""
-    head = f"{'method':<15}{'setting':<14}{'s_v':>6}{'Gaussians':>11}{'%':>6}{'PSNR':>7}{'SSIM':>7}{'LPIPS':>7}{'ms':>8}"
+    wm = max([len("method")] + [len(r["method"]) for r in rows]) + 1  # columns never run into each other
+    ws = max([len("setting")] + [len(r["setting"]) for r in rows]) + 1
+    head = f"{'method':<{wm}}{'setting':<{ws}}{'s_v':>6}{'Gaussians':>11}{'%':>6}{'PSNR':>7}{'SSIM':>7}{'LPIPS':>7}{'ms':>8}"
     lines = [head]
     for r in rows:
         f = lambda v, spec: ("-" if v is None else format(v, spec))  # noqa: E731
-        lines.append(f"{r['method']:<15}{r['setting']:<14}{f(r['s_v'], '6.2f'):>6}{r['gaussians']:11.0f}"
+        lines.append(f"{r['method']:<{wm}}{r['setting']:<{ws}}{f(r['s_v'], '6.2f'):>6}{r['gaussians']:11.0f}"
                      f"{100 * r['fraction']:6.1f}{r['psnr']:7.2f}{r['ssim']:7.4f}{f(r['lpips'], '7.4f'):>7}"
                      f"{r['ms_total']:8.1f}")
     return "\n".join(lines)
@@ -498,10 +509,13 @@ def format_markdown(report: dict) -> str:
     """The report's headline tables as Markdown (``report.md``): quality per method at each
     budget, the adapted model's s_v sweep with render times, and the popping ratio."""
     rows = report["rows"]
+    qt = report.get("quality_vs_time")
+    head = [] if qt is None else ["## Quality against frame time", "", qt["verdict"], "", qt["cells_markdown"], "",
+                                  "![PSNR against frame time](quality_vs_time.png)", "", "## Levels and budgets", ""]
     fmt = lambda v, f: "-" if v is None or (isinstance(v, float) and v != v) else format(v, f)  # noqa: E731
     budgets = [r["setting"] for r in rows if r["method"] == "clod_budget"]
     methods = [m for m in METHODS if m not in ("clod", "pretrained") and any(r["method"] == m for r in rows)]
-    out = [f"{report['num_gaussians']['adapted']:,} Gaussians; views: {', '.join(report['views'])} "
+    out = head + [f"{report['num_gaussians']['adapted']:,} Gaussians; views: {', '.join(report['views'])} "
            f"at {report['image_size'][0]}x{report['image_size'][1]}; {report['device']}, "
            f"{report['threads']} threads; constant-sigma c = {report['settings']['sigma_c']:g} "
            f"({report['settings']['sigma_c_rule']}).", "",
@@ -576,8 +590,11 @@ class EvalOptions:
             validation views (:func:`clod_adapter.dlod_ceiling.best_start`) fine-tuned for this many steps
             (:func:`clod_adapter.dlod_ceiling.finetune_subset`).
         merge_tool: a splat-transform executable: adds splat-transform's decimators at each
-            budget's share of the model; a failing run raises RuntimeError (a peer never silently
-            drops out of the report). None: they are not run, and the report says so.
+            budget's share of the model and to the quality-against-time comparison; a failing run
+            raises RuntimeError (a peer never silently drops out of the report). None: they are not
+            run, and the report says so.
+        full_rounds: paired rounds of the comparison's full-detail time ratio
+            (:func:`clod_adapter.quality_vs_time.full_detail_ratio`; 0: not measured).
     """
 
     pretrained: Union[os.PathLike, str, Gaussians, None] = None
@@ -599,6 +616,7 @@ class EvalOptions:
     notes: Sequence[str] = ()
     dlod_iterations: int = 0
     merge_tool: Optional[str] = None
+    full_rounds: int = qvt.FULL_ROUNDS
 
 
 @dataclass
@@ -626,6 +644,7 @@ class _Eval:
     dlod: dict = field(default_factory=lambda: {"levels": {}, "choice": {}, "info": {}})
     merge_sizes: dict = field(default_factory=dict)
     decimated: dict = field(default_factory=dict)
+    comparison: Optional[qvt.Comparison] = None
 
     @property
     def bg(self) -> list:
@@ -684,6 +703,7 @@ def evaluate_report(adapted: Union[os.PathLike, Gaussians], scene, out_dir: os.P
     ev = _eval_inputs(adapted, scene, o)
     extra = len(BASELINES) + (len(DECIMATORS) if o.merge_tool else 0) + (1 if o.dlod_iterations > 0 else 0)
     n_renders = len(ev.cams) * (len(ev.s_vs) + 1 + len(ev.budgets) * (1 + extra)) * (1 + max(o.timing_repeats, 0))
+    n_renders += qvt.n_renders(len(ev.cams), max(o.timing_repeats, 1), o.full_rounds, o.merge_tool is not None)
     ev.bar = progress_bar(n_renders + o.popping_steps + 2, "clod-eval", unit="render", disable=not o.progress,
                           leave=False)
     t0 = time.perf_counter()
@@ -701,6 +721,7 @@ def evaluate_report(adapted: Union[os.PathLike, Gaussians], scene, out_dir: os.P
         _score_budget(ev, b, ctx, global_scores)
     ev.bar.set_postfix_str(f"timing x{o.timing_repeats}")
     _retime(ev.rows, o.timing_repeats, o.seed, on_render=ev.tick)
+    _compare_time(ev)
     ev.bar.set_postfix_str("popping")
     top = ev.s_vs[-1] if o.s_vs is not None else sv_grid(ev.max_sv, 2)[-1]  # the even part (a tier's points beyond)
     pop_svs = [float(x) for x in np.linspace(1.0, top, o.popping_steps)]
@@ -717,7 +738,17 @@ def evaluate_report(adapted: Union[os.PathLike, Gaussians], scene, out_dir: os.P
               f"{pop['continuous_median']:.4g}; discrete max {pop['discrete_max']:.4g}; ratio {pop['ratio']:.1f}")
         for n in ev.notes:
             o.log(f"note: {n}")
+        o.log(report["quality_vs_time"]["verdict"])
     return report
+
+
+def _compare_time(ev: _Eval) -> None:
+    """Phase 3b: the quality-against-frame-time comparison with the peers
+    (:func:`clod_adapter.quality_vs_time.compare`, the one ``benchmarks/quality_vs_time.py`` runs)."""
+    ev.bar.set_postfix_str("quality against time")
+    ev.comparison = qvt.compare(ev.adapted, ev.base, ev.train_cams, ev.cams, ev.gts, max_sv=ev.max_sv,
+                                merge_tool=ev.o.merge_tool, lpips_fn=ev.lpips_fn, repeats=max(ev.o.timing_repeats, 1),
+                                full_rounds=ev.o.full_rounds, background=ev.bg, tick=ev.tick)
 
 
 def _eval_inputs(adapted, scene, o: EvalOptions) -> _Eval:
@@ -878,9 +909,22 @@ def _report_dict(ev: _Eval, scene, pop: dict, t_sig: float, t_eval: float) -> di
         "rows": ev.rows.rows,
         "per_view": ev.rows.per_view,
         "popping": pop,
+        "quality_vs_time": _comparison_dict(ev.comparison),
         "notes": ev.notes,
         "eval_seconds": round(t_eval, 1),
     }
+
+
+def _comparison_dict(comp: qvt.Comparison) -> dict:
+    """``report.json``'s ``quality_vs_time``: the verdict, the cells, every point."""
+    cs = qvt.cells(comp)
+    return {"verdict": qvt.verdict(comp, cs), "cells": qvt.cells_json(cs), "cells_markdown": qvt.cells_markdown(cs),
+            "full_ratio": comp.full_ratio, "decimators_run": comp.merge_run,
+            "points": [{"method": s.method, "setting": s.setting, "psnr": s.psnr, "ssim": s.ssim, "lpips": s.lpips,
+                        "ms": s.ms, "time_share": s.ms / comp.input.ms, "drawn_per_view": statistics.mean(s.drawn),
+                        "in_view_share": comp.in_view_share(s), "storage_bytes": s.storage} for s in comp.settings],
+            "what": "clod_adapter.quality_vs_time.compare: every point timed in interleaved rounds in one run; "
+                    "time_share = ms / the input's ms"}
 
 
 def _write_report(ev: _Eval, out_dir: Path, report: dict, pop: dict, t_start: float) -> None:
@@ -897,7 +941,11 @@ def _write_report(ev: _Eval, out_dir: Path, report: dict, pop: dict, t_start: fl
     _plot_quality(rows.rows, "gaussians", "mean Gaussians rendered per view", out_dir / "quality_vs_gaussians.png",
                   mark=(len(ev.adapted) * mark, f"max_sv^-1.5 = {100 * mark:.1f} %"))
     _plot_quality(rows.rows, "ms_total", "median ms per frame (bars: fastest-slowest round)",
-                  out_dir / "quality_vs_time.png", extra=_plot_time_curve(rows.rows), time_axis=True)
+                  out_dir / "levels_vs_time.png", extra=_plot_time_curve(rows.rows), time_axis=True)
+    title = f"{Path(str(report.get('scene') or 'scene')).name}: adapted model against the peers (clod-eval)"
+    qvt.plot(out_dir / "quality_vs_time.png", {title: ev.comparison})
+    with atomic_write(out_dir / "quality_vs_time.csv", "w", newline="") as f:
+        f.write(qvt.csv_text(ev.comparison))
     _plot_popping(pop, out_dir / "popping.png")
     write_strip(out_dir / "lod_strip.png", ev.adapted, ev.cams[0], sv_levels(ev.max_sv), ev.bg, gt=ev.gts[0])
     report["wall_seconds"] = round(time.perf_counter() - t_start, 1)

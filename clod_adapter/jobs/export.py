@@ -87,7 +87,7 @@ def export(model, scene, train_imgs, test_cams, test_imgs, out: Path, ply: Path,
                  "sh_degree_in": model.sh_degree,
                  "train_views": len(scene.train), "test_views": [c.name for c in test_cams],
                  "resolution": [test_cams[0].width, test_cams[0].height]}
-    if model.parents is not None:  # README "Merged parents"
+    if model.parents is not None:  # docs/method.md "Merged parents"
         rep["tier"] = {"parents_in": len(model.parents), "tier_s_v": model.lod.tier_s_v,
                        "tier_start": model.lod.tier_start,
                        "drawn_by": ["extended .ply", "baked level", "web page"],
@@ -126,7 +126,7 @@ def _reduce(model, scene, train_imgs, test_cams, test_imgs, o: ExportOptions, re
         info["psnr_test_sv1_after"] = _mean_psnr(ex, model, test_cams, test_imgs)
         rep["sh"] = info
         step()
-    if parents is not None:  # the tier follows the model (same SH degree, README "Merged parents")
+    if parents is not None:  # the tier follows the model (same SH degree, docs/method.md "Merged parents")
         model = replace(model, parents=ex.truncate_sh(parents, model.sh_degree))
         rep["tier"]["parents_out"] = len(parents)
     rep["gaussians_out"] = len(model)

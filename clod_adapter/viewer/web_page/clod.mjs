@@ -8,7 +8,7 @@
 // render_lod does: the parents are a second entity running the same modifier with their own
 // settings at their own s_v, each entity's drawn weights scaled by its share of the image.
 //
-// Approximations against render_lod (README "In the browser"): the normaliser max d over the
+// Approximations against render_lod (docs/guide.md "In the browser"): the normaliser max d over the
 // frustum and the drawn share (hence the level of the gains) are computed here on the CPU from the
 // splat centres inside the frustum (every centre up to 200,000 splats, an even stride beyond),
 // where render_lod counts the Gaussians whose projected footprint reaches the image; the parents'
@@ -129,7 +129,7 @@ edit('gsplatCornerVS', [
     // offsets are scaled by 1 / width for NDC), so its "+ 0.3" is 0.075 px^2: a quarter of gsplat's
     // filter, which left every thin splat narrower and sharper than render_lod draws it (the page's
     // s_v = 1 frames on fern were 26.1-26.3 dB from render_lod's, the differences along every edge;
-    // 35.7-35.9 dB with this: benchmarks/web_viewer.py) and made its footprint follow the level's
+    // 35.7-35.9 dB with this: benchmarks/studies/web_viewer.py) and made its footprint follow the level's
     // scale gain several times more steeply (popping 9.2x -> 11.1x on fern). 4 x 0.3 in those units
     // is gsplat's 0.3 px^2.
     ['float diagonal1 = cov[0][0] + 0.3;', 'float diagonal1 = cov[0][0] + 1.2;'],
@@ -139,7 +139,7 @@ edit('gsplatCornerVS', [
     // lands on the screen instead of its flat middle. gsplat has no cap (the rasteriser clips to
     // the image): skull's model holds a dim, dark Gaussian some 30 units across around the scene,
     // which darkens every frame of render_lod by ~8 % and the capped page only in a blob; its
-    // s_v = 1 frames were 28.8 dB from render_lod's in test view 49 (benchmarks/web_viewer.py)
+    // s_v = 1 frames were 28.8 dB from render_lod's in test view 49 (benchmarks/studies/web_viewer.py)
     ['float vmin = min(1024.0, min(viewport_size.x, viewport_size.y));', 'float vmin = 1e6;'],
     // ... and gsplat's Jacobian: x/z and y/z clamped to 1.3 x the half field of view (tan = 1 /
     // projMat; the principal point taken as centred), so a splat beside the image does not smear
@@ -162,7 +162,7 @@ edit('gsplatPS', [
 // the work buffer in half floats: the engine's default "compact" layout stores each splat's opacity
 // in 8 bits, its log-scale in 8 bits (8.6 % steps) and its colour in 11/11/10 bits, so the level
 // gains' continuous drift reached the frames as per-splat jumps; "large" keeps colour, opacity and
-// scale as half floats (benchmarks/web_popping_steps.py; README "In the browser")
+// scale as half floats (benchmarks/studies/web_popping_steps.py; docs/guide.md "In the browser")
 app.scene.gsplat.dataFormat = pc.GSPLATDATA_LARGE;
 // no size culling: render_lod draws every splat whose footprint reaches the image (the engine drops
 // splats whose quad is under 2 px by default, and the level's scale gains move splats across it)
@@ -224,10 +224,10 @@ app.root.addChild(camera);
 // ?blend=16: blending in half floats. The camera draws into an RGBA16F target, copied once per frame
 // to the canvas, instead of straight into the 8-bit canvas, where each of a pixel's ~50 blends is
 // rounded to 1/255 (the s_v = 1 frame against render_lod: 44.4 dB on fern's first view against 35.7
-// in the canvas; popping 11.8x against 11.1x; benchmarks/web_viewer.py). The camera keeps its sRGB
+// in the canvas; popping 11.8x against 11.1x; benchmarks/studies/web_viewer.py). The camera keeps its sRGB
 // output, so the splats blend in gamma space as render_lod does (the engine's CameraFrame blends in
 // linear light). Off by default: SwiftShader's frame took 20-60 % longer with it on fern and skull
-// (README "In the browser").
+// (docs/guide.md "In the browser").
 const blendFormat = q.get('blend') === '16'
     ? device.getRenderableHdrFormat([pc.PIXELFORMAT_RGBA16F], false, 1, true) : undefined;
 let target = null;

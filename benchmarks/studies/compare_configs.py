@@ -1,0 +1,136 @@
+"""Adaptation settings against each other at equal frame time, and their popping.
+
+For choosing a default, and for the ablation at equal time: each input (default: skull and fern)
+is adapted with ``clod-adapt``'s defaults and with each ``--config KEY=VALUE ...`` (one variant
+per ``--config``; cached, common.py; ``--split val``: fit views only), and every model is
+rendered from the evaluation views along the same ``s_v`` grid as ``quality_vs_time.py``, every
+setting of every model and the input timed in the same interleaved rounds.
+Printed per input: each model's best PSNR within 90 / 75 / 50 / 25 / 15 / 10 % of the input's
+frame time (the frontier line of ``quality_vs_time.py``) and the popping of ``clod-eval`` from
+the first view (the largest of 31 linear steps from ``s_v`` 1 to max_sv, mean |dI|, and the
+switch between the opacity cuts at the first and last counts over it)::
+
+    python benchmarks/studies/compare_configs.py --config fade_width=0.75            # validation views
+    python benchmarks/studies/compare_configs.py --config gains= --config fade=eq2   # two variants
+
+Also written: ``runs/bench/compare_configs/<tags><_val>.csv`` (input, variant, s_v, PSNR, ms,
+share of the input's frame) and ``.md`` (the frontier lines).
+"""
+from __future__ import annotations
+
+import csv
+import statistics
+import sys
+import time
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # benchmarks/: common.py
+from common import RUNS, adapt_cached, load_input, parse_config, parse_inputs_args, scene_views, split_suffix  # noqa: E402
+
+import torch  # noqa: E402
+
+from clod_adapter.camera_lod import render_lod  # noqa: E402
+from clod_adapter.frontier import Point, best_within  # noqa: E402
+from clod_adapter.io.atomic import atomic_write  # noqa: E402
+from clod_adapter.io.load import load_model  # noqa: E402
+from clod_adapter.jobs.eval import popping_curve  # noqa: E402
+from clod_adapter.metrics import psnr  # noqa: E402
+from clod_adapter.timing import time_interleaved  # noqa: E402
+from clod_adapter.training import AdaptConfig  # noqa: E402
+
+from clod_adapter.quality_vs_time import S_VS  # noqa: E402  (the s_v grid of benchmarks/quality_vs_time.py)
+
+SHARES = (0.9, 0.75, 0.5, 0.25, 0.15, 0.1)
+
+
+class _Timed:
+    def __init__(self, ms: float) -> None:
+        self.select_ms, self.raster_ms = 0.0, ms
+
+
+def timed_render(g, cam, s_v):
+    """A zero-argument job for :func:`clod_adapter.timing.time_interleaved`: one whole
+    ``render_lod(g, cam, s_v)`` frame, timed as raster ms (``s_v`` None: the model as it is)."""
+    def f():
+        t0 = time.perf_counter()
+        render_lod(g, cam, s_v)
+        return _Timed((time.perf_counter() - t0) * 1e3)
+    return f
+
+
+def run_input(name: str, split: str, configs: dict, repeats: int) -> tuple[list, list]:
+    """Adapt (cached), render and time ``configs`` {tag: AdaptConfig keywords} on ``name``.
+    Returns (CSV rows, markdown lines of the frontier)."""
+    g0, scene, gts = load_input(name, split)
+    fit, cams = scene_views(scene, split)
+    models = {tag: load_model(adapt_cached(name, AdaptConfig(**kw), tag, split=split)) for tag, kw in configs.items()}
+    sets = {("input", 1.0): [timed_render(g0, c, None) for c in cams]}
+    scores = {}
+    with torch.no_grad():
+        for tag, g in models.items():
+            for s in S_VS:
+                sets[(tag, s)] = [timed_render(g, c, s) for c in cams]
+                scores[(tag, s)] = statistics.mean(psnr(render_lod(g, c, s).image.clamp(0, 1), t)
+                                                   for c, t in zip(cams, gts))
+        p_in = statistics.mean(psnr(render_lod(g0, c).image.clamp(0, 1), t) for c, t in zip(cams, gts))
+        res = time_interleaved(sets, repeats=repeats, warmup=1)
+        ms_in = res[("input", 1.0)]["ms_total"]
+        print(f"[{name}] input {p_in:.2f} dB, {ms_in:.1f} ms ({len(cams)} {split} views)")
+        rows = [{"input": name, "variant": "input", "s_v": 1.0, "psnr": round(p_in, 3), "ms": round(ms_in, 2),
+                 "time_share": 1.0}]
+        md = [f"### {name}: input {p_in:.2f} dB in {ms_in:.1f} ms ({len(cams)} {split} views)", "",
+              "| variant | best within " + " / ".join(f"{100 * sh:.0f}" for sh in SHARES) + " % of the input's time |",
+              "|---|---|"]
+        for tag, g in models.items():
+            rows += [{"input": name, "variant": tag, "s_v": s, "psnr": round(scores[(tag, s)], 3),
+                      "ms": round(res[(tag, s)]["ms_total"], 2),
+                      "time_share": round(res[(tag, s)]["ms_total"] / ms_in, 4)} for s in S_VS]
+            pts = [Point("clod", f"s_v={s:g}", res[(tag, s)]["ms_total"], scores[(tag, s)]) for s in S_VS]
+            best = [best_within(pts, sh * ms_in) for sh in SHARES]
+            pop = popping_curve(g, cams[0], [1 + (g.lod.max_sv - 1) * i / 30 for i in range(31)])
+            print(f"[{name}] {tag:>24}: best within " + " / ".join(f"{100 * sh:.0f}" for sh in SHARES) + " %: "
+                  + " / ".join("-" if b is None else f"{b.psnr:.2f}" for b in best)
+                  + f" dB; popping {pop['continuous_max']:.5f} vs switch {pop['discrete_max']:.5f}: {pop['ratio']:.1f}x")
+            print(f"[{name}] {tag:>24}: " + " ".join(f"{s:g}:{scores[(tag, s)]:.2f}/{100 * res[(tag, s)]['ms_total'] / ms_in:.0f}%"
+                                                for s in S_VS))
+            md.append(f"| {tag} | " + " / ".join("-" if b is None else f"{b.psnr:.2f}" for b in best) + " |")
+    return rows, md + [""]
+
+
+def write_csv(path, rows: list) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with atomic_write(path, "w", newline="") as f:
+        w = csv.DictWriter(f, fieldnames=list(rows[0]))
+        w.writeheader()
+        w.writerows(rows)
+
+
+def write_text(path, text: str) -> None:
+    with atomic_write(path, "w") as f:
+        f.write(text)
+
+
+def main() -> int:
+    a = parse_inputs_args(__doc__, inputs=("skull", "fern"), split="val", extra=[
+        ("--config", {"nargs": "+", "required": True, "action": "append", "metavar": "KEY=VALUE",
+                      "help": "one variant's AdaptConfig settings (repeat for more variants)"}),
+        ("--repeats", {"type": int, "default": 5, "help": "interleaved timing rounds (default 5)"})])
+    configs = {"default": {}}
+    for items in a.config:
+        kw, tag = parse_config(items)
+        configs[tag] = kw
+    rows, md = [], []
+    for name in a.inputs:
+        r, m = run_input(name, a.split, configs, a.repeats)
+        rows += r
+        md += m
+    out = RUNS / "compare_configs" / ("+".join(t for t in configs if t != "default") + split_suffix(a.split))
+    write_csv(out.parent / f"{out.name}.csv", rows)  # not with_suffix: tags hold dots (level_max-2.0)
+    write_text(out.parent / f"{out.name}.md", "\n".join(md))
+    print("\n".join(md))
+    print(f"wrote {out}.csv / .md")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,117 @@
+"""The quality-against-frame-time comparison (clod_adapter.quality_vs_time): its cells and verdict,
+clod-eval and benchmarks/quality_vs_time.py giving the same cells, and README's results table
+held to the generated docs/results.json and docs/results.md."""
+import json
+import math
+import sys
+
+import pytest
+
+from clod_adapter import quality_vs_time as qvt
+from conftest import REPO
+
+
+def _setting(method, setting, psnr, ms, drawn):
+    s = qvt.Setting(method, setting, [], 100)
+    s.psnr, s.ms, s.ms_min, s.ms_max, s.drawn = psnr, ms, ms, ms, [drawn]
+    return s
+
+
+def _comparison():
+    st = [_setting("input", "full", 30.0, 100.0, 1000),
+          _setting("clod", "s_v=1", 29.95, 102.0, 1000), _setting("clod", "s_v=2", 28.0, 45.0, 400),
+          _setting("clod", "s_v=5", 22.0, 20.0, 100),
+          _setting("decimate", "model=0.5", 27.0, 48.0, 500), _setting("decimate", "model=0.15", 24.0, 18.0, 150),
+          _setting("lightgaussian", "in_view=0.1", 20.0, 9.0, 100),
+          _setting("clod", "match:decimate:model=0.15", 25.5, 21.0, 150),
+          _setting("opacity", "match:decimate:model=0.15", 23.0, 17.0, 150)]
+    return qvt.Comparison(st, [1000], max_sv=5.0, full_ratio=1.02, merge_run=True)
+
+
+def test_cells_pick_the_best_within_each_time_and_the_best_peer_at_each_count():
+    cs = qvt.cells(_comparison())
+    full, t75, t50, t25, t10, count = cs
+    assert (full.kind, full.ours[1], round(full.margin_db, 2)) == ("full", "s_v=1", -0.05)
+    assert (t50.ours[1], t50.peer[1], round(t50.margin_db, 2)) == ("s_v=2", "model=0.5", 1.0)
+    # within 25 %: ours s_v=5 (20 ms) against the decimator at 18 ms
+    assert (t25.ours[1], t25.peer[1], round(t25.margin_db, 2)) == ("s_v=5", "model=0.15", -2.0)
+    assert t10.ours is None and t10.peer[0] == "lightgaussian" and t10.margin_db == -math.inf
+    # at the decimator's counts: the best of the decimator and the rankings drawn there
+    assert (count.kind, count.share, count.peer[0], round(count.margin_db, 2)) == ("count", 0.15, "decimate", 1.5)
+    assert [c["kind"] for c in qvt.cells_json(cs)] == ["full", "time", "time", "time", "time", "count"]
+    assert qvt.cells_json(cs)[4]["margin_db"] is None  # -inf is not JSON
+
+
+def test_verdict_says_where_ours_is_ahead_and_by_how_much():
+    v = qvt.verdict(_comparison())
+    assert "102 % of its frame time" in v
+    assert "ahead within 75 % (+1.00 dB" in v and "within 50 % (+1.00 dB" in v
+    assert "behind within 25 % (-2.00 dB" in v and "within 10 % (no level that fast" in v
+    assert "ahead at 1 of 1: 15 % in view +1.50 dB against decimate" in v
+    md = qvt.cells_markdown(qvt.cells(_comparison()))
+    assert md.count("\n") == 1 + 6 and "| +1.50 |" in md
+
+
+def _bench():
+    sys.path.insert(0, str(REPO / "benchmarks"))
+    try:
+        import quality_vs_time as bench
+    finally:
+        sys.path.remove(str(REPO / "benchmarks"))
+    return bench
+
+
+def test_readme_results_table_is_the_generated_one():
+    """README's table equals the one docs/results.json gives, and docs/results.md holds it too."""
+    bench = _bench()
+    res = json.loads((REPO / "docs" / "results.json").read_text())
+    want = bench.results_table(res["table"])
+
+    def block(path):
+        s = path.read_text()
+        assert s.count(bench.BEGIN) == 1 and s.count(bench.END) == 1, f"{path}: results-table markers"
+        return s[s.index(bench.BEGIN) + len(bench.BEGIN):s.index(bench.END)].strip()
+
+    assert block(REPO / "README.md") == want, "README's results table differs from docs/results.json: " \
+                                              "python benchmarks/quality_vs_time.py --docs writes both"
+    assert block(REPO / "docs" / "results.md") == want
+    assert {r["name"] for r in res["table"]} == {"fern", "maskgaussian", "skull"}
+    for r in res["table"]:  # the table's cells are the cells of the comparison
+        cells = {round(c["share"], 6): c for c in res["cells"][r["name"]] if c["kind"] == "time"}
+        for sh in bench.TABLE_SHARES:
+            c, w = cells[sh], r["within"][f"{sh:g}"]
+            assert w["ours"] == (c["ours"]["psnr"] if c["ours"] else None)
+            assert w["peer"] == (c["peer"]["psnr"] if c["peer"] else None)
+
+
+@pytest.mark.slow
+def test_clod_eval_gives_the_benchmarks_cells(tmp_path, monkeypatch):
+    """On the demo scene, clod-eval and benchmarks/quality_vs_time.py compare the same settings
+    and say the same cells. Both time every render through qvt.timed_call; here it reads a
+    render's time from its drawn count, so the two runs' times, and so their cells, are equal
+    exactly (wall time would differ between two runs)."""
+    from clod_adapter.cli.eval import main as eval_main
+    from clod_adapter.splat_transform import find_splat_transform
+
+    if find_splat_transform() is None:
+        pytest.skip("splat-transform not installed (`npm ci`): the comparison's decimators")
+    monkeypatch.setattr(qvt, "timed_call", lambda fn: (lambda out: (out, 1.0 + 0.01 * out.n_rendered))(fn()))
+    bench = _bench()
+    monkeypatch.setattr(bench.common, "RUNS", bench.common.RUNS)  # restored after the test
+    assert bench.main(["--inputs", "demo", "--config", "iterations=40", "--repeats", "1", "--no-lpips",
+                       "--runs", str(tmp_path / "bench"), "--threads", "2"]) in (0, 1)
+    run = tmp_path / "bench" / "quality_vs_time" / "iterations-40"
+    want = json.loads((run / "demo.json").read_text())["cells"]
+    demo = tmp_path / "bench" / "demo_input"
+    code = eval_main([str(tmp_path / "bench" / "demo" / "iterations-40"), "--images", str(demo / "scene"),
+                      "--pretrained", str(demo / "pretrained" / "point_cloud.ply"), "--no-lpips", "--quiet",
+                      "--timing-repeats", "1", "--dlod-iterations", "0", "--sv-steps", "3", "--budgets", "1,0.25",
+                      "-o", str(tmp_path / "report")])
+    assert code == 0
+    rep = json.loads((tmp_path / "report" / "report.json").read_text())["quality_vs_time"]
+    assert rep["cells"] == want
+    assert len([c for c in want if c["kind"] == "count"]) >= 2 and rep["decimators_run"]
+    md = (tmp_path / "report" / "report.md").read_text()
+    assert md.startswith("## Quality against frame time\n\n" + rep["verdict"])
+    head = (tmp_path / "report" / "quality_vs_time.csv").read_text().splitlines()[0]
+    assert head == ",".join(qvt.CSV_COLUMNS) and (tmp_path / "report" / "quality_vs_time.png").stat().st_size > 0

@@ -52,6 +52,8 @@ INPUTS = {
     "skull": (SHARED / "skull" / "pretrained/point_cloud/iteration_5000/point_cloud.ply", SHARED / "skull", 1),
     "demo": (None, None, 1),
 }
+#: the inputs the shared data provides (``--input`` adds others to INPUTS).
+SHARED_INPUTS = tuple(INPUTS)
 LABELS = {"fern": "fern (forward-facing, vanilla 3DGS)", "maskgaussian": "fern, MaskGaussian-pruned",
           "skull": "skull (360-degree, vanilla 3DGS)", "demo": "synthetic demo scene"}
 
@@ -180,7 +182,10 @@ def resolve_input(name: str) -> tuple[Path, Path, int]:
             if not ply.is_file():
                 build_demo_scene(root)
         if not Path(ply).is_file():
-            sys.exit(f"benchmark: {ply} not found (needs ../shared/data beside the repository)")
+            where = "needs ../shared/data beside the repository" if name in SHARED_INPUTS else f"--input {name}"
+            sys.exit(f"benchmark: {ply} not found ({where})")
+        if not Path(scene).is_dir():
+            sys.exit(f"benchmark: {scene}: no such scene folder (input {name})")
         return Path(ply), Path(scene), res
     parts = name.split(":")
     if len(parts) not in (2, 3):

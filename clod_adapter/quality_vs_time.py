@@ -275,7 +275,8 @@ class Cell:
         share: the frame-time share (``time``), the drawn share of the Gaussians in view
             (``count``), 1 (``full``).
         ours, peer: (method, setting, PSNR dB, time share of the input's frame) of our point and
-            the best peer's (the input for ``full``); None where no setting is that fast.
+            the best peer's (the input for ``full``, where our time share is the paired ratio
+            :attr:`Comparison.full_ratio` when measured); None where no setting is that fast.
         margin_db: ours - peer (+inf: only ours that fast; -inf: only a peer; nan: neither).
     """
 
@@ -299,7 +300,10 @@ def cells(comp: Comparison, shares: Sequence[float] = TIME_SHARES) -> list[Cell]
     pts = lambda methods: [Point(s.method, s.setting, s.ms, s.psnr) for s in comp.settings  # noqa: E731
                            if s.method in methods and not s.setting.startswith("match:")]
     full = comp.get("clod", "s_v=1")
-    out = [Cell("full", 1.0, _pt(comp, full), _pt(comp, inp), full.psnr - inp.psnr)]
+    ours = _pt(comp, full)
+    if math.isfinite(comp.full_ratio):  # the paired rounds' ratio, far less noisy than two medians
+        ours = ours[:3] + (round(comp.full_ratio, 6),)
+    out = [Cell("full", 1.0, ours, _pt(comp, inp), full.psnr - inp.psnr)]
     for m in time_margins(pts(OURS), pts(PEERS), inp.ms, shares):
         out.append(Cell("time", m.share, _pt(comp, m.ours), _pt(comp, m.peer), m.margin_db))
     for st in comp.settings:

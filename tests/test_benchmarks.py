@@ -1,0 +1,75 @@
+"""The benchmarks' common command line: every script that takes shared inputs also takes any
+checkpoint as ``--input NAME=PLY:SCENE[:RES]`` (benchmarks/common.py), and the scripts that
+produce docs/results.md say so in their docstring."""
+import ast
+
+import pytest
+
+from conftest import REPO
+
+BENCH = REPO / "benchmarks"
+
+
+@pytest.fixture
+def common(monkeypatch):
+    monkeypatch.syspath_prepend(str(BENCH))
+    import common as mod
+
+    monkeypatch.setattr(mod, "INPUTS", dict(mod.INPUTS))
+    monkeypatch.setattr(mod, "LABELS", dict(mod.LABELS))
+    return mod
+
+
+def test_no_script_declares_its_own_inputs_flag():
+    """``--inputs`` comes from common.py (add_inputs_args, parse_inputs_args, run_per_input), which
+    adds ``--input NAME=PLY:SCENE[:RES]`` beside it."""
+    own = [p.relative_to(REPO).as_posix() for p in sorted(BENCH.rglob("*.py"))
+           if p.name != "common.py" and '"--inputs"' in p.read_text()]
+    assert own == []
+
+
+def test_input_spec_registers_any_checkpoint(common, tmp_path, monkeypatch):
+    import argparse
+
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "c.ply").write_bytes(b"")
+    (tmp_path / "d").mkdir()
+
+    ap = argparse.ArgumentParser()
+    common.add_inputs_args(ap, ["fern", "skull"])
+    assert common.selected_inputs(ap.parse_args([])) == ["fern", "skull"]
+    a = ap.parse_args(["--input", "mine=a/b.ply:scene:2", "--input", "two=c.ply:d"])
+    assert common.selected_inputs(a) == ["mine", "two"]  # --input alone: only those
+    assert common.INPUTS["mine"] == (common.Path("a/b.ply"), common.Path("scene"), 2)
+    assert common.resolve_input("two") == (common.Path("c.ply"), common.Path("d"), 1)
+    a = ap.parse_args(["--inputs", "skull", "--input", "mine=a/b.ply:scene"])
+    assert common.selected_inputs(a) == ["skull", "mine"]
+    with pytest.raises(SystemExit, match=r"a/b.ply not found \(--input mine\)"):
+        common.resolve_input("mine")
+
+
+@pytest.mark.parametrize("spec", ["nameless.ply:scene", "x=only.ply", "x=a.ply:s:two", "fern=other.ply:s"])
+def test_bad_input_spec_exits_with_one_line(common, spec):
+    with pytest.raises(SystemExit) as e:
+        common.register_input(spec)
+    assert str(e.value).startswith("benchmark: --input") and "\n" not in str(e.value)
+
+
+def test_unknown_shared_name_exits(common):
+    import argparse
+
+    ap = argparse.ArgumentParser()
+    common.add_inputs_args(ap, ["fern"])
+    with pytest.raises(SystemExit, match="unknown input 'nope'"):
+        common.selected_inputs(ap.parse_args(["--inputs", "nope"]))
+
+
+def test_results_scripts_say_what_they_produce_and_how_long_they_take():
+    """The scripts left in benchmarks/ (the studies are in benchmarks/studies/) produce
+    docs/results.md: each docstring names it and the time it takes."""
+    scripts = sorted(p for p in BENCH.glob("*.py") if p.name != "common.py")
+    assert [p.name for p in scripts] == ["quality_vs_time.py"]
+    for p in scripts:
+        doc = ast.get_docstring(ast.parse(p.read_text()))
+        assert "docs/results.md" in doc and "minutes" in doc, p
+    assert len(list((BENCH / "studies").glob("*.py"))) >= 20

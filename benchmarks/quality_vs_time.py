@@ -134,11 +134,20 @@ def table_record(rec: dict) -> dict:
     row = {"name": rec["name"], "label": rec["label"], "gaussians": rec["gaussians"], "input_psnr": comp.input.psnr,
            "full_psnr": full.ours[2], "full_time_share": comp.full_ratio, "input_mb": rec["input_bytes"] / 1e6,
            "adapted_mb": rec["adapted_bytes"] / 1e6, "within": {}}
-    for sh in TABLE_SHARES:
-        o, p = qvt.best_within_share(comp, qvt.OURS, sh), qvt.best_within_share(comp, qvt.PEERS, sh)
-        row["within"][f"{sh:g}"] = {"ours": None if o is None else o.psnr, "peer": None if p is None else p.psnr,
-                                    "peer_method": None if p is None else p.method}
+    row["within"] = within_from_cells(qvt.cells_json(rec["cells"]))
     return row
+
+
+def within_from_cells(cells: list[dict]) -> dict:
+    """The table's best adapted and best peer PSNR within each of :data:`TABLE_SHARES`, read
+    from the comparison's time cells (:func:`clod_adapter.quality_vs_time.cells_json`)."""
+    out = {}
+    for sh in TABLE_SHARES:
+        c = next(c for c in cells if c["kind"] == "time" and math.isclose(c["share"], sh))
+        out[f"{sh:g}"] = {"ours": c["ours"]["psnr"] if c["ours"] else None,
+                          "peer": c["peer"]["psnr"] if c["peer"] else None,
+                          "peer_method": c["peer"]["method"] if c["peer"] else None}
+    return out
 
 
 def results_table(records: list[dict]) -> str:

@@ -41,7 +41,7 @@ import torch
 
 from .baselines import lightgaussian_significance, merge_decimate, topk_in_view
 from .camera_lod import render_lod, view_lod
-from .frontier import Point, best_within, frontier, time_margins
+from .frontier import Point, frontier, time_margins
 from .gaussians import Gaussians
 from .metrics import psnr, ssim
 from .storage import ply_bytes
@@ -456,13 +456,6 @@ def plot(path, results: dict) -> None:
     fig.tight_layout()
     atomic_save(path, lambda tmp: fig.savefig(tmp, format="png", dpi=110))
     plt.close(fig)
-
-
-def best_within_share(comp: Comparison, methods: Sequence[str], share: float) -> Optional[Point]:
-    """The best-PSNR point of ``methods`` within ``share`` of the input's frame time."""
-    pts = [Point(s.method, s.setting, s.ms, s.psnr) for s in comp.settings
-           if s.method in methods and not s.setting.startswith("match:")]
-    return best_within(pts, share * comp.input.ms)
 
 
 def _cell_label(c: Cell) -> str:

@@ -105,7 +105,7 @@ def bake(gaussians: Gaussians, cameras: Sequence, s_v: Optional[float] = None, b
     * ``"mean"``: the mean over the views that keep it of the opacity :func:`render_lod` draws it
       with (Eq. 2's ``alpha''``, or the window-faded opacity at the level);
     * ``"auto"`` (default): both are rendered from ``cameras`` and the one closer (PSNR) to
-      ``render_lod`` at the setting is kept (measured on fern: see docs/export_fern.md).
+      ``render_lod`` at the setting is kept (:class:`BakeInfo` records the choice and both PSNRs).
 
     A model with a parent tier, at an ``s_v`` past its ``tier_s_v``: the kept Gaussians followed
     by the kept parents, each at its own mean level, their opacities weighted by the cross-fade

@@ -16,7 +16,9 @@ against the input in the same interleaved rounds (2 threads)::
     python benchmarks/studies/prune_study.py --inputs fern --split test --keeps 0.6 0.7 --recover 1000
 
 ``clod-adapt --keep-share`` (:mod:`clod_adapter.pruning`) is the ``weight`` cut with this
-recovery, kept when it beats the cut on held-out training views.
+recovery, kept when it beats the cut on held-out training views. ``--coverages 0.99 ...`` adds
+``weight`` cuts sized by blending-weight coverage (the fewest Gaussians carrying that share of the
+fit views' total weight): a rule that needs no held-out view.
 """
 from __future__ import annotations
 
@@ -50,13 +52,24 @@ def blend_weight(g, cameras) -> tuple:
     return blend_weights(g, cameras), cost
 
 
-def run_input(name: str, split: str, keeps: list, recover: int) -> None:
+def coverage_share(w: torch.Tensor, coverage: float) -> float:
+    """The smallest share of the model whose largest blending weights carry ``coverage`` of the
+    total (a rule a user's checkpoint can apply: it needs only the training views)."""
+    c = torch.cumsum(torch.sort(w.double(), descending=True).values, 0)
+    k = int(torch.searchsorted(c, coverage * c[-1]).item()) + 1
+    return min(k, len(w)) / len(w)
+
+
+def run_input(name: str, split: str, keeps: list, recover: int, coverages=()) -> None:
     g0, scene, gts = load_input(name, split)
     fit, cams = scene_views(scene, split)
     w, cost = blend_weight(g0, fit)
     scores = {"weight": w, "weight_per_cost": w / cost.clamp_min(1.0),
               "lightgaussian": lightgaussian_significance(g0, fit), "opacity": g0.opacities.detach()}
     models = {"input": g0}
+    for cov in coverages:
+        share = coverage_share(w, cov)
+        models[f"weight coverage {cov:g} (keep {share:.3f})"] = g0.subset(global_cut(w, share))
     for k, s in scores.items():
         for keep in keeps:
             models[f"{k} keep {keep:g}"] = g0.subset(global_cut(s, keep))
@@ -79,9 +92,12 @@ def run_input(name: str, split: str, keeps: list, recover: int) -> None:
 def main() -> None:
     a = parse_inputs_args(__doc__, inputs=("fern",), split="val", extra=[
         ("--keeps", {"type": float, "nargs": "+", "default": [0.6, 0.7, 0.85], "help": "shares of the model kept"}),
-        ("--recover", {"type": int, "default": 0, "help": "recovery steps for the weight cut at the first keep"})])
+        ("--recover", {"type": int, "default": 0, "help": "recovery steps for the weight cut at the first keep"}),
+        ("--coverages", {"type": float, "nargs": "*", "default": [],
+                         "help": "also cut by blending-weight coverage: keep the fewest Gaussians carrying this share "
+                                 "of the fit views' total weight"})])
     for name in a.inputs:
-        run_input(name, a.split, a.keeps, a.recover)
+        run_input(name, a.split, a.keeps, a.recover, a.coverages)
 
 
 if __name__ == "__main__":

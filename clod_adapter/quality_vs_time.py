@@ -163,9 +163,18 @@ class _Context:
 
 
 def build_settings(adapted: Gaussians, base: Gaussians, fit_cams: Sequence, cams: Sequence, *,
-                   merge_tool: Optional[str] = None, background=None,
+                   merge_tool: Optional[str] = None, background=None, significance: Optional[torch.Tensor] = None,
                    log: Callable[[str], None] = lambda s: None) -> tuple[list, _Context]:
     """Every method x setting (renders not yet run; see the module docstring).
+
+    Args:
+        adapted, base, fit_cams, cams, merge_tool, background, log: as :func:`compare`.
+        significance: [N] float32 LightGaussian significance of ``base`` on ``fit_cams`` when the
+            caller has it (default: computed here,
+            :func:`clod_adapter.baselines.lightgaussian_significance`).
+
+    Returns:
+        (settings, the context :func:`matched_settings` reads).
 
     Raises:
         RuntimeError: a decimator failed (:func:`clod_adapter.baselines.merge_decimate`).
@@ -178,9 +187,11 @@ def build_settings(adapted: Gaussians, base: Gaussians, fit_cams: Sequence, cams
         settings.append(Setting("clod", f"s_v={s:g}", [lod_render(adapted, c, s_v=s, **kw) for c in cams], sa))
     for b in COST_SHARES:
         settings.append(Setting("clod", f"cost={b:g}", [lod_render(adapted, c, budget_cost=b, **kw) for c in cams], sa))
-    t = time.perf_counter()
-    scores = {"lightgaussian": lightgaussian_significance(base, list(fit_cams)), "opacity": base.opacities.detach()}
-    log(f"LightGaussian significance on {len(fit_cams)} fit views in {time.perf_counter() - t:.0f} s")
+    if significance is None:
+        t = time.perf_counter()
+        significance = lightgaussian_significance(base, list(fit_cams))
+        log(f"LightGaussian significance on {len(fit_cams)} fit views in {time.perf_counter() - t:.0f} s")
+    scores = {"lightgaussian": significance, "opacity": base.opacities.detach()}
     ctx = _Context(adapted, base, list(cams), [view_lod(base, c) for c in cams], scores, kw)
     for method in scores:
         for share in STATIC_SHARES:
@@ -320,8 +331,8 @@ def cells(comp: Comparison, shares: Sequence[float] = TIME_SHARES) -> list[Cell]
 
 def compare(adapted: Gaussians, base: Gaussians, fit_cams: Sequence, cams: Sequence, gts: Sequence, *,
             max_sv: float, merge_tool: Optional[str] = None, lpips_fn=None, repeats: int = 5,
-            full_rounds: int = FULL_ROUNDS, background=None, log: Callable[[str], None] = lambda s: None,
-            tick=lambda: None) -> Comparison:
+            full_rounds: int = FULL_ROUNDS, background=None, significance: Optional[torch.Tensor] = None,
+            log: Callable[[str], None] = lambda s: None, tick=lambda: None) -> Comparison:
     """The whole comparison of an adapted model with the input it was adapted from.
 
     Args:
@@ -334,13 +345,15 @@ def compare(adapted: Gaussians, base: Gaussians, fit_cams: Sequence, cams: Seque
         lpips_fn: ``f(img, gt) -> scalar`` or None. repeats: interleaved timing rounds.
         full_rounds: paired rounds of :func:`full_detail_ratio` (0: not measured).
         background: [3] colour behind the scene (default black). log: progress lines.
+        significance: [N] LightGaussian significance of ``base`` on ``fit_cams``, when the caller
+            has it (default: computed).
         tick: called after each render.
 
     Raises:
         RuntimeError: a decimator failed.
     """
     settings, ctx = build_settings(adapted, base, fit_cams, cams, merge_tool=merge_tool, background=background,
-                                   log=log)
+                                   significance=significance, log=log)
     score(settings, gts, lpips_fn, tick)
     extra = matched_settings(settings, ctx, max_sv)
     score(extra, gts, lpips_fn, tick)

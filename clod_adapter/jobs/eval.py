@@ -721,7 +721,7 @@ def evaluate_report(adapted: Union[os.PathLike, Gaussians], scene, out_dir: os.P
         _score_budget(ev, b, ctx, global_scores)
     ev.bar.set_postfix_str(f"timing x{o.timing_repeats}")
     _retime(ev.rows, o.timing_repeats, o.seed, on_render=ev.tick)
-    _compare_time(ev)
+    _compare_time(ev, ctx.lightgaussian)
     ev.bar.set_postfix_str("popping")
     top = ev.s_vs[-1] if o.s_vs is not None else sv_grid(ev.max_sv, 2)[-1]  # the even part (a tier's points beyond)
     pop_svs = [float(x) for x in np.linspace(1.0, top, o.popping_steps)]
@@ -742,13 +742,15 @@ def evaluate_report(adapted: Union[os.PathLike, Gaussians], scene, out_dir: os.P
     return report
 
 
-def _compare_time(ev: _Eval) -> None:
+def _compare_time(ev: _Eval, significance: Tensor) -> None:
     """Phase 3b: the quality-against-frame-time comparison with the peers
-    (:func:`clod_adapter.quality_vs_time.compare`, the one ``benchmarks/quality_vs_time.py`` runs)."""
+    (:func:`clod_adapter.quality_vs_time.compare`, the one ``benchmarks/quality_vs_time.py`` runs),
+    with the LightGaussian significance the ranking baselines already computed on the same views."""
     ev.bar.set_postfix_str("quality against time")
     ev.comparison = qvt.compare(ev.adapted, ev.base, ev.train_cams, ev.cams, ev.gts, max_sv=ev.max_sv,
                                 merge_tool=ev.o.merge_tool, lpips_fn=ev.lpips_fn, repeats=max(ev.o.timing_repeats, 1),
-                                full_rounds=ev.o.full_rounds, background=ev.bg, tick=ev.tick)
+                                full_rounds=ev.o.full_rounds, background=ev.bg, significance=significance,
+                                tick=ev.tick)
 
 
 def _eval_inputs(adapted, scene, o: EvalOptions) -> _Eval:

@@ -22,6 +22,7 @@ suffix ``_val``).
 from __future__ import annotations
 
 import json
+import shutil
 import os
 import sys
 from dataclasses import asdict
@@ -208,8 +209,10 @@ def parse_config(items) -> tuple[dict, str]:
         if not eq or not hasattr(base, k):
             sys.exit(f"benchmark: --config {kv!r}: expected KEY=VALUE with an AdaptConfig key")
         d = getattr(base, k)
-        config[k] = type(d)(v) if d is not None else v
-    return config, ("default" if not config else "_".join(f"{k}-{v}" for k, v in sorted(config.items())))
+        config[k] = (tuple(float(x) for x in v.split(",") if x) if isinstance(d, tuple)
+                     else type(d)(v) if d is not None else v)
+    tag = "_".join(f"{k}-{','.join(map(str, v)) if isinstance(v, tuple) else v}" for k, v in sorted(config.items()))
+    return config, ("default" if not config else tag)
 
 
 #: AdaptConfig keys added after runs were cached, with the value those runs had.
@@ -241,9 +244,9 @@ def adapt_cached(name: str, cfg: AdaptConfig, tag: str, *, split: str = "test", 
                 return out / "point_cloud.ply"
         except (OSError, ValueError):
             pass
-        for p in out.iterdir():  # stale run with other settings
-            if p.is_file():
-                p.unlink()
+    if out.is_dir():
+        shutil.rmtree(out)  # a stale or broken run with other settings (its tiers' folders too)
+    out.mkdir(parents=True)
     log(f"[{name}/{tag}] adapting {ply.name} ({cfg.schedule}, max_sv {cfg.max_sv:g}, {cfg.iterations} steps"
         f"{', fit views only' if holdout else ''}) ...")
     run(ply, scene, out, cfg, AdaptOptions(resolution=res, progress=False, log=lambda *a: None, holdout_val=holdout))

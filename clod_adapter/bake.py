@@ -28,7 +28,7 @@ from torch import Tensor
 from . import lod
 from .gaussians import Gaussians, concat
 from .metrics import psnr
-from .camera_lod import render_lod, tier_parts, tiered, view_lod
+from .camera_lod import budget_walk, chain_parts, chain_weights, render_lod, tier_chain, tiered, view_lod
 
 __all__ = ["persistence", "importance_order", "bake", "lod_set_s_vs", "lod_level", "prune_never_rendered",
            "reduce_sh", "truncate_sh", "BakeInfo"]
@@ -107,9 +107,10 @@ def bake(gaussians: Gaussians, cameras: Sequence, s_v: Optional[float] = None, b
     * ``"auto"`` (default): both are rendered from ``cameras`` and the one closer (PSNR) to
       ``render_lod`` at the setting is kept (:class:`BakeInfo` records the choice and both PSNRs).
 
-    A model with a parent tier, at an ``s_v`` past its ``tier_s_v``: the kept Gaussians followed
-    by the kept parents, each at its own mean level, their opacities weighted by the cross-fade
-    (``1 - u`` and ``u``, :func:`clod_adapter.camera_lod.tier_parts`; ``BakeInfo.n_parents``).
+    A model with parent tiers, at an ``s_v`` past its ``tier_s_v``: the kept Gaussians of each
+    tier drawn there, finest first, each at its own mean level, their opacities weighted by the
+    tier's share of the image (``1 - u`` and ``u`` across a hand-over,
+    :func:`clod_adapter.camera_lod.chain_weights`; ``BakeInfo.n_parents`` counts the tiers' rows).
 
     Returns:
         The baked ``Gaussians``, or ``(Gaussians, BakeInfo)`` with ``return_info``.
@@ -120,21 +121,27 @@ def bake(gaussians: Gaussians, cameras: Sequence, s_v: Optional[float] = None, b
     if (s_v is None) == (budget is None):
         raise ValueError("bake: give exactly one of s_v and budget")
     tier = budget is None and tiered(gaussians, s_v)
-    members = [gaussians] + ([gaussians.parents] if tier else [])
-    u = lod.tier_weight(float(s_v), gaussians.lod)[0] if tier else 0.0
-    weights = [1.0 - u, u] if tier else [1.0]
+    members = tier_chain(gaussians)
+    lods = [m.lod for m in members]
+    weights = [w for w, _ in chain_weights(float(s_v), lods)] if tier else [1.0] * len(members)
     acc = [_Drawn.of(m) for m in members]
     settings, rendered = [], []
     for cam in cameras:
+        def view_of(k, cam=cam):
+            return view_lod(members[k], cam, tau=tau, eps=eps)
+
         if tier:
-            _, sel_c, sel_p = tier_parts(float(s_v), gaussians.lod,
-                                         lambda: view_lod(gaussians, cam, tau=tau, eps=eps),
-                                         lambda: view_lod(gaussians.parents, cam, tau=tau, eps=eps))
-            sels = [sel_c, sel_p]
+            _, sels = chain_parts(float(s_v), lods, view_of)
             settings.append(float(s_v))
-        else:
-            sels = [view_lod(gaussians, cam, tau=tau, eps=eps).select(s_v, budget=budget, estimator="paper")]
+        else:  # an s_v before the first hand-over, or a budget (which may walk down the tiers)
+            v0 = view_of(0)
+            sels = [v0.select(s_v, budget=budget, estimator="paper")] + [None] * (len(members) - 1)
             settings.append(sels[0].s_v)
+            par = budget_walk(lods, view_of, v0, sels[0], budget=budget) if budget is not None else None
+            if par is not None:
+                sels = [None] * len(members)
+                sels[par[3]] = par[1]
+                settings[-1] = par[2]
         for a, sel in zip(acc, sels):
             if sel is not None:
                 a.add(sel)
@@ -165,7 +172,7 @@ def bake(gaussians: Gaussians, cameras: Sequence, s_v: Optional[float] = None, b
     if return_info:
         return out, BakeInfo(chosen=chosen, psnr_vs_lod=scores, n_kept=len(out),
                              per_view_rendered=sum(rendered) / max(len(rendered), 1),
-                             n_parents=int(acc[1].indices.numel()) if tier else 0)
+                             n_parents=sum(int(a.indices.numel()) for a in acc[1:]))
     return out
 
 

@@ -744,10 +744,12 @@ def render_lod(
     Eq. 2's ``alpha''`` (the paper), ``"window"`` with the attributes at the level
     (:meth:`Gaussians.at_level`) and only the Gaussians about to leave faded
     (:func:`clod_adapter.lod.fade_weight`). A model without settings is drawn as the paper does.
-    A model with a parent tier (``gaussians.parents``, ``lod.tier_s_v > 0``) cross-fades to its
-    parents beyond ``tier_s_v`` at a given ``s_v`` (:func:`clod_adapter.lod.tier_weight`: both
-    drawn in one image, the Gaussians' opacities times ``1 - u``, the parents' times ``u``, the
-    parents at their own ``s_v``); budgets, and a given ``level``, draw the Gaussians alone.
+    A model with parent tiers (``gaussians.parents``, ``lod.tier_s_v > 0``; a chain,
+    :func:`tier_chain`) cross-fades to its parents beyond ``tier_s_v`` at a given ``s_v``
+    (:func:`chain_parts`: both drawn in one image, the Gaussians' opacities times ``1 - u``, the
+    parents' times ``u``, the parents at their own ``s_v``, and so on down the chain); a budget
+    whose solution passes a hand-over draws the next tier alone within it (:func:`budget_walk`);
+    a given ``level`` draws the Gaussians alone.
 
     Args:
         gaussians: the model (N Gaussians). ``sigma_d`` is required when ``s_v`` or ``budget`` is given.
@@ -786,9 +788,6 @@ def render_lod(
         view: this model's :class:`LodView` for ``camera`` when the caller has built it (its
             projection and critical ``s_v`` are reused); default: built here.
 
-    A model with a parent tier (``gaussians.parents``) at an ``s_v`` past ``lod.tier_s_v`` draws
-    it (:func:`tier_parts`: the cross-fade, then the parents alone); count budgets and a given
-    ``level`` draw the model's own Gaussians.
 
     Returns:
         :class:`LodRender`.
@@ -806,10 +805,11 @@ def render_lod(
     sel = view.select(s_v, budget=budget, min_s_v=min_s_v, budget_in_view=budget_in_view, level=level,
                       estimator=estimator, temperature=temperature, eta_grad_sigma_only=eta_grad_sigma_only,
                       budget_cost=budget_cost, budget_ms=budget_ms, time_model=time_model)
-    par = None if level is not None else cost_budget_parents(gaussians, camera, view, sel, budget_cost=budget_cost,
+    par = None if level is not None else cost_budget_parents(gaussians, camera, view, sel, budget=budget,
+                                                             budget_cost=budget_cost,
                                                              budget_ms=budget_ms, time_model=time_model, tau=tau, eps=eps)
-    if par is not None:  # the parents alone, within the budget
-        return _render_parts(gaussians, [par[:2]], None, par[1], par[2], t1, background,
+    if par is not None:  # a parent tier alone, within the budget
+        return _render_parts(gaussians, [par[:2]], None, int(par[1].indices.numel()), par[2], t1, background,
                              gaussians.sh_degree if sh_degree is None else sh_degree, backend)
     t2 = time.perf_counter()
     bg = None
@@ -833,77 +833,154 @@ def tiered(gaussians: Gaussians, s_v: Optional[float], level: Optional[float] = 
             and st.tier_s_v > 0 and lod.tier_weight(float(s_v), st)[0] > 0)
 
 
+def tier_chain(gaussians: Gaussians) -> list[Gaussians]:
+    """The model's tiers, finest first: ``[gaussians, gaussians.parents, its parents, ...]``, each
+    followed by the next while its ``lod.tier_s_v > 0`` (docs/lod_rule.md "The tiers")."""
+    out = [gaussians]
+    while out[-1].parents is not None and out[-1].lod is not None and out[-1].lod.tier_s_v > 0:
+        out.append(out[-1].parents)
+    return out
+
+
+def tier_reach(gaussians: Gaussians) -> float:
+    """How far the model's ``s_v`` reaches into its tiers: the product over the chain
+    (:func:`tier_chain`) of ``tier_s_v / tier_start`` (>= 1; 1 without tiers), so the coarsest
+    tier is at its own ``s_v = s`` where the model is at ``s * tier_reach`` (past every hand-over)."""
+    r = 1.0
+    for m in tier_chain(gaussians)[:-1]:
+        r *= m.lod.tier_s_v / m.lod.tier_start
+    return max(r, 1.0)
+
+
+def chain_parts(s_v: float, settings: Sequence[lod.LodSettings], view_of: Callable[[int], LodView]):
+    """What a model with a chain of tiers draws at ``s_v`` (docs/lod_rule.md "The tiers"):
+    ``(parts, sels)``, ``parts`` the ``(view, selection)`` pairs for :func:`rasterize_views`
+    (finest tier first), ``sels[k]`` tier ``k``'s selection or None where it is not drawn.
+
+    ``settings[k]`` are tier ``k``'s :class:`clod_adapter.lod.LodSettings` (its ``tier_s_v`` hands
+    over to tier ``k + 1``; the last tier's is not read). Tier 0 is drawn at ``s_v``; with
+    ``(u, s_next) = lod.tier_weight(s, settings[k])`` tier ``k`` keeps ``1 - u`` of its weight and
+    passes ``u`` to tier ``k + 1`` at its own ``s_next``: each tier's drawn opacities are times its
+    weight, so at most two neighbouring tiers are drawn at once and the image is continuous in
+    ``s_v``. ``view_of(k)`` builds tier ``k``'s :class:`LodView` of the camera (called only for
+    the tiers drawn)."""
+    parts, sels = [], [None] * len(settings)
+    for k, (w, s) in enumerate(chain_weights(s_v, settings)):
+        if w > 0.0:
+            v = view_of(k)
+            sel = v.select(s)
+            if w != 1.0:
+                sel.opacities = sel.opacities * w
+            parts.append((v, sel))
+            sels[k] = sel
+    return parts, sels
+
+
+def chain_weights(s_v: float, settings: Sequence[lod.LodSettings]) -> list[tuple[float, float]]:
+    """``[(weight, s_v)]`` of each tier of a chain at the model's ``s_v`` (:func:`chain_parts`):
+    tier ``k``'s share of the image (0: not drawn) and its own ``s_v``. The weights sum to 1 and at
+    most two neighbouring ones are > 0."""
+    out, w, s = [], 1.0, float(s_v)
+    for k, st in enumerate(settings):
+        u, s_next = lod.tier_weight(s, st) if k + 1 < len(settings) else (0.0, s)
+        out.append((w * (1.0 - u), s))
+        w, s = w * u, s_next
+    return out
+
+
 def tier_parts(s_v: float, settings: lod.LodSettings, children: Callable[[], LodView],
                parents: Callable[[], LodView]):
-    """What a tiered model draws at ``s_v`` (docs/method.md "Merged parents", docs/lod_rule.md "The parent
-    tier"): ``(parts, sel_children, sel_parents)``, ``parts`` the ``(view, selection)`` pairs for
-    :func:`rasterize_views`. With ``(u, s_p) = lod.tier_weight(s_v, settings)``: the parents'
-    selection at ``s_p`` with its drawn opacities times ``u`` and, while ``u < 1``, the
-    Gaussians' at ``s_v`` times ``1 - u`` (first in ``parts``; ``sel_children`` None once
-    ``u = 1``). ``children`` / ``parents`` build the two :class:`LodView` of the camera (called
-    only when needed)."""
-    u, s_p = lod.tier_weight(s_v, settings)
-    vp = parents()
-    sel_p = vp.select(s_p)
-    parts = [(vp, sel_p)]
-    sel_c = None
-    if u < 1.0:
-        sel_p.opacities = sel_p.opacities * u
-        vc = children()
-        sel_c = vc.select(s_v)
-        sel_c.opacities = sel_c.opacities * (1.0 - u)
-        parts.insert(0, (vc, sel_c))
-    return parts, sel_c, sel_p
+    """:func:`chain_parts` of a model with one parent tier: ``(parts, sel_children, sel_parents)``
+    (each None where not drawn). ``children`` / ``parents`` build the two :class:`LodView` of the
+    camera (called only when needed)."""
+    parts, sels = chain_parts(s_v, [settings, settings], lambda k: parents() if k else children())
+    return parts, sels[0], sels[1]
 
 
-#: a cost budget on a tiered model draws the parents once the model's own solution passes this
-#: times ``tier_s_v`` (:func:`cost_budget_parents`); None: ``tier_fade``, where the ``s_v`` rule
-#: draws the parents alone (chosen on validation views: ``benchmarks/studies/budget_tier.py``,
-#: docs/method.md "Merged parents")
-COST_BUDGET_SWITCH: Optional[float] = None
+def cost_budget_parents(gaussians: Gaussians, camera, view: LodView, sel: LodSelection, *, budget=None,
+                        budget_cost=None, budget_ms=None, time_model=None, tau=None, eps=None):
+    """A budget on a model with tiers (:func:`budget_walk` with the model's :func:`tier_chain`):
+    ``(the drawn tier's view, its selection, the model's s_v its level stands for, the tier's
+    depth >= 1)``, else None (the model's own selection ``sel`` of ``view`` stands)."""
+    models = tier_chain(gaussians)
+    return budget_walk([m.lod for m in models], lambda k: view_lod(models[k], camera, tau=tau, eps=eps), view, sel,
+                       budget=budget, budget_cost=budget_cost, budget_ms=budget_ms, time_model=time_model)
 
 
-def cost_budget_parents(gaussians: Gaussians, camera, view: LodView, sel: LodSelection, *, budget_cost=None,
-                        budget_ms=None, time_model=None, tau=None, eps=None):
-    """A cost budget (``budget_cost`` / ``budget_ms``) on a model with a parent tier: where the
-    model's own solution ``sel`` (of ``view``) lands where the ``s_v`` rule draws the parents alone
-    (past ``tier_fade x tier_s_v``; :data:`COST_BUDGET_SWITCH`), the parents drawn alone
-    within the same budget, from their ``tier_start`` level on (a ``budget_cost`` share is taken of
-    the model's :meth:`LodView.full_cost`): ``(parents' view, their selection, the model's s_v
-    their level stands for)``, else None (the model's own selection stands)."""
-    st = gaussians.lod
-    if gaussians.parents is None or st is None or st.tier_s_v <= 0 or (budget_cost is None and budget_ms is None) \
-            or sel.s_v is None:
+def budget_walk(settings: Sequence[lod.LodSettings], view_of: Callable[[int], LodView], view: LodView,
+                sel: LodSelection, *, budget=None, budget_cost=None, budget_ms=None, time_model=None, depth: int = 0):
+    """A budget down a chain of tiers (docs/lod_rule.md "The tiers"; ``settings[k]`` tier ``k``'s,
+    ``view_of(k)`` its :class:`LodView` of the camera, ``sel`` tier ``depth``'s own solution of the
+    budget in ``view``). The next tier takes the budget when it can fill it from where the
+    ``s_v`` rule first draws it alone (its ``tier_start`` level, selection ``start``): a count
+    budget of ``k`` (the count ``sel`` drew) when ``start`` draws at least ``k``, a cost budget
+    when ``start`` costs at least the budget (a ``budget_cost`` share is taken of the first view's
+    :meth:`LodView.full_cost`), a ``budget_ms`` when ``start`` is predicted to take at least that
+    long (``time_model``, default the fitted one). It is then solved in that tier (from its
+    ``tier_start`` level on), and so on down the chain; so a smaller budget never draws a finer
+    tier. Returns ``(view, selection, s_v of tier 0 it stands for, depth >= 1)``, or None
+    (``sel`` stands)."""
+    from .cost import DEFAULT_FRAME_TIME_MODEL, splat_cost
+
+    if depth + 1 >= len(settings) or (budget is None and budget_cost is None and budget_ms is None) or sel.s_v is None:
         return None
-    if not sel.s_v > (st.tier_fade if COST_BUDGET_SWITCH is None else COST_BUDGET_SWITCH) * st.tier_s_v:
+    st = settings[depth]
+    if st is None or st.tier_s_v <= 0:
         return None
-    vp = view_lod(gaussians.parents, camera, tau=tau, eps=eps)
+    vp = view_of(depth + 1)
+    start = vp.select(st.tier_start)
+    b = k = None
+    if budget_ms is not None or budget_cost is not None:
+        cost = float(splat_cost(vp, start.indices, level=start.level, opacities=start.opacities).sum())
+        if budget_ms is not None:
+            fits = budget_ms <= float((time_model or DEFAULT_FRAME_TIME_MODEL).ms(cost, int(start.indices.numel())))
+        else:
+            b = max(float(budget_cost) if budget_cost > 1.0 else float(budget_cost) * view.full_cost(), 1.0 + 1e-6)
+            fits = b <= cost
+    else:
+        k = int(sel.indices.numel())
+        fits = k <= int(start.indices.numel())
+    if not fits:
+        return None
     if budget_ms is not None:
         sel_p = vp.select(budget_ms=budget_ms, time_model=time_model, min_s_v=st.tier_start)
+    elif b is not None:
+        sel_p = vp.select(budget_cost=b, min_s_v=st.tier_start)
     else:
-        b = float(budget_cost) if budget_cost > 1.0 else float(budget_cost) * view.full_cost()
-        sel_p = vp.select(budget_cost=max(b, 1.0 + 1e-6), min_s_v=st.tier_start)
-    return vp, sel_p, sel_p.s_v * st.tier_s_v / st.tier_start
+        sel_p = vp.select(budget=k, min_s_v=st.tier_start)
+    deeper = budget_walk(settings, view_of, vp, sel_p, budget=k, budget_cost=b, budget_ms=budget_ms,
+                         time_model=time_model, depth=depth + 1)
+    scale = st.tier_s_v / st.tier_start
+    if deeper is not None:
+        return deeper[0], deeper[1], deeper[2] * scale, deeper[3]
+    return vp, sel_p, sel_p.s_v * scale, depth + 1
+
+
+def _chain_views(gaussians: Gaussians, camera, tau, eps, view: Optional[LodView] = None):
+    """``(settings, view_of)`` of :func:`chain_parts` for ``gaussians``' tiers seen from ``camera``
+    (tier 0's view is ``view`` when given)."""
+    models = tier_chain(gaussians)
+    return [m.lod for m in models], lambda k: view if (k == 0 and view is not None) else \
+        view_lod(models[k], camera, tau=tau, eps=eps)
 
 
 def _render_tiered(gaussians: Gaussians, camera, s_v: float, tau, eps, background, sh_degree, backend,
                    view: Optional[LodView]) -> LodRender:
-    """:func:`render_lod` at an ``s_v`` where the parent tier is drawn (cross-fade or alone)."""
+    """:func:`render_lod` at an ``s_v`` where a parent tier is drawn (cross-fade or alone)."""
     t1 = time.perf_counter()
-    parts, sel_c, sel_p = tier_parts(s_v, gaussians.lod,
-                                     lambda: view if view is not None else view_lod(gaussians, camera, tau=tau, eps=eps),
-                                     lambda: view_lod(gaussians.parents, camera, tau=tau, eps=eps))
-    return _render_parts(gaussians, parts, sel_c, sel_p, s_v, t1, background, sh_degree, backend)
+    parts, sels = chain_parts(s_v, *_chain_views(gaussians, camera, tau, eps, view))
+    return _render_parts(gaussians, parts, sels[0], sum(int(x.indices.numel()) for x in sels[1:] if x is not None),
+                         s_v, t1, background, sh_degree, backend)
 
 
-def _render_parts(gaussians: Gaussians, parts, sel_c: Optional[LodSelection], sel_p: LodSelection, s_v: float,
+def _render_parts(gaussians: Gaussians, parts, sel_c: Optional[LodSelection], n_p: int, s_v: float,
                   t1: float, background, sh_degree, backend) -> LodRender:
-    """:class:`LodRender` of a frame that draws the parent tier: ``parts`` for
-    :func:`rasterize_views`, the model's selection (None: none) and the parents'; ``s_v`` the
-    model's ``s_v`` it stands for; ``t1`` when the selection began."""
+    """:class:`LodRender` of a frame that draws a parent tier: ``parts`` for
+    :func:`rasterize_views`, the model's selection (None: none), the tiers' drawn count ``n_p``;
+    ``s_v`` the model's ``s_v`` it stands for; ``t1`` when the selection began."""
     if sel_c is None:
         sel_c = LodSelection(torch.zeros(0, dtype=torch.long, device=gaussians.means.device),
-                             gaussians.opacity_logits.new_zeros(0), None, s_v, 0.0, sel_p.eta.new_zeros(()),
+                             gaussians.opacity_logits.new_zeros(0), None, s_v, 0.0, parts[0][1].eta.new_zeros(()),
                              len(gaussians))
     t2 = time.perf_counter()
     bg = None
@@ -912,7 +989,6 @@ def _render_parts(gaussians: Gaussians, parts, sel_c: Optional[LodSelection], se
     image, alpha, meta = rasterize_views(parts, background=bg, sh_degree=sh_degree, backend=backend)
     t3 = time.perf_counter()
     proj_ms = sum(v.project_ms for v, _ in parts)
-    n_p = int(sel_p.indices.numel())
     main = parts[0][1]
     return LodRender(image=image, alpha=alpha, selection=sel_c, n_rendered=int(sel_c.indices.numel()) + n_p,
                      n_frustum=parts[0][0].n_frustum, eta=main.eta, s_v=s_v, level=main.level,
@@ -988,6 +1064,10 @@ class LodSubset:
             drawn rows, or None (no tier drawn). Where the tier is drawn (:func:`tier_parts`)
             the attribute rows are the model's ``indices`` (opacities times ``1 - u``) followed
             by these parents (opacities times ``u``).
+        tier_indices: one entry per parent tier of :func:`tier_chain` (``[0]`` is
+            ``parent_indices``): [p_k] int64 indices into tier ``k + 1`` of its drawn rows, or
+            None; the attribute rows are the model's, then each drawn tier's, in this order
+            (:func:`chain_parts`). Empty for a model without tiers.
     """
 
     indices: Tensor
@@ -999,6 +1079,7 @@ class LodSubset:
     s_v: Optional[float]
     n_in_view: int
     parent_indices: Optional[Tensor] = None
+    tier_indices: list = field(default_factory=list)
 
 
 @torch.no_grad()
@@ -1017,26 +1098,27 @@ def lod_subset(gaussians: Gaussians, camera, s_v: Optional[float] = None, *,
         ValueError: as :func:`render_lod`.
     """
     if tiered(gaussians, s_v):
-        parts, sel_c, sel_p = tier_parts(float(s_v), gaussians.lod,
-                                         lambda: view_lod(gaussians, camera, tau=tau, eps=eps),
-                                         lambda: view_lod(gaussians.parents, camera, tau=tau, eps=eps))
+        parts, sels = chain_parts(float(s_v), *_chain_views(gaussians, camera, tau, eps))
         attrs = [v.drawn_attributes(sel) for v, sel in parts]
         cat = [torch.cat([a[i] for a in attrs]) for i in range(4)]
-        idx = sel_c.indices if sel_c is not None else sel_p.indices.new_zeros(0)
+        idx = sels[0].indices if sels[0] is not None else parts[0][1].indices.new_zeros(0)
+        ti = [x.indices if x is not None else None for x in sels[1:]]
         return LodSubset(indices=idx, means=cat[0], quats=cat[1], scales=cat[2],
                          opacities=torch.cat([sel.opacities for _, sel in parts]), colors=cat[3],
-                         s_v=float(s_v), n_in_view=parts[0][0].n_in_view, parent_indices=sel_p.indices)
+                         s_v=float(s_v), n_in_view=parts[0][0].n_in_view, parent_indices=ti[0], tier_indices=ti)
     view = view_lod(gaussians, camera, tau=tau, eps=eps)
     sel = view.select(s_v, budget=budget, min_s_v=min_s_v, estimator="paper", budget_cost=budget_cost,
                       budget_ms=budget_ms, time_model=time_model)
-    par = cost_budget_parents(gaussians, camera, view, sel, budget_cost=budget_cost, budget_ms=budget_ms,
+    par = cost_budget_parents(gaussians, camera, view, sel, budget=budget, budget_cost=budget_cost, budget_ms=budget_ms,
                               time_model=time_model, tau=tau, eps=eps)
-    if par is not None:  # the parents alone, within the budget
-        vp, sel_p, s_equiv = par
+    n_tiers = len(tier_chain(gaussians)) - 1
+    if par is not None:  # a parent tier alone, within the budget
+        vp, sel_p, s_equiv, depth = par
         means, quats, scales, colors = vp.drawn_attributes(sel_p)
+        ti = [sel_p.indices if k + 1 == depth else None for k in range(n_tiers)]
         return LodSubset(indices=sel.indices.new_zeros(0), means=means, quats=quats, scales=scales,
                          opacities=sel_p.opacities, colors=colors, s_v=s_equiv, n_in_view=vp.n_in_view,
-                         parent_indices=sel_p.indices)
+                         parent_indices=ti[0], tier_indices=ti)
     means, quats, scales, colors = view.drawn_attributes(sel)
     return LodSubset(indices=sel.indices, means=means, quats=quats, scales=scales, opacities=sel.opacities,
-                     colors=colors, s_v=sel.s_v, n_in_view=view.n_in_view)
+                     colors=colors, s_v=sel.s_v, n_in_view=view.n_in_view, tier_indices=[None] * n_tiers)

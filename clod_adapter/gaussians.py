@@ -64,8 +64,10 @@ class Gaussians:
             rendered (e.g. ``masks_0``, ``masks_1``); empty by default.
         parents: the parent tier, or None: an adapted model of merged Gaussians (M of them, its
             own ``sigma_d`` and gains) that the coarse levels cross-fade to from
-            ``lod.tier_s_v`` on (:func:`clod_adapter.lod.tier_weight`; docs/method.md "Merged parents").
-            Moved and copied with the model; a :meth:`subset` drops it.
+            ``lod.tier_s_v`` on (:func:`clod_adapter.lod.tier_weight`; docs/method.md "Merged tiers"),
+            with its own ``parents`` for the next tier of a chain
+            (:func:`clod_adapter.camera_lod.tier_chain`). Moved and copied with the model; a
+            :meth:`subset` drops it.
     """
 
     means: Tensor

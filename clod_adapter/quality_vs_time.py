@@ -5,7 +5,7 @@ One implementation for ``clod-eval`` (its verdict, ``quality_vs_time.csv`` and
 :func:`compare` renders the evaluation views with
 
 * ``input``: the pretrained model, every Gaussian in view;
-* ``clod``: the adapted model along ``s_v`` (:data:`S_VS`) and at cost budgets
+* ``clod``: the adapted model along ``s_v`` (:func:`clod_s_vs`) and at cost budgets
   (:data:`COST_SHARES`: shares of the view's frame cost, ``render_lod(budget_cost=)``);
 * static cuts of the input over several counts (:data:`STATIC_SHARES` of the Gaussians *in
   view*): ``lightgaussian`` (LightGaussian significance on the fit views) and ``opacity``;
@@ -40,7 +40,7 @@ from typing import Callable, Optional, Sequence
 import torch
 
 from .baselines import lightgaussian_significance, merge_decimate, topk_in_view
-from .camera_lod import render_lod, view_lod
+from .camera_lod import render_lod, tier_reach, view_lod
 from .frontier import Point, frontier, time_margins
 from .gaussians import Gaussians
 from .metrics import psnr, ssim
@@ -162,6 +162,16 @@ class _Context:
         return [lod_render(self.base.subset(i), c, **self.render_kw) for c, i in zip(self.cams, idx)], size
 
 
+def clod_s_vs(adapted: Gaussians) -> list[float]:
+    """The adapted model's levels compared: :data:`S_VS`, and for a model with merged tiers more
+    levels spaced by 1.25 in ``s_v`` up to ``S_VS[-1] x`` :func:`clod_adapter.camera_lod.tier_reach`,
+    so the last tier is taken as far down as a model without tiers."""
+    reach = tier_reach(adapted)
+    n = min(12, math.ceil(math.log(reach) / math.log(1.25))) if reach > 1.0 else 0
+    top = S_VS[-1]
+    return list(S_VS) + [round(top * reach ** (i / n), 4) for i in range(1, n + 1)]
+
+
 def build_settings(adapted: Gaussians, base: Gaussians, fit_cams: Sequence, cams: Sequence, *,
                    merge_tool: Optional[str] = None, background=None, significance: Optional[torch.Tensor] = None,
                    log: Callable[[str], None] = lambda s: None) -> tuple[list, _Context]:
@@ -183,7 +193,7 @@ def build_settings(adapted: Gaussians, base: Gaussians, fit_cams: Sequence, cams
     n0 = len(base)
     settings = [Setting("input", "full", [lod_render(base, c, **kw) for c in cams], ply_bytes(base))]
     sa = ply_bytes(adapted)
-    for s in S_VS:
+    for s in clod_s_vs(adapted):
         settings.append(Setting("clod", f"s_v={s:g}", [lod_render(adapted, c, s_v=s, **kw) for c in cams], sa))
     for b in COST_SHARES:
         settings.append(Setting("clod", f"cost={b:g}", [lod_render(adapted, c, budget_cost=b, **kw) for c in cams], sa))

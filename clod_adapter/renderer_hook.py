@@ -9,9 +9,9 @@ the selected Gaussians to :func:`clod_adapter.render.rasterization` (gsplat on C
 otherwise). The selection is the one :func:`clod_adapter.camera_lod.render_lod` makes, so both
 give the same image.
 
-A model with a parent tier (docs/method.md "Merged parents") passes its parents too (``parents=``), and
-at an ``s_v`` past ``lod_settings.tier_s_v`` both are drawn as ``render_lod`` draws them
-(:func:`clod_adapter.camera_lod.tier_parts`). :func:`clod_kwargs` gives every LoD keyword of an
+A model with parent tiers (docs/method.md "Merged tiers") passes them too (``parents=``, each
+tier's own ``parents`` nested in it), and at an ``s_v`` past ``lod_settings.tier_s_v`` the tiers are
+drawn as ``render_lod`` draws them (:func:`clod_adapter.camera_lod.chain_parts`). :func:`clod_kwargs` gives every LoD keyword of an
 adapted model.
 
 Without ``sigma_d``, or with neither ``s_v`` nor ``budget``, it is exactly ``rasterization``.
@@ -25,7 +25,7 @@ from torch import Tensor
 
 from . import lod
 from .render.dispatch import rasterization
-from .camera_lod import rasterize_views, tier_parts, view_lod_tensors
+from .camera_lod import budget_walk, chain_parts, rasterize_views, view_lod_tensors
 
 __all__ = ["clod_rasterization", "clod_kwargs"]
 
@@ -40,7 +40,7 @@ def clod_kwargs(model) -> Dict[str, Any]:
     ``sigma_d`` [N], ``lod_settings``, ``opacity_logits`` [N], the level gains (``opacity_logit_gain`` [N],
     ``log_scale_gain`` [N], ``sh0_gain`` [N, 1, 3]; None where the model has none) and, for a
     model with a parent tier, ``parents`` (a dict of the parents' :data:`PARENT_KEYS` tensors,
-    their gains and their own ``lod_settings``). Add ``s_v=`` or ``budget=``.
+    their gains, their own ``lod_settings`` and, for a chain of tiers, their own ``parents``). Add ``s_v=`` or ``budget=``.
 
     Raises:
         ValueError: the model has no ``sigma_d`` (not adapted by ``clod-adapt``).
@@ -51,9 +51,17 @@ def clod_kwargs(model) -> Dict[str, Any]:
                           **{k: getattr(model, k) for k in _GAINS}}
     p = model.parents
     if p is not None:
-        kw["parents"] = {**{k: getattr(p, k) for k in PARENT_KEYS}, **{k: getattr(p, k) for k in _GAINS},
-                         "opacity_logits": p.opacity_logits, "lod_settings": p.lod}
+        kw["parents"] = _parent_dict(p)
     return kw
+
+
+def _parent_dict(p) -> Dict[str, Any]:
+    """A parent tier as ``parents=`` takes it; its own parent tier nested under ``"parents"``."""
+    d = {**{k: getattr(p, k) for k in PARENT_KEYS}, **{k: getattr(p, k) for k in _GAINS},
+         "opacity_logits": p.opacity_logits, "lod_settings": p.lod}
+    if p.parents is not None:
+        d["parents"] = _parent_dict(p.parents)
+    return d
 
 
 def _logits(opacities: Tensor, logits: Optional[Tensor] = None) -> Tensor:
@@ -63,6 +71,18 @@ def _logits(opacities: Tensor, logits: Optional[Tensor] = None) -> Tensor:
         return logits
     a = opacities.clamp(1e-30, 1.0)
     return torch.log(a) - torch.log1p(-a.clamp_max(1.0 - 1e-7))  # the view works on raw logits
+
+
+def _chain(parents: Dict[str, Any], settings) -> list:
+    """``[(tier dict, its logits, its gains)]`` of the parent tiers drawn after the model:
+    ``parents``, then its own ``parents`` while its ``lod_settings.tier_s_v > 0``."""
+    out, p = [], parents
+    while p is not None:
+        _check_parents(p)
+        out.append((p, _logits(p["opacities"], p.get("opacity_logits")), {k: p.get(k) for k in _GAINS}))
+        st = p.get("lod_settings")
+        p = p.get("parents") if st is not None and st.tier_s_v > 0 else None
+    return out
 
 
 def _check_parents(parents: Dict[str, Any]) -> None:
@@ -157,7 +177,9 @@ def clod_rasterization(
             M rows), ``sigma_d`` [M], optional gains, ``opacity_logits`` and ``lod_settings``
             (the parents' own).
             Drawn at an ``s_v`` past ``lod_settings.tier_s_v`` (cross-fade, then alone, at the
-            parents' ``s_v = tier_start s_v / tier_s_v``); budgets draw the model alone.
+            parents' ``s_v = tier_start s_v / tier_s_v``; their own ``parents`` likewise down the
+            chain, :func:`clod_adapter.camera_lod.chain_parts`); a budget whose solution passes a
+            hand-over draws that tier alone (:func:`clod_adapter.camera_lod.budget_walk`).
         opacity_logits: [N] the raw opacities ``opacities`` came from: the rule works on logits
             (the gains shift them), and a float32 opacity near 1 keeps few digits of ``1 - o``
             (exactly 1 above a logit of ~16.6), so ``log(o / (1 - o))`` returns logits above ~14
@@ -174,9 +196,11 @@ def clod_rasterization(
         ``meta["cameras"]`` lists the per-camera metas; in both cases meta also has
         ``lod_s_v`` (list of C floats), ``lod_n_rendered`` (list of C ints: parents included),
         ``lod_indices`` (list of C [k_c] int64 tensors into the N input Gaussians),
-        ``lod_n_parents`` (list of C ints) and ``lod_parent_indices`` (list of C [p_c] int64
-        tensors into the M parents; empty where the tier is not drawn). Where the tier is drawn,
-        the camera's meta numbers the parents after the N Gaussians (``visible_ids``).
+        ``lod_n_parents`` (list of C ints: every parent tier's), ``lod_parent_indices`` (list of
+        C [p_c] int64 tensors into the M parents; empty where the tier is not drawn) and
+        ``lod_tier_indices`` (per camera, a list with one such tensor per parent tier of the
+        chain). Where a tier is drawn, the camera's meta numbers its rows after the N Gaussians
+        and the tiers before it (``visible_ids``).
 
     Raises:
         ValueError: ``s_v`` and ``budget`` both given, ``s_v < 1``, ``sigma_d`` of the wrong
@@ -208,42 +232,53 @@ def clod_rasterization(
     logits = _logits(opacities, opacity_logits)
     tier = (s_v is not None and parents is not None and lod_settings is not None and lod_settings.tier_s_v > 0
             and lod.tier_weight(float(s_v), lod_settings)[0] > 0)
-    if tier:
-        _check_parents(parents)
-        p_logits = _logits(parents["opacities"], parents.get("opacity_logits"))
-        p_gains = {k: parents.get(k) for k in _GAINS}
-    imgs, alphas, metas, svs, counts, indices, n_par, par_idx = [], [], [], [], [], [], [], []
+    has_tiers = parents is not None and lod_settings is not None and lod_settings.tier_s_v > 0
+    chain = _chain(parents, lod_settings) if has_tiers else []
+    lods = [lod_settings] + [p.get("lod_settings") or lod_settings for p, _, _ in chain]
+    imgs, alphas, metas, svs, counts, indices, n_par, par_idx, tier_idx = [], [], [], [], [], [], [], [], []
     for c in range(C):
         col = colors[c] if per_cam_colors else colors
 
-        def child_view(col=col, c=c):
-            return view_lod_tensors(means, quats, scales, logits, col, viewmats[c], Ks[c], w, h, sigma_d=sigma_d,
-                                    gains=gains, settings=lod_settings, tau=tau, eps=eps)
+        def view_of(k, col=col, c=c):
+            if k == 0:
+                return view_lod_tensors(means, quats, scales, logits, col, viewmats[c], Ks[c], w, h, sigma_d=sigma_d,
+                                        gains=gains, settings=lod_settings, tau=tau, eps=eps)
+            p, p_logits, p_gains = chain[k - 1]
+            return view_lod_tensors(p["means"], p["quats"], p["scales"], p_logits,
+                                    p["colors"][c] if per_cam_colors else p["colors"], viewmats[c], Ks[c], w, h,
+                                    sigma_d=p["sigma_d"], gains=p_gains, settings=p.get("lod_settings"), tau=tau, eps=eps)
 
         bg = None if backgrounds is None else backgrounds[c]
         if tier:
-            p_col = parents["colors"][c] if per_cam_colors else parents["colors"]
-            parts, sel, sel_p = tier_parts(float(s_v), lod_settings, child_view, lambda p_col=p_col, c=c: view_lod_tensors(
-                parents["means"], parents["quats"], parents["scales"], p_logits, p_col, viewmats[c], Ks[c], w, h,
-                sigma_d=parents["sigma_d"], gains=p_gains, settings=parents.get("lod_settings"), tau=tau, eps=eps))
+            parts, sels = chain_parts(float(s_v), lods, view_of)
             rc, ra, meta = rasterize_views(parts, background=bg, sh_degree=sh_degree, backend=backend)
-            idx = sel.indices if sel is not None else sel_p.indices.new_zeros(0)
-            p_idx = sel_p.indices
+            empty = parts[0][1].indices.new_zeros(0)
+            idx = sels[0].indices if sels[0] is not None else empty
+            t_idx = [x.indices if x is not None else empty for x in sels[1:]]
+            s_used = float(s_v)
         else:
-            view = child_view()
+            view = view_of(0)
             sel = view.select(s_v, budget=budget, min_s_v=min_s_v, estimator="paper")
-            rc, ra, meta = view.rasterize(sel, background=bg, sh_degree=sh_degree, backend=backend,
-                                          colors=None if sh_degree is not None else col)
-            idx, p_idx = sel.indices, sel.indices.new_zeros(0)
+            par = budget_walk(lods, view_of, view, sel, budget=budget) if budget is not None and chain else None
+            empty = sel.indices.new_zeros(0)
+            t_idx = [empty] * max(len(chain), 1)
+            if par is not None:  # a budget past a hand-over: that tier alone (camera_lod.budget_walk)
+                rc, ra, meta = rasterize_views([par[:2]], background=bg, sh_degree=sh_degree, backend=backend)
+                idx, t_idx[par[3] - 1], s_used = empty, par[1].indices, par[2]
+            else:
+                rc, ra, meta = view.rasterize(sel, background=bg, sh_degree=sh_degree, backend=backend,
+                                              colors=None if sh_degree is not None else col)
+                idx, s_used = sel.indices, sel.s_v
         imgs.append(rc[None])
         alphas.append(ra[None])
         metas.append(meta)
-        svs.append(float(s_v) if tier else sel.s_v)
-        counts.append(int(idx.numel() + p_idx.numel()))
+        svs.append(s_used)
+        n_par.append(sum(int(x.numel()) for x in t_idx))
+        counts.append(int(idx.numel()) + n_par[-1])
         indices.append(idx)
-        n_par.append(int(p_idx.numel()))
-        par_idx.append(p_idx)
+        par_idx.append(t_idx[0])
+        tier_idx.append(t_idx)
     out_meta: Dict[str, Any] = dict(metas[0]) if C == 1 else {"cameras": metas, "n_cameras": C}
     out_meta.update(lod_s_v=svs, lod_n_rendered=counts, lod_indices=indices, lod_n_parents=n_par,
-                    lod_parent_indices=par_idx)
+                    lod_parent_indices=par_idx, lod_tier_indices=tier_idx)
     return torch.cat(imgs, 0), torch.cat(alphas, 0), out_meta

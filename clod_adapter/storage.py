@@ -12,7 +12,7 @@ import numpy as np
 import plyfile
 
 from .gaussians import Gaussians
-from .io.ply import PARENT_ELEMENT, ply_comments, ply_vertex_dtype
+from .io.ply import ply_comments, ply_vertex_dtype, tier_chain_of, tier_element
 
 __all__ = ["ply_bytes", "ply_row_bytes"]
 
@@ -49,7 +49,7 @@ def ply_bytes(gaussians: Gaussians, *, with_normals: bool = True) -> int:
     Raises:
         ValueError: an ``extra`` name is also a property of the layout (as ``write_ply``).
     """
-    models = [("vertex", gaussians)] + ([(PARENT_ELEMENT, gaussians.parents)] if gaussians.parents is not None else [])
+    models = [(tier_element(k) if k else "vertex", g) for k, g in enumerate(tier_chain_of(gaussians))]
     elements, rows = [], 0
     for name, g in models:  # the parent tier is a second element of the vertex layout
         dtype = ply_vertex_dtype(g, with_normals=with_normals)

@@ -1,22 +1,21 @@
-"""The parent tier: merged Gaussians that the coarse levels cross-fade to.
+"""Merged tiers: a chain of merged models that the coarser levels hand over to.
 
-A selection keeps survivors; at the cheap end of a frame budget survivors are few and, grown by
-the level gains, large, and a merging decimator covers the same image with fewer, better-placed
-splats (``python benchmarks/studies/merge_tier.py``: on skull's and fern's validation views the
-adapted model plus an adapted ``--decimate`` to 4 % is 2.3-3.6 dB above the adapted model alone
-within 25 / 15 / 10 % of the input's frame time, and level with it above 50 %). So a model may
-carry a *parent tier* (``Gaussians.parents``): the input merged by PlayCanvas splat-transform's
-``--decimate`` (mass-preserving moment matching of nearest pairs, :func:`decimated`), adapted
-like any input (its own ``sigma_d`` and level gains), drawn instead of the Gaussians from
+A selection keeps survivors; down the range survivors are few and, grown by the level gains,
+large, and a merging decimator covers the same image with fewer, better-placed splats. So a model
+may carry *parent tiers* (``Gaussians.parents``, whose own ``parents`` is the next tier, ...): the
+input merged by PlayCanvas splat-transform's ``--decimate`` (mass-preserving moment matching of
+nearest pairs, :func:`decimated`) to each of a few shares of it (:data:`DEFAULT_SHARES`, chosen on
+validation views: docs/studies.md "Merged tiers"), each adapted like any input (its own
+``sigma_d`` and level gains) and drawn instead of the tier above from that tier's
 ``LodSettings.tier_s_v`` on, after a cross-fade in ``s_v`` (:func:`clod_adapter.lod.tier_weight`,
-:func:`clod_adapter.camera_lod.render_lod`). It is stored in the same .ply as a second element
-(``lod_parent``) that viewers reading only ``vertex`` leave out.
+:func:`clod_adapter.camera_lod.chain_parts`). They are stored in the same .ply as more elements
+(``lod_parent``, ``lod_parent_2``, ...) that viewers reading only ``vertex`` leave out.
 
-:func:`choose` picks where it takes over, on the views it is given (training or validation
-views, never test views), by the fitted frame-time model (:class:`clod_adapter.cost.FrameTimeModel`:
-no wall clock, so the choice is reproducible): the first level of the Gaussians at which some
-level of the parents is at least as good in PSNR and predicted no slower. When there is none,
-the scene does not need the tier and the model is left without it.
+:func:`choose` picks where a tier takes over from the one above, on the views it is given
+(training views, never validation or test views), by the fitted frame-time model
+(:class:`clod_adapter.cost.FrameTimeModel`: no wall clock, so the choice is reproducible): the
+first level of the tier above at which some level of the tier is at least as good in PSNR and
+predicted no slower. When there is none, the scene does not need the tier and it is left out.
 """
 from __future__ import annotations
 
@@ -34,11 +33,14 @@ from .metrics import psnr
 
 #: models with fewer Gaussians get no parent tier (their coarsest frames already cost little)
 PARENT_MIN_GAUSSIANS = 10_000
+#: the default tiers' shares of the input (``AdaptConfig.parent_share``), chosen on the
+#: validation views (docs/studies.md "Merged tiers")
+DEFAULT_SHARES = (0.5, 0.15, 0.04)
 #: training views :func:`choose` scores on (evenly spaced)
 CHOOSE_VIEWS = 8
 #: the Gaussians' levels at which the switch may happen, and the parents' levels tried there
-SWITCH_S_V = (2.0, 2.5, 3.0, 4.0, 5.0, 6.0, 7.5, 10.0)
-PARENT_S_V = (1.0, 1.25, 1.5, 2.0, 2.5, 3.0, 4.0, 5.0, 6.0, 7.5, 10.0)
+SWITCH_S_V = (1.1, 1.25, 1.5, 1.75, 2.0, 2.5, 3.0, 4.0, 5.0, 6.0, 7.5, 10.0)
+PARENT_S_V = (1.0, 1.1, 1.25, 1.5, 1.75, 2.0, 2.5, 3.0, 4.0, 5.0, 6.0, 7.5, 10.0)
 
 
 def decimated(gaussians: Gaussians, share: float, *, tool: Optional[str] = None) -> Gaussians:
@@ -59,7 +61,8 @@ def decimated(gaussians: Gaussians, share: float, *, tool: Optional[str] = None)
 def attach(gaussians: Gaussians, parents: Gaussians, tier_s_v: float, tier_start: float = 1.0,
            tier_fade: float = 1.25) -> Gaussians:
     """``gaussians`` (adapted) with the adapted ``parents`` as its parent tier, taking over from
-    ``tier_s_v`` (the parents then drawn at their own ``s_v = tier_start``).
+    ``tier_s_v`` (the parents then drawn at their own ``s_v = tier_start``). ``parents`` keep
+    their own parent tiers (a chain: :func:`clod_adapter.camera_lod.tier_chain`).
 
     Raises:
         ValueError: a model without ``sigma_d`` or settings, SH degrees that differ, or
@@ -70,7 +73,7 @@ def attach(gaussians: Gaussians, parents: Gaussians, tier_s_v: float, tier_start
     if parents.sh_degree != gaussians.sh_degree:
         raise ValueError(f"attach: parents of SH degree {parents.sh_degree}, model of {gaussians.sh_degree}")
     st = replace(gaussians.lod, tier_s_v=float(tier_s_v), tier_start=float(tier_start), tier_fade=float(tier_fade))
-    return replace(gaussians, lod=st, parents=replace(parents, parents=None))
+    return replace(gaussians, lod=st, parents=parents)
 
 
 @dataclass(frozen=True)
@@ -109,30 +112,88 @@ def level_curve(model: Gaussians, cameras: Sequence, images: Sequence, s_vs: Seq
     return out
 
 
+#: how :func:`choose` places a hand-over (docs/studies.md "Merged tiers"): ``"time"`` where the
+#: tier above is first predicted no slower than the tier at full detail, ``"psnr"`` where some level
+#: of the tier first scores at least the tier above's PSNR in no more predicted time
+CHOOSE_RULES = ("time", "psnr")
+CHOOSE_RULE = "time"
+#: ``"time"`` rule: the tier is left out when its full detail scores more than this below the
+#: tier above at the hand-over on the views given (training views, where the input, fitted to them,
+#: is favoured over any merge)
+CHOOSE_MARGIN_DB = 1.5
+
+
 def choose(gaussians: Gaussians, parents: Gaussians, cameras: Sequence, images: Sequence, *, background=None,
-           time_model: FrameTimeModel = DEFAULT_FRAME_TIME_MODEL, log=None) -> TierChoice:
-    """Where the adapted ``parents`` should take over from the adapted ``gaussians``: the
-    smallest ``s_v`` of :data:`SWITCH_S_V` at which a level of the parents (:data:`PARENT_S_V`)
-    is predicted no slower and scores at least the Gaussians' PSNR on the views given; that
-    level is ``tier_start``. Views: training or validation cameras with their images [H, W, 3]
-    in [0, 1] (a few suffice: the curves are means over them)."""
+           time_model: FrameTimeModel = DEFAULT_FRAME_TIME_MODEL, rule: str = CHOOSE_RULE,
+           margin_db: float = CHOOSE_MARGIN_DB, log=None) -> TierChoice:
+    """Where the adapted ``parents`` should take over from the adapted ``gaussians``, on the views
+    given (training cameras with their images [H, W, 3] in [0, 1]; a few suffice: the curves are
+    means over them), by predicted frame time (``time_model``) and PSNR:
+
+    * ``rule="time"`` (default, :data:`CHOOSE_RULE`): at the smallest ``s_v`` of :data:`SWITCH_S_V`
+      at which the Gaussians are predicted no slower than the parents at full detail, the parents
+      starting there (``tier_start = 1``), unless the parents' full detail scores more than
+      ``margin_db`` below the Gaussians there (then, or when the Gaussians never get that cheap,
+      None);
+    * ``rule="psnr"``: at the smallest ``s_v`` of :data:`SWITCH_S_V` at which a level of the
+      parents (:data:`PARENT_S_V`) is predicted no slower and scores at least the Gaussians' PSNR;
+      that level is ``tier_start``.
+
+    Parents with their own tier: only their levels up to its ``tier_s_v`` (drawn alone there).
+
+    Raises:
+        ValueError: an unknown ``rule``.
+    """
+    if rule not in CHOOSE_RULES:
+        raise ValueError(f"choose: rule must be one of {CHOOSE_RULES}, got {rule!r}")
     kw = dict(background=background, time_model=time_model)
     gc = level_curve(gaussians, cameras, images, SWITCH_S_V, **kw)
-    pc = level_curve(parents, cameras, images, PARENT_S_V, **kw)
+    own = parents.lod.tier_s_v if parents.parents is not None and parents.lod is not None else 0.0
+    pc = level_curve(parents, cameras, images, [s for s in PARENT_S_V if not own > 0 or s <= own], **kw)
     curves = {"gaussians": gc, "parents": pc}
+    say = log if log is not None else (lambda m: None)
+    if rule == "time":
+        _, p1, ms1 = pc[0]  # PARENT_S_V[0] = 1: the parents at full detail
+        for s, p_c, ms_c in gc:
+            if ms_c <= ms1:
+                if p1 >= p_c - margin_db:
+                    say(f"parent tier: takes over at s_v = {s:g} ({p_c:.2f} dB, {ms_c:.1f} ms predicted) at its full "
+                        f"detail ({p1:.2f} dB, {ms1:.1f} ms)")
+                    return TierChoice(s, 1.0, curves)
+                say(f"parent tier: {p1:.2f} dB at full detail against {p_c:.2f} dB where the model is as fast "
+                    f"(s_v = {s:g}), more than {margin_db:g} dB below; not by time")
+                return TierChoice(None, 1.0, curves)
+        say("parent tier: the model is never predicted as fast as its parents' full detail; not by time")
+        return TierChoice(None, 1.0, curves)
     for s, p_c, ms_c in gc:
         fits = [(sp, p, ms) for sp, p, ms in pc if ms <= ms_c]
         if fits:
             sp, p, _ = max(fits, key=lambda t: t[1])  # the parents' best level that fits
             if p >= p_c:
-                if log is not None:
-                    log(f"parent tier: takes over at s_v = {s:g} ({p_c:.2f} dB, {ms_c:.1f} ms predicted) with its "
-                        f"s_v = {sp:g} ({p:.2f} dB)")
+                say(f"parent tier: takes over at s_v = {s:g} ({p_c:.2f} dB, {ms_c:.1f} ms predicted) with its "
+                    f"s_v = {sp:g} ({p:.2f} dB)")
                 return TierChoice(s, sp, curves)
-    if log is not None:
-        log("parent tier: no level of the parents beats the Gaussians at equal predicted time; left out")
+    say("parent tier: no level of the parents beats the Gaussians at equal predicted time; left out")
     return TierChoice(None, 1.0, curves)
 
 
-__all__ = ["decimated", "attach", "choose", "level_curve", "TierChoice", "SWITCH_S_V", "PARENT_S_V",
-           "PARENT_MIN_GAUSSIANS", "CHOOSE_VIEWS"]
+def link(model: Gaussians, candidates: Sequence[Gaussians], cameras: Sequence, images: Sequence, *,
+         background=None, margin_db: float = CHOOSE_MARGIN_DB, log=None) -> tuple[Gaussians, list[dict]]:
+    """``model`` with the first of its adapted candidate tiers that pays attached (:func:`attach`):
+    by the ``"time"`` rule (:func:`choose`) each candidate in order (the next tier down first, a
+    tier that does not pay skipped), then by the ``"psnr"`` rule the last (coarsest) one alone,
+    for the cheap end of a scene whose merges lose at equal time. ``candidates``: the tiers below,
+    finest first, each with its own chain attached. Returns ``(model or the tiered model, one
+    record per try: rule, count, curves, tier_s_v, tier_start)``."""
+    tried = []
+    for i, (cand, rule) in enumerate([(c, "time") for c in candidates] + [(candidates[-1], "psnr")]):
+        ch = choose(model, cand, cameras, images, background=background, rule=rule, margin_db=margin_db, log=log)
+        tried.append({"candidate": i if rule == "time" else len(candidates) - 1, "rule": rule, "parents": len(cand),
+                      "curves": ch.curves, "tier_s_v": ch.tier_s_v, "tier_start": ch.tier_start})
+        if ch.tier_s_v is not None:
+            return attach(model, cand, ch.tier_s_v, ch.tier_start), tried
+    return model, tried
+
+
+__all__ = ["decimated", "attach", "choose", "link", "level_curve", "TierChoice", "SWITCH_S_V", "PARENT_S_V",
+           "PARENT_MIN_GAUSSIANS", "CHOOSE_VIEWS", "DEFAULT_SHARES", "CHOOSE_RULES", "CHOOSE_RULE", "CHOOSE_MARGIN_DB"]

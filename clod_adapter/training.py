@@ -115,13 +115,16 @@ class AdaptConfig:
             Gaussians, the top of it by count (the ones kept longest); the rest, the ones that
             leave first, are ordered by the starting ranking (``ranking``) again
             (:func:`merged_order`). 1 (default): the learned order throughout.
-        parent_share: the parent tier (:mod:`clod_adapter.tiers`): after the adaptation, the
-            input merged by splat-transform's ``--decimate`` to this share of its Gaussians is
-            adapted too and attached where it beats the model at equal predicted frame time
-            (left out when it does not, for models under
+        parent_share: the parent tiers (:mod:`clod_adapter.tiers`): after the adaptation, the
+            input merged by splat-transform's ``--decimate`` to each of these shares of its
+            Gaussians (descending; a float is one share) is adapted too, each tier with the next
+            as its own parents, and attached where it beats the tier above at equal predicted
+            frame time (left out when it does not, for models under
             :data:`clod_adapter.tiers.PARENT_MIN_GAUSSIANS` Gaussians, and when splat-transform
-            is not installed). 0: no tier. Default 0.04 (calibrated), 0 (paper). Chosen on the
-            validation views of skull and fern: ``python benchmarks/studies/merge_tier.py``.
+            is not installed). Stored as a tuple; ``()`` or 0: no tier. Default
+            :data:`clod_adapter.tiers.DEFAULT_SHARES` (calibrated), none (paper). Chosen on the
+            validation views: ``python benchmarks/quality_vs_time.py --split val --config
+            parent_share=...`` (docs/studies.md).
         keep_share: leave out what the scene does not need first (:mod:`clod_adapter.pruning`):
             keep this share of the input's Gaussians, the top by blending weight over the training
             views, recovered for ``recovery_steps`` before the level of detail is learned; full
@@ -164,7 +167,7 @@ class AdaptConfig:
     s_v_sampling: Optional[str] = None
     level_max: float = 1.0
     trained_order_share: float = 1.0
-    parent_share: Optional[float] = None
+    parent_share: Optional[float | tuple] = None
     keep_share: float = 1.0
     recovery_steps: int = 1000
 
@@ -185,10 +188,14 @@ class AdaptConfig:
         if self.s_v_sampling is None:
             self.s_v_sampling = "log" if cal else "uniform"
         if self.parent_share is None:
-            self.parent_share = 0.04 if cal else 0.0
-        self.parent_share = float(self.parent_share)
-        if not 0.0 <= self.parent_share < 1.0:
-            raise ValueError(f"parent_share must be in [0, 1), got {self.parent_share}")
+            from .tiers import DEFAULT_SHARES
+
+            self.parent_share = DEFAULT_SHARES if cal else ()
+        shares = self.parent_share if isinstance(self.parent_share, (tuple, list)) else (self.parent_share,)
+        self.parent_share = tuple(float(x) for x in shares if float(x) != 0.0)
+        if not all(0.0 < x < 1.0 for x in self.parent_share) or \
+                any(b >= a for a, b in zip(self.parent_share, self.parent_share[1:])):
+            raise ValueError(f"parent_share must be descending shares in (0, 1), got {shares}")
         self.keep_share = float(self.keep_share)
         if not 0.0 < self.keep_share <= 1.0:
             raise ValueError(f"keep_share must be in (0, 1], got {self.keep_share}")

@@ -4,7 +4,8 @@ and as the library's check that the page says all it does (``tests/test_referenc
 
     python examples/reference_lod.py MODEL.ply [--s-v 2]        # prints what one camera draws
 
-:func:`draw` is one model's rule; :func:`draw_tiered` adds a file's parent tier (``lod_parent``).
+:func:`draw` is one model's rule; :func:`draw_tiered` adds a file's parent tiers (``lod_parent``,
+``lod_parent_2``, ...).
 
 Everything is float64. Cameras: ``viewmat`` [4, 4] world-to-camera (OpenCV axes, z forward),
 ``K`` [3, 3] pixels, ``width``/``height`` pixels (gsplat 1.5.3 conventions).
@@ -28,8 +29,9 @@ def read_model(path) -> dict:
     """The arrays and settings of an extended .ply (docs/lod_rule.md, "The file"): ``means``
     [N, 3], ``quats`` [N, 4] wxyz, ``log_scales`` [N, 3], ``opacity_logits`` [N], ``sh0`` [N, 3],
     ``sigma_d`` [N], gains ``g_o`` [N], ``g_s`` [N], ``g_c`` [N, 3] (0 when absent), ``settings``;
-    and ``parents``, the same for the ``lod_parent`` element (docs/lod_rule.md "The parent
-    tier"; its settings the model's without the tier keys), when the file has one."""
+    and ``parents``, the same for the ``lod_parent`` element (docs/lod_rule.md "The tiers"; its
+    settings the model's with its own hand-over from the ``clod_lod_tier 1`` comment, or none),
+    itself with ``parents`` for ``lod_parent_2`` and so on, when the file has them."""
     ply = PlyData.read(str(path))
     settings = dict(DEFAULTS)
     for c in ply.comments:
@@ -39,8 +41,16 @@ def read_model(path) -> dict:
                 k, _, val = kv.partition("=")
                 settings[k] = val if k == "fade" else float(val)
     m = _element(ply["vertex"].data, settings)
-    if "lod_parent" in [e.name for e in ply.elements] and settings["tier_s_v"] > 0:
-        m["parents"] = _element(ply["lod_parent"].data, {**settings, **{k: DEFAULTS[k] for k in TIER_KEYS}})
+    own = {}  # "clod_lod_tier k tier_s_v=.. tier_start=.. tier_fade=..": tier k's hand-over to tier k + 1
+    for c in ply.comments:
+        parts = c.split()
+        if len(parts) > 1 and parts[0] == "clod_lod_tier":
+            own[int(parts[1])] = {k: float(v) for k, _, v in (kv.partition("=") for kv in parts[2:])}
+    names, above, k = [e.name for e in ply.elements], m, 1
+    while above["settings"]["tier_s_v"] > 0 and ("lod_parent" if k == 1 else f"lod_parent_{k}") in names:
+        el = "lod_parent" if k == 1 else f"lod_parent_{k}"
+        above["parents"] = _element(ply[el].data, {**settings, **{t: DEFAULTS[t] for t in TIER_KEYS}, **own.get(k, {})})
+        above, k = above["parents"], k + 1
     return m
 
 
@@ -172,23 +182,38 @@ def draw(m, viewmat, K, width, height, s_v: float) -> dict:
 
 
 def draw_tiered(m, viewmat, K, width, height, s_v: float) -> dict:
-    """The model and its parent tier at ``s_v`` (docs/lod_rule.md "The parent tier"):
-    ``{"model": draw(m, ..., s_v) or None, "parents": draw(parents, ..., s_v_p) or None, "u": u}``,
-    the model's drawn opacities times ``1 - u`` and the parents' times ``u`` (None: not drawn).
-    A model without a tier: its own ``draw`` and no parents."""
-    st = m["settings"]
-    u, s_p = 0.0, 1.0
-    if "parents" in m and st["tier_s_v"] > 0 and s_v > st["tier_s_v"]:
-        u = min(1.0, math.log(s_v / st["tier_s_v"]) / math.log(st["tier_fade"]))
-        s_p = st["tier_start"] * s_v / st["tier_s_v"]
-    out = {"model": None, "parents": None, "u": u}
-    if u < 1.0:
-        out["model"] = draw(m, viewmat, K, width, height, s_v)
-        out["model"]["opacities"] = out["model"]["opacities"] * (1.0 - u)
-    if u > 0.0:
-        out["parents"] = draw(m["parents"], viewmat, K, width, height, s_p)
-        out["parents"]["opacities"] = out["parents"]["opacities"] * u
-    return out
+    """The model and its chain of parent tiers at ``s_v`` (docs/lod_rule.md "The tiers"):
+    ``{"model": draw(m, ..., s_v) or None, "parents": the first parent tier's draw or None, "u": the
+    parent tiers' share of the image, "tiers": [draw or None per parent tier]}``. Tier 0 is the model
+    at ``s_v`` with weight 1; a tier with weight ``w`` at its own ``s`` past its ``tier_s_v`` keeps
+    ``w (1 - u)`` and passes ``w u`` to the next tier at ``tier_start s / tier_s_v``, ``u`` growing
+    with ``ln s`` from 0 at ``tier_s_v`` to 1 at ``tier_fade tier_s_v``; each drawn tier's
+    opacities are times its weight (None: weight 0, not drawn). A model without a tier: its own
+    ``draw`` and no parents."""
+    chain = [m]
+    while "parents" in chain[-1] and chain[-1]["settings"]["tier_s_v"] > 0:
+        chain.append(chain[-1]["parents"])
+    draws, w, s = [], 1.0, float(s_v)
+    for k, t in enumerate(chain):
+        st, u, s_next = t["settings"], 0.0, s
+        if k + 1 < len(chain) and s > st["tier_s_v"]:
+            u = min(1.0, math.log(s / st["tier_s_v"]) / math.log(st["tier_fade"]))
+            s_next = st["tier_start"] * s / st["tier_s_v"]
+        out = None
+        if w * (1.0 - u) > 0.0:
+            out = draw(t, viewmat, K, width, height, s)
+            out["opacities"] = out["opacities"] * (w * (1.0 - u))
+        draws.append(out)
+        w, s = w * u, s_next
+    return {"model": draws[0], "parents": draws[1] if len(draws) > 1 else None,
+            "u": _parent_share(chain, s_v) if len(chain) > 1 else 0.0,
+            "tiers": draws[1:]}
+
+
+def _parent_share(chain, s_v: float) -> float:
+    """The parent tiers' share of the image at ``s_v``: the first hand-over's ``u``."""
+    st = chain[0]["settings"]
+    return 0.0 if s_v <= st["tier_s_v"] else min(1.0, math.log(s_v / st["tier_s_v"]) / math.log(st["tier_fade"]))
 
 
 def main(argv=None) -> None:
@@ -205,7 +230,7 @@ def main(argv=None) -> None:
     K = np.array([[500.0, 0, 320], [0, 500.0, 240], [0, 0, 1]])
     both = draw_tiered(m, viewmat, K, 640, 480, a.s_v)
     print(f"{a.ply}: {len(m['means'])} Gaussians, {m['settings']}")
-    for name, out in (("model", both["model"]), ("parents", both["parents"])):
+    for name, out in [("model", both["model"])] + [(f"tier {k}", d) for k, d in enumerate(both["tiers"], 1)]:
         if out is not None:
             print(f"  s_v = {a.s_v:g}, {name}: draws {out['ids'].size} at level {out['level']:.3f}, "
                   f"mean opacity {out['opacities'].mean() if out['ids'].size else 0:.3f}")

@@ -95,7 +95,7 @@ def main(argv=None) -> int:
         tiles, caps, n1 = [], [], None
         levels = [("s_v=1", {"s_v": 1.0}), ("s_v=2", {"s_v": 2.0}), ("s_v=4", {"s_v": 4.0}), ("budget", None)]
         tier_s_v = model.lod.tier_s_v if model.lod is not None and model.parents is not None else 0.0
-        if tier_s_v > 0:  # past the switch: the parent tier (docs/method.md "Merged parents")
+        if tier_s_v > 0:  # past the switch: the parent tier (docs/method.md "Merged tiers")
             levels.append((f"s_v={2 * tier_s_v:g}", {"s_v": 2 * tier_s_v}))
         for label, extra in levels:
             if extra is None:

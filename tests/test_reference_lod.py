@@ -110,7 +110,7 @@ def test_images_agree_when_the_page_selection_is_rasterised(tmp_path):
 
 
 def test_parent_tier_as_the_page_says(tmp_path):
-    """A tiered file (docs/lod_rule.md "The parent tier"): the model and its parents drawn by the
+    """A tiered file (docs/lod_rule.md "The tiers"): the model and its parents drawn by the
     numpy page are what lod_subset hands the rasteriser, below, across and beyond the switch."""
     from clod_adapter import tiers
     from clod_adapter.camera_lod import lod_subset

@@ -93,7 +93,9 @@ def test_choose_takes_over_where_the_parents_are_as_good(tiered):
     children = replace(g, parents=None)
     imgs = [render_lod(make_ground_truth(1200, seed=0), c).image.clamp(0, 1) for c in cams]
     same = tiers.choose(children, children, cams, imgs)  # parents identical to the model: the first switch
-    assert same.tier_s_v == tiers.SWITCH_S_V[0] and same.tier_start >= tiers.SWITCH_S_V[0]
+    assert same.tier_s_v == tiers.SWITCH_S_V[0] and same.tier_start == 1.0  # taken over at full detail
+    by_psnr = tiers.choose(children, children, cams, imgs, rule="psnr")
+    assert by_psnr.tier_s_v == tiers.SWITCH_S_V[0] and by_psnr.tier_start >= tiers.SWITCH_S_V[0]
     assert len(same.curves["gaussians"]) == len(tiers.SWITCH_S_V)
     assert len(same.curves["parents"]) == len(tiers.PARENT_S_V)
     dark = replace(children, opacity_logits=torch.full_like(children.opacity_logits, -12.0))
@@ -237,26 +239,37 @@ def test_eval_sweep_reaches_the_parents_range():
     assert fern_like[25] == pytest.approx(7.5 * 1.25 ** 0.5) and len(fern_like) == 31
 
 
-def test_cost_budgets_draw_the_parents_where_the_rule_would(tiered):
-    """budget_cost / budget_ms on a tiered model: the model's own prefix while its solved s_v is
-    short of tier_fade x tier_s_v; past it, the parents alone within the same budget (a share of
-    the model's full cost), from their tier_start level on; lod_subset hands over the same rows."""
+def test_budgets_draw_the_parents_once_they_can_fill_them(tiered):
+    """budget_cost / budget_ms / count budgets on a tiered model (camera_lod.budget_walk): the
+    model's own solution while the parents, as the s_v rule first draws them alone (their
+    tier_start level), cost less than the budget (draw fewer); from there the parents alone within
+    the same budget (a share of the model's full cost), from their tier_start level on;
+    lod_subset hands over the same rows."""
     from clod_adapter.camera_lod import lod_subset, view_lod
+    from clod_adapter.cost import DEFAULT_FRAME_TIME_MODEL, splat_cost
 
     g, cams = tiered
     children = replace(g, parents=None)
     cam = cams[0]
-    big = render_lod(g, cam, budget_cost=0.9)
-    assert big.n_parents == 0 and torch.equal(big.image, render_lod(children, cam, budget_cost=0.9).image)
-    low = render_lod(g, cam, budget_cost=0.05)
-    alone = render_lod(children, cam, budget_cost=0.05)
-    assert alone.s_v > g.lod.tier_fade * g.lod.tier_s_v  # the model alone would sit where the rule draws parents
-    assert low.n_parents == low.n_rendered > 0 and low.indices.numel() == 0
-    absolute = 0.05 * view_lod(children, cam).full_cost()
-    ref = render_lod(g.parents, cam, budget_cost=absolute, min_s_v=g.lod.tier_start)
-    assert torch.equal(low.image, ref.image) and low.s_v == pytest.approx(ref.s_v * 3.0 / 1.5)
-    sub = lod_subset(g, cam, budget_cost=0.05)
-    assert sub.parent_indices.numel() == low.n_parents and sub.indices.numel() == 0
-    ms = [render_lod(g, cam, budget_ms=b) for b in (2.5, 2.8, 3.0)]  # ms over the fitted 2.42 ms constant
-    assert 0 < ms[0].n_parents == ms[0].n_rendered < ms[1].n_parents == ms[1].n_rendered  # parents alone
-    assert ms[2].n_parents == 0 and ms[2].n_rendered > ms[1].n_rendered  # the model's own prefix again
+    full = view_lod(children, cam).full_cost()
+    vp = view_lod(g.parents, cam)
+    start = vp.select(g.lod.tier_start)
+    start_cost = float(splat_cost(vp, start.indices, level=start.level, opacities=start.opacities).sum())
+    assert 0 < start_cost < full
+    for b in (0.9, 0.6, 1.01 * start_cost / full, 0.99 * start_cost / full, 0.05, 0.02):
+        r = render_lod(g, cam, budget_cost=b)
+        if b * full > start_cost:
+            assert r.n_parents == 0 and torch.equal(r.image, render_lod(children, cam, budget_cost=b).image)
+        else:
+            ref = render_lod(g.parents, cam, budget_cost=b * full, min_s_v=g.lod.tier_start)
+            assert r.n_parents == r.n_rendered > 0 and r.indices.numel() == 0 and torch.equal(r.image, ref.image)
+            assert r.s_v == pytest.approx(ref.s_v * 3.0 / 1.5)
+            sub = lod_subset(g, cam, budget_cost=b)
+            assert sub.parent_indices.numel() == r.n_parents and sub.indices.numel() == 0
+    start_ms = float(DEFAULT_FRAME_TIME_MODEL.ms(start_cost, int(start.indices.numel())))
+    above, below = render_lod(g, cam, budget_ms=start_ms * 1.05), render_lod(g, cam, budget_ms=start_ms * 0.95)
+    assert above.n_parents == 0 and below.n_parents == below.n_rendered > 0
+    n_start = int(start.indices.numel())
+    own = [render_lod(g, cam, budget=k) for k in (n_start + 1, n_start, max(n_start // 2, 1))]
+    assert own[0].n_parents == 0 and own[1].n_parents == own[1].n_rendered == n_start
+    assert own[2].n_parents == own[2].n_rendered == max(n_start // 2, 1)

@@ -359,3 +359,52 @@ def test_tiered_page_in_headless_chromium(tiered_web, tmp_path):
         # below the switch again after the parents alone: the same frame as before
         assert st["static"] is True and got[i, "back"][1]["drawnParents"] == 0
         assert compare_frames(got[i, 1.3][0], got[i, "back"][0])["psnr"] > 60
+
+
+@pytest.mark.slow
+@needs_engine
+def test_chain_of_tiers_page_in_headless_chromium(tiered_web, tmp_path):
+    """A chain of three tiers (the tiered model's parents with a tier of their own: every second
+    parent): the page writes parents_2.ply and draws what render_lod draws in the second
+    hand-over and past it, every tier's drawn count summed as render_lod's n_parents."""
+    from dataclasses import replace
+
+    from browser import browser_missing, chromium_driver, compare_frames, open_web_viewer, serve_folder, web_viewer_frame
+
+    from clod_adapter import tiers
+    from clod_adapter.camera_lod import chain_weights, render_lod, tier_chain
+    from clod_adapter.viewer.web import write_web_viewer
+
+    why = browser_missing(("selenium",))
+    if why:
+        pytest.skip(f"no headless browser: {why}")
+    g, cams = tiered_web["model"], tiered_web["cameras"]
+    p = g.parents
+    chain = replace(g, parents=tiers.attach(p, p.subset(torch.arange(0, len(p), 2)), 1.6, 1.2))
+    out = tmp_path / "web"
+    names = write_web_viewer(chain, out, cams, chain.opacity_logits)
+    cfg = json.loads((out / "clod.json").read_text())
+    assert "parents_2.ply" in names and cfg["tier"]["tier"]["count"] == len(chain.parents.parents)
+    svs = (2.2, 2.6, 4.0)  # tier 1 at its own 1.76 (hand-over to tier 2 from 1.6 to 2.0), 2.08, 3.2
+    w, h = cams[0].width, cams[0].height
+    driver = chromium_driver(tmp_path / "profile", window=(w + 60, h + 240))
+    got = {}
+    try:
+        with serve_folder(out) as base:
+            open_web_viewer(driver, f"{base}/index.html?{urlencode({'w': w, 'h': h, 'cam': 0})}")
+            for s in svs:
+                got[s] = web_viewer_frame(driver, s_v=s)
+    finally:
+        driver.quit()
+    settings = [m.lod for m in tier_chain(chain)]
+    for s in svs:
+        frame, st = got[s]
+        ref = render_lod(chain, cams[0], s)
+        c = compare_frames(ref.image.clamp(0, 1).numpy(), frame)
+        ws = chain_weights(s, settings)
+        print(f"chain s_v = {s}: weights {[round(x, 3) for x, _ in ws]}, page vs render_lod {c['psnr']:.2f} dB, "
+              f"tiers drawn {st['drawnParents']} (render_lod {ref.n_parents})")
+        assert c["psnr"] >= TIER_MIN_PSNR_DB, (s, c)
+        assert [t["weight"] for t in st["tiers"]] == pytest.approx([x for x, _ in ws], abs=1e-9)
+        assert abs(st["drawnParents"] - ref.n_parents) <= 0.1 * ref.n_parents, (s, st, ref.n_parents)
+    assert got[2.2][1]["tiers"][2]["weight"] > 0 and got[4.0][1]["tiers"][2]["weight"] == pytest.approx(1.0)

@@ -28,6 +28,14 @@ EXAMPLE = ("clod-adapt ../shared/data/fern/pretrained -s ../shared/data/fern --r
            "-o runs/fern")
 
 
+def _shares(text: str) -> tuple:
+    """``--parent-share``'s value: comma-separated shares (``0`` or empty: none)."""
+    try:
+        return tuple(float(x) for x in text.split(",") if x.strip())
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected shares like 0.5,0.15,0.04, got {text!r}") from None
+
+
 def build_parser():
     p = jobs.make_parser(
         "clod-adapt",
@@ -70,10 +78,11 @@ def build_parser():
                    help="calibrated schedule: largest level of the gains (default 1: held at 1 below max_sv^-1.5 "
                         "of the Gaussians in view); 2 grows them on (better far below, worse mid-range on skull; "
                         "docs/studies.md)")
-    p.add_argument("--parent-share", type=float, default=None, metavar="SHARE",
-                   help="calibrated schedule: also adapt the input merged by splat-transform --decimate to SHARE of "
-                        "its Gaussians and cross-fade to it at the coarse levels where it pays (default 0.04; 0: "
-                        "none; left out under 10,000 Gaussians or without splat-transform; docs/method.md)")
+    p.add_argument("--parent-share", type=_shares, default=None, metavar="SHARE[,SHARE...]",
+                   help="calibrated schedule: also adapt the input merged by splat-transform --decimate to each SHARE "
+                        "of its Gaussians (descending), each tier handing over to the next at the levels where it "
+                        "pays (default 0.5,0.15,0.04; 0: none; left out under 10,000 Gaussians or without "
+                        "splat-transform; docs/method.md)")
     p.add_argument("--keep-share", type=float, default=1.0, metavar="SHARE",
                    help="leave out what the scene does not need first: keep SHARE of the input's Gaussians, the top "
                         "by blending weight over the training views, and recover them (every attribute, "

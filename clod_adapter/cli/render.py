@@ -105,15 +105,15 @@ def _render_video(model, scene, args, level: dict, max_sv: float, bg, path: Path
 
     from clod_adapter.figures import label_panels
     from clod_adapter.video import camera_path, orbit_path, write_mp4
-    from clod_adapter.camera_lod import render_lod
+    from clod_adapter.camera_lod import render_lod, tier_reach
 
     n_frames, n = args.frames, len(model)
     cams = camera_path(scene.cameras, n_frames) if args.path == "cameras" else \
         orbit_path(scene.cameras, model.means, n_frames)
     st = model.lod
     if args.s_v is None and level["budget"] is None and model.parents is not None and st.tier_s_v > 0 \
-            and args.max_sv is None:  # a parent tier: 1 -> where its parents reach their max_sv -> 1, in ln s_v
-        top = max_sv * max(st.tier_s_v / st.tier_start, 1.0)
+            and args.max_sv is None:  # parent tiers: 1 -> where the last one reaches its max_sv -> 1, in ln s_v
+        top = max_sv * tier_reach(model)
         svs = [top ** (0.5 * (1 - math.cos(2 * math.pi * i / n_frames))) for i in range(n_frames)]
     elif args.s_v is None and level["budget"] is None:  # 1 -> max_sv -> 1
         svs = [1.0 + (max_sv - 1.0) * 0.5 * (1 - math.cos(2 * math.pi * i / n_frames)) for i in range(n_frames)]

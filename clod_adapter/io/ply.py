@@ -26,7 +26,7 @@ from __future__ import annotations
 import os
 from pathlib import Path
 from dataclasses import replace
-from typing import Union
+from typing import Optional, Union
 
 import numpy as np
 import plyfile
@@ -37,7 +37,8 @@ from clod_adapter.gaussians import Gaussians
 from clod_adapter.io.atomic import atomic_write
 from clod_adapter.lod import LodSettings
 
-__all__ = ["PlyFormatError", "read_ply", "write_ply", "ply_property_names", "ply_vertex_dtype", "ply_comments"]
+__all__ = ["PlyFormatError", "read_ply", "write_ply", "ply_property_names", "ply_vertex_dtype", "ply_comments",
+           "tier_element", "tier_chain_of", "TIER_COMMENT"]
 
 PathLike = Union[str, "os.PathLike[str]"]
 
@@ -49,6 +50,23 @@ LOD_COMMENT = "clod_lod"
 #: the element holding an adapted model's parent tier (``Gaussians.parents``): the vertex
 #: element's layout; viewers that read only ``vertex`` draw the model without it
 PARENT_ELEMENT = "lod_parent"
+#: the header comment holding tier ``k``'s own hand-over to tier ``k + 1`` (k >= 1):
+#: ``clod_lod_tier k tier_s_v=.. tier_start=.. tier_fade=..``
+TIER_COMMENT = "clod_lod_tier"
+
+
+def tier_element(k: int) -> str:
+    """The element holding tier ``k >= 1`` of a model (:func:`clod_adapter.camera_lod.tier_chain`):
+    ``lod_parent`` for the first parent tier, ``lod_parent_k`` for the next ones."""
+    return PARENT_ELEMENT if k == 1 else f"{PARENT_ELEMENT}_{k}"
+
+
+def tier_chain_of(gaussians: Gaussians) -> list:
+    """``[gaussians, gaussians.parents, ...]``: the model and the parent tiers a file holds."""
+    out = [gaussians]
+    while out[-1].parents is not None:
+        out.append(out[-1].parents)
+    return out
 
 
 def lod_comment(settings: LodSettings) -> str:
@@ -212,7 +230,9 @@ def read_ply(path: PathLike, *, allow_nonfinite: bool = False) -> Gaussians:
     the level gains. Every other scalar vertex property goes, in file order, to ``extra`` as an
     [N] tensor of its own type (not checked for NaN/Inf). A second element ``lod_parent``
     (:data:`PARENT_ELEMENT`, the same layout) is the model's parent tier, read into
-    ``Gaussians.parents`` (docs/method.md "Merged parents").
+    ``Gaussians.parents`` (docs/method.md "Merged tiers"); ``lod_parent_2``, ... are the next
+    tiers (:func:`tier_element`), each a ``parents`` of the one before, their hand-over settings
+    in ``clod_lod_tier k`` comments.
     Any numeric property type is accepted and converted to float32 (float32 input is copied
     bit-exactly). The file is memory-mapped (plyfile's default) and converted in one vectorised
     pass; the input is never modified.
@@ -240,22 +260,55 @@ def read_ply(path: PathLike, *, allow_nonfinite: bool = False) -> Gaussians:
     if "vertex" not in names:
         raise PlyFormatError(path, f"no 'vertex' element (elements: {', '.join(names) or 'none'})")
     lod_settings = parse_lod_comment(getattr(ply, "comments", []), path)
-    g = _read_element(path, ply["vertex"], lod_settings, allow_nonfinite)
-    if PARENT_ELEMENT in names:
-        if g.sigma_d is None or lod_settings is None or lod_settings.tier_s_v <= 0:
-            raise PlyFormatError(path, f"a '{PARENT_ELEMENT}' element without an adapted model and a "
-                                       f"'tier_s_v' in its '{LOD_COMMENT}' comment")
-        parents = _read_element(path, ply[PARENT_ELEMENT], _parent_settings(lod_settings), allow_nonfinite)
-        if parents.sigma_d is None or parents.sh_degree != g.sh_degree:
-            raise PlyFormatError(path, f"the '{PARENT_ELEMENT}' element needs sigma_d and the vertex "
+    chain = [_read_element(path, ply["vertex"], lod_settings, allow_nonfinite)]
+    hand = _tier_comments(getattr(ply, "comments", []), path)
+    k = 1
+    while tier_element(k) in names:
+        above = chain[-1]
+        if above.sigma_d is None or above.lod is None or above.lod.tier_s_v <= 0:
+            raise PlyFormatError(path, f"a '{tier_element(k)}' element without an adapted tier above it and a "
+                                       f"'tier_s_v' for that tier in the '{LOD_COMMENT}' comments")
+        tier = _read_element(path, ply[tier_element(k)], _parent_settings(lod_settings, hand.get(k), path),
+                             allow_nonfinite)
+        if tier.sigma_d is None or tier.sh_degree != chain[0].sh_degree:
+            raise PlyFormatError(path, f"the '{tier_element(k)}' element needs sigma_d and the vertex "
                                        f"element's SH degree")
-        g = replace(g, parents=parents)
+        chain.append(tier)
+        k += 1
+    stray = [n for n in names if n.startswith(PARENT_ELEMENT) and n not in [tier_element(i) for i in range(1, k)]]
+    if stray:
+        raise PlyFormatError(path, f"element '{stray[0]}' without '{tier_element(k)}' before it")
+    if chain[-1].lod is not None and chain[-1].lod.tier_s_v > 0 and len(chain) > 1:
+        raise PlyFormatError(path, f"a '{TIER_COMMENT} {k - 1}' comment without a '{tier_element(k)}' element")
+    g = chain[-1]
+    for above in reversed(chain[:-1]):
+        g = replace(above, parents=g)
     return g
 
 
-def _parent_settings(settings: LodSettings) -> LodSettings:
-    """The parent tier's settings: the model's, without a tier of its own."""
-    return replace(settings, tier_s_v=0.0, tier_start=1.0, tier_fade=LodSettings.tier_fade)
+def _tier_comments(comments, path: Path) -> dict:
+    """``{k: {tier_s_v, tier_start, tier_fade}}`` of the ``clod_lod_tier k ...`` header comments."""
+    out = {}
+    for c in comments:
+        tok = c.split()
+        if not tok or tok[0] != TIER_COMMENT:
+            continue
+        try:
+            out[int(tok[1])] = {k: float(v) for k, v in (item.split("=", 1) for item in tok[2:])
+                                if k in ("tier_s_v", "tier_start", "tier_fade")}
+        except (ValueError, IndexError) as e:
+            raise PlyFormatError(path, f"bad '{TIER_COMMENT}' header comment {c!r}: {e}") from None
+    return out
+
+
+def _parent_settings(settings: LodSettings, own: Optional[dict] = None, path: PathLike = "<ply>") -> LodSettings:
+    """A parent tier's settings: the model's, with the tier's own hand-over to the next tier
+    (``own``: from its ``clod_lod_tier`` comment) or none."""
+    try:
+        return replace(settings, **{"tier_s_v": 0.0, "tier_start": 1.0, "tier_fade": LodSettings.tier_fade,
+                                    **(own or {})})
+    except ValueError as e:
+        raise PlyFormatError(path, f"bad '{TIER_COMMENT}' values: {e}") from None
 
 
 def _read_element(path: Path, vertex, lod_settings, allow_nonfinite: bool) -> Gaussians:
@@ -414,7 +467,12 @@ def ply_vertex_dtype(gaussians: Gaussians, *, with_normals: bool = True) -> np.d
 def ply_comments(gaussians: Gaussians) -> list[str]:
     """The header comments :func:`write_ply` writes: the ``clod_lod`` settings of an adapted model."""
     g = gaussians
-    return [lod_comment(g.lod)] if (g.lod is not None and g.sigma_d is not None) else []
+    out = [lod_comment(g.lod)] if (g.lod is not None and g.sigma_d is not None) else []
+    for k, t in enumerate(tier_chain_of(g)[1:-1], start=1):  # each parent tier that hands over again
+        if t.lod is not None and t.lod.tier_s_v > 0:
+            out.append(f"{TIER_COMMENT} {k} " + " ".join(f"{n}={getattr(t.lod, n)!r}"
+                                                         for n in ("tier_s_v", "tier_start", "tier_fade")))
+    return out
 
 
 def write_ply(path: PathLike, gaussians: Gaussians, *, with_normals: bool = True) -> Path:
@@ -425,7 +483,8 @@ def write_ply(path: PathLike, gaussians: Gaussians, *, with_normals: bool = True
     present (``opacity_gain``, ``scale_gain``, ``f_dc_gain_0..2``), then ``gaussians.extra`` by
     name with its own type (e.g. ``masks_0``, ``masks_1``); ``gaussians.lod`` is written as the
     ``clod_lod`` header comment; ``gaussians.parents`` (the parent tier) as a second element,
-    ``lod_parent``, in the same layout. Normals are written
+    ``lod_parent``, in the same layout, its own parents as ``lod_parent_2`` and so on
+    (:func:`tier_element`; each tier's hand-over to the next in a ``clod_lod_tier k`` comment). Normals are written
     as zeros (as the official ``save_ply``). ``shN`` [N,K-1,3] is written channel-major
     (``f_rest_{c*(K-1)+k}``). Tensors on any device / dtype are converted to float32 CPU; the
     vertex block is one contiguous structured array, so read -> write -> read is bit-exact.
@@ -446,10 +505,11 @@ def write_ply(path: PathLike, gaussians: Gaussians, *, with_normals: bool = True
     path = Path(path)
     g = gaussians
     elements = [plyfile.PlyElement.describe(_vertex_rows(g, with_normals), "vertex")]
-    if g.parents is not None:
-        if g.lod is None or g.lod.tier_s_v <= 0 or g.sigma_d is None or g.parents.sigma_d is None:
+    chain = tier_chain_of(g)
+    for k, (above, tier) in enumerate(zip(chain, chain[1:]), start=1):
+        if above.lod is None or above.lod.tier_s_v <= 0 or above.sigma_d is None or tier.sigma_d is None:
             raise ValueError("write_ply: a parent tier needs an adapted model and parents, and lod.tier_s_v > 0")
-        elements.append(plyfile.PlyElement.describe(_vertex_rows(g.parents, with_normals), PARENT_ELEMENT))
+        elements.append(plyfile.PlyElement.describe(_vertex_rows(tier, with_normals), tier_element(k)))
     ply = plyfile.PlyData(elements, text=False, byte_order="<", comments=ply_comments(g))
     with atomic_write(path, "wb") as f:
         ply.write(f)

@@ -354,7 +354,7 @@ def run(ply_path: os.PathLike, scene_root: os.PathLike, out_dir: os.PathLike, cf
             metrics = _run(src, Path(scene_root), Path(out_dir), cfg, ro, stop, group)
             if left is not None and "rank" not in metrics:
                 metrics = _record_leave_out(Path(out_dir), metrics, left)
-            if cfg.parent_share > 0 and "rank" not in metrics:
+            if cfg.parent_share and "rank" not in metrics:
                 metrics = _add_parent_tier(Path(ply_path), Path(scene_root), Path(out_dir), cfg, o, stop, group,
                                            metrics)
             return metrics
@@ -503,20 +503,22 @@ PARENT_INPUT_NAME = "parents_input.ply"
 
 
 def _add_parent_tier(ply_path: Path, scene_root: Path, out_dir: Path, cfg: AdaptConfig, o: AdaptOptions,
-                     stop: StopFlag, group, metrics: dict) -> dict:
-    """Phase 6 (``cfg.parent_share > 0``, :mod:`clod_adapter.tiers`): the input merged by
-    splat-transform to ``parent_share`` of its Gaussians (``out_dir/parents_input.ply``), adapted
-    by the same job into ``out_dir/parents/`` (its own state, metrics and strip), and attached to
+                     stop: StopFlag, group, metrics: dict, nested: bool = False) -> dict:
+    """Phase 6 (``cfg.parent_share``, :mod:`clod_adapter.tiers`): the input merged by
+    splat-transform to the first of ``parent_share`` of its Gaussians (``out_dir/parents_input.ply``),
+    adapted by the same job into ``out_dir/parents/`` (its own state, metrics and strip, and the
+    next shares as its own parent tiers, ``out_dir/parents/parents/``, ...), and attached to
     ``point_cloud.ply`` where it beats the model at equal predicted frame time on the training
-    views (:func:`clod_adapter.tiers.choose`). Left out, with a note in ``metrics["tier"]``, for a
-    model under :data:`clod_adapter.tiers.PARENT_MIN_GAUSSIANS` Gaussians, a data-parallel run,
+    views (:func:`clod_adapter.tiers.choose`). Left out, with a note in ``metrics["tier"]``, for an
+    input under :data:`clod_adapter.tiers.PARENT_MIN_GAUSSIANS` Gaussians, a data-parallel run,
     or without splat-transform."""
     from .. import tiers
     from ..io.ply import read_ply
 
     t0 = time.perf_counter()
     n = int(metrics["num_gaussians"])
-    info = {"parent_share": cfg.parent_share, "used": False}
+    share, rest = cfg.parent_share[0], cfg.parent_share[1:]
+    info = {"parent_share": share, "used": False}
 
     def done(why: Optional[str] = None) -> dict:
         if why:
@@ -528,14 +530,14 @@ def _add_parent_tier(ply_path: Path, scene_root: Path, out_dir: Path, cfg: Adapt
             json.dump({k: v for k, v in metrics.items() if k != "wall_seconds"}, f, indent=2)
         return metrics
 
-    if n < tiers.PARENT_MIN_GAUSSIANS:
+    if n < tiers.PARENT_MIN_GAUSSIANS and not nested:  # a tier's own tiers: the input's size decided
         return done(f"{n:,} Gaussians, under {tiers.PARENT_MIN_GAUSSIANS:,}")
     if group is not None:
         return done("not built in a data-parallel run")
     quiet = replace(o, log=lambda *a, **k: None)
     try:
         parents_in = tiers.decimated(_read_model(resolve_model_path(ply_path, o.iteration), cfg, quiet)[0],
-                                     cfg.parent_share)
+                                     share)
     except RuntimeError as e:
         return done(f"splat-transform: {e}")
     write_ply(out_dir / PARENT_INPUT_NAME, parents_in)
@@ -546,7 +548,10 @@ def _add_parent_tier(ply_path: Path, scene_root: Path, out_dir: Path, cfg: Adapt
     # not clear its margin on a tiny model)
     po = replace(o, resume=o.resume and (pdir / STATE_NAME).is_file(), force=True, allow_mismatch=True,
                  log=lambda *a, **k: o.log("  [parents]", *a, **k), iteration=None)
-    _run(out_dir / PARENT_INPUT_NAME, scene_root, pdir, replace(cfg, parent_share=0.0, keep_share=1.0), po, stop, None)
+    pcfg = replace(cfg, parent_share=tuple(x / share for x in rest), keep_share=1.0)
+    pm = _run(out_dir / PARENT_INPUT_NAME, scene_root, pdir, pcfg, po, stop, None)
+    if pcfg.parent_share:  # the tier's own parent tiers, shares relative to it
+        _add_parent_tier(out_dir / PARENT_INPUT_NAME, scene_root, pdir, pcfg, po, stop, None, pm, nested=True)
     model, parents = read_ply(out_dir / PLY_NAME), read_ply(pdir / PLY_NAME)
     scene = load_scene(scene_root, resolution=o.resolution, background=cfg.background)
     if o.holdout_val:
@@ -554,16 +559,33 @@ def _add_parent_tier(ply_path: Path, scene_root: Path, out_dir: Path, cfg: Adapt
 
         scene = holdout_validation(scene)
     cams = list(scene.train)[:: max(1, len(scene.train) // tiers.CHOOSE_VIEWS)][: tiers.CHOOSE_VIEWS]
-    choice = tiers.choose(model, parents, cams, [scene.load_image(c) for c in cams], background=cfg.background,
-                          log=lambda m: o.log("clod-adapt: " + m))
-    info.update({"parents": len(parents), "curves": choice.curves, "views": len(cams)})
-    if choice.tier_s_v is None:
-        return done("no level of the parents beats the model at equal predicted time on the training views")
-    write_ply(out_dir / PLY_NAME, tiers.attach(model, parents, choice.tier_s_v, choice.tier_start))
-    info.update({"used": True, "tier_s_v": choice.tier_s_v, "tier_start": choice.tier_start})
-    o.log(f"clod-adapt: parent tier of {len(parents):,} attached to {out_dir / PLY_NAME} (from s_v = "
-          f"{choice.tier_s_v:g}) in {time.perf_counter() - t0:.0f} s")
+    imgs = [scene.load_image(c) for c in cams]
+    dirs = _tier_dirs(pdir)
+    cands = [parents] + [read_ply(d / PLY_NAME) for d in dirs[1:]]
+    linked, tried = tiers.link(model, cands, cams, imgs, background=cfg.background,
+                               log=lambda m: o.log("clod-adapt: " + m))
+    for t in tried:
+        t["dir"] = str(dirs[t["candidate"]].relative_to(out_dir))
+    info.update({"parents": len(parents), "curves": tried[0]["curves"], "views": len(cams), "tried": tried})
+    if linked.parents is None:
+        return done("no merged tier beats the model at equal predicted time on the training views")
+    write_ply(out_dir / PLY_NAME, linked)
+    st = linked.lod
+    info.update({"used": True, "tier_s_v": st.tier_s_v, "tier_start": st.tier_start, "attached": len(linked.parents),
+                 "attached_dir": tried[-1]["dir"]})
+    o.log(f"clod-adapt: merged tier of {len(linked.parents):,} attached to {out_dir / PLY_NAME} (from s_v = "
+          f"{st.tier_s_v:g}) in {time.perf_counter() - t0:.0f} s")
     return done()
+
+
+def _tier_dirs(pdir: Path) -> list[Path]:
+    """The adapted tiers below a model: ``pdir`` (its first tier), ``pdir/parents``, ... while
+    they hold an adapted model."""
+    out = []
+    while (pdir / PLY_NAME).is_file():
+        out.append(pdir)
+        pdir = pdir / PARENT_DIR
+    return out
 
 
 def _read_model(ply_path: Path, cfg: AdaptConfig, o: AdaptOptions):

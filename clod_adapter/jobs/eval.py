@@ -88,7 +88,7 @@ from ..io.atomic import atomic_save, atomic_write
 from ..frontier import Point, frontier
 from ..io.ply import read_ply
 from ..storage import ply_bytes, ply_row_bytes
-from ..camera_lod import render_lod
+from ..camera_lod import render_lod, tier_reach
 from ..metrics import psnr, ssim
 
 CSV_COLUMNS = ("method", "setting", "s_v", "budget", "gaussians", "fraction", "psnr", "ssim", "lpips",
@@ -151,12 +151,13 @@ LpipsSpec = Union[str, os.PathLike, Callable, None]
 
 # --- small helpers ----------------------------------------------------------------------------
 def sv_grid(max_sv: float, steps: int = 25, overshoot: float = 1.2, lod_settings=None,
-            tier_steps: int = 6) -> list[float]:
+            tier_steps: int = 6, reach: Optional[float] = None) -> list[float]:
     """``steps`` values of ``s_v`` evenly spaced from 1 to ``overshoot * max_sv`` (past the
     trained maximum); for a model with a parent tier (``lod_settings.tier_s_v > 0``, docs/method.md
     "the merged parent tier") then ``tier_steps`` values spaced evenly in ``ln s_v`` from the middle of
     its cross-fade (``tier_s_v sqrt(tier_fade)``) to where the parents are drawn at
-    ``overshoot`` times their own ``max_sv`` (``overshoot max_sv tier_s_v / tier_start``), those
+    ``overshoot`` times their own ``max_sv`` (``overshoot max_sv tier_s_v / tier_start``; with a
+    chain of tiers, ``overshoot max_sv reach``, :func:`clod_adapter.camera_lod.tier_reach`), those
     beyond the even part."""
     if steps < 2:
         raise ValueError(f"need at least 2 s_v steps, got {steps}")
@@ -166,7 +167,8 @@ def sv_grid(max_sv: float, steps: int = 25, overshoot: float = 1.2, lod_settings
     grid = [float(x) for x in np.linspace(1.0, top, steps)]
     st = lod_settings
     if st is not None and st.tier_s_v > 0:
-        lo, hi = st.tier_s_v * math.sqrt(st.tier_fade), overshoot * max_sv * st.tier_s_v / st.tier_start
+        lo = st.tier_s_v * math.sqrt(st.tier_fade)
+        hi = overshoot * max_sv * (reach if reach else st.tier_s_v / st.tier_start)
         grid += [float(x) for x in np.geomspace(lo, max(hi, lo), tier_steps) if x > top * (1 + 1e-9)]
     return grid
 
@@ -575,7 +577,9 @@ class EvalOptions:
             levels added.
         max_sv: the trained maximum (default: from the model's header or
             ``adapt_state.safetensors`` beside the .ply, else 5).
-        popping_steps: frames of the popping sweep, s_v from 1 to the sweep's end.
+        popping_steps: frames of the popping sweep, s_v from 1 to the sweep's end (a model with
+            merged tiers: evenly in ln s_v, through every hand-over to where the last tier is at
+            1.2 times its max_sv, :func:`clod_adapter.camera_lod.tier_reach`).
         lpips: see :func:`resolve_lpips`.
         sigma_c: the constant decay of the constant-sigma baseline (default: the best on training
             views, :func:`clod_adapter.baselines.tune_sigma_c`).
@@ -724,7 +728,11 @@ def evaluate_report(adapted: Union[os.PathLike, Gaussians], scene, out_dir: os.P
     _compare_time(ev, ctx.lightgaussian)
     ev.bar.set_postfix_str("popping")
     top = ev.s_vs[-1] if o.s_vs is not None else sv_grid(ev.max_sv, 2)[-1]  # the even part (a tier's points beyond)
-    pop_svs = [float(x) for x in np.linspace(1.0, top, o.popping_steps)]
+    reach = tier_reach(ev.adapted)
+    if o.s_vs is None and reach > 1.0:  # through every tier's hand-over, in ln s_v, to the last tier's 1.2 max_sv
+        pop_svs = [float(x) for x in np.geomspace(1.0, top * reach, o.popping_steps)]
+    else:
+        pop_svs = [float(x) for x in np.linspace(1.0, top, o.popping_steps)]
     pop = popping_curve(ev.adapted, ev.cams[0], pop_svs, discrete_model=ev.base, discrete_scores=ctx.lightgaussian,
                         tau=o.tau, background=ev.bg, on_render=ev.tick)
     pop["camera"] = ev.cams[0].name
@@ -776,7 +784,8 @@ def _eval_inputs(adapted, scene, o: EvalOptions) -> _Eval:
         base = base.with_sigma_d(None)
     budgets = normalize_budgets(o.budgets)
     tier = adapted.lod if adapted.parents is not None else None
-    s_vs = sv_grid(max_sv, o.sv_steps, lod_settings=tier) if o.s_vs is None else [float(s) for s in o.s_vs]
+    s_vs = sv_grid(max_sv, o.sv_steps, lod_settings=tier, reach=tier_reach(adapted)) if o.s_vs is None \
+        else [float(s) for s in o.s_vs]
     lpips_fn, lpips_note = resolve_lpips(o.lpips)
     if lpips_fn is not None and hasattr(lpips_fn, "to"):
         lpips_fn = lpips_fn.to(dev)

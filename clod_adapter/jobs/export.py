@@ -87,11 +87,14 @@ def export(model, scene, train_imgs, test_cams, test_imgs, out: Path, ply: Path,
                  "sh_degree_in": model.sh_degree,
                  "train_views": len(scene.train), "test_views": [c.name for c in test_cams],
                  "resolution": [test_cams[0].width, test_cams[0].height]}
-    if model.parents is not None:  # docs/method.md "Merged parents"
-        rep["tier"] = {"parents_in": len(model.parents), "tier_s_v": model.lod.tier_s_v,
-                       "tier_start": model.lod.tier_start,
-                       "drawn_by": ["extended .ply", "baked level", "web page"],
-                       "left_out_of": ["ordered .ply (the model's own order)", "LoD set (levels up to max_sv)"]}
+    if model.parents is not None:  # docs/method.md "Merged tiers"
+        from ..camera_lod import tier_chain
+
+        rep["tier"] = {"parents_in": sum(len(t) for t in tier_chain(model)[1:]), "tier_s_v": model.lod.tier_s_v,
+                       "tier_start": model.lod.tier_start, "tiers": [len(t) for t in tier_chain(model)[1:]],
+                       "drawn_by": ["extended .ply", "baked level", "web page", "LoD set"],
+                       "left_out_of": ["ordered .ply (the model's own order)"],
+                       "lod_set": "the model, then each tier"}
     with torch.no_grad():
         model = _reduce(model, scene, train_imgs, test_cams, test_imgs, o, rep, step)
         baked, ordered_model = _derive(model, scene, test_cams, test_imgs, o, rep, step)
@@ -107,28 +110,33 @@ def export(model, scene, train_imgs, test_cams, test_imgs, out: Path, ply: Path,
 def _reduce(model, scene, train_imgs, test_cams, test_imgs, o: ExportOptions, rep: dict, step):
     """The input's test PSNR, then pruning and SH bands as asked; returns the model to export."""
     from .. import bake as ex
+    from ..camera_lod import tier_chain
     from ..storage import ply_row_bytes
 
     rep["psnr_test_sv1_in"] = _mean_psnr(ex, model, test_cams, test_imgs)
     step()
-    parents = model.parents
+    tiers = tier_chain(model)[1:]  # the parent tiers, each pruned and truncated on its own
     if o.prune:
         model, n_drop = ex.prune_never_rendered(model, scene.train, anchor_cameras=scene.train)
         rep["prune"] = {"dropped": n_drop, "kept": len(model),
                         "bytes_saved": n_drop * ply_row_bytes(model),
                         "psnr_test_sv1_after": _mean_psnr(ex, model, test_cams, test_imgs)}
-        if parents is not None:  # the parents' own never-drawn rows (their d' anchors kept)
-            parents, n_drop_p = ex.prune_never_rendered(parents, scene.train, anchor_cameras=scene.train)
-            rep["prune"]["parents_dropped"] = n_drop_p
+        if tiers:  # each tier's own never-drawn rows (their d' anchors kept)
+            pruned = [ex.prune_never_rendered(t, scene.train, anchor_cameras=scene.train) for t in tiers]
+            tiers = [replace(t, lod=orig.lod) for (t, _), orig in zip(pruned, tiers)]
+            rep["prune"]["parents_dropped"] = sum(n for _, n in pruned)
         step()
     if o.sh_max_drop_db is not None:
         model, info = ex.reduce_sh(model, scene.train, train_imgs, o.sh_max_drop_db)
         info["psnr_test_sv1_after"] = _mean_psnr(ex, model, test_cams, test_imgs)
         rep["sh"] = info
         step()
-    if parents is not None:  # the tier follows the model (same SH degree, docs/method.md "Merged parents")
-        model = replace(model, parents=ex.truncate_sh(parents, model.sh_degree))
-        rep["tier"]["parents_out"] = len(parents)
+    if tiers:  # the tiers follow the model (same SH degree, docs/method.md "Merged tiers")
+        chain = None
+        for t in reversed(tiers):
+            chain = replace(ex.truncate_sh(t, model.sh_degree), parents=chain)
+        model = replace(model, parents=chain)
+        rep["tier"]["parents_out"] = sum(len(t) for t in tiers)
     rep["gaussians_out"] = len(model)
     rep["sh_degree_out"] = model.sh_degree
     return model
@@ -164,24 +172,35 @@ def _derive(model, scene, test_cams, test_imgs, o: ExportOptions, rep: dict, ste
 
 
 def _lod_levels(model, scene, test_cams, test_imgs, rep: dict, step) -> list:
-    """The LoD set's levels: the model cut at each of :func:`clod_adapter.bake.lod_set_s_vs` of
-    its ``max_sv`` (:func:`clod_adapter.bake.lod_level`, reference distances from the training
-    views), each scored on the test views as a plain model; ``rep["lod_meta"]`` says so. Returns
-    the levels, finest first."""
+    """The LoD set's levels, finest first, each scored on the test views as a plain model;
+    ``rep["lod_meta"]`` says how they were cut. A model without tiers: the model cut at each of
+    :func:`clod_adapter.bake.lod_set_s_vs` of its ``max_sv`` (:func:`clod_adapter.bake.lod_level`,
+    reference distances from the training views). A model with merged tiers
+    (:func:`clod_adapter.camera_lod.tier_chain`): the model at full detail, then each tier as the
+    ``s_v`` rule first draws it alone (at the level of the tier above's ``tier_start``), then the
+    last tier cut at the coarser ``lod_set_s_vs`` of its own ``max_sv``. Returns the levels."""
     from .. import bake as ex
+    from ..camera_lod import tier_chain
     from ..metrics import psnr
     from ..training import reference_distances
 
+    chain = tier_chain(model)
     max_sv = model.lod.max_sv if model.lod is not None else 5.0
-    d_ref = reference_distances(model, scene.train)
+    cuts = [(0, 1.0)] if len(chain) > 1 else [(0, s) for s in ex.lod_set_s_vs(max_sv)]
+    if len(chain) > 1:
+        cuts += [(k, chain[k - 1].lod.tier_start) for k in range(1, len(chain))]
+        cuts += [(len(chain) - 1, s) for s in ex.lod_set_s_vs(chain[-1].lod.max_sv)[1:] if s > cuts[-1][1]]
     levels, rows = [], []
-    for k, s in enumerate(ex.lod_set_s_vs(max_sv)):
-        g = ex.lod_level(model, scene.train, s, d_ref=d_ref)
+    for k, (t, s) in enumerate(cuts):
+        m = chain[t]
+        g = ex.lod_level(replace(m, parents=None), scene.train, s, d_ref=reference_distances(m, scene.train))
         ps = [psnr(ex.render_lod(g, c).image, gt, cap=True) for c, gt in zip(test_cams, test_imgs)]
         levels.append(g)
-        rows.append({"level": k, "s_v": s, "gaussians": len(g), "psnr_test": sum(ps) / len(ps)})
-    rep["lod_meta"] = {"levels": rows, "cut": "critical s_v at the reference distance (training views)",
-                       "tool": "splat-transform"}
+        rows.append({"level": k, "tier": t, "s_v": s, "gaussians": len(g),
+                     "psnr_test": sum(ps) / len(ps)})
+    rep["lod_meta"] = {"levels": rows, "tool": "splat-transform",
+                       "cut": "critical s_v at the reference distance (training views)" + (
+                           "; the model, then its merged tiers" if len(chain) > 1 else "")}
     step()
     return levels
 

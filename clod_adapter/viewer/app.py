@@ -25,6 +25,7 @@ from typing import Callable, Optional, Sequence
 
 import numpy as np
 
+from clod_adapter.camera_lod import tier_reach
 from clod_adapter.gaussians import Gaussians
 from clod_adapter.io.scene import Camera
 
@@ -268,8 +269,7 @@ class LodViewer:
         self.gaussians = gaussians.detach().to("cpu")
         self.max_sv = float(max_sv)
         st = self.gaussians.lod
-        reach = st.tier_s_v / st.tier_start if self.gaussians.parents is not None and st.tier_s_v > 0 else 1.0
-        self.sv_max = round(2.0 * self.max_sv * max(reach, 1.0), 2)  # a parent tier: to its parents' 2 max_sv
+        self.sv_max = round(2.0 * self.max_sv * tier_reach(self.gaussians), 2)  # tiers: to the last one's 2 max_sv
         self.scene_cameras = list(scene_cameras)
         self.background = tuple(float(c) for c in background)
         self.max_drawn = int(max_drawn)

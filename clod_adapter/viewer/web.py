@@ -88,6 +88,12 @@ def web_streams(model, static_scores) -> dict:
     return {k: np.ascontiguousarray(cols[k].detach().float().cpu().numpy()) for k in WEB_STREAMS}
 
 
+def _tier_names(k: int) -> tuple[str, str]:
+    """The .ply and .bin of tier ``k >= 1``: ``parents.ply``/``parents.bin``, then ``parents_k``."""
+    return (PARENTS_MODEL_NAME, PARENTS_DATA_NAME) if k == 1 else \
+        tuple(n.replace("parents", f"parents_{k}") for n in (PARENTS_MODEL_NAME, PARENTS_DATA_NAME))
+
+
 def write_web_viewer(model, out_dir: Path, cameras, static_scores, *, engine: Optional[Path] = None) -> list[str]:
     """A self-contained static page that draws ``model``'s continuous LoD on the GPU with the
     PlayCanvas engine: the page (``index.html``, ``clod.mjs``), the engine (copied from npm's
@@ -97,7 +103,8 @@ def write_web_viewer(model, out_dir: Path, cameras, static_scores, *, engine: Op
     ``lod.tier_s_v > 0``) also gets ``parents.ply`` and ``parents.bin`` (the same for its M
     parents; their static rank by opacity, unused: the page's static cut draws the model's own
     Gaussians) and a ``"tier"`` entry in ``clod.json`` (``model``, ``data``, ``count`` = M,
-    the parents' own ``settings``); the page cross-fades to them as
+    the parents' own ``settings``, and their own ``"tier"`` for a chain of tiers: ``parents_2.ply``,
+    ...); the page cross-fades from each tier to the next as
     :func:`clod_adapter.camera_lod.render_lod` does. Each file is written atomically.
 
     Args:
@@ -132,8 +139,11 @@ def write_web_viewer(model, out_dir: Path, cameras, static_scores, *, engine: Op
     out_dir.mkdir(parents=True, exist_ok=True)
     m = model.detach().to("cpu")
     tier = m.parents if m.parents is not None and m.lod is not None and m.lod.tier_s_v > 0 else None
-    if tier is not None and tier.sigma_d is None:
-        raise ValueError("write_web_viewer: the parent tier has no sigma_d")
+    t = tier
+    while t is not None:
+        if t.sigma_d is None:
+            raise ValueError("write_web_viewer: a parent tier has no sigma_d")
+        t = t.parents if t.lod is not None and t.lod.tier_s_v > 0 else None
 
     def write_model(g, scores, ply_name, data_name):
         write_ply(out_dir / ply_name, g.with_sigma_d(None))
@@ -150,10 +160,14 @@ def write_web_viewer(model, out_dir: Path, cameras, static_scores, *, engine: Op
            "cameras": [{"name": getattr(c, "name", f"view{i}"), "width": int(c.width), "height": int(c.height),
                         **playcanvas_pose(c)} for i, c in enumerate(cameras)]}
     names = [MODEL_NAME, DATA_NAME]
-    if tier is not None:
-        cfg["tier"] = {"model": PARENTS_MODEL_NAME, "data": PARENTS_DATA_NAME, "count": len(tier),
-                       "settings": write_model(tier, tier.opacity_logits, PARENTS_MODEL_NAME, PARENTS_DATA_NAME)}
-        names += [PARENTS_MODEL_NAME, PARENTS_DATA_NAME]
+    spec, k = cfg, 1
+    while tier is not None:  # the chain: cfg["tier"], its own "tier", ...
+        pm, pd = _tier_names(k)
+        spec["tier"] = {"model": pm, "data": pd, "count": len(tier),
+                        "settings": write_model(tier, tier.opacity_logits, pm, pd)}
+        names += [pm, pd]
+        spec, k = spec["tier"], k + 1
+        tier = tier.parents if tier.parents is not None and tier.lod is not None and tier.lod.tier_s_v > 0 else None
     with atomic_write(out_dir / CONFIG_NAME, "w") as f:
         json.dump(cfg, f, indent=1)
     page = resources.files("clod_adapter.viewer") / "web_page"

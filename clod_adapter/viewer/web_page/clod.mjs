@@ -3,10 +3,10 @@
 // window fade, the fade ramp near s_v = 1 and the learned level gains) runs per splat and per frame
 // in a work-buffer modifier (PlayCanvas's per-splat shader hook); s_v, the camera, the distance
 // normaliser and the level are uniforms. Per-splat data (sigma_d, opacity logit, the gains, a
-// static importance rank) are two RGBA32F extra streams filled from clod.bin. A model with a parent
-// tier (clod.json's "tier": merged Gaussians, an adapted model of their own) cross-fades to it as
-// render_lod does: the parents are a second entity running the same modifier with their own
-// settings at their own s_v, each entity's drawn weights scaled by its share of the image.
+// static importance rank) are two RGBA32F extra streams filled from clod.bin. A model with parent
+// tiers (clod.json's "tier", its own "tier", ...: merged Gaussians, each an adapted model of its own)
+// cross-fades from each tier to the next as render_lod does: each tier is an entity running the same
+// modifier with its own settings at its own s_v, its drawn weights scaled by its share of the image.
 //
 // Approximations against render_lod (docs/guide.md "In the browser"): the normaliser max d over the
 // frustum and the drawn share (hence the level of the gains) are computed here on the CPU from the
@@ -36,10 +36,23 @@ function rule(st) {
     };
 }
 const logSigmoid = (x) => -Math.max(-x, 0) - Math.log1p(Math.exp(-Math.abs(x)));
-// the parent tier's share of the image and the parents' own s_v (lod.tier_weight): 0 up to
-// tier_s_v, growing with ln s_v to 1 at tier_fade tier_s_v
-const tierWeight = (s) => (!(st.tier_s_v > 0) || s <= st.tier_s_v ? [0, 1]
-    : [Math.min(1, Math.log(s / st.tier_s_v) / Math.log(st.tier_fade)), st.tier_start * s / st.tier_s_v]);
+// a tier's hand-over to the next at its own s (lod.tier_weight): the next tier's share u, 0 up to
+// tier_s_v, growing with ln s to 1 at tier_fade tier_s_v, and the next tier's own s_v
+const tierWeight = (t, s) => (!(t.tier_s_v > 0) || s <= t.tier_s_v ? [0, 1]
+    : [Math.min(1, Math.log(s / t.tier_s_v) / Math.log(t.tier_fade)), t.tier_start * s / t.tier_s_v]);
+// [weight, s] of each tier of the chain at the model's s (camera_lod.chain_weights): tier k keeps
+// 1 - u of its weight and passes u to tier k + 1 at its own s
+function chainWeights(s, sts) {
+    const out = [];
+    let w = 1;
+    for (let k = 0; k < sts.length; k++) {
+        const [u, sn] = k + 1 < sts.length ? tierWeight(sts[k], s) : [0, s];
+        out.push([w * (1 - u), s]);
+        w *= u;
+        s = sn;
+    }
+    return out;
+}
 
 const GLSL = /* glsl */ `
 uniform vec3 uClodCam;
@@ -214,7 +227,10 @@ async function loadModel(name, spec, st) {
              drawn: 0, inFrustum: 0, level: 0, dmax: 0, ramp: st.fade_ramp_s_v };
 }
 const model = await loadModel('model', cfg, st);
-const parents = cfg.tier ? await loadModel('parents', cfg.tier, cfg.tier.settings) : null;
+// the chain of tiers (camera_lod.tier_chain): the model, then cfg.tier, its own .tier, ...
+const tiers = [model];
+for (let spec = cfg.tier, k = 1; spec; spec = spec.tier, k++) tiers.push(await loadModel(`tier${k}`, spec, spec.settings));
+const parents = tiers.length > 1 ? tiers[1] : null;
 const N = model.N;
 
 const camera = new pc.Entity('camera');
@@ -261,10 +277,11 @@ app.on('postrender', () => {
 });
 
 // --- state: s_v, the static toggle, the camera ----------------------------------------------------
-// drawn, inFrustum, level, dmax, ramp: the model's own Gaussians (drawn = 0 where the parents alone
-// are drawn; the others then keep their last frame's values); tierU: the parents' share of the image
-// (lod.tier_weight's u), parentSv: their own s_v, drawnParents: their drawn count (0 without a tier
-// or below its switch), parents: their other values as the model's
+// drawn, inFrustum, level, dmax, ramp: the model's own Gaussians (drawn = 0 where the tiers alone
+// are drawn; the others then keep their last frame's values); tierU: the parent tiers' share of the
+// image (1 - the model's weight), parentSv: the first parent tier's own s_v, drawnParents: every
+// parent tier's drawn count (0 without a tier or below its switch), parents: the first parent tier's
+// other values as the model's; tiers: [{weight, sv, drawn}] per tier of the chain
 const state = { sv: 1, static: false, cam: 0, drawn: 0, inFrustum: 0, level: 0, dmax: 0, ramp: 1.1, frameMs: NaN, updates: 0,
                 tierU: 0, parentSv: 1, drawnParents: 0, parents: null };
 const inv = new pc.Mat4();
@@ -373,16 +390,17 @@ function updateModel(m, s, mul, isStatic) {
     g.setParameter('uClodTierMul', mul);
 }
 
-// the frame's levels: the model at s_v with weight 1 - u, its parents at their own s_v with weight u
-// (lod.tier_weight; render_lod's cross-fade); the static cut: the model's own Gaussians alone
+// the frame's levels: each tier at its own s_v with its share of the image (camera_lod.chain_parts;
+// render_lod's cross-fades); the static cut: the model's own Gaussians alone
 function update() {
     inv.copy(camera.getWorldTransform()).invert();
     const s = state.sv;
-    const [u, sp] = parents ? tierWeight(s) : [0, 1];
-    updateModel(model, s, state.static ? 1 : 1 - u, state.static);
-    if (parents) updateModel(parents, sp, state.static ? 0 : u, false);
+    const ws = chainWeights(s, tiers.map((t) => t.st));
+    tiers.forEach((t, k) => updateModel(t, ws[k][1], state.static ? (k ? 0 : 1) : ws[k][0], state.static && !k));
+    const drawnParents = tiers.slice(1).reduce((a, t) => a + t.drawn, 0);
     Object.assign(state, { drawn: model.drawn, inFrustum: model.inFrustum, level: model.level, dmax: model.dmax,
-                           ramp: model.ramp, tierU: u, parentSv: sp, drawnParents: parents ? parents.drawn : 0 });
+                           ramp: model.ramp, tierU: 1 - ws[0][0], parentSv: parents ? ws[1][1] : 1, drawnParents,
+                           tiers: ws.map(([w, sk], k) => ({ weight: w, sv: sk, drawn: tiers[k].drawn })) });
     if (parents) {
         const { drawn, inFrustum, level, dmax, ramp } = parents;
         state.parents = { drawn, inFrustum, level, dmax, ramp };
@@ -394,17 +412,19 @@ function update() {
     document.getElementById('infrustum').textContent = state.inFrustum.toLocaleString();
     document.getElementById('total').textContent = N.toLocaleString();
     if (parents) {
-        document.getElementById('tierw').textContent = u.toFixed(2);
-        document.getElementById('psv').textContent = sp.toFixed(2);
+        document.getElementById('tierw').textContent = state.tierU.toFixed(2);
+        document.getElementById('psv').textContent = state.parentSv.toFixed(2);
         document.getElementById('pdrawn').textContent = state.drawnParents.toLocaleString();
-        document.getElementById('ptotal').textContent = parents.N.toLocaleString();
+        document.getElementById('ptotal').textContent = tiers.slice(1).reduce((a, t) => a + t.N, 0).toLocaleString();
     }
 }
 
 // --- the page: slider, toggle, cameras, frame time -------------------------------------------------
 const slider = document.getElementById('sv');
-// log scale from 1 to 1.2 max_sv, or with a tier on until the parents reach 1.2 times their own max_sv
-const svMax = Math.max(st.max_sv * 1.2, parents ? st.tier_s_v * 1.2 * parents.st.max_sv / st.tier_start : 0);
+// log scale from 1 to 1.2 max_sv, or with tiers on until the last reaches 1.2 times its own max_sv
+// (camera_lod.tier_reach)
+const reach = tiers.slice(0, -1).reduce((a, t) => a * t.st.tier_s_v / t.st.tier_start, 1);
+const svMax = Math.max(st.max_sv * 1.2, parents ? 1.2 * tiers[tiers.length - 1].st.max_sv * reach : 0);
 const svOfSlider = (v) => Math.exp(Math.log(svMax) * v / 1000);
 if (parents) document.getElementById('tier').hidden = false;
 slider.addEventListener('input', () => { state.sv = svOfSlider(+slider.value); update(); });

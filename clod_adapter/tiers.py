@@ -31,7 +31,7 @@ from .cost import DEFAULT_FRAME_TIME_MODEL, FrameTimeModel, splat_cost
 from .gaussians import Gaussians
 from .metrics import psnr
 
-#: models with fewer Gaussians get no parent tier (their coarsest frames already cost little)
+#: models with fewer Gaussians get no merged tiers (their coarsest frames already cost little)
 PARENT_MIN_GAUSSIANS = 10_000
 #: the default tiers' shares of the input (``AdaptConfig.parent_share``), chosen on the
 #: validation views (docs/studies.md "Merged tiers")

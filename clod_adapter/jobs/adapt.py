@@ -523,7 +523,7 @@ def _add_parent_tier(ply_path: Path, scene_root: Path, out_dir: Path, cfg: Adapt
     def done(why: Optional[str] = None) -> dict:
         if why:
             info["why"] = why
-            o.log(f"clod-adapt: no parent tier: {why}")
+            o.log(f"clod-adapt: no merged tier: {why}")
         info["seconds"] = round(time.perf_counter() - t0, 1)
         metrics["tier"] = info
         with atomic_write(out_dir / METRICS_NAME, "w") as f:

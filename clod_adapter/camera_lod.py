@@ -788,7 +788,6 @@ def render_lod(
         view: this model's :class:`LodView` for ``camera`` when the caller has built it (its
             projection and critical ``s_v`` are reused); default: built here.
 
-
     Returns:
         :class:`LodRender`.
 
@@ -886,15 +885,6 @@ def chain_weights(s_v: float, settings: Sequence[lod.LodSettings]) -> list[tuple
         out.append((w * (1.0 - u), s))
         w, s = w * u, s_next
     return out
-
-
-def tier_parts(s_v: float, settings: lod.LodSettings, children: Callable[[], LodView],
-               parents: Callable[[], LodView]):
-    """:func:`chain_parts` of a model with one parent tier: ``(parts, sel_children, sel_parents)``
-    (each None where not drawn). ``children`` / ``parents`` build the two :class:`LodView` of the
-    camera (called only when needed)."""
-    parts, sels = chain_parts(s_v, [settings, settings], lambda k: parents() if k else children())
-    return parts, sels[0], sels[1]
 
 
 def cost_budget_parents(gaussians: Gaussians, camera, view: LodView, sel: LodSelection, *, budget=None,
@@ -1061,7 +1051,7 @@ class LodSubset:
         n_in_view: Gaussians in view (the population budgets and fractions refer to; on a
             parents-only frame, the parents in view).
         parent_indices: [p] int64 indices into ``Gaussians.parents`` of the parent tier's
-            drawn rows, or None (no tier drawn). Where the tier is drawn (:func:`tier_parts`)
+            drawn rows, or None (no tier drawn). Where the tier is drawn (:func:`chain_parts`)
             the attribute rows are the model's ``indices`` (opacities times ``1 - u``) followed
             by these parents (opacities times ``u``).
         tier_indices: one entry per parent tier of :func:`tier_chain` (``[0]`` is

@@ -261,7 +261,7 @@ def clod_rasterization(
             sel = view.select(s_v, budget=budget, min_s_v=min_s_v, estimator="paper")
             par = budget_walk(lods, view_of, view, sel, budget=budget) if budget is not None and chain else None
             empty = sel.indices.new_zeros(0)
-            t_idx = [empty] * max(len(chain), 1)
+            t_idx = [empty] * len(chain)
             if par is not None:  # a budget past a hand-over: that tier alone (camera_lod.budget_walk)
                 rc, ra, meta = rasterize_views([par[:2]], background=bg, sh_degree=sh_degree, backend=backend)
                 idx, t_idx[par[3] - 1], s_used = empty, par[1].indices, par[2]
@@ -276,7 +276,7 @@ def clod_rasterization(
         n_par.append(sum(int(x.numel()) for x in t_idx))
         counts.append(int(idx.numel()) + n_par[-1])
         indices.append(idx)
-        par_idx.append(t_idx[0])
+        par_idx.append(t_idx[0] if t_idx else idx.new_zeros(0))
         tier_idx.append(t_idx)
     out_meta: Dict[str, Any] = dict(metas[0]) if C == 1 else {"cameras": metas, "n_cameras": C}
     out_meta.update(lod_s_v=svs, lod_n_rendered=counts, lod_indices=indices, lod_n_parents=n_par,

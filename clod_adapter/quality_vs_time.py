@@ -15,6 +15,10 @@ One implementation for ``clod-eval`` (its verdict, ``quality_vs_time.csv`` and
 * at each decimator point whose drawn share per view lies in ``[max_sv^-1.5, 0.5]``: the adapted
   model, LightGaussian and opacity at exactly the decimator's drawn count in every view
   (setting ``match:<decimator>:<its setting>``);
+* with ``ceiling_views``: the honest ceiling at each of those decimator shares (``ceiling``,
+  setting ``model=<share>``; :func:`ceiling_settings`): one static model per budget, fine-tuned
+  from the best start on the fit views, its step chosen on the validation views; not a peer, it
+  caps what a goal may ask;
 
 scores every setting (PSNR, SSIM, LPIPS when a scorer is given), then times every setting with
 the same renderer in interleaved shuffled rounds (:func:`clod_adapter.timing.time_interleaved`:
@@ -62,6 +66,10 @@ FULL_ROUNDS = 9
 LEVEL_DB = 0.05
 OURS = ("clod",)
 PEERS = ("lightgaussian", "opacity", "decimate", "decimate_adaptive")
+#: the per-budget ceiling (:func:`ceiling_settings`): at most this many fine-tuning steps, the
+#: validation views scoring the model every :data:`CEILING_VAL_EVERY` of them.
+CEILING_STEPS = 600
+CEILING_VAL_EVERY = 100
 DECIMATORS = {"decimate": "decimate", "decimate_adaptive": "adaptive"}
 CSV_COLUMNS = ("method", "setting", "psnr", "ssim", "lpips", "ms", "ms_min", "ms_max", "time_share",
                "drawn_per_view", "in_view_share", "storage_bytes")
@@ -154,6 +162,7 @@ class _Context:
     views: list
     scores: dict
     render_kw: dict
+    merged: dict = field(default_factory=dict)  # (decimator, model share) -> its output
 
     def ranking_cut(self, method: str, ks: Sequence[int]) -> tuple[list, int]:
         """Each view's cut is a model of its own (what a static cut ships): only it is projected."""
@@ -214,6 +223,7 @@ def build_settings(adapted: Gaussians, base: Gaussians, fit_cams: Sequence, cams
                 m = merge_decimate(base, max(1, int(round(share * n0))), mode=mode, tool=merge_tool)
                 log(f"splat-transform --{'decimate' if mode == 'decimate' else 'decimate-adaptive'} "
                     f"{len(m):,} in {time.perf_counter() - t:.1f} s")
+                ctx.merged[(method, share)] = m
                 settings.append(Setting(method, f"model={share:g}", [lod_render(m, c, **kw) for c in cams],
                                         ply_bytes(m)))
     return settings, ctx
@@ -239,13 +249,9 @@ def score(settings: Sequence[Setting], gts: Sequence, lpips_fn=None, tick=lambda
 
 def matched_settings(settings: Sequence[Setting], ctx: _Context, max_sv: float) -> list[Setting]:
     """The adapted model and the rankings at each in-range decimator point's per-view counts."""
-    lo = max_sv ** -1.5
     out = []
     for st in settings:
-        if st.method not in DECIMATORS:
-            continue
-        shares = [d / max(v.n_in_view, 1) for d, v in zip(st.drawn, ctx.views)]
-        if not lo * 0.9 <= statistics.mean(shares) <= 0.5:
+        if st.method not in DECIMATORS or not _in_range(st, ctx, max_sv):
             continue
         key = f"match:{st.method}:{st.setting}"
         ks = list(st.drawn)
@@ -254,6 +260,57 @@ def matched_settings(settings: Sequence[Setting], ctx: _Context, max_sv: float) 
         for method in ("lightgaussian", "opacity"):
             fns, size = ctx.ranking_cut(method, ks)
             out.append(Setting(method, key, fns, size))
+    return out
+
+
+def _in_range(st: Setting, ctx: _Context, max_sv: float) -> bool:
+    """Whether a decimator point's mean drawn share per view lies in ``[max_sv^-1.5, 0.5]``."""
+    shares = [d / max(v.n_in_view, 1) for d, v in zip(st.drawn, ctx.views)]
+    return max_sv ** -1.5 * 0.9 <= statistics.mean(shares) <= 0.5
+
+
+def ceiling_settings(settings: Sequence[Setting], ctx: _Context, max_sv: float, ceiling_views: tuple, *,
+                     steps: int = CEILING_STEPS, log: Callable[[str], None] = lambda s: None) -> list[Setting]:
+    """The honest ceiling at each in-range decimator share (issue 36's goal 4): per model share,
+    the best start among both decimators' outputs and the LightGaussian cut of the input to the
+    same count (:func:`clod_adapter.dlod_ceiling.best_start` on the validation views), every
+    attribute fine-tuned on the fit views for up to ``steps`` steps with LightGaussian's recovery
+    schedule, keeping the checkpoint (start, every :data:`CEILING_VAL_EVERY` steps, end) that
+    scores best on the validation views (:func:`clod_adapter.dlod_ceiling.finetune_subset`). One
+    static model per budget, as a discrete-LoD pipeline ships; scored and timed as every setting.
+
+    Args:
+        settings: the scored settings of :func:`build_settings` (the decimators' drawn counts).
+        ctx: their context (the decimators' outputs in ``ctx.merged``).
+        max_sv: the adapted model's trained maximum (the range's low end ``max_sv^-1.5``).
+        ceiling_views: ``(fit_cams, fit_imgs, val_cams, val_imgs)``: views the fine-tune fits
+            and views that choose its step (images [H, W, 3] float32 in [0, 1]); neither may be
+            an evaluation view.
+        steps: the fine-tune's length (its step is chosen among its checkpoints).
+
+    Returns:
+        one :class:`Setting` per model share, method ``ceiling``, setting ``model=<share>``.
+    """
+    from .dlod_ceiling import best_start, finetune_subset, global_cut
+
+    fit_cams, fit_imgs, val_cams, val_imgs = ceiling_views
+    bg = ctx.render_kw.get("background", (0.0, 0.0, 0.0))
+    out = []
+    for share in DECIMATE_SHARES:
+        dec = [st for st in settings if st.method in DECIMATORS and st.setting == f"model={share:g}"]
+        if not dec or not any(_in_range(st, ctx, max_sv) for st in dec):
+            continue
+        cands = {m: ctx.merged[(m, share)] for m in DECIMATORS if (m, share) in ctx.merged}
+        n = len(next(iter(cands.values())))
+        cands["lightgaussian"] = ctx.base.subset(global_cut(ctx.scores["lightgaussian"], n / len(ctx.base)))
+        t = time.perf_counter()
+        name, start = best_start(cands, val_cams, val_imgs, background=bg)
+        tuned, info = finetune_subset(start, fit_cams, fit_imgs, iterations=steps, background=bg, return_info=True,
+                                      val_cameras=val_cams, val_images=val_imgs, val_every=CEILING_VAL_EVERY)
+        log(f"ceiling at model={share:g}: {name} fine-tuned, step {info.best_step} of {steps} chosen on "
+            f"{len(val_cams)} validation views, in {time.perf_counter() - t:.0f} s")
+        out.append(Setting("ceiling", f"model={share:g}", [lod_render(tuned, c, **ctx.render_kw) for c in ctx.cams],
+                           ply_bytes(tuned)))
     return out
 
 
@@ -299,6 +356,8 @@ class Cell:
             the best peer's (the input for ``full``, where our time share is the paired ratio
             :attr:`Comparison.full_ratio` when measured); None where no setting is that fast.
         margin_db: ours - peer (+inf: only ours that fast; -inf: only a peer; nan: neither).
+        ceiling: the per-budget ceiling's point (:func:`ceiling_settings`): at the decimator's
+            model share (``count``), the best one within the time (``time``); None without one.
     """
 
     kind: str
@@ -306,6 +365,7 @@ class Cell:
     ours: Optional[tuple]
     peer: Optional[tuple]
     margin_db: float
+    ceiling: Optional[tuple] = None
 
 
 def _pt(comp: Comparison, p) -> Optional[tuple]:
@@ -325,8 +385,11 @@ def cells(comp: Comparison, shares: Sequence[float] = TIME_SHARES) -> list[Cell]
     if math.isfinite(comp.full_ratio):  # the paired rounds' ratio, far less noisy than two medians
         ours = ours[:3] + (round(comp.full_ratio, 6),)
     out = [Cell("full", 1.0, ours, _pt(comp, inp), full.psnr - inp.psnr)]
+    ceil = [s for s in comp.settings if s.method == "ceiling"]
     for m in time_margins(pts(OURS), pts(PEERS), inp.ms, shares):
-        out.append(Cell("time", m.share, _pt(comp, m.ours), _pt(comp, m.peer), m.margin_db))
+        fast = [s for s in ceil if s.ms <= m.share * inp.ms]
+        out.append(Cell("time", m.share, _pt(comp, m.ours), _pt(comp, m.peer), m.margin_db,
+                        _pt(comp, max(fast, key=lambda s: s.psnr)) if fast else None))
     for st in comp.settings:
         if st.method != "clod" or not st.setting.startswith("match:"):
             continue
@@ -334,14 +397,16 @@ def cells(comp: Comparison, shares: Sequence[float] = TIME_SHARES) -> list[Cell]
         group = [comp.get(dmethod, dsetting)] + [s for s in comp.settings
                                                  if s.setting == st.setting and s.method != "clod"]
         best = max(group, key=lambda s: s.psnr)
+        at = next((s for s in ceil if s.setting == dsetting), None)
         out.append(Cell("count", round(comp.in_view_share(st), 6), _pt(comp, st), _pt(comp, best),
-                        st.psnr - best.psnr))
+                        st.psnr - best.psnr, _pt(comp, at)))
     return out
 
 
 def compare(adapted: Gaussians, base: Gaussians, fit_cams: Sequence, cams: Sequence, gts: Sequence, *,
             max_sv: float, merge_tool: Optional[str] = None, lpips_fn=None, repeats: int = 5,
             full_rounds: int = FULL_ROUNDS, background=None, significance: Optional[torch.Tensor] = None,
+            ceiling_views: Optional[tuple] = None, ceiling_steps: int = CEILING_STEPS,
             log: Callable[[str], None] = lambda s: None, tick=lambda: None) -> Comparison:
     """The whole comparison of an adapted model with the input it was adapted from.
 
@@ -357,6 +422,9 @@ def compare(adapted: Gaussians, base: Gaussians, fit_cams: Sequence, cams: Seque
         background: [3] colour behind the scene (default black). log: progress lines.
         significance: [N] LightGaussian significance of ``base`` on ``fit_cams``, when the caller
             has it (default: computed).
+        ceiling_views: ``(fit_cams, fit_imgs, val_cams, val_imgs)`` for the per-budget ceiling
+            (:func:`ceiling_settings`; needs the decimators), or None (not built).
+        ceiling_steps: its fine-tune's length.
         tick: called after each render.
 
     Raises:
@@ -366,6 +434,8 @@ def compare(adapted: Gaussians, base: Gaussians, fit_cams: Sequence, cams: Seque
                                    significance=significance, log=log)
     score(settings, gts, lpips_fn, tick)
     extra = matched_settings(settings, ctx, max_sv)
+    if ceiling_views is not None and merge_tool is not None and ceiling_steps > 0:
+        extra += ceiling_settings(settings, ctx, max_sv, ceiling_views, steps=ceiling_steps, log=log)
     score(extra, gts, lpips_fn, tick)
     settings += extra
     log(f"{len(settings)} settings x {len(cams)} views scored; timing x{repeats} ...")
@@ -443,7 +513,8 @@ def csv_text(comp: Comparison) -> str:
 
 STYLE = {"clod": ("C0", "o", "adapted (one model)"), "lightgaussian": ("C1", "s", "LightGaussian cut"),
          "opacity": ("C7", "v", "opacity cut"), "decimate": ("C2", "^", "splat-transform --decimate"),
-         "decimate_adaptive": ("C3", "D", "splat-transform --decimate-adaptive")}
+         "decimate_adaptive": ("C3", "D", "splat-transform --decimate-adaptive"),
+         "ceiling": ("k", "*", "ceiling (one fine-tuned model per budget)")}
 
 
 def plot(path, results: dict) -> None:
@@ -491,14 +562,17 @@ def _cell_label(c: Cell) -> str:
 
 def cells_markdown(cs: Sequence[Cell]) -> str:
     """The cells as a Markdown table: comparison, ours, the best peer, the margin (dB)."""
-    out = ["| comparison | adapted: setting, PSNR, time share | best peer: setting, PSNR, time share | margin (dB) |",
-           "|---|---|---|---:|"]
+    with_ceiling = any(c.ceiling is not None for c in cs)
+    out = ["| comparison | adapted: setting, PSNR, time share | best peer: setting, PSNR, time share | margin (dB) |"
+           + (" ceiling: setting, PSNR, time share |" if with_ceiling else ""),
+           "|---|---|---|---:|" + ("---|" if with_ceiling else "")]
     for c in cs:
         o = "none that fast" if c.ours is None else _where(c.ours)
         p = "none that fast" if c.peer is None else _where(c.peer)
         m = f"{c.margin_db:+.2f}" if math.isfinite(c.margin_db) else ("only ours" if c.margin_db > 0 else
                                                                         "only peers" if c.margin_db < 0 else "-")
-        out.append(f"| {_cell_label(c)} | {o} | {p} | {m} |")
+        extra = (" - |" if c.ceiling is None else f" {_where(c.ceiling)} |") if with_ceiling else ""
+        out.append(f"| {_cell_label(c)} | {o} | {p} | {m} |" + extra)
     return "\n".join(out)
 
 
@@ -507,4 +581,5 @@ def cells_json(cs: Sequence[Cell]) -> list[dict]:
     def pt(p):
         return None if p is None else {"method": p[0], "setting": p[1], "psnr": p[2], "time_share": p[3]}
     return [{"kind": c.kind, "share": c.share, "ours": pt(c.ours), "peer": pt(c.peer),
-             "margin_db": c.margin_db if math.isfinite(c.margin_db) else None} for c in cs]
+             "margin_db": c.margin_db if math.isfinite(c.margin_db) else None, "ceiling": pt(c.ceiling)}
+            for c in cs]

@@ -58,6 +58,24 @@ def decimated(gaussians: Gaussians, share: float, *, tool: Optional[str] = None)
     return merge_decimate(plain, max(1, int(round(share * len(gaussians)))), mode="decimate", tool=tool)
 
 
+def finetuned(merged: Gaussians, cameras: Sequence, images: Sequence, steps: int, *, background=None,
+              seed: int = 0) -> Gaussians:
+    """A merged tier fitted to the training views: every base attribute of ``merged`` (N
+    Gaussians, no ``sigma_d``) fine-tuned at full detail for ``steps`` Adam steps, one view each,
+    on ``0.8 L1 + 0.2 D-SSIM``, with LightGaussian's post-pruning recovery rates
+    (:func:`clod_adapter.dlod_ceiling.finetune_subset`, ``schedule="recovery"``). A merge by
+    moment matching keeps each cluster's mass and covariance, not its look; a few hundred steps
+    recover most of what it lost (docs/studies.md "Merged tiers"). ``steps = 0`` returns
+    ``merged``. Images are [H, W, 3] float32 in [0, 1]; the count and SH degree are unchanged."""
+    from .dlod_ceiling import finetune_subset
+
+    if steps <= 0:
+        return merged
+    bg = (0.0, 0.0, 0.0) if background is None else background
+    return finetune_subset(merged, list(cameras), list(images), iterations=int(steps), background=bg, seed=seed,
+                           val_every=0)
+
+
 def attach(gaussians: Gaussians, parents: Gaussians, tier_s_v: float, tier_start: float = 1.0,
            tier_fade: float = 1.25) -> Gaussians:
     """``gaussians`` (adapted) with the adapted ``parents`` as its parent tier, taking over from

@@ -125,6 +125,12 @@ class AdaptConfig:
             :data:`clod_adapter.tiers.DEFAULT_SHARES` (calibrated), none (paper). Chosen on the
             validation views: ``python benchmarks/quality_vs_time.py --split val --config
             parent_share=...`` (docs/studies.md).
+        tier_finetune_steps: each merged tier's base attributes are fine-tuned at full detail
+            for this many steps on the training views (:func:`clod_adapter.tiers.finetuned`,
+            LightGaussian's recovery schedule) before its level of detail is learned: a merge is
+            not a fitted model. 0: the merge as splat-transform wrote it. Default 200, chosen on
+            the validation views of skull (the 50 / 15 / 4 % merges +0.17 / +0.56 / +0.85 dB at
+            200 steps; docs/studies.md "Merged tiers").
         keep_share: leave out what the scene does not need first (:mod:`clod_adapter.pruning`):
             keep this share of the input's Gaussians, the top by blending weight over the training
             views, recovered for ``recovery_steps`` before the level of detail is learned; full
@@ -168,6 +174,7 @@ class AdaptConfig:
     level_max: float = 1.0
     trained_order_share: float = 1.0
     parent_share: Optional[float | tuple] = None
+    tier_finetune_steps: int = 200
     keep_share: float = 1.0
     recovery_steps: int = 1000
 
@@ -196,6 +203,8 @@ class AdaptConfig:
         if not all(0.0 < x < 1.0 for x in self.parent_share) or \
                 any(b >= a for a, b in zip(self.parent_share, self.parent_share[1:])):
             raise ValueError(f"parent_share must be descending shares in (0, 1), got {shares}")
+        if not (isinstance(self.tier_finetune_steps, int) and self.tier_finetune_steps >= 0):
+            raise ValueError(f"tier_finetune_steps must be >= 0 (an integer), got {self.tier_finetune_steps!r}")
         self.keep_share = float(self.keep_share)
         if not 0.0 < self.keep_share <= 1.0:
             raise ValueError(f"keep_share must be in (0, 1], got {self.keep_share}")

@@ -52,6 +52,26 @@ def test_verdict_says_where_ours_is_ahead_and_by_how_much():
     assert md.count("\n") == 1 + 6 and "| +1.50 |" in md
 
 
+def test_a_ceiling_below_a_target_lowers_it_and_the_goal_says_so():
+    """Goal 4: the per-budget ceiling (one fine-tuned model per decimator share) caps a goal at
+    ceiling - 0.2 dB where it is below the target; a ceiling above leaves the target alone."""
+    comp = _comparison()
+    comp.settings.append(_setting("ceiling", "model=0.15", 25.6, 19.0, 150))
+    comp.settings.append(_setting("ceiling", "model=0.5", 27.3, 47.0, 500))
+    cs = qvt.cells(comp)
+    count = cs[-1]
+    assert count.ceiling[:3] == ("ceiling", "model=0.15", 25.6)
+    assert cs[2].ceiling[1] == "model=0.5" and cs[4].ceiling is None  # within 50 %; nothing within 10 %
+    rows = {r["goal"].split(" >= ")[0]: r for r in _bench().goals("x", comp, cs)}
+    # within 50 %: peer 27.0 + 1 = 28.0 > ceiling 27.3 -> 27.1, ours 28.0 meets it
+    assert rows["within 50 % time"]["rule"] == "ceiling - 0.2" and math.isclose(rows["within 50 % time"]["target"], 27.1)
+    # equal count: peer 24.0 + 0.5 = 24.5 < ceiling 25.6: the peer rule stays
+    r = rows["equal count 15.0 % in view"]
+    assert r["rule"] == "peer + 0.5" and math.isclose(r["target"], 24.5) and r["met"]
+    assert rows["within 75 % time"]["rule"] == "ceiling - 0.2"  # input - 0.1 = 29.9 > 27.3
+    assert "ceiling: setting" in qvt.cells_markdown(cs) and qvt.cells_json(cs)[-1]["ceiling"]["psnr"] == 25.6
+
+
 def _bench():
     sys.path.insert(0, str(REPO / "benchmarks"))
     try:
@@ -99,6 +119,7 @@ def test_clod_eval_gives_the_benchmarks_cells(tmp_path, monkeypatch):
     bench = _bench()
     monkeypatch.setattr(bench.common, "RUNS", bench.common.RUNS)  # restored after the test
     assert bench.main(["--inputs", "demo", "--config", "iterations=40", "--repeats", "1", "--no-lpips",
+                       "--ceiling-steps", "0",
                        "--runs", str(tmp_path / "bench"), "--threads", "2"]) in (0, 1)
     run = tmp_path / "bench" / "quality_vs_time" / "iterations-40"
     want = json.loads((run / "demo.json").read_text())["cells"]

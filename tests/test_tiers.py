@@ -116,6 +116,34 @@ def test_storage_counts_the_parent_element(tiered, tmp_path):
     assert ply_bytes(g) == write_ply(tmp_path / "s.ply", g).stat().st_size > ply_bytes(replace(g, parents=None))
 
 
+def test_finetuned_fits_a_merge_to_the_training_views():
+    """tiers.finetuned: a merge (here a perturbed model) fitted at full detail scores higher on
+    the views it was fitted to; same count and SH degree; 0 steps is the merge itself."""
+    from clod_adapter.metrics import psnr
+    from clod_adapter.synthetic import perturb
+
+    gt = make_ground_truth(300, seed=3)
+    cams = make_cameras(1, 3, width=48, height=36)
+    imgs = [render_lod(gt, c, None).image for c in cams]
+    merged = perturb(gt, seed=4, strength=1.0)
+    assert tiers.finetuned(merged, cams, imgs, 0) is merged
+    fitted = tiers.finetuned(merged, cams, imgs, 60)
+    assert len(fitted) == len(merged) and fitted.sh_degree == merged.sh_degree and fitted.sigma_d is None
+
+    def score(m):
+        return sum(psnr(render_lod(m, c, None).image, gt_img) for c, gt_img in zip(cams, imgs)) / len(cams)
+
+    assert score(fitted) > score(merged) + 0.5
+
+
+def test_tier_finetune_steps_must_be_a_count():
+    from clod_adapter.training import AdaptConfig
+
+    assert AdaptConfig().tier_finetune_steps == 200
+    with pytest.raises(ValueError, match="tier_finetune_steps"):
+        AdaptConfig(tier_finetune_steps=-1)
+
+
 def test_adapt_job_builds_the_tier_or_says_why_not(tiny_model, tmp_path, monkeypatch):
     """clod-adapt: under PARENT_MIN_GAUSSIANS no tier (and metrics.json says why); over it, the
     merged input is adapted into OUT/parents and, when it pays, stored as the lod_parent element."""
@@ -134,8 +162,9 @@ def test_adapt_job_builds_the_tier_or_says_why_not(tiny_model, tmp_path, monkeyp
         pytest.skip("splat-transform is not installed (npm ci): the tier's merge needs it")
     monkeypatch.setattr(tiers, "PARENT_MIN_GAUSSIANS", 100)
     out = tmp_path / "tier"
-    assert main(args + ["-o", str(out), "--parent-share", "0.2"]) == 0
+    assert main(args + ["-o", str(out), "--parent-share", "0.2", "--tier-finetune-steps", "7"]) == 0
     tier = json.loads((out / "metrics.json").read_text())["tier"]
+    assert tier["finetune"]["steps"] == 7
     assert tier["parents"] == 60 and (out / "parents" / "point_cloud.ply").is_file()
     assert len(tier["curves"]["gaussians"]) == len(tiers.SWITCH_S_V)
     g = read_ply(out / "point_cloud.ply")

@@ -83,6 +83,9 @@ def build_parser():
                         "of its Gaussians (descending), each tier handing over to the next at the levels where it "
                         "pays (default 0.5,0.15,0.04; 0: none; left out under 10,000 Gaussians or without "
                         "splat-transform; docs/method.md)")
+    p.add_argument("--tier-finetune-steps", type=int, default=200, metavar="N",
+                   help="fine-tune each merged tier at full detail for N steps on the training views before its "
+                        "LoD is learned (default 200; 0: the merge as splat-transform wrote it)")
     p.add_argument("--keep-share", type=float, default=1.0, metavar="SHARE",
                    help="leave out what the scene does not need first: keep SHARE of the input's Gaussians, the top "
                         "by blending weight over the training views, and recover them (every attribute, "
@@ -159,6 +162,7 @@ def _config(args, world: int):
                            background=(1.0, 1.0, 1.0) if args.background == "white" else (0.0, 0.0, 0.0),
                            views_per_step=args.views_per_step if args.views_per_step is not None else world,
                            level_max=args.level_max, parent_share=args.parent_share,
+                           tier_finetune_steps=args.tier_finetune_steps,
                            keep_share=args.keep_share, recovery_steps=args.recovery_steps, **kw)
     except ValueError as e:  # "<field> must be ...": the field is the flag
         field, _, rest = str(e).partition(" ")

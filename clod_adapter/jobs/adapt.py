@@ -540,9 +540,16 @@ def _add_parent_tier(ply_path: Path, scene_root: Path, out_dir: Path, cfg: Adapt
                                      share)
     except RuntimeError as e:
         return done(f"splat-transform: {e}")
+    scene = _tier_scene(scene_root, cfg, o)
+    if cfg.tier_finetune_steps > 0:
+        t1 = time.perf_counter()
+        parents_in = tiers.finetuned(parents_in, scene.train, [scene.load_image(c) for c in scene.train],
+                                     cfg.tier_finetune_steps, background=cfg.background, seed=cfg.seed)
+        info["finetune"] = {"steps": cfg.tier_finetune_steps, "seconds": round(time.perf_counter() - t1, 1)}
     write_ply(out_dir / PARENT_INPUT_NAME, parents_in)
     pdir = out_dir / PARENT_DIR
-    o.log(f"clod-adapt: parent tier: {len(parents_in):,} merged Gaussians (splat-transform --decimate), "
+    o.log(f"clod-adapt: parent tier: {len(parents_in):,} merged Gaussians (splat-transform --decimate"
+          f"{f', fine-tuned {cfg.tier_finetune_steps} steps' if cfg.tier_finetune_steps else ''}), "
           f"adapting them into {pdir} ...")
     # the merged input derives from the checked one: no second scene check (a coarse merge may
     # not clear its margin on a tiny model)
@@ -553,11 +560,6 @@ def _add_parent_tier(ply_path: Path, scene_root: Path, out_dir: Path, cfg: Adapt
     if pcfg.parent_share:  # the tier's own parent tiers, shares relative to it
         _add_parent_tier(out_dir / PARENT_INPUT_NAME, scene_root, pdir, pcfg, po, stop, None, pm, nested=True)
     model, parents = read_ply(out_dir / PLY_NAME), read_ply(pdir / PLY_NAME)
-    scene = load_scene(scene_root, resolution=o.resolution, background=cfg.background)
-    if o.holdout_val:
-        from ..io.scene import holdout_validation
-
-        scene = holdout_validation(scene)
     cams = list(scene.train)[:: max(1, len(scene.train) // tiers.CHOOSE_VIEWS)][: tiers.CHOOSE_VIEWS]
     imgs = [scene.load_image(c) for c in cams]
     dirs = _tier_dirs(pdir)
@@ -576,6 +578,17 @@ def _add_parent_tier(ply_path: Path, scene_root: Path, out_dir: Path, cfg: Adapt
     o.log(f"clod-adapt: merged tier of {len(linked.parents):,} attached to {out_dir / PLY_NAME} (from s_v = "
           f"{st.tier_s_v:g}) in {time.perf_counter() - t0:.0f} s")
     return done()
+
+
+def _tier_scene(scene_root: Path, cfg: AdaptConfig, o: AdaptOptions):
+    """The scene a tier is fitted and chosen on: its training views (the fit views with
+    ``o.holdout_val``)."""
+    scene = load_scene(scene_root, resolution=o.resolution, background=cfg.background)
+    if o.holdout_val:
+        from ..io.scene import holdout_validation
+
+        scene = holdout_validation(scene)
+    return scene
 
 
 def _tier_dirs(pdir: Path) -> list[Path]:

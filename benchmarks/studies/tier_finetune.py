@@ -1,0 +1,96 @@
+"""How long should a merged tier be fitted before its level of detail is learned?
+
+For each input (default: skull and fern) the merges ``clod-adapt`` builds for its tiers
+(``--parent-share 0.5,0.15,0.04``: splat-transform 3.7.0's ``--decimate`` of the input, each next
+tier merged from the fitted tier above it, :func:`clod_adapter.tiers.decimated`) are fine-tuned
+at full detail on the fit views (:func:`clod_adapter.dlod_ceiling.finetune_subset`, LightGaussian's
+recovery rates, the schedule of :func:`clod_adapter.tiers.finetuned`), and scored on the
+validation views (never in the fit, nor in the shared checkpoints' training) every ``--every``
+steps up to ``--steps``. Printed: each merge's PSNR at each step against the input's, and the step
+each merge scores best at. No goal is enforced (a study: exit 0)::
+
+    python benchmarks/studies/tier_finetune.py                 # skull, fern; 400 steps
+    python benchmarks/studies/tier_finetune.py --inputs skull --steps 600 --every 100
+
+Written: ``runs/bench/tier_finetune/summary.md``. About 4 minutes per scene on 2 cores.
+"""
+from __future__ import annotations
+
+import argparse
+import statistics
+import sys
+import time
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # benchmarks/: common.py
+from common import RUNS, add_inputs_args, load_input, scene_views, selected_inputs, setup_threads  # noqa: E402
+
+from clod_adapter import tiers  # noqa: E402
+from clod_adapter.camera_lod import render_lod  # noqa: E402
+from clod_adapter.dlod_ceiling import finetune_subset  # noqa: E402
+from clod_adapter.io.atomic import atomic_write  # noqa: E402
+from clod_adapter.metrics import psnr  # noqa: E402
+
+
+def val_psnr(model, cams, imgs) -> float:
+    """Mean PSNR (dB, capped) of ``model`` at full detail on the views."""
+    return statistics.mean(psnr(render_lod(model, c, None).image, gt, cap=True) for c, gt in zip(cams, imgs))
+
+
+def study(name: str, shares, steps: int, every: int) -> list[str]:
+    """One input's table rows: each merge's validation PSNR along its fine-tune."""
+    g0, scene, _ = load_input(name, split="val")
+    fit, val = scene_views(scene, "val")
+    fit_imgs, val_imgs = [scene.load_image(c) for c in fit], [scene.load_image(c) for c in val]
+    base = val_psnr(g0, val, val_imgs)
+    rows, src, prev = [], g0, 1.0
+    for share in shares:
+        t = time.perf_counter()
+        merged = tiers.decimated(src, share / prev)
+        _, info = finetune_subset(merged, fit, fit_imgs, iterations=steps, return_info=True, val_cameras=val,
+                                  val_images=val_imgs, val_every=every)
+        curve = dict((int(s), p) for s, p in info.val_psnr)
+        print(f"[{name}] {100 * share:g} % merge ({len(merged):,}): " + ", ".join(
+            f"{s}: {p:.2f}" for s, p in curve.items()) + f" dB (input {base:.2f}) in {time.perf_counter() - t:.0f} s",
+            flush=True)
+        rows.append(f"| {name} | {100 * share:g} % ({len(merged):,}) | {base:.2f} | "
+                    + " | ".join(f"{curve[s]:.2f} ({curve[s] - curve[0]:+.2f})" for s in sorted(curve))
+                    + f" | {info.best_step} |")
+        # the next tier is merged from this one fitted as the job fits it
+        src, prev = tiers.finetuned(merged, fit, fit_imgs, tiers_steps(), background=(0.0, 0.0, 0.0)), share
+    return rows
+
+
+def tiers_steps() -> int:
+    """The job's default fine-tune length (``AdaptConfig.tier_finetune_steps``)."""
+    from clod_adapter.training import AdaptConfig
+
+    return AdaptConfig().tier_finetune_steps
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    add_inputs_args(ap, ["skull", "fern"])
+    ap.add_argument("--shares", type=float, nargs="+", default=list(tiers.DEFAULT_SHARES))
+    ap.add_argument("--steps", type=int, default=400)
+    ap.add_argument("--every", type=int, default=50)
+    ap.add_argument("--threads", type=int, default=2)
+    args = ap.parse_args(argv)
+    setup_threads(args.threads)
+    marks = list(range(0, args.steps + 1, args.every))
+    if marks[-1] != args.steps:
+        marks.append(args.steps)
+    lines = ["| input | merge (Gaussians) | input, val PSNR | " + " | ".join(f"step {s}" for s in marks)
+             + " | best step |", "|---|---|---:|" + "---:|" * len(marks) + "---:|"]
+    for name in selected_inputs(args):
+        lines += study(name, args.shares, args.steps, args.every)
+    out = RUNS / "tier_finetune"
+    out.mkdir(parents=True, exist_ok=True)
+    with atomic_write(out / "summary.md", "w") as f:
+        f.write("\n".join(lines) + "\n")
+    print("\n".join(lines))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -843,11 +843,12 @@ def tier_chain(gaussians: Gaussians) -> list[Gaussians]:
 
 def tier_reach(gaussians: Gaussians) -> float:
     """How far the model's ``s_v`` reaches into its tiers: the product over the chain
-    (:func:`tier_chain`) of ``tier_s_v / tier_start`` (>= 1; 1 without tiers), so the coarsest
-    tier is at its own ``s_v = s`` where the model is at ``s * tier_reach`` (past every hand-over)."""
+    (:func:`tier_chain`) of ``tier_fade * tier_s_v / tier_start`` (>= 1; 1 without tiers), so the
+    coarsest tier is at its own ``s_v = s`` where the model is at ``s * tier_reach`` (past every
+    hand-over; :func:`clod_adapter.lod.tier_weight`)."""
     r = 1.0
     for m in tier_chain(gaussians)[:-1]:
-        r *= m.lod.tier_s_v / m.lod.tier_start
+        r *= m.lod.tier_fade * m.lod.tier_s_v / m.lod.tier_start
     return max(r, 1.0)
 
 
@@ -940,7 +941,7 @@ def budget_walk(settings: Sequence[lod.LodSettings], view_of: Callable[[int], Lo
         sel_p = vp.select(budget=k, min_s_v=st.tier_start)
     deeper = budget_walk(settings, view_of, vp, sel_p, budget=k, budget_cost=b, budget_ms=budget_ms,
                          time_model=time_model, depth=depth + 1)
-    scale = st.tier_s_v / st.tier_start
+    scale = st.tier_fade * st.tier_s_v / st.tier_start  # the tier's s -> the model's (lod.tier_weight)
     if deeper is not None:
         return deeper[0], deeper[1], deeper[2] * scale, deeper[3]
     return vp, sel_p, sel_p.s_v * scale, depth + 1

@@ -90,8 +90,8 @@ class LodSettings:
         tier_s_v: where the model's parent tier (``Gaussians.parents``: merged Gaussians, an
             adapted model of their own) takes over: from this ``s_v`` the image cross-fades from
             the Gaussians to their parents (0: no tier; :func:`tier_weight`).
-        tier_start: the parents' own ``s_v`` at ``tier_s_v`` (>= 1); beyond, they are drawn at
-            ``tier_start * s_v / tier_s_v``.
+        tier_start: the parents' own ``s_v`` from ``tier_s_v`` to the cross-fade's end (>= 1);
+            beyond, they are drawn at ``tier_start * s_v / (tier_fade * tier_s_v)``.
         tier_fade: the cross-fade lasts from ``tier_s_v`` to ``tier_fade * tier_s_v`` (> 1).
     """
 
@@ -499,13 +499,16 @@ def tier_weight(s_v: float, settings: LodSettings) -> tuple[float, float]:
     ``(u, s_parents)``. ``u`` is 0 up to ``tier_s_v`` (the Gaussians alone), grows with
     ``ln s_v`` to 1 at ``tier_fade * tier_s_v`` (the parents alone); between, the Gaussians are
     drawn with their opacities times ``1 - u`` and the parents with theirs times ``u``, so the
-    image is continuous in ``s_v``. ``s_parents = tier_start * s_v / tier_s_v``. A model without
-    a tier (``tier_s_v = 0``): ``(0, 1)``."""
+    image is continuous in ``s_v``. The parents are held at ``s_parents = tier_start`` through the
+    cross-fade (so where they are first drawn alone they are at ``tier_start``, their full detail
+    for ``tier_start = 1``), then ``s_parents = tier_start * s_v / (tier_fade * tier_s_v)``. A
+    model without a tier (``tier_s_v = 0``): ``(0, 1)``."""
     st = settings
     if st.tier_s_v <= 0.0 or s_v <= st.tier_s_v:
         return 0.0, 1.0
+    end = st.tier_fade * st.tier_s_v
     u = min(1.0, math.log(float(s_v) / st.tier_s_v) / math.log(st.tier_fade))
-    return u, st.tier_start * float(s_v) / st.tier_s_v
+    return u, st.tier_start * max(float(s_v) / end, 1.0)
 
 
 def ramp_cap(max_sv: float) -> float:

@@ -177,7 +177,7 @@ def clod_rasterization(
             M rows), ``sigma_d`` [M], optional gains, ``opacity_logits`` and ``lod_settings``
             (the parents' own).
             Drawn at an ``s_v`` past ``lod_settings.tier_s_v`` (cross-fade, then alone, at the
-            parents' ``s_v = tier_start s_v / tier_s_v``; their own ``parents`` likewise down the
+            parents' ``s_v``, :func:`clod_adapter.lod.tier_weight`; their own ``parents`` likewise down the
             chain, :func:`clod_adapter.camera_lod.chain_parts`); a budget whose solution passes a
             hand-over draws that tier alone (:func:`clod_adapter.camera_lod.budget_walk`).
         opacity_logits: [N] the raw opacities ``opacities`` came from: the rule works on logits

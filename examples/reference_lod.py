@@ -186,8 +186,9 @@ def draw_tiered(m, viewmat, K, width, height, s_v: float) -> dict:
     ``{"model": draw(m, ..., s_v) or None, "parents": the first parent tier's draw or None, "u": the
     parent tiers' share of the image, "tiers": [draw or None per parent tier]}``. Tier 0 is the model
     at ``s_v`` with weight 1; a tier with weight ``w`` at its own ``s`` past its ``tier_s_v`` keeps
-    ``w (1 - u)`` and passes ``w u`` to the next tier at ``tier_start s / tier_s_v``, ``u`` growing
-    with ``ln s`` from 0 at ``tier_s_v`` to 1 at ``tier_fade tier_s_v``; each drawn tier's
+    ``w (1 - u)`` and passes ``w u`` to the next tier at ``tier_start max(1, s / (tier_fade tier_s_v))``
+    (held at ``tier_start`` through the cross-fade), ``u`` growing with ``ln s`` from 0 at
+    ``tier_s_v`` to 1 at ``tier_fade tier_s_v``; each drawn tier's
     opacities are times its weight (None: weight 0, not drawn). A model without a tier: its own
     ``draw`` and no parents."""
     chain = [m]
@@ -198,7 +199,7 @@ def draw_tiered(m, viewmat, K, width, height, s_v: float) -> dict:
         st, u, s_next = t["settings"], 0.0, s
         if k + 1 < len(chain) and s > st["tier_s_v"]:
             u = min(1.0, math.log(s / st["tier_s_v"]) / math.log(st["tier_fade"]))
-            s_next = st["tier_start"] * s / st["tier_s_v"]
+            s_next = st["tier_start"] * max(s / (st["tier_fade"] * st["tier_s_v"]), 1.0)
         out = None
         if w * (1.0 - u) > 0.0:
             out = draw(t, viewmat, K, width, height, s)

@@ -25,9 +25,17 @@ def chain():
     return tiers.attach(_adapted(1200, 0), t1, *SWITCHES[0]), make_cameras(1, 2)
 
 
+FADE = 1.25  # tiers.attach's tier_fade
+
+
+def _model_s_v_of_tier1(s1: float) -> float:
+    """The model's s_v where tier 1 is at its own ``s1 >= 1.25`` (past the first cross-fade)."""
+    return s1 * FADE * SWITCHES[0][0] / SWITCHES[0][1]
+
+
 def _model_s_v_of_tier2(s2: float) -> float:
-    """The model's s_v where tier 2 is at its own ``s2`` (past both hand-overs)."""
-    return s2 * (SWITCHES[0][0] / SWITCHES[0][1]) * (SWITCHES[1][0] / SWITCHES[1][1])
+    """The model's s_v where tier 2 is at its own ``s2 >= 1.5`` (past both cross-fades)."""
+    return _model_s_v_of_tier1(s2 * FADE * SWITCHES[1][0] / SWITCHES[1][1])
 
 
 def test_weights_sum_to_one_and_only_neighbours_share_the_image(chain):
@@ -49,17 +57,17 @@ def test_each_tier_drawn_alone_between_the_hand_overs(chain):
     g, cams = chain
     t1, t2 = g.parents, g.parents.parents
     for cam in cams:
-        # tier 1 alone (past the first cross-fade, before its own): model s_v 2.6 -> tier 1 at 1.625
+        # tier 1 alone (past the first cross-fade, before its own): model s_v 2.6 -> tier 1 at 1.3
         r1 = render_lod(g, cam, 2.6)
-        assert torch.equal(r1.image, render_lod(replace(t1, parents=None), cam, 1.625).image)
+        assert torch.equal(r1.image, render_lod(replace(t1, parents=None), cam, 1.3).image)
         assert r1.indices.numel() == 0 and r1.n_parents == r1.n_rendered > 0
         # tier 2 alone far down the range
         s = _model_s_v_of_tier2(2.0)
         r2 = render_lod(g, cam, s)
         assert torch.equal(r2.image, render_lod(t2, cam, 2.0).image) and r2.n_parents == r2.n_rendered
         # in tier 1's own cross-fade both tier 1 and tier 2 are drawn, the model is not
-        mid = render_lod(g, cam, 2.0 / 1.25 * 2.5 * 1.1)
-        sub = lod_subset(g, cam, 2.0 / 1.25 * 2.5 * 1.1)
+        mid = render_lod(g, cam, _model_s_v_of_tier1(2.5 * 1.1))
+        sub = lod_subset(g, cam, _model_s_v_of_tier1(2.5 * 1.1))
         assert sub.indices.numel() == 0 and sub.tier_indices[0].numel() > 0 and sub.tier_indices[1].numel() > 0
         assert mid.n_parents == sub.tier_indices[0].numel() + sub.tier_indices[1].numel() == mid.n_rendered
 
@@ -69,7 +77,7 @@ def test_every_hand_over_is_continuous(chain):
     step of a fine sweep through both is far below the jump of switching at once."""
     g, cams = chain
     cam = cams[0]
-    for lo, hi in ((2.0, 2.5), (2.0 / 1.25 * 2.5, 2.0 / 1.25 * 2.5 * 1.25)):
+    for lo, hi in ((2.0, 2.5), (_model_s_v_of_tier1(2.5), _model_s_v_of_tier1(2.5 * FADE))):
         svs = np.geomspace(lo * 0.98, hi * 1.02, 41)
         imgs = [render_lod(g, cam, float(s)).image for s in svs]
         steps = [float((a - b).abs().mean()) for a, b in zip(imgs, imgs[1:])]

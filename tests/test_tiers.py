@@ -29,8 +29,8 @@ def test_tier_weight_rule():
     st = lod.LodSettings(fade="window", tier_s_v=4.0, tier_start=1.5, tier_fade=1.25)
     assert lod.tier_weight(1.0, st) == (0.0, 1.0) and lod.tier_weight(4.0, st)[0] == 0.0
     u, sp = lod.tier_weight(4.4, st)
-    assert 0.0 < u < 1.0 and sp == pytest.approx(1.5 * 4.4 / 4.0)
-    assert lod.tier_weight(5.0, st)[0] == pytest.approx(1.0) and lod.tier_weight(9.0, st)[0] == 1.0
+    assert 0.0 < u < 1.0 and sp == 1.5  # held at tier_start through the cross-fade (4 to 5)
+    assert lod.tier_weight(5.0, st) == pytest.approx((1.0, 1.5)) and lod.tier_weight(9.0, st) == (1.0, 1.5 * 9.0 / 5.0)
     us = [lod.tier_weight(s, st)[0] for s in torch.linspace(4.0, 5.2, 25).tolist()]
     assert all(b >= a for a, b in zip(us, us[1:]))
     assert lod.tier_weight(30.0, lod.LodSettings())[0] == 0.0  # no tier
@@ -45,8 +45,10 @@ def test_drawing_below_beyond_and_across_the_switch(tiered):
     for cam in cams:
         below = render_lod(g, cam, 2.9)
         assert torch.equal(below.image, render_lod(children, cam, 2.9).image) and below.n_parents == 0
-        beyond = render_lod(g, cam, 4.0)  # u = 1 from 3 * 1.25 on: the parents alone at 1.5 * 4 / 3
-        assert torch.equal(beyond.image, render_lod(g.parents, cam, 2.0).image)
+        beyond = render_lod(g, cam, 4.0)  # u = 1 from 3 * 1.25 on: the parents alone at 1.5 * 4 / 3.75
+        assert torch.equal(beyond.image, render_lod(g.parents, cam, 1.6).image)
+        # through the cross-fade the parents are held at their tier_start level
+        assert torch.equal(render_lod(g, cam, 3.75).image, render_lod(g.parents, cam, 1.5).image)
         assert beyond.n_parents == beyond.n_rendered > 0 and beyond.indices.numel() == 0
         mid = render_lod(g, cam, 3.3)
         kids = render_lod(children, cam, 3.3).n_rendered
@@ -262,7 +264,7 @@ def test_eval_sweep_reaches_the_parents_range():
     plain = sv_grid(5.0, 25)
     st = lod.LodSettings(fade="window", tier_s_v=5.0, tier_start=1.25)
     g = sv_grid(5.0, 25, lod_settings=st)
-    assert g[:25] == plain and len(g) > 25 and g[-1] == pytest.approx(1.2 * 5.0 * 5.0 / 1.25)
+    assert g[:25] == plain and len(g) > 25 and g[-1] == pytest.approx(1.2 * 5.0 * 1.25 * 5.0 / 1.25)
     assert all(b > a for a, b in zip(g, g[1:])) and sv_grid(5.0, 25, lod_settings=lod.LodSettings()) == plain
     fern_like = sv_grid(5.0, 25, lod_settings=replace(st, tier_s_v=7.5, tier_start=3.0))
     assert fern_like[25] == pytest.approx(7.5 * 1.25 ** 0.5) and len(fern_like) == 31
@@ -292,7 +294,7 @@ def test_budgets_draw_the_parents_once_they_can_fill_them(tiered):
         else:
             ref = render_lod(g.parents, cam, budget_cost=b * full, min_s_v=g.lod.tier_start)
             assert r.n_parents == r.n_rendered > 0 and r.indices.numel() == 0 and torch.equal(r.image, ref.image)
-            assert r.s_v == pytest.approx(ref.s_v * 3.0 / 1.5)
+            assert r.s_v == pytest.approx(ref.s_v * 1.25 * 3.0 / 1.5)  # the s_v the rule draws that tier level at
             sub = lod_subset(g, cam, budget_cost=b)
             assert sub.parent_indices.numel() == r.n_parents and sub.indices.numel() == 0
     start_ms = float(DEFAULT_FRAME_TIME_MODEL.ms(start_cost, int(start.indices.numel())))

@@ -99,7 +99,7 @@ def _render_views(model, scene, cams, level: dict, bg, out: Path, bar) -> list:
 
 def _render_video(model, scene, args, level: dict, max_sv: float, bg, path: Path, bar) -> dict:
     """The MP4 along the camera path (1 -> max_sv -> 1, or the fixed level; a model with a parent
-    tier, without ``--max-sv``: 1 -> ``max_sv tier_s_v / tier_start`` -> 1, even in ``ln s_v``), each
+    tier, without ``--max-sv``: 1 -> ``max_sv`` times :func:`clod_adapter.camera_lod.tier_reach` -> 1, even in ``ln s_v``), each
     frame captioned with its s_v and count; returns its record."""
     import numpy as np
 

@@ -156,7 +156,7 @@ def sv_grid(max_sv: float, steps: int = 25, overshoot: float = 1.2, lod_settings
     trained maximum); for a model with a parent tier (``lod_settings.tier_s_v > 0``, docs/method.md
     "the merged parent tier") then ``tier_steps`` values spaced evenly in ``ln s_v`` from the middle of
     its cross-fade (``tier_s_v sqrt(tier_fade)``) to where the parents are drawn at
-    ``overshoot`` times their own ``max_sv`` (``overshoot max_sv tier_s_v / tier_start``; with a
+    ``overshoot`` times their own ``max_sv`` (``overshoot max_sv tier_fade tier_s_v / tier_start``; with a
     chain of tiers, ``overshoot max_sv reach``, :func:`clod_adapter.camera_lod.tier_reach`), those
     beyond the even part."""
     if steps < 2:
@@ -168,7 +168,7 @@ def sv_grid(max_sv: float, steps: int = 25, overshoot: float = 1.2, lod_settings
     st = lod_settings
     if st is not None and st.tier_s_v > 0:
         lo = st.tier_s_v * math.sqrt(st.tier_fade)
-        hi = overshoot * max_sv * (reach if reach else st.tier_s_v / st.tier_start)
+        hi = overshoot * max_sv * (reach if reach else st.tier_fade * st.tier_s_v / st.tier_start)
         grid += [float(x) for x in np.geomspace(lo, max(hi, lo), tier_steps) if x > top * (1 + 1e-9)]
     return grid
 

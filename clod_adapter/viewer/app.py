@@ -246,7 +246,7 @@ class LodViewer:
         gaussians: the model (CPU); with ``sigma_d`` for LoD, without it every Gaussian in view.
         max_sv: the trained maximum ``s_v`` (:func:`clod_adapter.viewer.model.model_max_sv`); the
             slider runs from 1 to ``2 * max_sv`` (a model with a parent tier: to where its parents
-            are drawn at ``2 * max_sv``, ``2 max_sv tier_s_v / tier_start``).
+            are drawn at ``2 * max_sv``: ``2 max_sv`` times :func:`clod_adapter.camera_lod.tier_reach`).
         scene_cameras: ``(name, camera)`` pairs for the camera dropdown; the first is the start
             view. Empty: the start view is outside the model's bounding box
             (:func:`clod_adapter.viewer.cameras.default_start_view`).

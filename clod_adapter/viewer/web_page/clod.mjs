@@ -37,9 +37,11 @@ function rule(st) {
 }
 const logSigmoid = (x) => -Math.max(-x, 0) - Math.log1p(Math.exp(-Math.abs(x)));
 // a tier's hand-over to the next at its own s (lod.tier_weight): the next tier's share u, 0 up to
-// tier_s_v, growing with ln s to 1 at tier_fade tier_s_v, and the next tier's own s_v
+// tier_s_v, growing with ln s to 1 at tier_fade tier_s_v, and the next tier's own s_v: tier_start
+// through the cross-fade, then growing with s
 const tierWeight = (t, s) => (!(t.tier_s_v > 0) || s <= t.tier_s_v ? [0, 1]
-    : [Math.min(1, Math.log(s / t.tier_s_v) / Math.log(t.tier_fade)), t.tier_start * s / t.tier_s_v]);
+    : [Math.min(1, Math.log(s / t.tier_s_v) / Math.log(t.tier_fade)),
+        t.tier_start * Math.max(s / (t.tier_fade * t.tier_s_v), 1)]);
 // [weight, s] of each tier of the chain at the model's s (camera_lod.chain_weights): tier k keeps
 // 1 - u of its weight and passes u to tier k + 1 at its own s
 function chainWeights(s, sts) {
@@ -423,7 +425,7 @@ function update() {
 const slider = document.getElementById('sv');
 // log scale from 1 to 1.2 max_sv, or with tiers on until the last reaches 1.2 times its own max_sv
 // (camera_lod.tier_reach)
-const reach = tiers.slice(0, -1).reduce((a, t) => a * t.st.tier_s_v / t.st.tier_start, 1);
+const reach = tiers.slice(0, -1).reduce((a, t) => a * t.st.tier_fade * t.st.tier_s_v / t.st.tier_start, 1);
 const svMax = Math.max(st.max_sv * 1.2, parents ? 1.2 * tiers[tiers.length - 1].st.max_sv * reach : 0);
 const svOfSlider = (v) => Math.exp(Math.log(svMax) * v / 1000);
 if (parents) document.getElementById('tier').hidden = false;

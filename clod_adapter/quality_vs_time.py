@@ -44,7 +44,7 @@ from typing import Callable, Optional, Sequence
 import torch
 
 from .baselines import lightgaussian_significance, merge_decimate, topk_in_view
-from .camera_lod import render_lod, tier_reach, view_lod
+from .camera_lod import render_lod, tier_chain, tier_reach, view_lod
 from .frontier import Point, frontier, time_margins
 from .gaussians import Gaussians
 from .metrics import psnr, ssim
@@ -174,11 +174,18 @@ class _Context:
 def clod_s_vs(adapted: Gaussians) -> list[float]:
     """The adapted model's levels compared: :data:`S_VS`, and for a model with merged tiers more
     levels spaced by 1.25 in ``s_v`` up to ``S_VS[-1] x`` :func:`clod_adapter.camera_lod.tier_reach`,
-    so the last tier is taken as far down as a model without tiers."""
+    so the last tier is taken as far down as a model without tiers, and each tier's entry: the
+    ``s_v`` where it is first drawn alone, at its ``tier_start`` level (the end of the cross-fade
+    into it, :func:`clod_adapter.lod.tier_weight`)."""
     reach = tier_reach(adapted)
     n = min(12, math.ceil(math.log(reach) / math.log(1.25))) if reach > 1.0 else 0
     top = S_VS[-1]
-    return list(S_VS) + [round(top * reach ** (i / n), 4) for i in range(1, n + 1)]
+    entries, r = [], 1.0
+    for m in tier_chain(adapted)[:-1]:
+        entries.append(round(r * m.lod.tier_fade * m.lod.tier_s_v, 4))
+        r *= m.lod.tier_fade * m.lod.tier_s_v / m.lod.tier_start
+    extra = [round(top * reach ** (i / n), 4) for i in range(1, n + 1)]
+    return sorted(set(S_VS) | set(entries) | set(extra))
 
 
 def build_settings(adapted: Gaussians, base: Gaussians, fit_cams: Sequence, cams: Sequence, *,

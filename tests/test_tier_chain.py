@@ -262,3 +262,17 @@ def test_export_of_a_chain(tiny_adapted, tiny_model, tmp_path):
         cfg = json.loads((out / "web" / "clod.json").read_text())
         assert cfg["tier"]["count"] == len(t1) and cfg["tier"]["tier"]["count"] == len(t2)
         assert (out / "web" / "parents_2.ply").is_file() and (out / "web" / "parents_2.bin").is_file()
+
+
+def test_the_comparison_samples_each_tier_where_it_is_first_drawn_alone(chain):
+    """quality_vs_time.clod_s_vs: beside the grid, each tier's entry (the end of the cross-fade
+    into it), where that tier is drawn alone at its tier_start level, its full detail."""
+    from clod_adapter import quality_vs_time as qvt
+
+    g, cams = chain
+    s_vs = qvt.clod_s_vs(g)
+    entries = [FADE * SWITCHES[0][0], _model_s_v_of_tier1(FADE * SWITCHES[1][0])]
+    assert all(any(abs(s - e) < 1e-3 for s in s_vs) for e in entries) and s_vs == sorted(s_vs)
+    t2 = g.parents.parents
+    r = render_lod(g, cams[0], entries[1])
+    assert torch.equal(r.image, render_lod(t2, cams[0], SWITCHES[1][1]).image)

@@ -244,7 +244,7 @@ def test_clod_render_views_and_video(tiny_adapted, tiny_model, tmp_path, capsys)
     out = tmp_path / "render_tier"
     assert render_main([str(tiered), "-s", str(tiny_model["scene"]), "-o", str(out), "--frames", "8", "--quiet"]) == 0
     vid = json.loads((out / "render.json").read_text())["video"]
-    top = g.lod.max_sv * 2.0 / 1.0
+    top = g.lod.max_sv * 1.25 * 2.0 / 1.0  # the parents at max_sv: past the cross-fade (tier_fade 1.25)
     assert max(vid["s_v"]) == pytest.approx(top) and min(vid["s_v"]) == 1.0
     assert vid["s_v"][2] == pytest.approx(top ** 0.5)  # a quarter of the way: sqrt of the top
 

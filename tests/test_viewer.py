@@ -125,7 +125,7 @@ def test_a_parent_tier_is_sent_past_its_switch():
         assert p.n_level == p.n_drawn == sub.means.shape[0] and np.array_equal(p.means, sub.means.numpy())
         assert (sub.parent_indices is not None) == (sv > 3.0) and torch.equal(p.indices, sub.indices)
     assert view_payload(t, cam, s_v=6.0).indices.numel() == 0 < view_payload(t, cam, s_v=6.0).n_drawn
-    assert LodViewer(t, calibrate=False).sv_max == pytest.approx(2 * 5.0 * 3.0 / 1.5)
+    assert LodViewer(t, calibrate=False).sv_max == pytest.approx(2 * 5.0 * 1.25 * 3.0 / 1.5)  # past the cross-fade
     assert LodViewer(g, calibrate=False).sv_max == 10.0
 
 

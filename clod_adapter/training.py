@@ -129,8 +129,9 @@ class AdaptConfig:
             for this many steps on the training views (:func:`clod_adapter.tiers.finetuned`,
             LightGaussian's recovery schedule) before its level of detail is learned: a merge is
             not a fitted model. 0: the merge as splat-transform wrote it. Default 200, chosen on
-            the validation views of skull (the 50 / 15 / 4 % merges +0.17 / +0.56 / +0.85 dB at
-            200 steps; docs/studies.md "Merged tiers").
+            the validation views (at 200 steps skull's 50 / 15 / 4 % merges +0.17 / +0.32 / +0.54
+            dB, fern's +3.2 / +3.0 / +3.1 dB; ``benchmarks/studies/tier_finetune.py``,
+            docs/studies.md "Fitting each merge").
         keep_share: leave out what the scene does not need first (:mod:`clod_adapter.pruning`):
             keep this share of the input's Gaussians, the top by blending weight over the training
             views, recovered for ``recovery_steps`` before the level of detail is learned; full

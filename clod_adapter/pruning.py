@@ -28,6 +28,11 @@ from torch import Tensor
 from .dlod_ceiling import finetune_subset, global_cut
 from .gaussians import Gaussians
 
+#: ``AdaptConfig.faint_share``'s calibrated default: a Gaussian whose blending weight summed over
+#: every training view is under this share of one view's pixels is left out (1.7-1.8 px on the
+#: shared scenes' views). Chosen on the validation views (docs/studies.md "Leaving out the faint"):
+#: the largest of 5e-6 / 1e-5 / 2e-5 that costs no shared scene 0.02 dB at full detail.
+FAINT_SHARE = 1e-5
 #: recovery steps by default (LightGaussian recovers 5,000 on a GPU; 1,000 on fern's test views
 #: gave back all but 0.03 dB of a 40 % cut: docs/studies.md)
 RECOVERY_STEPS = 1000
@@ -91,6 +96,39 @@ class LeaveOutInfo:
         return asdict(self)
 
 
+@torch.no_grad()
+def faint(gaussians: Gaussians, cameras: Sequence, share: float = FAINT_SHARE, *,
+          backend: str = "auto") -> Tensor:
+    """The Gaussians a scene does not need: those whose blending weight summed over every pixel of
+    every view (:func:`blend_weights`) is under ``share`` of one view's pixels (``share x width x
+    height`` of the first view; a share, so the rule does not change with the images' resolution).
+    Together they change no view by more than that many pixels' worth of colour each.
+
+    Args:
+        gaussians: the model (N Gaussians; the plain model is scored).
+        cameras: the views (the training views: what a user's checkpoint was trained on).
+        share: the threshold, a share of one view's pixels (>= 0; 0 leaves nothing out).
+        backend: rasteriser backend (:func:`clod_adapter.render.rasterization`).
+
+    Returns:
+        ([N] bool, True for a faint Gaussian; the threshold in pixels). When every Gaussian is
+        faint, the one with the largest weight is not (a model keeps at least one).
+
+    Raises:
+        ValueError: ``share < 0`` or no camera.
+    """
+    if not share >= 0.0:
+        raise ValueError(f"share must be >= 0, got {share}")
+    if not cameras:
+        raise ValueError("faint: no views")
+    px = float(share) * cameras[0].width * cameras[0].height
+    w = blend_weights(gaussians.with_sigma_d(None), cameras, backend=backend)
+    out = w < px
+    if bool(out.all()) and len(out):
+        out[int(torch.argmax(w))] = False
+    return out, px
+
+
 def leave_out(gaussians: Gaussians, cameras: Sequence, images, *,
               keep_share: float, recovery_steps: int = RECOVERY_STEPS, background=(0.0, 0.0, 0.0),
               seed: int = 0, backend: str = "auto", progress: bool = False,
@@ -151,4 +189,4 @@ def leave_out(gaussians: Gaussians, cameras: Sequence, images, *,
     return kept, info
 
 
-__all__ = ["blend_weights", "leave_out", "LeaveOutInfo", "RECOVERY_STEPS"]
+__all__ = ["blend_weights", "faint", "leave_out", "LeaveOutInfo", "FAINT_SHARE", "RECOVERY_STEPS"]

@@ -132,6 +132,13 @@ class AdaptConfig:
             the validation views (at 200 steps skull's 50 / 15 / 4 % merges +0.17 / +0.32 / +0.54
             dB, fern's +3.2 / +3.0 / +3.1 dB; ``benchmarks/studies/tier_finetune.py``,
             docs/studies.md "Fitting each merge").
+        faint_share: leave out, before anything else, the Gaussians whose blending weight summed
+            over every pixel of every training view is under this share of one view's pixels
+            (:func:`clod_adapter.pruning.faint`; no recovery: together they paint under that
+            much of the training images each). Default :data:`clod_adapter.pruning.FAINT_SHARE`
+            (1e-5, calibrated), 0 (paper: every Gaussian). Chosen on the validation views
+            (docs/studies.md "Leaving out the faint"): the largest that costs no shared scene
+            0.02 dB at full detail.
         keep_share: leave out what the scene does not need first (:mod:`clod_adapter.pruning`):
             keep this share of the input's Gaussians, the top by blending weight over the training
             views, recovered for ``recovery_steps`` before the level of detail is learned; full
@@ -176,6 +183,7 @@ class AdaptConfig:
     trained_order_share: float = 1.0
     parent_share: Optional[float | tuple] = None
     tier_finetune_steps: int = 200
+    faint_share: Optional[float] = None
     keep_share: float = 1.0
     recovery_steps: int = 1000
 
@@ -206,6 +214,13 @@ class AdaptConfig:
             raise ValueError(f"parent_share must be descending shares in (0, 1), got {shares}")
         if not (isinstance(self.tier_finetune_steps, int) and self.tier_finetune_steps >= 0):
             raise ValueError(f"tier_finetune_steps must be >= 0 (an integer), got {self.tier_finetune_steps!r}")
+        if self.faint_share is None:
+            from .pruning import FAINT_SHARE
+
+            self.faint_share = FAINT_SHARE if cal else 0.0
+        self.faint_share = float(self.faint_share)
+        if not (math.isfinite(self.faint_share) and self.faint_share >= 0.0):
+            raise ValueError(f"faint_share must be >= 0 (a share of one view's pixels), got {self.faint_share}")
         self.keep_share = float(self.keep_share)
         if not 0.0 < self.keep_share <= 1.0:
             raise ValueError(f"keep_share must be in (0, 1], got {self.keep_share}")

@@ -199,9 +199,9 @@ def test_sanitize_drops_nonfinite_and_clamps_inf_opacity(tiny, capfd):
     stdout, m = _assert_ok(tiny, [ply, "--images", tiny / "scene", "--sanitize"], capfd)
     assert "--sanitize: dropped 4 of 300 Gaussians with NaN/Inf values; set 3 +Inf opacity logits" in stdout
     assert m["input_sanitized"] == {"dropped": 4, "opacity_clamped": 3}
-    assert m["num_gaussians"] == 296
+    assert m["faint"]["input"] == 296 and m["num_gaussians"] == 296 - m["faint"]["left_out"]
     g = read_ply(tiny / "out" / "point_cloud.ply")  # finite (read_ply raises otherwise)
-    assert len(g) == 296
+    assert len(g) == m["num_gaussians"]
     assert ply.read_bytes() == before
     assert 16.0 < SANITIZE_OPACITY_LOGIT < 16.2
 
@@ -224,7 +224,7 @@ def test_ascii_ply_is_read(tiny, capfd):
     _write_vertex(tiny / "ascii.ply", _vertex(tiny / "in.ply"), text=True)
     assert b"format ascii" in (tiny / "ascii.ply").read_bytes()[:40]
     _, m = _assert_ok(tiny, [tiny / "ascii.ply", "--images", tiny / "scene"], capfd)
-    assert m["num_gaussians"] == 300
+    assert m["faint"]["input"] == 300 and m["num_gaussians"] == 300 - m["faint"]["left_out"]
 
 
 def test_big_endian_ply_is_read(tiny, capfd):
@@ -232,7 +232,7 @@ def test_big_endian_ply_is_read(tiny, capfd):
     _write_vertex(tiny / "be.ply", v.astype(v.dtype.newbyteorder(">")), byte_order=">")
     assert b"binary_big_endian" in (tiny / "be.ply").read_bytes()[:60]
     _, m = _assert_ok(tiny, [tiny / "be.ply", "--images", tiny / "scene"], capfd)
-    assert m["num_gaussians"] == 300
+    assert m["faint"]["input"] == 300 and m["num_gaussians"] == 300 - m["faint"]["left_out"]
 
 
 def test_ply_from_another_scene(tiny, capfd):

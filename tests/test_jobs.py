@@ -207,7 +207,8 @@ def test_outputs_and_inria_layout(tiny_adapted, tiny_model):
             "point_cloud"} <= names
     plain = tiny_adapted / "point_cloud" / "iteration_32" / "point_cloud.ply"  # input iteration 30 + 2 steps
     g = read_ply(plain)
-    assert g.sigma_d is None and len(g) == 300  # exact INRIA layout (SIBR reads a fixed struct)
+    faint = json.loads((tiny_adapted / "metrics.json").read_text())["faint"]
+    assert g.sigma_d is None and len(g) == 300 - faint["left_out"]  # exact INRIA layout (SIBR reads a fixed struct)
     cams = json.loads((tiny_adapted / "cameras.json").read_text())
     assert len(cams) == 10 and {"id", "img_name", "width", "height", "position", "rotation", "fx", "fy"} <= set(cams[0])
     assert (cams[0]["width"], cams[0]["height"]) == (64, 48)

@@ -68,7 +68,7 @@ def test_adapt_job_leaves_out_first(tiny_model, tmp_path, capfd):
 
     out = tmp_path / "out"
     args = [str(tiny_model["ply"]), "--images", str(tiny_model["scene"]), *FAST, "--keep-share", "0.5",
-            "--recovery-steps", "4", "-o", str(out)]
+            "--recovery-steps", "4", "--faint-share", "0", "-o", str(out)]
     assert main(args) == 0
     m = json.loads((out / "metrics.json").read_text())
     rec = m["leave_out"]
@@ -86,3 +86,50 @@ def test_adapt_job_leaves_out_first(tiny_model, tmp_path, capfd):
     bad = tmp_path / "bad"
     assert main(args[:-4] + ["--keep-share", "0", "-o", str(bad)]) == 2
     assert "--keep-share must be in (0, 1]" in err_line(capfd) and not bad.exists()
+
+
+def test_faint_leaves_out_what_paints_under_the_share(scene):
+    """pruning.faint: True exactly where the summed blending weight is under share x W x H of one
+    view (a Gaussian behind the cameras always); share 0 leaves nothing out; a larger share leaves
+    out a superset; when every Gaussian is faint the heaviest stays; a negative share or no view
+    raises."""
+    gt, cams, _ = scene
+    behind = replace(gt, means=gt.means.clone())
+    behind.means[0] = torch.tensor([0.0, 0.0, -50.0])
+    w = pruning.blend_weights(behind, cams)
+    out, px = pruning.faint(behind, cams, 1e-3)
+    assert px == pytest.approx(1e-3 * 48 * 36) and out.dtype == torch.bool
+    assert torch.equal(out, w < px) and bool(out[0]) and 0 < int(out.sum()) < len(gt)
+    none, _ = pruning.faint(behind, cams, 0.0)
+    assert not bool(none.any())
+    more, _ = pruning.faint(behind, cams, 1e-2)
+    assert bool((more | ~out).all()) and int(more.sum()) > int(out.sum())  # a superset
+    every, _ = pruning.faint(behind, cams, 1e9)
+    assert int((~every).sum()) == 1 and bool(~every[int(torch.argmax(w))])
+    for bad in ((behind, cams, -1.0), (behind, [], 1e-5)):
+        with pytest.raises(ValueError):
+            pruning.faint(*bad)
+
+
+def test_adapt_job_leaves_out_the_faint(tiny_model, tmp_path, capfd):
+    """The default clod-adapt leaves out the faint Gaussians before anything is learned and says so
+    (metrics.json ``faint``; every level is compared with the input as given); ``--faint-share 0``
+    and the paper's schedule keep every Gaussian."""
+    from clod_adapter.cli.adapt import main
+    from conftest import FAST
+
+    base = [str(tiny_model["ply"]), "--images", str(tiny_model["scene"]), *FAST]
+    assert main(base + ["--faint-share", "0.005", "-o", str(tmp_path / "a")]) == 0
+    out = capfd.readouterr().out
+    m = json.loads((tmp_path / "a" / "metrics.json").read_text())
+    f = m["faint"]
+    assert f["input"] == 300 and 0 < f["left_out"] < 300 and m["num_gaussians"] == 300 - f["left_out"]
+    assert f["faint_share"] == 0.005 and f["px"] == pytest.approx(0.005 * 64 * 48, abs=1e-3)
+    assert f"left out {f['left_out']:,} of 300 Gaussians" in out
+    assert m["input_model"]["gaussians"] > m["levels"][0]["gaussians"] - 1e-6  # the input as given is drawn
+    assert len(read_ply(tmp_path / "a" / "point_cloud.ply")) == m["num_gaussians"]
+    for flags in (["--faint-share", "0"], ["--schedule", "paper"]):
+        d = tmp_path / flags[-1]
+        assert main(base + flags + ["-o", str(d)]) == 0
+        m = json.loads((d / "metrics.json").read_text())
+        assert m["faint"] is None and m["num_gaussians"] == 300

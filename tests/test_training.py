@@ -118,8 +118,9 @@ def test_pipeline_outputs(tmp_path):
         assert (out / name).is_file()
     assert not [p for p in out.iterdir() if p.name.startswith(".")]  # no temp files left
     g = read_ply(out / "point_cloud.ply")
-    assert g.sigma_d is not None and len(g) == 900
     mj = json.loads((out / "metrics.json").read_text())
+    assert mj["faint"]["input"] == 900 and 0 < mj["faint"]["left_out"] < 900 * 0.2  # the demo's faint few
+    assert g.sigma_d is not None and len(g) == 900 - mj["faint"]["left_out"]
     assert [lv["s_v"] for lv in mj["levels"]] == [1.0, 2.0, 3.0]
     for key in ("psnr", "ssim", "gaussians", "ms_per_frame"):
         assert all(key in lv for lv in mj["levels"])

@@ -369,7 +369,7 @@ def run(ply_path: os.PathLike, scene_root: os.PathLike, out_dir: os.PathLike, cf
 
 #: the keys of ``metrics.json``, in file order (``wall_seconds`` is added to the returned dict).
 METRICS_KEYS = ("version", "input_ply", "scene", "resolution", "image_size", "device", "threads", "num_gaussians",
-                "input_sanitized", "input_masks", "test_views", "holdout_val", "config", "train_seconds",
+                "input_sanitized", "input_masks", "faint", "test_views", "holdout_val", "config", "train_seconds",
                 "seconds_per_iteration", "world_size", "input_model", "scene_match", "init_s_v1", "deterministic",
                 "timing", "levels", "budgets", "dead_sigma_d", "notes")
 
@@ -396,6 +396,13 @@ class _Inputs:
     notes: list
     size: tuple
     main: bool
+    given: Optional[Gaussians] = None  # the input as read, when faint Gaussians were left out
+    faint: Optional[dict] = None  # what _leave_out_faint did (metrics.json "faint")
+
+    @property
+    def input_model(self) -> Gaussians:
+        """The input as given (what every level is compared with and timed against)."""
+        return self.gaussians if self.given is None else self.given
 
     @property
     def state_path(self) -> Path:
@@ -555,7 +562,7 @@ def _add_parent_tier(ply_path: Path, scene_root: Path, out_dir: Path, cfg: Adapt
     # not clear its margin on a tiny model)
     po = replace(o, resume=o.resume and (pdir / STATE_NAME).is_file(), force=True, allow_mismatch=True,
                  log=lambda *a, **k: o.log("  [parents]", *a, **k), iteration=None)
-    pcfg = replace(cfg, parent_share=tuple(x / share for x in rest), keep_share=1.0)
+    pcfg = replace(cfg, parent_share=tuple(x / share for x in rest), keep_share=1.0, faint_share=0.0)
     pm = _run(out_dir / PARENT_INPUT_NAME, scene_root, pdir, pcfg, po, stop, None)
     if pcfg.parent_share:  # the tier's own parent tiers, shares relative to it
         _add_parent_tier(out_dir / PARENT_INPUT_NAME, scene_root, pdir, pcfg, po, stop, None, pm, nested=True)
@@ -644,6 +651,8 @@ def _read_inputs(ply_path: Path, scene_root: Path, out_dir: Path, cfg: AdaptConf
         scene = holdout_validation(scene)
     if not scene.train:
         raise InputError(f"{scene_root}: no training views (every image is a test view)")
+    given = gaussians
+    gaussians, faint = _leave_out_faint(gaussians, scene, cfg, o, group, ply_path)
     state_path = out_dir / STATE_NAME
     if o.resume and not state_path.is_file():
         raise InputError(f"{state_path}: no state to resume from")
@@ -663,7 +672,8 @@ def _read_inputs(ply_path: Path, scene_root: Path, out_dir: Path, cfg: AdaptConf
     test_cams = scene.test or scene.train[:1]
     inp = _Inputs(ply_path, scene_root, out_dir, gaussians, mask_info, sanitized, scene, dev, train_imgs,
                   test_cams, ViewImages(scene, test_cams, dev), input_sha256, scene_fp, resumed, {}, [],
-                  (scene.train[0].width, scene.train[0].height), group is None or group.is_main)
+                  (scene.train[0].width, scene.train[0].height), group is None or group.is_main,
+                  given.to(dev) if len(given) != len(gaussians) else None, faint)
     _check_scene_match(inp, cfg, o)
     if inp.main:
         check_output_dir(out_dir, [ply_path], force=True)  # every input is valid: create the output folder
@@ -671,11 +681,34 @@ def _read_inputs(ply_path: Path, scene_root: Path, out_dir: Path, cfg: AdaptConf
     return inp
 
 
+def _leave_out_faint(gaussians: Gaussians, scene, cfg: AdaptConfig, o: AdaptOptions, group,
+                     ply_path: Path) -> tuple[Gaussians, Optional[dict]]:
+    """Leave out the Gaussians the scene does not need (``cfg.faint_share``,
+    :func:`clod_adapter.pruning.faint` on the training views; in a data-parallel run rank 0's
+    choice is broadcast). Returns (the kept model, the ``metrics.json`` ``faint`` record, None when
+    the rule is off)."""
+    if cfg.faint_share <= 0.0:
+        return gaussians, None
+    from ..pruning import faint
+
+    t0 = time.perf_counter()
+    out, px = faint(gaussians, scene.train, cfg.faint_share)
+    if group is not None:
+        out = group.broadcast(out.to(torch.uint8).to(group.device), "the faint Gaussians").to(out.device).bool()
+    n, k = len(gaussians), int(out.sum())
+    info = {"faint_share": cfg.faint_share, "px": round(px, 3), "input": n, "left_out": k,
+            "views": len(scene.train), "seconds": round(time.perf_counter() - t0, 1)}
+    o.log(f"clod-adapt: {ply_path.name}: left out {k:,} of {n:,} Gaussians ({100 * k / max(n, 1):.1f} %) painting "
+          f"under {px:.2g} px of the {len(scene.train)} training views together (--faint-share "
+          f"{cfg.faint_share:g}; {info['seconds']:.0f} s)")
+    return (gaussians.subset(~out) if k else gaussians), info
+
+
 def _check_scene_match(inp: _Inputs, cfg: AdaptConfig, o: AdaptOptions) -> None:
     """Refuse a model from another scene (no Gaussian in any training view, or renders no better
     than a flat colour, unless ``allow_mismatch``); notes a resolution that differs from the
     model's training one."""
-    g, dev = inp.gaussians, inp.dev
+    g, dev = inp.input_model, inp.dev  # the model given, before the faint ones are left out
     fr_any = torch.zeros(len(g), dtype=torch.bool, device=dev)
     for c in inp.scene.train:
         fr_any |= lod.in_frustum(g.means, c.viewmat.to(dev), c.K.to(dev), c.width, c.height)
@@ -716,7 +749,8 @@ def _start_state(inp: _Inputs, cfg: AdaptConfig, o: AdaptOptions, stop: StopFlag
     or the resumed one. Returns (state, cfg (the state's, when resumed), input evaluation, the
     initial model's s_v = 1 quality)."""
     bg = cfg.background
-    input_eval = evaluate_level(inp.gaussians, inp.test_cams, inp.test_imgs, None, background=bg) if inp.main else None
+    input_eval = (evaluate_level(inp.input_model, inp.test_cams, inp.test_imgs, None, background=bg)
+                  if inp.main else None)
     # from here on a signal only sets the flag: the state is saved at the next safe point
     stop.set_abortable(False)
     if inp.resumed is not None:
@@ -839,7 +873,7 @@ def _evaluate(inp: _Inputs, model, cfg: AdaptConfig, o: AdaptOptions, input_eval
                                    budget=float(b)) for b in budget_levels(cfg.max_sv)]
     timing = None
     if o.timing_repeats > 0:  # ms/frame of the input and every level, interleaved (load hits all alike)
-        timing = retime_levels(inp.gaussians, model, inp.test_cams, levels, tau=cfg.tau, background=bg,
+        timing = retime_levels(inp.input_model, model, inp.test_cams, levels, tau=cfg.tau, background=bg,
                                repeats=o.timing_repeats)
     level_dicts = [m.to_dict() for m in evals]
     input_model = {"psnr": input_eval.psnr, "ssim": input_eval.ssim,
@@ -854,7 +888,7 @@ def _evaluate(inp: _Inputs, model, cfg: AdaptConfig, o: AdaptOptions, input_eval
         "version": __version__, "input_ply": str(inp.ply_path), "scene": str(inp.scene_root),
         "resolution": o.resolution, "image_size": list(inp.size), "device": str(inp.dev),
         "threads": torch.get_num_threads(), "num_gaussians": len(model), "input_sanitized": inp.sanitized,
-        "input_masks": asdict(inp.mask_info) if inp.mask_info is not None else None,
+        "input_masks": asdict(inp.mask_info) if inp.mask_info is not None else None, "faint": inp.faint,
         "test_views": [c.name for c in inp.test_cams], "holdout_val": bool(o.holdout_val),
         "input_model": input_model, "scene_match": inp.match,
         "deterministic": bool(deterministic_enabled()),

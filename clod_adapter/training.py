@@ -142,8 +142,8 @@ class AdaptConfig:
         keep_share: leave out what the scene does not need first (:mod:`clod_adapter.pruning`):
             keep this share of the input's Gaussians, the top by blending weight over the training
             views, recovered for ``recovery_steps`` before the level of detail is learned; full
-            detail is then the kept model, not the input. 1 (default): every Gaussian, full detail
-            exactly the input (docs/method.md "Leaving Gaussians out first"; docs/studies.md: on
+            detail is then the kept model, not the input. 1 (default): every Gaussian that
+            ``faint_share`` keeps (docs/method.md "Leaving Gaussians out first"; docs/studies.md: on
             the shared scenes' test views 0.6 gives full detail at -0.07 dB in 77 % of fern's
             frame and +0.01 dB in 76 % of skull's, -0.83 dB on MaskGaussian fern, and the
             validation views cannot choose it, since the input was trained on them).

@@ -159,7 +159,7 @@ def test_clod_adapt_end_to_end(tmp_path, blender):
     write_ply(ply, perturb(gt, 6))
     out = tmp_path / "out"
     rc = main([str(ply), "--images", str(root), "-o", str(out), "--iterations", "2", "--max-sv", "2",
-               "--quiet", "--device", "cpu"])
+               "--faint-share", "0", "--quiet", "--device", "cpu"])
     assert rc == 0
     m = read_ply(out / "point_cloud.ply")
     assert m.sigma_d is not None and len(m) == len(gt)

@@ -18,7 +18,8 @@ def test_demo_end_to_end(tmp_path):
                         "--quiet"], cwd=REPO, capture_output=True, text=True, timeout=600)
     assert r.returncode == 0, r.stderr[-2000:]
     m = json.loads((out / "metrics.json").read_text())
-    assert len(m["levels"]) == 5 and m["num_gaussians"] == 6000
+    assert m["faint"]["input"] == 6000 and 0 <= m["faint"]["left_out"] < 6000
+    assert len(m["levels"]) == 5 and m["num_gaussians"] == 6000 - m["faint"]["left_out"]
     assert "s_v=5" in r.stdout  # summary table printed
     assert (out / "point_cloud.ply").stat().st_size > 0
 
@@ -37,7 +38,8 @@ def test_adapt_from_gsplat_checkpoint(tmp_path, capsys):
     torch.save({"step": 6999, "splats": {"means": g.means, "quats": g.quats, "scales": g.log_scales,
                                          "opacities": g.opacity_logits, "sh0": g.sh0, "shN": g.shN}}, ckpt)
     out = tmp_path / "out"
-    code = main([str(a) for a in (ckpt, "--images", scene, "-o", out, "--iterations", "2", "--max-sv", "2", "--quiet")])
+    code = main([str(a) for a in (ckpt, "--images", scene, "-o", out, "--iterations", "2", "--max-sv", "2",
+                                  "--faint-share", "0", "--quiet")])
     err = capsys.readouterr().err.strip()
     assert code == 0, err
     adapted = read_ply(out / "point_cloud.ply")

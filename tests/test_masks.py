@@ -158,7 +158,7 @@ def test_masked_checkpoint_adapts_and_round_trips_mask_properties(tmp_path, caps
 
     lines = []
     out = tmp_path / "out"
-    cfg = AdaptConfig(max_sv=2.0, iterations=1, seed=0)
+    cfg = AdaptConfig(max_sv=2.0, iterations=1, seed=0, faint_share=0.0)  # every kept row stays, in order
     metrics = run(masked, scene, out, cfg, AdaptOptions(progress=False, log=lines.append, timing_repeats=0, layout="inria"))
     said = [ln for ln in lines if "MaskGaussian masks" in ln]
     assert said == [f"clod-adapt: MaskGaussian masks masks_0/masks_1 (soft scores): argmax (keep p(keep) > 0.5), "
@@ -187,7 +187,7 @@ def test_masked_checkpoint_adapts_and_round_trips_mask_properties(tmp_path, caps
     # the CLI flag: one Gumbel draw seeded by --seed, and the count it says
     out2 = tmp_path / "out2"
     code = adapt_main([str(masked), "--images", str(scene), "-o", str(out2), "--masks", "gumbel", "--seed", "3",
-                       "--iterations", "1", "--max-sv", "2", "--timing-repeats", "0", "--quiet"])
+                       "--iterations", "1", "--max-sv", "2", "--faint-share", "0", "--timing-repeats", "0", "--quiet"])
     assert code == 0
     drawn, info = apply_masks(read_ply(masked), "gumbel", seed=3)
     assert not torch.equal(drawn.means, g.means[torch.from_numpy(keep)])  # a draw, not the argmax

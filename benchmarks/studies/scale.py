@@ -1,7 +1,7 @@
 """How the cost of an adaptation step and of an evaluation frame grows with the model size N.
 
 Usage: python benchmarks/studies/scale.py [--sizes 100000,300000,1000000] [--steps 6] [--threads 2]
-       [--width 320 --height 240] [--views 16] [--out runs/scale.md]
+       [--width 320 --height 240] [--views 16] [--tiers] [--out runs/scale.md]
 
 Each size runs in a fresh subprocess (``--one N``), so sizes do not share caches or peak memory:
 
@@ -19,7 +19,13 @@ Each size runs in a fresh subprocess (``--one N``), so sizes do not share caches
   binning, compositor), backward, optimiser (Adam step + zero_grad) and the rest (loss, gains);
   medians over the steps;
 * ``recalibrate`` (run once, after the last step);
-* one evaluation frame (``render_lod`` at s_v = 1, no gradient; median of 3 after a warm-up).
+* one evaluation frame (``render_lod`` at s_v = 1, no gradient; median of 3 after a warm-up);
+* with ``--tiers``, the phases the merged tiers and the leave-out add to ``clod-adapt``: the faint
+  Gaussians (:func:`clod_adapter.pruning.faint`, one render and backward per training view), the
+  first merge (:func:`clod_adapter.tiers.decimated` to half the model: splat-transform's
+  ``--decimate`` in a child process, whose own peak is ``ru_maxrss`` of the children) and its
+  fit (:func:`clod_adapter.tiers.finetuned`, ``--steps`` steps; seconds per step). The tier's own
+  adaptation is the same step on the smaller merged model.
 
 Peak memory is the process's resident high-water mark (``VmHWM`` of /proc/self/status), reset
 before each phase (``echo 5 > /proc/self/clear_refs``), so each phase's peak is its own.
@@ -247,7 +253,35 @@ def one(n: int, args) -> dict:
     row["eval"] = {k: sorted(f[k] for f in ft)[len(ft) // 2] for k in ("select", "project", "raster_fwd", "total")}
     row["eval_drawn"] = frames[-1]["drawn"]
     row["peak_reset"] = can_reset
+    if args.tiers:
+        del state, g
+        tier_phases(row, model, train, train_imgs, args)
     return row
+
+
+def tier_phases(row: dict, model, train, train_imgs, args) -> None:
+    """The ``--tiers`` phases (module docstring) into ``row``."""
+    import resource
+
+    from clod_adapter import tiers
+    from clod_adapter.pruning import faint
+
+    reset_peak()
+    t0 = time.perf_counter()
+    out, _ = faint(model, train)
+    row["faint_s"], row["faint_peak_mb"] = time.perf_counter() - t0, vm_kib("VmHWM") / 1024
+    row["faint_left_out"] = int(out.sum())
+    reset_peak()
+    t0 = time.perf_counter()
+    merged = tiers.decimated(model, 0.5)
+    row["decimate_s"] = time.perf_counter() - t0
+    row["decimate_child_peak_mb"] = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss / 1024
+    imgs = [train_imgs[i] for i in range(len(train))]
+    reset_peak()
+    t0 = time.perf_counter()
+    tiers.finetuned(merged, train, imgs, args.steps)
+    row["tier_fit_s_per_step"] = (time.perf_counter() - t0) / args.steps
+    row["tier_fit_peak_mb"] = vm_kib("VmHWM") / 1024
 
 
 def fit_exponent(xs, ys) -> float:
@@ -273,6 +307,8 @@ def markdown(rows: list, args, load: str) -> str:
                    f"| {e['total']:.3f} | {r['eval_peak_mb']:.0f} | {r['load_peak_mb']:.0f} | {r['prepare_s']:.1f} "
                    f"| {r['prepare_peak_mb']:.0f} | {r['recalibrate_s']:.2f} |")
     lines = ["\n".join(out), ""]
+    if all("decimate_s" in r for r in rows):
+        lines += [tier_markdown(rows), ""]
     if len(rows) >= 2:
         ex = {
             "s/step": fit_exponent(ns, [r["step"]["total"] for r in rows]),
@@ -303,6 +339,25 @@ def markdown(rows: list, args, load: str) -> str:
     return "\n".join(lines)
 
 
+def tier_markdown(rows: list) -> str:
+    """The ``--tiers`` phases' table, with each column's fitted exponent."""
+    ns = [r["n"] for r in rows]
+    cols = [("faint s", "faint_s"), ("faint peak MB", "faint_peak_mb"), ("merge s", "decimate_s"),
+            ("merge child peak MB", "decimate_child_peak_mb"), ("tier fit s/step", "tier_fit_s_per_step"),
+            ("tier fit peak MB", "tier_fit_peak_mb")]
+    out = ["| N | left out | " + " | ".join(c for c, _ in cols) + " |", "|" + "---:|" * (len(cols) + 2)]
+    for r in rows:
+        out.append(f"| {r['n']:,} | {r['faint_left_out']:,} | " + " | ".join(
+            f"{r[k]:.0f}" if k.endswith("_mb") else f"{r[k]:.2f}" for _, k in cols) + " |")
+    if len(rows) >= 2:
+        base = [r["base_mb"] for r in rows]
+        ex = [f"{c} {fit_exponent(ns, [r[k] - (b if k.endswith('_mb') and 'child' not in k else 0) for r, b in zip(rows, base)]):.2f}"
+              for c, k in cols]
+        out.append("\nFitted exponents b (cost ~ N^b; peaks less the base RSS, the merge's child peak as it is): "
+                   + ", ".join(ex) + ".")
+    return "\n".join(out)
+
+
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     p.add_argument("--sizes", default="100000,300000,1000000")
@@ -312,6 +367,8 @@ def main(argv=None) -> int:
     p.add_argument("--height", type=int, default=240)
     p.add_argument("--rows", type=int, default=4)
     p.add_argument("--cols", type=int, default=4)
+    p.add_argument("--tiers", action="store_true",
+                   help="also time the phases the merged tiers and the leave-out add (module docstring)")
     p.add_argument("--out", default=str(REPO / "runs" / "scale.md"))
     p.add_argument("--scenes", default=str(REPO / "runs" / "scale_scenes"),
                    help="where the synthetic scenes are written (reused when there)")
@@ -337,7 +394,7 @@ def main(argv=None) -> int:
         js = Path(args.out).with_suffix(f".{n}.json")
         js.parent.mkdir(parents=True, exist_ok=True)
         common = [f"--{k}={getattr(args, k)}" for k in ("steps", "threads", "width", "height", "rows", "cols",
-                                                         "scenes")]
+                                                         "scenes")] + (["--tiers"] if args.tiers else [])
         env = dict(os.environ, OMP_NUM_THREADS=str(args.threads))
         print(f"scale: N = {n:,}: building the scene (cached in {args.scenes}) ...", file=sys.stderr, flush=True)
         r = subprocess.run([sys.executable, __file__, "--build", str(n)] + common, env=env)

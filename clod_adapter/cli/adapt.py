@@ -94,7 +94,7 @@ def build_parser():
                    help="leave out what the scene does not need first: keep SHARE of the input's Gaussians, the top "
                         "by blending weight over the training views, and recover them (every attribute, "
                         "--recovery-steps) before the LoD is learned; full detail is then the kept model "
-                        "(default 1: every Gaussian, full detail exactly the input; "
+                        "(default 1: every Gaussian --faint-share keeps; "
                         "docs/method.md)")
     p.add_argument("--recovery-steps", type=int, default=1000, metavar="N",
                    help="with --keep-share < 1: recovery steps, kept when the last one beats the static cut on "

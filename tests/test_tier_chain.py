@@ -18,9 +18,14 @@ from test_tiers import _adapted
 SWITCHES = ((2.0, 1.25), (2.5, 1.5))
 
 
+#: the coarsest tier's own window width (a tier may fade over a window of its own: docs/lod_rule.md)
+COARSE_FADE = 4.0
+
+
 @pytest.fixture(scope="module")
 def chain():
     t2 = _adapted(60, 3)
+    t2 = replace(t2, lod=replace(t2.lod, fade_width=COARSE_FADE))
     t1 = tiers.attach(_adapted(300, 2), t2, *SWITCHES[1])
     return tiers.attach(_adapted(1200, 0), t1, *SWITCHES[0]), make_cameras(1, 2)
 
@@ -93,10 +98,17 @@ def test_ply_round_trip_keeps_the_chain(chain, tmp_path):
     assert [len(t) for t in got] == [len(t) for t in want] == [1200, 300, 60]
     assert back.parents.lod.tier_s_v == SWITCHES[1][0] and back.parents.lod.tier_start == SWITCHES[1][1]
     assert back.parents.parents.lod.tier_s_v == 0.0
+    # each tier's own window width: the coarsest tier's is its own, the others the model's
+    assert [t.lod.fade_width for t in got] == [g.lod.fade_width, g.lod.fade_width, COARSE_FADE] != \
+        [g.lod.fade_width] * 3
     for a, b in zip(got, want):
         assert torch.equal(a.sigma_d, b.sigma_d) and torch.equal(a.means, b.means)
     for s in (1.5, 2.2, 3.5, 4.6, 12.0):
         assert torch.equal(render_lod(back, cams[0], s).image, render_lod(g, cams[0], s).image)
+    t2 = back.parents.parents
+    narrow = replace(back, parents=replace(back.parents, parents=replace(t2, lod=replace(t2.lod, fade_width=0.5))))
+    far = _model_s_v_of_tier2(3.0)  # the coarsest tier alone: its window width is what is drawn
+    assert not torch.equal(render_lod(narrow, cams[0], far).image, render_lod(back, cams[0], far).image)
     from clod_adapter.storage import ply_bytes
 
     assert ply_bytes(g) == path.stat().st_size

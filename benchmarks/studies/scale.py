@@ -165,7 +165,7 @@ def write_scene(n: int, root: Path, args) -> None:
     import numpy as np
 
     from clod_adapter.io.ply import write_ply
-    from clod_adapter.io.scene import write_colmap_scene
+    from clod_adapter.io.colmap import write_colmap_scene
 
     if (root / "in.ply").is_file() and (root / "scene").is_dir():
         return

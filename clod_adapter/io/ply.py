@@ -38,7 +38,7 @@ from clod_adapter.io.atomic import atomic_write
 from clod_adapter.lod import LodSettings
 
 __all__ = ["PlyFormatError", "read_ply", "write_ply", "ply_property_names", "ply_vertex_dtype", "ply_comments",
-           "tier_element", "tier_chain_of", "TIER_COMMENT"]
+           "tier_element", "tier_chain_of", "TIER_COMMENT", "TIER_KEYS"]
 
 PathLike = Union[str, "os.PathLike[str]"]
 
@@ -50,9 +50,12 @@ LOD_COMMENT = "clod_lod"
 #: the element holding an adapted model's parent tier (``Gaussians.parents``): the vertex
 #: element's layout; viewers that read only ``vertex`` draw the model without it
 PARENT_ELEMENT = "lod_parent"
-#: the header comment holding tier ``k``'s own hand-over to tier ``k + 1`` (k >= 1):
-#: ``clod_lod_tier k tier_s_v=.. tier_start=.. tier_fade=..``
+#: the header comment holding tier ``k``'s own settings (k >= 1): its hand-over to tier ``k + 1``,
+#: ``clod_lod_tier k tier_s_v=.. tier_start=.. tier_fade=..``, and its window ``fade_width=..`` where it
+#: is not the model's
 TIER_COMMENT = "clod_lod_tier"
+#: the settings a ``clod_lod_tier`` comment may hold
+TIER_KEYS = ("tier_s_v", "tier_start", "tier_fade", "fade_width")
 
 
 def tier_element(k: int) -> str:
@@ -287,7 +290,8 @@ def read_ply(path: PathLike, *, allow_nonfinite: bool = False) -> Gaussians:
 
 
 def _tier_comments(comments, path: Path) -> dict:
-    """``{k: {tier_s_v, tier_start, tier_fade}}`` of the ``clod_lod_tier k ...`` header comments."""
+    """``{k: {tier_s_v, tier_start, tier_fade, fade_width}}`` (those given) of the ``clod_lod_tier k ...``
+    header comments."""
     out = {}
     for c in comments:
         tok = c.split()
@@ -295,15 +299,15 @@ def _tier_comments(comments, path: Path) -> dict:
             continue
         try:
             out[int(tok[1])] = {k: float(v) for k, v in (item.split("=", 1) for item in tok[2:])
-                                if k in ("tier_s_v", "tier_start", "tier_fade")}
+                                if k in TIER_KEYS}
         except (ValueError, IndexError) as e:
             raise PlyFormatError(path, f"bad '{TIER_COMMENT}' header comment {c!r}: {e}") from None
     return out
 
 
 def _parent_settings(settings: LodSettings, own: Optional[dict] = None, path: PathLike = "<ply>") -> LodSettings:
-    """A parent tier's settings: the model's, with the tier's own hand-over to the next tier
-    (``own``: from its ``clod_lod_tier`` comment) or none."""
+    """A parent tier's settings: the model's, with the tier's own hand-over to the next tier and
+    window width (``own``: from its ``clod_lod_tier`` comment) or none."""
     try:
         return replace(settings, **{"tier_s_v": 0.0, "tier_start": 1.0, "tier_fade": LodSettings.tier_fade,
                                     **(own or {})})
@@ -468,10 +472,13 @@ def ply_comments(gaussians: Gaussians) -> list[str]:
     """The header comments :func:`write_ply` writes: the ``clod_lod`` settings of an adapted model."""
     g = gaussians
     out = [lod_comment(g.lod)] if (g.lod is not None and g.sigma_d is not None) else []
-    for k, t in enumerate(tier_chain_of(g)[1:-1], start=1):  # each parent tier that hands over again
-        if t.lod is not None and t.lod.tier_s_v > 0:
-            out.append(f"{TIER_COMMENT} {k} " + " ".join(f"{n}={getattr(t.lod, n)!r}"
-                                                         for n in ("tier_s_v", "tier_start", "tier_fade")))
+    for k, t in enumerate(tier_chain_of(g)[1:], start=1):  # each parent tier's own settings
+        if t.lod is None or g.lod is None:
+            continue
+        keys = [n for n in TIER_KEYS[:3] if t.lod.tier_s_v > 0]  # it hands over again
+        keys += ["fade_width"] if t.lod.fade_width != g.lod.fade_width else []
+        if keys:
+            out.append(f"{TIER_COMMENT} {k} " + " ".join(f"{n}={getattr(t.lod, n)!r}" for n in keys))
     return out
 
 

@@ -1,0 +1,132 @@
+"""How long should the hand-overs and the coarsest tier's fade last? Popping against quality at
+equal frame time, on one adaptation per input, for render settings of its chain of merged tiers.
+
+For each input (default: fern, maskgaussian, skull; validation views by default, a design
+question) it takes ``clod-adapt``'s default adaptation (cached under
+``runs/bench/<input>/default<_val>``) and redraws it with each variant of :data:`VARIANTS`:
+``tier_fade`` (the cross-fade from each tier to the next lasts from ``tier_s_v`` to ``tier_fade
+tier_s_v``) and the coarsest tier's window ``fade_width`` (how far in ``ln s_v`` each of its
+Gaussians takes to leave; the finer tiers keep the model's). Nothing is trained again: both are
+drawing settings of the file (``clod_lod_tier`` comments).
+
+Per variant it prints the popping ratio of ``clod-eval`` (one static switch against the largest
+step of a 61-frame sweep from ``s_v = 1`` to ``1.2 max_sv`` times the chain's reach, on each of the
+first ``--pop-views`` scored views: the smallest ratio and where its largest step is), and the
+best PSNR within 75 / 50 / 25 / 10 % of the input's frame time with its margin over the best
+static peer (LightGaussian and opacity cuts, splat-transform 3.7.0's decimators), every setting
+timed in the same interleaved rounds. No goal is enforced (a study: exit 0)::
+
+    python benchmarks/studies/tail_fade.py                     # validation views
+
+Written: ``runs/bench/tail_fade<_val>/summary.md``.
+"""
+from __future__ import annotations
+
+import argparse
+import sys
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # benchmarks/: common.py
+from common import (RUNS, adapt_cached, add_inputs_args, add_split_arg, load_input, parse_config,  # noqa: E402
+                    scene_views, selected_inputs, setup_threads, split_suffix)
+
+from clod_adapter import quality_vs_time as qvt  # noqa: E402
+from clod_adapter.baselines import lightgaussian_significance  # noqa: E402
+from clod_adapter.camera_lod import tier_chain, tier_reach  # noqa: E402
+from clod_adapter.io.atomic import atomic_write  # noqa: E402
+from clod_adapter.io.load import load_model  # noqa: E402
+from clod_adapter.jobs.eval import popping_curve, sv_grid  # noqa: E402
+from clod_adapter.splat_transform import find_splat_transform  # noqa: E402
+from clod_adapter.storage import ply_bytes  # noqa: E402
+from clod_adapter.training import AdaptConfig  # noqa: E402
+
+#: (tier_fade, the coarsest tier's fade_width); the first is the adaptation as written
+VARIANTS = ((None, None), (1.25, 4.0), (1.4, 2.0), (1.4, 4.0), (1.5, 4.0))
+
+
+def redrawn(model, tier_fade, last_width):
+    """``model`` with every hand-over's ``tier_fade`` and the coarsest tier's ``fade_width`` set
+    (None: as written)."""
+    chain = tier_chain(model)
+    out = None
+    for k in range(len(chain) - 1, -1, -1):
+        st = chain[k].lod
+        if tier_fade is not None and k + 1 < len(chain):
+            st = replace(st, tier_fade=float(tier_fade))
+        if last_width is not None and k == len(chain) - 1:
+            st = replace(st, fade_width=float(last_width))
+        out = replace(chain[k], lod=st, parents=out)
+    return out
+
+
+def label(v) -> str:
+    return "as adapted" if v == (None, None) else f"tier_fade {v[0]:g}, coarsest fade_width {v[1]:g}"
+
+
+def popping(model, cams, base, sig, steps: int = 61):
+    """(smallest ratio over ``cams``, the s_v of that view's largest step)."""
+    top = sv_grid(model.lod.max_sv, 2)[-1] * tier_reach(model)
+    svs = [float(x) for x in np.geomspace(1.0, top, steps)]
+    worst = None
+    for c in cams:
+        p = popping_curve(model, c, svs, discrete_model=base, discrete_scores=sig)
+        j = int(np.argmax(p["continuous_step"]))
+        if worst is None or p["ratio"] < worst[0]:
+            worst = (float(p["ratio"]), float(p["step_s_v"][j]))
+    return worst
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    add_inputs_args(ap, ["fern", "maskgaussian", "skull"])
+    ap.add_argument("--repeats", type=int, default=3)
+    ap.add_argument("--threads", type=int, default=2)
+    ap.add_argument("--pop-views", type=int, default=2)
+    add_split_arg(ap, "val")
+    args = ap.parse_args()
+    setup_threads(args.threads)
+    tool = find_splat_transform()
+    if tool is None:
+        sys.exit("tail_fade: splat-transform not found (`npm ci` in the repository root installs 3.7.0)")
+    log = lambda *a: print(*a, flush=True)  # noqa: E731
+    config, tag = parse_config([])
+    md = []
+    for name in selected_inputs(args):
+        ply = adapt_cached(name, AdaptConfig(**config), tag, split=args.split, log=log)
+        adapted = load_model(ply)
+        g0, scene, gts = load_input(name, args.split)
+        fit, cams = scene_views(scene, args.split)
+        sig = lightgaussian_significance(g0, fit)
+        models = {v: redrawn(adapted, *v) for v in VARIANTS}
+        pops = {v: popping(m, cams[: args.pop_views], g0, sig) for v, m in models.items()}
+        settings, ctx = qvt.build_settings(models[VARIANTS[0]], g0, fit, cams, merge_tool=tool,
+                                           log=lambda m: log(f"[{name}] {m}"), significance=sig)
+        peers = [s for s in settings if s.method != "clod"]
+        own = {v: [qvt.Setting("clod", f"s_v={s:g}", [qvt.lod_render(m, c, s_v=s) for c in cams], ply_bytes(m))
+                   for s in qvt.clod_s_vs(m)] for v, m in models.items()}
+        qvt.score(peers + [p for v in VARIANTS for p in own[v]], gts)
+        every = peers + [p for v in VARIANTS for p in own[v]]
+        log(f"[{name}] {len(every)} settings x {len(gts)} views scored; timing x{args.repeats} ...")
+        qvt.retime(every, args.repeats)
+        rows = [f"### {name}", "", "| variant | popping ratio (largest step at s_v) | "
+                "within 75 / 50 / 25 / 10 %: PSNR (margin dB) |", "|---|---|---|"]
+        for v in VARIANTS:
+            comp = qvt.Comparison(peers + own[v], [w.n_in_view for w in ctx.views], adapted.lod.max_sv, merge_run=True)
+            cs = [c for c in qvt.cells(comp) if c.kind == "time"]
+            rows.append(f"| {label(v)} | {pops[v][0]:.2f} ({pops[v][1]:.1f}) | "
+                        + " / ".join("-" if c.ours is None else f"{c.ours[2]:.2f} ({c.margin_db:+.2f})" for c in cs)
+                        + " |")
+        md.append("\n".join(rows))
+        log(md[-1])
+    out = RUNS / f"tail_fade{split_suffix(args.split)}"
+    out.mkdir(parents=True, exist_ok=True)
+    with atomic_write(out / "summary.md", "w") as f:
+        f.write("\n\n".join(md) + "\n")
+    print("\n\n".join(md))
+
+
+if __name__ == "__main__":
+    main()

@@ -268,6 +268,18 @@ def load_input(name: str, split: str = "test"):
     return load_model(ply), scene, [scene.load_image(c) for c in scene_views(scene, split)[1]]
 
 
+def write_summary(name: str, text: str) -> Path:
+    """Write a study's Markdown ``text`` to ``RUNS/name/summary.md`` atomically (the folder made
+    when missing); returns the path."""
+    from clod_adapter.io.atomic import atomic_write
+
+    out = RUNS / name
+    out.mkdir(parents=True, exist_ok=True)
+    with atomic_write(out / "summary.md", "w") as f:
+        f.write(text if text.endswith("\n") else text + "\n")
+    return out / "summary.md"
+
+
 def fmt_pct(b: float) -> str:
     return f"{100 * b:.3g} %"
 

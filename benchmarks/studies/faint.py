@@ -23,10 +23,10 @@ import sys
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # benchmarks/: common.py
-from common import RUNS, add_inputs_args, load_input, scene_views, selected_inputs, setup_threads  # noqa: E402
+from common import (add_inputs_args, load_input, scene_views, selected_inputs, setup_threads,  # noqa: E402
+                    write_summary)
 
 from clod_adapter.camera_lod import render_lod  # noqa: E402
-from clod_adapter.io.atomic import atomic_write  # noqa: E402
 from clod_adapter.metrics import psnr  # noqa: E402
 from clod_adapter.pruning import FAINT_SHARE, faint  # noqa: E402
 from clod_adapter.timing import time_interleaved  # noqa: E402
@@ -74,10 +74,7 @@ def main(argv=None) -> int:
              "|---|---|---:|---:|---:|---:|"]
     for name in selected_inputs(args):
         lines += study(name, args.shares, args.repeats)
-    out = RUNS / "faint"
-    out.mkdir(parents=True, exist_ok=True)
-    with atomic_write(out / "summary.md", "w") as f:
-        f.write("\n".join(lines) + "\n")
+    write_summary("faint", "\n".join(lines))
     print("\n".join(lines))
     return 0
 

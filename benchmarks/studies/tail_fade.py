@@ -30,13 +30,12 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # benchmarks/: common.py
-from common import (RUNS, adapt_cached, add_inputs_args, add_split_arg, load_input, parse_config,  # noqa: E402
-                    scene_views, selected_inputs, setup_threads, split_suffix)
+from common import (adapt_cached, add_inputs_args, add_split_arg, load_input, parse_config,  # noqa: E402
+                    scene_views, selected_inputs, setup_threads, split_suffix, write_summary)
 
 from clod_adapter import quality_vs_time as qvt  # noqa: E402
 from clod_adapter.baselines import lightgaussian_significance  # noqa: E402
 from clod_adapter.camera_lod import tier_chain, tier_reach  # noqa: E402
-from clod_adapter.io.atomic import atomic_write  # noqa: E402
 from clod_adapter.io.load import load_model  # noqa: E402
 from clod_adapter.jobs.eval import popping_curve, sv_grid  # noqa: E402
 from clod_adapter.splat_transform import find_splat_transform  # noqa: E402
@@ -63,6 +62,7 @@ def redrawn(model, tier_fade, last_width):
 
 
 def label(v) -> str:
+    """A variant's row name in the summary."""
     return "as adapted" if v == (None, None) else f"tier_fade {v[0]:g}, coarsest fade_width {v[1]:g}"
 
 
@@ -121,10 +121,7 @@ def main() -> None:
                         + " |")
         md.append("\n".join(rows))
         log(md[-1])
-    out = RUNS / f"tail_fade{split_suffix(args.split)}"
-    out.mkdir(parents=True, exist_ok=True)
-    with atomic_write(out / "summary.md", "w") as f:
-        f.write("\n\n".join(md) + "\n")
+    write_summary(f"tail_fade{split_suffix(args.split)}", "\n\n".join(md))
     print("\n\n".join(md))
 
 

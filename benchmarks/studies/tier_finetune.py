@@ -23,12 +23,12 @@ import time
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # benchmarks/: common.py
-from common import RUNS, add_inputs_args, load_input, scene_views, selected_inputs, setup_threads  # noqa: E402
+from common import (add_inputs_args, load_input, scene_views, selected_inputs, setup_threads,  # noqa: E402
+                    write_summary)
 
 from clod_adapter import tiers  # noqa: E402
 from clod_adapter.camera_lod import render_lod  # noqa: E402
 from clod_adapter.dlod_ceiling import finetune_subset  # noqa: E402
-from clod_adapter.io.atomic import atomic_write  # noqa: E402
 from clod_adapter.metrics import psnr  # noqa: E402
 
 
@@ -84,10 +84,7 @@ def main(argv=None) -> int:
              + " | best step |", "|---|---|---:|" + "---:|" * len(marks) + "---:|"]
     for name in selected_inputs(args):
         lines += study(name, args.shares, args.steps, args.every)
-    out = RUNS / "tier_finetune"
-    out.mkdir(parents=True, exist_ok=True)
-    with atomic_write(out / "summary.md", "w") as f:
-        f.write("\n".join(lines) + "\n")
+    write_summary("tier_finetune", "\n".join(lines))
     print("\n".join(lines))
     return 0
 

@@ -34,13 +34,12 @@ from dataclasses import replace
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # benchmarks/: common.py
-from common import (RUNS, adapt_cached, add_inputs_args, add_split_arg, load_input, parse_config,  # noqa: E402
-                    scene_views, selected_inputs, setup_threads, split_suffix)
+from common import (adapt_cached, add_inputs_args, add_split_arg, load_input, parse_config,  # noqa: E402
+                    scene_views, selected_inputs, setup_threads, split_suffix, write_summary)
 
 from clod_adapter import quality_vs_time as qvt  # noqa: E402
 from clod_adapter import tiers  # noqa: E402
 from clod_adapter.camera_lod import tier_chain  # noqa: E402
-from clod_adapter.io.atomic import atomic_write  # noqa: E402
 from clod_adapter.io.load import load_model  # noqa: E402
 from clod_adapter.splat_transform import find_splat_transform  # noqa: E402
 from clod_adapter.storage import ply_bytes  # noqa: E402
@@ -122,10 +121,7 @@ def main() -> None:
                         + " | " + " / ".join(f"{c.margin_db:+.2f}" for c in cs if c.kind == "count") + " |")
         md.append("\n".join(rows))
         log(md[-1])
-    out = RUNS / f"tier_rule{split_suffix(args.split)}"
-    out.mkdir(parents=True, exist_ok=True)
-    with atomic_write(out / "summary.md", "w") as f:
-        f.write("\n\n".join(md) + "\n")
+    write_summary(f"tier_rule{split_suffix(args.split)}", "\n\n".join(md))
     print("\n\n".join(md))
 
 

@@ -54,8 +54,10 @@ PARENT_ELEMENT = "lod_parent"
 #: ``clod_lod_tier k tier_s_v=.. tier_start=.. tier_fade=..``, and its window ``fade_width=..`` where it
 #: is not the model's
 TIER_COMMENT = "clod_lod_tier"
+#: a tier's hand-over to the next tier, in its ``clod_lod_tier`` comment when it hands over again
+HAND_OVER_KEYS = ("tier_s_v", "tier_start", "tier_fade")
 #: the settings a ``clod_lod_tier`` comment may hold
-TIER_KEYS = ("tier_s_v", "tier_start", "tier_fade", "fade_width")
+TIER_KEYS = HAND_OVER_KEYS + ("fade_width",)
 
 
 def tier_element(k: int) -> str:
@@ -475,7 +477,7 @@ def ply_comments(gaussians: Gaussians) -> list[str]:
     for k, t in enumerate(tier_chain_of(g)[1:], start=1):  # each parent tier's own settings
         if t.lod is None or g.lod is None:
             continue
-        keys = [n for n in TIER_KEYS[:3] if t.lod.tier_s_v > 0]  # it hands over again
+        keys = list(HAND_OVER_KEYS) if t.lod.tier_s_v > 0 else []
         keys += ["fade_width"] if t.lod.fade_width != g.lod.fade_width else []
         if keys:
             out.append(f"{TIER_COMMENT} {k} " + " ".join(f"{n}={getattr(t.lod, n)!r}" for n in keys))

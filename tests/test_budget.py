@@ -119,3 +119,53 @@ def test_select_budget_matches_a_stable_sort():
             ref_idx, ref_s = _select_budget_sorted(pool, vals[pool], max(0, min(k, m))) if m else (pool, 1.0)
             assert torch.equal(idx, ref_idx), (trial, k)
             assert s_v == ref_s, (trial, k)
+
+
+def _full_projection_first(view):
+    """``view`` with its whole model projected (the path a budget took before it projected only
+    a prefix of its order)."""
+    view.visible
+    return view
+
+
+@pytest.mark.parametrize("fade", ["window", "eq2"])
+def test_a_budget_projects_a_prefix_and_selects_what_the_whole_projection_selects(fade):
+    """A count budget solved on a prefix of the order (only it projected) draws the same
+    Gaussians at the same s_v as the budget solved on the whole model's projection, with many
+    Gaussians behind the camera or off the image, a few with overflowing footprints (in the
+    frustum, never in view) and ties; and projects fewer than the whole model for a small one."""
+    from dataclasses import replace as dc_replace
+
+    from clod_adapter.camera_lod import view_lod
+    from clod_adapter.synthetic import make_cameras, make_ground_truth
+
+    n = 3000
+    gen = torch.Generator().manual_seed(3)
+    gt = make_ground_truth(n, seed=4)
+    cam = make_cameras(1, 1, 64, 48)[0]
+    centre = lod.camera_center(cam.viewmat.to(gt.means.dtype))
+    means = gt.means.clone()
+    means[::2] = 2.0 * centre - means[::2]  # half of them mirrored behind the camera
+    means[1::4, 0] += 50.0  # a quarter off to the side of the image
+    forward = cam.viewmat.to(gt.means.dtype)[2, :3]
+    means[:5] = centre + 2.0 * forward  # in the middle of the image, first in the order ...
+    log_scales = gt.log_scales.clone()
+    log_scales[:5] = 60.0  # ... with overflowing footprints: culled from view, in the frustum
+    sigma = (torch.rand(n, generator=gen) * 0.5 + 0.05).to(gt.means.dtype)
+    sigma[:5] = 50.0
+    sigma[100:140] = sigma[100]  # ties in the order
+    g = dc_replace(gt, means=means, log_scales=log_scales).with_sigma_d(sigma)
+    g = dc_replace(g, lod=dc_replace(g.lod or lod.LodSettings(), fade=fade))
+    ref_view = _full_projection_first(view_lod(g, cam))
+    n_vis = ref_view.n_in_view
+    assert 0 < n_vis < n // 3 and not bool(ref_view.visible[:5].any()) and bool(ref_view.frustum[:5].all())
+    for k in (0, 1, 2, 6, 17, n_vis // 5, n_vis // 2, n_vis - 1, n_vis, n_vis + 1, n):
+        for min_s_v in (0.0, 1.0, 3.0):
+            fresh = view_lod(g, cam)
+            a = fresh.select(budget=k, min_s_v=min_s_v)
+            b = _full_projection_first(view_lod(g, cam)).select(budget=k, min_s_v=min_s_v)
+            assert torch.equal(a.indices, b.indices), (k, min_s_v)
+            assert a.s_v == b.s_v and torch.equal(a.opacities, b.opacities), (k, min_s_v)
+            if k == 17 and min_s_v == 0.0:  # a small budget projects only its prefix
+                assert fresh._proj[2] is not None and fresh._proj[0].ids.numel() < n // 4
+            assert view_lod(g, cam).draws_at_least(1.0, k) == (ref_view.select(1.0).indices.numel() >= k)

@@ -52,9 +52,10 @@ def critical_s_v(opacities: Tensor, d_norm: Tensor, sigma_d: Tensor, tau: float 
     u = torch.where(finite, A, torch.zeros_like(A))
     a = torch.where(finite, a, torch.zeros_like(a))
     u = torch.minimum(u, 0.5 * (torch.log(u.abs() + 1.0) - torch.log(a)))  # log(0) = -inf: u
+    A = A.where(finite, torch.zeros_like(A))
     for _ in range(_NEWTON_STEPS):
         e = a * torch.exp(2.0 * u)
-        h = A.where(finite, torch.zeros_like(A)) - e - u
+        h = A - e - u
         step = h / (2.0 * e + 1.0)
         u = u + step  # concave, decreasing h: right of the root after one step, then leftwards
         if bool((step.abs() < 1e-13).all()):

@@ -1,11 +1,12 @@
 """Where should each merged tier take over? The hand-over rules of the chain of merged tiers, on one
 adaptation, at equal frame time and at equal count.
 
-For each input (default: skull and fern; validation views by default, a design question) it takes
-the adaptation with the default tiers (``clod-adapt``'s ``--parent-share 0.5,0.15,0.04``, cached
-under ``runs/bench/<input>/parent_share-0.5,0.15,0.04<_val>``: the model and each merged tier
-adapted in ``parents/``, ``parents/parents/``, ...), detaches every tier and links them again,
-from the coarsest up, by each rule of :data:`VARIANTS`:
+For each input (default: skull and fern; validation views by default, a design question; ``--split
+test`` reports what the tiers buy on the test views) it takes the default adaptation (``clod-adapt``'s
+defaults, tiers of ``--parent-share 0.5,0.15,0.04``, cached under ``runs/bench/<input>/default<_val>``
+as ``benchmarks/quality_vs_time.py`` caches it: the model and each merged tier adapted in
+``parents/``, ``parents/parents/``, ...), detaches every tier and links them again, from the
+coarsest up, by each rule of :data:`VARIANTS`:
 
 * ``default``: :func:`clod_adapter.tiers.link` (by predicted time, the tier at full detail, within
   ``CHOOSE_MARGIN_DB`` = 1.5 dB of the tier above on the fit views; else the coarsest tier by PSNR);
@@ -23,6 +24,7 @@ PSNR within 75 / 50 / 25 / 10 % of the input's frame time with its margin over t
 the margins at equal count. No goal is enforced (a study: exit 0)::
 
     python benchmarks/studies/tier_rule.py                     # skull, fern; validation views
+    python benchmarks/studies/tier_rule.py --inputs fern maskgaussian skull --split test
 
 Written: ``runs/bench/tier_rule<_val>/summary.md``.
 """
@@ -34,7 +36,7 @@ from dataclasses import replace
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # benchmarks/: common.py
-from common import (adapt_cached, add_inputs_args, add_split_arg, load_input, parse_config,  # noqa: E402
+from common import (adapt_cached, add_inputs_args, add_split_arg, load_input,  # noqa: E402
                     scene_views, selected_inputs, setup_threads, split_suffix, write_summary)
 
 from clod_adapter import quality_vs_time as qvt  # noqa: E402
@@ -78,10 +80,9 @@ def main() -> None:
     if tool is None:
         sys.exit("tier_rule: splat-transform not found (`npm ci` in the repository root installs 3.7.0)")
     log = lambda *a: print(*a, flush=True)  # noqa: E731
-    config, tag = parse_config([f"parent_share={','.join(map(str, tiers.DEFAULT_SHARES))}"])
     md = []
     for name in inputs:
-        ply = adapt_cached(name, AdaptConfig(**config), tag, split=args.split, log=log)
+        ply = adapt_cached(name, AdaptConfig(), "default", split=args.split, log=log)
         dirs = [ply.parent]
         while (dirs[-1] / "parents" / "point_cloud.ply").is_file():
             dirs.append(dirs[-1] / "parents")

@@ -19,6 +19,7 @@ import torch
 from torch import Tensor
 
 from . import lod
+from .render.native import load as load_kernels, wanted as kernels_wanted
 
 _NEWTON_STEPS = 80
 
@@ -41,9 +42,18 @@ def critical_s_v(opacities: Tensor, d_norm: Tensor, sigma_d: Tensor, tau: float 
         sigma_d: [N] raw distance decays.
         tau, eps: the LoD threshold and Eq. 2's epsilon.
 
+    On the CPU this is one pass of the C++ kernel ``csrc/lod_terms.cpp`` (each Gaussian stepped
+    until its own step is below 1e-13), where it builds (:mod:`clod_adapter.render.native`); the
+    torch form below, which steps every Gaussian until all of them are there, is its twin
+    (``tests/test_lod_terms.py``: the same ``s*`` to 1e-12, relative). Neither carries a gradient.
+
     Returns:
         [N] float64 ``s*`` (> 0; 0 for alpha = 0; ``alpha / tau`` where d' = 0).
     """
+    if d_norm.numel() and kernels_wanted(d_norm.device.type == "cpu"):
+        dt = torch.promote_types(torch.promote_types(opacities.dtype, d_norm.dtype), sigma_d.dtype)
+        return load_kernels().lod_critical(*(t.detach().to(dt).contiguous() for t in (opacities, d_norm, sigma_d)),
+                                               float(tau), float(eps))
     d = d_norm.double()
     a = d ** 2 / (2.0 * torch.relu(sigma_d.double()) ** 2 + max(float(eps), lod.EPS_FLOOR))
     a = torch.where(d == 0, torch.zeros_like(a), a)  # d' = 0: no attenuation

@@ -223,3 +223,29 @@ def test_window_opacities_with_autograd_is_the_torch_form():
     out.sum().backward()
     assert out.requires_grad and sd.grad is not None and gain.grad is not None
     assert float(gain.grad[ids].abs().sum()) > 0 and float(gain.grad[1::2].abs().sum()) == 0.0
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_critical_kernel_matches_its_twin(dtype):
+    """The critical s_v (budget.critical_s_v): the kernel against the torch twin, to 1e-12
+    relative, with dead decays (<= 0), alpha = 0, d' = 0, NaN, and a tiny and a large eps; and
+    both the root of the margin."""
+    from clod_adapter.budget import critical_s_v
+
+    g = torch.Generator().manual_seed(5)
+    n = 5000
+    opac = (torch.rand(n, generator=g, dtype=torch.float64) * 0.99 + 0.005).to(dtype)
+    d = torch.rand(n, generator=g, dtype=torch.float64).to(dtype)
+    sigma = (torch.rand(n, generator=g, dtype=torch.float64) * 1.5 - 0.1).to(dtype)
+    opac[:20], d[20:40], sigma[40:45], opac[45:50], d[50:55] = 0.0, 0.0, float("nan"), float("nan"), 1e-30
+    for eps in (1e-8, 1e-30, 0.5):
+        a, b = _both(critical_s_v, opac, d, sigma, 0.005, eps)
+        assert a.dtype == b.dtype == torch.float64 and a.shape == b.shape == (n,)
+        assert torch.equal(a == 0, b == 0) and bool((a[:20] == 0).all()) and bool((a[40:50] == 0).all())
+        torch.testing.assert_close(a, b, rtol=1e-12, atol=0)
+        live = (a > 0) & (sigma > 0)
+        below = lod.lod_margin(opac[live].double(), d[live].double(), sigma[live].double(), a[live] * (1 - 1e-9),
+                               0.005, eps)
+        above = lod.lod_margin(opac[live].double(), d[live].double(), sigma[live].double(), a[live] * (1 + 1e-9),
+                               0.005, eps)
+        assert bool((below > 0).all()) and bool((above < 0).all())

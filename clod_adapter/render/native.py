@@ -2,7 +2,7 @@
 
 * the per-pixel compositor (``csrc/composite.cpp``; :mod:`clod_adapter.render.composite`);
 * the per-frame LoD terms (``csrc/lod_terms.cpp``; :func:`clod_adapter.lod.frame_terms`,
-  :func:`clod_adapter.lod.lod_mask`).
+  :func:`clod_adapter.lod.lod_mask`, :func:`clod_adapter.budget.critical_s_v`).
 
 Built with ``torch.utils.cpp_extension.load`` and cached (honours ``TORCH_EXTENSIONS_DIR``).
 Where it cannot be built every kernel falls back to its pure-PyTorch twin. :func:`use_impl`

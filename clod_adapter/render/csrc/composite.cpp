@@ -637,6 +637,8 @@ torch::Tensor lod_mask_cpu(torch::Tensor opacities, torch::Tensor d_norm, torch:
 torch::Tensor lod_window_opacities_cpu(torch::Tensor ids, torch::Tensor opacities, torch::Tensor logits,
                                        torch::Tensor gain, torch::Tensor d_norm, torch::Tensor sigma_d,
                                        double s_v, double level, double tau, double eps, double width);
+torch::Tensor lod_critical_cpu(torch::Tensor opacities, torch::Tensor d_norm, torch::Tensor sigma_d, double tau,
+                               double eps);
 
 PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
     m.def("forward", &composite_forward, "CPU Gaussian compositor forward");
@@ -645,4 +647,5 @@ PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
     m.def("lod_mask", &lod_mask_cpu, "Eq. 2 mask alpha'' > tau s_v (lod.lod_mask)");
     m.def("lod_keep", &lod_keep_cpu, "ids of Eq. 2's mask and the frustum counts (lod.lod_keep)");
     m.def("lod_window_opacities", &lod_window_opacities_cpu, "the window fade's drawn opacities (lod.window_opacities)");
+    m.def("lod_critical", &lod_critical_cpu, "the critical s_v of each Gaussian (budget.critical_s_v)");
 }

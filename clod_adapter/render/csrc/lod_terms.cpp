@@ -2,7 +2,8 @@
 //
 // Twins: clod_adapter.lod.in_frustum + normalized_distances (frustum_distances) and
 // clod_adapter.lod.lod_mask (lod_mask), lod_keep (lod_keep) and window_opacities
-// (lod_window_opacities); tests/test_lod_terms.py holds them together.
+// (lod_window_opacities); clod_adapter.budget.critical_s_v (lod_critical); tests/test_lod_terms.py
+// holds them together.
 // Every frame of a level of detail runs these over all N Gaussians before it knows what it draws.
 // As ~30 elementwise torch operations at N = 60,000 each one pays OpenMP's wake-up of the
 // second thread (about 0.1 ms under OMP_WAIT_POLICY=PASSIVE); here they are one or two parallel
@@ -22,6 +23,8 @@ namespace {
 
 constexpr int64_t kGrain = 65536;     // ~3 ns an element: one thread below this
 constexpr int64_t kGrainLog = 16384;  // the mask's log is ~15 ns an element
+constexpr int64_t kGrainNewton = 4096;  // the critical s_v: a few exp an element
+constexpr int kNewtonSteps = 80;        // budget._NEWTON_STEPS
 constexpr double kEpsFloor = 1e-20;  // lod.EPS_FLOOR
 
 template <typename S>
@@ -163,6 +166,36 @@ void window_opacities_impl(int64_t k, const int64_t* ids, const S* opac, const S
     });
 }
 
+// The critical s_v of each Gaussian (budget.critical_s_v): the root of
+// log alpha - log tau - a s^2 - log s = 0 for u = log s by Newton's method in double, started as the
+// twin starts it; each Gaussian stops on its own once its step is below 1e-13 (the twin steps all
+// of them until every step is), so the two agree to rounding.
+template <typename S>
+void critical_impl(int64_t n, const S* opac, const S* d_norm, const S* sigma_d, double tau, double eps,
+                   double* out) {
+    const double log_tau = std::log(tau), e = std::max(eps, kEpsFloor);
+    at::parallel_for(0, n, kGrainNewton, [&](int64_t b, int64_t end) {
+        for (int64_t i = b; i < end; ++i) {
+            const double d = static_cast<double>(d_norm[i]);
+            const double sd = std::max(static_cast<double>(sigma_d[i]), 0.0);  // NaN stays NaN
+            const double a = d == 0.0 ? 0.0 : d * d / (2.0 * sd * sd + e);  // d' = 0: no attenuation
+            const double A = std::log(static_cast<double>(opac[i])) - log_tau;
+            if (!std::isfinite(A) || !std::isfinite(a)) {  // alpha = 0, a = inf, NaN: never drawn
+                out[i] = 0.0;
+                continue;
+            }
+            double u = std::min(A, 0.5 * (std::log(std::abs(A) + 1.0) - std::log(a)));  // log(0) = -inf: A
+            for (int it = 0; it < kNewtonSteps; ++it) {
+                const double ea = a * std::exp(2.0 * u);
+                const double step = (A - ea - u) / (2.0 * ea + 1.0);
+                u += step;
+                if (std::abs(step) < 1e-13) break;
+            }
+            out[i] = std::exp(u);
+        }
+    });
+}
+
 }  // namespace
 
 // cols [3, N] contiguous float/double (the centres' rows, lod.centre_columns); R [9] row-major and
@@ -248,6 +281,23 @@ torch::Tensor lod_window_opacities_cpu(torch::Tensor ids, torch::Tensor opacitie
                                         logits.data_ptr<scalar_t>(), has_gain ? gain.data_ptr<scalar_t>() : nullptr,
                                         d_norm.data_ptr<scalar_t>(), sigma_d.data_ptr<scalar_t>(), s_v, level, tau,
                                         eps, width, out.data_ptr<scalar_t>());
+    });
+    return out;
+}
+
+// opacities (activated), d_norm, sigma_d (raw): [N] contiguous CPU, one float dtype. Returns [N]
+// float64 critical s_v (budget.critical_s_v).
+torch::Tensor lod_critical_cpu(torch::Tensor opacities, torch::Tensor d_norm, torch::Tensor sigma_d, double tau,
+                               double eps) {
+    TORCH_CHECK(opacities.is_contiguous() && d_norm.is_contiguous() && sigma_d.is_contiguous(), "contiguous inputs");
+    TORCH_CHECK(opacities.scalar_type() == d_norm.scalar_type() && sigma_d.scalar_type() == d_norm.scalar_type(),
+                "one dtype");
+    const int64_t n = d_norm.numel();
+    TORCH_CHECK(opacities.numel() == n && sigma_d.numel() == n, "[N] inputs");
+    auto out = torch::empty({n}, d_norm.options().dtype(torch::kDouble));
+    AT_DISPATCH_FLOATING_TYPES(d_norm.scalar_type(), "lod_critical_cpu", [&] {
+        critical_impl<scalar_t>(n, opacities.data_ptr<scalar_t>(), d_norm.data_ptr<scalar_t>(),
+                                sigma_d.data_ptr<scalar_t>(), tau, eps, out.data_ptr<double>());
     });
     return out;
 }

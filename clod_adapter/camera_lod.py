@@ -257,8 +257,8 @@ class LodView:
         A budget of ``k`` draws the ``k`` Gaussians in view with the largest critical ``s_v``
         and reads the ``(k + 1)``-th: both lie in any set that is closed upwards in critical
         ``s_v`` and holds ``k + 1`` Gaussians in view, so the budget is solved on the prefix
-        exactly as on the whole model, without projecting the rest (at a budget of 15 % of
-        skull's Gaussians in view, a frame projects about a fifth of them). The prefix is cut
+        exactly as on the whole model, without projecting the rest
+        (``benchmarks/studies/budget_frames.py`` holds the two to the same image). The prefix is cut
         where it holds ``k`` centres in the frustum (a centre in the image is in view unless its
         footprint overflows, or it lies within rounding of the image's edge); where the
         projection finds fewer in view, the cut moves on by twice the shortfall, up to

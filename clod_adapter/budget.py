@@ -52,8 +52,8 @@ def critical_s_v(opacities: Tensor, d_norm: Tensor, sigma_d: Tensor, tau: float 
     """
     if d_norm.numel() and kernels_wanted(d_norm.device.type == "cpu"):
         dt = torch.promote_types(torch.promote_types(opacities.dtype, d_norm.dtype), sigma_d.dtype)
-        return load_kernels().lod_critical(*(t.detach().to(dt).contiguous() for t in (opacities, d_norm, sigma_d)),
-                                               float(tau), float(eps))
+        args = (t.detach().to(dt).contiguous() for t in (opacities, d_norm, sigma_d))
+        return load_kernels().lod_critical(*args, float(tau), float(eps))
     d = d_norm.double()
     a = d ** 2 / (2.0 * torch.relu(sigma_d.double()) ** 2 + max(float(eps), lod.EPS_FLOOR))
     a = torch.where(d == 0, torch.zeros_like(a), a)  # d' = 0: no attenuation

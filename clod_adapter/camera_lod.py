@@ -264,11 +264,13 @@ class LodView:
         projection finds fewer in view, the cut moves on by twice the shortfall, up to
         :data:`PREFIX_TRIES` times; where the frustum holds fewer than ``k``, the whole model is
         projected."""
-        crit = self.critical
-        if (self._proj is not None and self._proj[2] is None) or k <= 0 or bool(torch.isnan(crit).any()):
+        if (self._proj is not None and self._proj[2] is None) or k <= 0:
             return None
         if self._prefix is not None and self._prefix[0] == k:  # the prefix found last
             return self._prefix[1]
+        crit = self.critical
+        if bool(torch.isnan(crit).any()):
+            return None
         inside = crit[self.frustum]
         cut = k
         for _ in range(PREFIX_TRIES):
@@ -285,9 +287,14 @@ class LodView:
         return None
 
     def draws_at_least(self, s_v: float, k: int) -> bool:
-        """Whether :meth:`select` at ``s_v`` draws at least ``k`` Gaussians (``select(s_v)``'s
-        count ``>= k``, without projecting the whole model where the window fade's full detail
-        draws every Gaussian in view: a prefix holding ``k`` in view answers it)."""
+        """Whether :meth:`select` at ``s_v`` (>= 1) draws at least ``k`` (a count) Gaussians:
+        ``select(s_v)``'s count ``>= k``, without projecting the whole model where the window
+        fade's full detail draws every Gaussian in view (a prefix holding ``k`` in view answers
+        it). The hand-over test of count budgets (:func:`budget_walk`).
+
+        Raises:
+            ValueError: as :meth:`select` (``s_v < 1``; no ``sigma_d``).
+        """
         if s_v <= 1.0 and self.settings.fade == "window":
             if k <= 0:
                 return True

@@ -70,7 +70,7 @@ def study(name: str, repeats: int) -> tuple[list[list], bool]:
     base, scene, _ = load_input(name, split="test")
     cams = list(scene.test) or list(scene.train[:1])
     n_vis = [view_lod(base, c).n_in_view for c in cams]
-    jobs, same = {}, True
+    jobs, drawn, same = {}, {}, True
     for share in SHARES:
         ks = [max(2, int(round(share * n))) for n in n_vis]
         for c, k in zip(cams, ks):
@@ -78,14 +78,14 @@ def study(name: str, repeats: int) -> tuple[list[list], bool]:
             same &= bool(torch.equal(a.image, b.image)) and a.n_rendered == b.n_rendered and a.s_v == b.s_v
         for prefix in (True, False):
             jobs[(share, prefix)] = [lambda c=c, k=k, p=prefix: _render(model, c, k, p) for c, k in zip(cams, ks)]
-        jobs[(share, "drawn")] = ks
-    timed = time_interleaved({key: fns for key, fns in jobs.items() if key[1] != "drawn"}, repeats=repeats)
+        drawn[share] = ks
+    timed = time_interleaved(jobs, repeats=repeats)
     rows, ok = [], same
     for share in SHARES:
         ms_p, ms_w = timed[(share, True)]["ms_total"], timed[(share, False)]["ms_total"]
         ratio = ms_p / ms_w
         ok &= ratio <= MAX_RATIO
-        rows.append([LABELS.get(name, name), f"{100 * share:g} %", f"{statistics.mean(jobs[(share, 'drawn')]):,.0f}",
+        rows.append([LABELS.get(name, name), f"{100 * share:g} %", f"{statistics.mean(drawn[share]):,.0f}",
                      f"{ms_p:.1f}", f"{ms_w:.1f}", f"{ratio:.2f}", "yes" if ratio <= MAX_RATIO else "**no**"])
     print(f"{name}: images {'equal' if same else 'DIFFERENT'}", flush=True)
     return rows, ok

@@ -132,6 +132,10 @@ class AdaptConfig:
             the validation views (at 200 steps skull's 50 / 15 / 4 % merges +0.17 / +0.32 / +0.54
             dB, fern's +3.2 / +3.0 / +3.1 dB; ``benchmarks/studies/tier_finetune.py``,
             docs/studies.md "Fitting each merge").
+        tier_iteration_share: each merged tier learns its level of detail for this share of
+            ``iterations`` (rounded, at least 1 when ``iterations`` > 0). Default 1: a finer ladder of
+            five tiers at half the steps each was not better on the validation views
+            (docs/studies.md "A finer ladder").
         faint_share: leave out, before anything else, the Gaussians whose blending weight summed
             over every pixel of every training view is under this share of one view's pixels
             (:func:`clod_adapter.pruning.faint`; no recovery: together they paint under that
@@ -183,6 +187,7 @@ class AdaptConfig:
     trained_order_share: float = 1.0
     parent_share: Optional[float | tuple] = None
     tier_finetune_steps: int = 200
+    tier_iteration_share: float = 1.0
     faint_share: Optional[float] = None
     keep_share: float = 1.0
     recovery_steps: int = 1000
@@ -214,6 +219,9 @@ class AdaptConfig:
             raise ValueError(f"parent_share must be descending shares in (0, 1), got {shares}")
         if not (isinstance(self.tier_finetune_steps, int) and self.tier_finetune_steps >= 0):
             raise ValueError(f"tier_finetune_steps must be >= 0 (an integer), got {self.tier_finetune_steps!r}")
+        self.tier_iteration_share = float(self.tier_iteration_share)
+        if not 0.0 < self.tier_iteration_share <= 1.0:
+            raise ValueError(f"tier_iteration_share must be in (0, 1], got {self.tier_iteration_share}")
         if self.faint_share is None:
             from .pruning import FAINT_SHARE
 
@@ -260,6 +268,11 @@ class AdaptConfig:
     def gain_names(self) -> tuple:
         """The Gaussians fields of the learned level gains, in :data:`GAIN_NAMES` order."""
         return tuple(n for n in GAIN_NAMES if n in {GAIN_LETTERS[c] for c in self.gains})
+
+    def tier_iterations(self) -> int:
+        """The LoD training steps of each merged tier: ``tier_iteration_share`` of
+        ``iterations``, rounded, at least 1 when ``iterations`` > 0."""
+        return 0 if self.iterations == 0 else max(1, int(round(self.tier_iteration_share * self.iterations)))
 
     def lod_settings(self) -> lod.LodSettings:
         """The :class:`clod_adapter.lod.LodSettings` the adapted model is drawn with."""

@@ -146,6 +146,18 @@ def test_tier_finetune_steps_must_be_a_count():
         AdaptConfig(tier_finetune_steps=-1)
 
 
+def test_tier_iteration_share_sets_each_tiers_steps():
+    from clod_adapter.training import AdaptConfig
+
+    assert AdaptConfig().tier_iterations() == AdaptConfig().iterations
+    assert AdaptConfig(iterations=1000, tier_iteration_share=0.5).tier_iterations() == 500
+    assert AdaptConfig(iterations=3, tier_iteration_share=0.01).tier_iterations() == 1
+    assert AdaptConfig(iterations=0, tier_iteration_share=0.5).tier_iterations() == 0
+    for bad in (0.0, -0.5, 1.5, float("nan")):
+        with pytest.raises(ValueError, match="tier_iteration_share"):
+            AdaptConfig(tier_iteration_share=bad)
+
+
 def test_adapt_job_builds_the_tier_or_says_why_not(tiny_model, tmp_path, monkeypatch):
     """clod-adapt: under PARENT_MIN_GAUSSIANS no tier (and metrics.json says why); over it, the
     merged input is adapted into OUT/parents and, when it pays, stored as the lod_parent element."""
@@ -164,9 +176,12 @@ def test_adapt_job_builds_the_tier_or_says_why_not(tiny_model, tmp_path, monkeyp
         pytest.skip("splat-transform is not installed (npm ci): the tier's merge needs it")
     monkeypatch.setattr(tiers, "PARENT_MIN_GAUSSIANS", 100)
     out = tmp_path / "tier"
-    assert main(args + ["-o", str(out), "--parent-share", "0.2", "--tier-finetune-steps", "7"]) == 0
+    assert main(args + ["-o", str(out), "--parent-share", "0.2", "--tier-finetune-steps", "7",
+                        "--tier-iteration-share", "0.5"]) == 0
     tier = json.loads((out / "metrics.json").read_text())["tier"]
     assert tier["finetune"]["steps"] == 7
+    steps = json.loads((out / "metrics.json").read_text())["config"]["iterations"]
+    assert json.loads((out / "parents" / "metrics.json").read_text())["config"]["iterations"] == round(steps / 2)
     assert tier["parents"] == 60 and (out / "parents" / "point_cloud.ply").is_file()
     assert len(tier["curves"]["gaussians"]) == len(tiers.SWITCH_S_V)
     g = read_ply(out / "point_cloud.ply")

@@ -3,11 +3,12 @@
 For choosing a default, and for the ablation at equal time: each input (default: skull and fern)
 is adapted with ``clod-adapt``'s defaults and with each ``--config KEY=VALUE ...`` (one variant
 per ``--config``; cached, common.py; ``--split val``: fit views only), and every model is
-rendered from the evaluation views along the same ``s_v`` grid as ``quality_vs_time.py``, every
+rendered from the evaluation views along the same ``s_v`` grid as ``quality_vs_time.py`` (its
+:func:`clod_adapter.quality_vs_time.clod_s_vs`: past every tier's hand-over), every
 setting of every model and the input timed in the same interleaved rounds.
 Printed per input: each model's best PSNR within 90 / 75 / 50 / 25 / 15 / 10 % of the input's
 frame time (the frontier line of ``quality_vs_time.py``) and the popping of ``clod-eval`` from
-the first view (the largest of 31 linear steps from ``s_v`` 1 to max_sv, mean |dI|, and the
+the first view (the largest of 31 steps of :func:`popping_s_vs`, mean |dI|, and the
 switch between the opacity cuts at the first and last counts over it)::
 
     python benchmarks/studies/compare_configs.py --config fade_width=0.75            # validation views
@@ -38,7 +39,8 @@ from clod_adapter.metrics import psnr  # noqa: E402
 from clod_adapter.timing import time_interleaved  # noqa: E402
 from clod_adapter.training import AdaptConfig  # noqa: E402
 
-from clod_adapter.quality_vs_time import S_VS  # noqa: E402  (the s_v grid of benchmarks/quality_vs_time.py)
+from clod_adapter.camera_lod import tier_reach  # noqa: E402
+from clod_adapter.quality_vs_time import clod_s_vs  # noqa: E402  (the s_v grid of benchmarks/quality_vs_time.py)
 
 SHARES = (0.9, 0.75, 0.5, 0.25, 0.15, 0.1)
 
@@ -58,6 +60,16 @@ def timed_render(g, cam, s_v):
     return f
 
 
+def popping_s_vs(g) -> list[float]:
+    """``clod-eval``'s popping sweep: 31 steps from ``s_v`` 1 to 1.2 ``max_sv``, linear without
+    tiers, in ``ln s_v`` through every tier's hand-over to 1.2 ``max_sv`` times
+    :func:`clod_adapter.camera_lod.tier_reach` with them."""
+    top, reach = 1.2 * g.lod.max_sv, tier_reach(g)
+    if reach > 1.0:
+        return [float(x) for x in torch.logspace(0.0, float(torch.log10(torch.tensor(top * reach))), 31)]
+    return [1 + (top - 1) * i / 30 for i in range(31)]
+
+
 def run_input(name: str, split: str, configs: dict, repeats: int) -> tuple[list, list]:
     """Adapt (cached), render and time ``configs`` {tag: AdaptConfig keywords} on ``name``.
     Returns (CSV rows, markdown lines of the frontier)."""
@@ -67,8 +79,9 @@ def run_input(name: str, split: str, configs: dict, repeats: int) -> tuple[list,
     sets = {("input", 1.0): [timed_render(g0, c, None) for c in cams]}
     scores = {}
     with torch.no_grad():
+        grids = {tag: clod_s_vs(g) for tag, g in models.items()}
         for tag, g in models.items():
-            for s in S_VS:
+            for s in grids[tag]:
                 sets[(tag, s)] = [timed_render(g, c, s) for c in cams]
                 scores[(tag, s)] = statistics.mean(psnr(render_lod(g, c, s).image.clamp(0, 1), t)
                                                    for c, t in zip(cams, gts))
@@ -84,15 +97,15 @@ def run_input(name: str, split: str, configs: dict, repeats: int) -> tuple[list,
         for tag, g in models.items():
             rows += [{"input": name, "variant": tag, "s_v": s, "psnr": round(scores[(tag, s)], 3),
                       "ms": round(res[(tag, s)]["ms_total"], 2),
-                      "time_share": round(res[(tag, s)]["ms_total"] / ms_in, 4)} for s in S_VS]
-            pts = [Point("clod", f"s_v={s:g}", res[(tag, s)]["ms_total"], scores[(tag, s)]) for s in S_VS]
+                      "time_share": round(res[(tag, s)]["ms_total"] / ms_in, 4)} for s in grids[tag]]
+            pts = [Point("clod", f"s_v={s:g}", res[(tag, s)]["ms_total"], scores[(tag, s)]) for s in grids[tag]]
             best = [best_within(pts, sh * ms_in) for sh in SHARES]
-            pop = popping_curve(g, cams[0], [1 + (g.lod.max_sv - 1) * i / 30 for i in range(31)])
+            pop = popping_curve(g, cams[0], popping_s_vs(g))
             print(f"[{name}] {tag:>24}: best within " + " / ".join(f"{100 * sh:.0f}" for sh in SHARES) + " %: "
                   + " / ".join("-" if b is None else f"{b.psnr:.2f}" for b in best)
                   + f" dB; popping {pop['continuous_max']:.5f} vs switch {pop['discrete_max']:.5f}: {pop['ratio']:.1f}x")
             print(f"[{name}] {tag:>24}: " + " ".join(f"{s:g}:{scores[(tag, s)]:.2f}/{100 * res[(tag, s)]['ms_total'] / ms_in:.0f}%"
-                                                for s in S_VS))
+                                                for s in grids[tag]))
             md.append(f"| {tag} | " + " / ".join("-" if b is None else f"{b.psnr:.2f}" for b in best) + " |")
     return rows, md + [""]
 

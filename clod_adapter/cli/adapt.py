@@ -86,6 +86,9 @@ def build_parser():
     p.add_argument("--tier-finetune-steps", type=int, default=200, metavar="N",
                    help="fine-tune each merged tier at full detail for N steps on the training views before its "
                         "LoD is learned (default 200; 0: the merge as splat-transform wrote it)")
+    p.add_argument("--tier-iteration-share", type=float, default=1.0, metavar="SHARE",
+                   help="each merged tier learns its level of detail for SHARE of --iterations (default 1; "
+                        "docs/studies.md)")
     p.add_argument("--faint-share", type=float, default=None, metavar="SHARE",
                    help="leave out first the Gaussians whose blending weight summed over every training view is "
                         "under SHARE of one view's pixels (default 1e-5 with the calibrated schedule, about 2 px; "
@@ -167,6 +170,7 @@ def _config(args, world: int):
                            views_per_step=args.views_per_step if args.views_per_step is not None else world,
                            level_max=args.level_max, parent_share=args.parent_share,
                            tier_finetune_steps=args.tier_finetune_steps,
+                           tier_iteration_share=args.tier_iteration_share,
                            faint_share=args.faint_share, keep_share=args.keep_share, recovery_steps=args.recovery_steps, **kw)
     except ValueError as e:  # "<field> must be ...": the field is the flag
         field, _, rest = str(e).partition(" ")

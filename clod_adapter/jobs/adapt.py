@@ -562,7 +562,8 @@ def _add_parent_tier(ply_path: Path, scene_root: Path, out_dir: Path, cfg: Adapt
     # not clear its margin on a tiny model)
     po = replace(o, resume=o.resume and (pdir / STATE_NAME).is_file(), force=True, allow_mismatch=True,
                  log=lambda *a, **k: o.log("  [parents]", *a, **k), iteration=None)
-    pcfg = replace(cfg, parent_share=tuple(x / share for x in rest), keep_share=1.0, faint_share=0.0)
+    pcfg = replace(cfg, parent_share=tuple(x / share for x in rest), keep_share=1.0, faint_share=0.0,
+                   iterations=cfg.tier_iterations(), tier_iteration_share=1.0)
     pm = _run(out_dir / PARENT_INPUT_NAME, scene_root, pdir, pcfg, po, stop, None)
     if pcfg.parent_share:  # the tier's own parent tiers, shares relative to it
         _add_parent_tier(out_dir / PARENT_INPUT_NAME, scene_root, pdir, pcfg, po, stop, None, pm, nested=True)

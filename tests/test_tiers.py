@@ -285,6 +285,24 @@ def test_eval_sweep_reaches_the_parents_range():
     assert fern_like[25] == pytest.approx(7.5 * 1.25 ** 0.5) and len(fern_like) == 31
 
 
+def test_popping_sweep_runs_through_every_tier():
+    """clod-eval's popping sweep: even to 1.2 max_sv without tiers; with a chain (reach > 1)
+    evenly in ln s_v from 1 to 1.2 max_sv x reach."""
+    import math
+
+    from clod_adapter.jobs.eval import popping_sweep
+
+    plain = popping_sweep(5.0, 1.0, 31)
+    assert len(plain) == 31 and plain[0] == 1.0 and plain[-1] == pytest.approx(6.0)
+    assert plain[1] - plain[0] == pytest.approx(plain[-1] - plain[-2])
+    chain = popping_sweep(5.0, 17.0, 31)
+    assert chain[0] == pytest.approx(1.0) and chain[-1] == pytest.approx(6.0 * 17.0)
+    ratios = [b / a for a, b in zip(chain, chain[1:])]
+    assert max(ratios) == pytest.approx(min(ratios)) and ratios[0] == pytest.approx(math.exp(math.log(102.0) / 30))
+    with pytest.raises(ValueError, match="steps"):
+        popping_sweep(5.0, 1.0, 1)
+
+
 def test_budgets_draw_the_parents_once_they_can_fill_them(tiered):
     """budget_cost / budget_ms / count budgets on a tiered model (camera_lod.budget_walk): the
     model's own solution while the parents, as the s_v rule first draws them alone (their

@@ -8,7 +8,8 @@ rendered from the evaluation views along the same ``s_v`` grid as ``quality_vs_t
 setting of every model and the input timed in the same interleaved rounds.
 Printed per input: each model's best PSNR within 90 / 75 / 50 / 25 / 15 / 10 % of the input's
 frame time (the frontier line of ``quality_vs_time.py``) and the popping of ``clod-eval`` from
-the first view (the largest of 31 steps of :func:`popping_s_vs`, mean |dI|, and the
+the first view (the largest of 31 steps of its sweep, :func:`clod_adapter.jobs.eval.popping_sweep`,
+mean |dI|, and the
 switch between the opacity cuts at the first and last counts over it)::
 
     python benchmarks/studies/compare_configs.py --config fade_width=0.75            # validation views
@@ -34,7 +35,7 @@ from clod_adapter.camera_lod import render_lod  # noqa: E402
 from clod_adapter.frontier import Point, best_within  # noqa: E402
 from clod_adapter.io.atomic import atomic_write  # noqa: E402
 from clod_adapter.io.load import load_model  # noqa: E402
-from clod_adapter.jobs.eval import popping_curve  # noqa: E402
+from clod_adapter.jobs.eval import popping_curve, popping_sweep  # noqa: E402
 from clod_adapter.metrics import psnr  # noqa: E402
 from clod_adapter.timing import time_interleaved  # noqa: E402
 from clod_adapter.training import AdaptConfig  # noqa: E402
@@ -58,16 +59,6 @@ def timed_render(g, cam, s_v):
         render_lod(g, cam, s_v)
         return _Timed((time.perf_counter() - t0) * 1e3)
     return f
-
-
-def popping_s_vs(g) -> list[float]:
-    """``clod-eval``'s popping sweep: 31 steps from ``s_v`` 1 to 1.2 ``max_sv``, linear without
-    tiers, in ``ln s_v`` through every tier's hand-over to 1.2 ``max_sv`` times
-    :func:`clod_adapter.camera_lod.tier_reach` with them."""
-    top, reach = 1.2 * g.lod.max_sv, tier_reach(g)
-    if reach > 1.0:
-        return [float(x) for x in torch.logspace(0.0, float(torch.log10(torch.tensor(top * reach))), 31)]
-    return [1 + (top - 1) * i / 30 for i in range(31)]
 
 
 def run_input(name: str, split: str, configs: dict, repeats: int) -> tuple[list, list]:
@@ -100,7 +91,7 @@ def run_input(name: str, split: str, configs: dict, repeats: int) -> tuple[list,
                       "time_share": round(res[(tag, s)]["ms_total"] / ms_in, 4)} for s in grids[tag]]
             pts = [Point("clod", f"s_v={s:g}", res[(tag, s)]["ms_total"], scores[(tag, s)]) for s in grids[tag]]
             best = [best_within(pts, sh * ms_in) for sh in SHARES]
-            pop = popping_curve(g, cams[0], popping_s_vs(g))
+            pop = popping_curve(g, cams[0], popping_sweep(g.lod.max_sv, tier_reach(g), 31))
             print(f"[{name}] {tag:>24}: best within " + " / ".join(f"{100 * sh:.0f}" for sh in SHARES) + " %: "
                   + " / ".join("-" if b is None else f"{b.psnr:.2f}" for b in best)
                   + f" dB; popping {pop['continuous_max']:.5f} vs switch {pop['discrete_max']:.5f}: {pop['ratio']:.1f}x")

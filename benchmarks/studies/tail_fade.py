@@ -37,7 +37,7 @@ from clod_adapter import quality_vs_time as qvt  # noqa: E402
 from clod_adapter.baselines import lightgaussian_significance  # noqa: E402
 from clod_adapter.camera_lod import tier_chain, tier_reach  # noqa: E402
 from clod_adapter.io.load import load_model  # noqa: E402
-from clod_adapter.jobs.eval import popping_curve, sv_grid  # noqa: E402
+from clod_adapter.jobs.eval import popping_curve, popping_sweep  # noqa: E402
 from clod_adapter.splat_transform import find_splat_transform  # noqa: E402
 from clod_adapter.storage import ply_bytes  # noqa: E402
 from clod_adapter.training import AdaptConfig  # noqa: E402
@@ -68,8 +68,7 @@ def label(v) -> str:
 
 def popping(model, cams, base, sig, steps: int = 61):
     """(smallest ratio over ``cams``, the s_v of that view's largest step)."""
-    top = sv_grid(model.lod.max_sv, 2)[-1] * tier_reach(model)
-    svs = [float(x) for x in np.geomspace(1.0, top, steps)]
+    svs = popping_sweep(model.lod.max_sv, tier_reach(model), steps)
     worst = None
     for c in cams:
         p = popping_curve(model, c, svs, discrete_model=base, discrete_scores=sig)

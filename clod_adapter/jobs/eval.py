@@ -150,6 +150,23 @@ LpipsSpec = Union[str, os.PathLike, Callable, None]
 
 
 # --- small helpers ----------------------------------------------------------------------------
+def popping_sweep(max_sv: float, reach: float = 1.0, steps: int = 61) -> list[float]:
+    """The ``s_v`` values of ``clod-eval``'s popping sweep: ``steps`` of them from 1 to the end of
+    :func:`sv_grid` (1.2 ``max_sv``), evenly spaced; for a model with merged tiers (``reach`` > 1,
+    :func:`clod_adapter.camera_lod.tier_reach`) evenly in ``ln s_v`` to that end times ``reach``,
+    through every tier's hand-over to the last tier's 1.2 ``max_sv``.
+
+    Raises:
+        ValueError: ``steps`` < 2 or ``max_sv`` < 1 (:func:`sv_grid`).
+    """
+    top = sv_grid(max_sv, 2)[-1]
+    if steps < 2:
+        raise ValueError(f"need at least 2 s_v steps, got {steps}")
+    if reach > 1.0:
+        return [float(x) for x in np.geomspace(1.0, top * reach, steps)]
+    return [float(x) for x in np.linspace(1.0, top, steps)]
+
+
 def sv_grid(max_sv: float, steps: int = 25, overshoot: float = 1.2, lod_settings=None,
             tier_steps: int = 6, reach: Optional[float] = None) -> list[float]:
     """``steps`` values of ``s_v`` evenly spaced from 1 to ``overshoot * max_sv`` (past the
@@ -727,12 +744,10 @@ def evaluate_report(adapted: Union[os.PathLike, Gaussians], scene, out_dir: os.P
     _retime(ev.rows, o.timing_repeats, o.seed, on_render=ev.tick)
     _compare_time(ev, ctx.lightgaussian)
     ev.bar.set_postfix_str("popping")
-    top = ev.s_vs[-1] if o.s_vs is not None else sv_grid(ev.max_sv, 2)[-1]  # the even part (a tier's points beyond)
-    reach = tier_reach(ev.adapted)
-    if o.s_vs is None and reach > 1.0:  # through every tier's hand-over, in ln s_v, to the last tier's 1.2 max_sv
-        pop_svs = [float(x) for x in np.geomspace(1.0, top * reach, o.popping_steps)]
+    if o.s_vs is None:
+        pop_svs = popping_sweep(ev.max_sv, tier_reach(ev.adapted), o.popping_steps)
     else:
-        pop_svs = [float(x) for x in np.linspace(1.0, top, o.popping_steps)]
+        pop_svs = [float(x) for x in np.linspace(1.0, ev.s_vs[-1], o.popping_steps)]
     pop = popping_curve(ev.adapted, ev.cams[0], pop_svs, discrete_model=ev.base, discrete_scores=ctx.lightgaussian,
                         tau=o.tau, background=ev.bg, on_render=ev.tick)
     pop["camera"] = ev.cams[0].name

@@ -43,19 +43,27 @@ SWITCH_S_V = (1.1, 1.25, 1.5, 1.75, 2.0, 2.5, 3.0, 4.0, 5.0, 6.0, 7.5, 10.0)
 PARENT_S_V = (1.0, 1.1, 1.25, 1.5, 1.75, 2.0, 2.5, 3.0, 4.0, 5.0, 6.0, 7.5, 10.0)
 
 
-def decimated(gaussians: Gaussians, share: float, *, tool: Optional[str] = None) -> Gaussians:
+#: the merges a tier may start from: splat-transform 3.7.0's ``--decimate`` and
+#: ``--decimate-adaptive`` (:func:`clod_adapter.baselines.merge_decimate`'s modes)
+MERGES = ("decimate", "adaptive")
+
+
+def decimated(gaussians: Gaussians, share: float, *, merge: str = "decimate", tool: Optional[str] = None) -> Gaussians:
     """The parent tier's starting point: ``gaussians`` merged to ``share`` of its count by
-    splat-transform 3.7.0's ``--decimate`` (:func:`clod_adapter.baselines.merge_decimate`), a
-    plain 3DGS model (no ``sigma_d``).
+    splat-transform 3.7.0's ``--decimate`` (``merge="decimate"``) or ``--decimate-adaptive``
+    (``merge="adaptive"``) (:func:`clod_adapter.baselines.merge_decimate`), a plain 3DGS model
+    (no ``sigma_d``).
 
     Raises:
-        ValueError: ``share`` not in (0, 1).
+        ValueError: ``share`` not in (0, 1), or ``merge`` not one of :data:`MERGES`.
         RuntimeError: splat-transform is missing or fails (the message says which).
     """
     if not 0.0 < share < 1.0:
         raise ValueError(f"parent share must be in (0, 1), got {share}")
+    if merge not in MERGES:
+        raise ValueError(f"merge must be one of {MERGES}, got {merge!r}")
     plain = replace(gaussians.with_sigma_d(None), extra={})
-    return merge_decimate(plain, max(1, int(round(share * len(gaussians)))), mode="decimate", tool=tool)
+    return merge_decimate(plain, max(1, int(round(share * len(gaussians)))), mode=merge, tool=tool)
 
 
 def finetuned(merged: Gaussians, cameras: Sequence, images: Sequence, steps: int, *, background=None,
@@ -213,5 +221,5 @@ def link(model: Gaussians, candidates: Sequence[Gaussians], cameras: Sequence, i
     return model, tried
 
 
-__all__ = ["decimated", "attach", "choose", "link", "level_curve", "TierChoice", "SWITCH_S_V", "PARENT_S_V",
+__all__ = ["decimated", "MERGES", "attach", "choose", "link", "level_curve", "TierChoice", "SWITCH_S_V", "PARENT_S_V",
            "PARENT_MIN_GAUSSIANS", "CHOOSE_VIEWS", "DEFAULT_SHARES", "CHOOSE_RULES", "CHOOSE_RULE", "CHOOSE_MARGIN_DB"]

@@ -132,6 +132,9 @@ class AdaptConfig:
             the validation views (at 200 steps skull's 50 / 15 / 4 % merges +0.17 / +0.32 / +0.54
             dB, fern's +3.2 / +3.0 / +3.1 dB; ``benchmarks/studies/tier_finetune.py``,
             docs/studies.md "Fitting each merge").
+        tier_merge: the merge each tier starts from, one of :data:`clod_adapter.tiers.MERGES`:
+            splat-transform 3.7.0's ``"decimate"`` (``--decimate``, default) or ``"adaptive"``
+            (``--decimate-adaptive``) (docs/studies.md "Which merge a tier starts from").
         tier_iteration_share: each merged tier learns its level of detail for this share of
             ``iterations`` (rounded, at least 1 when ``iterations`` > 0). Default 1: a finer ladder of
             five tiers at half the steps each was not better on the validation views
@@ -188,6 +191,7 @@ class AdaptConfig:
     parent_share: Optional[float | tuple] = None
     tier_finetune_steps: int = 200
     tier_iteration_share: float = 1.0
+    tier_merge: str = "decimate"
     faint_share: Optional[float] = None
     keep_share: float = 1.0
     recovery_steps: int = 1000
@@ -219,6 +223,10 @@ class AdaptConfig:
             raise ValueError(f"parent_share must be descending shares in (0, 1), got {shares}")
         if not (isinstance(self.tier_finetune_steps, int) and self.tier_finetune_steps >= 0):
             raise ValueError(f"tier_finetune_steps must be >= 0 (an integer), got {self.tier_finetune_steps!r}")
+        from .tiers import MERGES
+
+        if self.tier_merge not in MERGES:
+            raise ValueError(f"tier_merge must be one of {MERGES}, got {self.tier_merge!r}")
         self.tier_iteration_share = float(self.tier_iteration_share)
         if not 0.0 < self.tier_iteration_share <= 1.0:
             raise ValueError(f"tier_iteration_share must be in (0, 1], got {self.tier_iteration_share}")

@@ -146,6 +146,18 @@ def test_tier_finetune_steps_must_be_a_count():
         AdaptConfig(tier_finetune_steps=-1)
 
 
+def test_tier_merge_names_a_decimator():
+    from clod_adapter.training import AdaptConfig
+
+    assert AdaptConfig().tier_merge == "decimate"
+    assert AdaptConfig(tier_merge="adaptive").tier_merge == "adaptive"
+    with pytest.raises(ValueError, match="tier_merge"):
+        AdaptConfig(tier_merge="voxel")
+    g = make_ground_truth(n=40, seed=0)
+    with pytest.raises(ValueError, match="merge must be one of"):
+        tiers.decimated(g, 0.5, merge="voxel")
+
+
 def test_tier_iteration_share_sets_each_tiers_steps():
     from clod_adapter.training import AdaptConfig
 

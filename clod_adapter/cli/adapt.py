@@ -89,6 +89,9 @@ def build_parser():
     p.add_argument("--tier-iteration-share", type=float, default=1.0, metavar="SHARE",
                    help="each merged tier learns its level of detail for SHARE of --iterations (default 1; "
                         "docs/studies.md)")
+    p.add_argument("--tier-merge", choices=("decimate", "adaptive"), default="decimate",
+                   help="the merge each tier starts from: splat-transform's --decimate (default) or "
+                        "--decimate-adaptive (docs/studies.md)")
     p.add_argument("--faint-share", type=float, default=None, metavar="SHARE",
                    help="leave out first the Gaussians whose blending weight summed over every training view is "
                         "under SHARE of one view's pixels (default 1e-5 with the calibrated schedule, about 2 px; "
@@ -171,6 +174,7 @@ def _config(args, world: int):
                            level_max=args.level_max, parent_share=args.parent_share,
                            tier_finetune_steps=args.tier_finetune_steps,
                            tier_iteration_share=args.tier_iteration_share,
+                           tier_merge=args.tier_merge,
                            faint_share=args.faint_share, keep_share=args.keep_share, recovery_steps=args.recovery_steps, **kw)
     except ValueError as e:  # "<field> must be ...": the field is the flag
         field, _, rest = str(e).partition(" ")

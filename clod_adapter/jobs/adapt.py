@@ -544,7 +544,7 @@ def _add_parent_tier(ply_path: Path, scene_root: Path, out_dir: Path, cfg: Adapt
     quiet = replace(o, log=lambda *a, **k: None)
     try:
         parents_in = tiers.decimated(_read_model(resolve_model_path(ply_path, o.iteration), cfg, quiet)[0],
-                                     share)
+                                     share, merge=cfg.tier_merge)
     except RuntimeError as e:
         return done(f"splat-transform: {e}")
     scene = _tier_scene(scene_root, cfg, o)
@@ -555,7 +555,8 @@ def _add_parent_tier(ply_path: Path, scene_root: Path, out_dir: Path, cfg: Adapt
         info["finetune"] = {"steps": cfg.tier_finetune_steps, "seconds": round(time.perf_counter() - t1, 1)}
     write_ply(out_dir / PARENT_INPUT_NAME, parents_in)
     pdir = out_dir / PARENT_DIR
-    o.log(f"clod-adapt: parent tier: {len(parents_in):,} merged Gaussians (splat-transform --decimate"
+    o.log(f"clod-adapt: parent tier: {len(parents_in):,} merged Gaussians (splat-transform "
+          f"{'--decimate' if cfg.tier_merge == 'decimate' else '--decimate-adaptive'}"
           f"{f', fine-tuned {cfg.tier_finetune_steps} steps' if cfg.tier_finetune_steps else ''}), "
           f"adapting them into {pdir} ...")
     # the merged input derives from the checked one: no second scene check (a coarse merge may

@@ -158,6 +158,15 @@ def test_tier_merge_names_a_decimator():
         tiers.decimated(g, 0.5, merge="voxel")
 
 
+def test_decimated_asks_splat_transform_for_the_named_merge(monkeypatch):
+    asked = []
+    monkeypatch.setattr(tiers, "merge_decimate", lambda g, n, mode, tool=None: asked.append((n, mode)) or g)
+    g = make_ground_truth(n=40, seed=0)
+    for merge in tiers.MERGES:
+        tiers.decimated(g, 0.25, merge=merge)
+    assert asked == [(10, "decimate"), (10, "adaptive")]
+
+
 def test_tier_iteration_share_sets_each_tiers_steps():
     from clod_adapter.training import AdaptConfig
 

@@ -63,9 +63,11 @@ def study(name: str, shares, steps: int, repeats: int, log) -> list[str]:
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     add_inputs_args(ap, ["skull", "fern"])
-    ap.add_argument("--shares", type=float, nargs="+", default=list(tiers.DEFAULT_SHARES))
-    ap.add_argument("--steps", type=int, default=AdaptConfig().tier_finetune_steps)
-    ap.add_argument("--repeats", type=int, default=5)
+    ap.add_argument("--shares", type=float, nargs="+", default=list(tiers.DEFAULT_SHARES),
+                    help="the chain's shares of the input, descending (default: clod-adapt's)")
+    ap.add_argument("--steps", type=int, default=AdaptConfig().tier_finetune_steps,
+                    help="fit steps per merge (default: clod-adapt's --tier-finetune-steps)")
+    ap.add_argument("--repeats", type=int, default=5, help="interleaved timing rounds (default 5)")
     ap.add_argument("--threads", type=int, default=2)
     args = ap.parse_args(argv)
     setup_threads(args.threads)

@@ -5,7 +5,8 @@ large, and a merging decimator covers the same image with fewer, better-placed s
 may carry *parent tiers* (``Gaussians.parents``, whose own ``parents`` is the next tier, ...): the
 input merged by PlayCanvas splat-transform's ``--decimate`` (mass-preserving moment matching of
 nearest pairs, :func:`decimated`) to each of a few shares of it (:data:`DEFAULT_SHARES`, chosen on
-validation views: docs/studies.md "Merged tiers"), each adapted like any input (its own
+validation views: docs/studies.md "Merged tiers"; the first lowered by :func:`first_share` where
+its merge would save little time), each adapted like any input (its own
 ``sigma_d`` and level gains) and drawn instead of the tier above from that tier's
 ``LodSettings.tier_s_v`` on, after a cross-fade in ``s_v`` (:func:`clod_adapter.lod.tier_weight`,
 :func:`clod_adapter.camera_lod.chain_parts`). They are stored in the same .ply as more elements
@@ -64,6 +65,74 @@ def decimated(gaussians: Gaussians, share: float, *, merge: str = "decimate", to
         raise ValueError(f"merge must be one of {MERGES}, got {merge!r}")
     plain = replace(gaussians.with_sigma_d(None), extra={})
     return merge_decimate(plain, max(1, int(round(share * len(gaussians)))), mode=merge, tool=tool)
+
+
+#: the first tier's merge must be predicted to draw a frame in at most this share of the input's
+#: (:func:`first_share`, ``AdaptConfig.tier_time_cap``): a first tier that saves less leaves the
+#: upper middle of the range (75-90 % of the frame) to the input's faded survivors. Chosen on the
+#: validation views (docs/studies.md "A first tier that saves time")
+TIER_TIME_CAP = 0.8
+#: :func:`first_share` lowers the share by this factor per try, at most this many times
+TIER_SHARE_STEP = 0.7
+TIER_SHARE_TRIES = 3
+
+
+@torch.no_grad()
+def predicted_ms(gaussians: Gaussians, cameras: Sequence, *,
+                 time_model: FrameTimeModel = DEFAULT_FRAME_TIME_MODEL) -> float:
+    """Mean predicted drawing time (ms) of ``gaussians`` at full detail over ``cameras``: every
+    Gaussian in view at its base attributes (:func:`clod_adapter.cost.splat_cost`, an upper bound
+    of what the LoD rule draws at ``s_v = 1``) through ``time_model``. No wall clock: the same
+    inputs give the same number. ``cameras``: objects with ``viewmat`` [4, 4], ``K`` [3, 3]
+    (pixels), ``width``, ``height``.
+
+    Raises:
+        ValueError: no cameras.
+    """
+    if not cameras:
+        raise ValueError("predicted_ms: no cameras")
+    ms = []
+    for cam in cameras:
+        cost = splat_cost(view_lod(gaussians, cam))
+        ms.append(float(time_model.ms(float(cost.sum()), int(cost.numel()))))
+    return statistics.mean(ms)
+
+
+def first_share(gaussians: Gaussians, share: float, cameras: Sequence, *, cap: float = TIER_TIME_CAP,
+                floor: float = 0.0, merge: str = "decimate", tool: Optional[str] = None,
+                time_model: FrameTimeModel = DEFAULT_FRAME_TIME_MODEL, log=None) -> tuple[float, Gaussians, list]:
+    """The first tier's share and its merge (:func:`decimated`): ``gaussians`` merged to ``share``
+    and, while the merge's predicted full-detail frame (:func:`predicted_ms` on ``cameras``) is
+    above ``cap`` times the input's, merged again to :data:`TIER_SHARE_STEP` times the share, as
+    long as that stays above ``floor`` (the next tier's share), at most :data:`TIER_SHARE_TRIES`
+    times (the last merge is kept). A pruned input (MaskGaussian) has
+    large Gaussians whose merge at half the count still draws ~83 % of the input's frame; a
+    vanilla 3DGS checkpoint's does not need lowering (docs/studies.md "A first tier that saves
+    time"). ``cap = 0``: ``share`` as given, nothing predicted.
+
+    Returns:
+        ``(share, merged Gaussians, [(share tried, predicted share of the input's frame)]``).
+
+    Raises:
+        ValueError: ``cap`` < 0, or as :func:`decimated`.
+        RuntimeError: as :func:`decimated`.
+    """
+    if cap < 0:
+        raise ValueError(f"tier_time_cap must be >= 0, got {cap}")
+    merged = decimated(gaussians, share, merge=merge, tool=tool)
+    if cap == 0:
+        return share, merged, []
+    base = predicted_ms(gaussians, cameras, time_model=time_model)
+    tried = [(share, predicted_ms(merged, cameras, time_model=time_model) / base)]
+    while tried[-1][1] > cap and share * TIER_SHARE_STEP > floor and len(tried) <= TIER_SHARE_TRIES:
+        share = share * TIER_SHARE_STEP
+        merged = decimated(gaussians, share, merge=merge, tool=tool)
+        tried.append((share, predicted_ms(merged, cameras, time_model=time_model) / base))
+    if log is not None and len(tried) > 1:
+        log(f"parent tier: merges of {', '.join(f'{s:.3g}' for s, _ in tried[:-1])} of the input predicted at "
+            f"{', '.join(f'{r:.0%}' for _, r in tried[:-1])} of its frame (over {cap:.0%}); the first tier is "
+            f"{share:.3g} of it ({tried[-1][1]:.0%})")
+    return share, merged, tried
 
 
 def finetuned(merged: Gaussians, cameras: Sequence, images: Sequence, steps: int, *, background=None,
@@ -221,5 +290,6 @@ def link(model: Gaussians, candidates: Sequence[Gaussians], cameras: Sequence, i
     return model, tried
 
 
-__all__ = ["decimated", "MERGES", "attach", "choose", "link", "level_curve", "TierChoice", "SWITCH_S_V", "PARENT_S_V",
+__all__ = ["decimated", "MERGES", "predicted_ms", "first_share", "TIER_TIME_CAP", "TIER_SHARE_STEP",
+           "TIER_SHARE_TRIES", "attach", "choose", "link", "level_curve", "TierChoice", "SWITCH_S_V", "PARENT_S_V",
            "PARENT_MIN_GAUSSIANS", "CHOOSE_VIEWS", "DEFAULT_SHARES", "CHOOSE_RULES", "CHOOSE_RULE", "CHOOSE_MARGIN_DB"]

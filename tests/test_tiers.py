@@ -167,6 +167,61 @@ def test_decimated_asks_splat_transform_for_the_named_merge(monkeypatch):
     assert asked == [(10, "decimate"), (10, "adaptive")]
 
 
+def test_predicted_ms_is_the_time_model_of_every_gaussian_in_view():
+    g = make_ground_truth(n=300, seed=0)
+    cams = make_cameras(3, 2)
+    ms = tiers.predicted_ms(g, cams)
+    assert ms == tiers.predicted_ms(g, cams)  # no wall clock
+    half = g.subset(torch.arange(0, 300, 2))
+    assert 0 < tiers.predicted_ms(half, cams) < ms
+    free = tiers.FrameTimeModel(c0_ms=1.0)
+    assert tiers.predicted_ms(g, cams, time_model=free) == pytest.approx(1.0)
+    with pytest.raises(ValueError, match="no cameras"):
+        tiers.predicted_ms(g, [])
+
+
+def test_first_share_lowers_a_slow_first_merge(monkeypatch):
+    """The first tier's share drops by TIER_SHARE_STEP while its merge is predicted over the cap,
+    never to the next share and at most TIER_SHARE_TRIES times; cap 0 predicts nothing."""
+    g = make_ground_truth(n=1000, seed=0)
+    merged = []
+    monkeypatch.setattr(tiers, "decimated", lambda src, share, merge="decimate", tool=None:
+                        merged.append(round(share, 6)) or src.subset(torch.arange(round(share * len(src)))))
+    # predicted ms: 40 + count / 10 (the input 140 ms, its 50 % merge 90 ms: 64 %, 35 %: 54 %)
+    monkeypatch.setattr(tiers, "predicted_ms", lambda m, cams, time_model=None: 40.0 + len(m) / 10)
+    share, m, tried = tiers.first_share(g, 0.5, [None], cap=0.6)
+    assert share == pytest.approx(0.35) and len(m) == 350
+    assert tried == [(0.5, pytest.approx(90 / 140)), (pytest.approx(0.35), pytest.approx(75 / 140))]
+    share, m, tried = tiers.first_share(g, 0.5, [None], cap=90 / 140)  # at the cap: kept
+    assert share == 0.5 and len(m) == 500 and len(tried) == 1
+    share, _, tried = tiers.first_share(g, 0.5, [None], cap=0.3)  # never under the cap: three tries
+    assert share == pytest.approx(0.5 * tiers.TIER_SHARE_STEP ** 3) and len(tried) == 1 + tiers.TIER_SHARE_TRIES
+    share, _, tried = tiers.first_share(g, 0.5, [None], cap=0.3, floor=0.3)  # not down to the next share
+    assert share == pytest.approx(0.35) and len(tried) == 2
+    merged.clear()
+    share, m, tried = tiers.first_share(g, 0.5, [None], cap=0.0)
+    assert (share, len(m), tried, merged) == (0.5, 500, [], [0.5])
+    with pytest.raises(ValueError, match="tier_time_cap"):
+        tiers.first_share(g, 0.5, [None], cap=-0.1)
+
+
+def test_tier_time_cap_is_a_share_of_the_frame(tiny_model, tmp_path, capfd):
+    from clod_adapter.cli.adapt import main
+    from clod_adapter.training import AdaptConfig
+    from conftest import FAST, err_line
+
+    assert AdaptConfig().tier_time_cap == tiers.TIER_TIME_CAP
+    assert AdaptConfig(schedule="paper").tier_time_cap == 0.0
+    assert AdaptConfig(tier_time_cap=0).tier_time_cap == 0.0
+    for bad in (-0.1, 1.5, float("nan")):
+        with pytest.raises(ValueError, match="tier_time_cap"):
+            AdaptConfig(tier_time_cap=bad)
+    out = tmp_path / "bad"
+    args = [str(tiny_model["ply"]), "--images", str(tiny_model["scene"]), *FAST, "-o", str(out)]
+    assert main(args + ["--tier-time-cap", "1.5"]) == 2
+    assert "--tier-time-cap must be in [0, 1]" in err_line(capfd) and not out.exists()
+
+
 def test_tier_iteration_share_sets_each_tiers_steps():
     from clod_adapter.training import AdaptConfig
 
@@ -200,15 +255,19 @@ def test_adapt_job_builds_the_tier_or_says_why_not(tiny_model, tmp_path, monkeyp
     assert main(args + ["-o", str(out), "--parent-share", "0.2", "--tier-finetune-steps", "7",
                         "--tier-iteration-share", "0.5"]) == 0
     tier = json.loads((out / "metrics.json").read_text())["tier"]
+    tried = tier["time_cap"]["tried"]  # the first merge's share, lowered while predicted over the cap
+    assert tier["time_cap"]["cap"] == tiers.TIER_TIME_CAP and tried[0][0] == 0.2
+    assert tier["parent_share"] == tried[-1][0] and all(r > tiers.TIER_TIME_CAP for _, r in tried[:-1])
+    n_parents = round(tier["parent_share"] * 300)
     assert tier["finetune"]["steps"] == 7
     steps = json.loads((out / "metrics.json").read_text())["config"]["iterations"]
     assert json.loads((out / "parents" / "metrics.json").read_text())["config"]["iterations"] == round(steps / 2)
-    assert tier["parents"] == 60 and (out / "parents" / "point_cloud.ply").is_file()
+    assert tier["parents"] == n_parents and (out / "parents" / "point_cloud.ply").is_file()
     assert len(tier["curves"]["gaussians"]) == len(tiers.SWITCH_S_V)
     g = read_ply(out / "point_cloud.ply")
     assert (g.parents is not None) == tier["used"]
     if tier["used"]:
-        assert g.lod.tier_s_v == tier["tier_s_v"] and len(g.parents) == 60
+        assert g.lod.tier_s_v == tier["tier_s_v"] and len(g.parents) == n_parents
 
 
 def test_export_carries_the_tier(tiny_adapted, tiny_model, tmp_path):

@@ -92,6 +92,10 @@ def build_parser():
     p.add_argument("--tier-merge", choices=("decimate", "adaptive"), default="decimate",
                    help="the merge each tier starts from: splat-transform's --decimate (default) or "
                         "--decimate-adaptive (docs/studies.md)")
+    p.add_argument("--tier-time-cap", type=float, default=None, metavar="SHARE",
+                   help="lower the first tier's share (0.7x per try) while its merge is predicted to draw a frame "
+                        "in more than SHARE of the input's (default 0.8 with the calibrated schedule; 0: the shares "
+                        "as given; docs/studies.md)")
     p.add_argument("--faint-share", type=float, default=None, metavar="SHARE",
                    help="leave out first the Gaussians whose blending weight summed over every training view is "
                         "under SHARE of one view's pixels (default 1e-5 with the calibrated schedule, about 2 px; "
@@ -174,7 +178,7 @@ def _config(args, world: int):
                            level_max=args.level_max, parent_share=args.parent_share,
                            tier_finetune_steps=args.tier_finetune_steps,
                            tier_iteration_share=args.tier_iteration_share,
-                           tier_merge=args.tier_merge,
+                           tier_merge=args.tier_merge, tier_time_cap=args.tier_time_cap,
                            faint_share=args.faint_share, keep_share=args.keep_share, recovery_steps=args.recovery_steps, **kw)
     except ValueError as e:  # "<field> must be ...": the field is the flag
         field, _, rest = str(e).partition(" ")

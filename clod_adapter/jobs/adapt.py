@@ -512,7 +512,9 @@ PARENT_INPUT_NAME = "parents_input.ply"
 def _add_parent_tier(ply_path: Path, scene_root: Path, out_dir: Path, cfg: AdaptConfig, o: AdaptOptions,
                      stop: StopFlag, group, metrics: dict, nested: bool = False) -> dict:
     """Phase 6 (``cfg.parent_share``, :mod:`clod_adapter.tiers`): the input merged by
-    splat-transform to the first of ``parent_share`` of its Gaussians (``out_dir/parents_input.ply``),
+    splat-transform to the first of ``parent_share`` of its Gaussians (lowered while the merge is
+    predicted to draw over ``tier_time_cap`` of the input's frame: :func:`clod_adapter.tiers.first_share`;
+    ``out_dir/parents_input.ply``),
     adapted by the same job into ``out_dir/parents/`` (its own state, metrics and strip, and the
     next shares as its own parent tiers, ``out_dir/parents/parents/``, ...), and attached to
     ``point_cloud.ply`` where it beats the model at equal predicted frame time on the training
@@ -542,12 +544,20 @@ def _add_parent_tier(ply_path: Path, scene_root: Path, out_dir: Path, cfg: Adapt
     if group is not None:
         return done("not built in a data-parallel run")
     quiet = replace(o, log=lambda *a, **k: None)
+    scene = _tier_scene(scene_root, cfg, o)
+    cams = list(scene.train)[:: max(1, len(scene.train) // tiers.CHOOSE_VIEWS)][: tiers.CHOOSE_VIEWS]
     try:
-        parents_in = tiers.decimated(_read_model(resolve_model_path(ply_path, o.iteration), cfg, quiet)[0],
-                                     share, merge=cfg.tier_merge)
+        source = _read_model(resolve_model_path(ply_path, o.iteration), cfg, quiet)[0]
+        if nested:  # a tier's own tiers: shares relative to it, as the first tier's share left them
+            parents_in = tiers.decimated(source, share, merge=cfg.tier_merge)
+        else:
+            share, parents_in, tried_shares = tiers.first_share(
+                source, share, cams, cap=cfg.tier_time_cap, floor=rest[0] if rest else 0.0, merge=cfg.tier_merge,
+                log=lambda m: o.log("clod-adapt: " + m))
+            info.update({"parent_share": share, "time_cap": {"cap": cfg.tier_time_cap, "tried": tried_shares}})
+        del source
     except RuntimeError as e:
         return done(f"splat-transform: {e}")
-    scene = _tier_scene(scene_root, cfg, o)
     if cfg.tier_finetune_steps > 0:
         t1 = time.perf_counter()
         parents_in = tiers.finetuned(parents_in, scene.train, [scene.load_image(c) for c in scene.train],
@@ -569,7 +579,6 @@ def _add_parent_tier(ply_path: Path, scene_root: Path, out_dir: Path, cfg: Adapt
     if pcfg.parent_share:  # the tier's own parent tiers, shares relative to it
         _add_parent_tier(out_dir / PARENT_INPUT_NAME, scene_root, pdir, pcfg, po, stop, None, pm, nested=True)
     model, parents = read_ply(out_dir / PLY_NAME), read_ply(pdir / PLY_NAME)
-    cams = list(scene.train)[:: max(1, len(scene.train) // tiers.CHOOSE_VIEWS)][: tiers.CHOOSE_VIEWS]
     imgs = [scene.load_image(c) for c in cams]
     dirs = _tier_dirs(pdir)
     cands = [parents] + [read_ply(d / PLY_NAME) for d in dirs[1:]]

@@ -39,6 +39,15 @@ PARENT_MIN_GAUSSIANS = 10_000
 DEFAULT_SHARES = (0.5, 0.15, 0.04)
 #: training views :func:`choose` scores on (evenly spaced)
 CHOOSE_VIEWS = 8
+
+
+def choice_views(cameras: Sequence) -> list:
+    """The :data:`CHOOSE_VIEWS` evenly spaced cameras of ``cameras`` (training views) that a
+    tier's share and hand-over are chosen on (all of them when there are fewer)."""
+    cams = list(cameras)
+    return cams[:: max(1, len(cams) // CHOOSE_VIEWS)][:CHOOSE_VIEWS]
+
+
 #: the Gaussians' levels at which the switch may happen, and the parents' levels tried there
 SWITCH_S_V = (1.1, 1.25, 1.5, 1.75, 2.0, 2.5, 3.0, 4.0, 5.0, 6.0, 7.5, 10.0)
 PARENT_S_V = (1.0, 1.1, 1.25, 1.5, 1.75, 2.0, 2.5, 3.0, 4.0, 5.0, 6.0, 7.5, 10.0)
@@ -109,6 +118,13 @@ def first_share(gaussians: Gaussians, share: float, cameras: Sequence, *, cap: f
     large Gaussians whose merge at half the count still draws ~83 % of the input's frame; a
     vanilla 3DGS checkpoint's does not need lowering (docs/studies.md "A first tier that saves
     time"). ``cap = 0``: ``share`` as given, nothing predicted.
+
+    Args:
+        gaussians: the input (N Gaussians).
+        share: the first share tried, in (0, 1).
+        cameras: the views predicted on (as :func:`predicted_ms`; the job's :func:`choice_views`).
+        cap: the largest predicted share of the input's frame time kept (0: no prediction).
+        floor: a share the lowered one must stay above (the next tier's share; 0: none).
 
     Returns:
         ``(share, merged Gaussians, [(share tried, predicted share of the input's frame)]``).
@@ -290,6 +306,6 @@ def link(model: Gaussians, candidates: Sequence[Gaussians], cameras: Sequence, i
     return model, tried
 
 
-__all__ = ["decimated", "MERGES", "predicted_ms", "first_share", "TIER_TIME_CAP", "TIER_SHARE_STEP",
+__all__ = ["decimated", "MERGES", "choice_views", "predicted_ms", "first_share", "TIER_TIME_CAP", "TIER_SHARE_STEP",
            "TIER_SHARE_TRIES", "attach", "choose", "link", "level_curve", "TierChoice", "SWITCH_S_V", "PARENT_S_V",
            "PARENT_MIN_GAUSSIANS", "CHOOSE_VIEWS", "DEFAULT_SHARES", "CHOOSE_RULES", "CHOOSE_RULE", "CHOOSE_MARGIN_DB"]

@@ -167,6 +167,12 @@ def test_decimated_asks_splat_transform_for_the_named_merge(monkeypatch):
     assert asked == [(10, "decimate"), (10, "adaptive")]
 
 
+def test_choice_views_are_evenly_spaced_training_views():
+    assert tiers.choice_views(range(20)) == [0, 2, 4, 6, 8, 10, 12, 14]
+    assert tiers.choice_views(range(64)) == list(range(0, 64, 8))
+    assert tiers.choice_views(range(5)) == [0, 1, 2, 3, 4]
+
+
 def test_predicted_ms_is_the_time_model_of_every_gaussian_in_view():
     g = make_ground_truth(n=300, seed=0)
     cams = make_cameras(3, 2)

@@ -32,7 +32,7 @@ def study(name: str, cap: float, repeats: int, log) -> list[str]:
     """One input's table rows: each share tried, predicted and measured."""
     g0, scene, _ = load_input(name, split="val")
     fit, val = scene_views(scene, "val")
-    cams = fit[:: max(1, len(fit) // tiers.CHOOSE_VIEWS)][: tiers.CHOOSE_VIEWS]  # as clod-adapt's job
+    cams = tiers.choice_views(fit)  # as clod-adapt's job
     base = tiers.predicted_ms(g0, cams)
     picked, _, _ = tiers.first_share(g0, tiers.DEFAULT_SHARES[0], cams, cap=cap, floor=tiers.DEFAULT_SHARES[1])
     shares = [tiers.DEFAULT_SHARES[0] * tiers.TIER_SHARE_STEP ** k for k in range(3)]

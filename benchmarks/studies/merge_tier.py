@@ -123,7 +123,7 @@ def main() -> None:
                 settings.append(qvt.Setting(f"tier{f:g}", f"s_v={s:g}", [qvt.lod_render(gp, c, s_v=s) for c in cams],
                                             size))
             # the one model clod-adapt builds: the switch chosen on fit views (never the scored ones)
-            sub = fit[:: max(1, len(fit) // tiers.CHOOSE_VIEWS)][: tiers.CHOOSE_VIEWS]
+            sub = tiers.choice_views(fit)
             ch = tiers.choose(ga, gp, sub, [scene.load_image(c) for c in sub],
                               log=lambda msg, name=name: log(f"[{name}] {msg}"))
             if ch.tier_s_v is not None:

@@ -89,7 +89,7 @@ def main() -> None:
         bare = [replace(load_model(d / "point_cloud.ply"), parents=None) for d in dirs]
         g0, scene, gts = load_input(name, args.split)
         fit, cams = scene_views(scene, args.split)
-        sub = fit[:: max(1, len(fit) // tiers.CHOOSE_VIEWS)][: tiers.CHOOSE_VIEWS]
+        sub = tiers.choice_views(fit)
         imgs = [scene.load_image(c) for c in sub]
         models = {v: linked(v, bare[0], bare[1:], sub, imgs, lambda m, v=v: log(f"[{name}] {v}: {m}"))
                   for v in VARIANTS}

@@ -545,7 +545,7 @@ def _add_parent_tier(ply_path: Path, scene_root: Path, out_dir: Path, cfg: Adapt
         return done("not built in a data-parallel run")
     quiet = replace(o, log=lambda *a, **k: None)
     scene = _tier_scene(scene_root, cfg, o)
-    cams = list(scene.train)[:: max(1, len(scene.train) // tiers.CHOOSE_VIEWS)][: tiers.CHOOSE_VIEWS]
+    cams = tiers.choice_views(scene.train)
     try:
         source = _read_model(resolve_model_path(ply_path, o.iteration), cfg, quiet)[0]
         if nested:  # a tier's own tiers: shares relative to it, as the first tier's share left them

@@ -339,13 +339,14 @@ class LodView:
                 budget = int(round(budget * self.n_in_view))
             crit = self.critical
             k = budget_count(budget, self.n)
-            pool = self._visible_prefix(k + 1)  # the visible among a prefix of the order, or None
-            pool = self.visible if pool is None else pool
+            prefix = self._visible_prefix(k + 1)  # the visible among a prefix of the order, or None
+            pool = self.visible if prefix is None else prefix
             idx, s_used = select_budget(crit, k, pool)
-            if s_used < min_s_v:
+            full_floor = min_s_v <= 1.0 and st.fade == "window"  # the floor is full detail: every Gaussian in view
+            if s_used < min_s_v and full_floor and prefix is None and k >= self.n_in_view:
+                return self.select(1.0, level=level)  # the budget holds full detail: as s_v = 1 draws it
+            if s_used < min_s_v and not full_floor:
                 s_used = float(min_s_v)
-                if s_used <= 1.0 and st.fade == "window":  # capped at full detail: as s_v = 1 draws it
-                    return self.select(1.0, level=level)
                 # above the solved s_v: only the chosen k, all in ``pool``
                 mask = (crit > s_used) & pool
                 idx = torch.nonzero(mask, as_tuple=False).squeeze(1)
@@ -832,8 +833,12 @@ def render_lod(
             detached in its margin), so the count regulariser cuts Gaussians through their decay
             instead of eroding their opacity at every level of detail.
         min_s_v: budget mode only: the solved ``s_v`` is raised to at least this (default 1,
-            the full-detail level, so a budget acts as a cap: larger budgets than the s_v = 1
-            count render that level). 0 renders exactly ``budget`` Gaussians whatever ``s_v``.
+            the full-detail level, so a budget acts as a cap: a budget that holds every
+            Gaussian in view renders full detail), where the level raised to draws no more than
+            the budget: with the window fade, full detail (``min_s_v <= 1``) draws every Gaussian
+            in view, so a smaller budget draws its ``k`` at the solved ``s_v`` below 1. A budget
+            never draws more than ``budget`` Gaussians. 0 renders exactly ``budget`` Gaussians
+            whatever ``s_v``.
         budget_in_view: a fractional ``budget`` is a share of the Gaussians in view, not of the
             model (the calibrated schedule's training).
         level: window fade only: draw the level gains at this level in [0, 1] instead of

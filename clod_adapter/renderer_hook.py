@@ -167,7 +167,7 @@ def clod_rasterization(
         s_v: virtual distance scale (>= 1); render the Gaussians with ``alpha'' > tau s_v``.
         budget: instead of ``s_v``: render exactly this many Gaussians (int) or this fraction
             of N (float in [0, 1]) per camera, ``s_v`` solved per camera (capped by the
-            Gaussians in view; raised to at least ``min_s_v``, see ``render_lod``).
+            Gaussians in view; never more; raised to at least ``min_s_v``, see ``render_lod``).
         lod_settings: how the model is drawn (:class:`clod_adapter.lod.LodSettings`; the
             adapted .ply's ``Gaussians.lod``); None: the paper's Eq. 2 drawing.
         opacity_logit_gain, log_scale_gain: [N] level gains, sh0_gain: [N, 1, 3] (SH colours

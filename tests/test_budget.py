@@ -1,4 +1,6 @@
 """Exact budgets: critical s_v per Gaussian and the k-th-largest selection."""
+from dataclasses import replace
+
 import pytest
 import torch
 
@@ -169,3 +171,46 @@ def test_a_budget_projects_a_prefix_and_selects_what_the_whole_projection_select
             if k == 17 and min_s_v == 0.0:  # a small budget projects only its prefix
                 assert fresh._proj[2] is not None and fresh._proj[0].ids.numel() < n // 4
             assert view_lod(g, cam).draws_at_least(1.0, k) == (ref_view.select(1.0).indices.numel() >= k)
+
+
+def _window_model(n: int, seed: int, share_small: float = 0.5):
+    """A window-fade model in which ``share_small`` of the Gaussians have a tiny ``sigma_d``, so
+    their critical s_v is below 1 (the paper's mask drops them at s_v = 1; full detail draws them)."""
+    from clod_adapter.synthetic import make_ground_truth
+
+    g = make_ground_truth(n, seed=seed)
+    gen = torch.Generator().manual_seed(seed + 3)
+    sd = 0.2 + torch.rand(n, generator=gen)
+    sd[torch.rand(n, generator=gen) < share_small] = 1e-3
+    return replace(g.with_sigma_d(sd), lod=lod.LodSettings(fade="window"))
+
+
+def test_a_window_budget_never_draws_more_than_k():
+    """With the window fade, full detail draws every Gaussian in view, also those whose critical
+    s_v is below 1 in the view. A budget between what the mask keeps at s_v = 1 and every Gaussian in
+    view draws exactly k (at the solved s_v below 1), not full detail; one that holds every
+    Gaussian in view draws full detail; through a chain of tiers (tier_start 1) no budget draws more."""
+    from clod_adapter import tiers
+    from clod_adapter.camera_lod import render_lod, view_lod
+    from clod_adapter.synthetic import make_cameras
+
+    g = _window_model(800, 0)
+    cam = make_cameras(1, 1, 64, 48)[0]
+    v = view_lod(g, cam)
+    n, below = v.n_in_view, int(((v.critical <= 1.0) & v.visible).sum())
+    assert n > 100 and below > n // 4
+    full = render_lod(g, cam, 1.0)
+    assert full.n_rendered == n
+    for k in (n - 1, n - below // 2, n - below, n - below - 10, 5):
+        r = render_lod(g, cam, budget=k)  # default min_s_v = 1
+        assert r.n_rendered == k, (k, n, below)
+        assert torch.isfinite(r.image).all()
+    whole = render_lod(g, cam, budget=n)
+    assert whole.s_v == 1.0 and torch.equal(whole.image, full.image)
+    chain = tiers.attach(_window_model(1200, 1, 0.1), _window_model(600, 2), 2.0, 1.0)
+    vc = view_lod(replace(chain, parents=None), cam)
+    m = vc.n_in_view
+    for k in (m - 1, (3 * m) // 4, m // 2, m // 3, m // 5, 10):
+        r = render_lod(chain, cam, budget=k)
+        assert r.n_rendered <= k, (k, r.n_rendered, r.n_parents)
+    assert any(render_lod(chain, cam, budget=k).n_parents > 0 for k in (m // 3, m // 5, 10))

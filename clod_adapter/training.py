@@ -128,10 +128,10 @@ class AdaptConfig:
         tier_finetune_steps: each merged tier's base attributes are fine-tuned at full detail
             for this many steps on the training views (:func:`clod_adapter.tiers.finetuned`,
             LightGaussian's recovery schedule) before its level of detail is learned: a merge is
-            not a fitted model. 0: the merge as splat-transform wrote it. Default 200, chosen on
-            the validation views (at 200 steps skull's 50 / 15 / 4 % merges +0.17 / +0.32 / +0.54
-            dB, fern's +3.2 / +3.0 / +3.1 dB; ``benchmarks/studies/tier_finetune.py``,
-            docs/studies.md "Fitting each merge").
+            not a fitted model. 0: the merge as splat-transform wrote it. Default 400, chosen on
+            the validation views (at 400 steps fern's 50 / 15 / 4 % merges +3.3 / +3.3 / +3.4 dB,
+            0.2-0.3 dB more than at 200; skull's +0.09 / +0.25 / +0.51 dB, 0.03-0.08 dB less;
+            ``benchmarks/studies/tier_finetune.py``, docs/studies.md "Fitting each merge").
         tier_merge: the merge each tier starts from, one of :data:`clod_adapter.tiers.MERGES`:
             splat-transform 3.7.0's ``"decimate"`` (``--decimate``, default) or ``"adaptive"``
             (``--decimate-adaptive``) (docs/studies.md "Which merge a tier starts from").
@@ -196,7 +196,7 @@ class AdaptConfig:
     level_max: float = 1.0
     trained_order_share: float = 1.0
     parent_share: Optional[float | tuple] = None
-    tier_finetune_steps: int = 200
+    tier_finetune_steps: int = 400
     tier_iteration_share: float = 1.0
     tier_merge: str = "decimate"
     tier_time_cap: Optional[float] = None

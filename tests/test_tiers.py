@@ -141,7 +141,7 @@ def test_finetuned_fits_a_merge_to_the_training_views():
 def test_tier_finetune_steps_must_be_a_count():
     from clod_adapter.training import AdaptConfig
 
-    assert AdaptConfig().tier_finetune_steps == 200
+    assert AdaptConfig().tier_finetune_steps == 400
     with pytest.raises(ValueError, match="tier_finetune_steps"):
         AdaptConfig(tier_finetune_steps=-1)
 

@@ -11,6 +11,7 @@ each merge scores best at. No goal is enforced (a study: exit 0)::
 
     python benchmarks/studies/tier_finetune.py                 # skull, fern; 400 steps
     python benchmarks/studies/tier_finetune.py --inputs skull --steps 600 --every 100
+    python benchmarks/studies/tier_finetune.py --chain-steps 200   # each next merge from a 200-step fit
 
 Written: ``runs/bench/tier_finetune/summary.md``. About 4 minutes per scene on 2 cores.
 """
@@ -30,6 +31,7 @@ from clod_adapter import tiers  # noqa: E402
 from clod_adapter.camera_lod import render_lod  # noqa: E402
 from clod_adapter.dlod_ceiling import finetune_subset  # noqa: E402
 from clod_adapter.metrics import psnr  # noqa: E402
+from clod_adapter.training import AdaptConfig  # noqa: E402
 
 
 def val_psnr(model, cams, imgs) -> float:
@@ -37,7 +39,7 @@ def val_psnr(model, cams, imgs) -> float:
     return statistics.mean(psnr(render_lod(model, c, None).image, gt, cap=True) for c, gt in zip(cams, imgs))
 
 
-def study(name: str, shares, steps: int, every: int) -> list[str]:
+def study(name: str, shares, steps: int, every: int, chain_steps: int) -> list[str]:
     """One input's table rows: each merge's validation PSNR along its fine-tune."""
     g0, scene, _ = load_input(name, split="val")
     fit, val = scene_views(scene, "val")
@@ -56,16 +58,9 @@ def study(name: str, shares, steps: int, every: int) -> list[str]:
         rows.append(f"| {name} | {100 * share:g} % ({len(merged):,}) | {base:.2f} | "
                     + " | ".join(f"{curve[s]:.2f} ({curve[s] - curve[0]:+.2f})" for s in sorted(curve))
                     + f" | {info.best_step} |")
-        # the next tier is merged from this one fitted as the job fits it
-        src, prev = tiers.finetuned(merged, fit, fit_imgs, tiers_steps(), background=(0.0, 0.0, 0.0)), share
+        # the next tier is merged from this one fitted for ``chain_steps`` (the job's default)
+        src, prev = tiers.finetuned(merged, fit, fit_imgs, chain_steps, background=(0.0, 0.0, 0.0)), share
     return rows
-
-
-def tiers_steps() -> int:
-    """The job's default fine-tune length (``AdaptConfig.tier_finetune_steps``)."""
-    from clod_adapter.training import AdaptConfig
-
-    return AdaptConfig().tier_finetune_steps
 
 
 def main(argv=None) -> int:
@@ -74,6 +69,9 @@ def main(argv=None) -> int:
     ap.add_argument("--shares", type=float, nargs="+", default=list(tiers.DEFAULT_SHARES))
     ap.add_argument("--steps", type=int, default=400)
     ap.add_argument("--every", type=int, default=50)
+    ap.add_argument("--chain-steps", type=int, default=AdaptConfig().tier_finetune_steps,
+                    help="fit steps of the merge each next one is merged from (default: clod-adapt's "
+                         "--tier-finetune-steps)")
     ap.add_argument("--threads", type=int, default=2)
     args = ap.parse_args(argv)
     setup_threads(args.threads)
@@ -83,7 +81,7 @@ def main(argv=None) -> int:
     lines = ["| input | merge (Gaussians) | input, val PSNR | " + " | ".join(f"step {s}" for s in marks)
              + " | best step |", "|---|---|---:|" + "---:|" * len(marks) + "---:|"]
     for name in selected_inputs(args):
-        lines += study(name, args.shares, args.steps, args.every)
+        lines += study(name, args.shares, args.steps, args.every, args.chain_steps)
     write_summary("tier_finetune", "\n".join(lines))
     print("\n".join(lines))
     return 0

@@ -83,9 +83,9 @@ def build_parser():
                         "of its Gaussians (descending), each tier handing over to the next at the levels where it "
                         "pays (default 0.5,0.15,0.04; 0: none; left out under 10,000 Gaussians or without "
                         "splat-transform; docs/method.md)")
-    p.add_argument("--tier-finetune-steps", type=int, default=200, metavar="N",
+    p.add_argument("--tier-finetune-steps", type=int, default=400, metavar="N",
                    help="fine-tune each merged tier at full detail for N steps on the training views before its "
-                        "LoD is learned (default 200; 0: the merge as splat-transform wrote it)")
+                        "LoD is learned (default 400; 0: the merge as splat-transform wrote it)")
     p.add_argument("--tier-iteration-share", type=float, default=1.0, metavar="SHARE",
                    help="each merged tier learns its level of detail for SHARE of --iterations (default 1; "
                         "docs/studies.md)")

@@ -130,7 +130,7 @@ class AdaptConfig:
             LightGaussian's recovery schedule) before its level of detail is learned: a merge is
             not a fitted model. 0: the merge as splat-transform wrote it. Default 400, chosen on
             the validation views (at 400 steps fern's 50 / 15 / 4 % merges +3.3 / +3.3 / +3.4 dB,
-            0.2-0.3 dB more than at 200; skull's +0.09 / +0.25 / +0.51 dB, 0.03-0.08 dB less;
+            0.17-0.34 dB more than at 200; skull's +0.09 / +0.25 / +0.51 dB, 0.03-0.08 dB less;
             ``benchmarks/studies/tier_finetune.py``, docs/studies.md "Fitting each merge").
         tier_merge: the merge each tier starts from, one of :data:`clod_adapter.tiers.MERGES`:
             splat-transform 3.7.0's ``"decimate"`` (``--decimate``, default) or ``"adaptive"``

@@ -168,6 +168,23 @@ def test_help_has_an_example_and_every_flag_has_help(capsys):
     assert "clod-adapt 0." in capsys.readouterr().out
 
 
+def test_clod_adapt_flag_defaults_are_the_configs():
+    """Every clod-adapt flag with a literal default that names an AdaptConfig field has the
+    config's default (``--tier-finetune-steps`` 400, ``--max-sv`` 5, ...): the two cannot drift."""
+    import dataclasses
+
+    from clod_adapter.cli import adapt
+    from clod_adapter.training import AdaptConfig
+
+    cfg, fields = AdaptConfig(), {f.name for f in dataclasses.fields(AdaptConfig)}
+    checked = []
+    for a in adapt.build_parser()._actions:
+        if a.dest in fields and a.default is not None and a.dest != "background":  # a colour name, parsed later
+            assert a.default == getattr(cfg, a.dest), (a.dest, a.default, getattr(cfg, a.dest))
+            checked.append(a.dest)
+    assert {"tier_finetune_steps", "max_sv", "tier_merge", "recovery_steps"} <= set(checked)
+
+
 # --- timings ---------------------------------------------------------------------------------------
 def test_time_interleaved_rounds_and_order():
     from types import SimpleNamespace

@@ -302,6 +302,21 @@ class LodView:
             return self._visible_prefix(k + 1) is not None or self.n_in_view >= k
         return int(self.select(s_v).indices.numel()) >= k
 
+    def budget_drawn(self, budget: float | int, min_s_v: float = 1.0) -> Optional[int]:
+        """How many Gaussians ``select(budget=budget, min_s_v=min_s_v)`` draws, without solving it,
+        where the rule gives the count: window fade and ``min_s_v <= 1`` (full detail is the
+        floor), ``min(k, n_in_view)`` for ``k`` = :func:`clod_adapter.budget.budget_count` of the
+        budget, found by :meth:`draws_at_least` (a prefix projection where the view holds ``k``);
+        None otherwise (solve it).
+
+        Raises:
+            ValueError: a negative budget.
+        """
+        if self.settings.fade != "window" or min_s_v > 1.0:
+            return None
+        k = budget_count(budget, self.n)
+        return k if self.draws_at_least(1.0, k) else self.n_in_view
+
     # --- selection -----------------------------------------------------------------------------
     def select(self, s_v: Optional[float] = None, *, budget: Optional[float | int] = None,
                min_s_v: float = 1.0, budget_in_view: bool = False, level: Optional[float] = None,
@@ -496,7 +511,15 @@ class LodView:
     def full_cost(self) -> float:
         """The cost (:func:`clod_adapter.cost.splat_cost`, pixels) of every Gaussian in view at full
         detail: what a ``budget_cost`` share is a share of."""
-        return float(torch.cumsum(self._cost_weights()[2].double(), 0)[-1]) if self.n_in_view else 0.0
+        if not self.n_in_view:
+            return 0.0
+        if self._costs is not None and self._costs[0] == 0.0:  # a cost budget's weights: the same cost
+            return float(torch.cumsum(self._costs[3].double(), 0)[-1])
+        # order-free: no critical s_v and no sort (a tier's budget walk reads only this of the model)
+        from .cost import Footprints, level_opacities
+
+        ids = torch.nonzero(self.visible, as_tuple=False).squeeze(1)
+        return float(Footprints(self, ids, 0.0).cost(level_opacities(self, ids, 0.0)).double().sum())
 
     def _eq2_cost_count(self, order: Tensor, fp, k_lo: int, limit: float, unit, min_s_v: float) -> int:
         """:meth:`cost_count` for Eq. 2 drawing: the largest k whose prefix of ``order``, drawn with
@@ -869,12 +892,16 @@ def render_lod(
     if view is None:
         view = view_lod(gaussians, camera, tau=tau, eps=eps)
     p0, t1 = view.project_ms, time.perf_counter()
-    sel = view.select(s_v, budget=budget, min_s_v=min_s_v, budget_in_view=budget_in_view, level=level,
-                      estimator=estimator, temperature=temperature, eta_grad_sigma_only=eta_grad_sigma_only,
-                      budget_cost=budget_cost, budget_ms=budget_ms, time_model=time_model)
-    par = None if level is not None else cost_budget_parents(gaussians, camera, view, sel, budget=budget,
-                                                             budget_cost=budget_cost,
-                                                             budget_ms=budget_ms, time_model=time_model, tau=tau, eps=eps)
+    walked, par = _budget_parents_first(gaussians, camera, view, level=level, budget=budget, min_s_v=min_s_v,
+                                        budget_in_view=budget_in_view, budget_cost=budget_cost, budget_ms=budget_ms,
+                                        time_model=time_model, tau=tau, eps=eps)
+    if par is None:
+        sel = view.select(s_v, budget=budget, min_s_v=min_s_v, budget_in_view=budget_in_view, level=level,
+                          estimator=estimator, temperature=temperature, eta_grad_sigma_only=eta_grad_sigma_only,
+                          budget_cost=budget_cost, budget_ms=budget_ms, time_model=time_model)
+        if not walked and level is None:
+            par = cost_budget_parents(gaussians, camera, view, sel, budget=budget, budget_cost=budget_cost,
+                                      budget_ms=budget_ms, time_model=time_model, tau=tau, eps=eps)
     if par is not None:  # a parent tier alone, within the budget
         return _render_parts(gaussians, [par[:2]], None, int(par[1].indices.numel()), par[2], t1, background,
                              gaussians.sh_degree if sh_degree is None else sh_degree, backend)
@@ -956,18 +983,44 @@ def chain_weights(s_v: float, settings: Sequence[lod.LodSettings]) -> list[tuple
     return out
 
 
-def cost_budget_parents(gaussians: Gaussians, camera, view: LodView, sel: LodSelection, *, budget=None,
-                        budget_cost=None, budget_ms=None, time_model=None, tau=None, eps=None):
+def cost_budget_parents(gaussians: Gaussians, camera, view: LodView, sel: Optional[LodSelection], *, budget=None,
+                        budget_cost=None, budget_ms=None, time_model=None, tau=None, eps=None,
+                        count: Optional[int] = None):
     """A budget on a model with tiers (:func:`budget_walk` with the model's :func:`tier_chain`):
     ``(the drawn tier's view, its selection, the model's s_v its level stands for, the tier's
-    depth >= 1)``, else None (the model's own selection ``sel`` of ``view`` stands)."""
+    depth >= 1)``, else None (the model's own selection ``sel`` of ``view`` stands; ``sel`` may
+    be None as :func:`budget_walk` allows, ``count`` the count budget's count in ``view``)."""
     models = tier_chain(gaussians)
+    if len(models) < 2:
+        return None
     return budget_walk([m.lod for m in models], lambda k: view_lod(models[k], camera, tau=tau, eps=eps), view, sel,
-                       budget=budget, budget_cost=budget_cost, budget_ms=budget_ms, time_model=time_model)
+                       budget=budget, budget_cost=budget_cost, budget_ms=budget_ms, time_model=time_model,
+                       count=count)
+
+
+def _budget_parents_first(gaussians: Gaussians, camera, view: LodView, *, level, budget, min_s_v, budget_in_view,
+                          budget_cost, budget_ms, time_model, tau, eps) -> tuple[bool, Optional[tuple]]:
+    """A budget on a tiered model walked before the model's own selection is solved (which it
+    then never needs where a tier takes the budget over): ``(walked, cost_budget_parents' answer)``;
+    ``walked`` False where the walk needs that selection first (a count budget whose count the
+    rule does not give, :meth:`LodView.budget_drawn`; a share of the Gaussians in view)."""
+    if level is not None or (budget is None and budget_cost is None and budget_ms is None) or \
+            len(tier_chain(gaussians)) < 2:
+        return False, None
+    count = None
+    if budget is not None:
+        if budget_in_view:
+            return False, None
+        count = view.budget_drawn(budget, min_s_v)
+        if count is None:
+            return False, None
+    return True, cost_budget_parents(gaussians, camera, view, None, budget=budget, budget_cost=budget_cost,
+                                     budget_ms=budget_ms, time_model=time_model, tau=tau, eps=eps, count=count)
 
 
 def budget_walk(settings: Sequence[lod.LodSettings], view_of: Callable[[int], LodView], view: LodView,
-                sel: LodSelection, *, budget=None, budget_cost=None, budget_ms=None, time_model=None, depth: int = 0):
+                sel: Optional[LodSelection] = None, *, budget=None, budget_cost=None, budget_ms=None, time_model=None,
+                depth: int = 0, count: Optional[int] = None):
     """A budget down a chain of tiers (docs/lod_rule.md "The tiers"; ``settings[k]`` tier ``k``'s,
     ``view_of(k)`` its :class:`LodView` of the camera, ``sel`` tier ``depth``'s own solution of the
     budget in ``view``). The next tier takes the budget when it can fill it from where the
@@ -978,41 +1031,70 @@ def budget_walk(settings: Sequence[lod.LodSettings], view_of: Callable[[int], Lo
     long (``time_model``, default the fitted one). It is then solved in that tier (from its
     ``tier_start`` level on), and so on down the chain; so a smaller budget never draws a finer
     tier. Returns ``(view, selection, s_v of tier 0 it stands for, depth >= 1)``, or None
-    (``sel`` stands)."""
+    (``sel`` stands).
+
+    Only the tier the walk ends in is solved: a cost or time budget is tested against each tier's
+    ``start``, and a count budget's count in a tier it passed on is known without solving it where
+    the rule gives it (window fade from ``tier_start <= 1``: exactly ``k``,
+    :meth:`LodView.budget_drawn`). ``sel`` may be None where ``count`` (a count budget) gives the
+    count tier ``depth`` draws, or for a cost or time budget (:func:`render_lod` then solves tier
+    ``depth`` only when no tier takes the budget over)."""
     from .cost import DEFAULT_FRAME_TIME_MODEL, splat_cost
 
-    if depth + 1 >= len(settings) or (budget is None and budget_cost is None and budget_ms is None) or sel.s_v is None:
+    if budget is None and budget_cost is None and budget_ms is None:
         return None
-    st = settings[depth]
-    if st is None or st.tier_s_v <= 0:
+    if sel is not None and sel.s_v is None:
         return None
-    vp = view_of(depth + 1)
-    b = k = None
-    if budget_ms is not None or budget_cost is not None:
-        start = vp.select(st.tier_start)
-        cost = float(splat_cost(vp, start.indices, level=start.level, opacities=start.opacities).sum())
-        if budget_ms is not None:
-            fits = budget_ms <= float((time_model or DEFAULT_FRAME_TIME_MODEL).ms(cost, int(start.indices.numel())))
+    k = None
+    if budget_ms is None and budget_cost is None:
+        k = int(sel.indices.numel()) if count is None else int(count)
+    b = None
+    if budget_cost is not None:
+        b = float(budget_cost)
+    d, vp, sel_p, scales = depth, None, None, []
+    while d + 1 < len(settings):
+        st = settings[d]
+        if st is None or st.tier_s_v <= 0:
+            break
+        vn = view_of(d + 1)
+        if k is None:
+            start = vn.select(st.tier_start)
+            cost = float(splat_cost(vn, start.indices, level=start.level, opacities=start.opacities).sum())
+            if budget_ms is not None:
+                fits = budget_ms <= float((time_model or DEFAULT_FRAME_TIME_MODEL).ms(cost, int(start.indices.numel())))
+            else:
+                if b <= 1.0:  # a share of the first view's full cost, absolute from here on
+                    b = float(budget_cost) * view.full_cost()
+                b = max(b, 1.0 + 1e-6)
+                fits = b <= cost
+            sel_n = None
         else:
-            b = max(float(budget_cost) if budget_cost > 1.0 else float(budget_cost) * view.full_cost(), 1.0 + 1e-6)
-            fits = b <= cost
-    else:
-        k = int(sel.indices.numel())
-        fits = vp.draws_at_least(st.tier_start, k)
-    if not fits:
+            fits = vn.draws_at_least(st.tier_start, k)
+            sel_n = None
+            if fits:
+                drawn = vn.budget_drawn(k, st.tier_start)
+                if drawn is None:  # not given by the rule: solve it
+                    sel_n = vn.select(budget=k, min_s_v=st.tier_start)
+                    drawn = int(sel_n.indices.numel())
+                k = drawn
+        if not fits:
+            break
+        d, vp, sel_p = d + 1, vn, sel_n
+        scales.append(st.tier_fade * st.tier_s_v / st.tier_start)  # the tier's s -> the model's (lod.tier_weight)
+    if vp is None:
         return None
-    if budget_ms is not None:
-        sel_p = vp.select(budget_ms=budget_ms, time_model=time_model, min_s_v=st.tier_start)
-    elif b is not None:
-        sel_p = vp.select(budget_cost=b, min_s_v=st.tier_start)
-    else:
-        sel_p = vp.select(budget=k, min_s_v=st.tier_start)
-    deeper = budget_walk(settings, view_of, vp, sel_p, budget=k, budget_cost=b, budget_ms=budget_ms,
-                         time_model=time_model, depth=depth + 1)
-    scale = st.tier_fade * st.tier_s_v / st.tier_start  # the tier's s -> the model's (lod.tier_weight)
-    if deeper is not None:
-        return deeper[0], deeper[1], deeper[2] * scale, deeper[3]
-    return vp, sel_p, sel_p.s_v * scale, depth + 1
+    start = settings[d - 1].tier_start
+    if sel_p is None:
+        if budget_ms is not None:
+            sel_p = vp.select(budget_ms=budget_ms, time_model=time_model, min_s_v=start)
+        elif b is not None:
+            sel_p = vp.select(budget_cost=b, min_s_v=start)
+        else:
+            sel_p = vp.select(budget=k, min_s_v=start)
+    s_equiv = sel_p.s_v
+    for f in reversed(scales):  # from the deepest tier up, as each hand-over maps it
+        s_equiv = s_equiv * f
+    return vp, sel_p, s_equiv, d
 
 
 def _chain_views(gaussians: Gaussians, camera, tau, eps, view: Optional[LodView] = None):
@@ -1166,18 +1248,29 @@ def lod_subset(gaussians: Gaussians, camera, s_v: Optional[float] = None, *,
                          opacities=torch.cat([sel.opacities for _, sel in parts]), colors=cat[3],
                          s_v=float(s_v), n_in_view=parts[0][0].n_in_view, parent_indices=ti[0], tier_indices=ti)
     view = view_lod(gaussians, camera, tau=tau, eps=eps)
-    sel = view.select(s_v, budget=budget, min_s_v=min_s_v, estimator="paper", budget_cost=budget_cost,
-                      budget_ms=budget_ms, time_model=time_model)
-    par = cost_budget_parents(gaussians, camera, view, sel, budget=budget, budget_cost=budget_cost, budget_ms=budget_ms,
-                              time_model=time_model, tau=tau, eps=eps)
+    walked, par = _budget_parents_first(gaussians, camera, view, level=None, budget=budget, min_s_v=min_s_v,
+                                        budget_in_view=False, budget_cost=budget_cost, budget_ms=budget_ms,
+                                        time_model=time_model, tau=tau, eps=eps)
     n_tiers = len(tier_chain(gaussians)) - 1
     if par is not None:  # a parent tier alone, within the budget
-        vp, sel_p, s_equiv, depth = par
-        means, quats, scales, colors = vp.drawn_attributes(sel_p)
-        ti = [sel_p.indices if k + 1 == depth else None for k in range(n_tiers)]
-        return LodSubset(indices=sel.indices.new_zeros(0), means=means, quats=quats, scales=scales,
-                         opacities=sel_p.opacities, colors=colors, s_v=s_equiv, n_in_view=vp.n_in_view,
-                         parent_indices=ti[0], tier_indices=ti)
+        return _tier_subset(par, n_tiers)
+    sel = view.select(s_v, budget=budget, min_s_v=min_s_v, estimator="paper", budget_cost=budget_cost,
+                      budget_ms=budget_ms, time_model=time_model)
+    if not walked:
+        par = cost_budget_parents(gaussians, camera, view, sel, budget=budget, budget_cost=budget_cost,
+                                  budget_ms=budget_ms, time_model=time_model, tau=tau, eps=eps)
+        if par is not None:
+            return _tier_subset(par, n_tiers)
     means, quats, scales, colors = view.drawn_attributes(sel)
     return LodSubset(indices=sel.indices, means=means, quats=quats, scales=scales, opacities=sel.opacities,
                      colors=colors, s_v=sel.s_v, n_in_view=view.n_in_view, tier_indices=[None] * n_tiers)
+
+
+def _tier_subset(par: tuple, n_tiers: int) -> LodSubset:
+    """:class:`LodSubset` of a budget drawn by one tier alone (:func:`cost_budget_parents`' answer)."""
+    vp, sel_p, s_equiv, depth = par
+    means, quats, scales, colors = vp.drawn_attributes(sel_p)
+    ti = [sel_p.indices if k + 1 == depth else None for k in range(n_tiers)]
+    return LodSubset(indices=sel_p.indices.new_zeros(0), means=means, quats=quats, scales=scales,
+                     opacities=sel_p.opacities, colors=colors, s_v=s_equiv, n_in_view=vp.n_in_view,
+                     parent_indices=ti[0], tier_indices=ti)

@@ -171,6 +171,9 @@ def test_a_budget_projects_a_prefix_and_selects_what_the_whole_projection_select
             if k == 17 and min_s_v == 0.0:  # a small budget projects only its prefix
                 assert fresh._proj[2] is not None and fresh._proj[0].ids.numel() < n // 4
             assert view_lod(g, cam).draws_at_least(1.0, k) == (ref_view.select(1.0).indices.numel() >= k)
+            # the count a tier's budget walk reads without solving it (camera_lod.budget_walk)
+            given = fade == "window" and min_s_v <= 1.0
+            assert view_lod(g, cam).budget_drawn(k, min_s_v) == (a.indices.numel() if given else None), (k, min_s_v)
 
 
 def _window_model(n: int, seed: int, share_small: float = 0.5):

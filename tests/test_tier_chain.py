@@ -238,6 +238,66 @@ def test_count_budgets_hand_over_in_every_consumer(chain):
     assert depths == sorted(depths) and depths[-1] >= 1
 
 
+def _walk_solving_every_tier(g, cam, **budget):
+    """docs/lod_rule.md's budget hand-over, literally: solve the budget in each tier, and pass it to
+    the next tier while that tier, as the s_v rule first draws it alone, holds it (count: draws at
+    least the count drawn; cost: costs at least the budget; ms: predicted at least that long).
+    Returns (depth, the tier's selection)."""
+    from clod_adapter.cost import DEFAULT_FRAME_TIME_MODEL, splat_cost
+
+    tiers_ = tier_chain(g)
+    views = [view_lod(replace(t, parents=None), cam) for t in tiers_]
+    b = budget.get("budget_cost")
+    if b is not None and b <= 1.0:
+        b = max(b * views[0].full_cost(), 1.0 + 1e-6)
+    kw = dict(budget_cost=b) if b is not None else budget
+    sel, depth = views[0].select(**kw), 0
+    while depth + 1 < len(tiers_):
+        start_s = tiers_[depth].lod.tier_start
+        start = views[depth + 1].select(start_s)
+        cost = float(splat_cost(views[depth + 1], start.indices, level=start.level, opacities=start.opacities).sum())
+        if "budget" in budget:
+            fits = start.indices.numel() >= sel.indices.numel()
+            kw = dict(budget=int(sel.indices.numel()))
+        elif b is not None:
+            fits = b <= cost
+        else:
+            fits = budget["budget_ms"] <= DEFAULT_FRAME_TIME_MODEL.ms(cost, int(start.indices.numel()))
+        if not fits:
+            break
+        depth += 1
+        sel = views[depth].select(**kw, min_s_v=start_s)
+    return depth, sel
+
+
+@pytest.mark.parametrize("kind,values", [("budget", [900, 400, 150, 60, 20, 3, 0.3, 0.02]),
+                                         ("budget_cost", [0.9, 0.5, 0.2, 0.08, 0.03, 0.01]),
+                                         ("budget_ms", [40.0, 5.0, 2.5, 2.0, 1.0, 0.1])])
+@pytest.mark.parametrize("starts", ["chain", (1.0, 1.0)])
+def test_budgets_solve_only_the_tier_they_end_in_as_the_rule_walks(chain, kind, values, starts):
+    """render_lod's budget walk solves only the tier it ends in (and passes a count on without
+    solving it where the rule gives it: each tier first drawn alone at its full detail,
+    ``tier_start`` 1, as ``clod-adapt`` links them): the same tier, rows and opacities as solving
+    the budget in every tier on the way, at every depth of the chain."""
+    g, cams = chain
+    if starts != "chain":  # the same tiers handed over at their full detail
+        t1 = g.parents
+        t1 = replace(t1, lod=replace(t1.lod, tier_start=starts[1]))
+        g = replace(g, parents=t1, lod=replace(g.lod, tier_start=starts[0]))
+    depths = set()
+    for cam in cams:
+        for v in values:
+            depth, ref = _walk_solving_every_tier(g, cam, **{kind: v})
+            r = render_lod(g, cam, **{kind: v}, backend="cpu")
+            depths.add(depth)
+            got = r.selection.indices if depth == 0 else lod_subset(g, cam, **{kind: v}).tier_indices[depth - 1]
+            assert got is not None and torch.equal(got, ref.indices), (kind, v, depth)
+            assert r.n_rendered == ref.indices.numel() and r.n_parents == (r.n_rendered if depth else 0), (kind, v)
+            if depth:  # the tier's rows drawn with the tier's own opacities
+                torch.testing.assert_close(lod_subset(g, cam, **{kind: v}).opacities, ref.opacities, rtol=0, atol=0)
+    assert depths == {0, 1, 2}, depths
+
+
 def test_export_of_a_chain(tiny_adapted, tiny_model, tmp_path):
     """clod-export of a model with two merged tiers: the extended .ply keeps the chain (read back by
     splat-transform's --info), the LoD set's levels are the model then each tier, the web page gets

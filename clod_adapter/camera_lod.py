@@ -1033,6 +1033,9 @@ def budget_walk(settings: Sequence[lod.LodSettings], view_of: Callable[[int], Lo
     tier. Returns ``(view, selection, s_v of tier 0 it stands for, depth >= 1)``, or None
     (``sel`` stands).
 
+    Raises:
+        ValueError: a count budget with neither ``sel`` nor ``count``.
+
     Only the tier the walk ends in is solved: a cost or time budget is tested against each tier's
     ``start``, and a count budget's count in a tier it passed on is known without solving it where
     the rule gives it (window fade from ``tier_start <= 1``: exactly ``k``,
@@ -1047,6 +1050,8 @@ def budget_walk(settings: Sequence[lod.LodSettings], view_of: Callable[[int], Lo
         return None
     k = None
     if budget_ms is None and budget_cost is None:
+        if sel is None and count is None:
+            raise ValueError("budget_walk: a count budget needs the tier's selection or its count")
         k = int(sel.indices.numel()) if count is None else int(count)
     b = None
     if budget_cost is not None:

@@ -28,7 +28,7 @@ from torch import Tensor
 from . import lod
 from .gaussians import Gaussians, concat
 from .metrics import psnr
-from .camera_lod import budget_walk, chain_parts, chain_weights, render_lod, tier_chain, tiered, view_lod
+from .camera_lod import chain_parts, chain_weights, count_budget_walk, render_lod, tier_chain, tiered, view_lod
 
 __all__ = ["persistence", "importance_order", "bake", "lod_set_s_vs", "lod_level", "prune_never_rendered",
            "reduce_sh", "truncate_sh", "BakeInfo"]
@@ -135,13 +135,15 @@ def bake(gaussians: Gaussians, cameras: Sequence, s_v: Optional[float] = None, b
             settings.append(float(s_v))
         else:  # an s_v before the first hand-over, or a budget (which may walk down the tiers)
             v0 = view_of(0)
-            sels = [v0.select(s_v, budget=budget, estimator="paper")] + [None] * (len(members) - 1)
-            settings.append(sels[0].s_v)
-            par = budget_walk(lods, view_of, v0, sels[0], budget=budget) if budget is not None else None
+            sel0, par = count_budget_walk(lods, view_of, v0, budget) if budget is not None else \
+                (v0.select(s_v, estimator="paper"), None)
+            sels = [None] * len(members)
             if par is not None:
-                sels = [None] * len(members)
                 sels[par[3]] = par[1]
-                settings[-1] = par[2]
+                settings.append(par[2])
+            else:
+                sels[0] = sel0
+                settings.append(sel0.s_v)
         for a, sel in zip(acc, sels):
             if sel is not None:
                 a.add(sel)

@@ -1033,15 +1033,15 @@ def budget_walk(settings: Sequence[lod.LodSettings], view_of: Callable[[int], Lo
     tier. Returns ``(view, selection, s_v of tier 0 it stands for, depth >= 1)``, or None
     (``sel`` stands).
 
-    Raises:
-        ValueError: a count budget with neither ``sel`` nor ``count``.
-
     Only the tier the walk ends in is solved: a cost or time budget is tested against each tier's
     ``start``, and a count budget's count in a tier it passed on is known without solving it where
     the rule gives it (window fade from ``tier_start <= 1``: exactly ``k``,
     :meth:`LodView.budget_drawn`). ``sel`` may be None where ``count`` (a count budget) gives the
     count tier ``depth`` draws, or for a cost or time budget (:func:`render_lod` then solves tier
-    ``depth`` only when no tier takes the budget over)."""
+    ``depth`` only when no tier takes the budget over).
+
+    Raises:
+        ValueError: a count budget with neither ``sel`` nor ``count``."""
     from .cost import DEFAULT_FRAME_TIME_MODEL, splat_cost
 
     if budget is None and budget_cost is None and budget_ms is None:
@@ -1053,15 +1053,13 @@ def budget_walk(settings: Sequence[lod.LodSettings], view_of: Callable[[int], Lo
         if sel is None and count is None:
             raise ValueError("budget_walk: a count budget needs the tier's selection or its count")
         k = int(sel.indices.numel()) if count is None else int(count)
-    b = None
-    if budget_cost is not None:
-        b = float(budget_cost)
+    b = None if budget_cost is None else float(budget_cost)
     d, vp, sel_p, scales = depth, None, None, []
     while d + 1 < len(settings):
         st = settings[d]
         if st is None or st.tier_s_v <= 0:
             break
-        vn = view_of(d + 1)
+        vn, sel_n = view_of(d + 1), None
         if k is None:
             start = vn.select(st.tier_start)
             cost = float(splat_cost(vn, start.indices, level=start.level, opacities=start.opacities).sum())
@@ -1072,10 +1070,8 @@ def budget_walk(settings: Sequence[lod.LodSettings], view_of: Callable[[int], Lo
                     b = float(budget_cost) * view.full_cost()
                 b = max(b, 1.0 + 1e-6)
                 fits = b <= cost
-            sel_n = None
         else:
             fits = vn.draws_at_least(st.tier_start, k)
-            sel_n = None
             if fits:
                 drawn = vn.budget_drawn(k, st.tier_start)
                 if drawn is None:  # not given by the rule: solve it
@@ -1100,6 +1096,25 @@ def budget_walk(settings: Sequence[lod.LodSettings], view_of: Callable[[int], Lo
     for f in reversed(scales):  # from the deepest tier up, as each hand-over maps it
         s_equiv = s_equiv * f
     return vp, sel_p, s_equiv, d
+
+
+def count_budget_walk(settings: Sequence[lod.LodSettings], view_of: Callable[[int], LodView], view: LodView,
+                      budget: float | int, min_s_v: float = 1.0) -> tuple[Optional[LodSelection], Optional[tuple]]:
+    """A count ``budget`` (as :meth:`LodView.select`'s) on tier 0's ``view`` of a chain of tiers:
+    ``(tier 0's own selection or None, budget_walk's answer or None)``, exactly one of them set.
+    The walk goes first where the rule gives tier 0's count (:meth:`LodView.budget_drawn`), so
+    tier 0's selection is solved only where the budget stays in it (the renderer hook's and
+    bake's path; :func:`render_lod` does the same).
+
+    Raises:
+        ValueError: as :meth:`LodView.select` (a negative budget; no ``sigma_d``).
+    """
+    count = view.budget_drawn(budget, min_s_v) if len(settings) > 1 else None
+    sel = None if count is not None else view.select(budget=budget, min_s_v=min_s_v, estimator="paper")
+    par = budget_walk(settings, view_of, view, sel, budget=budget, count=count) if len(settings) > 1 else None
+    if par is None and sel is None:
+        sel = view.select(budget=budget, min_s_v=min_s_v, estimator="paper")
+    return sel, par
 
 
 def _chain_views(gaussians: Gaussians, camera, tau, eps, view: Optional[LodView] = None):

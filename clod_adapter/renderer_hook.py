@@ -25,7 +25,7 @@ from torch import Tensor
 
 from . import lod
 from .render.dispatch import rasterization
-from .camera_lod import budget_walk, chain_parts, rasterize_views, view_lod_tensors
+from .camera_lod import chain_parts, count_budget_walk, rasterize_views, view_lod_tensors
 
 __all__ = ["clod_rasterization", "clod_kwargs"]
 
@@ -258,9 +258,11 @@ def clod_rasterization(
             s_used = float(s_v)
         else:
             view = view_of(0)
-            sel = view.select(s_v, budget=budget, min_s_v=min_s_v, estimator="paper")
-            par = budget_walk(lods, view_of, view, sel, budget=budget) if budget is not None and chain else None
-            empty = sel.indices.new_zeros(0)
+            if budget is not None:
+                sel, par = count_budget_walk(lods, view_of, view, budget, min_s_v)
+            else:
+                sel, par = view.select(s_v, estimator="paper"), None
+            empty = view.means.new_zeros(0, dtype=torch.long)
             t_idx = [empty] * len(chain)
             if par is not None:  # a budget past a hand-over: that tier alone (camera_lod.budget_walk)
                 rc, ra, meta = rasterize_views([par[:2]], background=bg, sh_degree=sh_degree, backend=backend)

@@ -295,6 +295,14 @@ def test_budgets_solve_only_the_tier_they_end_in_as_the_rule_walks(chain, kind, 
             assert r.n_rendered == ref.indices.numel() and r.n_parents == (r.n_rendered if depth else 0), (kind, v)
             if depth:  # the tier's rows drawn with the tier's own opacities
                 torch.testing.assert_close(lod_subset(g, cam, **{kind: v}).opacities, ref.opacities, rtol=0, atol=0)
+            if kind == "budget":  # the renderer hook walks the same way (count budgets are its only budgets)
+                from clod_adapter import clod_kwargs, clod_rasterization
+
+                _, _, meta = clod_rasterization(g.means, g.quats, g.scales, g.opacities, g.colors, cam.viewmat[None],
+                                                cam.K[None], cam.width, cam.height, sh_degree=g.sh_degree,
+                                                **clod_kwargs(g), budget=v, backend="cpu")
+                hook = meta["lod_indices"][0] if depth == 0 else meta["lod_tier_indices"][0][depth - 1]
+                assert torch.equal(hook, ref.indices), (v, depth)
     assert depths == {0, 1, 2}, depths
 
 

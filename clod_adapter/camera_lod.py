@@ -14,7 +14,9 @@
   at a given ``s_v`` needs no population: its LoD mask is evaluated first (it needs only the
   centres) and only what the mask keeps is projected, so a coarse level does not pay for
   projecting the whole model; a count budget projects a prefix of its order that holds enough
-  Gaussians in view (:meth:`LodView._visible_prefix`); cost and time budgets and full detail
+  Gaussians in view (:meth:`LodView._visible_prefix`), and a tier it only passes through on a
+  model with tiers projects just that many of its centres in the frustum
+  (:meth:`LodView._frustum_holds`); cost and time budgets and full detail
   project everything in front;
 * ``d_norm`` [N]: ``d' = |mu - c| / max_frustum |mu - c|``;
 * ``critical`` [N] (on first use): each Gaussian's critical ``s_v`` (:mod:`clod_adapter.budget`).
@@ -147,6 +149,7 @@ class LodView:
     _n_frustum: Optional[int] = field(default=None, repr=False)
     _costs: Optional[tuple] = field(default=None, repr=False)  # (level, order, footprints, costs): _cost_weights
     _prefix: Optional[tuple] = field(default=None, repr=False)  # (k, pool): _visible_prefix's last answer
+    _held: int = field(default=0, repr=False)  # a count of Gaussians in view _frustum_holds has shown
 
     # --- per-camera terms ----------------------------------------------------------------------
     @property
@@ -286,11 +289,14 @@ class LodView:
             cut += 2 * (k - ids.numel())  # centres in the frustum but out of view: cut further on
         return None
 
-    def draws_at_least(self, s_v: float, k: int) -> bool:
+    def draws_at_least(self, s_v: float, k: int, *, solving: bool = False) -> bool:
         """Whether :meth:`select` at ``s_v`` (>= 1) draws at least ``k`` (a count) Gaussians:
         ``select(s_v)``'s count ``>= k``, without projecting the whole model where the window
-        fade's full detail draws every Gaussian in view (a prefix holding ``k`` in view answers
-        it). The hand-over test of count budgets (:func:`budget_walk`).
+        fade's full detail draws every Gaussian in view: ``k`` centres in the frustum shown in
+        view (:meth:`_frustum_holds`), or, with ``solving`` (a budget of ``k`` is solved in this
+        view next) or where that does not show it, the prefix of the budget's order holding
+        ``k`` in view that the budget then reads. The hand-over test of count budgets
+        (:func:`budget_walk`).
 
         Raises:
             ValueError: as :meth:`select` (``s_v < 1``; no ``sigma_d``).
@@ -298,16 +304,40 @@ class LodView:
         if s_v <= 1.0 and self.settings.fade == "window":
             if k <= 0:
                 return True
+            if k > self.n:
+                return False
+            if not solving and self._frustum_holds(k):
+                return True
             # k + 1: the prefix a budget of k solved next in this view reads (projected once)
             return self._visible_prefix(k + 1) is not None or self.n_in_view >= k
         return int(self.select(s_v).indices.numel()) >= k
 
-    def budget_drawn(self, budget: float | int, min_s_v: float = 1.0) -> Optional[int]:
+    def _frustum_holds(self, k: int) -> bool:
+        """Whether ``k`` Gaussians whose centres lie in the frustum are in view, found by projecting
+        only ``k`` (plus a sixteenth) of them: a sufficient test of ``n_in_view >= k`` that needs
+        neither the critical ``s_v`` nor the whole projection (a tier a count budget passes on
+        through is never solved, :func:`budget_walk`). False where it is not shown so."""
+        if self._proj is not None and self._proj[2] is None:
+            return self.n_in_view >= k
+        if k <= self._held:
+            return True
+        ids = torch.nonzero(self.frustum, as_tuple=False).squeeze(1)
+        if ids.numel() < k:
+            return False
+        t0 = time.perf_counter()
+        geom = project_geometry(self.means, self.quats, self.scales, self.viewmat, self.K, self.width, self.height,
+                                NEAR_PLANE, FAR_PLANE, ids[:k + k // 16])
+        with torch.no_grad():
+            n_vis = int(finish_projection(geom, None, self.width, self.height, EPS2D).ids.numel())
+        self.project_ms += (time.perf_counter() - t0) * 1e3
+        self._held = max(self._held, n_vis)
+        return n_vis >= k
+
+    def budget_drawn(self, budget: float | int, min_s_v: float = 1.0, *, solving: bool = False) -> Optional[int]:
         """How many Gaussians ``select(budget=budget, min_s_v=min_s_v)`` draws, without solving it,
         where the rule gives the count: window fade and ``min_s_v <= 1`` (full detail is the
         floor), ``min(k, n_in_view)`` for ``k`` = :func:`clod_adapter.budget.budget_count` of the
-        budget, found by :meth:`draws_at_least` (a prefix projection where the view holds ``k``);
-        None otherwise (solve it).
+        budget, found by :meth:`draws_at_least` (``solving`` as there); None otherwise (solve it).
 
         Raises:
             ValueError: a negative budget.
@@ -315,7 +345,7 @@ class LodView:
         if self.settings.fade != "window" or min_s_v > 1.0:
             return None
         k = budget_count(budget, self.n)
-        return k if self.draws_at_least(1.0, k) else self.n_in_view
+        return k if self.draws_at_least(1.0, k, solving=solving) else self.n_in_view
 
     # --- selection -----------------------------------------------------------------------------
     def select(self, s_v: Optional[float] = None, *, budget: Optional[float | int] = None,
@@ -1011,7 +1041,8 @@ def _budget_parents_first(gaussians: Gaussians, camera, view: LodView, *, level,
     if budget is not None:
         if budget_in_view:
             return False, None
-        count = view.budget_drawn(budget, min_s_v)
+        nxt = tier_chain(gaussians)[1]
+        count = view.budget_drawn(budget, min_s_v, solving=budget_count(budget, view.n) > nxt.means.shape[0])
         if count is None:
             return False, None
     return True, cost_budget_parents(gaussians, camera, view, None, budget=budget, budget_cost=budget_cost,
@@ -1048,6 +1079,7 @@ def budget_walk(settings: Sequence[lod.LodSettings], view_of: Callable[[int], Lo
         return None
     if sel is not None and sel.s_v is None:
         return None
+    view_of = _memo(view_of)
     k = None
     if budget_ms is None and budget_cost is None:
         if sel is None and count is None:
@@ -1071,9 +1103,10 @@ def budget_walk(settings: Sequence[lod.LodSettings], view_of: Callable[[int], Lo
                 b = max(b, 1.0 + 1e-6)
                 fits = b <= cost
         else:
-            fits = vn.draws_at_least(st.tier_start, k)
+            solving = not _may_take(settings, view_of, d + 1, k)  # the budget ends here if it fits
+            fits = vn.draws_at_least(st.tier_start, k, solving=solving)
             if fits:
-                drawn = vn.budget_drawn(k, st.tier_start)
+                drawn = vn.budget_drawn(k, st.tier_start, solving=solving)
                 if drawn is None:  # not given by the rule: solve it
                     sel_n = vn.select(budget=k, min_s_v=st.tier_start)
                     drawn = int(sel_n.indices.numel())
@@ -1109,12 +1142,36 @@ def count_budget_walk(settings: Sequence[lod.LodSettings], view_of: Callable[[in
     Raises:
         ValueError: as :meth:`LodView.select` (a negative budget; no ``sigma_d``).
     """
-    count = view.budget_drawn(budget, min_s_v) if len(settings) > 1 else None
+    view_of = _memo(view_of)
+    solving = len(settings) < 2 or not _may_take(settings, view_of, 0, budget_count(budget, view.n))
+    count = view.budget_drawn(budget, min_s_v, solving=solving) if len(settings) > 1 else None
     sel = None if count is not None else view.select(budget=budget, min_s_v=min_s_v, estimator="paper")
     par = budget_walk(settings, view_of, view, sel, budget=budget, count=count) if len(settings) > 1 else None
     if par is None and sel is None:
         sel = view.select(budget=budget, min_s_v=min_s_v, estimator="paper")
     return sel, par
+
+
+def _memo(view_of: Callable[[int], LodView]) -> Callable[[int], LodView]:
+    """``view_of`` building each tier's view once."""
+    if getattr(view_of, "memo", False):
+        return view_of
+    views: dict = {}
+
+    def get(k: int) -> LodView:
+        if k not in views:
+            views[k] = view_of(k)
+        return views[k]
+    get.memo = True
+    return get
+
+
+def _may_take(settings: Sequence[lod.LodSettings], view_of: Callable[[int], LodView], d: int, k: int) -> bool:
+    """Whether tier ``d + 1`` of a chain could take a count budget of ``k`` over from tier ``d``
+    (it exists and holds ``k`` Gaussians): where not, a budget that tier ``d`` takes is solved
+    there (:meth:`LodView.draws_at_least`'s ``solving``)."""
+    st = settings[d]
+    return d + 1 < len(settings) and st is not None and st.tier_s_v > 0 and view_of(d + 1).n >= k
 
 
 def _chain_views(gaussians: Gaussians, camera, tau, eps, view: Optional[LodView] = None):

@@ -356,3 +356,33 @@ def test_the_comparison_samples_each_tier_where_it_is_first_drawn_alone(chain):
     t2 = g.parents.parents
     r = render_lod(g, cams[0], entries[1])
     assert torch.equal(r.image, render_lod(t2, cams[0], SWITCHES[1][1]).image)
+
+
+def test_a_count_budget_passes_through_a_tier_without_its_critical_order(chain):
+    """A count budget that a deeper tier takes over is known in the tiers it passes through by
+    projecting only that many of their centres in the frustum: their critical ``s_v`` (the
+    budget's order) is never computed, only that of the tier the walk ends in (and of a deeper
+    one that refused it); the count and tier are those of the step-by-step walk."""
+    from clod_adapter.camera_lod import count_budget_walk
+
+    g, cams = chain
+    g = replace(g, parents=replace(g.parents, lod=replace(g.parents.lod, tier_start=1.0)),
+                lod=replace(g.lod, tier_start=1.0))
+    models = tier_chain(g)
+    seen = set()
+    for cam in cams:
+        for v in (900, 400, 150, 60, 20, 3):
+            views = {}
+
+            def view_of(k, cam=cam, views=views):
+                views.setdefault(k, view_lod(models[k], cam))
+                return views[k]
+
+            sel, par = count_budget_walk([m.lod for m in models], view_of, view_of(0), v)
+            depth, ref = _walk_solving_every_tier(g, cam, budget=v)
+            got = sel if par is None else par[1]
+            assert (0 if par is None else par[3]) == depth and torch.equal(got.indices, ref.indices), (v, depth)
+            for k, view in views.items():  # the tiers passed through never had their order
+                assert (view._critical is not None) == (k == depth) or k > depth, (v, k, depth)
+            seen.add(depth)
+    assert {0, 1, 2} <= seen, seen

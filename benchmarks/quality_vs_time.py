@@ -18,6 +18,8 @@ asks for more than the input scores: each is capped at input - 0.1 dB):
 * within 75 % of the input's frame time: PSNR >= input - 0.1 dB;
 * within 50 / 25 / 10 %: PSNR >= the best peer within that time + 1 dB;
 * at equal Gaussians drawn per view (the decimator points in range): >= the best peer + 0.5 dB;
+* popping (``clod-eval``'s ratio from the first scored view: one static switch against the
+  largest step of the sweep through every tier's hand-over): >= 10;
 * where the per-budget ceiling (test split, ``--ceiling-steps``; one model per decimator share,
   fine-tuned on the fit views, its step chosen on the validation views,
   :func:`clod_adapter.quality_vs_time.ceiling_settings`) scores below a target, the target is the
@@ -73,7 +75,7 @@ def run_input(name: str, args, config: dict, tag: str, lpips_fn, tool: str) -> d
                        repeats=args.repeats, log=log, ceiling_views=ceiling_views(scene, args),
                        ceiling_steps=args.ceiling_steps)
     cs = qvt.cells(comp)
-    rows = goals(name, comp, cs)
+    rows = goals(name, comp, cs) + [popping_goal(name, load_model(ply), g0, fit, cams[0])]
     inp = comp.input
     log(f"input {inp.psnr:.2f} dB in {inp.ms:.1f} ms ({len(gts)} {args.split} views, "
         f"{time.perf_counter() - t0:.0f} s):")
@@ -131,6 +133,18 @@ def goals(name: str, comp: qvt.Comparison, cs: list) -> list[dict]:
             check(f"equal count {100 * c.share:.1f} % in view", ours,
                   min(c.peer[2] + COUNT_DB, cap), c.ceiling, f"peer + {COUNT_DB:g}")
     return rows
+
+
+def popping_goal(name: str, adapted, base, fit, camera) -> dict:
+    """Goal 5's row: ``clod-eval``'s popping ratio from the first scored view (one static switch of
+    the input cut by LightGaussian significance against the largest step of the sweep through
+    every tier, :func:`clod_adapter.popping.popping_ratio`) >= :data:`clod_adapter.popping.POPPING_GOAL`."""
+    from clod_adapter.baselines import lightgaussian_significance
+    from clod_adapter.popping import POPPING_GOAL, popping_ratio
+
+    r = float(popping_ratio(adapted, base, camera, lightgaussian_significance(base, list(fit)))["ratio"])
+    return {"input": name, "goal": f"popping ratio, view {camera.name}", "value": r, "target": POPPING_GOAL,
+            "met": bool(r >= POPPING_GOAL), "rule": None}
 
 
 def summary_md(rec: dict) -> str:

@@ -142,6 +142,13 @@ class AdaptConfig:
             MaskGaussian fern's 50 % merge is predicted at 83 % and its first tier becomes 35 %;
             the vanilla checkpoints' 50 % merges (fern 77 %, skull 69 %) are kept. 0: the shares
             as given (docs/studies.md "A first tier that saves time").
+        popping_goal: with merged tiers, the coarsest tier's window ``fade_width`` is widened
+            (1, 2, 3, 4 past its own) until ``clod-eval``'s popping ratio (one static switch
+            against the largest step of the sweep through every tier) reaches this on the median
+            of 4 training views, or to the width that comes closest
+            (:func:`clod_adapter.popping.tail_width`). Default
+            :data:`clod_adapter.popping.POPPING_GOAL` (10, issue 36's goal) with the calibrated
+            schedule; 0: the tier's own window (docs/studies.md "The coarsest tier's window").
         tier_iteration_share: each merged tier learns its level of detail for this share of
             ``iterations`` (rounded, at least 1 when ``iterations`` > 0). Default 1: a finer ladder of
             five tiers at half the steps each was not better on the validation views
@@ -200,6 +207,7 @@ class AdaptConfig:
     tier_iteration_share: float = 1.0
     tier_merge: str = "decimate"
     tier_time_cap: Optional[float] = None
+    popping_goal: Optional[float] = None
     faint_share: Optional[float] = None
     keep_share: float = 1.0
     recovery_steps: int = 1000
@@ -292,6 +300,13 @@ class AdaptConfig:
         if not (math.isfinite(self.tier_time_cap) and 0.0 <= self.tier_time_cap <= 1.0):
             raise ValueError(f"tier_time_cap must be in [0, 1] (a share of the input's frame time), "
                              f"got {self.tier_time_cap}")
+        if self.popping_goal is None:
+            from .popping import POPPING_GOAL
+
+            self.popping_goal = POPPING_GOAL if cal else 0.0
+        self.popping_goal = float(self.popping_goal)
+        if not (math.isfinite(self.popping_goal) and self.popping_goal >= 0.0):
+            raise ValueError(f"popping_goal must be >= 0 (a ratio), got {self.popping_goal}")
         self.tier_iteration_share = float(self.tier_iteration_share)
         if not 0.0 < self.tier_iteration_share <= 1.0:
             raise ValueError(f"tier_iteration_share must be in (0, 1], got {self.tier_iteration_share}")

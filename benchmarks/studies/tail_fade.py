@@ -23,6 +23,7 @@ Written: ``runs/bench/tail_fade<_val>/summary.md``.
 from __future__ import annotations
 
 import argparse
+import statistics
 import sys
 from dataclasses import replace
 from pathlib import Path
@@ -37,13 +38,15 @@ from clod_adapter import quality_vs_time as qvt  # noqa: E402
 from clod_adapter.baselines import lightgaussian_significance  # noqa: E402
 from clod_adapter.camera_lod import tier_chain, tier_reach  # noqa: E402
 from clod_adapter.io.load import load_model  # noqa: E402
-from clod_adapter.jobs.eval import popping_curve, popping_sweep  # noqa: E402
+from clod_adapter.popping import popping_curve, popping_sweep, tail_width  # noqa: E402
+from clod_adapter.tiers import choice_views  # noqa: E402
 from clod_adapter.splat_transform import find_splat_transform  # noqa: E402
 from clod_adapter.storage import ply_bytes  # noqa: E402
 from clod_adapter.training import AdaptConfig  # noqa: E402
 
-#: (tier_fade, the coarsest tier's fade_width); the first is the adaptation as written
-VARIANTS = ((None, None), (1.25, 4.0), (1.4, 2.0), (1.4, 4.0), (1.5, 4.0))
+#: (tier_fade, the coarsest tier's fade_width); the first is the adaptation as written (with
+#: ``clod-adapt``'s own window choice left out: ``--config popping_goal=0``)
+VARIANTS = ((None, None), (None, 1.0), (None, 2.0), (None, 4.0), (1.4, 2.0))
 
 
 def redrawn(model, tier_fade, last_width):
@@ -63,19 +66,22 @@ def redrawn(model, tier_fade, last_width):
 
 def label(v) -> str:
     """A variant's row name in the summary."""
-    return "as adapted" if v == (None, None) else f"tier_fade {v[0]:g}, coarsest fade_width {v[1]:g}"
+    if v == (None, None):
+        return "as adapted (`tier_fade` 1.25, coarsest 0.5)"
+    return ("" if v[0] is None else f"`tier_fade` {v[0]:g}, ") + f"coarsest `fade_width` {v[1]:g}"
 
 
 def popping(model, cams, base, sig, steps: int = 61):
-    """(smallest ratio over ``cams``, the s_v of that view's largest step)."""
+    """(median ratio over ``cams``, smallest ratio, the s_v of that view's largest step)."""
     svs = popping_sweep(model.lod.max_sv, tier_reach(model), steps)
-    worst = None
+    worst, ratios = None, []
     for c in cams:
         p = popping_curve(model, c, svs, discrete_model=base, discrete_scores=sig)
         j = int(np.argmax(p["continuous_step"]))
+        ratios.append(float(p["ratio"]))
         if worst is None or p["ratio"] < worst[0]:
             worst = (float(p["ratio"]), float(p["step_s_v"][j]))
-    return worst
+    return (statistics.median(ratios), *worst)
 
 
 def main() -> None:
@@ -83,7 +89,6 @@ def main() -> None:
     add_inputs_args(ap, ["fern", "maskgaussian", "skull"])
     ap.add_argument("--repeats", type=int, default=3)
     ap.add_argument("--threads", type=int, default=2)
-    ap.add_argument("--pop-views", type=int, default=2)
     add_split_arg(ap, "val")
     args = ap.parse_args()
     setup_threads(args.threads)
@@ -91,7 +96,7 @@ def main() -> None:
     if tool is None:
         sys.exit("tail_fade: splat-transform not found (`npm ci` in the repository root installs 3.7.0)")
     log = lambda *a: print(*a, flush=True)  # noqa: E731
-    config, tag = parse_config([])
+    config, tag = parse_config(["popping_goal=0"])
     md = []
     for name in selected_inputs(args):
         ply = adapt_cached(name, AdaptConfig(**config), tag, split=args.split, log=log)
@@ -100,7 +105,8 @@ def main() -> None:
         fit, cams = scene_views(scene, args.split)
         sig = lightgaussian_significance(g0, fit)
         models = {v: redrawn(adapted, *v) for v in VARIANTS}
-        pops = {v: popping(m, cams[: args.pop_views], g0, sig) for v, m in models.items()}
+        pops = {v: popping(m, cams, g0, sig) for v, m in models.items()}
+        rule = tail_width(adapted, g0, choice_views(fit)[::2], sig)[1]
         settings, ctx = qvt.build_settings(models[VARIANTS[0]], g0, fit, cams, merge_tool=tool,
                                            log=lambda m: log(f"[{name}] {m}"), significance=sig)
         peers = [s for s in settings if s.method != "clod"]
@@ -110,12 +116,15 @@ def main() -> None:
         every = peers + [p for v in VARIANTS for p in own[v]]
         log(f"[{name}] {len(every)} settings x {len(gts)} views scored; timing x{args.repeats} ...")
         qvt.retime(every, args.repeats)
-        rows = [f"### {name}", "", "| variant | popping ratio (largest step at s_v) | "
+        picks = ", ".join(f"{w:g}: {med:.1f}x" for w, med, _ in rule["widths"])
+        rows = [f"### {name}", "", f"`clod-adapt`'s rule on the training views (median popping of 4): {picks}; "
+                f"chosen: coarsest `fade_width` {rule['chosen']:g}", "",
+                "| variant | popping ratio: median, smallest (its largest step at s_v) | "
                 "within 75 / 50 / 25 / 10 %: PSNR (margin dB) |", "|---|---|---|"]
         for v in VARIANTS:
             comp = qvt.Comparison(peers + own[v], [w.n_in_view for w in ctx.views], adapted.lod.max_sv, merge_run=True)
             cs = [c for c in qvt.cells(comp) if c.kind == "time"]
-            rows.append(f"| {label(v)} | {pops[v][0]:.2f} ({pops[v][1]:.1f}) | "
+            rows.append(f"| {label(v)} | {pops[v][0]:.2f}, {pops[v][1]:.2f} ({pops[v][2]:.1f}) | "
                         + " / ".join("-" if c.ours is None else f"{c.ours[2]:.2f} ({c.margin_db:+.2f})" for c in cs)
                         + " |")
         md.append("\n".join(rows))

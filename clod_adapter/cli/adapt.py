@@ -78,24 +78,7 @@ def build_parser():
                    help="calibrated schedule: largest level of the gains (default 1: held at 1 below max_sv^-1.5 "
                         "of the Gaussians in view); 2 grows them on (better far below, worse mid-range on skull; "
                         "docs/studies.md)")
-    p.add_argument("--parent-share", type=_shares, default=None, metavar="SHARE[,SHARE...]",
-                   help="calibrated schedule: also adapt the input merged by splat-transform --decimate to each SHARE "
-                        "of its Gaussians (descending), each tier handing over to the next at the levels where it "
-                        "pays (default 0.5,0.15,0.04; 0: none; left out under 10,000 Gaussians or without "
-                        "splat-transform; docs/method.md)")
-    p.add_argument("--tier-finetune-steps", type=int, default=400, metavar="N",
-                   help="fine-tune each merged tier at full detail for N steps on the training views before its "
-                        "LoD is learned (default 400; 0: the merge as splat-transform wrote it)")
-    p.add_argument("--tier-iteration-share", type=float, default=1.0, metavar="SHARE",
-                   help="each merged tier learns its level of detail for SHARE of --iterations (default 1; "
-                        "docs/studies.md)")
-    p.add_argument("--tier-merge", choices=("decimate", "adaptive"), default="decimate",
-                   help="the merge each tier starts from: splat-transform's --decimate (default) or "
-                        "--decimate-adaptive (docs/studies.md)")
-    p.add_argument("--tier-time-cap", type=float, default=None, metavar="SHARE",
-                   help="lower the first tier's share (0.7x per try) while its merge is predicted to draw a frame "
-                        "in more than SHARE of the input's (default 0.8 with the calibrated schedule; 0: the shares "
-                        "as given; docs/studies.md)")
+    _tier_flags(p)
     p.add_argument("--faint-share", type=float, default=None, metavar="SHARE",
                    help="leave out first the Gaussians whose blending weight summed over every training view is "
                         "under SHARE of one view's pixels (default 1e-5 with the calibrated schedule, about 2 px; "
@@ -115,6 +98,32 @@ def build_parser():
                         "'paper' = hard count, no gradient")
     _run_flags(p)
     return p
+
+
+def _tier_flags(p) -> None:
+    """The merged tiers (AdaptConfig's ``parent_share``, ``tier_*`` and ``popping_goal``)."""
+    p.add_argument("--parent-share", type=_shares, default=None, metavar="SHARE[,SHARE...]",
+                   help="calibrated schedule: also adapt the input merged by splat-transform --decimate to each SHARE "
+                        "of its Gaussians (descending), each tier handing over to the next at the levels where it "
+                        "pays (default 0.5,0.15,0.04; 0: none; left out under 10,000 Gaussians or without "
+                        "splat-transform; docs/method.md)")
+    p.add_argument("--tier-finetune-steps", type=int, default=400, metavar="N",
+                   help="fine-tune each merged tier at full detail for N steps on the training views before its "
+                        "LoD is learned (default 400; 0: the merge as splat-transform wrote it)")
+    p.add_argument("--tier-iteration-share", type=float, default=1.0, metavar="SHARE",
+                   help="each merged tier learns its level of detail for SHARE of --iterations (default 1; "
+                        "docs/studies.md)")
+    p.add_argument("--tier-merge", choices=("decimate", "adaptive"), default="decimate",
+                   help="the merge each tier starts from: splat-transform's --decimate (default) or "
+                        "--decimate-adaptive (docs/studies.md)")
+    p.add_argument("--tier-time-cap", type=float, default=None, metavar="SHARE",
+                   help="lower the first tier's share (0.7x per try) while its merge is predicted to draw a frame "
+                        "in more than SHARE of the input's (default 0.8 with the calibrated schedule; 0: the shares "
+                        "as given; docs/studies.md)")
+    p.add_argument("--popping-goal", type=float, default=None, metavar="RATIO",
+                   help="with merged tiers, widen the coarsest tier's fade window until the popping ratio on the "
+                        "training views reaches RATIO (default 10 with the calibrated schedule; 0: keep it; "
+                        "docs/studies.md)")
 
 
 def _run_flags(p) -> None:
@@ -178,7 +187,7 @@ def _config(args, world: int):
                            level_max=args.level_max, parent_share=args.parent_share,
                            tier_finetune_steps=args.tier_finetune_steps,
                            tier_iteration_share=args.tier_iteration_share,
-                           tier_merge=args.tier_merge, tier_time_cap=args.tier_time_cap,
+                           tier_merge=args.tier_merge, tier_time_cap=args.tier_time_cap, popping_goal=args.popping_goal,
                            faint_share=args.faint_share, keep_share=args.keep_share, recovery_steps=args.recovery_steps, **kw)
     except ValueError as e:  # "<field> must be ...": the field is the flag
         field, _, rest = str(e).partition(" ")

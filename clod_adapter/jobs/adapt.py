@@ -589,6 +589,8 @@ def _add_parent_tier(ply_path: Path, scene_root: Path, out_dir: Path, cfg: Adapt
     info.update({"parents": len(parents), "curves": tried[0]["curves"], "views": len(cams), "tried": tried})
     if linked.parents is None:
         return done("no merged tier beats the model at equal predicted time on the training views")
+    if not nested and cfg.popping_goal > 0:
+        linked = _tail_width(linked, ply_path, scene, cams, cfg, o, quiet, info)
     write_ply(out_dir / PLY_NAME, linked)
     st = linked.lod
     info.update({"used": True, "tier_s_v": st.tier_s_v, "tier_start": st.tier_start, "attached": len(linked.parents),
@@ -596,6 +598,22 @@ def _add_parent_tier(ply_path: Path, scene_root: Path, out_dir: Path, cfg: Adapt
     o.log(f"clod-adapt: merged tier of {len(linked.parents):,} attached to {out_dir / PLY_NAME} (from s_v = "
           f"{st.tier_s_v:g}) in {time.perf_counter() - t0:.0f} s")
     return done()
+
+
+def _tail_width(linked, ply_path: Path, scene, cams, cfg: AdaptConfig, o: AdaptOptions, quiet, info: dict):
+    """The coarsest tier's window for ``cfg.popping_goal`` (:func:`clod_adapter.popping.tail_width`
+    on every other choice view, against the input cut by LightGaussian significance as
+    ``clod-eval`` measures it); recorded in ``info["tail"]``."""
+    from ..baselines import lightgaussian_significance
+    from ..popping import tail_width
+
+    t0 = time.perf_counter()
+    base = _read_model(resolve_model_path(ply_path, o.iteration), cfg, quiet)[0]
+    scores = lightgaussian_significance(base, scene.train)
+    linked, tail = tail_width(linked, base, cams[::2], scores, goal=cfg.popping_goal, background=cfg.background,
+                              log=lambda m: o.log("clod-adapt: " + m))
+    info["tail"] = {**tail, "seconds": round(time.perf_counter() - t0, 1)}
+    return linked
 
 
 def _tier_scene(scene_root: Path, cfg: AdaptConfig, o: AdaptOptions):

@@ -89,6 +89,7 @@ from ..frontier import Point, frontier
 from ..io.ply import read_ply
 from ..storage import ply_bytes, ply_row_bytes
 from ..camera_lod import render_lod, tier_reach
+from ..popping import SWEEP_OVERSHOOT, image_change, popping_curve, popping_sweep  # noqa: F401 (clod-eval's popping)
 from ..metrics import psnr, ssim
 
 CSV_COLUMNS = ("method", "setting", "s_v", "budget", "gaussians", "fraction", "psnr", "ssim", "lpips",
@@ -150,24 +151,7 @@ LpipsSpec = Union[str, os.PathLike, Callable, None]
 
 
 # --- small helpers ----------------------------------------------------------------------------
-def popping_sweep(max_sv: float, reach: float = 1.0, steps: int = 61) -> list[float]:
-    """The ``s_v`` values of ``clod-eval``'s popping sweep: ``steps`` of them from 1 to the end of
-    :func:`sv_grid` (1.2 ``max_sv``), evenly spaced; for a model with merged tiers (``reach`` > 1,
-    :func:`clod_adapter.camera_lod.tier_reach`) evenly in ``ln s_v`` to that end times ``reach``,
-    through every tier's hand-over to the last tier's 1.2 ``max_sv``.
-
-    Raises:
-        ValueError: ``steps`` < 2 or ``max_sv`` < 1 (:func:`sv_grid`).
-    """
-    top = sv_grid(max_sv, 2)[-1]
-    if steps < 2:
-        raise ValueError(f"need at least 2 s_v steps, got {steps}")
-    if reach > 1.0:
-        return [float(x) for x in np.geomspace(1.0, top * reach, steps)]
-    return [float(x) for x in np.linspace(1.0, top, steps)]
-
-
-def sv_grid(max_sv: float, steps: int = 25, overshoot: float = 1.2, lod_settings=None,
+def sv_grid(max_sv: float, steps: int = 25, overshoot: float = SWEEP_OVERSHOOT, lod_settings=None,
             tier_steps: int = 6, reach: Optional[float] = None) -> list[float]:
     """``steps`` values of ``s_v`` evenly spaced from 1 to ``overshoot * max_sv`` (past the
     trained maximum); for a model with a parent tier (``lod_settings.tier_s_v > 0``, docs/method.md
@@ -199,12 +183,6 @@ def normalize_budgets(budgets: Sequence) -> list:
     """Budgets as floats in [0, 1] (fractions) or ints > 1 (counts)
     (:func:`clod_adapter.budget.normalize_budget` each). Raises ValueError."""
     return [normalize_budget(b) for b in budgets]
-
-
-def image_change(a: Tensor, b: Tensor) -> float:
-    """Mean absolute difference of two [H, W, 3] images clamped to [0, 1] (per pixel and
-    channel, in [0, 1] units): the per-step image change used for popping."""
-    return float((a.clamp(0, 1) - b.clamp(0, 1)).abs().mean())
 
 
 def _finite(x):
@@ -324,66 +302,6 @@ def _adapted_cut(adapted: Gaussians, k: int, cameras) -> Gaussians:
 
     keep = torch.sort(importance_order(adapted, cameras)[:k]).values
     return adapted.subset(keep).with_sigma_d(None)
-
-
-# --- popping ----------------------------------------------------------------------------------
-@torch.no_grad()
-def popping_curve(gaussians: Gaussians, camera, s_vs: Sequence[float], *,
-                  discrete_model: Optional[Gaussians] = None, discrete_scores: Optional[Tensor] = None,
-                  switch_s_v: Optional[float] = None, tau: Optional[float] = None, background=None,
-                  backend: str = "auto", on_render: Optional[Callable[[], None]] = None) -> dict:
-    """Popping of continuous LoD vs a discrete LoD switch, from one fixed camera.
-
-    Continuous: render ``gaussians`` at each ``s_v`` in ``s_vs`` (increasing, small steps) and
-    record the per-step image change (:func:`image_change`, mean |dI| in [0, 1] units) between
-    consecutive frames. Discrete: the same range covered by two levels cut from
-    ``discrete_model`` (default: ``gaussians`` without ``sigma_d``) by a global ranking
-    ``discrete_scores`` [N] (default: opacity), at the Gaussian counts the continuous sweep
-    renders at its first and last ``s_v``, switched once at ``switch_s_v`` (default: the middle
-    of the range); its step change is 0 except at the switch.
-
-    Returns:
-        dict with ``s_v`` [S], ``gaussians`` [S] (continuous), ``step_s_v`` [S-1] (step
-        midpoints), ``continuous_step`` / ``discrete_step`` [S-1], ``switch_s_v``,
-        ``discrete_counts`` [2], ``continuous_max`` / ``continuous_median`` /
-        ``discrete_max`` / ``discrete_median`` (image change units) and ``ratio`` =
-        discrete_max / continuous_max (inf when the continuous sweep never changes).
-    """
-    s_vs = [float(s) for s in s_vs]
-    if len(s_vs) < 2:
-        raise ValueError("popping_curve needs at least 2 values of s_v")
-    frames, counts = [], []
-    for s in s_vs:
-        out = render_lod(gaussians, camera, s, tau=tau, background=background, backend=backend,
-                         estimator="paper")
-        frames.append(out.image.clamp(0, 1))
-        counts.append(out.n_rendered)
-        if on_render:
-            on_render()
-    cont = [image_change(a, b) for a, b in zip(frames[:-1], frames[1:])]
-    dm = gaussians.with_sigma_d(None) if discrete_model is None else discrete_model
-    scores = dm.opacities if discrete_scores is None else discrete_scores
-    switch = 0.5 * (s_vs[0] + s_vs[-1]) if switch_s_v is None else float(switch_s_v)
-    levels = []
-    for k in (counts[0], counts[-1]):
-        sel = ranking_selection(dm, camera, scores, k)
-        levels.append(render_subset(dm, camera, sel.indices, sel.opacities, background=background, view=sel.view,
-                                    backend=backend).image.clamp(0, 1))
-        if on_render:
-            on_render()
-    jump = image_change(levels[0], levels[1])
-    disc = [jump if (a < switch <= b) else 0.0 for a, b in zip(s_vs[:-1], s_vs[1:])]
-    if not any(disc):  # switch outside the range: put it at the middle step
-        disc[len(disc) // 2] = jump
-    cmax = max(cont)
-    return {
-        "s_v": s_vs, "gaussians": counts, "step_s_v": [0.5 * (a + b) for a, b in zip(s_vs[:-1], s_vs[1:])],
-        "continuous_step": cont, "discrete_step": disc, "switch_s_v": switch,
-        "discrete_counts": [counts[0], counts[-1]], "metric": "mean |dI| per pixel and channel, [0, 1] units",
-        "continuous_max": cmax, "continuous_median": statistics.median(cont),
-        "discrete_max": max(disc), "discrete_median": statistics.median(disc),
-        "ratio": (max(disc) / cmax) if cmax > 0 else float("inf"),
-    }
 
 
 # --- outputs ----------------------------------------------------------------------------------

@@ -1,0 +1,185 @@
+"""Popping: how much the image jumps along a continuous ``s_v`` sweep, against one switch
+between two static levels (``clod-eval``'s measure, issue 36's goal 5: >= 10x smaller steps).
+
+:func:`popping_sweep` gives the sweep (through every tier's hand-over on a model with merged
+tiers), :func:`popping_curve` the per-step image change of the model along it and the one jump of
+a discrete switch, :func:`popping_ratio` ``clod-eval``'s ratio from one camera (the input cut by
+LightGaussian significance as the discrete levels). :func:`tail_width` is ``clod-adapt``'s rule
+for the coarsest tier's window: widened, on the training views, until the sweep's largest step is
+:data:`POPPING_GOAL` times smaller than the switch's.
+"""
+from __future__ import annotations
+
+import statistics
+from dataclasses import replace
+from typing import Callable, Optional, Sequence
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from .baselines import ranking_selection, render_subset
+from .camera_lod import render_lod, tier_reach
+from .gaussians import Gaussians
+
+#: the sweep's end past the trained maximum (``clod-eval``'s ``s_v`` grid ends at 1.2 ``max_sv``)
+SWEEP_OVERSHOOT = 1.2
+#: issue 36's goal 5: the sweep's largest step at least this many times smaller than one switch
+POPPING_GOAL = 10.0
+#: the coarsest tier's window widths :func:`tail_width` tries past the model's own (log-opacity
+#: units, :class:`clod_adapter.lod.LodSettings` ``fade_width``; docs/studies.md "tail fade")
+TAIL_WIDTHS = (1.0, 2.0, 3.0, 4.0)
+#: :func:`tail_width` asks the training views for this many times the goal: on the validation
+#: views (never trained on) the median ratio came out 0.75-0.98x of the training views' (skull,
+#: fern, MaskGaussian fern; docs/studies.md "The coarsest tier's window")
+TAIL_MARGIN = 1.2
+#: frames of the sweep (``clod-eval``'s ``popping_steps``)
+SWEEP_STEPS = 61
+
+
+def popping_sweep(max_sv: float, reach: float = 1.0, steps: int = 61) -> list[float]:
+    """The ``s_v`` values of ``clod-eval``'s popping sweep: ``steps`` of them from 1 to the end of
+    ``clod-eval``'s ``s_v`` grid (:data:`SWEEP_OVERSHOOT` ``max_sv``), evenly spaced; for a model with merged tiers (``reach`` > 1,
+    :func:`clod_adapter.camera_lod.tier_reach`) evenly in ``ln s_v`` to that end times ``reach``,
+    through every tier's hand-over to the last tier's 1.2 ``max_sv``.
+
+    Raises:
+        ValueError: ``steps`` < 2 or ``max_sv`` < 1.
+    """
+    if not max_sv >= 1:
+        raise ValueError(f"max_sv must be >= 1, got {max_sv}")
+    top = max(SWEEP_OVERSHOOT * max_sv, 1.0 + 1e-3)
+    if steps < 2:
+        raise ValueError(f"need at least 2 s_v steps, got {steps}")
+    if reach > 1.0:
+        return [float(x) for x in np.geomspace(1.0, top * reach, steps)]
+    return [float(x) for x in np.linspace(1.0, top, steps)]
+
+
+def image_change(a: Tensor, b: Tensor) -> float:
+    """Mean absolute difference of two [H, W, 3] images clamped to [0, 1] (per pixel and
+    channel, in [0, 1] units): the per-step image change used for popping."""
+    return float((a.clamp(0, 1) - b.clamp(0, 1)).abs().mean())
+
+
+@torch.no_grad()
+def popping_curve(gaussians: Gaussians, camera, s_vs: Sequence[float], *,
+                  discrete_model: Optional[Gaussians] = None, discrete_scores: Optional[Tensor] = None,
+                  switch_s_v: Optional[float] = None, tau: Optional[float] = None, background=None,
+                  backend: str = "auto", on_render: Optional[Callable[[], None]] = None) -> dict:
+    """Popping of continuous LoD vs a discrete LoD switch, from one fixed camera.
+
+    Continuous: render ``gaussians`` at each ``s_v`` in ``s_vs`` (increasing, small steps) and
+    record the per-step image change (:func:`image_change`, mean |dI| in [0, 1] units) between
+    consecutive frames. Discrete: the same range covered by two levels cut from
+    ``discrete_model`` (default: ``gaussians`` without ``sigma_d``) by a global ranking
+    ``discrete_scores`` [N] (default: opacity), at the Gaussian counts the continuous sweep
+    renders at its first and last ``s_v``, switched once at ``switch_s_v`` (default: the middle
+    of the range); its step change is 0 except at the switch.
+
+    Returns:
+        dict with ``s_v`` [S], ``gaussians`` [S] (continuous), ``step_s_v`` [S-1] (step
+        midpoints), ``continuous_step`` / ``discrete_step`` [S-1], ``switch_s_v``,
+        ``discrete_counts`` [2], ``continuous_max`` / ``continuous_median`` /
+        ``discrete_max`` / ``discrete_median`` (image change units) and ``ratio`` =
+        discrete_max / continuous_max (inf when the continuous sweep never changes).
+    """
+    s_vs = [float(s) for s in s_vs]
+    if len(s_vs) < 2:
+        raise ValueError("popping_curve needs at least 2 values of s_v")
+    frames, counts = [], []
+    for s in s_vs:
+        out = render_lod(gaussians, camera, s, tau=tau, background=background, backend=backend,
+                         estimator="paper")
+        frames.append(out.image.clamp(0, 1))
+        counts.append(out.n_rendered)
+        if on_render:
+            on_render()
+    cont = [image_change(a, b) for a, b in zip(frames[:-1], frames[1:])]
+    dm = gaussians.with_sigma_d(None) if discrete_model is None else discrete_model
+    scores = dm.opacities if discrete_scores is None else discrete_scores
+    switch = 0.5 * (s_vs[0] + s_vs[-1]) if switch_s_v is None else float(switch_s_v)
+    levels = []
+    for k in (counts[0], counts[-1]):
+        sel = ranking_selection(dm, camera, scores, k)
+        levels.append(render_subset(dm, camera, sel.indices, sel.opacities, background=background, view=sel.view,
+                                    backend=backend).image.clamp(0, 1))
+        if on_render:
+            on_render()
+    jump = image_change(levels[0], levels[1])
+    disc = [jump if (a < switch <= b) else 0.0 for a, b in zip(s_vs[:-1], s_vs[1:])]
+    if not any(disc):  # switch outside the range: put it at the middle step
+        disc[len(disc) // 2] = jump
+    cmax = max(cont)
+    return {
+        "s_v": s_vs, "gaussians": counts, "step_s_v": [0.5 * (a + b) for a, b in zip(s_vs[:-1], s_vs[1:])],
+        "continuous_step": cont, "discrete_step": disc, "switch_s_v": switch,
+        "discrete_counts": [counts[0], counts[-1]], "metric": "mean |dI| per pixel and channel, [0, 1] units",
+        "continuous_max": cmax, "continuous_median": statistics.median(cont),
+        "discrete_max": max(disc), "discrete_median": statistics.median(disc),
+        "ratio": (max(disc) / cmax) if cmax > 0 else float("inf"),
+    }
+
+
+def popping_ratio(model: Gaussians, base: Gaussians, camera, scores: Optional[Tensor] = None, *,
+                  steps: int = SWEEP_STEPS, background=None, on_render=None) -> dict:
+    """``clod-eval``'s popping from ``camera``: :func:`popping_curve` of ``model`` along
+    :func:`popping_sweep` (``steps`` frames through every tier's hand-over), the discrete levels
+    cut from ``base`` (the input) by ``scores`` [N_base] (LightGaussian significance,
+    :func:`clod_adapter.baselines.lightgaussian_significance`; None: opacity). Returns
+    :func:`popping_curve`'s dict (``ratio``: the switch's jump over the largest step)."""
+    svs = popping_sweep(model.lod.max_sv, tier_reach(model), steps)
+    if background is not None and not isinstance(background, Tensor):
+        background = torch.as_tensor(background, dtype=model.means.dtype)
+    return popping_curve(model, camera, svs, discrete_model=base, discrete_scores=scores, background=background,
+                         on_render=on_render)
+
+
+def with_coarsest_width(model: Gaussians, width: float) -> Gaussians:
+    """``model`` with the window ``fade_width`` of the last tier of its chain
+    (:func:`clod_adapter.camera_lod.tier_chain`) set to ``width``; the other tiers as they are."""
+    st = model.lod
+    if model.parents is not None and st is not None and st.tier_s_v > 0:
+        return replace(model, parents=with_coarsest_width(model.parents, width))
+    return replace(model, lod=replace(st, fade_width=float(width)))
+
+
+def tail_width(model: Gaussians, base: Gaussians, cameras: Sequence, scores: Optional[Tensor] = None, *,
+               goal: float = POPPING_GOAL, widths: Sequence[float] = TAIL_WIDTHS, steps: int = SWEEP_STEPS,
+               background=None, log: Callable[[str], None] = lambda m: None) -> tuple[Gaussians, dict]:
+    """``clod-adapt``'s window for the coarsest tier of a model with merged tiers: the narrowest of
+    the tier's own ``fade_width`` and the wider ``widths`` whose median :func:`popping_ratio` over
+    ``cameras`` (training views) reaches ``goal`` times :data:`TAIL_MARGIN`; where none does, the
+    one with the largest median. Down to its last few merged splats the coarsest tier's Gaussians each leave within a
+    step or two of the sweep, and a wider window lets them leave over more of it; a narrow one
+    keeps the cheap frames sharper (docs/studies.md "tail fade"), so it is widened only as far as
+    the scene needs.
+
+    Args:
+        model: the adapted model; ``base``: the input; ``scores``: [N_base] as :func:`popping_ratio`.
+
+    Returns:
+        (the model with the chosen width, ``{"widths": [[width, median ratio, [ratio per view]]],
+        "chosen": width}``); a model without tiers is returned as it is (``{"chosen": None}``).
+    """
+    chain_end = model
+    while chain_end.parents is not None and chain_end.lod is not None and chain_end.lod.tier_s_v > 0:
+        chain_end = chain_end.parents
+    if chain_end is model or model.sigma_d is None:
+        return model, {"chosen": None, "widths": []}
+    own = float(chain_end.lod.fade_width)
+    tried, best = [], None
+    for w in [own] + [float(x) for x in widths if x > own]:
+        m = with_coarsest_width(model, w)
+        ratios = [float(popping_ratio(m, base, c, scores, steps=steps, background=background)["ratio"])
+                  for c in cameras]
+        med = statistics.median(ratios)
+        tried.append([w, med, ratios])
+        log(f"coarsest tier's window {w:g}: popping {med:.1f}x (median of {len(ratios)} training views)")
+        if best is None or med > best[1]:
+            best = (w, med)
+        if med >= goal * TAIL_MARGIN:
+            best = (w, med)
+            break
+    return with_coarsest_width(model, best[0]), {"chosen": best[0], "widths": tried, "goal": goal,
+                                                 "asked": goal * TAIL_MARGIN}

@@ -27,7 +27,8 @@ SWEEP_OVERSHOOT = 1.2
 #: issue 36's goal 5: the sweep's largest step at least this many times smaller than one switch
 POPPING_GOAL = 10.0
 #: the coarsest tier's window widths :func:`tail_width` tries past the model's own (log-opacity
-#: units, :class:`clod_adapter.lod.LodSettings` ``fade_width``; docs/studies.md "tail fade")
+#: units, :class:`clod_adapter.lod.LodSettings` ``fade_width``; docs/studies.md "The coarsest
+#: tier's window")
 TAIL_WIDTHS = (1.0, 2.0, 3.0, 4.0)
 #: :func:`tail_width` asks the training views for this many times the goal: on the validation
 #: views (never trained on) the median ratio came out 0.75-0.98x of the training views' (skull,
@@ -39,9 +40,10 @@ SWEEP_STEPS = 61
 
 def popping_sweep(max_sv: float, reach: float = 1.0, steps: int = 61) -> list[float]:
     """The ``s_v`` values of ``clod-eval``'s popping sweep: ``steps`` of them from 1 to the end of
-    ``clod-eval``'s ``s_v`` grid (:data:`SWEEP_OVERSHOOT` ``max_sv``), evenly spaced; for a model with merged tiers (``reach`` > 1,
-    :func:`clod_adapter.camera_lod.tier_reach`) evenly in ``ln s_v`` to that end times ``reach``,
-    through every tier's hand-over to the last tier's 1.2 ``max_sv``.
+    ``clod-eval``'s ``s_v`` grid (:data:`SWEEP_OVERSHOOT` ``max_sv``), evenly spaced; for a model
+    with merged tiers (``reach`` > 1, :func:`clod_adapter.camera_lod.tier_reach`) evenly in
+    ``ln s_v`` to that end times ``reach``, through every tier's hand-over to the last tier's 1.2
+    ``max_sv``.
 
     Raises:
         ValueError: ``steps`` < 2 or ``max_sv`` < 1.
@@ -150,10 +152,10 @@ def tail_width(model: Gaussians, base: Gaussians, cameras: Sequence, scores: Opt
     """``clod-adapt``'s window for the coarsest tier of a model with merged tiers: the narrowest of
     the tier's own ``fade_width`` and the wider ``widths`` whose median :func:`popping_ratio` over
     ``cameras`` (training views) reaches ``goal`` times :data:`TAIL_MARGIN`; where none does, the
-    one with the largest median. Down to its last few merged splats the coarsest tier's Gaussians each leave within a
-    step or two of the sweep, and a wider window lets them leave over more of it; a narrow one
-    keeps the cheap frames sharper (docs/studies.md "tail fade"), so it is widened only as far as
-    the scene needs.
+    one with the largest median. Down to its last few merged splats the coarsest tier's Gaussians
+    each leave within a step or two of the sweep, and a wider window lets them leave over more of
+    it; a narrow one keeps the cheap frames sharper (docs/studies.md "The coarsest tier's
+    window"), so it is widened only as far as the scene needs.
 
     Args:
         model: the adapted model; ``base``: the input; ``scores``: [N_base] as :func:`popping_ratio`.

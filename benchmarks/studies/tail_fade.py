@@ -7,22 +7,26 @@ question) it takes ``clod-adapt``'s default adaptation (cached under
 ``tier_fade`` (the cross-fade from each tier to the next lasts from ``tier_s_v`` to ``tier_fade
 tier_s_v``) and the coarsest tier's window ``fade_width`` (how far in ``ln s_v`` each of its
 Gaussians takes to leave; the finer tiers keep the model's). Nothing is trained again: both are
-drawing settings of the file (``clod_lod_tier`` comments).
+drawing settings of the file (``clod_lod_tier`` comments). It also prints the coarsest window
+``clod-adapt``'s rule chose on the training views (``--popping-goal``,
+:func:`clod_adapter.popping.tail_width`), so the rule can be judged on views it never saw.
 
 Per variant it prints the popping ratio of ``clod-eval`` (one static switch against the largest
-step of a 61-frame sweep from ``s_v = 1`` to ``1.2 max_sv`` times the chain's reach, on each of the
-first ``--pop-views`` scored views: the smallest ratio and where its largest step is), and the
+step of a 61-frame sweep from ``s_v = 1`` to ``1.2 max_sv`` times the chain's reach, on every
+scored view: the median, the smallest and where that view's largest step is), and the
 best PSNR within 75 / 50 / 25 / 10 % of the input's frame time with its margin over the best
 static peer (LightGaussian and opacity cuts, splat-transform 3.7.0's decimators), every setting
 timed in the same interleaved rounds. No goal is enforced (a study: exit 0)::
 
     python benchmarks/studies/tail_fade.py                     # validation views
+    python benchmarks/studies/tail_fade.py --reuse default     # the cached validation adaptations
 
 Written: ``runs/bench/tail_fade<_val>/summary.md``.
 """
 from __future__ import annotations
 
 import argparse
+import json
 import statistics
 import sys
 from dataclasses import replace
@@ -31,6 +35,7 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # benchmarks/: common.py
+import common  # noqa: E402
 from common import (adapt_cached, add_inputs_args, add_split_arg, load_input, parse_config,  # noqa: E402
                     scene_views, selected_inputs, setup_threads, split_suffix, write_summary)
 
@@ -38,15 +43,15 @@ from clod_adapter import quality_vs_time as qvt  # noqa: E402
 from clod_adapter.baselines import lightgaussian_significance  # noqa: E402
 from clod_adapter.camera_lod import tier_chain, tier_reach  # noqa: E402
 from clod_adapter.io.load import load_model  # noqa: E402
-from clod_adapter.popping import popping_curve, popping_sweep, tail_width  # noqa: E402
+from clod_adapter.lod import DEFAULT_FADE_WIDTH  # noqa: E402
+from clod_adapter.popping import popping_curve, popping_sweep, tail_width, with_coarsest_width  # noqa: E402
 from clod_adapter.tiers import choice_views  # noqa: E402
 from clod_adapter.splat_transform import find_splat_transform  # noqa: E402
 from clod_adapter.storage import ply_bytes  # noqa: E402
 from clod_adapter.training import AdaptConfig  # noqa: E402
 
-#: (tier_fade, the coarsest tier's fade_width); the first is the adaptation as written (with
-#: ``clod-adapt``'s own window choice left out: ``--config popping_goal=0``)
-VARIANTS = ((None, None), (None, 1.0), (None, 2.0), (None, 4.0), (1.4, 2.0))
+#: (tier_fade, the coarsest tier's fade_width); None: as ``clod-adapt`` wrote it (``tier_fade`` 1.25)
+VARIANTS = ((None, 0.5), (None, 1.0), (None, 2.0), (None, 4.0), (1.4, 2.0))
 
 
 def redrawn(model, tier_fade, last_width):
@@ -66,8 +71,6 @@ def redrawn(model, tier_fade, last_width):
 
 def label(v) -> str:
     """A variant's row name in the summary."""
-    if v == (None, None):
-        return "as adapted (`tier_fade` 1.25, coarsest 0.5)"
     return ("" if v[0] is None else f"`tier_fade` {v[0]:g}, ") + f"coarsest `fade_width` {v[1]:g}"
 
 
@@ -89,6 +92,9 @@ def main() -> None:
     add_inputs_args(ap, ["fern", "maskgaussian", "skull"])
     ap.add_argument("--repeats", type=int, default=3)
     ap.add_argument("--threads", type=int, default=2)
+    ap.add_argument("--reuse", metavar="TAG", default=None,
+                    help="draw the adaptation cached under runs/bench/<input>/TAG<_val> as it is, whatever "
+                         "settings it was adapted with (printed), instead of clod-adapt's defaults")
     add_split_arg(ap, "val")
     args = ap.parse_args()
     setup_threads(args.threads)
@@ -96,17 +102,24 @@ def main() -> None:
     if tool is None:
         sys.exit("tail_fade: splat-transform not found (`npm ci` in the repository root installs 3.7.0)")
     log = lambda *a: print(*a, flush=True)  # noqa: E731
-    config, tag = parse_config(["popping_goal=0"])
+    config, tag = parse_config([])
     md = []
     for name in selected_inputs(args):
-        ply = adapt_cached(name, AdaptConfig(**config), tag, split=args.split, log=log)
+        if args.reuse:
+            ply = common.RUNS / name / (args.reuse + split_suffix(args.split)) / "point_cloud.ply"
+            cfg = json.loads((ply.parent / "metrics.json").read_text())["config"]
+            log(f"[{name}] reusing {ply.parent}: tier_finetune_steps {cfg.get('tier_finetune_steps')}, "
+                f"tier_time_cap {cfg.get('tier_time_cap')}, popping_goal {cfg.get('popping_goal')}")
+        else:
+            ply = adapt_cached(name, AdaptConfig(**config), tag, split=args.split, log=log)
         adapted = load_model(ply)
         g0, scene, gts = load_input(name, args.split)
         fit, cams = scene_views(scene, args.split)
         sig = lightgaussian_significance(g0, fit)
         models = {v: redrawn(adapted, *v) for v in VARIANTS}
         pops = {v: popping(m, cams, g0, sig) for v, m in models.items()}
-        rule = tail_width(adapted, g0, choice_views(fit)[::2], sig)[1]
+        # clod-adapt's rule from the tier's own narrow window, on its 4 training views
+        rule = tail_width(with_coarsest_width(adapted, DEFAULT_FADE_WIDTH), g0, choice_views(fit)[::2], sig)[1]
         settings, ctx = qvt.build_settings(models[VARIANTS[0]], g0, fit, cams, merge_tool=tool,
                                            log=lambda m: log(f"[{name}] {m}"), significance=sig)
         peers = [s for s in settings if s.method != "clod"]
@@ -116,9 +129,9 @@ def main() -> None:
         every = peers + [p for v in VARIANTS for p in own[v]]
         log(f"[{name}] {len(every)} settings x {len(gts)} views scored; timing x{args.repeats} ...")
         qvt.retime(every, args.repeats)
-        picks = ", ".join(f"{w:g}: {med:.1f}x" for w, med, _ in rule["widths"])
+        picks = ", ".join(f"{w:g}: {med:.1f}x" for w, med, _ in rule.get("widths", []))
         rows = [f"### {name}", "", f"`clod-adapt`'s rule on the training views (median popping of 4): {picks}; "
-                f"chosen: coarsest `fade_width` {rule['chosen']:g}", "",
+                f"chosen: coarsest `fade_width` {rule.get('chosen')}", "",
                 "| variant | popping ratio: median, smallest (its largest step at s_v) | "
                 "within 75 / 50 / 25 / 10 %: PSNR (margin dB) |", "|---|---|---|"]
         for v in VARIANTS:

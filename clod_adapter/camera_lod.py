@@ -1034,15 +1034,15 @@ def _budget_parents_first(gaussians: Gaussians, camera, view: LodView, *, level,
     then never needs where a tier takes the budget over): ``(walked, cost_budget_parents' answer)``;
     ``walked`` False where the walk needs that selection first (a count budget whose count the
     rule does not give, :meth:`LodView.budget_drawn`; a share of the Gaussians in view)."""
-    if level is not None or (budget is None and budget_cost is None and budget_ms is None) or \
-            len(tier_chain(gaussians)) < 2:
+    models = tier_chain(gaussians)
+    if level is not None or (budget is None and budget_cost is None and budget_ms is None) or len(models) < 2:
         return False, None
     count = None
     if budget is not None:
         if budget_in_view:
             return False, None
-        nxt = tier_chain(gaussians)[1]
-        count = view.budget_drawn(budget, min_s_v, solving=budget_count(budget, view.n) > nxt.means.shape[0])
+        # tier 1 cannot take a count over its size: the budget is then solved in this view
+        count = view.budget_drawn(budget, min_s_v, solving=budget_count(budget, view.n) > len(models[1]))
         if count is None:
             return False, None
     return True, cost_budget_parents(gaussians, camera, view, None, budget=budget, budget_cost=budget_cost,

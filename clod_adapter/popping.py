@@ -19,7 +19,7 @@ import torch
 from torch import Tensor
 
 from .baselines import ranking_selection, render_subset
-from .camera_lod import render_lod, tier_reach
+from .camera_lod import render_lod, tier_chain, tier_reach
 from .gaussians import Gaussians
 
 #: the sweep's end past the trained maximum (``clod-eval``'s ``s_v`` grid ends at 1.2 ``max_sv``)
@@ -38,7 +38,7 @@ TAIL_MARGIN = 1.2
 SWEEP_STEPS = 61
 
 
-def popping_sweep(max_sv: float, reach: float = 1.0, steps: int = 61) -> list[float]:
+def popping_sweep(max_sv: float, reach: float = 1.0, steps: int = SWEEP_STEPS) -> list[float]:
     """The ``s_v`` values of ``clod-eval``'s popping sweep: ``steps`` of them from 1 to the end of
     ``clod-eval``'s ``s_v`` grid (:data:`SWEEP_OVERSHOOT` ``max_sv``), evenly spaced; for a model
     with merged tiers (``reach`` > 1, :func:`clod_adapter.camera_lod.tier_reach`) evenly in
@@ -129,7 +129,10 @@ def popping_ratio(model: Gaussians, base: Gaussians, camera, scores: Optional[Te
     :func:`popping_sweep` (``steps`` frames through every tier's hand-over), the discrete levels
     cut from ``base`` (the input) by ``scores`` [N_base] (LightGaussian significance,
     :func:`clod_adapter.baselines.lightgaussian_significance`; None: opacity). Returns
-    :func:`popping_curve`'s dict (``ratio``: the switch's jump over the largest step)."""
+    :func:`popping_curve`'s dict (``ratio``: the switch's jump over the largest step).
+
+    Raises:
+        ValueError: as :func:`popping_sweep` (``max_sv`` < 1, ``steps`` < 2)."""
     svs = popping_sweep(model.lod.max_sv, tier_reach(model), steps)
     if background is not None and not isinstance(background, Tensor):
         background = torch.as_tensor(background, dtype=model.means.dtype)
@@ -164,12 +167,10 @@ def tail_width(model: Gaussians, base: Gaussians, cameras: Sequence, scores: Opt
         (the model with the chosen width, ``{"widths": [[width, median ratio, [ratio per view]]],
         "chosen": width}``); a model without tiers is returned as it is (``{"chosen": None}``).
     """
-    chain_end = model
-    while chain_end.parents is not None and chain_end.lod is not None and chain_end.lod.tier_s_v > 0:
-        chain_end = chain_end.parents
-    if chain_end is model or model.sigma_d is None:
+    chain = tier_chain(model)
+    if len(chain) < 2 or model.sigma_d is None:
         return model, {"chosen": None, "widths": []}
-    own = float(chain_end.lod.fade_width)
+    own = float(chain[-1].lod.fade_width)
     tried, best = [], None
     for w in [own] + [float(x) for x in widths if x > own]:
         m = with_coarsest_width(model, w)
@@ -178,10 +179,9 @@ def tail_width(model: Gaussians, base: Gaussians, cameras: Sequence, scores: Opt
         med = statistics.median(ratios)
         tried.append([w, med, ratios])
         log(f"coarsest tier's window {w:g}: popping {med:.1f}x (median of {len(ratios)} training views)")
-        if best is None or med > best[1]:
+        if med >= goal * TAIL_MARGIN or best is None or med > best[1]:
             best = (w, med)
         if med >= goal * TAIL_MARGIN:
-            best = (w, med)
             break
     return with_coarsest_width(model, best[0]), {"chosen": best[0], "widths": tried, "goal": goal,
                                                  "asked": goal * TAIL_MARGIN}

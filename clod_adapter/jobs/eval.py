@@ -89,7 +89,7 @@ from ..frontier import Point, frontier
 from ..io.ply import read_ply
 from ..storage import ply_bytes, ply_row_bytes
 from ..camera_lod import render_lod, tier_reach
-from ..popping import SWEEP_OVERSHOOT, image_change, popping_curve, popping_sweep  # noqa: F401 (clod-eval's popping)
+from ..popping import SWEEP_OVERSHOOT, SWEEP_STEPS, image_change, popping_curve, popping_sweep  # noqa: F401 (clod-eval's popping)
 from ..metrics import psnr, ssim
 
 CSV_COLUMNS = ("method", "setting", "s_v", "budget", "gaussians", "fraction", "psnr", "ssim", "lpips",
@@ -541,7 +541,7 @@ class EvalOptions:
     s_vs: Optional[Sequence[float]] = None
     max_sv: Optional[float] = None
     sv_steps: int = 25
-    popping_steps: int = 61
+    popping_steps: int = SWEEP_STEPS
     lpips: LpipsSpec = "auto"
     sigma_c: Optional[float] = None
     pretrained_label: Optional[str] = None

@@ -51,7 +51,7 @@ from clod_adapter.storage import ply_bytes  # noqa: E402
 from clod_adapter.training import AdaptConfig  # noqa: E402
 
 #: (tier_fade, the coarsest tier's fade_width); None: as ``clod-adapt`` wrote it (``tier_fade`` 1.25)
-VARIANTS = ((None, 0.5), (None, 1.0), (None, 2.0), (None, 4.0), (1.4, 2.0))
+VARIANTS = ((None, 0.5), (None, 1.0), (None, 2.0), (None, 3.0), (None, 4.0), (1.4, 2.0))
 
 
 def redrawn(model, tier_fade, last_width):

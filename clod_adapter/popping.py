@@ -180,9 +180,10 @@ def tail_width(model: Gaussians, base: Gaussians, cameras: Sequence, scores: Opt
         med = statistics.median(ratios)
         tried.append([w, med, ratios])
         log(f"coarsest tier's window {w:g}: popping {med:.1f}x (median of {len(ratios)} training views)")
-        if med >= goal * TAIL_MARGIN or best is None or med > best[1]:
+        reached = med >= goal * TAIL_MARGIN
+        if reached or best is None or med > best[1]:
             best = (w, med)
-        if med >= goal * TAIL_MARGIN:
+        if reached:
             break
     return with_coarsest_width(model, best[0]), {"chosen": best[0], "widths": tried, "goal": goal,
                                                  "asked": goal * TAIL_MARGIN}

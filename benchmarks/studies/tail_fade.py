@@ -35,8 +35,7 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # benchmarks/: common.py
-import common  # noqa: E402
-from common import (adapt_cached, add_inputs_args, add_split_arg, load_input, parse_config,  # noqa: E402
+from common import (RUNS, adapt_cached, add_inputs_args, add_split_arg, load_input, parse_config,  # noqa: E402
                     scene_views, selected_inputs, setup_threads, split_suffix, write_summary)
 
 from clod_adapter import quality_vs_time as qvt  # noqa: E402
@@ -106,7 +105,7 @@ def main() -> None:
     md = []
     for name in selected_inputs(args):
         if args.reuse:
-            ply = common.RUNS / name / (args.reuse + split_suffix(args.split)) / "point_cloud.ply"
+            ply = RUNS / name / (args.reuse + split_suffix(args.split)) / "point_cloud.ply"
             cfg = json.loads((ply.parent / "metrics.json").read_text())["config"]
             log(f"[{name}] reusing {ply.parent}: tier_finetune_steps {cfg.get('tier_finetune_steps')}, "
                 f"tier_time_cap {cfg.get('tier_time_cap')}, popping_goal {cfg.get('popping_goal')}")
@@ -129,9 +128,9 @@ def main() -> None:
         every = peers + [p for v in VARIANTS for p in own[v]]
         log(f"[{name}] {len(every)} settings x {len(gts)} views scored; timing x{args.repeats} ...")
         qvt.retime(every, args.repeats)
-        picks = ", ".join(f"{w:g}: {med:.1f}x" for w, med, _ in rule.get("widths", []))
+        picks = ", ".join(f"{w:g}: {med:.1f}x" for w, med, _ in rule["widths"])
         rows = [f"### {name}", "", f"`clod-adapt`'s rule on the training views (median popping of 4): {picks}; "
-                f"chosen: coarsest `fade_width` {rule.get('chosen')}", "",
+                f"chosen: coarsest `fade_width` {rule['chosen']}", "",
                 "| variant | popping ratio: median, smallest (its largest step at s_v) | "
                 "within 75 / 50 / 25 / 10 %: PSNR (margin dB) |", "|---|---|---|"]
         for v in VARIANTS:

@@ -226,7 +226,7 @@ def behind_line(records: list[dict], cells: dict) -> str:
             t.append(f"at {len(lo)} of {len(n)} equal-count points ({max(lo):+.2f} to {min(lo):+.2f} dB)")
         parts.append(f"{r['label']}: " + ("; ".join(t) if t else "nowhere"))
     return "Where the adapted model is behind the best peer (every share of the frame time and every equal " \
-           "drawn count of docs/results.md): " + ". ".join(parts) + "."
+           "count budget of docs/results.md): " + ". ".join(parts) + "."
 
 
 def write_docs(records: list[dict], plot_src: Path, args) -> None:

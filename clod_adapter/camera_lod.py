@@ -1042,7 +1042,7 @@ def _budget_parents_first(gaussians: Gaussians, camera, view: LodView, *, level,
         if budget_in_view:
             return False, None
         # tier 1 cannot take a count over its size: the budget is then solved in this view
-        count = view.budget_drawn(budget, min_s_v, solving=budget_count(budget, view.n) > len(models[1]))
+        count = view.budget_drawn(budget, min_s_v, solving=_taken_at(budget_count(budget, view.n)) > len(models[1]))
         if count is None:
             return False, None
     return True, cost_budget_parents(gaussians, camera, view, None, budget=budget, budget_cost=budget_cost,
@@ -1056,7 +1056,8 @@ def budget_walk(settings: Sequence[lod.LodSettings], view_of: Callable[[int], Lo
     ``view_of(k)`` its :class:`LodView` of the camera, ``sel`` tier ``depth``'s own solution of the
     budget in ``view``). The next tier takes the budget when it can fill it from where the
     ``s_v`` rule first draws it alone (its ``tier_start`` level, selection ``start``): a count
-    budget of ``k`` (the count ``sel`` drew) when ``start`` draws at least ``k``, a cost budget
+    budget of ``k`` (the count ``sel`` drew) when ``start`` draws at least :data:`COUNT_TAKE_SHARE`
+    of ``k`` (it is then asked for ``k`` and may draw fewer), a cost budget
     when ``start`` costs at least the budget (a ``budget_cost`` share is taken of the first view's
     :meth:`LodView.full_cost`), a ``budget_ms`` when ``start`` is predicted to take at least that
     long (``time_model``, default the fitted one). It is then solved in that tier (from its
@@ -1085,6 +1086,7 @@ def budget_walk(settings: Sequence[lod.LodSettings], view_of: Callable[[int], Lo
         if sel is None and count is None:
             raise ValueError("budget_walk: a count budget needs the tier's selection or its count")
         k = int(sel.indices.numel()) if count is None else int(count)
+    k0 = k  # the count tier ``depth`` draws: what each tier below is asked for
     b = None if budget_cost is None else float(budget_cost)
     d, vp, sel_p, scales = depth, None, None, []
     while d + 1 < len(settings):
@@ -1103,12 +1105,12 @@ def budget_walk(settings: Sequence[lod.LodSettings], view_of: Callable[[int], Lo
                 b = max(b, 1.0 + 1e-6)
                 fits = b <= cost
         else:
-            solving = not _may_take(settings, view_of, d + 1, k)  # the budget ends here if it fits
-            fits = vn.draws_at_least(st.tier_start, k, solving=solving)
+            solving = not _may_take(settings, view_of, d + 1, k0)  # the budget ends here if it fits
+            fits = vn.draws_at_least(st.tier_start, _taken_at(k0), solving=solving)
             if fits:
-                drawn = vn.budget_drawn(k, st.tier_start, solving=solving)
+                drawn = vn.budget_drawn(k0, st.tier_start, solving=solving)
                 if drawn is None:  # not given by the rule: solve it
-                    sel_n = vn.select(budget=k, min_s_v=st.tier_start)
+                    sel_n = vn.select(budget=k0, min_s_v=st.tier_start)
                     drawn = int(sel_n.indices.numel())
                 k = drawn
         if not fits:
@@ -1166,12 +1168,24 @@ def _memo(view_of: Callable[[int], LodView]) -> Callable[[int], LodView]:
     return get
 
 
+#: a count budget of ``k`` passes to the next tier where that tier, as the ``s_v`` rule first draws
+#: it alone, draws at least this share of ``k`` (:func:`budget_walk`; 1: only where it fills the
+#: budget)
+COUNT_TAKE_SHARE = 0.6
+
+
+def _taken_at(k: int) -> int:
+    """The count a tier must draw from its start to take a count budget of ``k`` over
+    (:data:`COUNT_TAKE_SHARE` of it, at least 1 for ``k`` >= 1)."""
+    return min(k, max(1, math.ceil(COUNT_TAKE_SHARE * k - 1e-9))) if k > 0 else 0
+
+
 def _may_take(settings: Sequence[lod.LodSettings], view_of: Callable[[int], LodView], d: int, k: int) -> bool:
     """Whether tier ``d + 1`` of a chain could take a count budget of ``k`` over from tier ``d``
-    (it exists and holds ``k`` Gaussians): where not, a budget that tier ``d`` takes is solved
-    there (:meth:`LodView.draws_at_least`'s ``solving``)."""
+    (it exists and holds :func:`_taken_at` ``(k)`` Gaussians): where not, a budget that tier ``d``
+    takes is solved there (:meth:`LodView.draws_at_least`'s ``solving``)."""
     st = settings[d]
-    return d + 1 < len(settings) and st is not None and st.tier_s_v > 0 and view_of(d + 1).n >= k
+    return d + 1 < len(settings) and st is not None and st.tier_s_v > 0 and view_of(d + 1).n >= _taken_at(k)
 
 
 def _chain_views(gaussians: Gaussians, camera, tau, eps, view: Optional[LodView] = None):

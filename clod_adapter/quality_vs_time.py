@@ -357,8 +357,9 @@ class Cell:
     Attributes:
         kind: ``"full"`` (``s_v = 1`` against the input), ``"time"`` (best within ``share`` of the
             input's frame time) or ``"count"`` (at a decimator point's per-view counts).
-        share: the frame-time share (``time``), the drawn share of the Gaussians in view
-            (``count``), 1 (``full``).
+        share: the frame-time share (``time``), the decimator point's drawn share of the
+            Gaussians in view (``count``: the count budget; the adapted model draws at most
+            that), 1 (``full``).
         ours, peer: (method, setting, PSNR dB, time share of the input's frame) of our point and
             the best peer's (the input for ``full``, where our time share is the paired ratio
             :attr:`Comparison.full_ratio` when measured); None where no setting is that fast.
@@ -405,7 +406,7 @@ def cells(comp: Comparison, shares: Sequence[float] = TIME_SHARES) -> list[Cell]
                                                  if s.setting == st.setting and s.method != "clod"]
         best = max(group, key=lambda s: s.psnr)
         at = next((s for s in ceil if s.setting == dsetting), None)
-        out.append(Cell("count", round(comp.in_view_share(st), 6), _pt(comp, st), _pt(comp, best),
+        out.append(Cell("count", round(comp.in_view_share(comp.get(dmethod, dsetting)), 6), _pt(comp, st), _pt(comp, best),
                         st.psnr - best.psnr, _pt(comp, at)))
     return out
 
@@ -467,7 +468,7 @@ def _where(p: tuple) -> str:
 
 def verdict(comp: Comparison, cs: Optional[Sequence[Cell]] = None) -> str:
     """One paragraph: where the adapted model is ahead of the best peer and by how much, at
-    equal frame time and at equal drawn count, and what full detail costs."""
+    equal frame time and within equal count budgets, and what full detail costs."""
     cs = list(cells(comp) if cs is None else cs)
     inp, full = comp.input, cs[0]
     ratio = comp.full_ratio if math.isfinite(comp.full_ratio) else full.ours[3]
@@ -498,7 +499,8 @@ def verdict(comp: Comparison, cs: Optional[Sequence[Cell]] = None) -> str:
     if counts:
         up = [c for c in counts if c.margin_db > 0]
         desc = lambda c: f"{100 * c.share:.0f} % in view {c.margin_db:+.2f} dB against {c.peer[0]}"  # noqa: E731
-        out.append(f"At equal drawn count per view (each decimator point in range) it is ahead at {len(up)} of "
+        out.append(f"Within each decimator point's count per view (in range; the adapted model draws at most that) "
+                   f"it is ahead at {len(up)} of "
                    f"{len(counts)}: " + "; ".join(desc(c) for c in counts) + ".")
     elif comp.merge_run:
         out.append("No decimator point lies in the adapted range, so there is no equal-count cell.")
@@ -564,7 +566,7 @@ def _cell_label(c: Cell) -> str:
         return "full detail (s_v = 1 against the input)"
     if c.kind == "time":
         return f"best within {100 * c.share:.0f} % of the input's frame time"
-    return f"equal drawn count, {100 * c.share:.1f} % of the Gaussians in view"
+    return f"equal count budget, {100 * c.share:.1f} % of the Gaussians in view"
 
 
 def cells_markdown(cs: Sequence[Cell]) -> str:

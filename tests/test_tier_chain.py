@@ -1,5 +1,6 @@
 """A chain of merged tiers (model -> parents -> their parents): the hand-over rule, continuity
 across every hand-over, the .ply elements, budgets, and every consumer against render_lod."""
+import math
 from dataclasses import replace
 
 import numpy as np
@@ -7,7 +8,8 @@ import pytest
 import torch
 
 from clod_adapter import lod, tiers
-from clod_adapter.camera_lod import (chain_weights, lod_subset, render_lod, tier_chain, tier_reach, view_lod)
+from clod_adapter.camera_lod import (COUNT_TAKE_SHARE, chain_weights, lod_subset, render_lod, tier_chain, tier_reach,
+                                     view_lod)
 from clod_adapter.io.ply import PlyFormatError, read_ply, write_ply
 from clod_adapter.synthetic import make_cameras
 
@@ -241,7 +243,8 @@ def test_count_budgets_hand_over_in_every_consumer(chain):
 def _walk_solving_every_tier(g, cam, **budget):
     """docs/lod_rule.md's budget hand-over, literally: solve the budget in each tier, and pass it to
     the next tier while that tier, as the s_v rule first draws it alone, holds it (count: draws at
-    least the count drawn; cost: costs at least the budget; ms: predicted at least that long).
+    least COUNT_TAKE_SHARE of the count tier 0 draws, and is asked for that count; cost: costs at
+    least the budget; ms: predicted at least that long).
     Returns (depth, the tier's selection)."""
     from clod_adapter.cost import DEFAULT_FRAME_TIME_MODEL, splat_cost
 
@@ -252,13 +255,14 @@ def _walk_solving_every_tier(g, cam, **budget):
         b = max(b * views[0].full_cost(), 1.0 + 1e-6)
     kw = dict(budget_cost=b) if b is not None else budget
     sel, depth = views[0].select(**kw), 0
+    k0 = int(sel.indices.numel())  # a count budget: tier 0's count, asked of every tier below
     while depth + 1 < len(tiers_):
         start_s = tiers_[depth].lod.tier_start
         start = views[depth + 1].select(start_s)
         cost = float(splat_cost(views[depth + 1], start.indices, level=start.level, opacities=start.opacities).sum())
-        if "budget" in budget:
-            fits = start.indices.numel() >= sel.indices.numel()
-            kw = dict(budget=int(sel.indices.numel()))
+        if "budget" in budget:  # taken over where the tier draws at least COUNT_TAKE_SHARE of it
+            fits = start.indices.numel() >= min(k0, max(1, math.ceil(COUNT_TAKE_SHARE * k0 - 1e-9)))
+            kw = dict(budget=k0)
         elif b is not None:
             fits = b <= cost
         else:

@@ -392,10 +392,10 @@ def test_popping_sweep_runs_through_every_tier():
 def test_budgets_draw_the_parents_once_they_can_fill_them(tiered):
     """budget_cost / budget_ms / count budgets on a tiered model (camera_lod.budget_walk): the
     model's own solution while the parents, as the s_v rule first draws them alone (their
-    tier_start level), cost less than the budget (draw fewer); from there the parents alone within
-    the same budget (a share of the model's full cost), from their tier_start level on;
-    lod_subset hands over the same rows."""
-    from clod_adapter.camera_lod import lod_subset, view_lod
+    tier_start level), cost less than the budget (a count budget: draw less than
+    COUNT_TAKE_SHARE of it); from there the parents alone within the same budget (a share of the
+    model's full cost), from their tier_start level on; lod_subset hands over the same rows."""
+    from clod_adapter.camera_lod import COUNT_TAKE_SHARE, lod_subset, view_lod
     from clod_adapter.cost import DEFAULT_FRAME_TIME_MODEL, splat_cost
 
     g, cams = tiered
@@ -419,7 +419,12 @@ def test_budgets_draw_the_parents_once_they_can_fill_them(tiered):
     start_ms = float(DEFAULT_FRAME_TIME_MODEL.ms(start_cost, int(start.indices.numel())))
     above, below = render_lod(g, cam, budget_ms=start_ms * 1.05), render_lod(g, cam, budget_ms=start_ms * 0.95)
     assert above.n_parents == 0 and below.n_parents == below.n_rendered > 0
-    n_start = int(start.indices.numel())
-    own = [render_lod(g, cam, budget=k) for k in (n_start + 1, n_start, max(n_start // 2, 1))]
-    assert own[0].n_parents == 0 and own[1].n_parents == own[1].n_rendered == n_start
-    assert own[2].n_parents == own[2].n_rendered == max(n_start // 2, 1)
+    # a count budget of k: the parents take it where they draw at least COUNT_TAKE_SHARE of it
+    # (drawing fewer than k, up to k); above, the model's own k
+    n_start, n_own = int(start.indices.numel()), view_lod(children, cam).n_in_view
+    k_hi = int(n_start / COUNT_TAKE_SHARE + 1e-9)  # the largest budget the parents take
+    assert n_own > k_hi + 1 > n_start  # the fixture shows both sides
+    own = [render_lod(g, cam, budget=k) for k in (k_hi + 1, k_hi, n_start, max(n_start // 2, 1))]
+    assert own[0].n_parents == 0 and own[0].n_rendered == k_hi + 1
+    assert own[1].n_parents == own[1].n_rendered == n_start == own[2].n_parents == own[2].n_rendered
+    assert own[3].n_parents == own[3].n_rendered == max(n_start // 2, 1)

@@ -5,7 +5,7 @@
               [--sigma-c C] [--timing-repeats 3] [--device auto|cpu|cuda] [--force] -o REPORT
 
 Writes REPORT/{report.md (opens with the verdict: where the adapted model is ahead of the best peer
-at equal frame time and at equal drawn count, and by how much), quality_vs_time.png,
+at equal frame time and within equal count budgets, and by how much), quality_vs_time.png,
 quality_vs_time.csv, report.csv, report_per_view.csv, report.json, quality_vs_gaussians.png,
 levels_vs_time.png, popping.png, lod_strip.png} (see :mod:`clod_adapter.jobs.eval`).
 
@@ -29,8 +29,8 @@ def build_parser():
     p = jobs.make_parser(
         "clod-eval",
         "Quality against frame time of an adapted CLoD-GS model: compare it with the peers a user already "
-        "has (LightGaussian and opacity cuts, splat-transform's decimators) at equal frame time and equal "
-        "drawn count, sweep it over s_v and budgets, measure popping, and write a report with a verdict "
+        "has (LightGaussian and opacity cuts, splat-transform's decimators) at equal frame time and within "
+        "equal count budgets, sweep it over s_v and budgets, measure popping, and write a report with a verdict "
         "(Markdown, CSV, JSON, plots).", EXAMPLE)
     jobs.add_adapted_inputs(p)
     p.add_argument("--pretrained", metavar="PRE",

@@ -402,11 +402,11 @@ def cells(comp: Comparison, shares: Sequence[float] = TIME_SHARES) -> list[Cell]
         if st.method != "clod" or not st.setting.startswith("match:"):
             continue
         _, dmethod, dsetting = st.setting.split(":")
-        group = [comp.get(dmethod, dsetting)] + [s for s in comp.settings
-                                                 if s.setting == st.setting and s.method != "clod"]
+        point = comp.get(dmethod, dsetting)  # the decimator point: its count per view is the budget
+        group = [point] + [s for s in comp.settings if s.setting == st.setting and s.method != "clod"]
         best = max(group, key=lambda s: s.psnr)
         at = next((s for s in ceil if s.setting == dsetting), None)
-        out.append(Cell("count", round(comp.in_view_share(comp.get(dmethod, dsetting)), 6), _pt(comp, st), _pt(comp, best),
+        out.append(Cell("count", round(comp.in_view_share(point), 6), _pt(comp, st), _pt(comp, best),
                         st.psnr - best.psnr, _pt(comp, at)))
     return out
 

@@ -40,6 +40,10 @@ def test_cells_pick_the_best_within_each_time_and_the_best_peer_at_each_count():
     assert (count.kind, count.share, count.peer[0], round(count.margin_db, 2)) == ("count", 0.15, "decimate", 1.5)
     assert [c["kind"] for c in qvt.cells_json(cs)] == ["full", "time", "time", "time", "time", "count"]
     assert qvt.cells_json(cs)[4]["margin_db"] is None  # -inf is not JSON
+    # a count cell names the budget (the decimator's share), also where the adapted model draws fewer
+    comp = _comparison()
+    comp.settings[7] = _setting("clod", "match:decimate:model=0.15", 25.5, 15.0, 90)
+    assert qvt.cells(comp)[-1].share == 0.15 and comp.in_view_share(comp.settings[7]) == 0.09
 
 
 def test_verdict_says_where_ours_is_ahead_and_by_how_much():

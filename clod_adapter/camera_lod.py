@@ -51,6 +51,15 @@ EPS2D, NEAR_PLANE, FAR_PLANE, TILE_SIZE = 0.3, 0.01, 1e10, 16
 #: how often a budget's prefix is cut further on before the whole model is projected
 #: (:meth:`LodView._visible_prefix`)
 PREFIX_TRIES = 3
+#: a budget walking down a chain of tiers compares each tier's full detail estimated from the
+#: widest :data:`COST_SAMPLE_TOP` share and every this many-th of the rest
+#: (:meth:`LodView.full_detail_estimate`; ``benchmarks/studies/cost_sample.py``, docs/studies.md
+#: "Costing the tiers from a sample")
+COST_SAMPLE_STEP = 8
+#: the share of a model's Gaussians, the widest on screen, that the estimate costs exactly
+COST_SAMPLE_TOP = 0.03
+#: models with fewer Gaussians than this are costed whole (:meth:`LodView.full_detail_estimate`)
+COST_SAMPLE_MIN = 4096
 
 
 def _settings(st: Optional[lod.LodSettings], tau: Optional[float], eps: Optional[float]) -> lod.LodSettings:
@@ -550,6 +559,40 @@ class LodView:
 
         ids = torch.nonzero(self.visible, as_tuple=False).squeeze(1)
         return float(Footprints(self, ids, 0.0).cost(level_opacities(self, ids, 0.0)).double().sum())
+
+    def full_detail_estimate(self, step: Optional[int] = None) -> tuple[float, float]:
+        """``(cost, count)`` of every Gaussian in view at full detail (:meth:`full_cost`,
+        :attr:`n_in_view`) estimated without projecting the model whole: the
+        :data:`COST_SAMPLE_TOP` share of the Gaussians with the largest ``max(scales) / d'`` (the
+        widest on screen, which carry most of the cost) costed exactly, and every ``step``-th of
+        the rest by index (default :data:`COST_SAMPLE_STEP`) weighted by the rest over the rows
+        taken. What a budget walking down a chain of tiers compares (:func:`budget_walk`). Exact
+        (the whole model) below :data:`COST_SAMPLE_MIN` Gaussians or with ``step`` 1."""
+        from .cost import Footprints, level_opacities
+
+        step = COST_SAMPLE_STEP if step is None else int(step)
+        n = self.n
+        if step <= 1 or n < COST_SAMPLE_MIN:
+            return self.full_cost(), float(self.n_in_view)
+        size = self.scales.detach().amax(-1) / self.d_norm.detach().clamp_min(1e-12)
+        dev = self.means.device
+        top = torch.topk(size, int(COST_SAMPLE_TOP * n)).indices
+        rest = torch.ones(n, dtype=torch.bool, device=dev)
+        rest[top] = False
+        rest_ids = torch.nonzero(rest, as_tuple=False).squeeze(1)
+        taken = rest_ids[::step]
+        ids, _ = torch.sort(torch.cat([top, taken]))
+        weight = torch.zeros(n, dtype=torch.float64, device=dev)
+        weight[top] = 1.0
+        weight[taken] = rest_ids.numel() / max(taken.numel(), 1)
+        sub = LodView(means=self.means[ids], quats=self.quats[ids], scales=self.scales[ids],
+                      opacity_logits=self.opacity_logits[ids], colors=None, sigma_d=None, gains={},
+                      settings=self.settings, viewmat=self.viewmat, K=self.K, width=self.width,
+                      height=self.height, frustum=self.frustum[ids])
+        vis = torch.nonzero(sub.visible, as_tuple=False).squeeze(1)
+        w = weight[ids].index_select(0, vis)
+        cost = Footprints(sub, vis, 0.0).cost(level_opacities(sub, vis, 0.0)).double()
+        return float((cost * w).sum()), float(w.sum())
 
     def _eq2_cost_count(self, order: Tensor, fp, k_lo: int, limit: float, unit, min_s_v: float) -> int:
         """:meth:`cost_count` for Eq. 2 drawing: the largest k whose prefix of ``order``, drawn with
@@ -1059,8 +1102,11 @@ def budget_walk(settings: Sequence[lod.LodSettings], view_of: Callable[[int], Lo
     budget of ``k`` (the count ``sel`` drew) when ``start`` draws at least :data:`COUNT_TAKE_SHARE`
     of ``k`` (it is then asked for ``k`` and may draw fewer), a cost budget
     when ``start`` costs at least the budget (a ``budget_cost`` share is taken of the first view's
-    :meth:`LodView.full_cost`), a ``budget_ms`` when ``start`` is predicted to take at least that
-    long (``time_model``, default the fitted one). It is then solved in that tier (from its
+    full cost), a ``budget_ms`` when ``start`` is predicted to take at least that
+    long (``time_model``, default the fitted one). A ``start`` at the tier's full detail
+    (``tier_start <= 1``, as ``clod-adapt`` links tiers) and the first view's full cost are
+    estimated from every :data:`COST_SAMPLE_STEP`-th Gaussian (:meth:`LodView.full_detail_estimate`).
+    It is then solved in that tier (from its
     ``tier_start`` level on), and so on down the chain; so a smaller budget never draws a finer
     tier. Returns ``(view, selection, s_v of tier 0 it stands for, depth >= 1)``, or None
     (``sel`` stands).
@@ -1095,13 +1141,17 @@ def budget_walk(settings: Sequence[lod.LodSettings], view_of: Callable[[int], Lo
             break
         vn, sel_n = view_of(d + 1), None
         if k is None:
-            start = vn.select(st.tier_start)
-            cost = float(splat_cost(vn, start.indices, level=start.level, opacities=start.opacities).sum())
-            if budget_ms is not None:
-                fits = budget_ms <= float((time_model or DEFAULT_FRAME_TIME_MODEL).ms(cost, int(start.indices.numel())))
+            if st.tier_start <= 1.0:  # first drawn alone at its full detail: estimated, not projected whole
+                cost, drawn_n = vn.full_detail_estimate()
             else:
-                if b <= 1.0:  # a share of the first view's full cost, absolute from here on
-                    b = float(budget_cost) * view.full_cost()
+                start = vn.select(st.tier_start)
+                cost = float(splat_cost(vn, start.indices, level=start.level, opacities=start.opacities).sum())
+                drawn_n = float(start.indices.numel())
+            if budget_ms is not None:
+                fits = budget_ms <= float((time_model or DEFAULT_FRAME_TIME_MODEL).ms(cost, drawn_n))
+            else:
+                if b <= 1.0:  # a share of the first view's (estimated) full cost, absolute from here on
+                    b = float(budget_cost) * view.full_detail_estimate()[0]
                 b = max(b, 1.0 + 1e-6)
                 fits = b <= cost
         else:

@@ -244,29 +244,38 @@ def _walk_solving_every_tier(g, cam, **budget):
     """docs/lod_rule.md's budget hand-over, literally: solve the budget in each tier, and pass it to
     the next tier while that tier, as the s_v rule first draws it alone, holds it (count: draws at
     least COUNT_TAKE_SHARE of the count tier 0 draws, and is asked for that count; cost: costs at
-    least the budget; ms: predicted at least that long).
+    least the budget; ms: predicted at least that long). A start at the tier's full detail
+    (tier_start <= 1) and a cost share's full cost, where the budget passes on, are estimated from
+    a sample (LodView.full_detail_estimate; models of COST_SAMPLE_MIN or more).
     Returns (depth, the tier's selection)."""
     from clod_adapter.cost import DEFAULT_FRAME_TIME_MODEL, splat_cost
 
     tiers_ = tier_chain(g)
     views = [view_lod(replace(t, parents=None), cam) for t in tiers_]
+
+    def estimate(k):  # tier k's full detail as the walk costs it (its accuracy: test_tiers.py)
+        return views[k].full_detail_estimate()
+
     b = budget.get("budget_cost")
+    sel, depth = views[0].select(**budget), 0
     if b is not None and b <= 1.0:
-        b = max(b * views[0].full_cost(), 1.0 + 1e-6)
-    kw = dict(budget_cost=b) if b is not None else budget
-    sel, depth = views[0].select(**kw), 0
+        b = max(b * estimate(0)[0], 1.0 + 1e-6)  # absolute from the first tier below on
     k0 = int(sel.indices.numel())  # a count budget: tier 0's count, asked of every tier below
     while depth + 1 < len(tiers_):
         start_s = tiers_[depth].lod.tier_start
         start = views[depth + 1].select(start_s)
         cost = float(splat_cost(views[depth + 1], start.indices, level=start.level, opacities=start.opacities).sum())
+        drawn = int(start.indices.numel())
+        if start_s <= 1.0:
+            cost, drawn = estimate(depth + 1)
+        kw = dict(budget_cost=b) if b is not None else budget
         if "budget" in budget:  # taken over where the tier draws at least COUNT_TAKE_SHARE of it
             fits = start.indices.numel() >= min(k0, max(1, math.ceil(COUNT_TAKE_SHARE * k0 - 1e-9)))
             kw = dict(budget=k0)
         elif b is not None:
             fits = b <= cost
         else:
-            fits = budget["budget_ms"] <= DEFAULT_FRAME_TIME_MODEL.ms(cost, int(start.indices.numel()))
+            fits = budget["budget_ms"] <= DEFAULT_FRAME_TIME_MODEL.ms(cost, drawn)
         if not fits:
             break
         depth += 1
@@ -277,13 +286,21 @@ def _walk_solving_every_tier(g, cam, **budget):
 @pytest.mark.parametrize("kind,values", [("budget", [900, 400, 150, 60, 20, 3, 0.3, 0.02]),
                                          ("budget_cost", [0.9, 0.5, 0.2, 0.08, 0.03, 0.01]),
                                          ("budget_ms", [40.0, 5.0, 2.5, 2.0, 1.0, 0.1])])
-@pytest.mark.parametrize("starts", ["chain", (1.0, 1.0)])
-def test_budgets_solve_only_the_tier_they_end_in_as_the_rule_walks(chain, kind, values, starts):
+@pytest.mark.parametrize("starts", ["chain", (1.0, 1.0), "sampled"])
+def test_budgets_solve_only_the_tier_they_end_in_as_the_rule_walks(chain, kind, values, starts, monkeypatch):
     """render_lod's budget walk solves only the tier it ends in (and passes a count on without
     solving it where the rule gives it: each tier first drawn alone at its full detail,
     ``tier_start`` 1, as ``clod-adapt`` links them): the same tier, rows and opacities as solving
-    the budget in every tier on the way, at every depth of the chain."""
+    the budget in every tier on the way, at every depth of the chain. ``"sampled"``: the tiers
+    handed over at their full detail and costed from every 3rd Gaussian (the chain's tiers are
+    below COST_SAMPLE_MIN, lowered here so the estimate is what is walked)."""
+    from clod_adapter import camera_lod
+
     g, cams = chain
+    if starts == "sampled":
+        monkeypatch.setattr(camera_lod, "COST_SAMPLE_MIN", 50)
+        monkeypatch.setattr(camera_lod, "COST_SAMPLE_STEP", 3)
+        starts = (1.0, 1.0)
     if starts != "chain":  # the same tiers handed over at their full detail
         t1 = g.parents
         t1 = replace(t1, lod=replace(t1.lod, tier_start=starts[1]))

@@ -428,3 +428,49 @@ def test_budgets_draw_the_parents_once_they_can_fill_them(tiered):
     assert own[0].n_parents == 0 and own[0].n_rendered == k_hi + 1
     assert own[1].n_parents == own[1].n_rendered == n_start == own[2].n_parents == own[2].n_rendered
     assert own[3].n_parents == own[3].n_rendered == max(n_start // 2, 1)
+
+
+def test_cost_budgets_pass_on_by_the_sampled_full_detail(tiered, monkeypatch):
+    """With the tiers costed from every n-th Gaussian (camera_lod.COST_SAMPLE_STEP, models of at
+    least COST_SAMPLE_MIN; lowered here to the fixture's size), a cost budget passes to the parents
+    by the estimates (LodView.full_detail_estimate: the model's full cost for the share, the
+    parents' full detail for the test), not by the exact costs; below the minimum the estimate
+    is the exact cost."""
+    from clod_adapter import camera_lod
+    from clod_adapter.camera_lod import view_lod
+
+    g, cams = tiered
+    children = replace(g, parents=None)
+    cam = cams[0]
+    exact = (view_lod(children, cam).full_cost(), view_lod(g.parents, cam).full_cost())
+    assert view_lod(children, cam).full_detail_estimate() == (exact[0], float(view_lod(children, cam).n_in_view))
+    monkeypatch.setattr(camera_lod, "COST_SAMPLE_MIN", 100)
+    monkeypatch.setattr(camera_lod, "COST_SAMPLE_STEP", 3)
+    est = (view_lod(children, cam).full_detail_estimate()[0], view_lod(g.parents, cam).full_detail_estimate()[0])
+    assert est[0] != exact[0] and est[1] != exact[1]
+    assert abs(est[0] / exact[0] - 1) < 0.25 and abs(est[1] / exact[1] - 1) < 0.25
+    g1 = replace(g, lod=replace(g.lod, tier_start=1.0))  # the parents first drawn at their full detail
+    by_est, by_exact = est[1] / est[0], exact[1] / exact[0]  # the share where the parents take over
+    lo, hi = sorted((by_est, by_exact))
+    b = 0.5 * (lo + hi)  # between the two: only the estimate decides it
+    r = render_lod(g1, cam, budget_cost=b)
+    assert (r.n_parents > 0) == (b <= by_est) and (r.n_parents > 0) != (b <= by_exact)
+    if r.n_parents:  # the parents within the share of the model's estimated full cost
+        ref = render_lod(g1.parents, cam, budget_cost=b * est[0], min_s_v=1.0)
+        assert torch.equal(r.image, ref.image)
+
+
+def test_sampled_full_detail_is_close_on_a_larger_model():
+    """LodView.full_detail_estimate on a model above COST_SAMPLE_MIN: the widest 3 % and every 8th
+    of the rest give the full cost and the count in view within 10 % (the synthetic scene's
+    cameras), without projecting the model itself."""
+    from clod_adapter.camera_lod import COST_SAMPLE_MIN, COST_SAMPLE_STEP, COST_SAMPLE_TOP, view_lod
+
+    g = _adapted(2 * COST_SAMPLE_MIN, 0)
+    for cam in make_cameras(3, 2):
+        v = view_lod(g, cam)
+        cost, count = v.full_detail_estimate()
+        assert v._proj is None  # the model itself was not projected
+        assert abs(cost / v.full_cost() - 1) < 0.1 and abs(count / v.n_in_view - 1) < 0.1
+        assert v.full_detail_estimate(1) == (v.full_cost(), float(v.n_in_view))
+    assert (COST_SAMPLE_STEP, COST_SAMPLE_TOP) == (8, 0.03)

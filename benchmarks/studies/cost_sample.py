@@ -16,8 +16,17 @@ count in view (mean and worst over the views). No goal is enforced (a study: exi
 
     python benchmarks/studies/cost_sample.py                      # validation views
     python benchmarks/studies/cost_sample.py --steps 1 8 --tops 0 0.03 --inputs skull
+    python benchmarks/studies/cost_sample.py --frames --split test
 
-Written: ``runs/bench/cost_sample/summary.md``. Under a minute per scene on 2 cores.
+``--frames``: instead, the default adaptation of each input (cached, benchmarks/common.py; adapted
+on the fit views first for ``--split val``) drawn at the cost budgets of ``quality_vs_time.py``
+(:data:`clod_adapter.quality_vs_time.COST_SHARES`) from every view of ``--split``, with the tiers
+costed exactly and from the sample, both in the same interleaved rounds
+(:func:`clod_adapter.timing.time_interleaved`, whole ``render_lod`` calls) with the input at full
+detail: ms and share of the input's frame, and Gaussians drawn per view.
+
+Written: ``runs/bench/cost_sample/summary.md`` (``cost_sample_frames`` with ``--frames``). Under a
+minute per scene on 2 cores (``--frames``: a few minutes, with the adaptations cached).
 """
 from __future__ import annotations
 
@@ -26,12 +35,18 @@ import statistics
 import sys
 import time
 from pathlib import Path
+from types import SimpleNamespace
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # benchmarks/: common.py
-from common import SPLITS, add_inputs_args, load_input, scene_views, selected_inputs, setup_threads, write_summary  # noqa: E402
+from common import (SPLITS, adapt_cached, add_inputs_args, load_input, scene_views, selected_inputs,  # noqa: E402
+                    setup_threads, write_summary)
 
 from clod_adapter import camera_lod  # noqa: E402
-from clod_adapter.camera_lod import view_lod  # noqa: E402
+from clod_adapter.camera_lod import render_lod, view_lod  # noqa: E402
+from clod_adapter.io.load import load_model  # noqa: E402
+from clod_adapter.quality_vs_time import COST_SHARES  # noqa: E402
+from clod_adapter.timing import time_interleaved  # noqa: E402
+from clod_adapter.training import AdaptConfig  # noqa: E402
 
 
 def _timed(f, repeats: int):
@@ -75,6 +90,48 @@ def study(name: str, split: str, steps, tops, repeats: int) -> list[str]:
     return out
 
 
+def _frame(g, cam, exact: bool, **kw):
+    """A zero-argument job for :func:`time_interleaved`: one whole ``render_lod`` call (ms as its
+    raster time), the tiers costed exactly (``exact``: ``COST_SAMPLE_MIN`` above any tier) or from
+    the sample; the constant is restored after the call."""
+    def f():
+        keep = camera_lod.COST_SAMPLE_MIN
+        camera_lod.COST_SAMPLE_MIN = 1 << 62 if exact else keep
+        try:
+            t0 = time.perf_counter()
+            r = render_lod(g, cam, **kw)
+            ms = (time.perf_counter() - t0) * 1e3
+        finally:
+            camera_lod.COST_SAMPLE_MIN = keep
+        f.drawn = r.n_rendered
+        return SimpleNamespace(select_ms=0.0, raster_ms=ms)
+    return f
+
+
+def frames(name: str, split: str, repeats: int) -> list[str]:
+    """Table rows for ``name``: per cost share, the frame exactly and sampled (ms, share of the
+    input's frame, drawn per view)."""
+    g = load_model(adapt_cached(name, AdaptConfig(), "default", split=split))
+    base, scene, _ = load_input(name, split)
+    cams = scene_views(scene, split)[1]
+    jobs = {("input", None): [_frame(base, c, False) for c in cams]}
+    for b in COST_SHARES:
+        for exact in (True, False):
+            jobs[(b, exact)] = [_frame(g, c, exact, budget_cost=b) for c in cams]
+    t = time_interleaved(jobs, repeats=repeats)
+    ms0 = t[("input", None)]["ms_total"]
+    out = []
+    for b in COST_SHARES:
+        cells = []
+        for exact in (True, False):
+            ms = t[(b, exact)]["ms_total"]
+            drawn = statistics.mean(f.drawn for f in jobs[(b, exact)])
+            cells.append(f"{ms:.1f} ({100 * ms / ms0:.0f} %), {drawn:,.0f}")
+        ratio = t[(b, False)]["ms_total"] / t[(b, True)]["ms_total"]
+        out.append(f"| {name} ({len(cams)} views; input {ms0:.1f} ms) | {b:g} | {cells[0]} | {cells[1]} | {ratio:.2f} |")
+    return out
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     add_inputs_args(ap, ["skull", "fern", "maskgaussian"])
@@ -83,8 +140,17 @@ def main(argv=None) -> int:
     ap.add_argument("--tops", type=float, nargs="+", default=[0.0, 0.01, 0.03])
     ap.add_argument("--repeats", type=int, default=5)
     ap.add_argument("--threads", type=int, default=2)
+    ap.add_argument("--frames", action="store_true", help="time cost-budget frames exactly and sampled")
     args = ap.parse_args(argv)
     setup_threads(args.threads)
+    if args.frames:
+        lines = ["| input | cost share | exact: ms (of the input's frame), drawn / view | sampled: the same | "
+                 "sampled / exact |", "|---|---:|---:|---:|---:|"]
+        for name in selected_inputs(args):
+            lines += frames(name, args.split, args.repeats)
+        write_summary("cost_sample_frames", "\n".join(lines))
+        print("\n".join(lines))
+        return 0
     lines = ["| input | every n-th Gaussian | widest, costed exactly | ms (view + estimate, median) | "
              "cost error %, mean / worst | count in view error %, mean / worst |", "|---|---:|---:|---:|---:|---:|"]
     for name in selected_inputs(args):

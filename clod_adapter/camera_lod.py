@@ -1111,7 +1111,8 @@ def budget_walk(settings: Sequence[lod.LodSettings], view_of: Callable[[int], Lo
     full cost), a ``budget_ms`` when ``start`` is predicted to take at least that
     long (``time_model``, default the fitted one). A ``start`` at the tier's full detail
     (``tier_start <= 1``, as ``clod-adapt`` links tiers) and the first view's full cost are
-    estimated from every :data:`COST_SAMPLE_STEP`-th Gaussian (:meth:`LodView.full_detail_estimate`).
+    estimated from a sample, the widest Gaussians and every :data:`COST_SAMPLE_STEP`-th of the rest
+    (:meth:`LodView.full_detail_estimate`).
     It is then solved in that tier (from its
     ``tier_start`` level on), and so on down the chain; so a smaller budget never draws a finer
     tier. Returns ``(view, selection, s_v of tier 0 it stands for, depth >= 1)``, or None

@@ -264,10 +264,12 @@ def _walk_solving_every_tier(g, cam, **budget):
     while depth + 1 < len(tiers_):
         start_s = tiers_[depth].lod.tier_start
         start = views[depth + 1].select(start_s)
-        cost = float(splat_cost(views[depth + 1], start.indices, level=start.level, opacities=start.opacities).sum())
-        drawn = int(start.indices.numel())
         if start_s <= 1.0:
             cost, drawn = estimate(depth + 1)
+        else:
+            cost = float(splat_cost(views[depth + 1], start.indices, level=start.level,
+                                    opacities=start.opacities).sum())
+            drawn = int(start.indices.numel())
         kw = dict(budget_cost=b) if b is not None else budget
         if "budget" in budget:  # taken over where the tier draws at least COUNT_TAKE_SHARE of it
             fits = start.indices.numel() >= min(k0, max(1, math.ceil(COUNT_TAKE_SHARE * k0 - 1e-9)))

@@ -138,9 +138,10 @@ def bake(gaussians: Gaussians, cameras: Sequence, s_v: Optional[float] = None, b
             sel0, par = count_budget_walk(lods, view_of, v0, budget) if budget is not None else \
                 (v0.select(s_v, estimator="paper"), None)
             sels = [None] * len(members)
-            if par is not None:
-                sels[par[3]] = par[1]
-                settings.append(par[2])
+            if par is not None:  # a tier alone, or two mixed (camera_lod.TierBudget)
+                for d, _, sel in par.parts():
+                    sels[d] = sel
+                settings.append(par.s_v)
             else:
                 sels[0] = sel0
                 settings.append(sel0.s_v)

@@ -34,7 +34,7 @@ from __future__ import annotations
 import math
 import time
 from dataclasses import dataclass, field, replace
-from typing import Callable, Optional, Sequence
+from typing import Callable, NamedTuple, Optional, Sequence
 
 import torch
 from torch import Tensor
@@ -111,6 +111,11 @@ class LodSelection:
         self.indices, self.opacities, self._mask = indices, opacities, mask
         self._n = int(mask.numel()) if mask is not None else int(n)
         self.s_v, self.level, self.eta = s_v, level, eta
+
+    def rows(self, keep: Tensor) -> "LodSelection":
+        """The rows ``keep`` ([k] bool over ``indices``) holds, with their drawn opacities, this
+        selection's ``s_v`` and level (no gradient through the choice)."""
+        return LodSelection(self.indices[keep], self.opacities[keep], None, self.s_v, self.level, self.eta, n=self._n)
 
     @property
     def mask(self) -> Tensor:
@@ -914,8 +919,9 @@ def render_lod(
     :func:`tier_chain`) cross-fades to its parents beyond ``tier_s_v`` at a given ``s_v``
     (:func:`chain_parts`: both drawn in one image, the Gaussians' opacities times ``1 - u``, the
     parents' times ``u``, the parents at their own ``s_v``, and so on down the chain); a budget
-    whose solution passes a hand-over draws the next tier alone within it (:func:`budget_walk`);
-    a given ``level`` draws the Gaussians alone.
+    whose solution passes a hand-over draws the next tier alone within it (:func:`budget_walk`;
+    with :data:`COUNT_MIX`, a count budget between two tiers both, mixed by distance); a given
+    ``level`` draws the Gaussians alone.
 
     Args:
         gaussians: the model (N Gaussians). ``sigma_d`` is required when ``s_v`` or ``budget`` is given.
@@ -981,9 +987,9 @@ def render_lod(
         if not walked and level is None:
             par = cost_budget_parents(gaussians, camera, view, sel, budget=budget, budget_cost=budget_cost,
                                       budget_ms=budget_ms, time_model=time_model, tau=tau, eps=eps)
-    if par is not None:  # a parent tier alone, within the budget
-        return _render_parts(gaussians, [par[:2]], None, int(par[1].indices.numel()), par[2], t1, background,
-                             gaussians.sh_degree if sh_degree is None else sh_degree, backend)
+    if par is not None:  # past a hand-over: a tier alone, or two mixed (count budgets), within the budget
+        return _render_budget_parts(gaussians, par, t1, background,
+                                    gaussians.sh_degree if sh_degree is None else sh_degree, backend)
     t2 = time.perf_counter()
     bg = None
     if background is not None:
@@ -1062,13 +1068,43 @@ def chain_weights(s_v: float, settings: Sequence[lod.LodSettings]) -> list[tuple
     return out
 
 
+class TierBudget(NamedTuple):
+    """A budget drawn past a hand-over of a chain of tiers (:func:`budget_walk`): ``sel`` of tier
+    ``depth`` (>= 1) in its ``view``, ``s_v`` the model's ``s_v`` it stands for, and for a count
+    budget between two tiers mixed by distance (:data:`COUNT_MIX`, :func:`clod_adapter.tier_mix.mix`)
+    ``finer``, the finer tier's ``(view, selection, depth)`` drawn with it (the nearer part), else
+    None."""
+
+    view: "LodView"
+    sel: LodSelection
+    s_v: float
+    depth: int
+    finer: Optional[tuple] = None
+
+    def parts(self) -> list:
+        """``[(depth, view, selection)]``, finest first: what the frame draws."""
+        own = [(self.depth, self.view, self.sel)]
+        return own if self.finer is None else [(self.finer[2], self.finer[0], self.finer[1])] + own
+
+    def views(self) -> list:
+        """``[(view, selection)]``, finest first: :func:`rasterize_views`' parts."""
+        return [(v, sel) for _, v, sel in self.parts()]
+
+    def tier_indices(self, n_tiers: int, empty=None) -> tuple:
+        """``(the model's own drawn rows, [tier k's drawn rows for k = 1..n_tiers])``, [m] int64
+        each, ``empty`` where a tier draws nothing."""
+        by_depth = {d: sel.indices for d, _, sel in self.parts()}
+        return by_depth.get(0, empty), [by_depth.get(k + 1, empty) for k in range(n_tiers)]
+
+
 def cost_budget_parents(gaussians: Gaussians, camera, view: LodView, sel: Optional[LodSelection], *, budget=None,
                         budget_cost=None, budget_ms=None, time_model=None, tau=None, eps=None,
                         count: Optional[int] = None):
     """A budget on a model with tiers (:func:`budget_walk` with the model's :func:`tier_chain`):
-    ``(the drawn tier's view, its selection, the model's s_v its level stands for, the tier's
-    depth >= 1)``, else None (the model's own selection ``sel`` of ``view`` stands; ``sel`` may
-    be None as :func:`budget_walk` allows, ``count`` the count budget's count in ``view``)."""
+    a :class:`TierBudget` (the tier drawn, its selection, the model's ``s_v`` it stands for, its
+    depth >= 1, and a count budget's finer tier mixed with it), else None (the model's own
+    selection ``sel`` of ``view`` stands; ``sel`` may be None as :func:`budget_walk` allows,
+    ``count`` the count budget's count in ``view``)."""
     models = tier_chain(gaussians)
     if len(models) < 2:
         return None
@@ -1091,7 +1127,8 @@ def _budget_parents_first(gaussians: Gaussians, camera, view: LodView, *, level,
         if budget_in_view:
             return False, None
         # tier 1 cannot take a count over its size: the budget is then solved in this view
-        count = view.budget_drawn(budget, min_s_v, solving=_taken_at(budget_count(budget, view.n)) > len(models[1]))
+        count = view.budget_drawn(budget, min_s_v, solving=not COUNT_MIX
+                                  and _taken_at(budget_count(budget, view.n)) > len(models[1]))
         if count is None:
             return False, None
     return True, cost_budget_parents(gaussians, camera, view, None, budget=budget, budget_cost=budget_cost,
@@ -1115,8 +1152,10 @@ def budget_walk(settings: Sequence[lod.LodSettings], view_of: Callable[[int], Lo
     (:meth:`LodView.full_detail_estimate`).
     It is then solved in that tier (from its
     ``tier_start`` level on), and so on down the chain; so a smaller budget never draws a finer
-    tier. Returns ``(view, selection, s_v of tier 0 it stands for, depth >= 1)``, or None
-    (``sel`` stands).
+    tier. With :data:`COUNT_MIX` (off by default), a count budget that ends in a tier whose start
+    holds more than ``k`` in view, with a next tier that refused it, is not cut from that tier:
+    the two tiers' starts are mixed by distance, ``k`` together (:func:`clod_adapter.tier_mix.mix`).
+    Returns a :class:`TierBudget` (``depth >= 1``), or None (``sel`` stands).
 
     Only the tier the walk ends in is solved: a cost or time budget is tested against each tier's
     ``start``, and a count budget's count in a tier it passed on is known without solving it where
@@ -1174,6 +1213,11 @@ def budget_walk(settings: Sequence[lod.LodSettings], view_of: Callable[[int], Lo
             break
         d, vp, sel_p = d + 1, vn, sel_n
         scales.append(st.tier_fade * st.tier_s_v / st.tier_start)  # the tier's s -> the model's (lod.tier_weight)
+    if k0 is not None and COUNT_MIX and k == k0 and d + 1 < len(settings) and settings[d] is not None \
+            and settings[d].tier_s_v > 0:  # tier d holds k, the next tier refused it: the two mixed
+        mixed = _count_mix(settings, view_of, view if vp is None else vp, d, depth, k0, scales)
+        if mixed is not None:
+            return mixed
     if vp is None:
         return None
     start = settings[d - 1].tier_start
@@ -1187,7 +1231,26 @@ def budget_walk(settings: Sequence[lod.LodSettings], view_of: Callable[[int], Lo
     s_equiv = sel_p.s_v
     for f in reversed(scales):  # from the deepest tier up, as each hand-over maps it
         s_equiv = s_equiv * f
-    return vp, sel_p, s_equiv, d
+    return TierBudget(vp, sel_p, s_equiv, d)
+
+
+def _count_mix(settings: Sequence[lod.LodSettings], view_of: Callable[[int], LodView], va: LodView, d: int,
+               depth: int, k: int, scales: list) -> Optional[TierBudget]:
+    """:func:`budget_walk`'s count budget of ``k`` ending in tier ``d`` (view ``va``) whose next tier
+    refused it: tier ``d``'s and ``d + 1``'s starts mixed by distance
+    (:func:`clod_adapter.tier_mix.mix`), or None where tier ``d``'s start holds no more than ``k``
+    (it is then drawn alone, as the walk does). ``scales`` map tier ``d``'s ``s_v`` to the model's."""
+    from .tier_mix import mix
+
+    s_a = 1.0 if d == depth else max(1.0, settings[d - 1].tier_start)
+    if not va.draws_at_least(s_a, k + 1):
+        return None
+    s_b = max(1.0, settings[d].tier_start)
+    vb = view_of(d + 1)
+    up = math.prod(scales)
+    near, far, s_equiv = mix(va, vb, va.select(s_a), vb.select(s_b), k, s_a * up,
+                             s_b * up * settings[d].tier_fade * settings[d].tier_s_v / settings[d].tier_start)
+    return TierBudget(vb, far, s_equiv, d + 1, (va, near, d))
 
 
 def count_budget_walk(settings: Sequence[lod.LodSettings], view_of: Callable[[int], LodView], view: LodView,
@@ -1225,6 +1288,13 @@ def _memo(view_of: Callable[[int], LodView]) -> Callable[[int], LodView]:
     return get
 
 
+#: True: a count budget that ends in a tier drawing more than it, the next tier having refused it,
+#: is drawn by :func:`clod_adapter.tier_mix.mix` (the two tiers' full details mixed by distance,
+#: exactly the budget, continuous in it); False (the default): cut from that tier's survivors.
+#: Not adopted: on the validation views the mix is +0.04 to +0.76 dB on skull's equal-count points
+#: and -0.03 to -0.96 dB at 10 of the two ferns' 16 (docs/studies.md "A count budget between two
+#: tiers, mixed by distance"; ``benchmarks/studies/count_mix.py``)
+COUNT_MIX = False
 #: a count budget of ``k`` passes to the next tier where that tier, as the ``s_v`` rule first draws
 #: it alone, draws at least this share of ``k`` (:func:`budget_walk`; 1: only where it fills the
 #: budget)
@@ -1239,10 +1309,12 @@ def _taken_at(k: int) -> int:
 
 def _may_take(settings: Sequence[lod.LodSettings], view_of: Callable[[int], LodView], d: int, k: int) -> bool:
     """Whether tier ``d + 1`` of a chain could take a count budget of ``k`` over from tier ``d``
-    (it exists and holds :func:`_taken_at` ``(k)`` Gaussians): where not, a budget that tier ``d``
-    takes is solved there (:meth:`LodView.draws_at_least`'s ``solving``)."""
+    (it exists and holds :func:`_taken_at` ``(k)`` Gaussians; with :data:`COUNT_MIX`, it exists:
+    tier ``d`` is then mixed with it, not solved): where not, a budget that tier ``d`` takes is
+    solved there (:meth:`LodView.draws_at_least`'s ``solving``)."""
     st = settings[d]
-    return d + 1 < len(settings) and st is not None and st.tier_s_v > 0 and view_of(d + 1).n >= _taken_at(k)
+    return d + 1 < len(settings) and st is not None and st.tier_s_v > 0 and (
+        COUNT_MIX or view_of(d + 1).n >= _taken_at(k))
 
 
 def _chain_views(gaussians: Gaussians, camera, tau, eps, view: Optional[LodView] = None):
@@ -1283,6 +1355,13 @@ def _render_parts(gaussians: Gaussians, parts, sel_c: Optional[LodSelection], n_
                      n_frustum=parts[0][0].n_frustum, eta=main.eta, s_v=s_v, level=main.level,
                      project_ms=proj_ms, select_ms=(t2 - t1) * 1e3 - proj_ms, raster_ms=(t3 - t2) * 1e3,
                      meta=meta, n_parents=n_p)
+
+
+def _render_budget_parts(gaussians: Gaussians, par: TierBudget, t1: float, background, sh_degree, backend):
+    """:func:`_render_parts` of a budget past a hand-over (:class:`TierBudget`)."""
+    own = next((sel for d, _, sel in par.parts() if d == 0), None)
+    n_p = sum(int(sel.indices.numel()) for d, _, sel in par.parts() if d > 0)
+    return _render_parts(gaussians, par.views(), own, n_p, par.s_v, t1, background, sh_degree, backend)
 
 
 def rasterize_views(parts: Sequence[tuple[LodView, LodSelection]], *, background: Optional[Tensor] = None,
@@ -1380,7 +1459,8 @@ def lod_subset(gaussians: Gaussians, camera, s_v: Optional[float] = None, *,
     attributes (same arguments; no gradient). For viewers and exporters that rasterise
     elsewhere. A model with a parent tier, at an ``s_v`` past its ``tier_s_v``: the Gaussians
     and the parents it draws there, concatenated (:class:`LodSubset` ``parent_indices``); at a
-    cost budget past it, the parents alone (:func:`cost_budget_parents`). No ``s_v`` and no
+    budget past it, the tier it ends in alone (:func:`cost_budget_parents`; with
+    :data:`COUNT_MIX`, a count budget's two tiers mixed by distance). No ``s_v`` and no
     budget (``budget``, ``budget_cost``, ``budget_ms``): every Gaussian in view, unchanged.
 
     Raises:
@@ -1400,7 +1480,7 @@ def lod_subset(gaussians: Gaussians, camera, s_v: Optional[float] = None, *,
                                         budget_in_view=False, budget_cost=budget_cost, budget_ms=budget_ms,
                                         time_model=time_model, tau=tau, eps=eps)
     n_tiers = len(tier_chain(gaussians)) - 1
-    if par is not None:  # a parent tier alone, within the budget
+    if par is not None:  # past a hand-over: a tier alone, or two mixed (count budgets)
         return _tier_subset(par, n_tiers)
     sel = view.select(s_v, budget=budget, min_s_v=min_s_v, estimator="paper", budget_cost=budget_cost,
                       budget_ms=budget_ms, time_model=time_model)
@@ -1414,11 +1494,13 @@ def lod_subset(gaussians: Gaussians, camera, s_v: Optional[float] = None, *,
                      colors=colors, s_v=sel.s_v, n_in_view=view.n_in_view, tier_indices=[None] * n_tiers)
 
 
-def _tier_subset(par: tuple, n_tiers: int) -> LodSubset:
-    """:class:`LodSubset` of a budget drawn by one tier alone (:func:`cost_budget_parents`' answer)."""
-    vp, sel_p, s_equiv, depth = par
-    means, quats, scales, colors = vp.drawn_attributes(sel_p)
-    ti = [sel_p.indices if k + 1 == depth else None for k in range(n_tiers)]
-    return LodSubset(indices=sel_p.indices.new_zeros(0), means=means, quats=quats, scales=scales,
-                     opacities=sel_p.opacities, colors=colors, s_v=s_equiv, n_in_view=vp.n_in_view,
-                     parent_indices=ti[0], tier_indices=ti)
+def _tier_subset(par: TierBudget, n_tiers: int) -> LodSubset:
+    """:class:`LodSubset` of a budget past a hand-over (:func:`cost_budget_parents`' answer: one
+    tier alone, or two mixed), the rows finest first."""
+    parts = par.views()
+    attrs = [v.drawn_attributes(sel) for v, sel in parts]
+    cat = [torch.cat([a[i] for a in attrs]) for i in range(4)]
+    own, ti = par.tier_indices(n_tiers)
+    return LodSubset(indices=par.sel.indices.new_zeros(0) if own is None else own, means=cat[0], quats=cat[1],
+                     scales=cat[2], opacities=torch.cat([sel.opacities for _, sel in parts]), colors=cat[3],
+                     s_v=par.s_v, n_in_view=parts[0][0].n_in_view, parent_indices=ti[0], tier_indices=ti)

@@ -179,7 +179,8 @@ def clod_rasterization(
             Drawn at an ``s_v`` past ``lod_settings.tier_s_v`` (cross-fade, then alone, at the
             parents' ``s_v``, :func:`clod_adapter.lod.tier_weight`; their own ``parents`` likewise down the
             chain, :func:`clod_adapter.camera_lod.chain_parts`); a budget whose solution passes a
-            hand-over draws that tier alone (:func:`clod_adapter.camera_lod.budget_walk`).
+            hand-over draws that tier alone (:func:`clod_adapter.camera_lod.budget_walk`; with
+            ``camera_lod.COUNT_MIX``, that tier and the finer one mixed by distance).
         opacity_logits: [N] the raw opacities ``opacities`` came from: the rule works on logits
             (the gains shift them), and a float32 opacity near 1 keeps few digits of ``1 - o``
             (exactly 1 above a logit of ~16.6), so ``log(o / (1 - o))`` returns logits above ~14
@@ -264,9 +265,9 @@ def clod_rasterization(
                 sel, par = view.select(s_v, estimator="paper"), None
             empty = view.means.new_zeros(0, dtype=torch.long)
             t_idx = [empty] * len(chain)
-            if par is not None:  # a budget past a hand-over: that tier alone (camera_lod.budget_walk)
-                rc, ra, meta = rasterize_views([par[:2]], background=bg, sh_degree=sh_degree, backend=backend)
-                idx, t_idx[par[3] - 1], s_used = empty, par[1].indices, par[2]
+            if par is not None:  # a budget past a hand-over: a tier alone or two mixed (camera_lod.budget_walk)
+                rc, ra, meta = rasterize_views(par.views(), background=bg, sh_degree=sh_degree, backend=backend)
+                (idx, t_idx), s_used = par.tier_indices(len(chain), empty), par.s_v
             else:
                 rc, ra, meta = view.rasterize(sel, background=bg, sh_degree=sh_degree, backend=backend,
                                               colors=None if sh_degree is not None else col)

@@ -205,31 +205,33 @@ def test_adapt_config_takes_descending_shares():
             AdaptConfig(parent_share=bad)
 
 
-def test_count_budgets_hand_over_in_every_consumer(chain):
-    """A count budget whose own solution passes a hand-over draws the next tier alone with the
-    same count (from its tier_start level on): render_lod, lod_subset, the renderer hook and bake
-    agree; a large budget draws the model's own Gaussians."""
-    from clod_adapter import clod_kwargs, clod_rasterization
+@pytest.mark.parametrize("mix", [False, True])
+def test_count_budgets_hand_over_in_every_consumer(chain, mix, monkeypatch):
+    """A count budget past a hand-over draws the next tier (from its tier_start level on), alone
+    (or, with COUNT_MIX, mixed by distance with the finer tier), never more than the budget:
+    render_lod, lod_subset, the renderer hook and bake agree; a budget of every Gaussian in view
+    draws the model's own."""
+    from clod_adapter import camera_lod, clod_kwargs, clod_rasterization
     from clod_adapter.bake import bake
 
+    monkeypatch.setattr(camera_lod, "COUNT_MIX", mix)
     g, cams = chain
     cam = cams[0]
-    children = tier_chain(g)
-    big = render_lod(g, cam, budget=0.8)
-    assert big.n_parents == 0 and torch.equal(big.image, render_lod(replace(g, parents=None), cam, budget=0.8).image)
-    depths = []
-    for b in (0.5, 0.2, 0.05, 0.01):
+    every = view_lod(replace(g, parents=None), cam).n_in_view
+    big = render_lod(g, cam, budget=every)
+    assert big.n_parents == 0 and torch.equal(big.image, render_lod(replace(g, parents=None), cam, budget=every).image)
+    depths, mixed = [], 0
+    for b in (0.8, 0.5, 0.2, 0.05, 0.01):
         own = view_lod(replace(g, parents=None), cam).select(budget=b)
         r = render_lod(g, cam, budget=b)
         sub = lod_subset(g, cam, budget=b)
-        depth = 0 if sub.indices.numel() else 1 + [i for i, t in enumerate(sub.tier_indices) if t is not None][0]
-        depths.append(depth)
-        if depth:
-            assert r.n_parents == r.n_rendered <= own.indices.numel()
-            if depth == 1:
-                ref = view_lod(replace(children[1], parents=None), cam).select(
-                    budget=int(own.indices.numel()), min_s_v=g.lod.tier_start)
-                assert torch.equal(sub.tier_indices[0], ref.indices)
+        drawn = [0] * bool(sub.indices.numel()) + [1 + i for i, t in enumerate(sub.tier_indices) if t is not None]
+        depths.append(drawn[-1])
+        assert len(drawn) <= 2 and drawn == list(range(drawn[0], drawn[-1] + 1)), drawn  # neighbours
+        assert r.n_rendered <= own.indices.numel() and len(sub.means) == r.n_rendered
+        if len(drawn) == 2:  # mixed: exactly the budget
+            assert r.n_rendered == own.indices.numel() and 0 < r.n_parents
+            mixed += 1
         col, _, meta = clod_rasterization(g.means, g.quats, g.scales, g.opacities, g.colors, cam.viewmat[None],
                                           cam.K[None], cam.width, cam.height, sh_degree=g.sh_degree,
                                           **clod_kwargs(g), budget=b, backend="cpu")
@@ -237,18 +239,44 @@ def test_count_budgets_hand_over_in_every_consumer(chain):
         assert meta["lod_n_parents"] == [r.n_parents] and meta["lod_s_v"][0] == pytest.approx(r.s_v)
         baked, info = bake(g, [cam], budget=b, opacity="mean", return_info=True)
         assert info.n_parents == r.n_parents and len(baked) == r.n_rendered
-    assert depths == sorted(depths) and depths[-1] >= 1
+    assert depths == sorted(depths) and depths[-1] >= 1 and (mixed > 0) == mix
 
 
-def _walk_solving_every_tier(g, cam, **budget):
+def _mix_literally(views, tiers_, d, k, lo_s):
+    """tier_mix's count budget of ``k`` between tiers ``d`` and ``d + 1``, literally: both starts
+    (``lo_s``: tier d's start level), every candidate split tried; ``[(d, rows), (d + 1, rows)]``
+    as LodSelections of each start's rows (the finer nearer than the split, the coarser beyond),
+    the largest split whose count fits ``k``."""
+    from clod_adapter.camera_lod import LodSelection
+
+    sa, sb = views[d].select(lo_s), views[d + 1].select(max(1.0, tiers_[d].lod.tier_start))
+    c = lod.camera_center(views[0].viewmat)
+    ra = [float((views[d].means[i] - c).norm()) for i in sa.indices]
+    rb = [float((views[d + 1].means[i] - c).norm()) for i in sb.indices]
+    best = None
+    for split in sorted(ra + rb):
+        if sum(r < split for r in ra) + sum(r >= split for r in rb) <= k:
+            best = split
+    near = torch.tensor([r < best for r in ra], dtype=torch.bool)
+    far = torch.tensor([r >= best for r in rb], dtype=torch.bool)
+    return [(d, LodSelection(sa.indices[near], sa.opacities[near], None, None, sa.level, sa.eta, n=views[d].n)),
+            (d + 1, LodSelection(sb.indices[far], sb.opacities[far], None, None, sb.level, sb.eta, n=views[d + 1].n))]
+
+
+def _walk_solving_every_tier(g, cam, mix=None, **budget):
     """docs/lod_rule.md's budget hand-over, literally: solve the budget in each tier, and pass it to
     the next tier while that tier, as the s_v rule first draws it alone, holds it (count: draws at
     least COUNT_TAKE_SHARE of the count tier 0 draws, and is asked for that count; cost: costs at
     least the budget; ms: predicted at least that long). A start at the tier's full detail
     (tier_start <= 1) and a cost share's full cost, where the budget passes on, are estimated from
-    a sample (LodView.full_detail_estimate; models of COST_SAMPLE_MIN or more).
-    Returns (depth, the tier's selection)."""
+    a sample (LodView.full_detail_estimate; models of COST_SAMPLE_MIN or more). A count budget
+    that the tier it ends in holds in full, with more Gaussians at its start and a next tier that
+    refused it (``mix``, default COUNT_MIX): the two tiers' starts mixed by distance
+    (:func:`_mix_literally`). Returns ``[(depth, selection)]``, finest first (one tier, or two mixed)."""
+    from clod_adapter import camera_lod
     from clod_adapter.cost import DEFAULT_FRAME_TIME_MODEL, splat_cost
+
+    mix = camera_lod.COUNT_MIX if mix is None else mix
 
     tiers_ = tier_chain(g)
     views = [view_lod(replace(t, parents=None), cam) for t in tiers_]
@@ -257,7 +285,7 @@ def _walk_solving_every_tier(g, cam, **budget):
         return views[k].full_detail_estimate()
 
     b = budget.get("budget_cost")
-    sel, depth = views[0].select(**budget), 0
+    sel, depth, lo_s = views[0].select(**budget), 0, 1.0
     if b is not None and b <= 1.0:
         b = max(b * estimate(0)[0], 1.0 + 1e-6)  # absolute from the first tier below on
     k0 = int(sel.indices.numel())  # a count budget: tier 0's count, asked of every tier below
@@ -279,26 +307,42 @@ def _walk_solving_every_tier(g, cam, **budget):
         else:
             fits = budget["budget_ms"] <= DEFAULT_FRAME_TIME_MODEL.ms(cost, drawn)
         if not fits:
+            if mix and "budget" in budget and int(sel.indices.numel()) == k0 \
+                    and int(views[depth].select(lo_s).indices.numel()) > k0:
+                return _mix_literally(views, tiers_, depth, k0, lo_s)
             break
         depth += 1
+        lo_s = max(1.0, start_s)
         sel = views[depth].select(**kw, min_s_v=start_s)
-    return depth, sel
+    return [(depth, sel)]
+
+
+def _rows(sub, depth):
+    """The rows of tier ``depth`` a LodSubset draws (None: none)."""
+    return sub.indices if depth == 0 else sub.tier_indices[depth - 1]
 
 
 @pytest.mark.parametrize("kind,values", [("budget", [900, 400, 150, 60, 20, 3, 0.3, 0.02]),
                                          ("budget_cost", [0.9, 0.5, 0.2, 0.08, 0.03, 0.01]),
                                          ("budget_ms", [40.0, 5.0, 2.5, 2.0, 1.0, 0.1])])
-@pytest.mark.parametrize("starts", ["chain", (1.0, 1.0), "sampled"])
+@pytest.mark.parametrize("starts", ["chain", (1.0, 1.0), "sampled", "mix"])
 def test_budgets_solve_only_the_tier_they_end_in_as_the_rule_walks(chain, kind, values, starts, monkeypatch):
     """render_lod's budget walk solves only the tier it ends in (and passes a count on without
     solving it where the rule gives it: each tier first drawn alone at its full detail,
-    ``tier_start`` 1, as ``clod-adapt`` links them): the same tier, rows and opacities as solving
-    the budget in every tier on the way, at every depth of the chain. ``"sampled"``: the tiers
-    handed over at their full detail and costed from every 3rd Gaussian (the chain's tiers are
-    below COST_SAMPLE_MIN, lowered here so the estimate is what is walked)."""
+    ``tier_start`` 1, as ``clod-adapt`` links them): the same tiers, rows and opacities as solving
+    the budget in every tier on the way, at every depth of the chain; a count budget between two
+    tiers draws the next tier alone or cuts the finer one (with COUNT_MIX, both mixed by
+    distance). ``"sampled"``: the tiers handed over at their full detail
+    and costed from every 3rd Gaussian (the chain's tiers are below COST_SAMPLE_MIN, lowered here
+    so the estimate is what is walked); ``"mix"``: ``COUNT_MIX`` on, a count budget between two
+    tiers drawn by both, mixed by distance, not cut from the finer one's survivors."""
     from clod_adapter import camera_lod
 
     g, cams = chain
+    mix = starts == "mix"
+    monkeypatch.setattr(camera_lod, "COUNT_MIX", mix)
+    if mix:
+        starts = "chain"
     if starts == "sampled":
         monkeypatch.setattr(camera_lod, "COST_SAMPLE_MIN", 50)
         monkeypatch.setattr(camera_lod, "COST_SAMPLE_STEP", 3)
@@ -307,26 +351,32 @@ def test_budgets_solve_only_the_tier_they_end_in_as_the_rule_walks(chain, kind, 
         t1 = g.parents
         t1 = replace(t1, lod=replace(t1.lod, tier_start=starts[1]))
         g = replace(g, parents=t1, lod=replace(g.lod, tier_start=starts[0]))
-    depths = set()
+    depths, mixed = set(), 0
     for cam in cams:
         for v in values:
-            depth, ref = _walk_solving_every_tier(g, cam, **{kind: v})
+            ref = _walk_solving_every_tier(g, cam, mix=mix, **{kind: v})
             r = render_lod(g, cam, **{kind: v}, backend="cpu")
-            depths.add(depth)
-            got = r.selection.indices if depth == 0 else lod_subset(g, cam, **{kind: v}).tier_indices[depth - 1]
-            assert got is not None and torch.equal(got, ref.indices), (kind, v, depth)
-            assert r.n_rendered == ref.indices.numel() and r.n_parents == (r.n_rendered if depth else 0), (kind, v)
-            if depth:  # the tier's rows drawn with the tier's own opacities
-                torch.testing.assert_close(lod_subset(g, cam, **{kind: v}).opacities, ref.opacities, rtol=0, atol=0)
+            depths |= {d for d, _ in ref}
+            mixed += len(ref) == 2
+            sub = lod_subset(g, cam, **{kind: v})
+            for depth, sel in ref:
+                got = r.selection.indices if (depth == 0 and len(ref) == 1) else _rows(sub, depth)
+                assert got is not None and torch.equal(got, sel.indices), (kind, v, depth)
+            n = sum(int(sel.indices.numel()) for _, sel in ref)
+            assert r.n_rendered == n and r.n_parents == sum(int(s.indices.numel()) for d, s in ref if d), (kind, v)
+            if ref[-1][0]:  # the tiers' rows drawn with the tiers' own opacities
+                torch.testing.assert_close(sub.opacities, torch.cat([s.opacities for _, s in ref]), rtol=0, atol=0)
             if kind == "budget":  # the renderer hook walks the same way (count budgets are its only budgets)
                 from clod_adapter import clod_kwargs, clod_rasterization
 
                 _, _, meta = clod_rasterization(g.means, g.quats, g.scales, g.opacities, g.colors, cam.viewmat[None],
                                                 cam.K[None], cam.width, cam.height, sh_degree=g.sh_degree,
                                                 **clod_kwargs(g), budget=v, backend="cpu")
-                hook = meta["lod_indices"][0] if depth == 0 else meta["lod_tier_indices"][0][depth - 1]
-                assert torch.equal(hook, ref.indices), (v, depth)
+                for depth, sel in ref:
+                    hook = meta["lod_indices"][0] if depth == 0 else meta["lod_tier_indices"][0][depth - 1]
+                    assert torch.equal(hook, sel.indices), (v, depth)
     assert depths == {0, 1, 2}, depths
+    assert (mixed > 0) == (mix and kind == "budget"), mixed
 
 
 def test_export_of_a_chain(tiny_adapted, tiny_model, tmp_path):
@@ -402,10 +452,54 @@ def test_a_count_budget_passes_through_a_tier_without_its_critical_order(chain):
                 return views[k]
 
             sel, par = count_budget_walk([m.lod for m in models], view_of, view_of(0), v)
-            depth, ref = _walk_solving_every_tier(g, cam, budget=v)
-            got = sel if par is None else par[1]
-            assert (0 if par is None else par[3]) == depth and torch.equal(got.indices, ref.indices), (v, depth)
-            for k, view in views.items():  # the tiers passed through never had their order
-                assert (view._critical is not None) == (k == depth) or k > depth, (v, k, depth)
-            seen.add(depth)
+            ref = _walk_solving_every_tier(g, cam, budget=v)
+            got = [(0, sel)] if par is None else [(d, s) for d, _, s in par.parts()]
+            assert [d for d, _ in got] == [d for d, _ in ref], v
+            assert all(torch.equal(a.indices, b.indices) for (_, a), (_, b) in zip(got, ref)), v
+            depth = ref[-1][0]
+            for k, view in views.items():  # the tiers passed through (or mixed whole) never had their order
+                assert (view._critical is not None) == (k == depth and len(ref) == 1) or k > depth, (v, k, depth)
+            seen |= {d for d, _ in ref}
     assert {0, 1, 2} <= seen, seen
+
+
+def test_split_distance_is_the_largest_split_that_fits():
+    """tier_mix.split_distance against every candidate tried: the largest split whose count (the
+    finer tier's nearer rows plus the coarser tier's rows at or beyond it) fits k, exactly k where
+    the coarser tier alone is below k and the finer above it."""
+    from clod_adapter.tier_mix import split_distance
+
+    gen = torch.Generator().manual_seed(3)
+    for a_n, b_n in ((40, 9), (200, 60), (7, 2)):
+        ra, rb = torch.rand(a_n, generator=gen) * 10, torch.rand(b_n, generator=gen) * 10 + 1
+        for k in range(b_n + 1, a_n):
+            split = split_distance(ra, rb, k)
+            count = int((ra < split).sum() + (rb >= split).sum())
+            fits = [c for c in torch.cat([ra, rb]).tolist()
+                    if int((ra < c).sum() + (rb >= c).sum()) <= k]
+            assert split == max(fits) and count == k, (a_n, b_n, k)
+    assert split_distance(torch.ones(3), torch.ones(1), 3) == float("inf")
+
+
+def test_count_budgets_between_two_tiers_change_the_image_by_small_steps(chain, monkeypatch):
+    """With COUNT_MIX, a count budget falling from every Gaussian in view to what the next tier
+    takes over draws the two tiers mixed by distance (tier_mix), exactly the budget: the image
+    changes by small steps, far below the jump from the model's full detail to tier 1's."""
+    from clod_adapter import camera_lod
+
+    monkeypatch.setattr(camera_lod, "COUNT_MIX", True)
+    g, cams = chain
+    cam = cams[0]
+    n0 = view_lod(replace(g, parents=None), cam).n_in_view
+    n1 = view_lod(replace(g.parents, parents=None), cam).n_in_view  # tier 1's full detail in view
+    lo = max(n1, math.ceil(n1 / COUNT_TAKE_SHARE - 1e-9)) + 1  # the mix's smallest budget
+    assert n0 > lo + 20, (n0, lo)
+    ks = list(range(n0, lo - 1, -max(1, (n0 - lo) // 60)))
+    outs = [render_lod(g, cam, budget=k) for k in ks]
+    assert [o.n_rendered for o in outs] == ks  # exactly the budget
+    parents = [o.n_parents for o in outs]
+    assert parents[0] == 0 and parents == sorted(parents) and 0 < parents[-1] < ks[-1]  # the split nears the camera
+    imgs = [o.image for o in outs]
+    steps = [float((a - b).abs().mean()) for a, b in zip(imgs, imgs[1:])]
+    jump = float((imgs[0] - render_lod(replace(g.parents, parents=None), cam, 1.0).image).abs().mean())
+    assert jump > 0 and max(steps) < jump / 5, (max(steps), jump)

@@ -10,17 +10,20 @@ tier's full detail and the farther of the next tier's, exactly ``k`` together; r
 budget between two tiers' counts is mixed).
 
 For each input (default: skull, fern and MaskGaussian fern) the default adaptation (cached,
-benchmarks/common.py; ``--split val``: fitted on the fit views only) is drawn by both rules at the
+benchmarks/common.py; ``--split val``: fitted on the fit views only) is drawn by every rule at the
 equal-count points of ``benchmarks/quality_vs_time.py`` (the count per view of splat-transform's
 ``--decimate`` and ``--decimate-adaptive`` outputs at 50 / 30 / 15 / 8 % of the input) and at
 ``--shares`` of the Gaussians in view; both rules and the input are timed in ``--rounds``
 interleaved rounds (``render_lod``'s wall time, median over rounds of the mean over views, as a
 share of the input's). Printed per point: the decimator's PSNR where there is one, and per rule
-PSNR, drawn count over the budget and time share. No goal is enforced (a study: exit 0)::
+PSNR, drawn count over the budget and time share. ``--views fit`` scores on the views a user
+has instead, the :func:`clod_adapter.tiers.choice_views` of the views the adaptation was fitted on
+(does the verdict there match the held-out views'?). No goal is enforced (a study: exit 0)::
 
     python benchmarks/studies/count_mix.py --split val
+    python benchmarks/studies/count_mix.py --split val --views fit --shares --rounds 1
 
-Written: ``runs/bench/count_mix/summary.md``. About 3 minutes for the three scenes on 2 cores (the
+Written: ``runs/bench/count_mix{_fit}/summary.md``. About 3 minutes for the three scenes on 2 cores (the
 adaptations cached).
 """
 from __future__ import annotations
@@ -59,10 +62,14 @@ def draw(model, cams, ks, rule):
     return outs, (time.perf_counter() - t0) * 1e3 / len(cams)
 
 
-def study(name: str, split: str, shares, rounds: int) -> list[str]:
-    """One input's table rows."""
+def study(name: str, split: str, shares, rounds: int, views: str = "scored") -> list[str]:
+    """One input's table rows (``views``: ``"scored"``, the split's; ``"fit"``, the choice views of
+    the fit views)."""
     base, scene, gts = load_input(name, split)
-    cams = scene_views(scene, split)[1]
+    fit, cams = scene_views(scene, split)
+    if views == "fit":
+        cams = tiers.choice_views(fit)
+        gts = [scene.load_image(c) for c in cams]
     model = load_model(adapt_cached(name, AdaptConfig(), "default", split=split))
     n_in = [view_lod(base, c).n_in_view for c in cams]
     points = []
@@ -107,7 +114,9 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     add_inputs_args(ap, ["skull", "fern", "maskgaussian"])
     ap.add_argument("--split", choices=SPLITS, default="val")
-    ap.add_argument("--shares", type=float, nargs="+", default=[0.9, 0.75, 0.6, 0.4, 0.25])
+    ap.add_argument("--views", choices=("scored", "fit"), default="scored",
+                    help="score on the split's views (default) or on the choice views of the fit views")
+    ap.add_argument("--shares", type=float, nargs="*", default=[0.9, 0.75, 0.6, 0.4, 0.25])
     ap.add_argument("--rounds", type=int, default=3)
     ap.add_argument("--threads", type=int, default=2)
     args = ap.parse_args(argv)
@@ -115,8 +124,8 @@ def main(argv=None) -> int:
     lines = ["| input | count budget | decimator PSNR | " + " | ".join(f"{r}: PSNR (drawn / budget, time)" for r in RULES)
              + " |", "|---|---|---:|" + "---:|" * len(RULES)]
     for name in selected_inputs(args):
-        lines += study(name, args.split, args.shares, args.rounds)
-    write_summary("count_mix", "\n".join(lines))
+        lines += study(name, args.split, args.shares, args.rounds, args.views)
+    write_summary("count_mix" + ("_fit" if args.views == "fit" else ""), "\n".join(lines))
     print("\n".join(lines))
     return 0
 

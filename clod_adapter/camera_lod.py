@@ -1254,7 +1254,7 @@ def _count_mix(settings: Sequence[lod.LodSettings], view_of: Callable[[int], Lod
 
 
 def count_budget_walk(settings: Sequence[lod.LodSettings], view_of: Callable[[int], LodView], view: LodView,
-                      budget: float | int, min_s_v: float = 1.0) -> tuple[Optional[LodSelection], Optional[tuple]]:
+                      budget: float | int, min_s_v: float = 1.0) -> tuple[Optional[LodSelection], Optional[TierBudget]]:
     """A count ``budget`` (as :meth:`LodView.select`'s) on tier 0's ``view`` of a chain of tiers:
     ``(tier 0's own selection or None, budget_walk's answer or None)``, exactly one of them set.
     The walk goes first where the rule gives tier 0's count (:meth:`LodView.budget_drawn`), so

@@ -121,8 +121,8 @@ def main(argv=None) -> int:
     ap.add_argument("--threads", type=int, default=2)
     args = ap.parse_args(argv)
     setup_threads(args.threads)
-    lines = ["| input | count budget | decimator PSNR | " + " | ".join(f"{r}: PSNR (drawn / budget, time)" for r in RULES)
-             + " |", "|---|---|---:|" + "---:|" * len(RULES)]
+    cols = " | ".join(f"{r}: PSNR (drawn / budget, time)" for r in RULES)
+    lines = [f"| input | count budget | decimator PSNR | {cols} |", "|---|---|---:|" + "---:|" * len(RULES)]
     for name in selected_inputs(args):
         lines += study(name, args.split, args.shares, args.rounds, args.views)
     write_summary("count_mix" + ("_fit" if args.views == "fit" else ""), "\n".join(lines))

@@ -920,7 +920,7 @@ def render_lod(
     (:func:`chain_parts`: both drawn in one image, the Gaussians' opacities times ``1 - u``, the
     parents' times ``u``, the parents at their own ``s_v``, and so on down the chain); a budget
     whose solution passes a hand-over draws the next tier alone within it (:func:`budget_walk`;
-    with :data:`COUNT_MIX`, a count budget between two tiers both, mixed by distance); a given
+    with ``LodSettings.count_mix``, a count budget between two tiers both, mixed by distance); a given
     ``level`` draws the Gaussians alone.
 
     Args:
@@ -1071,7 +1071,7 @@ def chain_weights(s_v: float, settings: Sequence[lod.LodSettings]) -> list[tuple
 class TierBudget(NamedTuple):
     """A budget drawn past a hand-over of a chain of tiers (:func:`budget_walk`): ``sel`` of tier
     ``depth`` (>= 1) in its ``view``, ``s_v`` the model's ``s_v`` it stands for, and for a count
-    budget between two tiers mixed by distance (:data:`COUNT_MIX`, :func:`clod_adapter.tier_mix.mix`)
+    budget between two tiers mixed by distance (``LodSettings.count_mix``, :func:`clod_adapter.tier_mix.mix`)
     ``finer``, the finer tier's ``(view, selection, depth)`` drawn with it (the nearer part), else
     None."""
 
@@ -1127,7 +1127,7 @@ def _budget_parents_first(gaussians: Gaussians, camera, view: LodView, *, level,
         if budget_in_view:
             return False, None
         # tier 1 cannot take a count over its size: the budget is then solved in this view
-        count = view.budget_drawn(budget, min_s_v, solving=not COUNT_MIX
+        count = view.budget_drawn(budget, min_s_v, solving=not _mixes([m.lod for m in models])
                                   and _taken_at(budget_count(budget, view.n)) > len(models[1]))
         if count is None:
             return False, None
@@ -1152,7 +1152,7 @@ def budget_walk(settings: Sequence[lod.LodSettings], view_of: Callable[[int], Lo
     (:meth:`LodView.full_detail_estimate`).
     It is then solved in that tier (from its
     ``tier_start`` level on), and so on down the chain; so a smaller budget never draws a finer
-    tier. With :data:`COUNT_MIX` (off by default), a count budget that ends in a tier whose start
+    tier. With ``settings[0].count_mix``, a count budget that ends in a tier whose start
     holds more than ``k`` in view, with a next tier that refused it, is not cut from that tier:
     the two tiers' starts are mixed by distance, ``k`` together (:func:`clod_adapter.tier_mix.mix`).
     Returns a :class:`TierBudget` (``depth >= 1``), or None (``sel`` stands).
@@ -1213,7 +1213,7 @@ def budget_walk(settings: Sequence[lod.LodSettings], view_of: Callable[[int], Lo
             break
         d, vp, sel_p = d + 1, vn, sel_n
         scales.append(st.tier_fade * st.tier_s_v / st.tier_start)  # the tier's s -> the model's (lod.tier_weight)
-    if k0 is not None and COUNT_MIX and k == k0 and d + 1 < len(settings) and settings[d] is not None \
+    if k0 is not None and _mixes(settings) and k == k0 and d + 1 < len(settings) and settings[d] is not None \
             and settings[d].tier_s_v > 0:  # tier d holds k, the next tier refused it: the two mixed
         mixed = _count_mix(settings, view_of, view if vp is None else vp, d, depth, k0, scales)
         if mixed is not None:
@@ -1288,13 +1288,6 @@ def _memo(view_of: Callable[[int], LodView]) -> Callable[[int], LodView]:
     return get
 
 
-#: True: a count budget that ends in a tier drawing more than it, the next tier having refused it,
-#: is drawn by :func:`clod_adapter.tier_mix.mix` (the two tiers' full details mixed by distance,
-#: exactly the budget, continuous in it); False (the default): cut from that tier's survivors.
-#: Not adopted: on the validation views the mix is +0.04 to +0.76 dB on skull's equal-count points
-#: and -0.03 to -0.96 dB at 10 of the two ferns' 16 (docs/studies.md "A count budget between two
-#: tiers, mixed by distance"; ``benchmarks/studies/count_mix.py``)
-COUNT_MIX = False
 #: a count budget of ``k`` passes to the next tier where that tier, as the ``s_v`` rule first draws
 #: it alone, draws at least this share of ``k`` (:func:`budget_walk`; 1: only where it fills the
 #: budget)
@@ -1307,14 +1300,21 @@ def _taken_at(k: int) -> int:
     return min(k, max(1, math.ceil(COUNT_TAKE_SHARE * k - 1e-9))) if k > 0 else 0
 
 
+def _mixes(settings: Sequence[lod.LodSettings]) -> bool:
+    """Whether a chain's count budgets between two tiers draw both mixed by distance: the model's
+    (tier 0's) ``LodSettings.count_mix`` (:func:`clod_adapter.tier_mix.choose`; docs/studies.md "A
+    count budget between two tiers, mixed by distance")."""
+    return bool(settings) and settings[0] is not None and settings[0].count_mix
+
+
 def _may_take(settings: Sequence[lod.LodSettings], view_of: Callable[[int], LodView], d: int, k: int) -> bool:
     """Whether tier ``d + 1`` of a chain could take a count budget of ``k`` over from tier ``d``
-    (it exists and holds :func:`_taken_at` ``(k)`` Gaussians; with :data:`COUNT_MIX`, it exists:
+    (it exists and holds :func:`_taken_at` ``(k)`` Gaussians; with :func:`_mixes`, it exists:
     tier ``d`` is then mixed with it, not solved): where not, a budget that tier ``d`` takes is
     solved there (:meth:`LodView.draws_at_least`'s ``solving``)."""
     st = settings[d]
     return d + 1 < len(settings) and st is not None and st.tier_s_v > 0 and (
-        COUNT_MIX or view_of(d + 1).n >= _taken_at(k))
+        _mixes(settings) or view_of(d + 1).n >= _taken_at(k))
 
 
 def _chain_views(gaussians: Gaussians, camera, tau, eps, view: Optional[LodView] = None):
@@ -1460,7 +1460,7 @@ def lod_subset(gaussians: Gaussians, camera, s_v: Optional[float] = None, *,
     elsewhere. A model with a parent tier, at an ``s_v`` past its ``tier_s_v``: the Gaussians
     and the parents it draws there, concatenated (:class:`LodSubset` ``parent_indices``); at a
     budget past it, the tier it ends in alone (:func:`cost_budget_parents`; with
-    :data:`COUNT_MIX`, a count budget's two tiers mixed by distance). No ``s_v`` and no
+    ``LodSettings.count_mix``, a count budget's two tiers mixed by distance). No ``s_v`` and no
     budget (``budget``, ``budget_cost``, ``budget_ms``): every Gaussian in view, unchanged.
 
     Raises:

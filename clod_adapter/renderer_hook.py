@@ -180,7 +180,7 @@ def clod_rasterization(
             parents' ``s_v``, :func:`clod_adapter.lod.tier_weight`; their own ``parents`` likewise down the
             chain, :func:`clod_adapter.camera_lod.chain_parts`); a budget whose solution passes a
             hand-over draws that tier alone (:func:`clod_adapter.camera_lod.budget_walk`; with
-            ``camera_lod.COUNT_MIX``, that tier and the finer one mixed by distance).
+            ``lod_settings.count_mix``, that tier and the finer one mixed by distance).
         opacity_logits: [N] the raw opacities ``opacities`` came from: the rule works on logits
             (the gains shift them), and a float32 opacity near 1 keeps few digits of ``1 - o``
             (exactly 1 above a logit of ~16.6), so ``log(o / (1 - o))`` returns logits above ~14

@@ -1,5 +1,5 @@
-"""A count budget between two merged tiers, drawn as one mixed frame (``camera_lod.COUNT_MIX``;
-off by default).
+"""A count budget between two merged tiers, drawn as one mixed frame (a model whose
+``LodSettings.count_mix`` is set: ``clod-adapt --count-mix on|auto``; off by default).
 
 A count budget of ``k`` Gaussians on a model with merged tiers (docs/lod_rule.md "The tiers")
 that ends in a tier whose full detail (its start, where the ``s_v`` rule first draws it alone)
@@ -8,11 +8,12 @@ finer tier and the **farther** of the coarser one, split at the camera distance 
 units) where the two together hold ``k``. As ``k`` falls from one tier's count to the next's the
 split moves from behind the scene to the camera, so the frame goes over from one tier's full
 detail to the next's a Gaussian at a time, with no frame of a tier's survivors grown by its gains.
-By default such a budget is cut from the finer tier's survivors instead
-(:func:`clod_adapter.camera_lod.budget_walk`): on the validation views of the shared scenes the
+Without it such a budget is cut from the finer tier's survivors
+(:func:`clod_adapter.camera_lod.budget_walk`). On the validation views of the shared scenes the
 mix scores better on the 360-degree skull and worse on both forward-facing ferns, where the
-farthest Gaussians are the large background splats (docs/studies.md "A count budget between two
-tiers, mixed by distance").
+farthest Gaussians are the large background splats, and the training views give each scene the
+same verdict (:func:`clod_adapter.tiers.choose_count_mix`; docs/studies.md "A count budget
+between two tiers, mixed by distance").
 
 :func:`mix` draws it; :func:`split_distance` solves ``D``; :func:`clod_adapter.camera_lod.budget_walk`
 decides where.

@@ -56,6 +56,10 @@ GAIN_LR = {"opacity_logit_gain": OFFICIAL_LR["opacity_logits"], "log_scale_gain"
 RANKINGS = ("lightgaussian", "opacity")
 
 
+#: AdaptConfig.count_mix's values
+COUNT_MIX_RULES = ("off", "on", "auto")
+
+
 @dataclass
 class AdaptConfig:
     """Settings of one adaptation run (``None``: the schedule's default, resolved on creation).
@@ -150,6 +154,11 @@ class AdaptConfig:
             (:func:`clod_adapter.popping.tail_width`). Default
             :data:`clod_adapter.popping.POPPING_GOAL` (10, issue 36's goal) with the calibrated
             schedule; 0: the tier's own window (docs/studies.md "The coarsest tier's window").
+        count_mix: with merged tiers, whether a count budget between two tiers draws both mixed
+            by distance (``LodSettings.count_mix``): ``"off"`` (cut the finer tier to it),
+            ``"on"``, or ``"auto"``, the rule scoring the higher PSNR on the training views
+            (:func:`clod_adapter.tiers.choose_count_mix`; docs/studies.md "A count budget between
+            two tiers, mixed by distance").
         tier_iteration_share: each merged tier learns its level of detail for this share of
             ``iterations`` (rounded, at least 1 when ``iterations`` > 0). Default 1: a finer ladder of
             five tiers at half the steps each was not better on the validation views
@@ -209,6 +218,7 @@ class AdaptConfig:
     tier_merge: str = "decimate"
     tier_time_cap: Optional[float] = None
     popping_goal: Optional[float] = None
+    count_mix: str = "off"
     faint_share: Optional[float] = None
     keep_share: float = 1.0
     recovery_steps: int = 1000
@@ -308,6 +318,8 @@ class AdaptConfig:
         self.popping_goal = float(self.popping_goal)
         if not (math.isfinite(self.popping_goal) and self.popping_goal >= 0.0):
             raise ValueError(f"popping_goal must be >= 0 (a ratio), got {self.popping_goal}")
+        if self.count_mix not in COUNT_MIX_RULES:
+            raise ValueError(f"count_mix must be one of {', '.join(COUNT_MIX_RULES)}, got {self.count_mix!r}")
         self.tier_iteration_share = float(self.tier_iteration_share)
         if not 0.0 < self.tier_iteration_share <= 1.0:
             raise ValueError(f"tier_iteration_share must be in (0, 1], got {self.tier_iteration_share}")

@@ -94,3 +94,10 @@ def test_popping_goal_config():
     assert AdaptConfig().popping_goal == 10.0 and AdaptConfig(schedule="paper").popping_goal == 0.0
     with pytest.raises(ValueError, match="popping_goal"):
         AdaptConfig(popping_goal=-1.0)
+
+
+def test_count_mix_config():
+    """AdaptConfig.count_mix: off by default, one of off / on / auto, a bad value named."""
+    assert AdaptConfig().count_mix == "off" and AdaptConfig(count_mix="auto").count_mix == "auto"
+    with pytest.raises(ValueError, match="count_mix must be one of off, on, auto"):
+        AdaptConfig(count_mix="yes")

@@ -35,6 +35,11 @@ def chain():
 FADE = 1.25  # tiers.attach's tier_fade
 
 
+def _mixing(g, mix: bool):
+    """``g`` whose count budgets between two tiers are mixed by distance (``LodSettings.count_mix``)."""
+    return replace(g, lod=replace(g.lod, count_mix=mix))
+
+
 def _model_s_v_of_tier1(s1: float) -> float:
     """The model's s_v where tier 1 is at its own ``s1 >= 1.25`` (past the first cross-fade)."""
     return s1 * FADE * SWITCHES[0][0] / SWITCHES[0][1]
@@ -176,7 +181,7 @@ def test_consumers_draw_what_render_lod_draws(chain, s_v):
     import tempfile
 
     with tempfile.TemporaryDirectory() as d:
-        m = refmod.read_model(write_ply(Path(d) / "c.ply", g))
+        m = refmod.read_model(write_ply(Path(d) / "c.ply", _mixing(g, True)))  # count_mix: budgets only
     out = refmod.draw_tiered(m, cam.viewmat.double().numpy(), cam.K.double().numpy(), cam.width, cam.height, s_v)
     got = [out["model"]] + out["tiers"]
     want = [sub.indices] + sub.tier_indices
@@ -206,16 +211,15 @@ def test_adapt_config_takes_descending_shares():
 
 
 @pytest.mark.parametrize("mix", [False, True])
-def test_count_budgets_hand_over_in_every_consumer(chain, mix, monkeypatch):
+def test_count_budgets_hand_over_in_every_consumer(chain, mix):
     """A count budget past a hand-over draws the next tier (from its tier_start level on), alone
-    (or, with COUNT_MIX, mixed by distance with the finer tier), never more than the budget:
-    render_lod, lod_subset, the renderer hook and bake agree; a budget of every Gaussian in view
-    draws the model's own."""
-    from clod_adapter import camera_lod, clod_kwargs, clod_rasterization
+    (or, with the model's count_mix, mixed by distance with the finer tier), never more than the
+    budget: render_lod, lod_subset, the renderer hook and bake agree; a budget of every Gaussian
+    in view draws the model's own."""
+    from clod_adapter import clod_kwargs, clod_rasterization
     from clod_adapter.bake import bake
 
-    monkeypatch.setattr(camera_lod, "COUNT_MIX", mix)
-    g, cams = chain
+    g, cams = _mixing(chain[0], mix), chain[1]
     cam = cams[0]
     every = view_lod(replace(g, parents=None), cam).n_in_view
     big = render_lod(g, cam, budget=every)
@@ -271,12 +275,11 @@ def _walk_solving_every_tier(g, cam, mix=None, **budget):
     (tier_start <= 1) and a cost share's full cost, where the budget passes on, are estimated from
     a sample (LodView.full_detail_estimate; models of COST_SAMPLE_MIN or more). A count budget
     that the tier it ends in holds in full, with more Gaussians at its start and a next tier that
-    refused it (``mix``, default COUNT_MIX): the two tiers' starts mixed by distance
+    refused it (``mix``, default the model's count_mix): the two tiers' starts mixed by distance
     (:func:`_mix_literally`). Returns ``[(depth, selection)]``, finest first (one tier, or two mixed)."""
-    from clod_adapter import camera_lod
     from clod_adapter.cost import DEFAULT_FRAME_TIME_MODEL, splat_cost
 
-    mix = camera_lod.COUNT_MIX if mix is None else mix
+    mix = g.lod.count_mix if mix is None else mix
 
     tiers_ = tier_chain(g)
     views = [view_lod(replace(t, parents=None), cam) for t in tiers_]
@@ -331,18 +334,17 @@ def test_budgets_solve_only_the_tier_they_end_in_as_the_rule_walks(chain, kind, 
     solving it where the rule gives it: each tier first drawn alone at its full detail,
     ``tier_start`` 1, as ``clod-adapt`` links them): the same tiers, rows and opacities as solving
     the budget in every tier on the way, at every depth of the chain; a count budget between two
-    tiers draws the next tier alone or cuts the finer one (with COUNT_MIX, both mixed by
+    tiers draws the next tier alone or cuts the finer one (with count_mix, both mixed by
     distance). ``"sampled"``: the tiers handed over at their full detail
     and costed from every 3rd Gaussian (the chain's tiers are below COST_SAMPLE_MIN, lowered here
-    so the estimate is what is walked); ``"mix"``: ``COUNT_MIX`` on, a count budget between two
+    so the estimate is what is walked); ``"mix"``: ``count_mix`` on, a count budget between two
     tiers drawn by both, mixed by distance, not cut from the finer one's survivors."""
     from clod_adapter import camera_lod
 
     g, cams = chain
     mix = starts == "mix"
-    monkeypatch.setattr(camera_lod, "COUNT_MIX", mix)
     if mix:
-        starts = "chain"
+        g, starts = _mixing(g, True), "chain"
     if starts == "sampled":
         monkeypatch.setattr(camera_lod, "COST_SAMPLE_MIN", 50)
         monkeypatch.setattr(camera_lod, "COST_SAMPLE_STEP", 3)
@@ -481,14 +483,11 @@ def test_split_distance_is_the_largest_split_that_fits():
     assert split_distance(torch.ones(3), torch.ones(1), 3) == float("inf")
 
 
-def test_count_budgets_between_two_tiers_change_the_image_by_small_steps(chain, monkeypatch):
-    """With COUNT_MIX, a count budget falling from every Gaussian in view to what the next tier
+def test_count_budgets_between_two_tiers_change_the_image_by_small_steps(chain):
+    """With count_mix, a count budget falling from every Gaussian in view to what the next tier
     takes over draws the two tiers mixed by distance (tier_mix), exactly the budget: the image
     changes by small steps, far below the jump from the model's full detail to tier 1's."""
-    from clod_adapter import camera_lod
-
-    monkeypatch.setattr(camera_lod, "COUNT_MIX", True)
-    g, cams = chain
+    g, cams = _mixing(chain[0], True), chain[1]
     cam = cams[0]
     n0 = view_lod(replace(g, parents=None), cam).n_in_view
     n1 = view_lod(replace(g.parents, parents=None), cam).n_in_view  # tier 1's full detail in view
@@ -503,3 +502,44 @@ def test_count_budgets_between_two_tiers_change_the_image_by_small_steps(chain, 
     steps = [float((a - b).abs().mean()) for a, b in zip(imgs, imgs[1:])]
     jump = float((imgs[0] - render_lod(replace(g.parents, parents=None), cam, 1.0).image).abs().mean())
     assert jump > 0 and max(steps) < jump / 5, (max(steps), jump)
+
+
+def test_count_mix_is_kept_by_the_ply_and_written_only_where_set(chain, tmp_path):
+    """LodSettings.count_mix round-trips through the .ply header (``count_mix=True`` in the
+    ``clod_lod`` comment), is left out of it where False (files as without it), and a bad value is
+    refused naming the file."""
+    import plyfile
+
+    g, cams = chain
+    on, off = write_ply(tmp_path / "on.ply", _mixing(g, True)), write_ply(tmp_path / "off.ply", g)
+    assert read_ply(on).lod.count_mix is True and read_ply(off).lod.count_mix is False
+    header = {p: " ".join(plyfile.PlyData.read(str(p)).comments) for p in (on, off)}
+    assert "count_mix" not in header[off] and "count_mix=True" in header[on]
+    k = view_lod(replace(g, parents=None), cams[0]).n_in_view // 2
+    assert torch.equal(render_lod(read_ply(on), cams[0], budget=k).image, render_lod(_mixing(g, True), cams[0],
+                                                                                      budget=k).image)
+    bad = tmp_path / "bad.ply"
+    bad.write_bytes(on.read_bytes().replace(b"count_mix=True", b"count_mix=yes!"))
+    with pytest.raises(PlyFormatError, match="bad.ply.*count_mix"):
+        read_ply(bad)
+
+
+def test_choose_count_mix_takes_the_rule_that_scores_higher(chain):
+    """tiers.choose_count_mix: the rule whose count-budget frames score the higher mean PSNR on
+    the views given is the model's count_mix; a model without tiers is left as it is."""
+    from clod_adapter.metrics import psnr
+
+    g, cams = chain
+    for target_mix in (False, True):  # ground truths drawn by one rule: that rule must be chosen
+        gts = [render_lod(_mixing(g, target_mix), c, budget=max(1, round(
+            0.6 * view_lod(replace(g, parents=None), c).n_in_view))).image for c in cams]
+        chosen, info = tiers.choose_count_mix(g, cams, gts, shares=(0.6,))
+        scores = {m: sum(psnr(render_lod(_mixing(g, m), c, budget=max(1, round(
+            0.6 * view_lod(replace(g, parents=None), c).n_in_view))).image, gt, cap=True) for c, gt in zip(cams, gts))
+            for m in (False, True)}
+        assert scores[target_mix] > scores[not target_mix]  # the two rules draw different frames
+        assert chosen.lod.count_mix is target_mix is info["count_mix"] and (info["gain_db"] > 0) == target_mix
+        assert chosen.parents is g.parents
+    alone = replace(g, parents=None)
+    same, info = tiers.choose_count_mix(alone, cams, gts)
+    assert same is alone and info["count_mix"] is False and info["gain_db"] is None

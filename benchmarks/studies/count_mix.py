@@ -3,8 +3,8 @@
 A count budget of ``k`` on a model with merged tiers walks down the chain: the next tier takes it
 over where that tier's full detail draws at least :data:`clod_adapter.camera_lod.COUNT_TAKE_SHARE`
 of ``k`` (then drawing fewer). Where the walk ends in a tier that draws more than ``k`` and the
-next tier refused it, rule ``walk`` (``camera_lod.COUNT_MIX = False``) cuts that tier's survivors
-to ``k``; rule ``mix`` (:func:`clod_adapter.tier_mix.mix`) draws the nearer Gaussians of that
+next tier refused it, rule ``walk`` (``LodSettings.count_mix = False``, the default) cuts that
+tier's survivors to ``k``; rule ``mix`` (``count_mix = True``, :func:`clod_adapter.tier_mix.mix`) draws the nearer Gaussians of that
 tier's full detail and the farther of the next tier's, exactly ``k`` together; rule ``mix1`` is
 ``mix`` with a take share of 1 (the next tier takes a budget only where it fills it, so every
 budget between two tiers' counts is mixed).
@@ -29,6 +29,7 @@ adaptations cached).
 from __future__ import annotations
 
 import argparse
+from dataclasses import replace
 import statistics
 import sys
 import time
@@ -45,7 +46,7 @@ from clod_adapter.training import AdaptConfig  # noqa: E402
 
 #: the decimators' shares of the input whose counts per view are budgets
 POINTS = (0.5, 0.3, 0.15, 0.08)
-#: rule -> (COUNT_MIX, COUNT_TAKE_SHARE)
+#: rule -> (LodSettings.count_mix, camera_lod.COUNT_TAKE_SHARE)
 RULES = {"walk": (False, 0.6), "mix": (True, 0.6), "mix1": (True, 1.0)}
 
 
@@ -56,7 +57,8 @@ def mean_psnr(images, gts) -> float:
 
 def draw(model, cams, ks, rule):
     """(renders, mean wall ms per view) of ``model`` at count budgets ``ks`` (one per view) by ``rule``."""
-    camera_lod.COUNT_MIX, camera_lod.COUNT_TAKE_SHARE = RULES[rule]
+    mix, camera_lod.COUNT_TAKE_SHARE = RULES[rule]
+    model = replace(model, lod=replace(model.lod, count_mix=mix))
     t0 = time.perf_counter()
     outs = [render_lod(model, c, budget=k) for c, k in zip(cams, ks)]
     return outs, (time.perf_counter() - t0) * 1e3 / len(cams)
@@ -80,7 +82,7 @@ def study(name: str, split: str, shares, rounds: int, views: str = "scored") -> 
             points.append((f"{merge} {100 * share:g} %", [int(o.n_rendered) for o in outs],
                            f"{mean_psnr([o.image for o in outs], gts):.2f}"))
     points += [(f"{100 * s:g} % in view", [max(1, round(s * n)) for n in n_in], "-") for s in shares]
-    keep = camera_lod.COUNT_MIX, camera_lod.COUNT_TAKE_SHARE
+    keep = camera_lod.COUNT_TAKE_SHARE
     times = {(p, r): [] for p in range(len(points)) for r in RULES}
     t_in, got = [], {}
     try:
@@ -94,7 +96,7 @@ def study(name: str, split: str, shares, rounds: int, views: str = "scored") -> 
                     got[p, r], ms = draw(model, cams, ks, r)
                     times[p, r].append(ms)
     finally:
-        camera_lod.COUNT_MIX, camera_lod.COUNT_TAKE_SHARE = keep
+        camera_lod.COUNT_TAKE_SHARE = keep
     full = statistics.median(t_in)
     rows = []
     for p, (label, ks, dec_psnr) in enumerate(points):

@@ -101,7 +101,7 @@ def build_parser():
 
 
 def _tier_flags(p) -> None:
-    """The merged tiers (AdaptConfig's ``parent_share``, ``tier_*`` and ``popping_goal``)."""
+    """The merged tiers (AdaptConfig's ``parent_share``, ``tier_*``, ``popping_goal`` and ``count_mix``)."""
     p.add_argument("--parent-share", type=_shares, default=None, metavar="SHARE[,SHARE...]",
                    help="calibrated schedule: also adapt the input merged by splat-transform --decimate to each SHARE "
                         "of its Gaussians (descending), each tier handing over to the next at the levels where it "
@@ -124,6 +124,10 @@ def _tier_flags(p) -> None:
                    help="with merged tiers, widen the coarsest tier's fade window until the popping ratio on the "
                         "training views reaches 1.2 x RATIO (default 10 with the calibrated schedule; 0: keep it; "
                         "docs/studies.md)")
+    p.add_argument("--count-mix", choices=("off", "on", "auto"), default="off",
+                   help="with merged tiers, draw a count budget between two tiers from both (the finer tier's nearer "
+                        "Gaussians, the coarser's farther ones): 'on', 'off' (default: cut the finer tier to it) or "
+                        "'auto' (whichever scores higher on the training views; docs/studies.md)")
 
 
 def _run_flags(p) -> None:
@@ -188,6 +192,7 @@ def _config(args, world: int):
                            tier_finetune_steps=args.tier_finetune_steps,
                            tier_iteration_share=args.tier_iteration_share,
                            tier_merge=args.tier_merge, tier_time_cap=args.tier_time_cap, popping_goal=args.popping_goal,
+                           count_mix=args.count_mix,
                            faint_share=args.faint_share, keep_share=args.keep_share, recovery_steps=args.recovery_steps, **kw)
     except ValueError as e:  # "<field> must be ...": the field is the flag
         field, _, rest = str(e).partition(" ")

@@ -77,7 +77,8 @@ def tier_chain_of(gaussians: Gaussians) -> list:
 def lod_comment(settings: LodSettings) -> str:
     """The header comment that stores ``settings`` (``clod_lod key=value ...``)."""
     items = {k: v for k, v in settings.to_dict().items()
-             if not k.startswith("tier_") or settings.tier_s_v > 0}  # a model without a tier: as before
+             if (not k.startswith("tier_") or settings.tier_s_v > 0)  # a model without a tier: no tier keys
+             and (k != "count_mix" or v)}  # written only where set
     return LOD_COMMENT + " " + " ".join(f"{k}={v!r}" if isinstance(v, float) else f"{k}={v}"
                                         for k, v in items.items())
 
@@ -100,6 +101,10 @@ def parse_lod_comment(comments, path: PathLike = "<ply>") -> "LodSettings | None
                     kw[k] = float(v)
                 elif k == "fade":
                     kw[k] = v
+                elif k == "count_mix":
+                    if v not in ("True", "False"):
+                        raise ValueError(f"count_mix must be True or False, got {v!r}")
+                    kw[k] = v == "True"
             return LodSettings(**kw)
         except (ValueError, TypeError) as e:
             raise PlyFormatError(path, f"bad '{LOD_COMMENT}' header comment {c!r}: {e}") from None

@@ -591,6 +591,8 @@ def _add_parent_tier(ply_path: Path, scene_root: Path, out_dir: Path, cfg: Adapt
         return done("no merged tier beats the model at equal predicted time on the training views")
     if not nested and cfg.popping_goal > 0:
         linked = _tail_width(linked, ply_path, scene, cams, cfg, o, quiet, info)
+    if not nested and cfg.count_mix != "off":
+        linked = _count_rule(linked, cams, imgs, cfg, o, info)
     write_ply(out_dir / PLY_NAME, linked)
     st = linked.lod
     info.update({"used": True, "tier_s_v": st.tier_s_v, "tier_start": st.tier_start, "attached": len(linked.parents),
@@ -613,6 +615,23 @@ def _tail_width(linked, ply_path: Path, scene, cams, cfg: AdaptConfig, o: AdaptO
     linked, tail = tail_width(linked, base, cams[::2], scores, goal=cfg.popping_goal, background=cfg.background,
                               log=lambda m: o.log("clod-adapt: " + m))
     info["tail"] = {**tail, "seconds": round(time.perf_counter() - t0, 1)}
+    return linked
+
+
+def _count_rule(linked, cams, imgs, cfg: AdaptConfig, o: AdaptOptions, info: dict):
+    """``cfg.count_mix`` on the linked model: ``"on"`` sets ``LodSettings.count_mix``; ``"auto"``
+    chooses it on the choice views (:func:`clod_adapter.tiers.choose_count_mix`); recorded in
+    ``info["count_mix"]``."""
+    from .. import tiers
+
+    if cfg.count_mix == "on":
+        info["count_mix"] = {"count_mix": True, "gain_db": None}
+        return replace(linked, lod=replace(linked.lod, count_mix=True))
+    t0 = time.perf_counter()
+    linked, choice = tiers.choose_count_mix(linked, cams, imgs, background=cfg.background)
+    info["count_mix"] = {**choice, "seconds": round(time.perf_counter() - t0, 1)}
+    o.log(f"clod-adapt: count budgets between two tiers {'mixed by distance' if choice['count_mix'] else 'cut'} "
+          f"(mix - cut {choice['gain_db']:+.2f} dB on {len(cams)} training views)")
     return linked
 
 

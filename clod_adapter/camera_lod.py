@@ -1302,8 +1302,8 @@ def _taken_at(k: int) -> int:
 
 def _mixes(settings: Sequence[lod.LodSettings]) -> bool:
     """Whether a chain's count budgets between two tiers draw both mixed by distance: the model's
-    (tier 0's) ``LodSettings.count_mix`` (:func:`clod_adapter.tier_mix.choose`; docs/studies.md "A
-    count budget between two tiers, mixed by distance")."""
+    (tier 0's) ``LodSettings.count_mix`` (chosen by :func:`clod_adapter.tiers.choose_count_mix`;
+    docs/studies.md "A count budget between two tiers, mixed by distance")."""
     return bool(settings) and settings[0] is not None and settings[0].count_mix
 
 
@@ -1359,8 +1359,9 @@ def _render_parts(gaussians: Gaussians, parts, sel_c: Optional[LodSelection], n_
 
 def _render_budget_parts(gaussians: Gaussians, par: TierBudget, t1: float, background, sh_degree, backend):
     """:func:`_render_parts` of a budget past a hand-over (:class:`TierBudget`)."""
-    own = next((sel for d, _, sel in par.parts() if d == 0), None)
-    n_p = sum(int(sel.indices.numel()) for d, _, sel in par.parts() if d > 0)
+    parts = par.parts()
+    own = next((sel for d, _, sel in parts if d == 0), None)
+    n_p = sum(int(sel.indices.numel()) for d, _, sel in parts if d > 0)
     return _render_parts(gaussians, par.views(), own, n_p, par.s_v, t1, background, sh_degree, backend)
 
 

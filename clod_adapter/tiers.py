@@ -306,11 +306,6 @@ def link(model: Gaussians, candidates: Sequence[Gaussians], cameras: Sequence, i
     return model, tried
 
 
-__all__ = ["decimated", "MERGES", "choice_views", "predicted_ms", "first_share", "TIER_TIME_CAP", "TIER_SHARE_STEP",
-           "TIER_SHARE_TRIES", "attach", "choose", "link", "level_curve", "TierChoice", "SWITCH_S_V", "PARENT_S_V",
-           "PARENT_MIN_GAUSSIANS", "CHOOSE_VIEWS", "DEFAULT_SHARES", "CHOOSE_RULES", "CHOOSE_RULE", "CHOOSE_MARGIN_DB"]
-
-
 #: the count budgets :func:`choose_count_mix` compares the two rules at: shares of the model's
 #: Gaussians in view
 COUNT_MIX_SHARES = (0.5, 0.3, 0.15, 0.08)
@@ -340,3 +335,9 @@ def choose_count_mix(model: Gaussians, cameras: Sequence, images: Sequence, *, s
                 scores[m].append(psnr(render_lod(g, cam, budget=k, background=bg).image, img, cap=True))
     gain = statistics.mean(scores[True]) - statistics.mean(scores[False])
     return rules[gain > 0], {"count_mix": gain > 0, "gain_db": round(gain, 3), "shares": list(shares)}
+
+
+__all__ = ["decimated", "MERGES", "choice_views", "predicted_ms", "first_share", "TIER_TIME_CAP", "TIER_SHARE_STEP",
+           "TIER_SHARE_TRIES", "attach", "choose", "link", "level_curve", "TierChoice", "SWITCH_S_V", "PARENT_S_V",
+           "PARENT_MIN_GAUSSIANS", "CHOOSE_VIEWS", "DEFAULT_SHARES", "CHOOSE_RULES", "CHOOSE_RULE", "CHOOSE_MARGIN_DB",
+           "choose_count_mix", "COUNT_MIX_SHARES"]

@@ -98,7 +98,7 @@ class LodSettings:
             (:func:`clod_adapter.tier_mix.mix`), where False cuts the finer tier to it
             (:func:`clod_adapter.camera_lod.budget_walk`); the model's setting (tier 0's) holds
             for the whole chain. Chosen per scene by ``clod-adapt --count-mix auto``
-            (:func:`clod_adapter.tier_mix.choose`).
+            (:func:`clod_adapter.tiers.choose_count_mix`).
     """
 
     max_sv: float = 5.0

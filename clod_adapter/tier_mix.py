@@ -1,5 +1,6 @@
 """A count budget between two merged tiers, drawn as one mixed frame (a model whose
-``LodSettings.count_mix`` is set: ``clod-adapt --count-mix on|auto``; off by default).
+``LodSettings.count_mix`` is set: chosen per scene by ``clod-adapt``'s default ``--count-mix auto``,
+or ``--count-mix on``).
 
 A count budget of ``k`` Gaussians on a model with merged tiers (docs/lod_rule.md "The tiers")
 that ends in a tier whose full detail (its start, where the ``s_v`` rule first draws it alone)

@@ -156,9 +156,9 @@ class AdaptConfig:
             schedule; 0: the tier's own window (docs/studies.md "The coarsest tier's window").
         count_mix: with merged tiers, whether a count budget between two tiers draws both mixed
             by distance (``LodSettings.count_mix``): ``"off"`` (cut the finer tier to it),
-            ``"on"``, or ``"auto"``, the rule scoring the higher PSNR on the training views
-            (:func:`clod_adapter.tiers.choose_count_mix`; docs/studies.md "A count budget between
-            two tiers, mixed by distance").
+            ``"on"``, or ``"auto"`` (default), the rule scoring the higher PSNR on the training
+            views (:func:`clod_adapter.tiers.choose_count_mix`; docs/studies.md "A count budget
+            between two tiers, mixed by distance").
         tier_iteration_share: each merged tier learns its level of detail for this share of
             ``iterations`` (rounded, at least 1 when ``iterations`` > 0). Default 1: a finer ladder of
             five tiers at half the steps each was not better on the validation views
@@ -218,7 +218,7 @@ class AdaptConfig:
     tier_merge: str = "decimate"
     tier_time_cap: Optional[float] = None
     popping_goal: Optional[float] = None
-    count_mix: str = "off"
+    count_mix: str = "auto"
     faint_share: Optional[float] = None
     keep_share: float = 1.0
     recovery_steps: int = 1000

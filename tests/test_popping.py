@@ -97,7 +97,7 @@ def test_popping_goal_config():
 
 
 def test_count_mix_config():
-    """AdaptConfig.count_mix: off by default, one of off / on / auto, a bad value named."""
-    assert AdaptConfig().count_mix == "off" and AdaptConfig(count_mix="auto").count_mix == "auto"
+    """AdaptConfig.count_mix: auto by default, one of off / on / auto, a bad value named."""
+    assert AdaptConfig().count_mix == "auto" and AdaptConfig(count_mix="off").count_mix == "off"
     with pytest.raises(ValueError, match="count_mix must be one of off, on, auto"):
         AdaptConfig(count_mix="yes")

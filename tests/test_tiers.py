@@ -243,7 +243,7 @@ def test_tier_iteration_share_sets_each_tiers_steps():
 def test_adapt_job_builds_the_tier_or_says_why_not(tiny_model, tmp_path, monkeypatch):
     """clod-adapt: under PARENT_MIN_GAUSSIANS no tier (and metrics.json says why); over it, the
     merged input is adapted into OUT/parents and, when it pays, stored as the lod_parent element
-    (with ``--count-mix auto``'s choice)."""
+    (with the default ``--count-mix auto``'s choice)."""
     import json
 
     from clod_adapter.cli.adapt import main
@@ -260,7 +260,7 @@ def test_adapt_job_builds_the_tier_or_says_why_not(tiny_model, tmp_path, monkeyp
     monkeypatch.setattr(tiers, "PARENT_MIN_GAUSSIANS", 100)
     out = tmp_path / "tier"
     assert main(args + ["-o", str(out), "--parent-share", "0.2", "--tier-finetune-steps", "7",
-                        "--tier-iteration-share", "0.5", "--count-mix", "auto"]) == 0
+                        "--tier-iteration-share", "0.5"]) == 0
     tier = json.loads((out / "metrics.json").read_text())["tier"]
     tried = tier["time_cap"]["tried"]  # the first merge's share, lowered while predicted over the cap
     assert tier["time_cap"]["cap"] == tiers.TIER_TIME_CAP and tried[0][0] == 0.2
@@ -275,7 +275,7 @@ def test_adapt_job_builds_the_tier_or_says_why_not(tiny_model, tmp_path, monkeyp
     assert (g.parents is not None) == tier["used"]
     if tier["used"]:
         assert g.lod.tier_s_v == tier["tier_s_v"] and len(g.parents) == n_parents
-        # --count-mix auto: chosen on the training views, recorded, and carried by the file
+        # --count-mix auto (the default): chosen on the training views, recorded, and carried by the file
         assert g.lod.count_mix is tier["count_mix"]["count_mix"] is (tier["count_mix"]["gain_db"] > 0)
 
 

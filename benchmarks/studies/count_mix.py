@@ -3,7 +3,7 @@
 A count budget of ``k`` on a model with merged tiers walks down the chain: the next tier takes it
 over where that tier's full detail draws at least :data:`clod_adapter.camera_lod.COUNT_TAKE_SHARE`
 of ``k`` (then drawing fewer). Where the walk ends in a tier that draws more than ``k`` and the
-next tier refused it, rule ``walk`` (``LodSettings.count_mix = False``, the default) cuts that
+next tier refused it, rule ``walk`` (``LodSettings.count_mix = False``) cuts that
 tier's survivors to ``k``; rule ``mix`` (``count_mix = True``, :func:`clod_adapter.tier_mix.mix`) draws the nearer Gaussians of that
 tier's full detail and the farther of the next tier's, exactly ``k`` together; rule ``mix1`` is
 ``mix`` with a take share of 1 (the next tier takes a budget only where it fills it, so every

@@ -124,10 +124,10 @@ def _tier_flags(p) -> None:
                    help="with merged tiers, widen the coarsest tier's fade window until the popping ratio on the "
                         "training views reaches 1.2 x RATIO (default 10 with the calibrated schedule; 0: keep it; "
                         "docs/studies.md)")
-    p.add_argument("--count-mix", choices=("off", "on", "auto"), default="off",
+    p.add_argument("--count-mix", choices=("off", "on", "auto"), default="auto",
                    help="with merged tiers, draw a count budget between two tiers from both (the finer tier's nearer "
-                        "Gaussians, the coarser's farther ones): 'on', 'off' (default: cut the finer tier to it) or "
-                        "'auto' (whichever scores higher on the training views; docs/studies.md)")
+                        "Gaussians, the coarser's farther ones): 'on', 'off' (cut the finer tier to it) or "
+                        "'auto' (default: whichever scores higher on the training views; docs/studies.md)")
 
 
 def _run_flags(p) -> None:

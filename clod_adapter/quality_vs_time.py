@@ -454,10 +454,13 @@ def compare(adapted: Gaussians, base: Gaussians, fit_cams: Sequence, cams: Seque
     return comp
 
 
-def n_renders(n_views: int, repeats: int, full_rounds: int = FULL_ROUNDS, merge: bool = True) -> int:
-    """About how many renders :func:`compare` makes (for a progress bar)."""
-    n = 1 + len(S_VS) + len(COST_SHARES) + 2 * len(STATIC_SHARES) + (2 * len(DECIMATE_SHARES) if merge else 0)
-    n += 9 if merge else 0  # the equal-count points (about three in range, three methods each)
+def n_renders(n_views: int, repeats: int, full_rounds: int = FULL_ROUNDS, merge: bool = True,
+              n_levels: int = len(S_VS)) -> int:
+    """About how many renders :func:`compare` makes (for a progress bar); ``n_levels``: the
+    adapted model's levels, ``len(clod_s_vs(adapted))``."""
+    n = 1 + n_levels + len(COST_SHARES) + 2 * len(STATIC_SHARES) + (2 * len(DECIMATE_SHARES) if merge else 0)
+    # the equal-count points: about three in range per decimator, three methods each
+    n += 3 * len(DECIMATORS) * 3 if merge else 0
     return n_views * (n * (2 + repeats) + 2 * (1 + full_rounds))
 
 

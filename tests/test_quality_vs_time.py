@@ -109,11 +109,12 @@ def test_readme_results_table_is_the_generated_one():
 
 
 @pytest.mark.slow
-def test_clod_eval_gives_the_benchmarks_cells(tmp_path, monkeypatch):
+def test_clod_eval_gives_the_benchmarks_cells(tmp_path, monkeypatch, capsys):
     """On the demo scene, clod-eval and benchmarks/quality_vs_time.py compare the same settings
     and say the same cells. Both time every render through qvt.timed_call; here it reads a
     render's time from its drawn count, so the two runs' times, and so their cells, are equal
-    exactly (wall time would differ between two runs)."""
+    exactly (wall time would differ between two runs). clod-eval's progress ends at 90-100 % of
+    its total (qvt.n_renders counts the comparison's renders), never past it."""
     from clod_adapter.cli.eval import main as eval_main
     from clod_adapter.splat_transform import find_splat_transform
 
@@ -129,10 +130,13 @@ def test_clod_eval_gives_the_benchmarks_cells(tmp_path, monkeypatch):
     want = json.loads((run / "demo.json").read_text())["cells"]
     demo = tmp_path / "bench" / "demo_input"
     code = eval_main([str(tmp_path / "bench" / "demo" / "iterations-40"), "--images", str(demo / "scene"),
-                      "--pretrained", str(demo / "pretrained" / "point_cloud.ply"), "--no-lpips", "--quiet",
+                      "--pretrained", str(demo / "pretrained" / "point_cloud.ply"), "--no-lpips",
                       "--timing-repeats", "1", "--dlod-iterations", "0", "--sv-steps", "3", "--budgets", "1,0.25",
                       "-o", str(tmp_path / "report")])
     assert code == 0
+    bar = [ln for ln in capsys.readouterr().err.splitlines() if ln.startswith("clod-eval: ") and " render (" in ln]
+    n, total = (int(x) for x in bar[-1].split()[1].split("/"))
+    assert 0.9 * total <= n <= total and not any("/?" in ln for ln in bar)
     rep = json.loads((tmp_path / "report" / "report.json").read_text())["quality_vs_time"]
     assert rep["cells"] == want
     assert len([c for c in want if c["kind"] == "count"]) >= 2 and rep["decimators_run"]

@@ -642,7 +642,8 @@ def evaluate_report(adapted: Union[os.PathLike, Gaussians], scene, out_dir: os.P
     ev = _eval_inputs(adapted, scene, o)
     extra = len(BASELINES) + (len(DECIMATORS) if o.merge_tool else 0) + (1 if o.dlod_iterations > 0 else 0)
     n_renders = len(ev.cams) * (len(ev.s_vs) + 1 + len(ev.budgets) * (1 + extra)) * (1 + max(o.timing_repeats, 0))
-    n_renders += qvt.n_renders(len(ev.cams), max(o.timing_repeats, 1), o.full_rounds, o.merge_tool is not None)
+    n_renders += qvt.n_renders(len(ev.cams), max(o.timing_repeats, 1), o.full_rounds, o.merge_tool is not None,
+                               n_levels=len(qvt.clod_s_vs(ev.adapted)))
     ev.bar = progress_bar(n_renders + o.popping_steps + 2, "clod-eval", unit="render", disable=not o.progress,
                           leave=False)
     t0 = time.perf_counter()

@@ -156,7 +156,10 @@ def tail_width(model: Gaussians, base: Gaussians, cameras: Sequence, scores: Opt
     """``clod-adapt``'s window for the coarsest tier of a model with merged tiers: the narrowest of
     the tier's own ``fade_width`` and the wider ``widths`` whose median :func:`popping_ratio` over
     ``cameras`` (training views) reaches ``goal`` times :data:`TAIL_MARGIN`; where none does, the
-    one with the largest median. Down to its last few merged splats the coarsest tier's Gaussians
+    widest. On the validation views (never trained on) the median ratio did not fall from one
+    width to the next wider up to 2 on any shared scene, while the training views' medians did
+    (docs/studies.md "The coarsest tier's window"), so a narrower width with a larger training
+    median is not taken over the widest. Down to its last few merged splats the coarsest tier's Gaussians
     each leave within a step or two of the sweep, and a wider window lets them leave over more of
     it; a narrow one keeps the cheap frames sharper (docs/studies.md "The coarsest tier's
     window"), so it is widened only as far as the scene needs.
@@ -180,10 +183,8 @@ def tail_width(model: Gaussians, base: Gaussians, cameras: Sequence, scores: Opt
         med = statistics.median(ratios)
         tried.append([w, med, ratios])
         log(f"coarsest tier's window {w:g}: popping {med:.1f}x (median of {len(ratios)} training views)")
-        reached = med >= goal * TAIL_MARGIN
-        if reached or best is None or med > best[1]:
-            best = (w, med)
-        if reached:
+        best = (w, med)  # the widest tried so far: kept where none reaches the goal
+        if med >= goal * TAIL_MARGIN:
             break
     return with_coarsest_width(model, best[0]), {"chosen": best[0], "widths": tried, "goal": goal,
                                                  "asked": goal * TAIL_MARGIN}

@@ -34,7 +34,7 @@ def test_with_coarsest_width_sets_only_the_last_tier(chain):
 def test_tail_width_takes_the_narrowest_window_that_reaches_the_goal(chain, monkeypatch):
     """The model's own window where it already reaches the goal (one try); otherwise the
     narrowest wider one whose median over the views reaches goal x TAIL_MARGIN, or, where none
-    does, the one with the largest median; the returned model carries it."""
+    does, the widest (4 here, though 2's median is larger); the returned model carries it."""
     from clod_adapter import popping
 
     model, cams = chain
@@ -48,7 +48,7 @@ def test_tail_width_takes_the_narrowest_window_that_reaches_the_goal(chain, monk
 
     monkeypatch.setattr(popping, "popping_ratio", fake_ratio)
     assert tier_chain(model)[-1].lod.fade_width == 0.5
-    for goal, chosen, tries in ((3.0, 0.5, 1), (10.0, 2.0, 3), (20.0, 2.0, 4), (8.0 / TAIL_MARGIN, 1.0, 2)):
+    for goal, chosen, tries in ((3.0, 0.5, 1), (10.0, 2.0, 3), (20.0, 4.0, 4), (8.0 / TAIL_MARGIN, 1.0, 2)):
         out, info = tail_width(model, base, cams, goal=goal, widths=(1.0, 2.0, 4.0))
         assert info["chosen"] == chosen and len(info["widths"]) == tries, (goal, info)
         assert tier_chain(out)[-1].lod.fade_width == chosen

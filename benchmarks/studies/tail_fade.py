@@ -1,13 +1,15 @@
-"""How long should the hand-overs and the coarsest tier's fade last? Popping against quality at
-equal frame time, on one adaptation per input, for render settings of its chain of merged tiers.
+"""How long should the hand-overs and the coarsest tier's fade last, and where should the merged
+tiers hand over? Popping against quality at equal frame time, on one adaptation per input, for
+render settings of its chain of merged tiers.
 
 For each input (default: fern, maskgaussian, skull; validation views by default, a design
 question) it takes ``clod-adapt``'s default adaptation (cached under
 ``runs/bench/<input>/default<_val>``) and redraws it with each variant of :data:`VARIANTS`:
 ``tier_fade`` (the cross-fade from each tier to the next lasts from ``tier_s_v`` to ``tier_fade
-tier_s_v``) and the coarsest tier's window ``fade_width`` (how far in ``ln s_v`` each of its
-Gaussians takes to leave; the finer tiers keep the model's). Nothing is trained again: both are
-drawing settings of the file (``clod_lod_tier`` comments). It also prints the coarsest window
+tier_s_v``), the coarsest tier's window ``fade_width`` (how far in ``ln s_v`` each of its
+Gaussians takes to leave; the finer tiers keep the model's) and an earlier hand-over out of every
+merged tier (its ``tier_s_v``; the input's own hand-over to the first tier as chosen). Nothing is
+trained again: all are drawing settings of the file (``clod_lod_tier`` comments). It also prints the coarsest window
 ``clod-adapt``'s rule chose on the training views (``--popping-goal``,
 :func:`clod_adapter.popping.tail_width`), so the rule can be judged on views it never saw.
 
@@ -49,13 +51,16 @@ from clod_adapter.splat_transform import find_splat_transform  # noqa: E402
 from clod_adapter.storage import ply_bytes  # noqa: E402
 from clod_adapter.training import AdaptConfig  # noqa: E402
 
-#: (tier_fade, the coarsest tier's fade_width); None: as ``clod-adapt`` wrote it (``tier_fade`` 1.25)
-VARIANTS = ((None, 0.5), (None, 1.0), (None, 2.0), (None, 3.0), (None, 4.0), (1.4, 2.0))
+#: (tier_fade, the coarsest tier's fade_width, the merged tiers' tier_s_v); None: as
+#: ``clod-adapt`` wrote it (``tier_fade`` 1.25, ``tier_s_v`` where the time rule put it)
+VARIANTS = ((None, 0.5, None), (None, 1.0, None), (None, 2.0, None), (None, 3.0, None), (None, 4.0, None),
+            (1.4, 2.0, None), (None, 2.0, 1.6), (None, 2.0, 1.3))
 
 
-def redrawn(model, tier_fade, last_width):
-    """``model`` with every hand-over's ``tier_fade`` and the coarsest tier's ``fade_width`` set
-    (None: as written)."""
+def redrawn(model, tier_fade, last_width, later_s_v=None):
+    """``model`` with every hand-over's ``tier_fade``, the coarsest tier's ``fade_width`` and
+    the hand-over of every merged tier but the coarsest (``tier_s_v`` of tiers 1, 2, ...; the
+    input's own to tier 1 as written) set (None: as written)."""
     chain = tier_chain(model)
     out = None
     for k in range(len(chain) - 1, -1, -1):
@@ -64,13 +69,16 @@ def redrawn(model, tier_fade, last_width):
             st = replace(st, tier_fade=float(tier_fade))
         if last_width is not None and k == len(chain) - 1:
             st = replace(st, fade_width=float(last_width))
+        if later_s_v is not None and 0 < k < len(chain) - 1:
+            st = replace(st, tier_s_v=float(later_s_v))
         out = replace(chain[k], lod=st, parents=out)
     return out
 
 
 def label(v) -> str:
     """A variant's row name in the summary."""
-    return ("" if v[0] is None else f"`tier_fade` {v[0]:g}, ") + f"coarsest `fade_width` {v[1]:g}"
+    return (("" if v[0] is None else f"`tier_fade` {v[0]:g}, ") + f"coarsest `fade_width` {v[1]:g}"
+            + ("" if v[2] is None else f", merged tiers' `tier_s_v` {v[2]:g}"))
 
 
 def popping(model, cams, base, sig, steps: int = 61):

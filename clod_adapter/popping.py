@@ -176,7 +176,7 @@ def tail_width(model: Gaussians, base: Gaussians, cameras: Sequence, scores: Opt
     if len(chain) < 2 or model.sigma_d is None:
         return model, {"chosen": None, "widths": []}
     own = float(chain[-1].lod.fade_width)
-    tried, best = [], None
+    tried, chosen = [], own
     for w in [own] + [float(x) for x in widths if x > own]:
         m = with_coarsest_width(model, w)
         ratios = [float(popping_ratio(m, base, c, scores, steps=steps, background=background)["ratio"])
@@ -184,8 +184,8 @@ def tail_width(model: Gaussians, base: Gaussians, cameras: Sequence, scores: Opt
         med = statistics.median(ratios)
         tried.append([w, med, ratios])
         log(f"coarsest tier's window {w:g}: popping {med:.1f}x (median of {len(ratios)} training views)")
-        best = (w, med)  # the widest tried so far: kept where none reaches the goal
+        chosen = w  # the widest tried so far: kept where none reaches the goal
         if med >= goal * TAIL_MARGIN:
             break
-    return with_coarsest_width(model, best[0]), {"chosen": best[0], "widths": tried, "goal": goal,
-                                                 "asked": goal * TAIL_MARGIN}
+    return with_coarsest_width(model, chosen), {"chosen": chosen, "widths": tried, "goal": goal,
+                                               "asked": goal * TAIL_MARGIN}

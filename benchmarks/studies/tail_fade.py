@@ -9,8 +9,8 @@ question) it takes ``clod-adapt``'s default adaptation (cached under
 tier_s_v``), the coarsest tier's window ``fade_width`` (how far in ``ln s_v`` each of its
 Gaussians takes to leave; the finer tiers keep the model's) and an earlier hand-over out of every
 merged tier (its ``tier_s_v``; the input's own hand-over to the first tier as chosen). Nothing is
-trained again: all are drawing settings of the file (``clod_lod_tier`` comments). It also prints the coarsest window
-``clod-adapt``'s rule chose on the training views (``--popping-goal``,
+trained again: all are drawing settings of the file (``clod_lod_tier`` comments). It also prints
+the coarsest window ``clod-adapt``'s rule chose on the training views (``--popping-goal``,
 :func:`clod_adapter.popping.tail_width`), so the rule can be judged on views it never saw.
 
 Per variant it prints the popping ratio of ``clod-eval`` (one static switch against the largest

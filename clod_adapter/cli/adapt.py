@@ -122,8 +122,8 @@ def _tier_flags(p) -> None:
                         "as given; docs/studies.md)")
     p.add_argument("--popping-goal", type=float, default=None, metavar="RATIO",
                    help="with merged tiers, widen the coarsest tier's fade window until the popping ratio on the "
-                        "training views reaches 1.2 x RATIO, else to 2 (default 10 with the calibrated schedule; 0: keep it; "
-                        "docs/studies.md)")
+                        "training views reaches 1.2 x RATIO, else to 2 (default 10 with the calibrated schedule; "
+                        "0: keep it; docs/studies.md)")
     p.add_argument("--count-mix", choices=("off", "on", "auto"), default="auto",
                    help="with merged tiers, draw a count budget between two tiers from both (the finer tier's nearer "
                         "Gaussians, the coarser's farther ones): 'on', 'off' (cut the finer tier to it) or "

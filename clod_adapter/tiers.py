@@ -232,6 +232,12 @@ CHOOSE_RULE = "time"
 #: tier above at the hand-over on the views given (training views, where the input, fitted to them,
 #: is favoured over any merge)
 CHOOSE_MARGIN_DB = 1.5
+#: the latest ``s_v`` at which a merged tier hands over to the next (``AdaptConfig.tier_hand_over``):
+#: past it a merged tier's survivors thin out and each leaves a visible step; the input's own
+#: hand-over to the first tier stays the time rule's. Chosen on the validation views
+#: (docs/studies.md "The coarsest tier's window": popping up on every shared scene, no quality
+#: cell down by more than 0.01 dB)
+TIER_HAND_OVER = 1.6
 
 
 def choose(gaussians: Gaussians, parents: Gaussians, cameras: Sequence, images: Sequence, *, background=None,
@@ -289,20 +295,32 @@ def choose(gaussians: Gaussians, parents: Gaussians, cameras: Sequence, images: 
 
 
 def link(model: Gaussians, candidates: Sequence[Gaussians], cameras: Sequence, images: Sequence, *,
-         background=None, margin_db: float = CHOOSE_MARGIN_DB, log=None) -> tuple[Gaussians, list[dict]]:
+         background=None, margin_db: float = CHOOSE_MARGIN_DB, max_tier_s_v: float = 0.0,
+         log=None) -> tuple[Gaussians, list[dict]]:
     """``model`` with the first of its adapted candidate tiers that pays attached (:func:`attach`):
     by the ``"time"`` rule (:func:`choose`) each candidate in order (the next tier down first, a
     tier that does not pay skipped), then by the ``"psnr"`` rule the last (coarsest) one alone,
     for the cheap end of a scene whose merges lose at equal time. ``candidates``: the tiers below,
-    finest first, each with its own chain attached. Returns ``(model or the tiered model, one
-    record per try: rule, count, curves, tier_s_v, tier_start)``."""
+    finest first, each with its own chain attached. ``max_tier_s_v`` > 0: the hand-over is at
+    most there (``clod-adapt`` passes :data:`TIER_HAND_OVER` when ``model`` is itself a merged
+    tier); 0: where the rule put it. Returns ``(model or the tiered model, one record per try:
+    rule, count, curves, tier_s_v (applied), rule_s_v (the rule's), tier_start)``.
+
+    Raises:
+        ValueError: ``max_tier_s_v`` neither 0 nor > 1."""
+    if max_tier_s_v != 0.0 and not max_tier_s_v > 1.0:
+        raise ValueError(f"link: max_tier_s_v must be 0 (the rule's) or > 1, got {max_tier_s_v}")
     tried = []
     for i, (cand, rule) in enumerate([(c, "time") for c in candidates] + [(candidates[-1], "psnr")]):
         ch = choose(model, cand, cameras, images, background=background, rule=rule, margin_db=margin_db, log=log)
+        s_v = ch.tier_s_v if ch.tier_s_v is None or max_tier_s_v == 0.0 else min(ch.tier_s_v, float(max_tier_s_v))
         tried.append({"candidate": i if rule == "time" else len(candidates) - 1, "rule": rule, "parents": len(cand),
-                      "curves": ch.curves, "tier_s_v": ch.tier_s_v, "tier_start": ch.tier_start})
-        if ch.tier_s_v is not None:
-            return attach(model, cand, ch.tier_s_v, ch.tier_start), tried
+                      "curves": ch.curves, "tier_s_v": s_v, "rule_s_v": ch.tier_s_v, "tier_start": ch.tier_start})
+        if s_v is not None:
+            if s_v != ch.tier_s_v and log is not None:
+                log(f"parent tier: hands over at s_v = {s_v:g}, the latest a merged tier's may be (the rule's "
+                    f"{ch.tier_s_v:g})")
+            return attach(model, cand, s_v, ch.tier_start), tried
     return model, tried
 
 
@@ -338,6 +356,7 @@ def choose_count_mix(model: Gaussians, cameras: Sequence, images: Sequence, *, s
 
 
 __all__ = ["decimated", "MERGES", "choice_views", "predicted_ms", "first_share", "TIER_TIME_CAP", "TIER_SHARE_STEP",
-           "TIER_SHARE_TRIES", "attach", "choose", "link", "level_curve", "TierChoice", "SWITCH_S_V", "PARENT_S_V",
+           "TIER_SHARE_TRIES", "TIER_HAND_OVER", "attach", "choose", "link", "level_curve", "TierChoice", "SWITCH_S_V",
+           "PARENT_S_V",
            "PARENT_MIN_GAUSSIANS", "CHOOSE_VIEWS", "DEFAULT_SHARES", "CHOOSE_RULES", "CHOOSE_RULE", "CHOOSE_MARGIN_DB",
            "choose_count_mix", "COUNT_MIX_SHARES"]

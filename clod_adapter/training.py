@@ -154,6 +154,13 @@ class AdaptConfig:
             (:func:`clod_adapter.popping.tail_width`). Default
             :data:`clod_adapter.popping.POPPING_GOAL` (10, issue 36's goal) with the calibrated
             schedule; 0: the tier's own window (docs/studies.md "The coarsest tier's window").
+        tier_hand_over: with merged tiers, the latest ``s_v`` (of the tier's own) at which each
+            merged tier hands over to the next (:func:`clod_adapter.tiers.link`; the input's own
+            hand-over to the first tier stays where the time rule puts it). Default
+            :data:`clod_adapter.tiers.TIER_HAND_OVER` (1.6) with the calibrated schedule; 0:
+            where the time rule puts it (docs/studies.md "The coarsest tier's window": on the
+            validation views popping median fern 15.6 -> 17.9, MaskGaussian fern 15.2 -> 16.6,
+            skull 9.3 -> 11.9, no quality cell down by more than 0.01 dB).
         count_mix: with merged tiers, whether a count budget between two tiers draws both mixed
             by distance (``LodSettings.count_mix``): ``"off"`` (cut the finer tier to it),
             ``"on"``, or ``"auto"`` (default), the rule scoring the higher PSNR on the training
@@ -218,6 +225,7 @@ class AdaptConfig:
     tier_merge: str = "decimate"
     tier_time_cap: Optional[float] = None
     popping_goal: Optional[float] = None
+    tier_hand_over: Optional[float] = None
     count_mix: str = "auto"
     faint_share: Optional[float] = None
     keep_share: float = 1.0
@@ -318,6 +326,13 @@ class AdaptConfig:
         self.popping_goal = float(self.popping_goal)
         if not (math.isfinite(self.popping_goal) and self.popping_goal >= 0.0):
             raise ValueError(f"popping_goal must be >= 0 (a ratio), got {self.popping_goal}")
+        if self.tier_hand_over is None:
+            from .tiers import TIER_HAND_OVER
+
+            self.tier_hand_over = TIER_HAND_OVER if cal else 0.0
+        self.tier_hand_over = float(self.tier_hand_over)
+        if not (self.tier_hand_over == 0.0 or (math.isfinite(self.tier_hand_over) and self.tier_hand_over > 1.0)):
+            raise ValueError(f"tier_hand_over must be 0 (the time rule's) or an s_v > 1, got {self.tier_hand_over}")
         if self.count_mix not in COUNT_MIX_RULES:
             raise ValueError(f"count_mix must be one of {', '.join(COUNT_MIX_RULES)}, got {self.count_mix!r}")
         self.tier_iteration_share = float(self.tier_iteration_share)

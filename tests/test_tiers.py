@@ -228,6 +228,66 @@ def test_tier_time_cap_is_a_share_of_the_frame(tiny_model, tmp_path, capfd):
     assert "--tier-time-cap must be in [0, 1]" in err_line(capfd) and not out.exists()
 
 
+def test_link_hands_a_merged_tier_over_no_later_than_asked(tiered, monkeypatch):
+    """tiers.link(max_tier_s_v=S): the rule's hand-over where it is at or before S, else S; 0
+    keeps the rule's; a tier the rule leaves out stays out; the record keeps both."""
+    g, cams = tiered
+    model, parents = replace(g, parents=None), g.parents
+    said = []
+    for rule_s_v, cap, want in ((2.5, 1.6, 1.6), (2.5, 0.0, 2.5), (1.25, 1.6, 1.25), (None, 1.6, None)):
+        monkeypatch.setattr(tiers, "choose", lambda *a, s=rule_s_v, **k: tiers.TierChoice(s, 1.0, {}))
+        linked, tried = tiers.link(model, [parents], cams, [None], max_tier_s_v=cap, log=said.append)
+        assert tried[0]["rule_s_v"] == rule_s_v and tried[0]["tier_s_v"] == want
+        if want is None:
+            assert linked.parents is None and len(tried) == 2  # the time rule, then the psnr rule
+        else:
+            assert linked.lod.tier_s_v == want and linked.parents is parents
+    assert sum("hands over at s_v = 1.6" in m for m in said) == 1  # only where the cap moved it
+    for bad in (1.0, 0.5, -1.0, float("nan")):
+        with pytest.raises(ValueError, match="max_tier_s_v"):
+            tiers.link(model, [parents], cams, [None], max_tier_s_v=bad)
+
+
+def test_tier_hand_over_is_an_s_v_or_the_time_rule(tiny_model, tmp_path, capfd):
+    from clod_adapter.cli.adapt import main
+    from clod_adapter.training import AdaptConfig
+    from conftest import FAST, err_line
+
+    assert AdaptConfig().tier_hand_over == tiers.TIER_HAND_OVER == 1.6
+    assert AdaptConfig(schedule="paper").tier_hand_over == 0.0
+    assert AdaptConfig(tier_hand_over=0).tier_hand_over == 0.0 and AdaptConfig(tier_hand_over=3).tier_hand_over == 3.0
+    for bad in (1.0, 0.5, -1.0, float("nan"), float("inf")):
+        with pytest.raises(ValueError, match="tier_hand_over"):
+            AdaptConfig(tier_hand_over=bad)
+    out = tmp_path / "bad"
+    args = [str(tiny_model["ply"]), "--images", str(tiny_model["scene"]), *FAST, "-o", str(out)]
+    assert main(args + ["--tier-hand-over", "0.9"]) == 2
+    assert "--tier-hand-over must be 0" in err_line(capfd) and not out.exists()
+
+
+def test_adapt_job_caps_only_the_merged_tiers_hand_overs(tiny_model, tmp_path, monkeypatch):
+    """clod-adapt with two merged tiers: the first tier's own link (to the second) is capped at
+    --tier-hand-over, the input's link to the first tier is not."""
+    from clod_adapter.cli.adapt import main
+    from clod_adapter.splat_transform import find_splat_transform
+    from conftest import FAST
+
+    if find_splat_transform() is None:
+        pytest.skip("splat-transform is not installed (npm ci): the tier's merge needs it")
+    monkeypatch.setattr(tiers, "PARENT_MIN_GAUSSIANS", 100)
+    caps, link = [], tiers.link
+
+    def spy(*a, max_tier_s_v=0.0, **k):
+        caps.append(max_tier_s_v)
+        return link(*a, max_tier_s_v=max_tier_s_v, **k)
+
+    monkeypatch.setattr(tiers, "link", spy)
+    args = [str(tiny_model["ply"]), "--images", str(tiny_model["scene"]), *FAST, "--parent-share", "0.4,0.2",
+            "--tier-finetune-steps", "0", "--tier-time-cap", "0", "--tier-hand-over", "1.3"]
+    assert main(args + ["-o", str(tmp_path / "two")]) == 0
+    assert caps == [1.3, 0.0]  # the first tier's link (to the second) first, then the input's
+
+
 def test_tier_iteration_share_sets_each_tiers_steps():
     from clod_adapter.training import AdaptConfig
 

@@ -51,8 +51,8 @@ from clod_adapter.splat_transform import find_splat_transform  # noqa: E402
 from clod_adapter.storage import ply_bytes  # noqa: E402
 from clod_adapter.training import AdaptConfig  # noqa: E402
 
-#: (tier_fade, the coarsest tier's fade_width, the merged tiers' tier_s_v); None: as
-#: ``clod-adapt`` wrote it (``tier_fade`` 1.25, ``tier_s_v`` where the time rule put it)
+#: (tier_fade, the coarsest tier's fade_width, the merged tiers' tier_s_v); None: as the
+#: adaptation wrote it (``tier_fade`` 1.25, ``tier_s_v`` where its ``tier_hand_over`` put it)
 VARIANTS = ((None, 0.5, None), (None, 1.0, None), (None, 2.0, None), (None, 3.0, None), (None, 4.0, None),
             (1.4, 2.0, None), (None, 2.0, 1.6), (None, 2.0, 1.3))
 
@@ -116,7 +116,8 @@ def main() -> None:
             ply = RUNS / name / (args.reuse + split_suffix(args.split)) / "point_cloud.ply"
             cfg = json.loads((ply.parent / "metrics.json").read_text())["config"]
             log(f"[{name}] reusing {ply.parent}: tier_finetune_steps {cfg.get('tier_finetune_steps')}, "
-                f"tier_time_cap {cfg.get('tier_time_cap')}, popping_goal {cfg.get('popping_goal')}")
+                f"tier_time_cap {cfg.get('tier_time_cap')}, popping_goal {cfg.get('popping_goal')}, "
+                f"tier_hand_over {cfg.get('tier_hand_over', 0.0)}")
         else:
             ply = adapt_cached(name, AdaptConfig(**config), tag, split=args.split, log=log)
         adapted = load_model(ply)

@@ -124,6 +124,10 @@ def _tier_flags(p) -> None:
                    help="with merged tiers, widen the coarsest tier's fade window until the popping ratio on the "
                         "training views reaches 1.2 x RATIO, else to 2 (default 10 with the calibrated schedule; "
                         "0: keep it; docs/studies.md)")
+    p.add_argument("--tier-hand-over", type=float, default=None, metavar="S_V",
+                   help="with merged tiers, each merged tier hands over to the next at its own S_V at the latest "
+                        "(default 1.6 with the calibrated schedule; 0: where the time rule puts it; the input's own "
+                        "hand-over stays the rule's; docs/studies.md)")
     p.add_argument("--count-mix", choices=("off", "on", "auto"), default="auto",
                    help="with merged tiers, draw a count budget between two tiers from both (the finer tier's nearer "
                         "Gaussians, the coarser's farther ones): 'on', 'off' (cut the finer tier to it) or "
@@ -192,7 +196,7 @@ def _config(args, world: int):
                            tier_finetune_steps=args.tier_finetune_steps,
                            tier_iteration_share=args.tier_iteration_share,
                            tier_merge=args.tier_merge, tier_time_cap=args.tier_time_cap, popping_goal=args.popping_goal,
-                           count_mix=args.count_mix,
+                           tier_hand_over=args.tier_hand_over, count_mix=args.count_mix,
                            faint_share=args.faint_share, keep_share=args.keep_share, recovery_steps=args.recovery_steps, **kw)
     except ValueError as e:  # "<field> must be ...": the field is the flag
         field, _, rest = str(e).partition(" ")

@@ -518,7 +518,8 @@ def _add_parent_tier(ply_path: Path, scene_root: Path, out_dir: Path, cfg: Adapt
     adapted by the same job into ``out_dir/parents/`` (its own state, metrics and strip, and the
     next shares as its own parent tiers, ``out_dir/parents/parents/``, ...), and attached to
     ``point_cloud.ply`` where it beats the model at equal predicted frame time on the training
-    views (:func:`clod_adapter.tiers.choose`). Left out, with a note in ``metrics["tier"]``, for an
+    views (:func:`clod_adapter.tiers.choose`; a merged tier's own hand-over at its
+    ``cfg.tier_hand_over`` at the latest, :func:`clod_adapter.tiers.link`). Left out, with a note in ``metrics["tier"]``, for an
     input under :data:`clod_adapter.tiers.PARENT_MIN_GAUSSIANS` Gaussians, a data-parallel run,
     or without splat-transform."""
     from .. import tiers
@@ -583,6 +584,7 @@ def _add_parent_tier(ply_path: Path, scene_root: Path, out_dir: Path, cfg: Adapt
     dirs = _tier_dirs(pdir)
     cands = [parents] + [read_ply(d / PLY_NAME) for d in dirs[1:]]
     linked, tried = tiers.link(model, cands, cams, imgs, background=cfg.background,
+                               max_tier_s_v=cfg.tier_hand_over if nested else 0.0,
                                log=lambda m: o.log("clod-adapt: " + m))
     for t in tried:
         t["dir"] = str(dirs[t["candidate"]].relative_to(out_dir))

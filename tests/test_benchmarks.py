@@ -73,3 +73,17 @@ def test_results_scripts_say_what_they_produce_and_how_long_they_take():
         doc = ast.get_docstring(ast.parse(p.read_text()))
         assert "docs/results.md" in doc and "minutes" in doc, p
     assert len(list((BENCH / "studies").glob("*.py"))) >= 20
+
+
+def test_adapt_time_goal_reads_the_whole_jobs_seconds(common):
+    """quality_vs_time.py's goal 6 row: ``metrics.json`` ``job_seconds`` against 15 minutes, an
+    at-most goal whose margin is the minutes left; a run that did not record it is a miss."""
+    import importlib
+
+    qvt_bench = importlib.import_module("quality_vs_time")
+    met = qvt_bench.adapt_goal("skull", {"job_seconds": 600.0, "threads": 2})
+    assert met["met"] and met["value"] == 10.0 and qvt_bench.margin(met) == 5.0 and "2 threads" in met["goal"]
+    late = qvt_bench.adapt_goal("skull", {"job_seconds": 1020.0, "threads": 2})
+    assert not late["met"] and qvt_bench.margin(late) == -2.0
+    assert not qvt_bench.adapt_goal("skull", {"threads": 2})["met"]
+    assert qvt_bench.margin({"value": 3.0, "target": 1.0}) == 2.0  # at-least goals: value - target

@@ -312,8 +312,10 @@ def test_adapt_job_builds_the_tier_or_says_why_not(tiny_model, tmp_path, monkeyp
 
     args = [str(tiny_model["ply"]), "--images", str(tiny_model["scene"]), *FAST]
     assert main(args + ["-o", str(tmp_path / "small")]) == 0
-    tier = json.loads((tmp_path / "small" / "metrics.json").read_text())["tier"]
+    small = json.loads((tmp_path / "small" / "metrics.json").read_text())
+    tier = small["tier"]
     assert tier["used"] is False and "under 10,000" in tier["why"]
+    assert list(small)[-1] == "job_seconds" and small["job_seconds"] >= small["train_seconds"] > 0
     assert read_ply(tmp_path / "small" / "point_cloud.ply").parents is None
     if find_splat_transform() is None:
         pytest.skip("splat-transform is not installed (npm ci): the tier's merge needs it")
@@ -321,7 +323,10 @@ def test_adapt_job_builds_the_tier_or_says_why_not(tiny_model, tmp_path, monkeyp
     out = tmp_path / "tier"
     assert main(args + ["-o", str(out), "--parent-share", "0.2", "--tier-finetune-steps", "7",
                         "--tier-iteration-share", "0.5"]) == 0
-    tier = json.loads((out / "metrics.json").read_text())["tier"]
+    top = json.loads((out / "metrics.json").read_text())
+    tier = top["tier"]
+    assert top["job_seconds"] >= top["train_seconds"] + tier["seconds"]  # the whole job, every tier included
+    assert "job_seconds" not in json.loads((out / "parents" / "metrics.json").read_text())  # the top job's only
     tried = tier["time_cap"]["tried"]  # the first merge's share, lowered while predicted over the cap
     assert tier["time_cap"]["cap"] == tiers.TIER_TIME_CAP and tried[0][0] == 0.2
     assert tier["parent_share"] == tried[-1][0] and all(r > tiers.TIER_TIME_CAP for _, r in tried[:-1])

@@ -320,6 +320,8 @@ def run(ply_path: os.PathLike, scene_root: os.PathLike, out_dir: os.PathLike, cf
     ``distributed`` every process calls ``run`` with the same arguments: rank 0 logs, writes
     the state and the outputs and returns the metrics; the other ranks return ``{"rank",
     "world_size", "iteration", "train_seconds"}`` once the final state is written.
+    ``metrics.json`` ends with ``job_seconds``: this call's wall time in seconds, every phase and
+    merged tier included (a resumed run: from its resumption).
 
     SIGINT/SIGTERM: while inputs are read and evaluated (nothing written yet) the run stops at
     once; from the initialisation on, the signal only sets a flag, checked between iterations
@@ -337,6 +339,7 @@ def run(ply_path: os.PathLike, scene_root: os.PathLike, out_dir: os.PathLike, cf
             answering; the message says which state is on disk.
     """
     o = options if options is not None else AdaptOptions()
+    t_job = time.perf_counter()
     with StopFlag(abortable=True) as stop, deterministic_mode(o.deterministic):
         group = None
         try:
@@ -357,6 +360,8 @@ def run(ply_path: os.PathLike, scene_root: os.PathLike, out_dir: os.PathLike, cf
             if cfg.parent_share and "rank" not in metrics:
                 metrics = _add_parent_tier(Path(ply_path), Path(scene_root), Path(out_dir), cfg, o, stop, group,
                                            metrics)
+            if "rank" not in metrics:
+                metrics = _record_job_seconds(Path(out_dir), metrics, time.perf_counter() - t_job)
             return metrics
         except KeyboardInterrupt:
             if not getattr(stop, "state_saved", False):
@@ -500,6 +505,14 @@ def _record_leave_out(out_dir: Path, metrics: dict, record: dict) -> dict:
     kept one the phases after it read."""
     kept = {k: metrics["input_model"][k] for k in ("psnr", "ssim")}
     metrics = {**metrics, "input_ply": record["input_ply"], "leave_out": {**record, "kept_test": kept}}
+    with atomic_write(out_dir / METRICS_NAME, "w") as f:
+        json.dump({k: v for k, v in metrics.items() if k != "wall_seconds"}, f, indent=2)
+    return metrics
+
+
+def _record_job_seconds(out_dir: Path, metrics: dict, seconds: float) -> dict:
+    """``metrics.json`` with ``job_seconds``: the whole job's wall time (every phase and tier)."""
+    metrics = {**metrics, "job_seconds": round(seconds, 1)}
     with atomic_write(out_dir / METRICS_NAME, "w") as f:
         json.dump({k: v for k, v in metrics.items() if k != "wall_seconds"}, f, indent=2)
     return metrics

@@ -33,8 +33,9 @@ Outputs in ``runs/bench/quality_vs_time{_val}/<tag>/``: ``<input>.csv`` (every p
 ``--docs`` (test split): ``docs/results.md``, ``docs/results.json``, ``docs/quality_vs_time.png``
 and the results table between README.md's ``results-table`` markers.
 
-Takes about 20-30 minutes per shared scene on 2 cores (an adaptation of 10-15 minutes when not
-cached, the ceiling's fine-tunes, then about 90 settings x the test views x 7 renders)::
+Takes about 8-14 minutes per shared scene on 2 cores with the adaptation cached (the ceiling's
+fine-tunes, then about 90 settings x the test views x 7 renders), and 17-20 minutes more to adapt
+when it is not::
 
     python benchmarks/quality_vs_time.py --docs               # fern, maskgaussian, skull; test views
     python benchmarks/quality_vs_time.py --inputs skull --split val

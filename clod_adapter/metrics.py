@@ -37,26 +37,32 @@ def psnr(img: Tensor, gt: Tensor, cap: bool = False) -> float:
 
 
 def _window(dtype: torch.dtype, device: torch.device) -> Tensor:
+    """The 1-D Gaussian of the SSIM window [SSIM_WINDOW] (the 11x11 window is its outer product)."""
     x = torch.arange(SSIM_WINDOW, dtype=torch.float64) - SSIM_WINDOW // 2
     g = torch.exp(-(x ** 2) / (2 * SSIM_SIGMA ** 2))
-    g = g / g.sum()
-    return (g[:, None] * g[None, :]).to(dtype=dtype, device=device)
+    return (g / g.sum()).to(dtype=dtype, device=device)
 
 
 def ssim_map(img: Tensor, gt: Tensor) -> Tensor:
-    """Per-pixel SSIM map [H, W, C] of two [H, W, C] images (3DGS form, differentiable in img)."""
+    """Per-pixel SSIM map [H, W, C] of two [H, W, C] images (3DGS form, differentiable in img).
+
+    The 11x11 window is applied as two 1-D passes (rows, then columns; the same zero-padded
+    "same" filter, 22 taps a pixel instead of 121) over the five filtered images at once."""
     if img.shape != gt.shape or img.ndim != 3:
         raise ValueError(f"ssim expects two [H, W, C] images of one shape, got {tuple(img.shape)} and {tuple(gt.shape)}")
     c = img.shape[-1]
     x = img.permute(2, 0, 1)[None]
     y = gt.to(img.dtype).permute(2, 0, 1)[None]
-    w = _window(img.dtype, img.device).expand(c, 1, SSIM_WINDOW, SSIM_WINDOW).contiguous()
+    g = _window(img.dtype, img.device)
     pad = SSIM_WINDOW // 2
-    conv = lambda t: F.conv2d(t, w, padding=pad, groups=c)  # noqa: E731
-    mu_x, mu_y = conv(x), conv(y)
-    sxx = conv(x * x) - mu_x ** 2
-    syy = conv(y * y) - mu_y ** 2
-    sxy = conv(x * y) - mu_x * mu_y
+    stack = torch.cat([x, y, x * x, y * y, x * y], dim=1)  # [1, 5C, H, W]
+    k = stack.shape[1]
+    stack = F.conv2d(stack, g.view(1, 1, 1, -1).expand(k, 1, 1, SSIM_WINDOW), padding=(0, pad), groups=k)
+    stack = F.conv2d(stack, g.view(1, 1, -1, 1).expand(k, 1, SSIM_WINDOW, 1), padding=(pad, 0), groups=k)
+    mu_x, mu_y, exx, eyy, exy = stack.split(c, dim=1)
+    sxx = exx - mu_x ** 2
+    syy = eyy - mu_y ** 2
+    sxy = exy - mu_x * mu_y
     num = (2 * mu_x * mu_y + _C1) * (2 * sxy + _C2)
     den = (mu_x ** 2 + mu_y ** 2 + _C1) * (sxx + syy + _C2)
     return (num / den)[0].permute(1, 2, 0)

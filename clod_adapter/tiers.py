@@ -357,6 +357,5 @@ def choose_count_mix(model: Gaussians, cameras: Sequence, images: Sequence, *, s
 
 __all__ = ["decimated", "MERGES", "choice_views", "predicted_ms", "first_share", "TIER_TIME_CAP", "TIER_SHARE_STEP",
            "TIER_SHARE_TRIES", "TIER_HAND_OVER", "attach", "choose", "link", "level_curve", "TierChoice", "SWITCH_S_V",
-           "PARENT_S_V",
-           "PARENT_MIN_GAUSSIANS", "CHOOSE_VIEWS", "DEFAULT_SHARES", "CHOOSE_RULES", "CHOOSE_RULE", "CHOOSE_MARGIN_DB",
+           "PARENT_S_V", "PARENT_MIN_GAUSSIANS", "CHOOSE_VIEWS", "DEFAULT_SHARES", "CHOOSE_RULES", "CHOOSE_RULE", "CHOOSE_MARGIN_DB",
            "choose_count_mix", "COUNT_MIX_SHARES"]

@@ -499,22 +499,27 @@ def _leave_out(ply_path: Path, scene_root: Path, out_dir: Path, cfg: AdaptConfig
     return kept_path, record
 
 
+def _rewrite_metrics(out_dir: Path, metrics: dict) -> None:
+    """``out_dir/metrics.json`` rewritten atomically from ``metrics`` (all but ``wall_seconds``,
+    which the returned dict alone carries)."""
+    with atomic_write(out_dir / METRICS_NAME, "w") as f:
+        json.dump({k: v for k, v in metrics.items() if k != "wall_seconds"}, f, indent=2)
+
+
 def _record_leave_out(out_dir: Path, metrics: dict, record: dict) -> dict:
     """``metrics.json`` with phase 0's record (``leave_out``, plus ``kept_test``: the kept model's
     test quality, the adaptation's ``input_model``) and ``input_ply`` the input given, not the
     kept one the phases after it read."""
     kept = {k: metrics["input_model"][k] for k in ("psnr", "ssim")}
     metrics = {**metrics, "input_ply": record["input_ply"], "leave_out": {**record, "kept_test": kept}}
-    with atomic_write(out_dir / METRICS_NAME, "w") as f:
-        json.dump({k: v for k, v in metrics.items() if k != "wall_seconds"}, f, indent=2)
+    _rewrite_metrics(out_dir, metrics)
     return metrics
 
 
 def _record_job_seconds(out_dir: Path, metrics: dict, seconds: float) -> dict:
     """``metrics.json`` with ``job_seconds``: the whole job's wall time (every phase and tier)."""
     metrics = {**metrics, "job_seconds": round(seconds, 1)}
-    with atomic_write(out_dir / METRICS_NAME, "w") as f:
-        json.dump({k: v for k, v in metrics.items() if k != "wall_seconds"}, f, indent=2)
+    _rewrite_metrics(out_dir, metrics)
     return metrics
 
 
@@ -532,9 +537,9 @@ def _add_parent_tier(ply_path: Path, scene_root: Path, out_dir: Path, cfg: Adapt
     next shares as its own parent tiers, ``out_dir/parents/parents/``, ...), and attached to
     ``point_cloud.ply`` where it beats the model at equal predicted frame time on the training
     views (:func:`clod_adapter.tiers.choose`; a merged tier's own hand-over at its
-    ``cfg.tier_hand_over`` at the latest, :func:`clod_adapter.tiers.link`). Left out, with a note in ``metrics["tier"]``, for an
-    input under :data:`clod_adapter.tiers.PARENT_MIN_GAUSSIANS` Gaussians, a data-parallel run,
-    or without splat-transform."""
+    ``cfg.tier_hand_over`` at the latest, :func:`clod_adapter.tiers.link`). Left out, with a note
+    in ``metrics["tier"]``, for an input under :data:`clod_adapter.tiers.PARENT_MIN_GAUSSIANS`
+    Gaussians, a data-parallel run, or without splat-transform."""
     from .. import tiers
     from ..io.ply import read_ply
 
@@ -549,8 +554,7 @@ def _add_parent_tier(ply_path: Path, scene_root: Path, out_dir: Path, cfg: Adapt
             o.log(f"clod-adapt: no merged tier: {why}")
         info["seconds"] = round(time.perf_counter() - t0, 1)
         metrics["tier"] = info
-        with atomic_write(out_dir / METRICS_NAME, "w") as f:
-            json.dump({k: v for k, v in metrics.items() if k != "wall_seconds"}, f, indent=2)
+        _rewrite_metrics(out_dir, metrics)
         return metrics
 
     if n < tiers.PARENT_MIN_GAUSSIANS and not nested:  # a tier's own tiers: the input's size decided

@@ -326,7 +326,10 @@ def test_adapt_job_builds_the_tier_or_says_why_not(tiny_model, tmp_path, monkeyp
     top = json.loads((out / "metrics.json").read_text())
     tier = top["tier"]
     assert top["job_seconds"] >= top["train_seconds"] + tier["seconds"]  # the whole job, every tier included
-    assert "job_seconds" not in json.loads((out / "parents" / "metrics.json").read_text())  # the top job's only
+    pm = json.loads((out / "parents" / "metrics.json").read_text())
+    assert "job_seconds" not in pm  # the top job's only
+    # the tier's own test evaluation is untimed (the top job times the linked model); the top job's is timed
+    assert pm["timing"]["repeats"] == 0 and top["timing"]["repeats"] == 1 and top["timing"]["method"] == "interleaved"
     tried = tier["time_cap"]["tried"]  # the first merge's share, lowered while predicted over the cap
     assert tier["time_cap"]["cap"] == tiers.TIER_TIME_CAP and tried[0][0] == 0.2
     assert tier["parent_share"] == tried[-1][0] and all(r > tiers.TIER_TIME_CAP for _, r in tried[:-1])

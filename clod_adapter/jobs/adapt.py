@@ -533,7 +533,7 @@ def _add_parent_tier(ply_path: Path, scene_root: Path, out_dir: Path, cfg: Adapt
     splat-transform to the first of ``parent_share`` of its Gaussians (lowered while the merge is
     predicted to draw over ``tier_time_cap`` of the input's frame: :func:`clod_adapter.tiers.first_share`;
     ``out_dir/parents_input.ply``),
-    adapted by the same job into ``out_dir/parents/`` (its own state, metrics and strip, and the
+    adapted by the same job into ``out_dir/parents/`` (its own state, metrics (untimed) and strip, and the
     next shares as its own parent tiers, ``out_dir/parents/parents/``, ...), and attached to
     ``point_cloud.ply`` where it beats the model at equal predicted frame time on the training
     views (:func:`clod_adapter.tiers.choose`; a merged tier's own hand-over at its
@@ -589,8 +589,10 @@ def _add_parent_tier(ply_path: Path, scene_root: Path, out_dir: Path, cfg: Adapt
           f"adapting them into {pdir} ...")
     # the merged input derives from the checked one: no second scene check (a coarse merge may
     # not clear its margin on a tiny model)
+    # the tier's own test evaluation untimed: nothing reads its ms/frame (the linked model is
+    # timed as a whole by the top job), and the rounds cost each tier seconds of the adaptation
     po = replace(o, resume=o.resume and (pdir / STATE_NAME).is_file(), force=True, allow_mismatch=True,
-                 log=lambda *a, **k: o.log("  [parents]", *a, **k), iteration=None)
+                 log=lambda *a, **k: o.log("  [parents]", *a, **k), iteration=None, timing_repeats=0)
     pcfg = replace(cfg, parent_share=tuple(x / share for x in rest), keep_share=1.0, faint_share=0.0,
                    iterations=cfg.tier_iterations(), tier_iteration_share=1.0)
     pm = _run(out_dir / PARENT_INPUT_NAME, scene_root, pdir, pcfg, po, stop, None)

@@ -36,13 +36,6 @@ TAIL_WIDTHS = (1.0, 2.0)
 #: views (never trained on) the median ratio came out 0.79-1.02x of the training views' (skull,
 #: MaskGaussian fern, fern; docs/studies.md "The coarsest tier's window")
 TAIL_MARGIN = 1.2
-#: the merged tiers' hand-overs :func:`tail_width` tries last, with the widest window, where no
-#: window reaches the goal: every merged tier but the coarsest hands over to the next at its own
-#: ``s_v`` this at the latest. On the validation views, with a window of 2, 1.3 took skull from
-#: 11.65 / 10.26x (median / smallest view, hand-overs at 1.6) to 12.78 / 11.44x for at most
-#: 0.04 dB at equal time; fern and MaskGaussian fern, which reach the goal with a window of 1 or
-#: 2, would lose 0.5 and 1.1 dB with it (docs/studies.md "The coarsest tier's window")
-TAIL_HAND_OVERS = (1.3,)
 #: frames of the sweep (``clod-eval``'s ``popping_steps``)
 SWEEP_STEPS = 61
 
@@ -158,84 +151,41 @@ def with_coarsest_width(model: Gaussians, width: float) -> Gaussians:
     return replace(model, lod=replace(st, fade_width=float(width)))
 
 
-def with_hand_over(model: Gaussians, s_v: float) -> Gaussians:
-    """``model`` with every merged tier but the coarsest handing over to the next at its own
-    ``s_v`` at the latest (``tier_s_v`` = min(its own, ``s_v``), as :func:`clod_adapter.tiers.link`'s
-    ``max_tier_s_v``); the input's own hand-over to the first tier and the coarsest tier as they
-    are.
-
-    Raises:
-        ValueError: ``s_v`` not > 1."""
-    if not s_v > 1.0:
-        raise ValueError(f"with_hand_over: s_v must be > 1, got {s_v}")
-    chain = tier_chain(model)
-    out = None
-    for k in range(len(chain) - 1, -1, -1):
-        st = chain[k].lod
-        if 0 < k < len(chain) - 1:
-            st = replace(st, tier_s_v=min(float(st.tier_s_v), float(s_v)))
-        out = replace(chain[k], lod=st, parents=out)
-    return out
-
-
 def tail_width(model: Gaussians, base: Gaussians, cameras: Sequence, scores: Optional[Tensor] = None, *,
-               goal: float = POPPING_GOAL, widths: Sequence[float] = TAIL_WIDTHS,
-               hand_overs: Sequence[float] = TAIL_HAND_OVERS, steps: int = SWEEP_STEPS,
+               goal: float = POPPING_GOAL, widths: Sequence[float] = TAIL_WIDTHS, steps: int = SWEEP_STEPS,
                background=None, log: Callable[[str], None] = lambda m: None) -> tuple[Gaussians, dict]:
     """``clod-adapt``'s window for the coarsest tier of a model with merged tiers: the narrowest of
     the tier's own ``fade_width`` and the wider ``widths`` whose median :func:`popping_ratio` over
     ``cameras`` (training views) reaches ``goal`` times :data:`TAIL_MARGIN`; where none does, the
-    widest, and then the first of ``hand_overs`` (earlier than the merged tiers' own,
-    :func:`with_hand_over`; a chain of at least two merged tiers) that reaches it, else the
-    earliest. On the validation views (never trained on) the widest, 2, had the largest smallest
+    widest. On the validation views (never trained on) the widest, 2, had the largest smallest
     ratio over the views on every shared scene (skull 8.6x against 5.9x at 1, whose training
     median was the larger; docs/studies.md "The coarsest tier's window"), and the goal is met or
     missed per view. Down to its last few merged splats the coarsest tier's Gaussians
     each leave within a step or two of the sweep, and a wider window lets them leave over more of
     it; a narrow one keeps the cheap frames sharper (docs/studies.md "The coarsest tier's
-    window"), so it is widened only as far as the scene needs; an earlier hand-over shortens each
-    merged tier's own thinning, and is taken only by a scene the widest window leaves short.
+    window"), so it is widened only as far as the scene needs.
 
     Args:
         model: the adapted model; ``base``: the input; ``scores``: [N_base] as :func:`popping_ratio`.
 
     Returns:
-        (the model with the chosen width and hand-over, ``{"widths": [[width, median ratio, [ratio
-        per view]]], "chosen": width, "hand_overs": [[s_v, median ratio, [ratio per view]]],
-        "hand_over": s_v or None (the merged tiers' as linked)}``); a model without tiers is
-        returned as it is (``{"chosen": None}``).
+        (the model with the chosen width, ``{"widths": [[width, median ratio, [ratio per view]]],
+        "chosen": width}``); a model without tiers is returned as it is (``{"chosen": None}``).
     """
     chain = tier_chain(model)
     if len(chain) < 2 or model.sigma_d is None:
         return model, {"chosen": None, "widths": []}
     own = float(chain[-1].lod.fade_width)
-
-    def median_ratio(m) -> tuple[float, list]:
+    tried, chosen = [], own
+    for w in [own] + [float(x) for x in widths if x > own]:
+        m = with_coarsest_width(model, w)
         ratios = [float(popping_ratio(m, base, c, scores, steps=steps, background=background)["ratio"])
                   for c in cameras]
-        return statistics.median(ratios), ratios
-
-    tried, chosen, reached = [], own, False
-    for w in [own] + [float(x) for x in widths if x > own]:
-        med, ratios = median_ratio(with_coarsest_width(model, w))
+        med = statistics.median(ratios)
         tried.append([w, med, ratios])
         log(f"coarsest tier's window {w:g}: popping {med:.1f}x (median of {len(ratios)} training views)")
         chosen = w  # the widest tried so far: kept where none reaches the goal
         if med >= goal * TAIL_MARGIN:
-            reached = True
             break
-    model = with_coarsest_width(model, chosen)
-    merged = [float(t.lod.tier_s_v) for t in chain[1:-1]]
-    hand, hand_tried = None, []
-    if not reached and merged:
-        for s in sorted((float(x) for x in hand_overs if x < max(merged)), reverse=True):
-            med, ratios = median_ratio(with_hand_over(model, s))
-            hand_tried.append([s, med, ratios])
-            log(f"merged tiers handing over at s_v {s:g}: popping {med:.1f}x (median of {len(ratios)} training views)")
-            hand = s
-            if med >= goal * TAIL_MARGIN:
-                break
-    if hand is not None:
-        model = with_hand_over(model, hand)
-    return model, {"chosen": chosen, "widths": tried, "goal": goal, "asked": goal * TAIL_MARGIN,
-                   "hand_overs": hand_tried, "hand_over": hand}
+    return with_coarsest_width(model, chosen), {"chosen": chosen, "widths": tried, "goal": goal,
+                                               "asked": goal * TAIL_MARGIN}

@@ -150,8 +150,7 @@ class AdaptConfig:
             (1, 2 past its own) until ``clod-eval``'s popping ratio (one static switch
             against the largest step of the sweep through every tier) reaches
             :data:`clod_adapter.popping.TAIL_MARGIN` (1.2) times this on the median of 4 training
-            views, or to the widest (2) where none does, and then the merged tiers hand over
-            earlier (1.3, :data:`clod_adapter.popping.TAIL_HAND_OVERS`)
+            views, or to the widest (2) where none does
             (:func:`clod_adapter.popping.tail_width`). Default
             :data:`clod_adapter.popping.POPPING_GOAL` (10, issue 36's goal) with the calibrated
             schedule; 0: the tier's own window (docs/studies.md "The coarsest tier's window").

@@ -8,7 +8,7 @@ import pytest
 
 from clod_adapter import tiers
 from clod_adapter.camera_lod import tier_chain
-from clod_adapter.popping import TAIL_MARGIN, popping_ratio, tail_width, with_coarsest_width, with_hand_over
+from clod_adapter.popping import TAIL_MARGIN, popping_ratio, tail_width, with_coarsest_width
 from clod_adapter.synthetic import make_cameras
 from clod_adapter.training import AdaptConfig
 
@@ -68,43 +68,6 @@ def test_tail_width_stops_at_a_window_of_2_by_default(chain, monkeypatch):
     out, info = tail_width(model, model.with_sigma_d(None), cams, goal=100.0)
     assert [w for w, _, _ in info["widths"]] == [0.5, 1.0, 2.0] and info["chosen"] == 2.0
     assert tier_chain(out)[-1].lod.fade_width == 2.0
-
-
-def test_with_hand_over_caps_only_the_merged_tiers_hand_overs(chain):
-    """The first merged tier's hand-over (2.5) moves to 1.3; the input's own (2.0) and a later
-    cap (3.0 leaves 2.5) do not; the coarsest tier's settings and every count are kept."""
-    model, _ = chain
-    before = tier_chain(model)
-    for cap, want in ((1.3, 1.3), (3.0, 2.5)):
-        after = tier_chain(with_hand_over(model, cap))
-        assert [len(t) for t in after] == [len(t) for t in before]
-        assert after[0].lod == before[0].lod and after[-1].lod == before[-1].lod
-        assert after[1].lod.tier_s_v == want and after[1].lod.tier_start == before[1].lod.tier_start
-    with pytest.raises(ValueError, match="s_v must be > 1"):
-        with_hand_over(model, 1.0)
-
-
-def test_tail_width_hands_over_earlier_only_where_no_window_reaches_the_goal(chain, monkeypatch):
-    """Where the widest window stays under goal x TAIL_MARGIN, the merged tiers' earlier
-    hand-overs are tried (latest first) until one reaches it, else the earliest is kept; a scene
-    that a window brings to the goal keeps its merged tiers' hand-overs as linked."""
-    from clod_adapter import popping
-
-    model, cams = chain
-
-    def fake_ratio(m, b, camera, scores=None, **kw):
-        ch = tier_chain(m)
-        return {"ratio": 2.0 * ch[-1].lod.fade_width + (10.0 if ch[1].lod.tier_s_v <= 1.5 else 0.0)}
-
-    monkeypatch.setattr(popping, "popping_ratio", fake_ratio)
-    out, info = tail_width(model, model.with_sigma_d(None), cams, goal=10.0, hand_overs=(1.3, 1.5, 2.0))
-    assert info["chosen"] == 2.0 and info["hand_over"] == 1.5
-    assert [s for s, _, _ in info["hand_overs"]] == [2.0, 1.5]
-    assert tier_chain(out)[1].lod.tier_s_v == 1.5 and tier_chain(out)[-1].lod.fade_width == 2.0
-    out, info = tail_width(model, model.with_sigma_d(None), cams, goal=100.0, hand_overs=(1.3, 1.5))
-    assert info["hand_over"] == 1.3 and tier_chain(out)[1].lod.tier_s_v == 1.3
-    out, info = tail_width(model, model.with_sigma_d(None), cams, goal=3.0, hand_overs=(1.3,))
-    assert info["hand_over"] is None and info["hand_overs"] == [] and tier_chain(out)[1].lod.tier_s_v == 2.5
 
 
 def test_the_coarsest_window_changes_the_coarsest_frames(chain):

@@ -589,8 +589,7 @@ def _add_parent_tier(ply_path: Path, scene_root: Path, out_dir: Path, cfg: Adapt
           f"adapting them into {pdir} ...")
     # the merged input derives from the checked one: no second scene check (a coarse merge may
     # not clear its margin on a tiny model)
-    # the tier's own test evaluation untimed: nothing reads its ms/frame (the linked model is
-    # timed as a whole by the top job), and the rounds cost each tier seconds of the adaptation
+    # untimed: nothing reads a tier's own ms/frame (the top job times the linked model)
     po = replace(o, resume=o.resume and (pdir / STATE_NAME).is_file(), force=True, allow_mismatch=True,
                  log=lambda *a, **k: o.log("  [parents]", *a, **k), iteration=None, timing_repeats=0)
     pcfg = replace(cfg, parent_share=tuple(x / share for x in rest), keep_share=1.0, faint_share=0.0,

@@ -170,6 +170,11 @@ class AdaptConfig:
             ``iterations`` (rounded, at least 1 when ``iterations`` > 0). Default 1: a finer ladder of
             five tiers at half the steps each was not better on the validation views
             (docs/studies.md "A finer ladder").
+        tier_downscale: the second and later merged tiers are fine-tuned and learn their level of
+            detail on the training views at 1/``tier_downscale`` of the model's resolution (at most
+            1/8 of the images'); every hand-over is still chosen at a full-size view. The first
+            tier, which draws the middle of the range, keeps the model's resolution
+            (docs/studies.md "Merged tiers trained at half resolution").
         faint_share: leave out, before anything else, the Gaussians whose blending weight summed
             over every pixel of every training view is under this share of one view's pixels
             (:func:`clod_adapter.pruning.faint`; no recovery: together they paint under that
@@ -222,6 +227,7 @@ class AdaptConfig:
     parent_share: Optional[float | tuple] = None
     tier_finetune_steps: int = 400
     tier_iteration_share: float = 1.0
+    tier_downscale: int = 2
     tier_merge: str = "decimate"
     tier_time_cap: Optional[float] = None
     popping_goal: Optional[float] = None
@@ -338,11 +344,18 @@ class AdaptConfig:
         self.tier_iteration_share = float(self.tier_iteration_share)
         if not 0.0 < self.tier_iteration_share <= 1.0:
             raise ValueError(f"tier_iteration_share must be in (0, 1], got {self.tier_iteration_share}")
+        if self.tier_downscale not in (1, 2, 4, 8):
+            raise ValueError(f"tier_downscale must be one of 1, 2, 4, 8, got {self.tier_downscale!r}")
 
     @property
     def gain_names(self) -> tuple:
         """The Gaussians fields of the learned level gains, in :data:`GAIN_NAMES` order."""
         return tuple(n for n in GAIN_NAMES if n in {GAIN_LETTERS[c] for c in self.gains})
+
+    def tier_resolution(self, resolution: int) -> int:
+        """The scene resolution factor a merged tier is trained at when the model is trained at
+        ``resolution`` (1, 2, 4 or 8): ``resolution * tier_downscale``, at most 8."""
+        return max(int(resolution), min(8, int(resolution) * self.tier_downscale))
 
     def tier_iterations(self) -> int:
         """The LoD training steps of each merged tier: ``tier_iteration_share`` of

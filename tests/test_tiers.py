@@ -300,6 +300,18 @@ def test_tier_iteration_share_sets_each_tiers_steps():
             AdaptConfig(tier_iteration_share=bad)
 
 
+def test_tier_downscale_sets_the_later_tiers_resolution():
+    """``tier_downscale``: the later tiers' scene resolution factor, the model's times it, at most 8."""
+    from clod_adapter.training import AdaptConfig
+
+    assert AdaptConfig().tier_downscale == 2
+    assert [AdaptConfig().tier_resolution(r) for r in (1, 2, 4, 8)] == [2, 4, 8, 8]
+    assert AdaptConfig(tier_downscale=1).tier_resolution(2) == 2
+    for bad in (0, 3, 16):
+        with pytest.raises(ValueError, match="tier_downscale"):
+            AdaptConfig(tier_downscale=bad)
+
+
 def test_adapt_job_builds_the_tier_or_says_why_not(tiny_model, tmp_path, monkeypatch):
     """clod-adapt: under PARENT_MIN_GAUSSIANS no tier (and metrics.json says why); over it, the
     merged input is adapted into OUT/parents and, when it pays, stored as the lod_parent element
@@ -321,8 +333,8 @@ def test_adapt_job_builds_the_tier_or_says_why_not(tiny_model, tmp_path, monkeyp
         pytest.skip("splat-transform is not installed (npm ci): the tier's merge needs it")
     monkeypatch.setattr(tiers, "PARENT_MIN_GAUSSIANS", 100)
     out = tmp_path / "tier"
-    assert main(args + ["-o", str(out), "--parent-share", "0.2", "--tier-finetune-steps", "7",
-                        "--tier-iteration-share", "0.5"]) == 0
+    assert main(args + ["-o", str(out), "--parent-share", "0.2,0.1", "--tier-finetune-steps", "7",
+                        "--tier-iteration-share", "0.5", "--tier-downscale", "2"]) == 0
     top = json.loads((out / "metrics.json").read_text())
     tier = top["tier"]
     assert top["job_seconds"] >= top["train_seconds"] + tier["seconds"]  # the whole job, every tier included
@@ -330,6 +342,11 @@ def test_adapt_job_builds_the_tier_or_says_why_not(tiny_model, tmp_path, monkeyp
     assert "job_seconds" not in pm  # the top job's only
     # the tier's own test evaluation is untimed (the top job times the linked model); the top job's is timed
     assert pm["timing"]["repeats"] == 0 and top["timing"]["repeats"] == 1 and top["timing"]["method"] == "interleaved"
+    # --tier-downscale 2: the first tier is trained at the model's resolution, the next at half of it
+    ppm = json.loads((out / "parents" / "parents" / "metrics.json").read_text())
+    assert pm["resolution"] == tier["resolution"] == top["resolution"] and pm["image_size"] == top["image_size"]
+    assert ppm["resolution"] == pm["tier"]["resolution"] == 2 * top["resolution"]
+    assert all(abs(2 * a - b) <= 1 for a, b in zip(ppm["image_size"], top["image_size"]))
     tried = tier["time_cap"]["tried"]  # the first merge's share, lowered while predicted over the cap
     assert tier["time_cap"]["cap"] == tiers.TIER_TIME_CAP and tried[0][0] == 0.2
     assert tier["parent_share"] == tried[-1][0] and all(r > tiers.TIER_TIME_CAP for _, r in tried[:-1])

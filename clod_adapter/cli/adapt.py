@@ -113,6 +113,9 @@ def _tier_flags(p) -> None:
     p.add_argument("--tier-iteration-share", type=float, default=1.0, metavar="SHARE",
                    help="each merged tier learns its level of detail for SHARE of --iterations (default 1; "
                         "docs/studies.md)")
+    p.add_argument("--tier-downscale", type=int, choices=(1, 2, 4, 8), default=2, metavar="F",
+                   help="fine-tune and train the second and later merged tiers at 1/F of the model's resolution "
+                        "(1, 2, 4 or 8; default 2; docs/studies.md)")
     p.add_argument("--tier-merge", choices=("decimate", "adaptive"), default="decimate",
                    help="the merge each tier starts from: splat-transform's --decimate (default) or "
                         "--decimate-adaptive (docs/studies.md)")
@@ -194,7 +197,7 @@ def _config(args, world: int):
                            views_per_step=args.views_per_step if args.views_per_step is not None else world,
                            level_max=args.level_max, parent_share=args.parent_share,
                            tier_finetune_steps=args.tier_finetune_steps,
-                           tier_iteration_share=args.tier_iteration_share,
+                           tier_iteration_share=args.tier_iteration_share, tier_downscale=args.tier_downscale,
                            tier_merge=args.tier_merge, tier_time_cap=args.tier_time_cap, popping_goal=args.popping_goal,
                            tier_hand_over=args.tier_hand_over, count_mix=args.count_mix,
                            faint_share=args.faint_share, keep_share=args.keep_share, recovery_steps=args.recovery_steps, **kw)

@@ -533,7 +533,8 @@ def _add_parent_tier(ply_path: Path, scene_root: Path, out_dir: Path, cfg: Adapt
     splat-transform to the first of ``parent_share`` of its Gaussians (lowered while the merge is
     predicted to draw over ``tier_time_cap`` of the input's frame: :func:`clod_adapter.tiers.first_share`;
     ``out_dir/parents_input.ply``),
-    adapted by the same job into ``out_dir/parents/`` (its own state, metrics (untimed) and strip, and the
+    fine-tuned and adapted (the second and later tiers at 1/``cfg.tier_downscale`` of the resolution,
+    :meth:`AdaptConfig.tier_resolution`) by the same job into ``out_dir/parents/`` (its own state, metrics (untimed) and strip, and the
     next shares as its own parent tiers, ``out_dir/parents/parents/``, ...), and attached to
     ``point_cloud.ply`` where it beats the model at equal predicted frame time on the training
     views (:func:`clod_adapter.tiers.choose`; a merged tier's own hand-over at its
@@ -546,7 +547,7 @@ def _add_parent_tier(ply_path: Path, scene_root: Path, out_dir: Path, cfg: Adapt
     t0 = time.perf_counter()
     n = int(metrics["num_gaussians"])
     share, rest = cfg.parent_share[0], cfg.parent_share[1:]
-    info = {"parent_share": share, "used": False}
+    info = {"parent_share": share, "used": False, "resolution": cfg.tier_resolution(o.resolution) if nested else o.resolution}
 
     def done(why: Optional[str] = None) -> dict:
         if why:
@@ -576,11 +577,9 @@ def _add_parent_tier(ply_path: Path, scene_root: Path, out_dir: Path, cfg: Adapt
         del source
     except RuntimeError as e:
         return done(f"splat-transform: {e}")
-    if cfg.tier_finetune_steps > 0:
-        t1 = time.perf_counter()
-        parents_in = tiers.finetuned(parents_in, scene.train, [scene.load_image(c) for c in scene.train],
-                                     cfg.tier_finetune_steps, background=cfg.background, seed=cfg.seed)
-        info["finetune"] = {"steps": cfg.tier_finetune_steps, "seconds": round(time.perf_counter() - t1, 1)}
+    tres = cfg.tier_resolution(o.resolution) if nested else o.resolution  # trained at it, linked at o's
+    parents_in = _finetuned_tier(parents_in, scene if tres == o.resolution else
+                                 _tier_scene(scene_root, cfg, replace(o, resolution=tres)), cfg, info)
     write_ply(out_dir / PARENT_INPUT_NAME, parents_in)
     pdir = out_dir / PARENT_DIR
     o.log(f"clod-adapt: parent tier: {len(parents_in):,} merged Gaussians (splat-transform "
@@ -591,9 +590,10 @@ def _add_parent_tier(ply_path: Path, scene_root: Path, out_dir: Path, cfg: Adapt
     # not clear its margin on a tiny model)
     # untimed: nothing reads a tier's own ms/frame (the top job times the linked model)
     po = replace(o, resume=o.resume and (pdir / STATE_NAME).is_file(), force=True, allow_mismatch=True,
-                 log=lambda *a, **k: o.log("  [parents]", *a, **k), iteration=None, timing_repeats=0)
+                 log=lambda *a, **k: o.log("  [parents]", *a, **k), iteration=None, timing_repeats=0, resolution=tres)
     pcfg = replace(cfg, parent_share=tuple(x / share for x in rest), keep_share=1.0, faint_share=0.0,
-                   iterations=cfg.tier_iterations(), tier_iteration_share=1.0)
+                   iterations=cfg.tier_iterations(), tier_iteration_share=1.0,
+                   tier_downscale=1 if nested else cfg.tier_downscale)
     pm = _run(out_dir / PARENT_INPUT_NAME, scene_root, pdir, pcfg, po, stop, None)
     if pcfg.parent_share:  # the tier's own parent tiers, shares relative to it
         _add_parent_tier(out_dir / PARENT_INPUT_NAME, scene_root, pdir, pcfg, po, stop, None, pm, nested=True)
@@ -653,6 +653,20 @@ def _count_rule(linked, cams, imgs, cfg: AdaptConfig, o: AdaptOptions, info: dic
     o.log(f"clod-adapt: count budgets between two tiers {'mixed by distance' if choice['count_mix'] else 'cut'} "
           f"(mix - cut {choice['gain_db']:+.2f} dB on {len(cams)} training views)")
     return linked
+
+
+def _finetuned_tier(parents_in, scene, cfg: AdaptConfig, info: dict):
+    """A merge fine-tuned for ``cfg.tier_finetune_steps`` on ``scene``'s training views
+    (:func:`clod_adapter.tiers.finetuned`; ``info["finetune"]`` notes steps and seconds)."""
+    from .. import tiers
+
+    if cfg.tier_finetune_steps <= 0:
+        return parents_in
+    t1 = time.perf_counter()
+    out = tiers.finetuned(parents_in, scene.train, [scene.load_image(c) for c in scene.train],
+                          cfg.tier_finetune_steps, background=cfg.background, seed=cfg.seed)
+    info["finetune"] = {"steps": cfg.tier_finetune_steps, "seconds": round(time.perf_counter() - t1, 1)}
+    return out
 
 
 def _tier_scene(scene_root: Path, cfg: AdaptConfig, o: AdaptOptions):

@@ -34,7 +34,7 @@ Outputs in ``runs/bench/quality_vs_time{_val}/<tag>/``: ``<input>.csv`` (every p
 and the results table between README.md's ``results-table`` markers.
 
 Takes about 8-14 minutes per shared scene on 2 cores with the adaptation cached (the ceiling's
-fine-tunes, then about 90 settings x the test views x 7 renders), and 17-20 minutes more to adapt
+fine-tunes, then about 90 settings x the test views x 7 renders), and 11-13 minutes more to adapt
 when it is not::
 
     python benchmarks/quality_vs_time.py --docs               # fern, maskgaussian, skull; test views

@@ -174,7 +174,7 @@ class AdaptConfig:
             detail on the training views at 1/``tier_downscale`` of the model's resolution (at most
             1/8 of the images'); every hand-over is still chosen at a full-size view. The first
             tier, which draws the middle of the range, keeps the model's resolution
-            (docs/studies.md "Merged tiers trained at half resolution").
+            (docs/studies.md "The later tiers trained at half resolution").
         faint_share: leave out, before anything else, the Gaussians whose blending weight summed
             over every pixel of every training view is under this share of one view's pixels
             (:func:`clod_adapter.pruning.faint`; no recovery: together they paint under that

@@ -38,6 +38,7 @@ from . import __version__, lod
 from .budget import critical_s_v
 from .gaussians import GAIN_NAMES, Gaussians
 from .io.atomic import atomic_save
+from .io.scene import RESOLUTIONS
 from .losses import clod_loss, render_loss
 from .camera_lod import render_lod, view_lod
 from .metrics import psnr
@@ -344,8 +345,8 @@ class AdaptConfig:
         self.tier_iteration_share = float(self.tier_iteration_share)
         if not 0.0 < self.tier_iteration_share <= 1.0:
             raise ValueError(f"tier_iteration_share must be in (0, 1], got {self.tier_iteration_share}")
-        if self.tier_downscale not in (1, 2, 4, 8):
-            raise ValueError(f"tier_downscale must be one of 1, 2, 4, 8, got {self.tier_downscale!r}")
+        if self.tier_downscale not in RESOLUTIONS:
+            raise ValueError(f"tier_downscale must be one of {RESOLUTIONS}, got {self.tier_downscale!r}")
 
     @property
     def gain_names(self) -> tuple:
@@ -353,9 +354,10 @@ class AdaptConfig:
         return tuple(n for n in GAIN_NAMES if n in {GAIN_LETTERS[c] for c in self.gains})
 
     def tier_resolution(self, resolution: int) -> int:
-        """The scene resolution factor a merged tier is trained at when the model is trained at
-        ``resolution`` (1, 2, 4 or 8): ``resolution * tier_downscale``, at most 8."""
-        return max(int(resolution), min(8, int(resolution) * self.tier_downscale))
+        """The scene resolution factor (one of :data:`clod_adapter.io.scene.RESOLUTIONS`) the second
+        and later merged tiers are trained at when the model is trained at ``resolution``:
+        ``resolution * tier_downscale``, at most the largest factor."""
+        return max(int(resolution), min(RESOLUTIONS[-1], int(resolution) * self.tier_downscale))
 
     def tier_iterations(self) -> int:
         """The LoD training steps of each merged tier: ``tier_iteration_share`` of

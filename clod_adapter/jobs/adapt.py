@@ -533,8 +533,9 @@ def _add_parent_tier(ply_path: Path, scene_root: Path, out_dir: Path, cfg: Adapt
     splat-transform to the first of ``parent_share`` of its Gaussians (lowered while the merge is
     predicted to draw over ``tier_time_cap`` of the input's frame: :func:`clod_adapter.tiers.first_share`;
     ``out_dir/parents_input.ply``),
-    fine-tuned and adapted (the second and later tiers at 1/``cfg.tier_downscale`` of the resolution,
-    :meth:`AdaptConfig.tier_resolution`) by the same job into ``out_dir/parents/`` (its own state, metrics (untimed) and strip, and the
+    fine-tuned and adapted (the second and later tiers at 1/``cfg.tier_downscale`` of the
+    resolution, :meth:`AdaptConfig.tier_resolution`) by the same job into ``out_dir/parents/`` (its
+    own state, metrics (untimed) and strip, and the
     next shares as its own parent tiers, ``out_dir/parents/parents/``, ...), and attached to
     ``point_cloud.ply`` where it beats the model at equal predicted frame time on the training
     views (:func:`clod_adapter.tiers.choose`; a merged tier's own hand-over at its
@@ -547,7 +548,8 @@ def _add_parent_tier(ply_path: Path, scene_root: Path, out_dir: Path, cfg: Adapt
     t0 = time.perf_counter()
     n = int(metrics["num_gaussians"])
     share, rest = cfg.parent_share[0], cfg.parent_share[1:]
-    info = {"parent_share": share, "used": False, "resolution": cfg.tier_resolution(o.resolution) if nested else o.resolution}
+    tres = cfg.tier_resolution(o.resolution) if nested else o.resolution  # trained at it, linked at o's
+    info = {"parent_share": share, "used": False, "resolution": tres}
 
     def done(why: Optional[str] = None) -> dict:
         if why:
@@ -577,7 +579,6 @@ def _add_parent_tier(ply_path: Path, scene_root: Path, out_dir: Path, cfg: Adapt
         del source
     except RuntimeError as e:
         return done(f"splat-transform: {e}")
-    tres = cfg.tier_resolution(o.resolution) if nested else o.resolution  # trained at it, linked at o's
     parents_in = _finetuned_tier(parents_in, scene if tres == o.resolution else
                                  _tier_scene(scene_root, cfg, replace(o, resolution=tres)), cfg, info)
     write_ply(out_dir / PARENT_INPUT_NAME, parents_in)
@@ -593,7 +594,7 @@ def _add_parent_tier(ply_path: Path, scene_root: Path, out_dir: Path, cfg: Adapt
                  log=lambda *a, **k: o.log("  [parents]", *a, **k), iteration=None, timing_repeats=0, resolution=tres)
     pcfg = replace(cfg, parent_share=tuple(x / share for x in rest), keep_share=1.0, faint_share=0.0,
                    iterations=cfg.tier_iterations(), tier_iteration_share=1.0,
-                   tier_downscale=1 if nested else cfg.tier_downscale)
+                   tier_downscale=1 if nested else cfg.tier_downscale)  # the nested call downscales once
     pm = _run(out_dir / PARENT_INPUT_NAME, scene_root, pdir, pcfg, po, stop, None)
     if pcfg.parent_share:  # the tier's own parent tiers, shares relative to it
         _add_parent_tier(out_dir / PARENT_INPUT_NAME, scene_root, pdir, pcfg, po, stop, None, pm, nested=True)

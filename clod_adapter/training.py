@@ -148,10 +148,10 @@ class AdaptConfig:
             the vanilla checkpoints' 50 % merges (fern 77 %, skull 69 %) are kept. 0: the shares
             as given (docs/studies.md "A first tier that saves time").
         popping_goal: with merged tiers, the coarsest tier's window ``fade_width`` is widened
-            (1, 2 past its own) until ``clod-eval``'s popping ratio (one static switch
+            (1, 2, 3 past its own) until ``clod-eval``'s popping ratio (one static switch
             against the largest step of the sweep through every tier) reaches
             :data:`clod_adapter.popping.TAIL_MARGIN` (1.2) times this on the median of 4 training
-            views, or to the widest (2) where none does
+            views, or to the widest (3) where none does
             (:func:`clod_adapter.popping.tail_width`). Default
             :data:`clod_adapter.popping.POPPING_GOAL` (10, issue 36's goal) with the calibrated
             schedule; 0: the tier's own window (docs/studies.md "The coarsest tier's window").

@@ -56,18 +56,18 @@ def test_tail_width_takes_the_narrowest_window_that_reaches_the_goal(chain, monk
     assert seen[:2] == list(cams)
 
 
-def test_tail_width_stops_at_a_window_of_2_by_default(chain, monkeypatch):
-    """Past 2 the window bought no popping on the validation views and cost the cheap end
-    (docs/studies.md "The coarsest tier's window"): where every wider window would score more and
-    none reaches the goal, the default rule tries 0.5, 1 and 2 and keeps 2."""
+def test_tail_width_stops_at_a_window_of_3_by_default(chain, monkeypatch):
+    """Past 3 the window lowered skull's smallest ratio on the validation views (docs/studies.md
+    "The coarsest tier's window"): where every wider window would score more and none reaches the
+    goal, the default rule tries 0.5, 1, 2 and 3 and keeps 3."""
     from clod_adapter import popping
 
     model, cams = chain
     monkeypatch.setattr(popping, "popping_ratio",
                         lambda m, b, camera, scores=None, **kw: {"ratio": 2.0 * tier_chain(m)[-1].lod.fade_width})
     out, info = tail_width(model, model.with_sigma_d(None), cams, goal=100.0)
-    assert [w for w, _, _ in info["widths"]] == [0.5, 1.0, 2.0] and info["chosen"] == 2.0
-    assert tier_chain(out)[-1].lod.fade_width == 2.0
+    assert [w for w, _, _ in info["widths"]] == [0.5, 1.0, 2.0, 3.0] and info["chosen"] == 3.0
+    assert tier_chain(out)[-1].lod.fade_width == 3.0
 
 
 def test_the_coarsest_window_changes_the_coarsest_frames(chain):

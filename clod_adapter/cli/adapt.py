@@ -125,7 +125,7 @@ def _tier_flags(p) -> None:
                         "as given; docs/studies.md)")
     p.add_argument("--popping-goal", type=float, default=None, metavar="RATIO",
                    help="with merged tiers, widen the coarsest tier's fade window until the popping ratio on the "
-                        "training views reaches 1.2 x RATIO, else to 2 (default 10 with the calibrated schedule; "
+                        "training views reaches 1.2 x RATIO, else to 3 (default 10 with the calibrated schedule; "
                         "0: keep it; docs/studies.md)")
     p.add_argument("--tier-hand-over", type=float, default=None, metavar="S_V",
                    help="with merged tiers, each merged tier hands over to the next at its own S_V at the latest "

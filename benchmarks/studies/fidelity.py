@@ -1,0 +1,77 @@
+"""Fidelity to the input: the equal-time comparison scored against the input's own renders.
+
+On a well-fitted capture the input's render is close to the photograph, so how far a level of
+detail strays from the input is most of its error there. The shared checkpoints score 24-27 dB on
+views they never saw, and there a level that strays from the input can score higher than one that
+keeps it; this study takes the photographs out. On the validation views of each input's default
+validation adaptation (``--split val``, common.py; adapted when not cached), the comparison of
+``benchmarks/quality_vs_time.py`` (:func:`clod_adapter.quality_vs_time.compare`: the adapted model
+along ``s_v`` and at budgets, LightGaussian and opacity cuts, splat-transform 3.7.0's ``--decimate``
+and ``--decimate-adaptive``, every setting timed in the same interleaved rounds, CPU rasteriser) is
+scored with the input's own render of each view as the image (PSNR in dB; the input itself is
+exact). Prints, per input, the best PSNR within each share of the input's frame time for the
+adapted model, the better decimator and the better cut, and every point by time::
+
+    python benchmarks/studies/fidelity.py --inputs skull fern
+"""
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # benchmarks/: common.py
+from common import adapt_cached, load_input, run_per_input, scene_views  # noqa: E402
+
+import torch
+
+from clod_adapter import quality_vs_time as qvt
+from clod_adapter.baselines import render_subset
+from clod_adapter.io.load import load_model
+from clod_adapter.splat_transform import find_splat_transform
+from clod_adapter.training import AdaptConfig
+
+SHARES = (0.95, 0.9, 0.8, 0.7, 0.6, 0.5, 0.45, 0.4, 0.35, 0.3, 0.25)
+ROUNDS = 3
+GROUPS = {"adapted": ("clod",), "decimator": ("decimate", "decimate_adaptive"), "cut": ("lightgaussian", "opacity")}
+
+
+def best_within(rows, methods, share):
+    """The best (PSNR, method, setting, time share) of ``methods`` within ``share`` of the input's
+    frame (the equal-count and ceiling settings left out), or None."""
+    c = [r for r in rows if r[1] in methods and r[3] <= share and not r[2].startswith("match")]
+    return max(c) if c else None
+
+
+def run_input(name: str) -> None:
+    tool = find_splat_transform()
+    if tool is None:
+        raise SystemExit("fidelity.py: splat-transform not found (npm install @playcanvas/splat-transform@3.7.0)")
+    cfg = AdaptConfig()
+    ply = adapt_cached(name, cfg, "default", split="val")
+    g0, scene, _ = load_input(name, "val")
+    fit, cams = scene_views(scene, "val")
+    everything = torch.arange(len(g0))
+    refs = [render_subset(g0, c, everything).image.clamp(0, 1) for c in cams]
+    comp = qvt.compare(load_model(ply), g0, fit, cams, refs, max_sv=cfg.max_sv, merge_tool=tool, repeats=ROUNDS,
+                       full_rounds=0, log=lambda s: print(f"[{name}] {s}", flush=True))
+    base = next(s for s in comp.settings if s.method == "input").ms
+    rows = [(s.psnr, s.method, s.setting, s.ms / base, sum(s.drawn) / max(len(s.drawn), 1)) for s in comp.settings]
+    print(f"\n{name}: PSNR against the input's render, {len(cams)} validation views, best within each share of "
+          f"the input's frame ({ROUNDS} interleaved rounds)\n")
+    print("| within | " + " | ".join(GROUPS) + " |\n|---|" + "---|" * len(GROUPS))
+    for share in SHARES:
+        cells = [best_within(rows, m, share) for m in GROUPS.values()]
+        print(f"| {100 * share:.0f} % | " + " | ".join(
+            f"{c[0]:.2f} ({c[1]} {c[2]}, {100 * c[3]:.0f} %)" if c else "-" for c in cells) + " |")
+    print(f"\n{name}: every point by time share (PSNR against the input's render, drawn per view)")
+    for p, m, s, t, n in sorted(rows, key=lambda r: -r[3]):
+        if not s.startswith("match"):
+            print(f"  {100 * t:5.0f} %  {p:6.2f}  {m:18s} {s:20s} {n:9.0f}", flush=True)
+
+
+def main(argv=None) -> None:
+    run_per_input(__doc__, run_input, argv, inputs=("skull", "fern"))
+
+
+if __name__ == "__main__":
+    main()

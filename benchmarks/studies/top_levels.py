@@ -60,7 +60,7 @@ def run_input(name: str) -> None:
     g = load_model(ply)
     d_ref = reference_distances(g, fit)
     q_own = quantiles(critical_s_v(g.opacities, d_ref, g.sigma_d, g.lod.tau, g.lod.eps))
-    q_lg = quantiles(lightgaussian_significance(g0, fit))
+    q_lg = quantiles(lightgaussian_significance(g.with_sigma_d(None), fit))  # the kept Gaussians (faint left out)
     orders = {"LG": -q_lg, "own": -q_own, "merged": -torch.where(q_own < MERGE_TOP, q_own, 1.0 + q_lg)}
     print(f"{name}: full detail {sum(psnr(render_lod(g, c).image, t) for c, t in zip(cams, gts)) / len(cams):.2f} dB")
     for s in S_VS:

@@ -26,6 +26,7 @@ import torch
 
 from clod_adapter import quality_vs_time as qvt
 from clod_adapter.baselines import render_subset
+from clod_adapter.frontier import Point, best_within
 from clod_adapter.io.load import load_model
 from clod_adapter.splat_transform import find_splat_transform
 from clod_adapter.training import AdaptConfig
@@ -33,13 +34,6 @@ from clod_adapter.training import AdaptConfig
 SHARES = (0.95, 0.9, 0.8, 0.7, 0.6, 0.5, 0.45, 0.4, 0.35, 0.3, 0.25)
 ROUNDS = 3
 GROUPS = {"adapted": ("clod",), "decimator": ("decimate", "decimate_adaptive"), "cut": ("lightgaussian", "opacity")}
-
-
-def best_within(rows, methods, share):
-    """The best (PSNR, method, setting, time share) of ``methods`` within ``share`` of the input's
-    frame (the equal-count and ceiling settings left out), or None."""
-    c = [r for r in rows if r[1] in methods and r[3] <= share and not r[2].startswith("match")]
-    return max(c) if c else None
 
 
 def run_input(name: str) -> None:
@@ -55,18 +49,19 @@ def run_input(name: str) -> None:
     comp = qvt.compare(load_model(ply), g0, fit, cams, refs, max_sv=cfg.max_sv, merge_tool=tool, repeats=ROUNDS,
                        full_rounds=0, log=lambda s: print(f"[{name}] {s}", flush=True))
     base = next(s for s in comp.settings if s.method == "input").ms
-    rows = [(s.psnr, s.method, s.setting, s.ms / base, sum(s.drawn) / max(len(s.drawn), 1)) for s in comp.settings]
+    # the equal-time table: equal-count settings ("match:...") left out; Point.ms holds the share of the input's frame
+    points = [Point(s.method, s.setting, s.ms / base, s.psnr, sum(s.drawn) / max(len(s.drawn), 1))
+              for s in comp.settings if not s.setting.startswith("match")]
     print(f"\n{name}: PSNR against the input's render, {len(cams)} validation views, best within each share of "
           f"the input's frame ({ROUNDS} interleaved rounds)\n")
     print("| within | " + " | ".join(GROUPS) + " |\n|---|" + "---|" * len(GROUPS))
     for share in SHARES:
-        cells = [best_within(rows, m, share) for m in GROUPS.values()]
+        cells = [best_within([p for p in points if p.method in m], share) for m in GROUPS.values()]
         print(f"| {100 * share:.0f} % | " + " | ".join(
-            f"{c[0]:.2f} ({c[1]} {c[2]}, {100 * c[3]:.0f} %)" if c else "-" for c in cells) + " |")
+            f"{c.psnr:.2f} ({c.method} {c.setting}, {100 * c.ms:.0f} %)" if c else "-" for c in cells) + " |")
     print(f"\n{name}: every point by time share (PSNR against the input's render, drawn per view)")
-    for p, m, s, t, n in sorted(rows, key=lambda r: -r[3]):
-        if not s.startswith("match"):
-            print(f"  {100 * t:5.0f} %  {p:6.2f}  {m:18s} {s:20s} {n:9.0f}", flush=True)
+    for p in sorted(points, key=lambda p: -p.ms):
+        print(f"  {100 * p.ms:5.0f} %  {p.psnr:6.2f}  {p.method:18s} {p.setting:20s} {p.drawn:9.0f}", flush=True)
 
 
 def main(argv=None) -> None:

@@ -220,7 +220,7 @@ LEGACY_CONFIG = {"s_v_sampling": "uniform", "level_max": 1.0, "trained_order_sha
                  "keep_share": 1.0, "recovery_steps": 1000, "tier_finetune_steps": 0, "tier_iteration_share": 1.0,
                  "faint_share": 0.0, "tier_merge": "decimate",
                  "tier_time_cap": 0.0, "popping_goal": 0.0, "count_mix": "off",
-                 "tier_hand_over": 0.0, "tier_downscale": 1}
+                 "tier_hand_over": 0.0, "tier_downscale": 1, "tier_draw": "chain", "tree_steps": 0}
 
 
 def adapt_cached(name: str, cfg: AdaptConfig, tag: str, *, split: str = "test", log=print) -> Path:

@@ -28,7 +28,9 @@ from torch import Tensor
 from . import lod
 from .gaussians import Gaussians, concat
 from .metrics import psnr
-from .camera_lod import chain_parts, chain_weights, count_budget_walk, render_lod, tier_chain, tiered, view_lod
+from .camera_lod import (chain_parts, chain_weights, count_budget_walk, render_lod, tier_chain, tiered, tree_select,
+                         view_lod)
+from .tree import is_tree
 
 __all__ = ["persistence", "importance_order", "bake", "lod_set_s_vs", "lod_level", "prune_never_rendered",
            "reduce_sh", "truncate_sh", "BakeInfo"]
@@ -111,6 +113,9 @@ def bake(gaussians: Gaussians, cameras: Sequence, s_v: Optional[float] = None, b
     tier drawn there, finest first, each at its own mean level, their opacities weighted by the
     tier's share of the image (``1 - u`` and ``u`` across a hand-over,
     :func:`clod_adapter.camera_lod.chain_weights`; ``BakeInfo.n_parents`` counts the tiers' rows).
+    A merge tree: each tier's nodes of the cut a view draws, at their own attributes ("original")
+    or their mean drawn opacity ("mean"; a node in a hand-over is baked as itself, not on its way
+    to its parent).
 
     Returns:
         The baked ``Gaussians``, or ``(Gaussians, BakeInfo)`` with ``return_info``.
@@ -120,7 +125,7 @@ def bake(gaussians: Gaussians, cameras: Sequence, s_v: Optional[float] = None, b
         raise ValueError(f"bake: opacity must be auto, original or mean, got {opacity!r}")
     if (s_v is None) == (budget is None):
         raise ValueError("bake: give exactly one of s_v and budget")
-    tier = budget is None and tiered(gaussians, s_v)
+    tier = budget is None and tiered(gaussians, s_v) and not is_tree(gaussians)
     members = tier_chain(gaussians)
     lods = [m.lod for m in members]
     weights = [w for w, _ in chain_weights(float(s_v), lods)] if tier else [1.0] * len(members)
@@ -130,7 +135,10 @@ def bake(gaussians: Gaussians, cameras: Sequence, s_v: Optional[float] = None, b
         def view_of(k, cam=cam):
             return view_lod(members[k], cam, tau=tau, eps=eps)
 
-        if tier:
+        if is_tree(gaussians):  # one cut of the merge tree: each tier's drawn rows
+            sels, s_used = _tree_sels(gaussians, cam, s_v, budget)
+            settings.append(s_used)
+        elif tier:
             _, sels = chain_parts(float(s_v), lods, view_of)
             settings.append(float(s_v))
         else:  # an s_v before the first hand-over, or a budget (which may walk down the tiers)
@@ -177,6 +185,19 @@ def bake(gaussians: Gaussians, cameras: Sequence, s_v: Optional[float] = None, b
                              per_view_rendered=sum(rendered) / max(len(rendered), 1),
                              n_parents=sum(int(a.indices.numel()) for a in acc[1:]))
     return out
+
+
+def _tree_sels(gaussians: Gaussians, cam, s_v, budget) -> tuple[list, float]:
+    """What one camera draws of a merge tree (:func:`clod_adapter.camera_lod.tree_select`) as one
+    selection-like record per tier (``indices``, drawn ``opacities``, ``level`` 0), and the level."""
+    from types import SimpleNamespace
+
+    c, attrs = tree_select(gaussians, cam, s_v, budget=budget)
+    ops, sels, at = attrs[3], [], 0
+    for ids in c.ids:
+        sels.append(SimpleNamespace(indices=ids, opacities=ops[at:at + ids.numel()], level=0.0))
+        at += ids.numel()
+    return sels, c.s_v
 
 
 @dataclass

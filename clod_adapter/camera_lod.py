@@ -39,7 +39,7 @@ from typing import Callable, NamedTuple, Optional, Sequence
 import torch
 from torch import Tensor
 
-from . import lod
+from . import lod, tree
 from .lod import Estimator
 from .render.dispatch import Backend
 from .budget import budget_count, critical_s_v, select_budget
@@ -971,6 +971,10 @@ def render_lod(
         ValueError: ``s_v`` or a budget given but the model has no ``sigma_d``; ``s_v < 1``;
             more than one of ``s_v``, ``budget``, ``budget_cost``, ``budget_ms`` given.
     """
+    if _tree_frame(gaussians, s_v, budget, level, budget_cost, budget_ms):
+        return _render_tree(gaussians, camera, s_v, budget=budget, budget_cost=budget_cost, budget_ms=budget_ms,
+                           time_model=time_model, budget_in_view=budget_in_view, background=background,
+                           sh_degree=sh_degree, backend=backend)
     if tiered(gaussians, s_v, level):
         return _render_tiered(gaussians, camera, float(s_v), tau, eps, background,
                               gaussians.sh_degree if sh_degree is None else sh_degree, backend, view)
@@ -1002,6 +1006,13 @@ def render_lod(
                      n_frustum=view.n_frustum, eta=sel.eta, s_v=sel.s_v, level=sel.level,
                      project_ms=view.project_ms, select_ms=(t2 - t1) * 1e3 - (view.project_ms - p0),
                      raster_ms=(t3 - t2) * 1e3, meta=meta)
+
+
+def _tree_frame(gaussians: Gaussians, s_v, budget, level, budget_cost, budget_ms) -> bool:
+    """Whether a frame of a merge-tree model (:func:`clod_adapter.tree.is_tree`) is one cut of the
+    tree: at an ``s_v`` or any budget, no ``level`` given."""
+    return (tree.is_tree(gaussians) and level is None
+            and any(x is not None for x in (s_v, budget, budget_cost, budget_ms)))
 
 
 def tiered(gaussians: Gaussians, s_v: Optional[float], level: Optional[float] = None) -> bool:
@@ -1467,6 +1478,13 @@ def lod_subset(gaussians: Gaussians, camera, s_v: Optional[float] = None, *,
     Raises:
         ValueError: as :func:`render_lod`.
     """
+    if _tree_frame(gaussians, s_v, budget, None, budget_cost, budget_ms):
+        c, (means, quats, scales, opacities, colors) = tree_select(gaussians, camera, s_v, budget=budget,
+                                                                   budget_cost=budget_cost, budget_ms=budget_ms,
+                                                                   time_model=time_model)
+        return LodSubset(indices=c.ids[0], means=means, quats=quats, scales=scales, opacities=opacities,
+                         colors=colors, s_v=c.s_v, n_in_view=c.n_frustum, parent_indices=c.ids[1],
+                         tier_indices=list(c.ids[1:]))
     if tiered(gaussians, s_v):
         parts, sels = chain_parts(float(s_v), *_chain_views(gaussians, camera, tau, eps))
         attrs = [v.drawn_attributes(sel) for v, sel in parts]
@@ -1505,3 +1523,108 @@ def _tier_subset(par: TierBudget, n_tiers: int) -> LodSubset:
     return LodSubset(indices=par.sel.indices.new_zeros(0) if own is None else own, means=cat[0], quats=cat[1],
                      scales=cat[2], opacities=torch.cat([sel.opacities for _, sel in parts]), colors=cat[3],
                      s_v=par.s_v, n_in_view=parts[0][0].n_in_view, parent_indices=ti[0], tier_indices=ti)
+
+def _tree_count(budget, n_model: int, n_frustum: int, in_view: bool) -> int:
+    """A count budget as a number of Gaussians (``clod_adapter.budget.budget_count``'s reading: an
+    int is a count, a float in [0, 1] a share of the model, or of tier 0's frustum with ``in_view``)."""
+    from .budget import budget_count, normalize_budget
+
+    b = normalize_budget(budget)
+    return budget_count(b, n_frustum if (in_view and isinstance(b, float)) else n_model)
+
+
+def tree_node_costs(tiers: Sequence[Gaussians], camera, tt) -> list[Tensor]:
+    """Per tier [N_k] float64: each node's clipped ellipse pixels at its own attributes
+    (``clod_adapter.cost.splat_cost``, the unit of cost budgets; 0 for a node never drawn at
+    ``s_v >= 1`` or culled)."""
+    from .cost import splat_cost
+
+    out = []
+    for t, n, u in zip(tiers, tt.entry, tt.upper):
+        c = torch.zeros(len(t), dtype=torch.float64, device=t.means.device)
+        idx = torch.nonzero(u > n.clamp_min(1.0)).flatten()
+        if idx.numel():
+            c[idx] = splat_cost(view_lod(t, camera), idx)
+        out.append(c)
+    return out
+
+
+@torch.no_grad()
+def tree_select(gaussians: Gaussians, camera, s_v: Optional[float] = None, *, budget=None, budget_cost=None,
+                budget_ms=None, time_model=None, budget_in_view: bool = False,
+                hand_over: float = tree.HAND_OVER) -> tuple["tree.TreeCut", tuple]:
+    """The cut a tree model draws for ``camera`` at ``s_v`` or within one budget, and its drawn
+    attributes (:func:`clod_adapter.tree.cut_attributes`): ``(cut, (means, quats, scales, opacities, colors))``.
+    ``budget``: a count (int) or a share (float in [0, 1]) of the model's Gaussians (of tier 0's
+    centres in the frustum with ``budget_in_view``), counted as centres in the frustum;
+    ``budget_cost``: pixels of :func:`tree_node_costs` (a float in (0, 1]: that share of tier 0's
+    whole cost); ``budget_ms``: predicted ms of ``time_model`` (default
+    ``clod_adapter.cost.DEFAULT_FRAME_TIME_MODEL``). Every budget is a cut of the same tree,
+    coarser for a smaller budget (:func:`clod_adapter.tree.budget_s_v`).
+
+    Raises:
+        ValueError: not exactly one of ``s_v`` and the budgets; ``s_v < 1``.
+    """
+    if sum(x is not None for x in (s_v, budget, budget_cost, budget_ms)) != 1:
+        raise ValueError("tree_select: give exactly one of s_v, budget, budget_cost, budget_ms")
+    if s_v is not None and not float(s_v) >= 1.0:
+        raise ValueError(f"s_v must be >= 1, got {s_v}")
+    tiers = tree.tiers_of(gaussians)
+    tt = tree.terms(tiers, camera, hand_over=hand_over)
+    if budget is not None:
+        k = _tree_count(budget, len(gaussians), int(tt.frustum[0].sum()), budget_in_view)
+        s_v = tree.budget_s_v(tt, k)
+    elif budget_cost is not None or budget_ms is not None:
+        from .cost import DEFAULT_FRAME_TIME_MODEL
+
+        costs = tree_node_costs(tiers, camera, tt)
+        if budget_cost is not None:
+            limit = float(budget_cost) * float(costs[0].sum()) if float(budget_cost) <= 1.0 else float(budget_cost)
+            s_v = tree.budget_s_v(tt, limit, costs)
+        else:
+            tm = DEFAULT_FRAME_TIME_MODEL if time_model is None else time_model
+            weights = [torch.where(c > 0, tm.per_splat_ms(c), c) for c in costs]
+            s_v = tree.budget_s_v(tt, float(budget_ms) - tm.c0_ms, weights)
+    c = tree.cut(tiers, camera, float(s_v), hand_over=hand_over, tt=tt)
+    return c, tree.cut_attributes(tiers, c)
+
+
+def _render_tree(gaussians: Gaussians, camera, s_v: Optional[float] = None, *, budget=None, budget_cost=None,
+                 budget_ms=None, time_model=None, budget_in_view: bool = False, background=None,
+                 sh_degree: Optional[int] = None, backend: str = "auto"):
+    """:func:`render_lod` of a tree model at ``s_v`` or a budget: one cut (:func:`tree_select`)
+    rasterised as one set. Returns its ``LodRender`` (``selection``: tier 0's drawn rows;
+    ``n_rendered``: the cut's nodes in view, as the rasteriser culls them; ``n_parents``: the merged
+    ones among them; ``level`` 0). ``s_v = 1`` is tier 0 whole, drawn as a plain model (no per-node
+    terms)."""
+    from .render.dispatch import rasterization
+
+    if s_v is not None and float(s_v) <= 1.0:
+        out = render_lod(replace(gaussians.with_sigma_d(None), extra={}), camera, background=background,
+                         sh_degree=sh_degree, backend=backend)
+        out.s_v = 1.0
+        return out
+    t0 = time.perf_counter()
+    c, (means, quats, scales, opacities, colors) = tree_select(gaussians, camera, s_v, budget=budget,
+                                                               budget_cost=budget_cost, budget_ms=budget_ms,
+                                                               time_model=time_model, budget_in_view=budget_in_view)
+    t1 = time.perf_counter()
+    bg = None
+    if background is not None:
+        bg = torch.as_tensor(background, dtype=means.dtype, device=means.device).reshape(1, -1)
+    sh = gaussians.sh_degree if sh_degree is None else sh_degree
+    image, alpha, meta = rasterization(means, quats, scales, opacities, colors, camera.viewmat[None],
+                                       camera.K[None], int(camera.width), int(camera.height), eps2d=EPS2D,
+                                       sh_degree=sh, backgrounds=bg, backend=backend)
+    t2 = time.perf_counter()
+    n0 = int(c.ids[0].numel())
+    n_vis = int(torch.as_tensor(meta.get("n_visible", c.n_drawn)).sum())  # the cut's nodes in view
+    vis_ids = meta.get("visible_ids")
+    if isinstance(vis_ids, (list, tuple)):
+        vis_ids = vis_ids[0]
+    n_par = n_vis - int((vis_ids < n0).sum()) if isinstance(vis_ids, torch.Tensor) else c.n_drawn - n0
+    eta = torch.tensor(n_vis / max(c.n_frustum, 1), dtype=means.dtype)
+    sel = LodSelection(c.ids[0], opacities[:n0], None, c.s_v, 0.0, eta, n=len(gaussians))
+    return LodRender(image=image[0], alpha=alpha[0], selection=sel, n_rendered=n_vis, n_frustum=c.n_frustum,
+                     eta=eta, s_v=c.s_v, level=0.0, select_ms=(t1 - t0) * 1e3, raster_ms=(t2 - t1) * 1e3,
+                     meta=meta, n_parents=n_par)

@@ -186,11 +186,13 @@ class Gaussians:
         return replace(self._map(lambda v: v[index]), parents=None)
 
     def with_sigma_d(self, sigma_d: Optional[Tensor]) -> "Gaussians":
-        """The model with ``sigma_d`` replaced; ``None`` also drops the level gains and settings
-        (the plain 3DGS model)."""
+        """The model with ``sigma_d`` replaced; ``None`` also drops the level gains, settings,
+        tiers and a merge tree's node data (``extra["parent"]``, ``extra["exit"]``): the plain 3DGS
+        model."""
         if sigma_d is None:
             return replace(self, sigma_d=None, opacity_logit_gain=None, log_scale_gain=None,
-                           sh0_gain=None, lod=None, parents=None)
+                           sh0_gain=None, lod=None, parents=None,
+                           extra={k: v for k, v in self.extra.items() if k not in ("parent", "exit")})
         return replace(self, sigma_d=sigma_d)
 
 

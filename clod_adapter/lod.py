@@ -99,6 +99,9 @@ class LodSettings:
             (:func:`clod_adapter.camera_lod.budget_walk`); the model's setting (tier 0's) holds
             for the whole chain. Chosen per scene by ``clod-adapt --count-mix auto``
             (:func:`clod_adapter.tiers.choose_count_mix`).
+        tree: the tiers form a merge tree (each Gaussian of a tier names its parent in the next,
+            ``Gaussians.extra["parent"]``) and an ``s_v`` or count budget draws one cut of it
+            (:mod:`clod_adapter.tree`; docs/lod_rule.md) instead of cross-fading whole tiers.
     """
 
     max_sv: float = 5.0
@@ -111,6 +114,7 @@ class LodSettings:
     tier_start: float = 1.0
     tier_fade: float = 1.25
     count_mix: bool = False
+    tree: bool = False
 
     def __post_init__(self) -> None:
         if not self.max_sv >= 1.0:
@@ -131,6 +135,8 @@ class LodSettings:
             raise ValueError(f"tier_fade must be finite and > 1, got {self.tier_fade}")
         if not isinstance(self.count_mix, bool):
             raise ValueError(f"count_mix must be a bool, got {self.count_mix!r}")
+        if not isinstance(self.tree, bool):
+            raise ValueError(f"tree must be a bool, got {self.tree!r}")
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -143,12 +149,12 @@ def _work_dtype(*ts: Tensor) -> torch.dtype:
     return dt
 
 
-#: per-tensor derived values (:func:`_cached`): (id, name) -> (weakref, version, value)
+#: per-tensor derived values (:func:`cached_value`): (id, name) -> (weakref, version, value)
 _CACHE: dict = {}
 _CACHE_MAX = 16
 
 
-def _cached(t: Tensor, name: str, make) -> Tensor:
+def cached_value(t: Tensor, name: str, make) -> Tensor:
     """``make(t)``, cached per tensor, in-place version (``Tensor._version``: an optimiser step
     makes a new value) and ``name``. Only for values without gradient. A write through
     ``tensor.data`` does not change the version: code that edits a model that way (none here)
@@ -176,23 +182,23 @@ def _cached(t: Tensor, name: str, make) -> Tensor:
 
 def centre_columns(means: Tensor, dtype: torch.dtype) -> Tensor:
     """[3, N] contiguous copy of ``means`` [N, 3] (detached, in ``dtype``), cached per tensor and
-    in-place version (:func:`_cached`). The per-frame terms (:func:`in_frustum`,
+    in-place version (:func:`cached_value`). The per-frame terms (:func:`in_frustum`,
     :func:`normalized_distances`, :func:`frame_terms`) run on these rows: elementwise work on three
     contiguous [N] rows is 4-9x faster on the CPU than the same arithmetic on [N, 3] (a [N, 3] x
     [3, 3] product took 0.6 ms at 60,000 Gaussians, the rows 0.07 ms)."""
-    return _cached(means, f"columns:{dtype}", lambda m: m.detach().to(dtype).t().contiguous())
+    return cached_value(means, f"columns:{dtype}", lambda m: m.detach().to(dtype).t().contiguous())
 
 
 def activated(raw: Tensor, fn: str) -> Tensor:
     """``torch.exp(raw)`` (``fn="exp"``: scales of ``log_scales``) or ``torch.sigmoid(raw)``
     (``fn="sigmoid"``: opacities of ``opacity_logits``), same shape and dtype. Without
     autograd (``raw`` needs no gradient, or grad mode is off) the value is cached per tensor and
-    version (:func:`_cached`): a frame of a fixed model then does not re-activate all N rows
+    version (:func:`cached_value`): a frame of a fixed model then does not re-activate all N rows
     (0.3 ms for [60,000, 3] scales on 2 threads, a tenth of a coarse level's selection)."""
     f = {"exp": torch.exp, "sigmoid": torch.sigmoid}[fn]
     if raw.requires_grad and torch.is_grad_enabled():
         return f(raw)
-    return _cached(raw, fn, lambda t: f(t.detach()))
+    return cached_value(raw, fn, lambda t: f(t.detach()))
 
 
 def in_frustum(means: Tensor, viewmat: Tensor, K: Tensor, width: int, height: int,

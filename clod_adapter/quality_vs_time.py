@@ -50,6 +50,7 @@ from .gaussians import Gaussians
 from .metrics import psnr, ssim
 from .storage import ply_bytes
 from .timing import time_interleaved
+from .tree import is_tree
 
 #: ``s_v`` levels and cost budgets of the adapted model.
 S_VS = (1.0, 1.1, 1.2, 1.3, 1.4, 1.5, 1.75, 2.0, 2.5, 3.0, 4.0, 5.0, 6.0, 7.5, 10.0, 12.5, 15.0, 17.5, 20.0, 25.0,
@@ -171,13 +172,23 @@ class _Context:
         return [lod_render(self.base.subset(i), c, **self.render_kw) for c, i in zip(self.cams, idx)], size
 
 
+#: the count budgets of the adapted model's budget sweep: shares of the Gaussians in view
+COUNT_SHARES = (1.0, 0.75, 0.5, 0.3, 0.2, 0.1, 0.05, 0.02, 0.01)
+#: levels of a merge tree's sweep (log-spaced from 1 to past its coarsest tier)
+TREE_LEVELS = 40
+
+
 def clod_s_vs(adapted: Gaussians) -> list[float]:
     """The adapted model's levels compared: :data:`S_VS`, and for a model with merged tiers more
     levels spaced by 1.25 in ``s_v`` up to ``S_VS[-1] x`` :func:`clod_adapter.camera_lod.tier_reach`,
     so the last tier is taken as far down as a model without tiers, and each tier's entry: the
     ``s_v`` where it is first drawn alone, at its ``tier_start`` level (the end of the cross-fade
-    into it, :func:`clod_adapter.lod.tier_weight`)."""
+    into it, :func:`clod_adapter.lod.tier_weight`). A merge tree (:func:`clod_adapter.tree.is_tree`):
+    :data:`TREE_LEVELS` log-spaced levels from 1 to ``S_VS[-1] x`` its reach."""
     reach = tier_reach(adapted)
+    if is_tree(adapted):  # one sweep through the whole tree, log-spaced (its cost must fall along it)
+        top = S_VS[-1] * reach
+        return [round(math.exp(math.log(top) * i / (TREE_LEVELS - 1)), 4) for i in range(TREE_LEVELS)]
     n = min(12, math.ceil(math.log(reach) / math.log(1.25))) if reach > 1.0 else 0
     top = S_VS[-1]
     entries, r = [], 1.0
@@ -213,6 +224,9 @@ def build_settings(adapted: Gaussians, base: Gaussians, fit_cams: Sequence, cams
         settings.append(Setting("clod", f"s_v={s:g}", [lod_render(adapted, c, s_v=s, **kw) for c in cams], sa))
     for b in COST_SHARES:
         settings.append(Setting("clod", f"cost={b:g}", [lod_render(adapted, c, budget_cost=b, **kw) for c in cams], sa))
+    for b in COUNT_SHARES:
+        settings.append(Setting("clod", f"in_view={b:g}", [lod_render(adapted, c, budget=b, budget_in_view=True, **kw)
+                                                           for c in cams], sa))
     if significance is None:
         t = time.perf_counter()
         significance = lightgaussian_significance(base, list(fit_cams))
@@ -458,10 +472,40 @@ def n_renders(n_views: int, repeats: int, full_rounds: int = FULL_ROUNDS, merge:
               n_levels: int = len(S_VS)) -> int:
     """About how many renders :func:`compare` makes (for a progress bar); ``n_levels``: the
     adapted model's levels, ``len(clod_s_vs(adapted))``."""
-    n = 1 + n_levels + len(COST_SHARES) + 2 * len(STATIC_SHARES) + (2 * len(DECIMATE_SHARES) if merge else 0)
+    n = 1 + n_levels + len(COST_SHARES) + len(COUNT_SHARES) + 2 * len(STATIC_SHARES)
+    n += 2 * len(DECIMATE_SHARES) if merge else 0
     # the equal-count points: about three in range per decimator, three methods each
     n += 3 * len(DECIMATORS) * 3 if merge else 0
     return n_views * (n * (2 + repeats) + 2 * (1 + full_rounds))
+
+
+def worst_step(ms: Sequence[float]) -> float:
+    """The largest ``ms[j] / ms[i]`` over ``i < j``: a frame of a sweep from detailed to coarse
+    against the cheapest more detailed frame (1 or below: the cost never rises along it)."""
+    worst, best = 0.0, math.inf
+    for m in ms:
+        if best < math.inf:
+            worst = max(worst, m / best)
+        best = min(best, m)
+    return worst
+
+
+def cost_follows(comp: Comparison) -> dict:
+    """How the adapted model's frame time follows its level (issue 62's goals 1 and 2):
+    ``level_step`` / ``budget_step``, :func:`worst_step` along the ``s_v`` sweep and along the count
+    budgets from 100 % to 1 % of the Gaussians in view; ``over_input``, the largest frame of both
+    over the input's; ``count_ratio``, the largest time ratio of the adapted model at a decimator's
+    count per view to that decimator's own frame (nan without the equal-count points)."""
+    lev = sorted(((float(s.setting[4:]), s.ms) for s in comp.settings
+                  if s.method == "clod" and s.setting.startswith("s_v=")))
+    bud = sorted(((-float(s.setting[8:]), s.ms) for s in comp.settings
+                  if s.method == "clod" and s.setting.startswith("in_view=")))
+    ratios = [comp.get("clod", s.setting).ms / comp.get(s.setting.split(":")[1], s.setting.split(":")[2]).ms
+              for s in comp.settings if s.method == "clod" and s.setting.startswith("match:")]
+    frames = [m for _, m in lev + bud]
+    return {"level_step": worst_step([m for _, m in lev]), "budget_step": worst_step([m for _, m in bud]),
+            "over_input": max(frames) / comp.input.ms if frames else float("nan"),
+            "count_ratio": max(ratios) if ratios else float("nan")}
 
 
 # --- what is said ------------------------------------------------------------------------------
@@ -559,6 +603,46 @@ def plot(path, results: dict) -> None:
         ax.set_title(title, fontsize=9)
         ax.grid(alpha=0.3)
     axes[0][0].legend(fontsize=7, loc="lower right")
+    fig.tight_layout()
+    atomic_save(path, lambda tmp: fig.savefig(tmp, format="png", dpi=110))
+    plt.close(fig)
+
+
+def plot_cost(path, results: dict) -> None:
+    """Frame time against the level, one row per ``{title: Comparison}``: the adapted model's
+    ms along ``s_v`` (left) and along the count budgets (right, share of the Gaussians in view), as
+    shares of the input's frame, the decimators' points beside the budgets; written atomically."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from .io.atomic import atomic_save
+
+    fig, axes = plt.subplots(len(results), 2, figsize=(10.4, 3.4 * len(results)), squeeze=False)
+    for (ax_l, ax_b), (title, comp) in zip(axes, results.items()):
+        t0 = comp.input.ms
+        lev = sorted((float(s.setting[4:]), 100 * s.ms / t0) for s in comp.settings
+                     if s.method == "clod" and s.setting.startswith("s_v="))
+        ax_l.plot(*zip(*lev), "o-", ms=3, color=STYLE["clod"][0])
+        ax_l.set_xscale("log")
+        ax_l.set_xlabel("s_v")
+        bud = sorted((100 * float(s.setting[8:]), 100 * s.ms / t0) for s in comp.settings
+                     if s.method == "clod" and s.setting.startswith("in_view="))
+        ax_b.plot(*zip(*bud), "o-", ms=3, color=STYLE["clod"][0], label="adapted, count budget")
+        for m in DECIMATORS:
+            pts = [(100 * comp.in_view_share(s), 100 * s.ms / t0) for s in comp.settings if s.method == m]
+            if pts:
+                ax_b.scatter(*zip(*pts), color=STYLE[m][0], marker=STYLE[m][1], s=18, label=STYLE[m][2])
+        ax_b.set_xscale("log")
+        ax_b.invert_xaxis()
+        ax_b.set_xlabel("Gaussians drawn, % of those in view")
+        for ax in (ax_l, ax_b):
+            ax.axhline(100, color="k", lw=0.8, ls=":")
+            ax.set_ylabel("frame time, % of the input's")
+            ax.set_title(title, fontsize=9)
+            ax.grid(alpha=0.3)
+        ax_b.legend(fontsize=7)
     fig.tight_layout()
     atomic_save(path, lambda tmp: fig.savefig(tmp, format="png", dpi=110))
     plt.close(fig)

@@ -25,7 +25,7 @@ from torch import Tensor
 
 from . import lod
 from .render.dispatch import rasterization
-from .camera_lod import chain_parts, count_budget_walk, rasterize_views, view_lod_tensors
+from .camera_lod import chain_parts, count_budget_walk, rasterize_views, tree_select, view_lod_tensors
 
 __all__ = ["clod_rasterization", "clod_kwargs"]
 
@@ -52,16 +52,51 @@ def clod_kwargs(model) -> Dict[str, Any]:
     p = model.parents
     if p is not None:
         kw["parents"] = _parent_dict(p)
+    if "parent" in model.extra:
+        kw["parent"] = model.extra["parent"]
     return kw
 
 
 def _parent_dict(p) -> Dict[str, Any]:
-    """A parent tier as ``parents=`` takes it; its own parent tier nested under ``"parents"``."""
+    """A parent tier as ``parents=`` takes it; its own parent tier nested under ``"parents"`` (and,
+    in a merge tree, its rows' parents in that tier under ``"parent"``)."""
     d = {**{k: getattr(p, k) for k in PARENT_KEYS}, **{k: getattr(p, k) for k in _GAINS},
          "opacity_logits": p.opacity_logits, "lod_settings": p.lod}
     if p.parents is not None:
         d["parents"] = _parent_dict(p.parents)
+    for key in ("parent", "exit"):  # a merge tree's parent indices, its last tier's exits
+        if key in p.extra:
+            d[key] = p.extra[key]
     return d
+
+
+def _tree_tier(means, quats, scales, logits, colors, sigma_d, settings, parent, above, exit_=None):
+    """One tier of a merge tree as :class:`clod_adapter.gaussians.Gaussians` (``colors`` [N, K, 3]
+    SH, or [N, D] stored as a degree-0 block and drawn as given), its parents ``above``."""
+    from dataclasses import replace as _replace
+
+    from .gaussians import Gaussians
+
+    col = colors if colors.ndim == 3 else colors[:, None, :]
+    g = Gaussians(means=means, quats=quats, log_scales=torch.log(scales), opacity_logits=logits,
+                  sh0=col[:, :1], shN=col[:, 1:],
+                  sigma_d=sigma_d, lod=settings,
+                  extra={k: v for k, v in (("parent", parent), ("exit", exit_)) if v is not None})
+    return _replace(g, parents=above)
+
+
+def _tree_model(means, quats, scales, logits, colors, sigma_d, settings, parent, parents, per_cam: Optional[int]):
+    """The model and its ``parents=`` chain as one tree (:mod:`clod_adapter.tree`); ``per_cam``:
+    the camera whose colours to take from [C, N, D] colours."""
+    def build(d, settings_above):
+        st = d.get("lod_settings") or settings_above
+        col = d["colors"][per_cam] if per_cam is not None else d["colors"]
+        above = build(d["parents"], st) if (d.get("parents") is not None and st.tier_s_v > 0) else None
+        return _tree_tier(d["means"], d["quats"], d["scales"], _logits(d["opacities"], d.get("opacity_logits")),
+                          col, d["sigma_d"], st, d.get("parent"), above, d.get("exit"))
+
+    col = colors[per_cam] if per_cam is not None else colors
+    return _tree_tier(means, quats, scales, logits, col, sigma_d, settings, parent, build(parents, settings))
 
 
 def _logits(opacities: Tensor, logits: Optional[Tensor] = None) -> Tensor:
@@ -100,6 +135,21 @@ _NOOP_DEFAULTS = {
     "rolling_shutter": None, "radial_coeffs": None, "tangential_coeffs": None,
     "thin_prism_coeffs": None, "ortho": False,
 }
+
+
+def _check_lod_args(means, sigma_d, s_v, viewmats, Ks, gsplat_args) -> None:
+    """:func:`clod_rasterization`'s checks of a LoD call (the errors it documents)."""
+    N = means.shape[0]
+    if tuple(sigma_d.shape) != (N,):
+        raise ValueError(f"clod_rasterization: sigma_d must be [{N}], got {tuple(sigma_d.shape)}")
+    if s_v is not None and not s_v >= 1.0:
+        raise ValueError(f"clod_rasterization: s_v must be >= 1, got {s_v}")
+    if viewmats.ndim != 3 or Ks.ndim != 3 or viewmats.shape[0] != Ks.shape[0]:
+        raise ValueError(f"clod_rasterization: viewmats [C, 4, 4] and Ks [C, 3, 3] expected, got "
+                         f"{tuple(viewmats.shape)} and {tuple(Ks.shape)}")
+    if tuple(gsplat_args) != (0.01, 1e10, 0.0, 0.3, 16):
+        raise ValueError("clod_rasterization: with LoD only gsplat's defaults near_plane=0.01, far_plane=1e10, "
+                         "radius_clip=0, eps2d=0.3, tile_size=16 are supported")
 
 
 def _refuse_unsupported(packed: bool, render_mode: str, rasterize_mode: str, kwargs: dict) -> None:
@@ -147,6 +197,7 @@ def clod_rasterization(
     log_scale_gain: Optional[Tensor] = None,
     sh0_gain: Optional[Tensor] = None,
     parents: Optional[Dict[str, Any]] = None,
+    parent: Optional[Tensor] = None,
     opacity_logits: Optional[Tensor] = None,
     tau: Optional[float] = None,
     eps: Optional[float] = None,
@@ -181,6 +232,9 @@ def clod_rasterization(
             chain, :func:`clod_adapter.camera_lod.chain_parts`); a budget whose solution passes a
             hand-over draws that tier alone (:func:`clod_adapter.camera_lod.budget_walk`; with
             ``lod_settings.count_mix``, that tier and the finer one mixed by distance).
+        parent: [N] int, a merge tree's parent of each Gaussian in ``parents`` (each tier's own
+            under ``"parent"`` in its dict; :func:`clod_kwargs`): with ``lod_settings.tree`` an
+            ``s_v`` or a budget draws one cut of the tree (:func:`clod_adapter.camera_lod.tree_select`).
         opacity_logits: [N] the raw opacities ``opacities`` came from: the rule works on logits
             (the gains shift them), and a float32 opacity near 1 keeps few digits of ``1 - o``
             (exactly 1 above a logit of ~16.6), so ``log(o / (1 - o))`` returns logits above ~14
@@ -215,22 +269,15 @@ def clod_rasterization(
     if sigma_d is None or (s_v is None and budget is None):
         return rasterization(means, quats, scales, opacities, colors, viewmats, Ks, width, height,
                              backgrounds=backgrounds, **common)
-    N = means.shape[0]
-    if tuple(sigma_d.shape) != (N,):
-        raise ValueError(f"clod_rasterization: sigma_d must be [{N}], got {tuple(sigma_d.shape)}")
-    if s_v is not None and not s_v >= 1.0:
-        raise ValueError(f"clod_rasterization: s_v must be >= 1, got {s_v}")
-    if viewmats.ndim != 3 or Ks.ndim != 3 or viewmats.shape[0] != Ks.shape[0]:
-        raise ValueError(f"clod_rasterization: viewmats [C, 4, 4] and Ks [C, 3, 3] expected, got "
-                         f"{tuple(viewmats.shape)} and {tuple(Ks.shape)}")
-    if (near_plane, far_plane, radius_clip, eps2d, tile_size) != (0.01, 1e10, 0.0, 0.3, 16):
-        raise ValueError("clod_rasterization: with LoD only gsplat's defaults near_plane=0.01, far_plane=1e10, "
-                         "radius_clip=0, eps2d=0.3, tile_size=16 are supported")
+    _check_lod_args(means, sigma_d, s_v, viewmats, Ks, (near_plane, far_plane, radius_clip, eps2d, tile_size))
     C = viewmats.shape[0]
     per_cam_colors = sh_degree is None and colors.ndim == 3
     w, h = int(width), int(height)
     gains = {"opacity_logit_gain": opacity_logit_gain, "log_scale_gain": log_scale_gain, "sh0_gain": sh0_gain}
     logits = _logits(opacities, opacity_logits)
+    if parents is not None and lod_settings is not None and lod_settings.tree and lod_settings.tier_s_v > 0:
+        return _tree_frames(means, quats, scales, logits, colors, sigma_d, lod_settings, parent, parents, viewmats,
+                            Ks, w, h, s_v, budget, backgrounds, sh_degree, backend, per_cam_colors)
     tier = (s_v is not None and parents is not None and lod_settings is not None and lod_settings.tier_s_v > 0
             and lod.tier_weight(float(s_v), lod_settings)[0] > 0)
     has_tiers = parents is not None and lod_settings is not None and lod_settings.tier_s_v > 0
@@ -282,6 +329,41 @@ def clod_rasterization(
         par_idx.append(t_idx[0] if t_idx else idx.new_zeros(0))
         tier_idx.append(t_idx)
     out_meta: Dict[str, Any] = dict(metas[0]) if C == 1 else {"cameras": metas, "n_cameras": C}
+    out_meta.update(lod_s_v=svs, lod_n_rendered=counts, lod_indices=indices, lod_n_parents=n_par,
+                    lod_parent_indices=par_idx, lod_tier_indices=tier_idx)
+    return torch.cat(imgs, 0), torch.cat(alphas, 0), out_meta
+
+
+def _tree_frames(means, quats, scales, logits, colors, sigma_d, settings, parent, parents, viewmats, Ks, w, h,
+                 s_v, budget, backgrounds, sh_degree, backend, per_cam_colors):
+    """:func:`clod_rasterization` of a merge tree: per camera the cut of :func:`clod_adapter.tree.select`
+    rasterised as one set (meta as documented there; ``lod_tier_indices`` the cut's rows per tier)."""
+    from types import SimpleNamespace
+
+    if parent is None:
+        raise ValueError("clod_rasterization: lod_settings.tree needs parent= (clod_kwargs gives it)")
+    imgs, alphas, metas, svs, counts, indices, n_par, par_idx, tier_idx = [], [], [], [], [], [], [], [], []
+    g = None
+    for c in range(viewmats.shape[0]):
+        if g is None or per_cam_colors:
+            g = _tree_model(means, quats, scales, logits, colors, sigma_d, settings, parent, parents,
+                            c if per_cam_colors else None)
+        cam = SimpleNamespace(viewmat=viewmats[c], K=Ks[c], width=w, height=h)
+        cut, (m, q, sc, op, col) = tree_select(g, cam, s_v, budget=budget)
+        col = col if (colors.ndim == 3 and not per_cam_colors) else col[:, 0]  # [k, 1, D] back to [k, D]
+        bg = None if backgrounds is None else backgrounds[c][None]
+        rc, ra, meta = rasterization(m, q, sc, op, col, viewmats[c][None], Ks[c][None], w, h, sh_degree=sh_degree,
+                                     backgrounds=bg, backend=backend)
+        imgs.append(rc)
+        alphas.append(ra)
+        metas.append(meta)
+        svs.append(cut.s_v)
+        counts.append(cut.n_drawn)
+        indices.append(cut.ids[0])
+        n_par.append(cut.n_drawn - int(cut.ids[0].numel()))
+        par_idx.append(cut.ids[1])
+        tier_idx.append(list(cut.ids[1:]))
+    out_meta: Dict[str, Any] = dict(metas[0]) if len(metas) == 1 else {"cameras": metas, "n_cameras": len(metas)}
     out_meta.update(lod_s_v=svs, lod_n_rendered=counts, lod_indices=indices, lod_n_parents=n_par,
                     lod_parent_indices=par_idx, lod_tier_indices=tier_idx)
     return torch.cat(imgs, 0), torch.cat(alphas, 0), out_meta

@@ -2,7 +2,7 @@
 ``LodSettings.count_mix`` is set: chosen per scene by ``clod-adapt``'s default ``--count-mix auto``,
 or ``--count-mix on``).
 
-A count budget of ``k`` Gaussians on a model with merged tiers (docs/lod_rule.md "The tiers")
+A count budget of ``k`` Gaussians on a model with merged tiers (docs/lod_rule_chain.md "The tiers")
 that ends in a tier whose full detail (its start, where the ``s_v`` rule first draws it alone)
 holds more than ``k`` in view, the next tier holding fewer, draws the **nearer** Gaussians of the
 finer tier and the **farther** of the coarser one, split at the camera distance ``D`` (world

@@ -59,6 +59,8 @@ RANKINGS = ("lightgaussian", "opacity")
 
 #: AdaptConfig.count_mix's values
 COUNT_MIX_RULES = ("off", "on", "auto")
+#: AdaptConfig.tier_draw's values
+TIER_DRAWS = ("tree", "chain")
 
 
 @dataclass
@@ -167,6 +169,14 @@ class AdaptConfig:
             ``"on"``, or ``"auto"`` (default), the rule scoring the higher PSNR on the training
             views (:func:`clod_adapter.tiers.choose_count_mix`; docs/studies.md "A count budget
             between two tiers, mixed by distance").
+        tier_draw: how a model with merged tiers is drawn: ``"chain"`` (default), whole tiers
+            cross-faded at each hand-over (two sets drawn there; the coarsest tier's window and
+            ``count_mix`` apply to it only); ``"tree"``, the tiers linked into a merge tree (each
+            Gaussian names its parent in the next tier), fitted on its cuts and drawn as one cut
+            per frame (:mod:`clod_adapter.tree`; docs/method.md "The merge tree").
+        tree_steps: with ``tier_draw="tree"``, the merged tiers are fitted on the tree's own cuts
+            for this many steps, at most ``iterations`` (:func:`clod_adapter.tree_train.finetune`;
+            0: not fitted).
         tier_iteration_share: each merged tier learns its level of detail for this share of
             ``iterations`` (rounded, at least 1 when ``iterations`` > 0). Default 1: a finer ladder of
             five tiers at half the steps each was not better on the validation views
@@ -234,6 +244,8 @@ class AdaptConfig:
     popping_goal: Optional[float] = None
     tier_hand_over: Optional[float] = None
     count_mix: str = "auto"
+    tier_draw: str = "chain"
+    tree_steps: int = 1000
     faint_share: Optional[float] = None
     keep_share: float = 1.0
     recovery_steps: int = 1000
@@ -340,6 +352,11 @@ class AdaptConfig:
         self.tier_hand_over = float(self.tier_hand_over)
         if not (self.tier_hand_over == 0.0 or (math.isfinite(self.tier_hand_over) and self.tier_hand_over > 1.0)):
             raise ValueError(f"tier_hand_over must be 0 (the time rule's) or an s_v > 1, got {self.tier_hand_over}")
+        if int(self.tree_steps) != self.tree_steps or self.tree_steps < 0:
+            raise ValueError(f"tree_steps must be a count >= 0, got {self.tree_steps}")
+        self.tree_steps = int(self.tree_steps)
+        if self.tier_draw not in TIER_DRAWS:
+            raise ValueError(f"tier_draw must be one of {', '.join(TIER_DRAWS)}, got {self.tier_draw!r}")
         if self.count_mix not in COUNT_MIX_RULES:
             raise ValueError(f"count_mix must be one of {', '.join(COUNT_MIX_RULES)}, got {self.count_mix!r}")
         self.tier_iteration_share = float(self.tier_iteration_share)

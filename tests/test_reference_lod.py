@@ -1,5 +1,5 @@
-"""``render_lod`` against the numpy implementation of ``docs/lod_rule.md``
-(``examples/reference_lod.py``, no ``clod_adapter`` import): the page says all the library does."""
+"""``render_lod`` against the numpy implementation of ``docs/lod_rule_chain.md``
+(``examples/reference_lod_chain.py``, no ``clod_adapter`` import): the page says all the library does."""
 from __future__ import annotations
 
 import dataclasses
@@ -20,7 +20,7 @@ from clod_adapter.synthetic import make_cameras, make_ground_truth
 from clod_adapter.training import reference_distances
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "examples"))
-import reference_lod as ref  # noqa: E402
+import reference_lod_chain as ref  # noqa: E402
 
 S_VS = (1.0, 1.04, 1.08, 1.2, 1.5, 2.0, 3.7, 5.0, 12.0, 40.0)
 
@@ -110,7 +110,7 @@ def test_images_agree_when_the_page_selection_is_rasterised(tmp_path):
 
 
 def test_parent_tier_as_the_page_says(tmp_path):
-    """A tiered file (docs/lod_rule.md "The tiers"): the model and its parents drawn by the
+    """A tiered file (docs/lod_rule_chain.md "The tiers"): the model and its parents drawn by the
     numpy page are what lod_subset hands the rasteriser, below, across and beyond the switch."""
     from clod_adapter import tiers
     from clod_adapter.camera_lod import lod_subset

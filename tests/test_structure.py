@@ -158,7 +158,7 @@ def test_no_root_export_shadowed_by_a_submodule():
 #: the training and evaluation logic (docs/guide.md "How the code is laid out"): above the model, the
 #: mechanism and the I/O, below the jobs.
 LOGIC = {"training", "official", "distributed", "losses", "baselines", "dlod_ceiling", "level_metrics", "timing",
-         "frontier", "quality_vs_time", "bake", "tiers", "pruning", "popping"}
+         "frontier", "quality_vs_time", "bake", "tiers", "pruning", "popping", "tree_train"}
 
 
 def layer(module: str) -> int:

@@ -175,7 +175,7 @@ def test_consumers_draw_what_render_lod_draws(chain, s_v):
     for a, b in zip(meta["lod_tier_indices"][0], sub.tier_indices):
         assert torch.equal(a, b if b is not None else a.new_zeros(0))
     spec = importlib.util.spec_from_file_location("reference_lod", Path(__file__).parents[1] / "examples"
-                                                  / "reference_lod.py")
+                                                  / "reference_lod_chain.py")
     refmod = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(refmod)
     import tempfile

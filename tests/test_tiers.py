@@ -351,7 +351,7 @@ def test_adapt_job_builds_the_tier_or_says_why_not(tiny_model, tmp_path, monkeyp
     assert tier["time_cap"]["cap"] == tiers.TIER_TIME_CAP and tried[0][0] == 0.2
     assert tier["parent_share"] == tried[-1][0] and all(r > tiers.TIER_TIME_CAP for _, r in tried[:-1])
     n_parents = round(tier["parent_share"] * 300)
-    assert tier["finetune"]["steps"] == 7
+    assert tier["finetune"]["steps"] == 2  # --tier-finetune-steps 7, at most --iterations 2
     steps = json.loads((out / "metrics.json").read_text())["config"]["iterations"]
     assert json.loads((out / "parents" / "metrics.json").read_text())["config"]["iterations"] == round(steps / 2)
     assert tier["parents"] == n_parents and (out / "parents" / "point_cloud.ply").is_file()
@@ -359,9 +359,43 @@ def test_adapt_job_builds_the_tier_or_says_why_not(tiny_model, tmp_path, monkeyp
     g = read_ply(out / "point_cloud.ply")
     assert (g.parents is not None) == tier["used"]
     if tier["used"]:
-        assert g.lod.tier_s_v == tier["tier_s_v"] and len(g.parents) == n_parents
+        assert g.lod.tier_s_v == tier["tier_s_v"] and len(g.parents) == n_parents and not g.lod.tree
         # --count-mix auto (the default): chosen on the training views, recorded, and carried by the file
         assert g.lod.count_mix is tier["count_mix"]["count_mix"] is (tier["count_mix"]["gain_db"] > 0)
+
+
+@pytest.mark.slow
+def test_adapt_job_builds_a_tree(tiny_model, tmp_path, monkeypatch):
+    """clod-adapt --tier-draw tree: the tiers linked into a merge tree (written whole, every node's
+    parent in the next tier), fitted on its cuts for at most --iterations steps, and lod_strip.png
+    drawn through it."""
+    import json
+
+    from clod_adapter import tree
+    from clod_adapter.cli.adapt import main
+    from clod_adapter.splat_transform import find_splat_transform
+    from conftest import FAST
+
+    if find_splat_transform() is None:
+        pytest.skip("splat-transform is not installed (npm ci): the tier's merge needs it")
+    monkeypatch.setattr(tiers, "PARENT_MIN_GAUSSIANS", 100)
+    monkeypatch.setattr(tiers, "choose", lambda g, p, *a, **k: tiers.TierChoice(1.5, 1.0, {}))  # every tier pays
+    out = tmp_path / "tree"
+    assert main([str(tiny_model["ply"]), "--images", str(tiny_model["scene"]), *FAST, "-o", str(out),
+                 "--parent-share", "0.5,0.2", "--tier-finetune-steps", "3", "--tier-draw", "tree"]) == 0
+    tier = json.loads((out / "metrics.json").read_text())["tier"]
+    g = read_ply(out / "point_cloud.ply")
+    assert tier["used"] and g.lod.tree and tree.is_tree(g) and tier["tree"] == [len(t) for t in tree.tiers_of(g)]
+    assert len(tier["tree"]) == 3 and tier["tree_fit"]["steps"] == 2  # --tree-steps 1000, at most --iterations 2
+    ts = tree.tiers_of(g)
+    for below, above in zip(ts, ts[1:]):
+        assert torch.bincount(below.extra["parent"].long(), minlength=len(above)).min() > 0
+    assert "exit" in ts[-1].extra
+    # lod_strip.png redrawn through the tree: more panels than the model's own levels (1, 2 = --max-sv)
+    from PIL import Image
+
+    with Image.open(out / "lod_strip.png") as im, Image.open(out / "parents" / "lod_strip.png") as own:
+        assert im.width > own.width
 
 
 def test_export_carries_the_tier(tiny_adapted, tiny_model, tmp_path):

@@ -23,7 +23,7 @@ from clod_adapter.io.load import load_model
 from clod_adapter.training import AdaptConfig
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "examples"))
-import reference_lod as ref  # noqa: E402
+import reference_lod_chain as ref  # noqa: E402
 
 S_VS = (1.0, 1.05, 1.2, 1.5, 2.0, 3.0, 5.0, 10.0, 30.0)
 

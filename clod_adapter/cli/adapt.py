@@ -135,6 +135,13 @@ def _tier_flags(p) -> None:
                    help="with merged tiers, draw a count budget between two tiers from both (the finer tier's nearer "
                         "Gaussians, the coarser's farther ones): 'on', 'off' (cut the finer tier to it) or "
                         "'auto' (default: whichever scores higher on the training views; docs/studies.md)")
+    p.add_argument("--tier-draw", choices=("tree", "chain"), default="chain",
+                   help="with merged tiers: 'chain' (default) cross-fades whole tiers at each hand-over; 'tree' links "
+                        "them into a merge tree, fits it on its cuts and draws one cut of it per frame, one set "
+                        "(docs/method.md)")
+    p.add_argument("--tree-steps", type=int, default=1000, metavar="N",
+                   help="with --tier-draw tree, fit the merged tiers on the tree's own cuts for N steps, at most "
+                        "--iterations (default 1000; 0: not fitted)")
 
 
 def _run_flags(p) -> None:
@@ -199,7 +206,8 @@ def _config(args, world: int):
                            tier_finetune_steps=args.tier_finetune_steps,
                            tier_iteration_share=args.tier_iteration_share, tier_downscale=args.tier_downscale,
                            tier_merge=args.tier_merge, tier_time_cap=args.tier_time_cap, popping_goal=args.popping_goal,
-                           tier_hand_over=args.tier_hand_over, count_mix=args.count_mix,
+                           tier_hand_over=args.tier_hand_over, count_mix=args.count_mix, tier_draw=args.tier_draw,
+                           tree_steps=args.tree_steps,
                            faint_share=args.faint_share, keep_share=args.keep_share, recovery_steps=args.recovery_steps, **kw)
     except ValueError as e:  # "<field> must be ...": the field is the flag
         field, _, rest = str(e).partition(" ")

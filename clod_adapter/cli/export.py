@@ -165,6 +165,9 @@ def _main(args, argv) -> int:
         raise InputError(f"{ply}: the model has no Gaussians")
     if model.sigma_d is None:
         raise InputError(f"{ply}: no sigma_d property; not an adapted model (run clod-adapt first)")
+    if web_dir is not None and model.lod is not None and model.lod.tree:
+        raise InputError(f"{ply}: --web does not draw a merge tree yet (docs/lod_rule.md); adapt with "
+                         f"--tier-draw chain for the web page")
     scene = load_scene(scene_root, resolution=args.resolution)
     if not scene.train:
         raise InputError(f"{scene_root}: no training views")

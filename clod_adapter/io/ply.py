@@ -78,7 +78,7 @@ def lod_comment(settings: LodSettings) -> str:
     """The header comment that stores ``settings`` (``clod_lod key=value ...``)."""
     items = {k: v for k, v in settings.to_dict().items()
              if (not k.startswith("tier_") or settings.tier_s_v > 0)  # a model without a tier: no tier keys
-             and (k != "count_mix" or v)}  # written only where set
+             and (k not in ("count_mix", "tree") or v)}  # written only where set
     return LOD_COMMENT + " " + " ".join(f"{k}={v!r}" if isinstance(v, float) else f"{k}={v}"
                                         for k, v in items.items())
 
@@ -101,9 +101,9 @@ def parse_lod_comment(comments, path: PathLike = "<ply>") -> "LodSettings | None
                     kw[k] = float(v)
                 elif k == "fade":
                     kw[k] = v
-                elif k == "count_mix":
+                elif k in ("count_mix", "tree"):
                     if v not in ("True", "False"):
-                        raise ValueError(f"count_mix must be True or False, got {v!r}")
+                        raise ValueError(f"{k} must be True or False, got {v!r}")
                     kw[k] = v == "True"
             return LodSettings(**kw)
         except (ValueError, TypeError) as e:
@@ -290,10 +290,39 @@ def read_ply(path: PathLike, *, allow_nonfinite: bool = False) -> Gaussians:
         raise PlyFormatError(path, f"element '{stray[0]}' without '{tier_element(k)}' before it")
     if chain[-1].lod is not None and chain[-1].lod.tier_s_v > 0 and len(chain) > 1:
         raise PlyFormatError(path, f"a '{TIER_COMMENT} {k - 1}' comment without a '{tier_element(k)}' element")
+    if lod_settings is not None and lod_settings.tree:
+        _check_tree(path, chain)
     g = chain[-1]
     for above in reversed(chain[:-1]):
         g = replace(above, parents=g)
     return g
+
+
+def _check_tree(path: Path, chain: list) -> None:
+    """A ``tree=True`` file's tree (docs/lod_rule.md "The file"): every element but the last has an
+    integer ``parent`` property naming a row of the next element, every row of the next element is
+    some row's parent, and the last element has a finite float ``exit``.
+
+    Raises:
+        PlyFormatError: the file says ``tree=True`` and one of these does not hold.
+    """
+    if len(chain) < 2:
+        raise PlyFormatError(path, "'tree=True' in the 'clod_lod' comment but no 'lod_parent' element")
+    for k, (tier, above) in enumerate(zip(chain, chain[1:])):
+        name = "vertex" if k == 0 else tier_element(k)
+        p = tier.extra.get("parent")
+        if p is None or p.dtype.is_floating_point:
+            raise PlyFormatError(path, f"'tree=True' but element '{name}' has no integer 'parent' property")
+        p = p.long()
+        if p.numel() and (int(p.min()) < 0 or int(p.max()) >= len(above)):
+            raise PlyFormatError(path, f"element '{name}': a 'parent' outside 0..{len(above) - 1} "
+                                       f"(the rows of '{tier_element(k + 1)}')")
+        if bool((torch.bincount(p, minlength=len(above)) == 0).any()):
+            raise PlyFormatError(path, f"element '{tier_element(k + 1)}': a row that is no row's parent")
+    x = chain[-1].extra.get("exit")
+    if x is None or not x.dtype.is_floating_point or not bool(torch.isfinite(x).all()):
+        raise PlyFormatError(path, f"'tree=True' but element '{tier_element(len(chain) - 1)}' has no finite 'exit' "
+                                   f"property")
 
 
 def _tier_comments(comments, path: Path) -> dict:

@@ -610,10 +610,8 @@ def _add_parent_tier(ply_path: Path, scene_root: Path, out_dir: Path, cfg: Adapt
     info.update({"parents": len(parents), "curves": tried[0]["curves"], "views": len(cams), "tried": tried})
     if linked.parents is None:
         return done("no merged tier beats the model at equal predicted time on the training views")
-    if not nested and cfg.popping_goal > 0:
-        linked = _tail_width(linked, ply_path, scene, cams, cfg, o, quiet, info)
-    if not nested and cfg.count_mix != "off":
-        linked = _count_rule(linked, cams, imgs, cfg, o, info)
+    if not nested:
+        linked = _drawing_rule(linked, ply_path, scene_root, out_dir, scene, cams, imgs, cfg, o, quiet, info)
     write_ply(out_dir / PLY_NAME, linked)
     st = linked.lod
     info.update({"used": True, "tier_s_v": st.tier_s_v, "tier_start": st.tier_start, "attached": len(linked.parents),
@@ -621,6 +619,50 @@ def _add_parent_tier(ply_path: Path, scene_root: Path, out_dir: Path, cfg: Adapt
     o.log(f"clod-adapt: merged tier of {len(linked.parents):,} attached to {out_dir / PLY_NAME} (from s_v = "
           f"{st.tier_s_v:g}) in {time.perf_counter() - t0:.0f} s")
     return done()
+
+
+def _drawing_rule(linked, ply_path: Path, scene_root: Path, out_dir: Path, scene, cams, imgs, cfg: AdaptConfig,
+                  o: AdaptOptions, quiet, info: dict):
+    """How the linked model's tiers are drawn (``cfg.tier_draw``): ``"tree"``, linked into a merge
+    tree (:func:`clod_adapter.tree.build`; ``info["tree"]`` its tiers' sizes), its merged tiers fitted
+    on its cuts (:func:`clod_adapter.tree_train.finetune`, ``cfg.tree_steps`` at most
+    ``cfg.iterations``; ``info["tree_fit"]``) and ``lod_strip.png`` redrawn through it; ``"chain"``, the coarsest tier's window (``cfg.popping_goal``) and the
+    count rule (``cfg.count_mix``)."""
+    if cfg.tier_draw == "tree":
+        from .. import tree
+
+        from ..tree_train import finetune
+
+        linked = tree.build(linked, scene.train, log=lambda m: o.log("clod-adapt: " + m))
+        info["tree"] = [len(t) for t in tree.tiers_of(linked)]
+        steps, t0 = min(cfg.tree_steps, cfg.iterations), time.perf_counter()
+        linked = finetune(linked, scene.train, [scene.load_image(c) for c in scene.train], steps,
+                          background=cfg.background, seed=cfg.seed, log=lambda m: o.log("clod-adapt: " + m))
+        info["tree_fit"] = {"steps": steps, "seconds": round(time.perf_counter() - t0, 1)}
+        _final_strip(out_dir, linked, scene_root, cfg, o)
+        return linked
+    if cfg.popping_goal > 0:
+        linked = _tail_width(linked, ply_path, scene, cams, cfg, o, quiet, info)
+    if cfg.count_mix != "off":
+        linked = _count_rule(linked, cams, imgs, cfg, o, info)
+    return linked
+
+
+def _final_strip(out_dir: Path, model, scene_root: Path, cfg: AdaptConfig, o: AdaptOptions) -> None:
+    """``lod_strip.png`` of the model with its tree attached: the first test view (validation view
+    with ``o.holdout_val``) from ``s_v = 1`` to past the coarsest tier's reach, doubling."""
+    from ..camera_lod import tier_reach
+    from ..figures import write_strip
+
+    scene = load_scene(scene_root, resolution=o.resolution, background=cfg.background)
+    if o.holdout_val:
+        from ..io.scene import holdout_validation
+
+        scene = holdout_validation(scene)
+    cam = (scene.test or scene.train[:1])[0]
+    top = cfg.max_sv * tier_reach(model)
+    levels = [2.0 ** i for i in range(int(math.log2(top)) + 1)][:7]
+    write_strip(out_dir / STRIP_NAME, model, cam, levels, cfg.background, gt=scene.load_image(cam))
 
 
 def _tail_width(linked, ply_path: Path, scene, cams, cfg: AdaptConfig, o: AdaptOptions, quiet, info: dict):
@@ -657,16 +699,18 @@ def _count_rule(linked, cams, imgs, cfg: AdaptConfig, o: AdaptOptions, info: dic
 
 
 def _finetuned_tier(parents_in, scene, cfg: AdaptConfig, info: dict):
-    """A merge fine-tuned for ``cfg.tier_finetune_steps`` on ``scene``'s training views
-    (:func:`clod_adapter.tiers.finetuned`; ``info["finetune"]`` notes steps and seconds)."""
+    """A merge fine-tuned for ``cfg.tier_finetune_steps`` on ``scene``'s training views, at most
+    ``cfg.iterations`` (:func:`clod_adapter.tiers.finetuned`; ``info["finetune"]`` notes steps and
+    seconds)."""
     from .. import tiers
 
-    if cfg.tier_finetune_steps <= 0:
+    steps = min(cfg.tier_finetune_steps, cfg.iterations)  # --iterations bounds every stage of the job
+    if steps <= 0:
         return parents_in
     t1 = time.perf_counter()
     out = tiers.finetuned(parents_in, scene.train, [scene.load_image(c) for c in scene.train],
-                          cfg.tier_finetune_steps, background=cfg.background, seed=cfg.seed)
-    info["finetune"] = {"steps": cfg.tier_finetune_steps, "seconds": round(time.perf_counter() - t1, 1)}
+                          steps, background=cfg.background, seed=cfg.seed)
+    info["finetune"] = {"steps": steps, "seconds": round(time.perf_counter() - t1, 1)}
     return out
 
 

@@ -186,6 +186,8 @@ def _lod_levels(model, scene, test_cams, test_imgs, rep: dict, step) -> list:
 
     chain = tier_chain(model)
     max_sv = model.lod.max_sv if model.lod is not None else 5.0
+    if model.lod is not None and model.lod.tree:  # a merge tree: its tiers whole are the levels
+        return _tree_levels(chain, test_cams, test_imgs, rep, step)
     cuts = [(0, 1.0)] if len(chain) > 1 else [(0, s) for s in ex.lod_set_s_vs(max_sv)]
     if len(chain) > 1:
         cuts += [(k, chain[k - 1].lod.tier_start) for k in range(1, len(chain))]
@@ -201,6 +203,22 @@ def _lod_levels(model, scene, test_cams, test_imgs, rep: dict, step) -> list:
     rep["lod_meta"] = {"levels": rows, "tool": "splat-transform",
                        "cut": "critical s_v at the reference distance (training views)" + (
                            "; the model, then its merged tiers" if len(chain) > 1 else "")}
+    step()
+    return levels
+
+
+def _tree_levels(chain, test_cams, test_imgs, rep: dict, step) -> list:
+    """:func:`_lod_levels` of a merge tree: each tier whole, finest first, as a plain model."""
+    from .. import bake as ex
+    from ..metrics import psnr
+
+    levels, rows = [], []
+    for k, t in enumerate(chain):
+        g = t.with_sigma_d(None)
+        ps = [psnr(ex.render_lod(g, c).image, gt, cap=True) for c, gt in zip(test_cams, test_imgs)]
+        levels.append(g)
+        rows.append({"level": k, "tier": k, "s_v": None, "gaussians": len(g), "psnr_test": sum(ps) / len(ps)})
+    rep["lod_meta"] = {"levels": rows, "tool": "splat-transform", "cut": "the merge tree's tiers, each whole"}
     step()
     return levels
 
@@ -347,7 +365,8 @@ def summary(rep: dict) -> str:
                      f"(render_lod {b['psnr_test_render_lod']:.2f})")
     if "lod_meta" in rep:
         for r in rep["lod_meta"]["levels"]:
-            lines.append(f"LoD set level {r['level']} (s_v = {r['s_v']:g}): {r['gaussians']:,} Gaussians, "
+            at = f"s_v = {r['s_v']:g}" if r["s_v"] is not None else f"tier {r['tier']} whole"
+            lines.append(f"LoD set level {r['level']} ({at}): {r['gaussians']:,} Gaussians, "
                          f"test PSNR {r['psnr_test']:.2f} dB")
         if "dir" in rep["lod_meta"]:
             lines.append(f"LoD set: {Path(rep['lod_meta']['dir']) / 'lod-meta.json'} (splat-transform reads "

@@ -1,0 +1,463 @@
+"""The merge tree: a model's tiers drawn as one cut, one set of Gaussians per frame.
+
+A model with merged tiers (``Gaussians.parents``, a chain: tier 0 the model, tier ``k + 1``
+merged Gaussians standing in for tier ``k``) becomes a tree (:func:`build`) when each Gaussian of
+tier ``k < T`` names one parent in tier ``k + 1`` (``Gaussians.extra["parent"]``, the ``parent``
+property of each element of the .ply) and its settings say ``tree=True``. It is then drawn as
+Hierarchical 3DGS draws its hierarchy (Kerbl et al. 2024, ``runtime_switching.cu``): every frame
+draws one *cut* of the tree, each root-to-leaf path crossing it once, and a hand-over
+interpolates the children toward their parent so that the image is continuous at the switch
+(docs/lod_rule.md). CLoD-GS's distance term decides where (Cheng et al., ICLR 2026, Eq. 2): a
+merged node replaces its children once ``d' s_v`` reaches its ``sigma_d``, the level at which Eq.
+2's exponent ``(d' s_v)^2 / (2 sigma_d^2)`` reaches 1/2, so far things hand over first.
+
+Per camera (:func:`terms`, :func:`cut`), with ``F`` = :data:`HAND_OVER`:
+
+1. ``d'_i = |mu_i - c| / D`` for every node, ``D`` the largest distance of the last tier's centres
+   in the frustum (CLoD-GS's normaliser, over the coarsest stand-in for the scene: a walk from the
+   roots, :func:`walk`, needs no other tier's).
+2. A merged node's *entry*, from the last tier down: ``E_i = max(min(sigma_d_i / d'_i, E_p / F),
+   F^k)`` (``p`` its parent, ``k`` its tier; no ``E_p`` in the last tier), so a node is drawn over
+   at least a factor ``F`` of ``s_v`` before its parent takes over, and ``s_v = 1`` is tier 0
+   whole. Tier 0 enters at 0.
+3. A node is drawn at ``s_v`` iff ``E_i <= s_v < U_i``: ``U_i = E_p`` (its parent's entry) or, in
+   the last tier, its *exit* ``max(x_i / d'_i, F E_i)`` (``x_i``, ``extra["exit"]``). The intervals
+   along a path tile ``[0, U_root)``.
+4. A drawn node at ``t = clamp(ln(U_i / s_v) / ln F, 0, 1)`` is drawn with its attributes
+   interpolated toward its parent's (``t = 1`` its own, ``t = 0`` the parent's; position,
+   log-scales, rotation, SH linearly) and opacity ``t a_i + (1 - t) a_p`` for the parent's
+   *lead* child (:func:`leads`, the most massive), ``t a_i`` for the others: at ``t = 0`` the lead
+   is the parent and its siblings have faded out onto it, so the image is continuous and the
+   frame's cost falls to the parent's. (Hierarchical 3DGS gives each of ``K`` children ``1 - (1 -
+   a_p)^(1/K)``, which composites to the parent at its centre only and draws the parent's size
+   ``K`` times.) A root's opacity is times ``t``: it fades out toward its exit.
+
+The node constants are set by :func:`build` from the chain the job linked: at their mean ``d'``
+over the training views a tier's nodes enter around ``s_v = G_k`` (:func:`tier_scales`, where the
+chain hands over to the tier), spread over a factor :data:`SPREAD` by the order the tier below
+learned, and the last tier's nodes leave where that tier's own level of detail (its Eq. 2
+``sigma_d``) leaves them; ``clod_adapter.tree_train`` then fits the merged tiers on the cuts. Between hand-overs nothing is dimmed or grown: every
+drawn node is a Gaussian of one tier as trained; ``s_v = 1`` is the model at full detail. A
+budget draws the cut at the smallest ``s_v >= 1`` from which no cut holds more
+(:func:`budget_s_v`), so a larger budget never draws a coarser cut.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, replace
+from typing import Optional, Sequence
+
+import torch
+from torch import Tensor
+
+from . import lod
+from .budget import critical_s_v
+from .gaussians import Gaussians
+
+__all__ = ["HAND_OVER", "PARENT_KEY", "is_tree", "tiers_of", "tier_scales", "assign_parents", "build", "cut", "walk",
+           "budget_s_v", "TreeCut", "TreeTerms", "terms", "cut_attributes", "leads"]
+
+#: ``F``: a hand-over lasts from ``u / F`` to ``u`` in ``s_v``, and full detail holds up to ``s_v = F``
+HAND_OVER = 1.25
+#: the ``Gaussians.extra`` key (and .ply property) of a node's parent index in the next tier
+PARENT_KEY = "parent"
+#: the ``Gaussians.extra`` key (and .ply property) of a last-tier node's exit constant
+EXIT_KEY = "exit"
+#: ``R``: a tier's hand-overs spread over this factor of ``s_v`` by importance (:func:`build`)
+SPREAD = 2.0
+#: candidate parents scored per child (:func:`assign_parents`)
+CANDIDATES = 16
+
+
+def is_tree(gaussians: Gaussians) -> bool:
+    """Whether ``gaussians`` is drawn as a merge tree: its settings say ``tree`` and it has tiers."""
+    return (gaussians.lod is not None and getattr(gaussians.lod, "tree", False) and gaussians.parents is not None
+            and gaussians.lod.tier_s_v > 0)
+
+
+def tiers_of(gaussians: Gaussians) -> list[Gaussians]:
+    """The tree's tiers, finest first: the model, then each ``parents`` while the tier above has a
+    hand-over (``lod.tier_s_v > 0``; ``clod_adapter.camera_lod.tier_chain``)."""
+    out = [gaussians]
+    while out[-1].parents is not None and out[-1].lod is not None and out[-1].lod.tier_s_v > 0:
+        out.append(out[-1].parents)
+    return out
+
+
+def tier_scales(tiers: Sequence[Gaussians]) -> list[float]:
+    """``G_k`` per tier: 1 for tier 0, then the product over the tiers above of ``tier_fade *
+    tier_s_v / tier_start`` (their hand-over settings), the factor that turns a tier's own ``s_v``
+    into the model's (``clod_adapter.camera_lod.tier_reach``)."""
+    out, g = [], 1.0
+    for k, t in enumerate(tiers):
+        out.append(g)
+        if k + 1 < len(tiers):
+            st = t.lod
+            g *= st.tier_fade * st.tier_s_v / st.tier_start
+    return out
+
+
+def _covariance_factors(g: Gaussians) -> tuple[Tensor, Tensor]:
+    """``(R [M, 3, 3], inverse scales [M, 3])`` of the Gaussians' covariances, the scales floored
+    at 1e-3 of their median (a flat Gaussian still accepts children beside its plane)."""
+    from .render.projection import quat_to_rotmat_rows
+
+    R = torch.stack(quat_to_rotmat_rows(g.quats.detach().double()), dim=-1).reshape(-1, 3, 3)
+    s = torch.exp(g.log_scales.detach().double())
+    s = s.clamp_min(1e-3 * float(s.median()) if s.numel() else 1e-12)
+    return R, 1.0 / s
+
+
+@torch.no_grad()
+def assign_parents(children: Gaussians, parents: Gaussians, *, candidates: int = CANDIDATES,
+                   chunk: int = 2048) -> Tensor:
+    """Each child's parent: among the ``candidates`` parent centres nearest to it (Euclidean),
+    the one under whose Gaussian it is most likely (the smallest squared Mahalanobis distance
+    plus the log-determinant of the parent's covariance).
+
+    Args:
+        children: [N] Gaussians (tier ``k``). parents: [M] Gaussians (tier ``k + 1``), M >= 1.
+
+    Returns:
+        [N] int64 indices into ``parents``.
+
+    Raises:
+        ValueError: no parents.
+    """
+    if len(parents) == 0:
+        raise ValueError("assign_parents: the parent tier is empty")
+    R, inv_s = _covariance_factors(parents)
+    logdet = 2.0 * torch.log(1.0 / inv_s).sum(-1)
+    pm = parents.means.detach().double()
+    cm = children.means.detach().double()
+    k = min(int(candidates), len(parents))
+    out = torch.empty(len(children), dtype=torch.long)
+    for a in range(0, len(children), chunk):
+        c = cm[a:a + chunk]
+        near = torch.cdist(c, pm).topk(k, dim=1, largest=False).indices  # [c, k]
+        delta = c[:, None, :] - pm[near]  # [c, k, 3]
+        local = torch.einsum("ckj,ckji->cki", delta, R[near])  # coordinates in the parent's axes
+        score = ((local * inv_s[near]) ** 2).sum(-1) + logdet[near]
+        out[a:a + chunk] = near.gather(1, score.argmin(1, keepdim=True))[:, 0]
+    return out.to(children.means.device)
+
+
+def _frustum(t: Gaussians, camera) -> Tensor:
+    """[N] bool: the centres in front of ``camera`` (z > 0.01) projecting inside its image."""
+    m = t.means.detach()
+    return lod.in_frustum(m, camera.viewmat.to(m), camera.K.to(m), int(camera.width), int(camera.height))
+
+
+def _camera(tiers: Sequence[Gaussians], camera) -> tuple[Tensor, float, Tensor]:
+    """Step 1's camera terms: ``(c [3] in the centres' dtype, D, the last tier's d' [N_T])``, ``D``
+    the largest distance of the last tier's centres in the frustum (of all of them when none is)."""
+    roots = tiers[-1].means.detach()
+    c = lod.camera_center(camera.viewmat.detach().double()).to(roots)
+    d = torch.linalg.vector_norm(roots - c, dim=-1)
+    fr = _frustum(tiers[-1], camera)
+    inside = d[fr] if bool(fr.any()) else d
+    D = max(float(inside.max()), 1e-12) if inside.numel() else 1.0
+    return c, D, d / D
+
+
+def _distances(tiers: Sequence[Gaussians], camera) -> list:
+    """Step 1: per tier [N_k] ``d'``, in the centres' dtype."""
+    c, D, d_last = _camera(tiers, camera)
+    return [torch.linalg.vector_norm(t.means.detach() - c, dim=-1) / D for t in tiers[:-1]] + [d_last]
+
+
+@torch.no_grad()
+def reference_distances(tiers: Sequence[Gaussians], cameras) -> list[Tensor]:
+    """Per tier [N_k] float64: each node's mean ``d'`` (step 1) over the views whose frustum holds
+    its centre (over all views where none does)."""
+    s_in = [torch.zeros(len(t), dtype=torch.float64) for t in tiers]
+    c_in = [torch.zeros(len(t), dtype=torch.float64) for t in tiers]
+    s_all = [torch.zeros(len(t), dtype=torch.float64) for t in tiers]
+    for cam in cameras:
+        ds = _distances(tiers, cam)
+        frs = [_frustum(t, cam) for t in tiers]
+        for k, (fr, d) in enumerate(zip(frs, ds)):
+            d = d.double()
+            s_all[k] += d.cpu()
+            s_in[k] += torch.where(fr, d, torch.zeros_like(d)).cpu()
+            c_in[k] += fr.double().cpu()
+    n = max(len(cameras), 1)
+    return [torch.where(c > 0, a / c.clamp_min(1), b / n) for a, b, c in zip(s_in, s_all, c_in)]
+
+
+def _group_rank(child_level: Tensor, parent: Tensor, n_parents: int) -> Tensor:
+    """[n_parents] float64 in (0, 1): each parent's rank quantile by the largest ``child_level``
+    among its children (ties by index)."""
+    top = torch.full((n_parents,), -math.inf, dtype=torch.float64).scatter_reduce(
+        0, parent, child_level.double(), reduce="amax", include_self=True)
+    order = torch.argsort(top, stable=True)
+    rank = torch.empty(n_parents, dtype=torch.float64)
+    rank[order] = (torch.arange(n_parents, dtype=torch.float64) + 0.5) / max(n_parents, 1)
+    return rank
+
+
+def build(gaussians: Gaussians, cameras, log=None, *, spread: float = None) -> Gaussians:
+    """``gaussians`` (a model with a chain of merged tiers, linked by ``clod-adapt``) as a merge
+    tree, the node constants set on ``cameras`` (training views):
+
+    * each tier's Gaussians get their parent in the next tier (:func:`assign_parents`,
+      ``extra["parent"]``, int32); a merged Gaussian no Gaussian of the tier below chose is left
+      out of its tier;
+    * a merged node's ``sigma_d`` becomes ``G_k R^(q - 1/2) d_ref`` (:func:`tier_scales`,
+      :func:`reference_distances`; ``R`` = ``spread``, default :data:`SPREAD`): at its usual
+      distance it enters around where the chain handed over to its tier, earlier or later by its
+      rank ``q`` among the tier's nodes by their most important child (the largest of the
+      children's own Eq. 2 levels at their ``d_ref``: the order the tier below learned), so the
+      hand-overs of a tier spread over a factor ``R`` of ``s_v``;
+    * a last-tier node's exit (``extra["exit"]``) is ``G_T s* d_ref``, ``s*`` its Eq. 2 critical
+      scale at ``d_ref`` with its own (trained) ``sigma_d``: it leaves where its tier's own level
+      of detail would drop it;
+    * the settings say ``tree=True``. Tier 0 is unchanged.
+
+    Raises:
+        ValueError: a model without tiers, or no cameras.
+    """
+    spread = SPREAD if spread is None else float(spread)
+    tiers = tiers_of(gaussians)
+    if len(tiers) < 2:
+        raise ValueError("tree.build: the model has no merged tiers")
+    if not len(cameras):
+        raise ValueError("tree.build: no cameras to set the node constants on")
+    tiers = [replace(t, extra={k: v for k, v in t.extra.items() if k not in (PARENT_KEY, EXIT_KEY)}) for t in tiers]
+    for k in range(len(tiers) - 1):
+        parent = assign_parents(tiers[k], tiers[k + 1])
+        keep = torch.bincount(parent, minlength=len(tiers[k + 1])) > 0
+        if not bool(keep.all()):
+            parent = (torch.cumsum(keep.long(), 0) - 1)[parent]
+            if log is not None:
+                log(f"tree: tier {k + 1}: {int((~keep).sum()):,} of {len(keep):,} merged Gaussians are no "
+                    f"Gaussian's parent; left out")
+            tiers[k + 1] = replace(tiers[k + 1].subset(keep), parents=tiers[k + 1].parents)
+        tiers[k] = replace(tiers[k], extra={**tiers[k].extra, PARENT_KEY: parent.to(torch.int32)})
+    scales, d_ref = tier_scales(tiers), reference_distances(tiers, cameras)
+    own = [critical_s_v(torch.sigmoid(t.opacity_logits.detach()), d.to(t.means), t.sigma_d.detach(), t.lod.tau,
+                        t.lod.eps).cpu() for t, d in zip(tiers, d_ref)]  # each tier's own Eq. 2 level at d_ref
+    for k in range(1, len(tiers)):
+        t = tiers[k]
+        rank = _group_rank(own[k - 1], tiers[k - 1].extra[PARENT_KEY].long().cpu(), len(t))
+        upd = {"sigma_d": (scales[k] * spread ** (rank - 0.5) * d_ref[k]).to(t.means)}
+        if k == len(tiers) - 1:
+            upd["extra"] = {**t.extra, EXIT_KEY: (scales[k] * own[k] * d_ref[k]).float().to(t.means.device)}
+        tiers[k] = replace(t, **upd)
+    out = tiers[-1]
+    for t in reversed(tiers[:-1]):
+        out = replace(t, parents=out)
+    return replace(out, lod=replace(out.lod, tree=True))
+
+
+@dataclass
+class TreeCut:
+    """What one camera draws of a tree at one ``s_v`` (:func:`cut`).
+
+    Attributes:
+        ids: per tier, [n_k] int64 indices of the drawn nodes, ascending.
+        t: per tier, [n_k] float64 hand-over position (1: the node's own attributes; 0: its
+            parent's); for the last tier, the fade toward the root's exit (opacity times ``t``).
+        s_v: the level drawn.
+        n_frustum: tier 0's centres in the frustum (the population of shares of the view).
+    """
+
+    ids: list
+    t: list
+    s_v: float
+    _n_frustum: object  # int, or a zero-argument callable that counts it on first use
+
+    @property
+    def n_frustum(self) -> int:
+        if callable(self._n_frustum):
+            self._n_frustum = self._n_frustum()
+        return self._n_frustum
+
+    @property
+    def n_drawn(self) -> int:
+        return sum(int(i.numel()) for i in self.ids)
+
+
+@dataclass
+class TreeTerms:
+    """The per-camera terms of a tree (:func:`terms`): per tier the entry ``E`` and the end ``U``
+    of each node's interval [N_k], and (on first use) the frustum [N_k] bool."""
+
+    entry: list
+    upper: list
+    tiers: list
+    camera: object
+    _frustum: Optional[list] = None
+
+    @property
+    def frustum(self) -> list:
+        if self._frustum is None:
+            self._frustum = [_frustum(t, self.camera) for t in self.tiers]
+        return self._frustum
+
+
+@torch.no_grad()
+def terms(tiers: Sequence[Gaussians], camera, *, hand_over: float = HAND_OVER) -> TreeTerms:
+    """Steps 1-3 of the module docstring for ``camera`` (``viewmat``, ``K``, ``width``, ``height``)."""
+    F = float(hand_over)
+    ds = _distances(tiers, camera)
+    T = len(tiers) - 1
+    entry = [None] * (T + 1)
+    entry[0] = torch.zeros_like(ds[0])
+    for k in range(T, 0, -1):
+        e = tiers[k].sigma_d.detach() / ds[k].clamp_min(1e-12)
+        if k < T:
+            e = torch.minimum(e, entry[k + 1][tiers[k].extra[PARENT_KEY].long()] / F)
+        entry[k] = e.clamp_min(F ** k)
+    x = tiers[T].extra[EXIT_KEY].to(ds[T]) / ds[T].clamp_min(1e-12)
+    upper = [entry[k + 1][tiers[k].extra[PARENT_KEY].long()] for k in range(T)] + [torch.maximum(x, F * entry[T])]
+    return TreeTerms(entry, upper, list(tiers), camera)
+
+
+@torch.no_grad()
+def cut(tiers: Sequence[Gaussians], camera, s_v: float, *, hand_over: float = HAND_OVER,
+        tt: Optional[TreeTerms] = None) -> TreeCut:
+    """The cut drawn at ``s_v`` (>= 1; below, 1) for ``camera`` (module docstring, steps 3-4): from
+    every node's terms ``tt`` when given, else by :func:`walk`."""
+    s = max(float(s_v), 1.0)
+    if tt is None:
+        return walk(tiers, camera, s, hand_over=hand_over)
+    lnF = math.log(hand_over)
+    ids, ts = [], []
+    for n, u in zip(tt.entry, tt.upper):
+        i = torch.nonzero((n <= s) & (s < u)).flatten()
+        ids.append(i)
+        ts.append(torch.clamp(torch.log(u[i] / s) / lnF, 0.0, 1.0))
+    return TreeCut(ids, ts, s, int(tt.frustum[0].sum()))
+
+
+def _children(tier: Gaussians) -> tuple[Tensor, Tensor, Tensor]:
+    """``(order, start, count)``: the tier's rows ordered by parent (stable), and per parent of the
+    next tier where its children start in that order and how many there are. Cached."""
+    p = tier.extra[PARENT_KEY]
+    order = lod.cached_value(p, "tree_order", lambda x: torch.argsort(x.long(), stable=True))
+    count = lod.cached_value(p, "tree_count", lambda x: torch.bincount(x.long(), minlength=int(x.max()) + 1 if x.numel()
+                                                                  else 0))
+    return order, torch.cumsum(count, 0) - count, count
+
+
+@torch.no_grad()
+def walk(tiers: Sequence[Gaussians], camera, s_v: float, *, hand_over: float = HAND_OVER) -> TreeCut:
+    """:func:`cut` computed from the roots down: only the children of nodes not yet entered at
+    ``s_v`` are visited, so a coarse frame touches few nodes. The same cut as from :func:`terms`."""
+    F, s, lnF = float(hand_over), max(float(s_v), 1.0), math.log(hand_over)
+    T = len(tiers) - 1
+    c, D, d_last = _camera(tiers, camera)
+    last = tiers[T]
+    E = (last.sigma_d.detach() / d_last.clamp_min(1e-12)).clamp_min(F ** T)
+    U = torch.maximum(last.extra[EXIT_KEY].to(d_last) / d_last.clamp_min(1e-12), F * E)
+    i = torch.nonzero((E <= s) & (s < U)).flatten()
+    ids, ts = [i], [torch.clamp(torch.log(U[i] / s) / lnF, 0.0, 1.0)]
+    open_rows = torch.nonzero(s < E).flatten()  # roots not yet entered: their subtrees are drawn
+    E_open = E[open_rows]
+    for k in range(T - 1, -1, -1):
+        order, start, count = _children(tiers[k])
+        n = count[open_rows]
+        first = torch.repeat_interleave(start[open_rows], n)
+        offset = torch.arange(int(n.sum()), device=n.device) - torch.repeat_interleave(torch.cumsum(n, 0) - n, n)
+        rows = order[first + offset]
+        U_c = torch.repeat_interleave(E_open, n)
+        if k == 0:
+            E_c = torch.zeros_like(U_c)
+        else:
+            d = torch.linalg.vector_norm(tiers[k].means.detach()[rows] - c, dim=-1) / D
+            E_c = torch.minimum(tiers[k].sigma_d.detach()[rows] / d.clamp_min(1e-12), U_c / F).clamp_min(F ** k)
+        drawn = E_c <= s  # s < U_c holds for every child of an open node
+        sel, srt = torch.sort(rows[drawn])
+        ids.append(sel)
+        ts.append(torch.clamp(torch.log(U_c[drawn][srt] / s) / lnF, 0.0, 1.0))
+        open_rows, E_open = rows[~drawn], E_c[~drawn]
+    ids.reverse()
+    ts.reverse()
+    return TreeCut(ids, ts, s, lambda: int(_frustum(tiers[0], camera).sum()))  # counted on first use
+
+
+@torch.no_grad()
+def budget_s_v(tt: TreeTerms, k: float, weights: Optional[Sequence[Tensor]] = None) -> float:
+    """The level a budget draws (module docstring): the smallest ``s_v >= 1`` from which no cut
+    holds more than ``k`` nodes whose centre is in the frustum (``weights``: per tier [N_k] float64,
+    no cut whose summed weight exceeds ``k``), or the coarsest end (nothing drawn) where none is.
+    Non-increasing in ``k``."""
+    if weights is None:
+        weights = [f.double() for f in tt.frustum]
+    sel = [(w > 0) & (u > n.clamp_min(1.0)) for w, n, u in zip(weights, tt.entry, tt.upper)]
+    lo = torch.cat([n[m] for n, m in zip(tt.entry, sel)]).clamp_min(1.0)
+    hi = torch.cat([u[m] for u, m in zip(tt.upper, sel)])
+    w = torch.cat([x[m].double() for x, m in zip(weights, sel)])
+    pos = torch.cat([lo, hi, lo.new_ones(1)])
+    delta = torch.cat([w, -w, lo.new_zeros(1)])
+    order = torch.argsort(pos, stable=True)
+    pos, delta = pos[order], delta[order]
+    uniq, inv = torch.unique_consecutive(pos, return_inverse=True)
+    step = torch.zeros(len(uniq), dtype=torch.float64, device=pos.device).index_add_(0, inv, delta)
+    count = torch.cumsum(step, 0)  # drawn on [uniq[j], uniq[j + 1])
+    suffix_max = torch.flip(torch.cummax(torch.flip(count, [0]), 0).values, [0])
+    ok = torch.nonzero(suffix_max <= k + 1e-9 * abs(k)).flatten()  # summed in another order than k was
+    return float(uniq[ok[0]]) if ok.numel() else float(uniq[-1])
+
+
+def _quat_lerp(q: Tensor, qp: Tensor, t: Tensor) -> Tensor:
+    q = q / q.norm(dim=-1, keepdim=True).clamp_min(1e-12)
+    qp = qp / qp.norm(dim=-1, keepdim=True).clamp_min(1e-12)
+    qp = torch.where(((q * qp).sum(-1, keepdim=True) < 0), -qp, qp)
+    return t[:, None] * q + (1.0 - t[:, None]) * qp
+
+
+def leads(tier: Gaussians) -> Tensor:
+    """[N] bool: the child that becomes its parent at the switch, one per parent: the largest mass
+    ``sigmoid(opacity) s0 s1 s2`` among the children of its parent (ties: the first row). Cached
+    per parent-index tensor."""
+    def make(p: Tensor) -> Tensor:
+        p = p.long()
+        mass = torch.sigmoid(tier.opacity_logits.detach().double()) * torch.exp(
+            tier.log_scales.detach().double().sum(-1))
+        top = torch.full((int(p.max()) + 1 if p.numel() else 0,), -1.0, dtype=torch.float64, device=p.device)
+        top = top.scatter_reduce(0, p, mass, reduce="amax", include_self=True)
+        cand = mass == top[p]
+        rows = torch.arange(len(p), device=p.device)
+        first = torch.full_like(top, float(len(p))).scatter_reduce(0, p[cand], rows[cand].double(), reduce="amin",
+                                                                    include_self=True)
+        return rows == first[p].long()
+
+    return lod.cached_value(tier.extra[PARENT_KEY], "tree_leads", make)
+
+
+def cut_attributes(tiers: Sequence[Gaussians], c: TreeCut) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
+    """The drawn attributes of a cut, tier 0's rows first: ``(means [k, 3], quats [k, 4] wxyz,
+    scales [k, 3] activated (world units), opacities [k], colors [k, K, 3] SH in gsplat's
+    layout)``, each node interpolated toward its parent by its ``t`` (module docstring, step 4;
+    only the rows in a hand-over are interpolated)."""
+    out = [[] for _ in range(5)]
+    for k, (t, ids, w) in enumerate(zip(tiers, c.ids, c.t)):
+        whole = ids.numel() == len(t) and bool((w >= 1.0).all())
+        if whole:  # a whole tier as it is (full detail): no gather
+            mu, q, ls, col, a = t.means, t.quats, t.log_scales, t.colors, torch.sigmoid(t.opacity_logits)
+        else:
+            mu, q, ls = t.means[ids], t.quats[ids], t.log_scales[ids]
+            col = torch.cat([t.sh0[ids], t.shN[ids]], dim=1)  # only the drawn rows of the SH
+            a = torch.sigmoid(t.opacity_logits[ids])
+        if k + 1 == len(tiers):
+            a = a * w.to(a.dtype)
+        elif not whole:
+            h = torch.nonzero(w < 1.0).flatten()  # rows in a hand-over
+            if h.numel():
+                wh = w[h].to(mu.dtype)
+                p = t.extra[PARENT_KEY].long()[ids[h]]
+                par = tiers[k + 1]
+                a_p = torch.sigmoid(par.opacity_logits[p])
+                new = (wh[:, None] * mu[h] + (1.0 - wh[:, None]) * par.means[p],
+                       wh[:, None] * ls[h] + (1.0 - wh[:, None]) * par.log_scales[p],
+                       _quat_lerp(q[h], par.quats[p], wh),
+                       wh[:, None, None] * col[h] + (1.0 - wh[:, None, None]) * torch.cat([par.sh0[p], par.shN[p]], 1),
+                       wh * a[h] + (1.0 - wh) * torch.where(leads(t)[ids[h]], a_p, torch.zeros_like(a_p)))
+                # rows gathered for this frame: written in place (out of place where autograd records)
+                mu, ls, q, col, a = (x.index_put_((h,), v) if not torch.is_grad_enabled() or not v.requires_grad
+                                     else x.index_put((h,), v) for x, v in zip((mu, ls, q, col, a), new))
+        for lst, v in zip(out, (mu, q, torch.exp(ls), a, col)):
+            lst.append(v)
+    return tuple(v[0] if len(v) == 1 or all(x.numel() == 0 for x in v[1:]) else torch.cat(v) for v in out)

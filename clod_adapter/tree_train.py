@@ -1,0 +1,101 @@
+"""Fitting a merge tree on its own cuts: the merged tiers trained where the tree draws them.
+
+Each tier of a tree was fitted as a whole model of its own (``clod_adapter.tiers.finetuned``),
+but a cut draws parts of several tiers side by side and their hand-overs in between. So, as
+Hierarchical 3DGS optimises its hierarchy on cuts sampled at random (Kerbl et al. 2024,
+``train_post.py``), :func:`finetune` draws a training view at a level ``s_v`` sampled
+log-uniformly over the tree's range, renders that view's cut (:func:`clod_adapter.tree.cut`,
+:func:`clod_adapter.tree.cut_attributes`: the hand-overs interpolated as they are drawn) and takes
+an Adam step on ``0.8 L1 + 0.2 D-SSIM`` (``clod_adapter.losses.render_loss``) for the merged
+tiers' attributes only. Tier 0, the model at full detail, is never changed, and neither is where
+the cut falls (``sigma_d`` and the exits): the cut is chosen without gradient.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import replace
+from typing import Optional, Sequence
+
+import torch
+
+from . import tree
+from .gaussians import Gaussians
+from .losses import render_loss
+from .official import OFFICIAL_LR
+from .render.dispatch import rasterization
+
+__all__ = ["finetune", "TREE_STEPS", "level_range"]
+
+#: steps of :func:`finetune` (``AdaptConfig.tree_steps``)
+TREE_STEPS = 1000
+#: the attributes trained, and their learning rates: the official 3DGS rates, positions at 1/10 of
+#: the official initial rate (a fine-tune of a finished model)
+FIELDS = ("means", "quats", "log_scales", "opacity_logits", "sh0", "shN")
+MEANS_LR_SCALE = 0.1
+
+
+def level_range(model: Gaussians, cameras: Sequence) -> float:
+    """The largest ``s_v`` any of ``cameras`` draws something at: the largest end ``U`` of the
+    last tier's nodes (:func:`clod_adapter.tree.terms`), at least 1."""
+    tiers = tree.tiers_of(model)
+    top = 1.0
+    for cam in cameras:
+        u = tree.terms(tiers, cam).upper[-1]
+        if u.numel():
+            top = max(top, float(u.max()))
+    return top
+
+
+def _tiers_with(tiers: list, params: list) -> list:
+    return [tiers[0]] + [replace(t, **p) for t, p in zip(tiers[1:], params)]
+
+
+def finetune(model: Gaussians, cameras: Sequence, images: Sequence, steps: int = TREE_STEPS, *,
+             background=None, seed: int = 0, log=None) -> Gaussians:
+    """``model`` (a merge tree, :func:`clod_adapter.tree.is_tree`) with its merged tiers fitted on
+    its cuts (module docstring) for ``steps`` steps on ``cameras`` (training views) and their
+    ``images`` ([H, W, 3] float32 in [0, 1]). ``s_v`` is sampled log-uniformly in ``[1, top]``,
+    ``top`` the coarsest level the views draw (:func:`level_range`, capped at 1e4). ``steps <= 0``
+    returns ``model``.
+
+    Raises:
+        ValueError: ``model`` is not a tree, or ``cameras`` and ``images`` differ in number.
+    """
+    if not tree.is_tree(model):
+        raise ValueError("tree_train.finetune: the model is not a merge tree")
+    if len(cameras) != len(images):
+        raise ValueError(f"tree_train.finetune: {len(cameras)} cameras and {len(images)} images")
+    if steps <= 0 or not len(cameras):
+        return model
+    tiers = tree.tiers_of(model)
+    params = [{k: torch.nn.Parameter(getattr(t, k).detach().clone()) for k in FIELDS} for t in tiers[1:]]
+    groups = [{"params": [v], "lr": OFFICIAL_LR[k][0] * MEANS_LR_SCALE if k == "means" else OFFICIAL_LR[k]}
+              for p in params for k, v in p.items() if v.numel()]
+    opt = torch.optim.Adam(groups, eps=1e-15)
+    ln_top = math.log(min(level_range(model, cameras), 1e4))
+    gen = torch.Generator().manual_seed(seed)
+    bg = None if background is None else torch.as_tensor(background, dtype=model.means.dtype).reshape(1, -1)
+    for it in range(int(steps)):
+        i = int(torch.randint(len(cameras), (1,), generator=gen))
+        s = math.exp(float(torch.rand(1, generator=gen)) * ln_top)
+        cur = _tiers_with(tiers, params)
+        with torch.no_grad():
+            c = tree.cut(cur, cameras[i], s)
+        if all(ids.numel() == 0 for ids in c.ids[1:]):
+            continue  # tier 0 alone: nothing trainable drawn
+        with torch.enable_grad():
+            m, q, sc, op, col = tree.cut_attributes(cur, c)
+            cam = cameras[i]
+            img = rasterization(m, q, sc, op, col, cam.viewmat[None], cam.K[None], int(cam.width), int(cam.height),
+                                sh_degree=model.sh_degree, backgrounds=bg)[0][0]
+            loss = render_loss(img.clamp(0.0, 1.0), images[i])
+            opt.zero_grad(set_to_none=True)
+            loss.backward()
+        opt.step()
+        if log is not None and (it + 1) % 250 == 0:
+            log(f"tree: fitted on its cuts, step {it + 1} of {steps} (loss {float(loss.detach()):.4f})")
+    done = _tiers_with(tiers, [{k: v.detach() for k, v in p.items()} for p in params])
+    out = done[-1]
+    for t in reversed(done[:-1]):
+        out = replace(t, parents=out)
+    return out

@@ -1,0 +1,287 @@
+"""The merge tree (clod_adapter.tree): the tree is whole, a frame draws one cut of it, the children
+composite to their parent at the switch, the frame's cost falls with the level and the budget,
+the file round-trips, and every consumer draws what render_lod draws."""
+from dataclasses import replace
+
+import numpy as np
+import pytest
+import torch
+
+from clod_adapter import tiers, tree
+from clod_adapter.camera_lod import lod_subset, render_lod, tree_node_costs, tree_select
+from clod_adapter.io.ply import PlyFormatError, read_ply, write_ply
+from clod_adapter.render.dispatch import rasterization
+from clod_adapter.synthetic import make_cameras
+
+from test_tiers import _adapted
+
+S_VS = np.geomspace(1.0, 80.0, 48)
+
+
+@pytest.fixture(scope="module")
+def model():
+    t2 = _adapted(60, 3)
+    t1 = tiers.attach(_adapted(300, 2), t2, 2.5, 1.5)
+    return tree.build(tiers.attach(_adapted(1200, 0), t1, 2.0, 1.25), make_cameras(2, 3)), make_cameras(1, 2)
+
+
+def _drawn_masks(ts, c):
+    out = []
+    for t, ids in zip(ts, c.ids):
+        m = torch.zeros(len(t), dtype=torch.bool)
+        m[ids] = True
+        out.append(m)
+    return out
+
+
+def test_the_tree_is_whole(model):
+    g, _ = model
+    ts = tree.tiers_of(g)
+    assert g.lod.tree and len(ts) == 3
+    for below, above in zip(ts, ts[1:]):
+        p = below.extra["parent"].long()
+        assert p.min() >= 0 and p.max() < len(above)
+        assert (torch.bincount(p, minlength=len(above)) > 0).all()  # every node is some node's parent
+    assert "parent" not in ts[-1].extra
+
+
+def test_each_path_crosses_the_cut_once(model):
+    g, cams = model
+    ts = tree.tiers_of(g)
+    p1, p2 = ts[0].extra["parent"].long(), ts[1].extra["parent"].long()
+    for cam in cams:
+        tt = tree.terms(ts, cam)
+        x_root = tt.upper[-1]
+        for s in S_VS:
+            d0, d1, d2 = _drawn_masks(ts, tree.cut(ts, cam, float(s), tt=tt))
+            crossings = d0.long() + d1[p1].long() + d2[p2[p1]].long()
+            alive = x_root[p2[p1]] > s  # the root of the path has not left
+            assert bool((crossings[alive] == 1).all()) and bool((crossings[~alive] == 0).all())
+        assert len(tree.cut(ts, cam, 1.0, tt=tt).ids[0]) == len(ts[0])  # s_v = 1: the model whole
+
+
+def test_children_composite_to_the_parent_at_the_switch():
+    parent = _adapted(1, 5)
+    kids = _adapted(3, 6)
+    g = tiers.attach(kids, parent, 2.0, 1.0)
+    g = replace(g, extra={"parent": torch.zeros(3, dtype=torch.int32)}, lod=replace(g.lod, tree=True))
+    ts = tree.tiers_of(g)
+    cam = make_cameras(1, 1)[0]
+    c = tree.TreeCut([torch.arange(3), torch.zeros(0, dtype=torch.long)],
+                     [torch.zeros(3, dtype=torch.float64), torch.zeros(0, dtype=torch.float64)], 2.0, 3)
+    means, quats, scales, ops, colors = tree.cut_attributes(ts, c)
+    a_p = torch.sigmoid(parent.opacity_logits)
+    assert torch.allclose(means, parent.means.expand(3, 3))
+    assert torch.allclose(scales, parent.scales.expand(3, 3))
+    lead = tree.leads(ts[0])
+    assert int(lead.sum()) == 1 and torch.allclose(ops[lead], a_p) and bool((ops[~lead] == 0).all())
+    args = (cam.viewmat[None], cam.K[None], cam.width, cam.height)
+    img_kids = rasterization(means, quats, scales, ops, colors, *args, sh_degree=parent.sh_degree)[0]
+    img_par = rasterization(parent.means, parent.quats, parent.scales, a_p, parent.colors, *args,
+                            sh_degree=parent.sh_degree)[0]
+    assert img_par.abs().max() > 0.05
+    assert (img_kids - img_par).abs().max() < 1e-6  # the lead is the parent, its siblings faded out
+
+
+def _footprint(means, quats, scales, ops, colors, cam):
+    meta = rasterization(means, quats, scales, ops, colors, cam.viewmat[None], cam.K[None], cam.width, cam.height,
+                         sh_degree=0)[2]
+    r = meta["radii"].double()
+    return float((r[..., 0] * r[..., 1]).sum()) if r.numel() else 0.0
+
+
+def test_cost_falls_with_the_level_and_the_budget(model):
+    g, cams = model
+    ts = tree.tiers_of(g)
+    for cam in cams:
+        counts, feet = [], []
+        for s in S_VS:
+            c, attrs = tree_select(g, cam, float(s))
+            counts.append(c.n_drawn)
+            feet.append(_footprint(*attrs, cam))
+        assert all(b <= a for a, b in zip(counts, counts[1:]))
+        assert counts[0] == len(ts[0]) and counts[-1] < len(ts[-1])
+        worst = max(max(feet[i + 1:]) / max(feet[i], 1.0) for i in range(len(feet) - 1))
+        assert worst <= 1.05, worst  # no frame's footprint above 1.05x a more detailed frame's
+        tt = tree.terms(ts, cam)
+        ks = [1200, 900, 600, 300, 120, 40, 10]
+        levels = [tree.budget_s_v(tt, k) for k in ks]
+        assert all(b >= a for a, b in zip(levels, levels[1:]))  # a smaller budget: a coarser cut
+        for k, s in zip(ks, levels):
+            c = tree.cut(ts, cam, s, tt=tt)
+            in_fr = sum(int(f[i].sum()) for f, i in zip(tt.frustum, c.ids))
+            assert in_fr <= k
+
+
+def test_render_lod_draws_the_cut_and_lod_subset_matches(model):
+    g, cams = model
+    cam = cams[0]
+    for s in (1.0, 3.0, 9.0):
+        r = render_lod(g, cam, s)
+        sub = lod_subset(g, cam, s)
+        c, _ = tree_select(g, cam, s)
+        assert r.n_rendered <= c.n_drawn == len(sub.opacities)
+        if s > 1.0:
+            assert torch.equal(r.indices, c.ids[0]) and r.n_parents <= c.n_drawn - len(c.ids[0])
+        else:  # s_v = 1: tier 0 whole, drawn as a plain model (its selection: the Gaussians in view)
+            assert bool(torch.isin(r.indices, c.ids[0]).all()) and r.n_parents == 0 and r.s_v == 1.0
+        img = rasterization(sub.means, sub.quats, sub.scales, sub.opacities, sub.colors, cam.viewmat[None],
+                            cam.K[None], cam.width, cam.height, sh_degree=g.sh_degree)[0][0]
+        assert torch.allclose(img, r.image, atol=1e-5)
+    rb = render_lod(g, cam, budget=200)
+    tt = tree.terms(tree.tiers_of(g), cam)
+    c = tree.cut(tree.tiers_of(g), cam, rb.s_v, tt=tt)
+    assert rb.s_v > 1.0 and sum(int(f[i].sum()) for f, i in zip(tt.frustum, c.ids)) <= 200
+
+
+def test_tree_file_round_trips_and_bad_parents_are_refused(model, tmp_path):
+    g, cams = model
+    p = write_ply(tmp_path / "tree.ply", g)
+    back = read_ply(p)
+    assert back.lod.tree and tree.is_tree(back)
+    for a, b in zip(tree.tiers_of(g), tree.tiers_of(back)):
+        if "parent" in a.extra:
+            assert torch.equal(a.extra["parent"].long(), b.extra["parent"].long())
+    assert torch.allclose(render_lod(back, cams[0], 4.0).image, render_lod(g, cams[0], 4.0).image, atol=1e-5)
+    bad = replace(g, extra={"parent": torch.full((len(g),), 10_000, dtype=torch.int32)})
+    with pytest.raises(PlyFormatError, match="parent"):
+        read_ply(write_ply(tmp_path / "bad.ply", bad))
+
+
+def test_the_reference_draws_what_the_library_draws(model, tmp_path):
+    """examples/reference_lod.py (docs/lod_rule.md in numpy, no clod_adapter import) against
+    lod_subset on the same file: the same nodes per tier, the same attributes to float32 rounding."""
+    import importlib.util
+    from pathlib import Path
+
+    spec = importlib.util.spec_from_file_location("reference_lod", Path(__file__).parents[1] / "examples"
+                                                  / "reference_lod.py")
+    ref = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(ref)
+    g, cams = model
+    path = write_ply(tmp_path / "tree.ply", g)
+    back, rt = read_ply(path), ref.read_tree(path)
+    assert [len(t["means"]) for t in rt] == [len(t) for t in tree.tiers_of(back)]
+    for cam in cams:
+        for kw in [dict(s_v=float(s)) for s in (1.0, 1.3, 2.2, 3.0, 4.7, 7.5, 12.0, 30.0)] + [dict(budget=k) for k in
+                                                                                              (1000, 300, 50)]:
+            r = ref.draw(rt, cam.viewmat.numpy(), cam.K.numpy(), cam.width, cam.height, **kw)
+            sub = lod_subset(back, cam, kw.get("s_v"), budget=kw.get("budget"))
+            assert sub.s_v == pytest.approx(r["s_v"], rel=1e-6)
+            ours = [sub.indices] + list(sub.tier_indices)
+            assert all(np.array_equal(a.numpy(), b) for a, b in zip(ours, r["ids"])), kw
+            np.testing.assert_allclose(sub.opacities.numpy(), r["opacities"], atol=2e-6)
+            np.testing.assert_allclose(sub.means.numpy(), r["means"], atol=2e-5)
+            np.testing.assert_allclose(np.log(sub.scales.numpy()), r["log_scales"], atol=2e-5)
+            np.testing.assert_allclose(sub.colors.numpy(), r["sh"], atol=2e-5)
+
+
+def test_cost_and_time_budgets_are_cuts_of_the_tree(model):
+    g, cams = model
+    ts = tree.tiers_of(g)
+    cam = cams[1]
+    tt = tree.terms(ts, cam)
+    costs = tree_node_costs(ts, cam, tt)
+    full = float(costs[0].sum())
+    levels = []
+    for share in (1.0, 0.6, 0.3, 0.1, 0.02):
+        c, _ = tree_select(g, cam, budget_cost=share)
+        drawn = sum(float(x[i].sum()) for x, i in zip(costs, c.ids))
+        assert drawn <= share * full + 1e-9
+        levels.append(c.s_v)
+    assert all(b >= a for a, b in zip(levels, levels[1:])) and levels[-1] > levels[0]
+    ms = [render_lod(g, cam, budget_ms=b).s_v for b in (50.0, 3.0, 2.6)]
+    assert all(b >= a for a, b in zip(ms, ms[1:]))
+
+
+def test_the_renderer_hook_draws_the_cut(model):
+    from clod_adapter.renderer_hook import clod_kwargs, clod_rasterization
+
+    g, cams = model
+    vm = torch.stack([c.viewmat for c in cams])
+    Ks = torch.stack([c.K for c in cams])
+    for kw in (dict(s_v=1.0), dict(s_v=3.3), dict(s_v=11.0), dict(budget=250)):
+        col, _, meta = clod_rasterization(g.means, g.quats, g.scales, g.opacities, g.colors, vm, Ks, cams[0].width,
+                                          cams[0].height, sh_degree=g.sh_degree, **clod_kwargs(g), **kw)
+        for c, cam in enumerate(cams):
+            r = render_lod(g, cam, **kw)
+            assert torch.allclose(col[c], r.image, atol=1e-5) and meta["lod_s_v"][c] == pytest.approx(r.s_v)
+            assert bool(torch.isin(r.indices, meta["lod_indices"][c]).all())
+            assert torch.equal(meta["lod_indices"][c], r.indices) or kw.get("s_v") == 1.0
+
+
+def test_a_baked_level_holds_the_cut(model):
+    from clod_adapter.bake import bake
+
+    g, cams = model
+    baked, info = bake(g, cams, 6.0, return_info=True)
+    cuts = [tree_select(g, c, 6.0)[0] for c in cams]
+    n_union = sum(len(torch.unique(torch.cat([c.ids[k] for c in cuts]))) for k in range(3))
+    assert len(baked) == n_union and info.n_parents == n_union - len(torch.unique(torch.cat([c.ids[0] for c in cuts])))
+    assert info.n_parents > 0 and baked.sigma_d is None
+
+
+def test_fitting_on_cuts_trains_the_merged_tiers_only(model):
+    """tree_train.finetune: tier 0 (full detail) untouched, the merged tiers moved, and the cuts'
+    error against the full-detail renders smaller after the fit than before."""
+    from clod_adapter.losses import render_loss
+    from clod_adapter.tree_train import finetune
+
+    g, _ = model
+    cams = make_cameras(2, 3)
+    imgs = [render_lod(g, c, 1.0).image.clamp(0, 1) for c in cams]
+
+    def err(m):
+        return sum(float(render_loss(render_lod(m, c, s).image.clamp(0, 1), im)) for c, im in zip(cams, imgs)
+                   for s in (3.0, 6.0, 12.0))
+
+    tuned = finetune(g, cams, imgs, 30)
+    a, b = tree.tiers_of(g), tree.tiers_of(tuned)
+    assert torch.equal(a[0].means, b[0].means) and torch.equal(a[0].opacity_logits, b[0].opacity_logits)
+    assert not torch.equal(a[1].means, b[1].means) and torch.equal(a[1].sigma_d, b[1].sigma_d)
+    assert err(tuned) < err(g)
+
+
+def test_export_of_a_tree(model, tmp_path, tiny_model):
+    """clod-export of a tree: the extended .ply keeps the tree and splat-transform reads it (its
+    vertex element, the model); the LoD set is the tiers whole; --web says it does not draw a tree
+    yet (exit status 2, nothing written)."""
+    import json
+
+    from clod_adapter.cli.export import main as export_main
+    from clod_adapter.splat_transform import find_splat_transform, read_info
+
+    g, _ = model
+    src = write_ply(tmp_path / "tree.ply", g)
+    out = tmp_path / "out"
+    lod = ["--lod-meta", str(out / "lod"), "--sog-sh-iterations", "2"] if find_splat_transform() else []
+    assert export_main([str(src), "--images", str(tiny_model["scene"]), "-o", str(out), "--quiet", *lod]) == 0
+    back = read_ply(out / "point_cloud_clod.ply")
+    assert tree.is_tree(back) and [len(t) for t in tree.tiers_of(back)] == [len(t) for t in tree.tiers_of(g)]
+    if not lod:
+        pytest.skip("splat-transform not found: run `npm ci` in the repository root")
+    info = read_info(out / "point_cloud_clod.ply")
+    assert info["numGaussians"] == len(g) and any(c["name"] == "parent" for c in info["extraColumns"])
+    rows = json.loads((out / "export.json").read_text())["lod_meta"]["levels"]
+    assert [r["gaussians"] for r in rows] == [len(t) for t in tree.tiers_of(g)]
+    assert read_info(out / "lod" / "lod-meta.json")["lodCounts"] == [r["gaussians"] for r in rows]
+
+def test_the_web_page_refuses_a_tree(model, tmp_path, tiny_model):
+    from clod_adapter.cli.export import main as export_main
+
+    src = write_ply(tmp_path / "tree.ply", model[0])
+    web = tmp_path / "web"
+    assert export_main([str(src), "--images", str(tiny_model["scene"]), "-o", str(tmp_path / "o2"),
+                        "--web", str(web), "--quiet"]) == 2
+    assert not web.exists() and not (tmp_path / "o2").exists()
+
+
+def test_walking_from_the_roots_gives_the_cut_of_every_node(model):
+    g, cams = model
+    ts = tree.tiers_of(g)
+    for cam in cams:
+        tt = tree.terms(ts, cam)
+        for s in S_VS:
+            a, b = tree.cut(ts, cam, float(s), tt=tt), tree.walk(ts, cam, float(s))
+            assert all(torch.equal(x, y) for x, y in zip(a.ids, b.ids))
+            assert all(torch.allclose(x, y) for x, y in zip(a.t, b.t)) and a.n_frustum == b.n_frustum

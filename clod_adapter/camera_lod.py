@@ -1570,6 +1570,9 @@ def tree_select(gaussians: Gaussians, camera, s_v: Optional[float] = None, *, bu
     if s_v is not None and not float(s_v) >= 1.0:
         raise ValueError(f"s_v must be >= 1, got {s_v}")
     tiers = tree.tiers_of(gaussians)
+    if s_v is not None:  # a level: walked from the roots, no per-node terms
+        c = tree.walk(tiers, camera, float(s_v), hand_over=hand_over)
+        return c, tree.cut_attributes(tiers, c)
     tt = tree.terms(tiers, camera, hand_over=hand_over)
     if budget is not None:
         k = _tree_count(budget, len(gaussians), int(tt.frustum[0].sum()), budget_in_view)

@@ -151,7 +151,7 @@ def _work_dtype(*ts: Tensor) -> torch.dtype:
 
 #: per-tensor derived values (:func:`cached_value`): (id, name) -> (weakref, version, value)
 _CACHE: dict = {}
-_CACHE_MAX = 16
+_CACHE_MAX = 64
 
 
 def cached_value(t: Tensor, name: str, make) -> Tensor:

@@ -52,8 +52,8 @@ def clod_kwargs(model) -> Dict[str, Any]:
     p = model.parents
     if p is not None:
         kw["parents"] = _parent_dict(p)
-    if "parent" in model.extra:
-        kw["parent"] = model.extra["parent"]
+    if "parent" in model.extra:  # a merge tree: the model's parents in its first tier, its exits
+        kw["parent"], kw["lod_exit"] = model.extra["parent"], model.extra.get("exit")
     return kw
 
 
@@ -85,7 +85,7 @@ def _tree_tier(means, quats, scales, logits, colors, sigma_d, settings, parent, 
     return _replace(g, parents=above)
 
 
-def _tree_model(means, quats, scales, logits, colors, sigma_d, settings, parent, parents, per_cam: Optional[int]):
+def _tree_model(means, quats, scales, logits, colors, sigma_d, settings, node, parents, per_cam: Optional[int]):
     """The model and its ``parents=`` chain as one tree (:mod:`clod_adapter.tree`); ``per_cam``:
     the camera whose colours to take from [C, N, D] colours."""
     def build(d, settings_above):
@@ -96,7 +96,7 @@ def _tree_model(means, quats, scales, logits, colors, sigma_d, settings, parent,
                           col, d["sigma_d"], st, d.get("parent"), above, d.get("exit"))
 
     col = colors[per_cam] if per_cam is not None else colors
-    return _tree_tier(means, quats, scales, logits, col, sigma_d, settings, parent, build(parents, settings))
+    return _tree_tier(means, quats, scales, logits, col, sigma_d, settings, node[0], build(parents, settings), node[1])
 
 
 def _logits(opacities: Tensor, logits: Optional[Tensor] = None) -> Tensor:
@@ -198,6 +198,7 @@ def clod_rasterization(
     sh0_gain: Optional[Tensor] = None,
     parents: Optional[Dict[str, Any]] = None,
     parent: Optional[Tensor] = None,
+    lod_exit: Optional[Tensor] = None,
     opacity_logits: Optional[Tensor] = None,
     tau: Optional[float] = None,
     eps: Optional[float] = None,
@@ -235,6 +236,7 @@ def clod_rasterization(
         parent: [N] int, a merge tree's parent of each Gaussian in ``parents`` (each tier's own
             under ``"parent"`` in its dict; :func:`clod_kwargs`): with ``lod_settings.tree`` an
             ``s_v`` or a budget draws one cut of the tree (:func:`clod_adapter.camera_lod.tree_select`).
+        lod_exit: [N] a merge tree's exit constants (``"exit"`` in each tier's dict; :func:`clod_kwargs`).
         opacity_logits: [N] the raw opacities ``opacities`` came from: the rule works on logits
             (the gains shift them), and a float32 opacity near 1 keeps few digits of ``1 - o``
             (exactly 1 above a logit of ~16.6), so ``log(o / (1 - o))`` returns logits above ~14
@@ -276,8 +278,8 @@ def clod_rasterization(
     gains = {"opacity_logit_gain": opacity_logit_gain, "log_scale_gain": log_scale_gain, "sh0_gain": sh0_gain}
     logits = _logits(opacities, opacity_logits)
     if parents is not None and lod_settings is not None and lod_settings.tree and lod_settings.tier_s_v > 0:
-        return _tree_frames(means, quats, scales, logits, colors, sigma_d, lod_settings, parent, parents, viewmats,
-                            Ks, w, h, s_v, budget, backgrounds, sh_degree, backend, per_cam_colors)
+        return _tree_frames(means, quats, scales, logits, colors, sigma_d, lod_settings, (parent, lod_exit), parents,
+                            viewmats, Ks, w, h, s_v, budget, backgrounds, sh_degree, backend, per_cam_colors)
     tier = (s_v is not None and parents is not None and lod_settings is not None and lod_settings.tier_s_v > 0
             and lod.tier_weight(float(s_v), lod_settings)[0] > 0)
     has_tiers = parents is not None and lod_settings is not None and lod_settings.tier_s_v > 0
@@ -340,8 +342,8 @@ def _tree_frames(means, quats, scales, logits, colors, sigma_d, settings, parent
     rasterised as one set (meta as documented there; ``lod_tier_indices`` the cut's rows per tier)."""
     from types import SimpleNamespace
 
-    if parent is None:
-        raise ValueError("clod_rasterization: lod_settings.tree needs parent= (clod_kwargs gives it)")
+    if parent[0] is None or parent[1] is None:
+        raise ValueError("clod_rasterization: lod_settings.tree needs parent= and lod_exit= (clod_kwargs gives them)")
     imgs, alphas, metas, svs, counts, indices, n_par, par_idx, tier_idx = [], [], [], [], [], [], [], [], []
     g = None
     for c in range(viewmats.shape[0]):

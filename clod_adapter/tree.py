@@ -20,23 +20,25 @@ Per camera (:func:`terms`, :func:`cut`), with ``F`` = :data:`HAND_OVER`:
    F^k)`` (``p`` its parent, ``k`` its tier; no ``E_p`` in the last tier), so a node is drawn over
    at least a factor ``F`` of ``s_v`` before its parent takes over, and ``s_v = 1`` is tier 0
    whole. Tier 0 enters at 0.
-3. A node is drawn at ``s_v`` iff ``E_i <= s_v < U_i``: ``U_i = E_p`` (its parent's entry) or, in
-   the last tier, its *exit* ``max(x_i / d'_i, F E_i)`` (``x_i``, ``extra["exit"]``). The intervals
-   along a path tile ``[0, U_root)``.
-4. A drawn node at ``t = clamp(ln(U_i / s_v) / ln F, 0, 1)`` is drawn with its attributes
-   interpolated toward its parent's (``t = 1`` its own, ``t = 0`` the parent's; position,
-   log-scales, rotation, SH linearly) and opacity ``t a_i + (1 - t) a_p`` for the parent's
-   *lead* child (:func:`leads`, the most massive), ``t a_i`` for the others: at ``t = 0`` the lead
-   is the parent and its siblings have faded out onto it, so the image is continuous and the
-   frame's cost falls to the parent's. (Hierarchical 3DGS gives each of ``K`` children ``1 - (1 -
-   a_p)^(1/K)``, which composites to the parent at its centre only and draws the parent's size
-   ``K`` times.) A root's opacity is times ``t``: it fades out toward its exit.
+3. A node is drawn at ``s_v`` iff ``E_i <= s_v < U_i``, its end ``U_i`` its parent's entry ``E_p``
+   for the parent's *lead* child (:func:`leads`, the most massive), the smaller of ``E_p`` and its
+   own exit ``X_i = max(x_i / d'_i, F max(E_i, 1))`` for the others (``x_i``, ``extra["exit"]``),
+   ``X_i`` in the last tier. No path crosses the cut twice.
+4. A drawn node at ``t = clamp(ln(U_i / s_v) / ln F, 0, 1)`` whose end is its own exit *leaves*:
+   its opacity is times ``t``. One that hands over is drawn with its attributes interpolated
+   toward its parent's (``t = 1`` its own, ``t = 0`` the parent's; position, log-scales, rotation,
+   SH linearly) and opacity ``t a_i + (1 - t) a_p`` for the lead, ``t a_i`` for the others: at ``t
+   = 0`` the lead is the parent and its siblings have faded out onto it, so the image is
+   continuous and the frame's cost falls to the parent's. (Hierarchical 3DGS gives each of ``K``
+   children ``1 - (1 - a_p)^(1/K)``, which composites to the parent at its centre only and draws
+   the parent's size ``K`` times.)
 
 The node constants are set by :func:`build` from the chain the job linked: at their mean ``d'``
 over the training views a tier's nodes enter around ``s_v = G_k`` (:func:`tier_scales`, where the
 chain hands over to the tier), spread over a factor :data:`SPREAD` by the order the tier below
-learned, and the last tier's nodes leave where that tier's own level of detail (its Eq. 2
-``sigma_d``) leaves them; ``clod_adapter.tree_train`` then fits the merged tiers on the cuts. Between hand-overs nothing is dimmed or grown: every
+learned, and every node leaves where its tier's own level of detail (its trained Eq. 2
+``sigma_d``) drops it at its usual distance; ``clod_adapter.tree_train`` then fits the merged
+tiers on the cuts. Between hand-overs nothing is dimmed or grown: every
 drawn node is a Gaussian of one tier as trained; ``s_v = 1`` is the model at full detail. A
 budget draws the cut at the smallest ``s_v >= 1`` from which no cut holds more
 (:func:`budget_s_v`), so a larger budget never draws a coarser cut.
@@ -209,9 +211,9 @@ def build(gaussians: Gaussians, cameras, log=None, *, spread: float = None) -> G
       rank ``q`` among the tier's nodes by their most important child (the largest of the
       children's own Eq. 2 levels at their ``d_ref``: the order the tier below learned), so the
       hand-overs of a tier spread over a factor ``R`` of ``s_v``;
-    * a last-tier node's exit (``extra["exit"]``) is ``G_T s* d_ref``, ``s*`` its Eq. 2 critical
-      scale at ``d_ref`` with its own (trained) ``sigma_d``: it leaves where its tier's own level
-      of detail would drop it;
+    * every node's exit (``extra["exit"]``) is ``G_k s* d_ref``, ``s*`` its Eq. 2 critical scale
+      at ``d_ref`` with its own (trained) ``sigma_d``: it leaves where its tier's own level of
+      detail would drop it (unless it is its parent's lead child);
     * the settings say ``tree=True``. Tier 0 is unchanged.
 
     Raises:
@@ -240,10 +242,9 @@ def build(gaussians: Gaussians, cameras, log=None, *, spread: float = None) -> G
     for k in range(1, len(tiers)):
         t = tiers[k]
         rank = _group_rank(own[k - 1], tiers[k - 1].extra[PARENT_KEY].long().cpu(), len(t))
-        upd = {"sigma_d": (scales[k] * spread ** (rank - 0.5) * d_ref[k]).to(t.means)}
-        if k == len(tiers) - 1:
-            upd["extra"] = {**t.extra, EXIT_KEY: (scales[k] * own[k] * d_ref[k]).float().to(t.means.device)}
-        tiers[k] = replace(t, **upd)
+        tiers[k] = replace(t, sigma_d=(scales[k] * spread ** (rank - 0.5) * d_ref[k]).to(t.means))
+    for k, t in enumerate(tiers):  # every node leaves where its tier's own level of detail drops it
+        tiers[k] = replace(t, extra={**t.extra, EXIT_KEY: (scales[k] * own[k] * d_ref[k]).float().to(t.means.device)})
     out = tiers[-1]
     for t in reversed(tiers[:-1]):
         out = replace(t, parents=out)
@@ -266,6 +267,7 @@ class TreeCut:
     t: list
     s_v: float
     _n_frustum: object  # int, or a zero-argument callable that counts it on first use
+    fade: Optional[list] = None  # per tier [n_k] bool: the row fades out (else it hands over to its parent)
 
     @property
     def n_frustum(self) -> int:
@@ -281,10 +283,12 @@ class TreeCut:
 @dataclass
 class TreeTerms:
     """The per-camera terms of a tree (:func:`terms`): per tier the entry ``E`` and the end ``U``
-    of each node's interval [N_k], and (on first use) the frustum [N_k] bool."""
+    of each node's interval [N_k], whether it ends by fading out ([N_k] bool), and (on first use)
+    the frustum [N_k] bool."""
 
     entry: list
     upper: list
+    fade: list
     tiers: list
     camera: object
     _frustum: Optional[list] = None
@@ -309,9 +313,24 @@ def terms(tiers: Sequence[Gaussians], camera, *, hand_over: float = HAND_OVER) -
         if k < T:
             e = torch.minimum(e, entry[k + 1][tiers[k].extra[PARENT_KEY].long()] / F)
         entry[k] = e.clamp_min(F ** k)
-    x = tiers[T].extra[EXIT_KEY].to(ds[T]) / ds[T].clamp_min(1e-12)
-    upper = [entry[k + 1][tiers[k].extra[PARENT_KEY].long()] for k in range(T)] + [torch.maximum(x, F * entry[T])]
-    return TreeTerms(entry, upper, list(tiers), camera)
+    ends = [_end(tiers, k, None, entry[k], entry[k + 1][tiers[k].extra[PARENT_KEY].long()] if k < T else None,
+                 ds[k], F) for k in range(T + 1)]
+    return TreeTerms(entry, [e for e, _ in ends], [f for _, f in ends], list(tiers), camera)
+
+
+def _end(tiers: Sequence[Gaussians], k: int, rows: Optional[Tensor], E: Tensor, U: Optional[Tensor], d: Tensor,
+         F: float) -> tuple[Tensor, Tensor]:
+    """Steps 3's end of the nodes ``rows`` of tier ``k`` (all when None) with entries ``E``, their
+    parents' entries ``U`` (None in the last tier) and ``d'``: ``(end, fades)``."""
+    x = tiers[k].extra[EXIT_KEY].detach()
+    x = x if rows is None else x[rows]
+    X = torch.maximum(x.to(d) / d.clamp_min(1e-12), F * E.clamp_min(1.0))
+    if U is None:
+        return X, torch.ones_like(X, dtype=torch.bool)
+    lead = leads(tiers[k])
+    lead = lead if rows is None else lead[rows]
+    fades = ~lead & (X < U)
+    return torch.where(fades, X, U), fades
 
 
 @torch.no_grad()
@@ -323,12 +342,13 @@ def cut(tiers: Sequence[Gaussians], camera, s_v: float, *, hand_over: float = HA
     if tt is None:
         return walk(tiers, camera, s, hand_over=hand_over)
     lnF = math.log(hand_over)
-    ids, ts = [], []
-    for n, u in zip(tt.entry, tt.upper):
+    ids, ts, fades = [], [], []
+    for n, u, f in zip(tt.entry, tt.upper, tt.fade):
         i = torch.nonzero((n <= s) & (s < u)).flatten()
         ids.append(i)
         ts.append(torch.clamp(torch.log(u[i] / s) / lnF, 0.0, 1.0))
-    return TreeCut(ids, ts, s, int(tt.frustum[0].sum()))
+        fades.append(f[i])
+    return TreeCut(ids, ts, s, int(tt.frustum[0].sum()), fades)
 
 
 def _children(tier: Gaussians) -> tuple[Tensor, Tensor, Tensor]:
@@ -350,9 +370,9 @@ def walk(tiers: Sequence[Gaussians], camera, s_v: float, *, hand_over: float = H
     c, D, d_last = _camera(tiers, camera)
     last = tiers[T]
     E = (last.sigma_d.detach() / d_last.clamp_min(1e-12)).clamp_min(F ** T)
-    U = torch.maximum(last.extra[EXIT_KEY].to(d_last) / d_last.clamp_min(1e-12), F * E)
+    U, f = _end(tiers, T, None, E, None, d_last, F)
     i = torch.nonzero((E <= s) & (s < U)).flatten()
-    ids, ts = [i], [torch.clamp(torch.log(U[i] / s) / lnF, 0.0, 1.0)]
+    ids, ts, fades = [i], [torch.clamp(torch.log(U[i] / s) / lnF, 0.0, 1.0)], [f[i]]
     open_rows = torch.nonzero(s < E).flatten()  # roots not yet entered: their subtrees are drawn
     E_open = E[open_rows]
     for k in range(T - 1, -1, -1):
@@ -362,19 +382,23 @@ def walk(tiers: Sequence[Gaussians], camera, s_v: float, *, hand_over: float = H
         offset = torch.arange(int(n.sum()), device=n.device) - torch.repeat_interleave(torch.cumsum(n, 0) - n, n)
         rows = order[first + offset]
         U_c = torch.repeat_interleave(E_open, n)
+        d = torch.linalg.vector_norm(tiers[k].means.detach()[rows] - c, dim=-1) / D
         if k == 0:
             E_c = torch.zeros_like(U_c)
         else:
-            d = torch.linalg.vector_norm(tiers[k].means.detach()[rows] - c, dim=-1) / D
             E_c = torch.minimum(tiers[k].sigma_d.detach()[rows] / d.clamp_min(1e-12), U_c / F).clamp_min(F ** k)
-        drawn = E_c <= s  # s < U_c holds for every child of an open node
+        end, f = _end(tiers, k, rows, E_c, U_c, d, F)
+        drawn = (E_c <= s) & (s < end)  # s < U_c holds for every child of an open node
         sel, srt = torch.sort(rows[drawn])
         ids.append(sel)
-        ts.append(torch.clamp(torch.log(U_c[drawn][srt] / s) / lnF, 0.0, 1.0))
-        open_rows, E_open = rows[~drawn], E_c[~drawn]
+        ts.append(torch.clamp(torch.log(end[drawn][srt] / s) / lnF, 0.0, 1.0))
+        fades.append(f[drawn][srt])
+        opened = s < E_c  # not entered yet: its subtree is drawn
+        open_rows, E_open = rows[opened], E_c[opened]
     ids.reverse()
     ts.reverse()
-    return TreeCut(ids, ts, s, lambda: int(_frustum(tiers[0], camera).sum()))  # counted on first use
+    fades.reverse()
+    return TreeCut(ids, ts, s, lambda: int(_frustum(tiers[0], camera).sum()), fades)  # counted on first use
 
 
 @torch.no_grad()
@@ -441,10 +465,11 @@ def cut_attributes(tiers: Sequence[Gaussians], c: TreeCut) -> tuple[Tensor, Tens
             mu, q, ls = t.means[ids], t.quats[ids], t.log_scales[ids]
             col = torch.cat([t.sh0[ids], t.shN[ids]], dim=1)  # only the drawn rows of the SH
             a = torch.sigmoid(t.opacity_logits[ids])
-        if k + 1 == len(tiers):
-            a = a * w.to(a.dtype)
-        elif not whole:
-            h = torch.nonzero(w < 1.0).flatten()  # rows in a hand-over
+        fade = c.fade[k] if c.fade is not None else torch.full_like(w, k + 1 == len(tiers), dtype=torch.bool)
+        if bool(fade.any()):  # rows leaving without a parent taking over: faded out
+            a = a * torch.where(fade, w.to(a.dtype), torch.ones_like(a))
+        if k + 1 < len(tiers) and not whole:
+            h = torch.nonzero((w < 1.0) & ~fade).flatten()  # rows in a hand-over
             if h.numel():
                 wh = w[h].to(mu.dtype)
                 p = t.extra[PARENT_KEY].long()[ids[h]]

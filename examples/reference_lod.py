@@ -53,7 +53,7 @@ def frustum(means, viewmat, K, width, height):
 
 
 def terms(tiers, viewmat, K, width, height):
-    """Steps 1-3 for one camera: per tier the entry ``E`` and the end ``U`` of each node."""
+    """Steps 1-3 for one camera: per tier the entry ``E``, the end ``U`` and whether a node fades."""
     c = -viewmat[:3, :3].T @ viewmat[:3, 3]
     d = [np.linalg.norm(t["means"] - c, axis=1) for t in tiers]
     frT = frustum(tiers[-1]["means"], viewmat, K, width, height)
@@ -66,8 +66,17 @@ def terms(tiers, viewmat, K, width, height):
         if k < T:
             e = np.minimum(e, E[k + 1][tiers[k]["parent"]] / F)
         E[k] = np.maximum(e, F ** k)
-    U = [E[k + 1][t["parent"]] for k, t in enumerate(tiers[:-1])] + [np.maximum(tiers[T]["exit"] / d[T], F * E[T])]
-    return E, U
+    U, fade = [], []
+    for k, t in enumerate(tiers):
+        X = np.maximum(t["exit"] / d[k], F * np.maximum(E[k], 1.0))
+        if k == T:
+            U.append(X)
+            fade.append(np.ones(len(X), bool))
+        else:
+            f = ~leads(t, len(tiers[k + 1]["means"])) & (X < E[k + 1][t["parent"]])
+            U.append(np.where(f, X, E[k + 1][t["parent"]]))
+            fade.append(f)
+    return E, U, fade
 
 
 def budget_s_v(tiers, E, U, viewmat, K, width, height, k):
@@ -95,14 +104,15 @@ def draw(tiers, viewmat, K, width, height, s_v=None, budget=None) -> dict:
     """What one camera draws (steps 1-6), tier 0's rows first: ``ids`` (per tier), ``s_v``,
     ``means``, ``quats``, ``log_scales``, ``opacities``, ``sh`` [k, K, 3]."""
     viewmat, K = np.asarray(viewmat, np.float64), np.asarray(K, np.float64)
-    ns, ups = terms(tiers, viewmat, K, width, height)
+    ns, ups, fades = terms(tiers, viewmat, K, width, height)
     s = budget_s_v(tiers, ns, ups, viewmat, K, width, height, budget) if budget is not None else max(float(s_v), 1.0)
     out = {"ids": [], "s_v": s, "means": [], "quats": [], "log_scales": [], "opacities": [], "sh": []}
-    for k, (t, n, u) in enumerate(zip(tiers, ns, ups)):
+    for k, (t, n, u, f) in enumerate(zip(tiers, ns, ups, fades)):
         i = np.flatnonzero((n <= s) & (s < u))
-        w = np.clip(np.log(u[i] / s) / math.log(F), 0, 1)
+        w, f = np.clip(np.log(u[i] / s) / math.log(F), 0, 1), f[i]
         mu, q, ls, sh, a = t["means"][i], t["quats"][i], t["log_scales"][i], t["sh"][i], t["opacity"][i]
         if k + 1 < len(tiers):
+            w = np.where(f, 1.0, w)  # a row fading out keeps its attributes
             par, p = tiers[k + 1], t["parent"][i]
             q = q / np.linalg.norm(q, axis=1, keepdims=True)
             qp = par["quats"][p] / np.linalg.norm(par["quats"][p], axis=1, keepdims=True)
@@ -111,8 +121,8 @@ def draw(tiers, viewmat, K, width, height, s_v=None, budget=None) -> dict:
             mu, ls = wc * mu + (1 - wc) * par["means"][p], wc * ls + (1 - wc) * par["log_scales"][p]
             q, sh = wc * q + (1 - wc) * qp, wc[:, None] * sh + (1 - wc[:, None]) * par["sh"][p]
             a = w * a + (1 - w) * np.where(leads(t, len(par["means"]))[i], par["opacity"][p], 0.0)
-        else:
-            a = a * w
+            w = np.clip(np.log(u[i] / s) / math.log(F), 0, 1)
+        a = np.where(f, a * w, a)
         for key, val in (("ids", i), ("means", mu), ("quats", q), ("log_scales", ls), ("opacities", a), ("sh", sh)):
             out[key].append(val)
     return {k: (np.concatenate(v) if k not in ("ids", "s_v") else v) for k, v in out.items()}

@@ -1,9 +1,11 @@
 """The merge tree against the chain of cross-faded tiers: cost along the level and quality at equal time.
 
-For each input (default: fern, skull and MaskGaussian fern) two adaptations (cached,
-benchmarks/common.py): ``tier_draw = tree``, the tiers linked into a merge tree and fitted on its
-cuts, and ``tier_draw = chain``, the same tiers cross-faded whole at each hand-over; and, as
-``unfit``, the chain's tiers linked into a tree after the fact, not fitted on its cuts. All, and the input, are drawn
+For each input (default: fern, skull and MaskGaussian fern) the ``tier_draw = chain`` adaptation
+(cached, benchmarks/common.py: the tiers cross-faded whole at each hand-over) is drawn as it is
+(``chain``) and with the same tiers linked into a merge tree and fitted on its cuts on the fit views,
+as ``--tier-draw tree`` does after the same tiers (``tree``: :func:`clod_adapter.tree.build`,
+:func:`clod_adapter.tree_train.finetune`, ``--fit-steps``, seed 0), and not fitted (``unfit``). All,
+and the input, are drawn
 on the scored views at ``--steps`` log-spaced ``s_v`` from 1 to past the coarsest tier and at count
 budgets from 100 % to 1 % of the Gaussians in view, and timed in ``--rounds`` interleaved rounds
 (``render_lod``'s wall time, median over rounds of the median over views). Printed per input:
@@ -11,22 +13,24 @@ budgets from 100 % to 1 % of the Gaussians in view, and timed in ``--rounds`` in
 * per level and budget: ms, PSNR, Gaussians drawn, for both;
 * the worst cost step: the largest frame time over the frame time of any more detailed frame of the
   same sweep (goal: <= 1.05), and the largest frame time over the input's (goal: <= 1);
-* the best PSNR within 75 / 50 / 25 / 10 % of the input's frame, for both.
+* the best PSNR within 75 / 50 / 25 / 10 % of the input's frame, for both;
+* ``clod-eval``'s popping ratio (:func:`clod_adapter.popping.popping_ratio`) on every scored view,
+  the median and the smallest.
 
 No goal is enforced (a study: exit 0)::
 
     python benchmarks/studies/tree_draw.py --split val
     python benchmarks/studies/tree_draw.py --split val --inputs fern --rounds 3
 
-Written: ``runs/bench/tree_draw/summary.md``. The adaptations take 12-17 minutes each per scene when
-not cached; the sweep a few minutes per scene on 2 cores.
+Written: ``runs/bench/tree_draw/summary.md``. The adaptation takes 12-15 minutes per scene when not
+cached; the fit about 3 minutes and the sweep about 5 per scene on 2 cores.
 """
 from __future__ import annotations
 
 import argparse
 import math
 import sys
-from dataclasses import replace
+import time
 from pathlib import Path
 
 import numpy as np
@@ -36,8 +40,10 @@ from common import (SPLITS, adapt_cached, add_inputs_args, load_input, load_mode
                     selected_inputs, setup_threads, write_summary)
 
 from clod_adapter import quality_vs_time as qvt, tree  # noqa: E402
-from clod_adapter.tree_train import level_range  # noqa: E402
+from clod_adapter.tree_train import TREE_STEPS, finetune, level_range  # noqa: E402
+from clod_adapter.baselines import lightgaussian_significance  # noqa: E402
 from clod_adapter.camera_lod import tier_reach  # noqa: E402
+from clod_adapter.popping import popping_ratio  # noqa: E402
 from clod_adapter.training import AdaptConfig  # noqa: E402
 
 SHARES = (1.0, 0.75, 0.5, 0.3, 0.2, 0.1, 0.05, 0.02, 0.01)
@@ -57,10 +63,12 @@ def worst_step(ms: list) -> float:
 
 def run_input(name: str, args) -> list[str]:
     chain = load_model(adapt_cached(name, AdaptConfig(tier_draw="chain", tree_steps=0), "chain", split=args.split))
-    model = load_model(adapt_cached(name, AdaptConfig(tier_draw="tree"), "tree", split=args.split))
     base, scene, gts = load_input(name, args.split)
     fit, cams = scene_views(scene, args.split)
     unfit = tree.build(chain, fit)  # the chain's tiers as a tree, not fitted on its cuts
+    t0 = time.perf_counter()
+    model = finetune(unfit, fit, [scene.load_image(c) for c in fit], args.fit_steps)
+    print(f"[{name}] tree fitted on its cuts: {args.fit_steps} steps in {time.perf_counter() - t0:.0f} s", flush=True)
     top = max(chain.lod.max_sv * tier_reach(chain) * 2.0, level_range(model, cams))
     s_vs = [float(s) for s in np.geomspace(1.0, top, args.steps)]
     settings = [qvt.Setting("input", "full", [qvt.lod_render(base, c) for c in cams], 0)]
@@ -84,6 +92,9 @@ def run_input(name: str, args) -> list[str]:
         lines.append(f"| {k} | {a.ms:.1f} | {a.psnr:.2f} | {np.mean(a.drawn):.0f} | {b.ms:.1f} | {b.psnr:.2f} | "
                      f"{np.mean(b.drawn):.0f} | {u.psnr:.2f} |")
     lines.append("")
+    scores = lightgaussian_significance(base, list(fit))
+    pops = {label: [float(popping_ratio(g, base, c, scores)["ratio"]) for c in cams]
+            for label, g in (("chain", chain), ("tree", model))}
     for label in ("chain", "tree", "unfit"):
         sweep = [by[(label, f"s_v={s:.4g}")].ms for s in s_vs]
         bud = [by[(label, f"budget={b:g}")].ms for b in SHARES]
@@ -92,7 +103,9 @@ def run_input(name: str, args) -> list[str]:
         lines.append(f"- {label}: worst cost step along s_v {worst_step(sweep):.2f}x, along budgets "
                      f"{worst_step(bud):.2f}x; largest frame {max(sweep + bud) / t_in:.2f}x the input's; best dB "
                      f"within {' / '.join(f'{int(w * 100)}' for w in WITHIN)} % of the input's frame: "
-                     f"{' / '.join(f'{b:.2f}' for b in best)}")
+                     f"{' / '.join(f'{b:.2f}' for b in best)}" + (
+                         f"; popping median {np.median(pops[label]):.1f}x, smallest {min(pops[label]):.1f}x"
+                         if label in pops else ""))
     return lines + [""]
 
 
@@ -102,6 +115,7 @@ def main(argv=None) -> int:
     ap.add_argument("--split", choices=SPLITS, default="val")
     ap.add_argument("--steps", type=int, default=40)
     ap.add_argument("--rounds", type=int, default=3)
+    ap.add_argument("--fit-steps", type=int, default=TREE_STEPS)
     ap.add_argument("--threads", type=int, default=2)
     args = ap.parse_args(argv)
     setup_threads(args.threads)

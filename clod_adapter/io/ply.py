@@ -301,7 +301,7 @@ def read_ply(path: PathLike, *, allow_nonfinite: bool = False) -> Gaussians:
 def _check_tree(path: Path, chain: list) -> None:
     """A ``tree=True`` file's tree (docs/lod_rule.md "The file"): every element but the last has an
     integer ``parent`` property naming a row of the next element, every row of the next element is
-    some row's parent, and the last element has a finite float ``exit``.
+    some row's parent, and every element has a finite float ``exit``.
 
     Raises:
         PlyFormatError: the file says ``tree=True`` and one of these does not hold.
@@ -319,10 +319,11 @@ def _check_tree(path: Path, chain: list) -> None:
                                        f"(the rows of '{tier_element(k + 1)}')")
         if bool((torch.bincount(p, minlength=len(above)) == 0).any()):
             raise PlyFormatError(path, f"element '{tier_element(k + 1)}': a row that is no row's parent")
-    x = chain[-1].extra.get("exit")
-    if x is None or not x.dtype.is_floating_point or not bool(torch.isfinite(x).all()):
-        raise PlyFormatError(path, f"'tree=True' but element '{tier_element(len(chain) - 1)}' has no finite 'exit' "
-                                   f"property")
+    for k, tier in enumerate(chain):
+        x = tier.extra.get("exit")
+        if x is None or not x.dtype.is_floating_point or not bool(torch.isfinite(x).all()):
+            raise PlyFormatError(path, f"'tree=True' but element '{'vertex' if k == 0 else tier_element(k)}' has no "
+                                       f"finite float 'exit' property")
 
 
 def _tier_comments(comments, path: Path) -> dict:

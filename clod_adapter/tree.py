@@ -25,11 +25,11 @@ Per camera (:func:`terms`, :func:`cut`), with ``F`` = :data:`HAND_OVER`:
    own exit ``X_i = max(x_i / d'_i, F max(E_i, 1))`` for the others (``x_i``, ``extra["exit"]``),
    ``X_i`` in the last tier. No path crosses the cut twice.
 4. A drawn node at ``t = clamp(ln(U_i / s_v) / ln F, 0, 1)`` whose end is its own exit *leaves*:
-   its opacity is times ``t``. One that hands over is drawn with its attributes interpolated
+   its opacity is times ``t``. A lead that hands over is drawn with its attributes interpolated
    toward its parent's (``t = 1`` its own, ``t = 0`` the parent's; position, log-scales, rotation,
-   SH linearly) and opacity ``t a_i + (1 - t) a_p`` for the lead, ``t a_i`` for the others: at ``t
-   = 0`` the lead is the parent and its siblings have faded out onto it, so the image is
-   continuous and the frame's cost falls to the parent's. (Hierarchical 3DGS gives each of ``K``
+   SH linearly) and opacity ``t a_i + (1 - t) a_p``; its siblings shrink (log-scales plus ``ln
+   t``) and fade (opacity ``t a_i``) where they are: at ``t = 0`` the lead is the parent and its
+   siblings are gone, so the image is continuous and the frame's cost falls to the parent's. (Hierarchical 3DGS gives each of ``K``
    children ``1 - (1 - a_p)^(1/K)``, which composites to the parent at its centre only and draws
    the parent's size ``K`` times.)
 
@@ -65,6 +65,8 @@ HAND_OVER = 1.25
 PARENT_KEY = "parent"
 #: the ``Gaussians.extra`` key (and .ply property) of a last-tier node's exit constant
 EXIT_KEY = "exit"
+#: a shrinking sibling's scale factor ``w`` is floored here (its opacity reaches 0 with ``w``)
+SHRINK_FLOOR = 1e-4
 #: ``R``: a tier's hand-overs spread over this factor of ``s_v`` by importance (:func:`build`)
 SPREAD = 2.0
 #: candidate parents scored per child (:func:`assign_parents`)
@@ -475,11 +477,15 @@ def cut_attributes(tiers: Sequence[Gaussians], c: TreeCut) -> tuple[Tensor, Tens
                 p = t.extra[PARENT_KEY].long()[ids[h]]
                 par = tiers[k + 1]
                 a_p = torch.sigmoid(par.opacity_logits[p])
-                new = (wh[:, None] * mu[h] + (1.0 - wh[:, None]) * par.means[p],
-                       wh[:, None] * ls[h] + (1.0 - wh[:, None]) * par.log_scales[p],
-                       _quat_lerp(q[h], par.quats[p], wh),
-                       wh[:, None, None] * col[h] + (1.0 - wh[:, None, None]) * torch.cat([par.sh0[p], par.shN[p]], 1),
-                       wh * a[h] + (1.0 - wh) * torch.where(leads(t)[ids[h]], a_p, torch.zeros_like(a_p)))
+                lead = leads(t)[ids[h]]
+                lc = lead[:, None]  # the lead grows into its parent; its siblings shrink and fade where they are
+                new = (torch.where(lc, wh[:, None] * mu[h] + (1.0 - wh[:, None]) * par.means[p], mu[h]),
+                       torch.where(lc, wh[:, None] * ls[h] + (1.0 - wh[:, None]) * par.log_scales[p],
+                                   ls[h] + torch.log(wh.clamp_min(SHRINK_FLOOR))[:, None]),
+                       torch.where(lc, _quat_lerp(q[h], par.quats[p], wh), q[h]),
+                       torch.where(lc[:, :, None], wh[:, None, None] * col[h]
+                                   + (1.0 - wh[:, None, None]) * torch.cat([par.sh0[p], par.shN[p]], 1), col[h]),
+                       wh * a[h] + (1.0 - wh) * torch.where(lead, a_p, torch.zeros_like(a_p)))
                 # rows gathered for this frame: written in place (out of place where autograd records)
                 mu, ls, q, col, a = (x.index_put_((h,), v) if not torch.is_grad_enabled() or not v.requires_grad
                                      else x.index_put((h,), v) for x, v in zip((mu, ls, q, col, a), new))

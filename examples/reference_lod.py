@@ -117,10 +117,13 @@ def draw(tiers, viewmat, K, width, height, s_v=None, budget=None) -> dict:
             q = q / np.linalg.norm(q, axis=1, keepdims=True)
             qp = par["quats"][p] / np.linalg.norm(par["quats"][p], axis=1, keepdims=True)
             qp = np.where((q * qp).sum(1, keepdims=True) < 0, -qp, qp)
-            wc = w[:, None]
-            mu, ls = wc * mu + (1 - wc) * par["means"][p], wc * ls + (1 - wc) * par["log_scales"][p]
-            q, sh = wc * q + (1 - wc) * qp, wc[:, None] * sh + (1 - wc[:, None]) * par["sh"][p]
-            a = w * a + (1 - w) * np.where(leads(t, len(par["means"]))[i], par["opacity"][p], 0.0)
+            wc, lead = w[:, None], leads(t, len(par["means"]))[i]
+            lc = lead[:, None]  # the lead grows into its parent; its siblings shrink and fade where they are
+            mu = np.where(lc, wc * mu + (1 - wc) * par["means"][p], mu)
+            ls = np.where(lc, wc * ls + (1 - wc) * par["log_scales"][p], ls + np.log(np.maximum(wc, 1e-4)))
+            q = np.where(lc, wc * q + (1 - wc) * qp, q)
+            sh = np.where(lc[:, :, None], wc[:, None] * sh + (1 - wc[:, None]) * par["sh"][p], sh)
+            a = w * a + (1 - w) * np.where(lead, par["opacity"][p], 0.0)
             w = np.clip(np.log(u[i] / s) / math.log(F), 0, 1)
         a = np.where(f, a * w, a)
         for key, val in (("ids", i), ("means", mu), ("quats", q), ("log_scales", ls), ("opacities", a), ("sh", sh)):

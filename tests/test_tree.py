@@ -72,10 +72,10 @@ def test_children_composite_to_the_parent_at_the_switch():
                      [torch.zeros(3, dtype=torch.float64), torch.zeros(0, dtype=torch.float64)], 2.0, 3)
     means, quats, scales, ops, colors = tree.cut_attributes(ts, c)
     a_p = torch.sigmoid(parent.opacity_logits)
-    assert torch.allclose(means, parent.means.expand(3, 3))
-    assert torch.allclose(scales, parent.scales.expand(3, 3))
     lead = tree.leads(ts[0])
+    assert torch.allclose(means[lead], parent.means) and torch.allclose(scales[lead], parent.scales)
     assert int(lead.sum()) == 1 and torch.allclose(ops[lead], a_p) and bool((ops[~lead] == 0).all())
+    assert bool((scales[~lead] <= 1e-3 * kids.scales[~lead]).all())  # the siblings shrank to nothing
     args = (cam.viewmat[None], cam.K[None], cam.width, cam.height)
     img_kids = rasterization(means, quats, scales, ops, colors, *args, sh_degree=parent.sh_degree)[0]
     img_par = rasterization(parent.means, parent.quats, parent.scales, a_p, parent.colors, *args,
@@ -173,7 +173,8 @@ def test_the_reference_draws_what_the_library_draws(model, tmp_path):
             assert all(np.array_equal(a.numpy(), b) for a, b in zip(ours, r["ids"])), kw
             np.testing.assert_allclose(sub.opacities.numpy(), r["opacities"], atol=2e-6)
             np.testing.assert_allclose(sub.means.numpy(), r["means"], atol=2e-5)
-            np.testing.assert_allclose(np.log(sub.scales.numpy()), r["log_scales"], atol=2e-5)
+            # a shrinking sibling's log-scale holds ln w, which float32 carries to ~1e-4 at small w
+            np.testing.assert_allclose(np.log(sub.scales.numpy()), r["log_scales"], atol=2e-4)
             np.testing.assert_allclose(sub.colors.numpy(), r["sh"], atol=2e-5)
 
 

@@ -1026,10 +1026,7 @@ def tiered(gaussians: Gaussians, s_v: Optional[float], level: Optional[float] = 
 def tier_chain(gaussians: Gaussians) -> list[Gaussians]:
     """The model's tiers, finest first: ``[gaussians, gaussians.parents, its parents, ...]``, each
     followed by the next while its ``lod.tier_s_v > 0`` (docs/lod_rule.md "The tiers")."""
-    out = [gaussians]
-    while out[-1].parents is not None and out[-1].lod is not None and out[-1].lod.tier_s_v > 0:
-        out.append(out[-1].parents)
-    return out
+    return tree.tiers_of(gaussians)
 
 
 def tier_reach(gaussians: Gaussians) -> float:
@@ -1603,8 +1600,8 @@ def _render_tree(gaussians: Gaussians, camera, s_v: Optional[float] = None, *, b
     from .render.dispatch import rasterization
 
     if s_v is not None and float(s_v) <= 1.0:
-        out = render_lod(replace(gaussians.with_sigma_d(None), extra={}), camera, background=background,
-                         sh_degree=sh_degree, backend=backend)
+        out = render_lod(gaussians.with_sigma_d(None), camera, background=background, sh_degree=sh_degree,
+                         backend=backend)
         out.s_v = 1.0
         return out
     t0 = time.perf_counter()

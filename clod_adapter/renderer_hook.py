@@ -338,7 +338,7 @@ def clod_rasterization(
 
 def _tree_frames(means, quats, scales, logits, colors, sigma_d, settings, parent, parents, viewmats, Ks, w, h,
                  s_v, budget, backgrounds, sh_degree, backend, per_cam_colors):
-    """:func:`clod_rasterization` of a merge tree: per camera the cut of :func:`clod_adapter.tree.select`
+    """:func:`clod_rasterization` of a merge tree: per camera the cut of :func:`clod_adapter.camera_lod.tree_select`
     rasterised as one set (meta as documented there; ``lod_tier_indices`` the cut's rows per tier)."""
     from types import SimpleNamespace
 

@@ -29,9 +29,9 @@ Per camera (:func:`terms`, :func:`cut`), with ``F`` = :data:`HAND_OVER`:
    toward its parent's (``t = 1`` its own, ``t = 0`` the parent's; position, log-scales, rotation,
    SH linearly) and opacity ``t a_i + (1 - t) a_p``; its siblings shrink (log-scales plus ``ln
    t``) and fade (opacity ``t a_i``) where they are: at ``t = 0`` the lead is the parent and its
-   siblings are gone, so the image is continuous and the frame's cost falls to the parent's. (Hierarchical 3DGS gives each of ``K``
-   children ``1 - (1 - a_p)^(1/K)``, which composites to the parent at its centre only and draws
-   the parent's size ``K`` times.)
+   siblings are gone, so the image is continuous and the frame's cost falls to the parent's.
+   (Hierarchical 3DGS gives each of ``K`` children ``1 - (1 - a_p)^(1/K)``, which composites to
+   the parent at its centre only and draws the parent's size ``K`` times.)
 
 The node constants are set by :func:`build` from the chain the job linked: at their mean ``d'``
 over the training views a tier's nodes enter around ``s_v = G_k`` (:func:`tier_scales`, where the
@@ -59,11 +59,12 @@ from .gaussians import Gaussians
 __all__ = ["HAND_OVER", "PARENT_KEY", "is_tree", "tiers_of", "tier_scales", "assign_parents", "build", "cut", "walk",
            "budget_s_v", "TreeCut", "TreeTerms", "terms", "cut_attributes", "leads"]
 
-#: ``F``: a hand-over lasts from ``u / F`` to ``u`` in ``s_v``, and full detail holds up to ``s_v = F``
+#: ``F``: a hand-over or an exit lasts from ``U / F`` to ``U`` in ``s_v``; a node is drawn over at
+#: least this factor of ``s_v``
 HAND_OVER = 1.25
 #: the ``Gaussians.extra`` key (and .ply property) of a node's parent index in the next tier
 PARENT_KEY = "parent"
-#: the ``Gaussians.extra`` key (and .ply property) of a last-tier node's exit constant
+#: the ``Gaussians.extra`` key (and .ply property) of every node's exit constant
 EXIT_KEY = "exit"
 #: a shrinking sibling's scale factor ``w`` is floored here (its opacity reaches 0 with ``w``)
 SHRINK_FLOOR = 1e-4
@@ -304,7 +305,10 @@ class TreeTerms:
 
 @torch.no_grad()
 def terms(tiers: Sequence[Gaussians], camera, *, hand_over: float = HAND_OVER) -> TreeTerms:
-    """Steps 1-3 of the module docstring for ``camera`` (``viewmat``, ``K``, ``width``, ``height``)."""
+    """Steps 1-3 of the module docstring for ``camera`` (``viewmat`` [4, 4] world-to-camera, ``K``
+    [3, 3] pixels, ``width``, ``height`` pixels): every node's entry and end, in ``s_v`` (the
+    centres' dtype), and whether it fades. Every node is visited; :func:`walk` visits only what a
+    level needs. Raises KeyError where a tier lacks ``extra["parent"]`` or ``extra["exit"]``."""
     F = float(hand_over)
     ds = _distances(tiers, camera)
     T = len(tiers) - 1
@@ -366,7 +370,8 @@ def _children(tier: Gaussians) -> tuple[Tensor, Tensor, Tensor]:
 @torch.no_grad()
 def walk(tiers: Sequence[Gaussians], camera, s_v: float, *, hand_over: float = HAND_OVER) -> TreeCut:
     """:func:`cut` computed from the roots down: only the children of nodes not yet entered at
-    ``s_v`` are visited, so a coarse frame touches few nodes. The same cut as from :func:`terms`."""
+    ``s_v`` (>= 1; below, 1) are visited, so a coarse frame touches few nodes. Returns the same
+    :class:`TreeCut` as :func:`cut` from :func:`terms` (``tests/test_tree.py``)."""
     F, s, lnF = float(hand_over), max(float(s_v), 1.0), math.log(hand_over)
     T = len(tiers) - 1
     c, D, d_last = _camera(tiers, camera)

@@ -1566,10 +1566,23 @@ def tree_select(gaussians: Gaussians, camera, s_v: Optional[float] = None, *, bu
         raise ValueError("tree_select: give exactly one of s_v, budget, budget_cost, budget_ms")
     if s_v is not None and not float(s_v) >= 1.0:
         raise ValueError(f"s_v must be >= 1, got {s_v}")
+    c = tree_cut(gaussians, camera, s_v, budget=budget, budget_cost=budget_cost, budget_ms=budget_ms,
+                 time_model=time_model, budget_in_view=budget_in_view, hand_over=hand_over)
+    return c, tree.cut_attributes(tree.tiers_of(gaussians), c)
+
+
+@torch.no_grad()
+def tree_cut(gaussians: Gaussians, camera, s_v: Optional[float] = None, *, budget=None, budget_cost=None,
+             budget_ms=None, time_model=None, budget_in_view: bool = False,
+             hand_over: float = tree.HAND_OVER) -> "tree.TreeCut":
+    """The cut of :func:`tree_select` (same arguments and errors), without its attributes."""
+    if sum(x is not None for x in (s_v, budget, budget_cost, budget_ms)) != 1:
+        raise ValueError("tree_select: give exactly one of s_v, budget, budget_cost, budget_ms")
+    if s_v is not None and not float(s_v) >= 1.0:
+        raise ValueError(f"s_v must be >= 1, got {s_v}")
     tiers = tree.tiers_of(gaussians)
-    if s_v is not None:  # a level: walked from the roots, no per-node terms
-        c = tree.walk(tiers, camera, float(s_v), hand_over=hand_over)
-        return c, tree.cut_attributes(tiers, c)
+    if s_v is not None:  # a level: no per-node terms kept
+        return tree.cut(tiers, camera, float(s_v), hand_over=hand_over)
     tt = tree.terms(tiers, camera, hand_over=hand_over)
     if budget is not None:
         k = _tree_count(budget, len(gaussians), int(tt.frustum[0].sum()), budget_in_view)
@@ -1585,8 +1598,7 @@ def tree_select(gaussians: Gaussians, camera, s_v: Optional[float] = None, *, bu
             tm = DEFAULT_FRAME_TIME_MODEL if time_model is None else time_model
             weights = [torch.where(c > 0, tm.per_splat_ms(c), c) for c in costs]
             s_v = tree.budget_s_v(tt, float(budget_ms) - tm.c0_ms, weights)
-    c = tree.cut(tiers, camera, float(s_v), hand_over=hand_over, tt=tt)
-    return c, tree.cut_attributes(tiers, c)
+    return tree.cut(tiers, camera, float(s_v), hand_over=hand_over, tt=tt)
 
 
 def _render_tree(gaussians: Gaussians, camera, s_v: Optional[float] = None, *, budget=None, budget_cost=None,
@@ -1605,9 +1617,9 @@ def _render_tree(gaussians: Gaussians, camera, s_v: Optional[float] = None, *, b
         out.s_v = 1.0
         return out
     t0 = time.perf_counter()
-    c, (means, quats, scales, opacities, colors) = tree_select(gaussians, camera, s_v, budget=budget,
-                                                               budget_cost=budget_cost, budget_ms=budget_ms,
-                                                               time_model=time_model, budget_in_view=budget_in_view)
+    c = tree_cut(gaussians, camera, s_v, budget=budget, budget_cost=budget_cost, budget_ms=budget_ms,
+                 time_model=time_model, budget_in_view=budget_in_view)
+    means, quats, scales, opacities, colors = tree.cut_attributes(tree.tiers_of(gaussians), c)
     t1 = time.perf_counter()
     bg = None
     if background is not None:

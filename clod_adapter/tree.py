@@ -310,6 +310,9 @@ def terms(tiers: Sequence[Gaussians], camera, *, hand_over: float = HAND_OVER) -
     centres' dtype), and whether it fades. Every node is visited; :func:`walk` visits only what a
     level needs. Raises KeyError where a tier lacks ``extra["parent"]`` or ``extra["exit"]``."""
     F = float(hand_over)
+    if _native(tiers):
+        out = _native_call("tree_terms", tiers, camera, F)
+        return TreeTerms(out[0::3], out[1::3], out[2::3], list(tiers), camera)
     ds = _distances(tiers, camera)
     T = len(tiers) - 1
     entry = [None] * (T + 1)
@@ -346,6 +349,8 @@ def cut(tiers: Sequence[Gaussians], camera, s_v: float, *, hand_over: float = HA
     every node's terms ``tt`` when given, else by :func:`walk`."""
     s = max(float(s_v), 1.0)
     if tt is None:
+        if _native(tiers):
+            return _native_cut(tiers, camera, s, float(hand_over))
         return walk(tiers, camera, s, hand_over=hand_over)
     lnF = math.log(hand_over)
     ids, ts, fades = [], [], []
@@ -355,6 +360,41 @@ def cut(tiers: Sequence[Gaussians], camera, s_v: float, *, hand_over: float = HA
         ts.append(torch.clamp(torch.log(u[i] / s) / lnF, 0.0, 1.0))
         fades.append(f[i])
     return TreeCut(ids, ts, s, int(tt.frustum[0].sum()), fades)
+
+
+def _native(tiers: Sequence[Gaussians]) -> bool:
+    """Whether the C++ kernels (``render/csrc/tree_cut.cpp``) draw these tiers: CPU, one dtype, one
+    SH size, no autograd recording, and the kernels wanted (``clod_adapter.render.native``)."""
+    from .render.native import wanted
+
+    t0 = tiers[0]
+    records = torch.is_grad_enabled() and any(x.requires_grad for t in tiers for x in (
+        t.means, t.quats, t.log_scales, t.opacity_logits, t.sh0, t.shN))
+    return (not records and all(t.means.device.type == "cpu" and t.means.dtype == t0.means.dtype
+                                                 and t.shN.shape[1] == t0.shN.shape[1] for t in tiers)
+            and wanted(t0.means.device.type == "cpu"))
+
+
+def _int_parents(tier: Gaussians) -> Tensor:
+    return lod.cached_value(tier.extra[PARENT_KEY], "tree_parent64", lambda p: p.long().contiguous())
+
+
+def _native_call(name: str, tiers: Sequence[Gaussians], camera, *args) -> list:
+    """A kernel of ``render/csrc/tree_cut.cpp`` over the tiers' node constants for ``camera``."""
+    from .render.native import load
+
+    dt = tiers[0].means.dtype
+    return getattr(load(), name)([d.contiguous() for d in _distances(tiers, camera)],  # d' as the twins round it
+                                 [t.sigma_d.detach().to(dt).contiguous() for t in tiers],
+                                 [t.extra[EXIT_KEY].detach().to(dt).contiguous() for t in tiers],
+                                 [_int_parents(t) for t in tiers[:-1]], [leads(t).contiguous() for t in tiers[:-1]],
+                                 *args)
+
+
+def _native_cut(tiers: Sequence[Gaussians], camera, s: float, F: float) -> TreeCut:
+    """:func:`cut` by the C++ twin of :func:`terms` + :func:`cut` (every node, one pass per tier)."""
+    out = _native_call("tree_cut", tiers, camera, s, F)
+    return TreeCut(out[0::3], out[1::3], s, lambda: int(_frustum(tiers[0], camera).sum()), out[2::3])
 
 
 def _children(tier: Gaussians) -> tuple[Tensor, Tensor, Tensor]:
@@ -458,11 +498,42 @@ def leads(tier: Gaussians) -> Tensor:
     return lod.cached_value(tier.extra[PARENT_KEY], "tree_leads", make)
 
 
+def _handed_over(t: Gaussians, par: Gaussians, rows: Tensor, w: Tensor, mu: Tensor, ls: Tensor, q: Tensor,
+                 col: Optional[Tensor], a: Tensor) -> tuple:
+    """Tier rows ``rows`` [h] in a hand-over at positions ``w`` [h] (module docstring, step 4), from
+    their own attributes gathered for this frame (``mu`` [h, 3], ``ls`` [h, 3] log-scales, ``q``
+    [h, 4], ``col`` [h, K, 3] SH or None, ``a`` [h] opacities; written in place where autograd
+    does not record): ``(mu, ls, q, col, a)`` as drawn."""
+    wh = w.to(mu.dtype)
+    li = torch.nonzero(leads(t)[rows]).flatten()  # the leads grow into their parents
+    p, wl = t.extra[PARENT_KEY].long()[rows[li]], wh[li]
+    grown = [wl[:, None] * mu[li] + (1.0 - wl[:, None]) * par.means[p],
+             wl[:, None] * ls[li] + (1.0 - wl[:, None]) * par.log_scales[p],
+             _quat_lerp(q[li], par.quats[p], wl), None,
+             wl * a[li] + (1.0 - wl) * torch.sigmoid(par.opacity_logits[p])]
+    if col is not None:
+        grown[3] = wl[:, None, None] * col[li] + (1.0 - wl[:, None, None]) * torch.cat([par.sh0[p], par.shN[p]], 1)
+    ls = ls + torch.log(wh.clamp_min(SHRINK_FLOOR))[:, None]  # the siblings shrink and fade where they are
+    a = wh * a
+    in_place = not torch.is_grad_enabled()
+    return tuple(x if v is None else x.index_put_((li,), v) if in_place or not v.requires_grad
+                 else x.index_put((li,), v) for x, v in zip((mu, ls, q, col, a), grown))
+
+
 def cut_attributes(tiers: Sequence[Gaussians], c: TreeCut) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
     """The drawn attributes of a cut, tier 0's rows first: ``(means [k, 3], quats [k, 4] wxyz,
     scales [k, 3] activated (world units), opacities [k], colors [k, K, 3] SH in gsplat's
     layout)``, each node interpolated toward its parent by its ``t`` (module docstring, step 4;
     only the rows in a hand-over are interpolated)."""
+    if c.fade is not None and _native(tiers):
+        from .render.native import load
+
+        attrs = [x.detach().contiguous() for t in tiers
+                 for x in (t.means, t.quats, t.log_scales, t.opacity_logits, t.sh0, t.shN)]
+        return tuple(load().tree_attributes(attrs, [i.contiguous() for i in c.ids],
+                                            [w.to(tiers[0].means.dtype).contiguous() for w in c.t],
+                                            [f.contiguous() for f in c.fade], [_int_parents(t) for t in tiers[:-1]],
+                                            [leads(t).contiguous() for t in tiers[:-1]], SHRINK_FLOOR))
     out = [[] for _ in range(5)]
     for k, (t, ids, w) in enumerate(zip(tiers, c.ids, c.t)):
         whole = ids.numel() == len(t) and bool((w >= 1.0).all())
@@ -478,22 +549,11 @@ def cut_attributes(tiers: Sequence[Gaussians], c: TreeCut) -> tuple[Tensor, Tens
         if k + 1 < len(tiers) and not whole:
             h = torch.nonzero((w < 1.0) & ~fade).flatten()  # rows in a hand-over
             if h.numel():
-                wh = w[h].to(mu.dtype)
-                p = t.extra[PARENT_KEY].long()[ids[h]]
-                par = tiers[k + 1]
-                a_p = torch.sigmoid(par.opacity_logits[p])
-                lead = leads(t)[ids[h]]
-                lc = lead[:, None]  # the lead grows into its parent; its siblings shrink and fade where they are
-                new = (torch.where(lc, wh[:, None] * mu[h] + (1.0 - wh[:, None]) * par.means[p], mu[h]),
-                       torch.where(lc, wh[:, None] * ls[h] + (1.0 - wh[:, None]) * par.log_scales[p],
-                                   ls[h] + torch.log(wh.clamp_min(SHRINK_FLOOR))[:, None]),
-                       torch.where(lc, _quat_lerp(q[h], par.quats[p], wh), q[h]),
-                       torch.where(lc[:, :, None], wh[:, None, None] * col[h]
-                                   + (1.0 - wh[:, None, None]) * torch.cat([par.sh0[p], par.shN[p]], 1), col[h]),
-                       wh * a[h] + (1.0 - wh) * torch.where(lead, a_p, torch.zeros_like(a_p)))
+                new = _handed_over(t, tiers[k + 1], ids[h], w[h], mu[h], ls[h], q[h], col[h], a[h])
                 # rows gathered for this frame: written in place (out of place where autograd records)
                 mu, ls, q, col, a = (x.index_put_((h,), v) if not torch.is_grad_enabled() or not v.requires_grad
                                      else x.index_put((h,), v) for x, v in zip((mu, ls, q, col, a), new))
         for lst, v in zip(out, (mu, q, torch.exp(ls), a, col)):
             lst.append(v)
     return tuple(v[0] if len(v) == 1 or all(x.numel() == 0 for x in v[1:]) else torch.cat(v) for v in out)
+

@@ -10,6 +10,7 @@ import torch
 from clod_adapter import tiers, tree
 from clod_adapter.camera_lod import lod_subset, render_lod, tree_node_costs, tree_select
 from clod_adapter.io.ply import PlyFormatError, read_ply, write_ply
+from clod_adapter.render import native
 from clod_adapter.render.dispatch import rasterization
 from clod_adapter.synthetic import make_cameras
 
@@ -288,3 +289,30 @@ def test_walking_from_the_roots_gives_the_cut_of_every_node(model):
             assert all(torch.equal(x, y) for x, y in zip(a.ids, b.ids))
             assert all(torch.allclose(x, y) for x, y in zip(a.t, b.t)) and a.n_frustum == b.n_frustum
             assert all(torch.equal(x, y) for x, y in zip(a.fade, b.fade))
+
+
+@pytest.mark.skipif(not native.available(), reason="the C++ kernels do not build here")
+def test_the_cpp_cut_and_attributes_equal_their_torch_twins(model):
+    g, cams = model
+    ts = tree.tiers_of(g)
+    handing = 0
+    for cam in cams:
+        for s in S_VS:
+            with torch.no_grad():
+                with native.use_impl("cpp"):
+                    a = tree.cut(ts, cam, float(s))
+                    attrs_a = tree.cut_attributes(ts, a)
+                    ta = tree.terms(ts, cam)
+                with native.use_impl("torch"):
+                    b = tree.cut(ts, cam, float(s))
+                    attrs_b = tree.cut_attributes(ts, a)  # the same cut: w rounded alike
+                    tb = tree.terms(ts, cam)
+            for x, y in zip(ta.entry + ta.upper + ta.fade, tb.entry + tb.upper + tb.fade):
+                assert torch.equal(x, y)
+            assert all(torch.equal(x, y) for x, y in zip(a.ids, b.ids))
+            assert all(torch.equal(x, y) for x, y in zip(a.fade, b.fade))
+            assert all(torch.allclose(x, y, atol=1e-6) for x, y in zip(a.t, b.t))
+            for x, y in zip(attrs_a, attrs_b):
+                assert x.shape == y.shape and torch.allclose(x, y, rtol=1e-5, atol=1e-6)
+            handing += sum(int(((w < 1) & ~f).sum()) for w, f in zip(a.t[:-1], a.fade[:-1]))
+    assert handing > 100  # the interpolation was compared, not only whole nodes

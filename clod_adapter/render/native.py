@@ -2,7 +2,9 @@
 
 * the per-pixel compositor (``csrc/composite.cpp``; :mod:`clod_adapter.render.composite`);
 * the per-frame LoD terms (``csrc/lod_terms.cpp``; :func:`clod_adapter.lod.frame_terms`,
-  :func:`clod_adapter.lod.lod_mask`, :func:`clod_adapter.budget.critical_s_v`).
+  :func:`clod_adapter.lod.lod_mask`, :func:`clod_adapter.budget.critical_s_v`);
+* the merge tree's cut and drawn attributes (``csrc/tree_cut.cpp``; :func:`clod_adapter.tree.cut`,
+  :func:`clod_adapter.tree.cut_attributes`).
 
 Built with ``torch.utils.cpp_extension.load`` and cached (honours ``TORCH_EXTENSIONS_DIR``).
 Where it cannot be built every kernel falls back to its pure-PyTorch twin. :func:`use_impl`
@@ -22,7 +24,7 @@ from typing import Optional
 __all__ = ["load", "available", "error", "impl", "use_impl", "wanted"]
 
 _CSRC = Path(__file__).resolve().parent / "csrc"
-SOURCES = (_CSRC / "composite.cpp", _CSRC / "lod_terms.cpp")
+SOURCES = (_CSRC / "composite.cpp", _CSRC / "lod_terms.cpp", _CSRC / "tree_cut.cpp")
 _EXT = None
 _EXT_ERROR: Optional[BaseException] = None
 _LOCK = threading.Lock()

@@ -640,6 +640,18 @@ torch::Tensor lod_window_opacities_cpu(torch::Tensor ids, torch::Tensor opacitie
 torch::Tensor lod_critical_cpu(torch::Tensor opacities, torch::Tensor d_norm, torch::Tensor sigma_d, double tau,
                                double eps);
 
+// tree_cut.cpp (the merge tree's cut and drawn attributes)
+std::vector<torch::Tensor> tree_cut_cpu(std::vector<torch::Tensor> d_norm, std::vector<torch::Tensor> sigma_d,
+                                        std::vector<torch::Tensor> exits, std::vector<torch::Tensor> parents,
+                                        std::vector<torch::Tensor> leads, double s, double F);
+std::vector<torch::Tensor> tree_terms_cpu(std::vector<torch::Tensor> d_norm, std::vector<torch::Tensor> sigma_d,
+                                          std::vector<torch::Tensor> exits, std::vector<torch::Tensor> parents,
+                                          std::vector<torch::Tensor> leads, double F);
+std::vector<torch::Tensor> tree_attributes_cpu(std::vector<torch::Tensor> attrs, std::vector<torch::Tensor> ids,
+                                               std::vector<torch::Tensor> ws, std::vector<torch::Tensor> fades,
+                                               std::vector<torch::Tensor> parents, std::vector<torch::Tensor> leads,
+                                               double shrink_floor);
+
 PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
     m.def("forward", &composite_forward, "CPU Gaussian compositor forward");
     m.def("backward", &composite_backward, "CPU Gaussian compositor backward");
@@ -648,4 +660,7 @@ PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
     m.def("lod_keep", &lod_keep_cpu, "ids of Eq. 2's mask and the frustum counts (lod.lod_keep)");
     m.def("lod_window_opacities", &lod_window_opacities_cpu, "the window fade's drawn opacities (lod.window_opacities)");
     m.def("lod_critical", &lod_critical_cpu, "the critical s_v of each Gaussian (budget.critical_s_v)");
+    m.def("tree_cut", &tree_cut_cpu, "the merge tree's cut at one s_v (tree.terms + tree.cut)");
+    m.def("tree_terms", &tree_terms_cpu, "every node's entry, end and fade (tree.terms)");
+    m.def("tree_attributes", &tree_attributes_cpu, "a cut's drawn attributes (tree.cut_attributes)");
 }

@@ -247,8 +247,7 @@ def test_fitting_on_cuts_trains_the_merged_tiers_only(model):
 
 def test_export_of_a_tree(model, tmp_path, tiny_model):
     """clod-export of a tree: the extended .ply keeps the tree and splat-transform reads it (its
-    vertex element, the model); the LoD set is the tiers whole; --web says it does not draw a tree
-    yet (exit status 2, nothing written)."""
+    vertex element, the model); the LoD set is the tiers whole."""
     import json
 
     from clod_adapter.cli.export import main as export_main
@@ -269,14 +268,25 @@ def test_export_of_a_tree(model, tmp_path, tiny_model):
     assert [r["gaussians"] for r in rows] == [len(t) for t in tree.tiers_of(g)]
     assert read_info(out / "lod" / "lod-meta.json")["lodCounts"] == [r["gaussians"] for r in rows]
 
-def test_the_web_page_refuses_a_tree(model, tmp_path, tiny_model):
-    from clod_adapter.cli.export import main as export_main
 
-    src = write_ply(tmp_path / "tree.ply", model[0])
+def test_the_web_page_of_a_tree(model, tmp_path, tiny_model):
+    """clod-export --web of a tree: the page of one set (every tier's nodes in model.ply, the rule
+    in clod_tree.mjs; its drawing against render_lod: tests/test_web_tree.py)."""
+    import json
+
+    from clod_adapter.cli.export import main as export_main
+    from clod_adapter.viewer.web import find_playcanvas
+
+    if find_playcanvas() is None:
+        pytest.skip("PlayCanvas engine not found: run `npm ci` in the repository root")
+    g = model[0]
+    src = write_ply(tmp_path / "tree.ply", g)
     web = tmp_path / "web"
     assert export_main([str(src), "--images", str(tiny_model["scene"]), "-o", str(tmp_path / "o2"),
-                        "--web", str(web), "--quiet"]) == 2
-    assert not web.exists() and not (tmp_path / "o2").exists()
+                        "--web", str(web), "--quiet"]) == 0
+    cfg = json.loads((web / "clod.json").read_text())
+    assert cfg["tree"]["counts"] == [len(t) for t in tree.tiers_of(g)] and (web / "clod_tree.mjs").is_file()
+    assert json.loads((tmp_path / "o2" / "export.json").read_text())["web"]["static_cut"] is None
 
 
 def test_walking_from_the_roots_gives_the_cut_of_every_node(model):

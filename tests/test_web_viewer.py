@@ -323,6 +323,7 @@ def test_tiered_page_in_headless_chromium(tiered_web, tmp_path):
         with serve_folder(tiered_web["web"]) as base:
             open_web_viewer(driver, f"{base}/index.html?{urlencode({'w': w, 'h': h, 'cam': 0})}")
             sv_max = driver.execute_script("return window.clod.svMax")
+            budget_row = driver.execute_script("return getComputedStyle(document.getElementById('budgetrow')).display")
             for i in range(len(cams)):
                 driver.execute_script(f"window.clod.setCamera({i})")
                 for s in svs:
@@ -332,7 +333,7 @@ def test_tiered_page_in_headless_chromium(tiered_web, tmp_path):
     finally:
         driver.quit()
     # the slider reaches 1.2 x the parents' max_sv at their s_v: 1.25 x 1.5 x 1.2 x 3 / 1.2
-    assert sv_max == pytest.approx(5.625)
+    assert sv_max == pytest.approx(5.625) and budget_row == "none"  # the budget field: merge trees only
     children = replace(g, parents=None)
     for i, cam in enumerate(cams):
         for s in svs:

@@ -10,8 +10,8 @@ Gaussians that setting renders from the training views), with ``--ordered`` OUTD
 (Gaussians sorted so every prefix is a level of detail), with ``--lod-meta`` a streamed-SOG LoD
 set of the model's levels (``lod-meta.json`` + chunk folders, built by splat-transform 3.7.0;
 into DIR, or OUTDIR), with ``--web`` a static page drawing the continuous LoD per frame on the
-GPU with the vendored PlayCanvas engine (index.html, clod.mjs, the engine, model.ply, clod.bin,
-clod.json; into DIR, or OUTDIR; serve it with ``python -m http.server``) and always
+GPU with the vendored PlayCanvas engine (index.html, clod.mjs, clod_tree.mjs, the engine, model.ply,
+clod.bin, clod.json; into DIR, or OUTDIR; serve it with ``python -m http.server``) and always
 OUTDIR/export.json (sizes,
 counts, PSNRs, pruning and SH results). ``--prune`` drops Gaussians no training view renders at
 any s_v >= 1; ``--sh-max-drop-db D`` lowers the SH degree while the training-view PSNR at
@@ -56,7 +56,8 @@ def build_parser():
     p.add_argument("--web", nargs="?", const="", default=None, metavar="DIR",
                    help="write a static web page drawing the continuous LoD per frame on the GPU (PlayCanvas engine "
                         "vendored from npm by `npm ci`; a slider for s_v, a static-cut toggle, drawn count and "
-                        "frame time); into DIR, default OUTDIR; open it with `python -m http.server` in DIR")
+                        "frame time; a merge tree's page: one cut per frame and a splat budget instead of the "
+                        "toggle); into DIR, default OUTDIR; open it with `python -m http.server` in DIR")
     p.add_argument("--prune", action="store_true",
                    help="drop Gaussians no training view renders at any s_v >= 1")
     p.add_argument("--sh-max-drop-db", type=float, default=None, metavar="D",
@@ -165,9 +166,6 @@ def _main(args, argv) -> int:
         raise InputError(f"{ply}: the model has no Gaussians")
     if model.sigma_d is None:
         raise InputError(f"{ply}: no sigma_d property; not an adapted model (run clod-adapt first)")
-    if web_dir is not None and model.lod is not None and model.lod.tree:
-        raise InputError(f"{ply}: --web does not draw a merge tree yet (docs/lod_rule.md); adapt with "
-                         f"--tier-draw chain for the web page")
     scene = load_scene(scene_root, resolution=args.resolution)
     if not scene.train:
         raise InputError(f"{scene_root}: no training views")

@@ -226,10 +226,12 @@ def _tree_levels(chain, test_cams, test_imgs, rep: dict, step) -> list:
 def _web_inputs(model, scene, test_cams, step) -> dict:
     """What the web page needs besides the model: its cameras (the test views, then the
     training views) and the static cut's ranking (LightGaussian significance on the training
-    views, :func:`clod_adapter.baselines.lightgaussian_significance`)."""
+    views, :func:`clod_adapter.baselines.lightgaussian_significance`; None for a merge tree, whose
+    page has no static cut)."""
     from ..baselines import lightgaussian_significance
+    from ..tree import is_tree
 
-    scores = lightgaussian_significance(model.with_sigma_d(None), scene.train)
+    scores = None if is_tree(model) else lightgaussian_significance(model.with_sigma_d(None), scene.train)
     step()
     test_names = {c.name for c in test_cams}
     return {"cameras": list(test_cams) + [c for c in scene.train if c.name not in test_names], "scores": scores}
@@ -241,8 +243,9 @@ def _write_web(model, web_dir: Path, web: dict, rep: dict) -> list[str]:
     from ..viewer.web import PLAYCANVAS_VERSION, write_web_viewer
 
     names = write_web_viewer(model, web_dir, web["cameras"], web["scores"])
+    static = "lightgaussian significance (training views)" if web["scores"] is not None else None  # a tree: none
     rep["web"] = {"dir": str(web_dir), "files": names, "engine": f"playcanvas {PLAYCANVAS_VERSION}",
-                  "cameras": len(web["cameras"]), "static_cut": "lightgaussian significance (training views)",
+                  "cameras": len(web["cameras"]), "static_cut": static,
                   "open": f"cd {web_dir} && python -m http.server, then http://localhost:8000/"}
     return names
 

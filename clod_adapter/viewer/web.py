@@ -2,8 +2,9 @@
 PlayCanvas engine (npm ``playcanvas``, pinned to :data:`PLAYCANVAS_VERSION` by the root
 ``package.json``, installed by ``npm ci``; copied into the export, never fetched from a CDN).
 The page is ``web_page/`` (``index.html``, ``clod.mjs``: the LoD rule of :mod:`clod_adapter.lod`
-as a PlayCanvas work-buffer modifier); :func:`write_web_viewer` adds the engine, the model and
-its per-splat LoD data.
+as a PlayCanvas work-buffer modifier; ``clod_tree.mjs``: the merge tree's rule of
+``docs/lod_rule.md``, ported from ``examples/reference_lod.py``); :func:`write_web_viewer` adds
+the engine, the model and its per-splat LoD data.
 
 Conventions (PlayCanvas 2.x): a camera looks down its -Z axis with +Y up (OpenGL); ours
 (gsplat ``viewmats``, COLMAP) look down +Z with +Y down (OpenCV). The same world frame is kept
@@ -17,7 +18,7 @@ import math
 from pathlib import Path
 from typing import Optional
 
-__all__ = ["PLAYCANVAS_VERSION", "find_playcanvas", "playcanvas_pose", "web_streams", "write_web_viewer"]
+__all__ = ["PLAYCANVAS_VERSION", "find_playcanvas", "playcanvas_pose", "web_streams", "tree_streams", "write_web_viewer"]
 
 #: the pinned engine (root ``package.json``).
 PLAYCANVAS_VERSION = "2.23.3"
@@ -60,8 +61,10 @@ def playcanvas_pose(camera) -> dict:
 #: the per-splat streams of ``clod.bin``, in order (each [N] float32).
 WEB_STREAMS = ("x", "y", "z", "sigma_d", "opacity_logit", "opacity_gain", "scale_gain", "f_dc_gain_0",
                "f_dc_gain_1", "f_dc_gain_2", "static_rank")
+#: the per-node streams of a merge tree's ``clod.bin`` (:func:`tree_streams`), in order.
+TREE_STREAMS = ("x", "y", "z", "sigma_d", "exit", "parent", "opacity_logit", "scale_0", "scale_1", "scale_2")
 #: the page's files (``web_page/`` in this package) and what ``clod-export --web`` adds beside them.
-PAGE_FILES = ("index.html", "clod.mjs")
+PAGE_FILES = ("index.html", "clod.mjs", "clod_tree.mjs")
 MODEL_NAME, DATA_NAME, CONFIG_NAME = "model.ply", "clod.bin", "clod.json"
 #: a parent tier's files (the same layout as the model's)
 PARENTS_MODEL_NAME, PARENTS_DATA_NAME = "parents.ply", "parents.bin"
@@ -88,6 +91,36 @@ def web_streams(model, static_scores) -> dict:
     return {k: np.ascontiguousarray(cols[k].detach().float().cpu().numpy()) for k in WEB_STREAMS}
 
 
+def tree_streams(model) -> tuple[dict, list[int]]:
+    """The per-node data a merge tree's page reads (:data:`TREE_STREAMS`, [N_0 + N_1 + ...]
+    float32 numpy each, tier 0's rows first, each tier's rows in the file's order): the centres,
+    ``sigma_d``, the exit, the parent's row in that order (-1 in the last tier), the opacity logit
+    and the log-scales; and the tiers' counts.
+
+    Raises:
+        ValueError: a node index past float32's exact integers (2^24 nodes).
+    """
+    import numpy as np
+    import torch
+
+    from .. import tree
+
+    ts = tree.tiers_of(model)
+    counts = [len(t) for t in ts]
+    if sum(counts) > 2 ** 24:
+        raise ValueError(f"write_web_viewer: a tree of {sum(counts):,} nodes; the page indexes at most 2^24")
+    off = np.cumsum([0] + counts)
+    cols = {k: [] for k in TREE_STREAMS}
+    for k, t in enumerate(ts):
+        parent = (t.extra[tree.PARENT_KEY].long() + int(off[k + 1])) if k + 1 < len(ts) else torch.full((len(t),), -1)
+        for name, v in (("x", t.means[:, 0]), ("y", t.means[:, 1]), ("z", t.means[:, 2]), ("sigma_d", t.sigma_d),
+                        ("exit", t.extra[tree.EXIT_KEY]), ("parent", parent), ("opacity_logit", t.opacity_logits),
+                        ("scale_0", t.log_scales[:, 0]), ("scale_1", t.log_scales[:, 1]),
+                        ("scale_2", t.log_scales[:, 2])):
+            cols[name].append(v.detach().float().cpu().numpy())
+    return {k: np.ascontiguousarray(np.concatenate(v)) for k, v in cols.items()}, counts
+
+
 def _tier_names(k: int) -> tuple[str, str]:
     """The .ply and .bin of tier ``k >= 1``: ``parents.ply``/``parents.bin``, then ``parents_k``."""
     return (PARENTS_MODEL_NAME, PARENTS_DATA_NAME) if k == 1 else \
@@ -96,7 +129,7 @@ def _tier_names(k: int) -> tuple[str, str]:
 
 def write_web_viewer(model, out_dir: Path, cameras, static_scores, *, engine: Optional[Path] = None) -> list[str]:
     """A self-contained static page that draws ``model``'s continuous LoD on the GPU with the
-    PlayCanvas engine: the page (``index.html``, ``clod.mjs``), the engine (copied from npm's
+    PlayCanvas engine: the page (:data:`PAGE_FILES`), the engine (copied from npm's
     ``node_modules``), the model's base attributes as a standard ``model.ply``, the per-splat
     LoD data ``clod.bin`` (:func:`web_streams`) and ``clod.json`` (counts, the LoD settings,
     ``cameras`` as PlayCanvas poses). A model with a parent tier (``model.parents``,
@@ -105,14 +138,20 @@ def write_web_viewer(model, out_dir: Path, cameras, static_scores, *, engine: Op
     Gaussians) and a ``"tier"`` entry in ``clod.json`` (``model``, ``data``, ``count`` = M,
     the parents' own ``settings``, and their own ``"tier"`` for a chain of tiers: ``parents_2.ply``,
     ...); the page cross-fades from each tier to the next as
-    :func:`clod_adapter.camera_lod.render_lod` does. Each file is written atomically.
+    :func:`clod_adapter.camera_lod.render_lod` does. A merge tree (:func:`clod_adapter.tree.is_tree`)
+    is written as one set instead: ``model.ply`` holds every tier's nodes (tier 0's first),
+    ``clod.bin`` their :func:`tree_streams` and ``clod.json`` a ``"tree"`` entry (the tiers'
+    ``counts`` and the slider's top ``sv_max``, 1.2 times the last tier's ``max_sv`` at the model's
+    ``s_v``); the page draws the cut of ``docs/lod_rule.md`` at its ``s_v`` or within a count
+    budget, as :func:`clod_adapter.camera_lod.render_lod` does. Each file is written atomically.
 
     Args:
         model: an adapted :class:`clod_adapter.gaussians.Gaussians` (``sigma_d`` required),
             with or without a parent tier.
         out_dir: the folder (created when missing).
         cameras: the poses the page offers (e.g. the scene's test and training cameras).
-        static_scores: [N] the ranking of the page's static cut (higher = kept first).
+        static_scores: [N] the ranking of the page's static cut (higher = kept first); not read
+            for a merge tree (None there).
         engine: the engine file (default :func:`find_playcanvas`).
 
     Returns:
@@ -124,8 +163,11 @@ def write_web_viewer(model, out_dir: Path, cameras, static_scores, *, engine: Op
     """
     import json
     import shutil
+    from dataclasses import replace
     from importlib import resources
 
+    from .. import tree as tree_mod
+    from ..gaussians import concat
     from ..io.atomic import atomic_write
     from ..io.ply import write_ply
     from ..lod import FADE_RAMP_S_V, LodSettings
@@ -138,7 +180,10 @@ def write_web_viewer(model, out_dir: Path, cameras, static_scores, *, engine: Op
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     m = model.detach().to("cpu")
-    tier = m.parents if m.parents is not None and m.lod is not None and m.lod.tier_s_v > 0 else None
+    is_tree = tree_mod.is_tree(m)
+    if is_tree and any(t.sigma_d is None for t in tree_mod.tiers_of(m)):
+        raise ValueError("write_web_viewer: a tier of the tree has no sigma_d")
+    tier = m.parents if not is_tree and m.parents is not None and m.lod is not None and m.lod.tier_s_v > 0 else None
     t = tier
     while t is not None:
         if t.sigma_d is None:
@@ -153,12 +198,22 @@ def write_web_viewer(model, out_dir: Path, cameras, static_scores, *, engine: Op
                 f.write(streams[k].tobytes())
         return {**(g.lod or LodSettings()).to_dict(), "fade_ramp_s_v": FADE_RAMP_S_V}
 
-    settings = write_model(m, static_scores, MODEL_NAME, DATA_NAME)
-    cfg = {"model": MODEL_NAME, "data": DATA_NAME, "count": len(m), "streams": list(WEB_STREAMS),
-           "settings": settings,
-           "engine": {"name": "playcanvas", "version": PLAYCANVAS_VERSION},
-           "cameras": [{"name": getattr(c, "name", f"view{i}"), "width": int(c.width), "height": int(c.height),
-                        **playcanvas_pose(c)} for i, c in enumerate(cameras)]}
+    cams = [{"name": getattr(c, "name", f"view{i}"), "width": int(c.width), "height": int(c.height),
+             **playcanvas_pose(c), "viewmat": [float(v) for v in c.viewmat.reshape(-1)]} for i, c in enumerate(cameras)]
+    if is_tree:  # every tier's nodes as one set: the rows of model.ply and clod.bin
+        ts = tree_mod.tiers_of(m)
+        write_ply(out_dir / MODEL_NAME, concat([replace(t.with_sigma_d(None), extra={}) for t in ts]))
+        streams, counts = tree_streams(m)
+        with atomic_write(out_dir / DATA_NAME, "wb") as f:
+            for k in TREE_STREAMS:
+                f.write(streams[k].tobytes())
+        sv_max = 1.2 * max(m.lod.max_sv, tree_mod.tier_scales(ts)[-1] * ts[-1].lod.max_sv)
+        cfg = {"model": MODEL_NAME, "data": DATA_NAME, "count": sum(counts), "streams": list(TREE_STREAMS),
+               "settings": m.lod.to_dict(), "tree": {"counts": counts, "sv_max": sv_max}}
+    else:
+        cfg = {"model": MODEL_NAME, "data": DATA_NAME, "count": len(m), "streams": list(WEB_STREAMS),
+               "settings": write_model(m, static_scores, MODEL_NAME, DATA_NAME)}
+    cfg.update({"engine": {"name": "playcanvas", "version": PLAYCANVAS_VERSION}, "cameras": cams})
     names = [MODEL_NAME, DATA_NAME]
     spec, k = cfg, 1
     while tier is not None:  # the chain: cfg["tier"], its own "tier", ...

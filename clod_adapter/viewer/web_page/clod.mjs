@@ -8,12 +8,24 @@
 // cross-fades from each tier to the next as render_lod does: each tier is an entity running the same
 // modifier with its own settings at its own s_v, its drawn weights scaled by its share of the image.
 //
+// A merge tree (clod.json's "tree": `clod-adapt --tier-draw tree`, docs/lod_rule.md) is drawn as one
+// set instead: every tier's nodes are rows of one splat entity (one depth sort), and on each change
+// of the level, the budget or the camera the rule of clod_tree.mjs (examples/reference_lod.py,
+// ported) picks on the CPU the nodes drawn, their weight w and how each is drawn; a per-splat
+// RGBA32F stream carries (w, how, the parent's row) to TREE_GLSL, which draws a lead in a hand-over
+// toward its parent's row of the same splat data, shrinks and fades a sibling, fades a node that
+// leaves and gives the others no footprint. A count budget (?budget=K or the panel's field) draws
+// the cut at the level the rule's budgetSv picks for the view.
+//
 // Approximations against render_lod (docs/guide.md "In the browser"): the normaliser max d over the
 // frustum and the drawn share (hence the level of the gains) are computed here on the CPU from the
 // splat centres inside the frustum (every centre up to 200,000 splats, an even stride beyond),
 // where render_lod counts the Gaussians whose projected footprint reaches the image; the parents'
 // from their own centres likewise (so their drawn count runs a few % under render_lod's n_parents).
+// A tree's cut is the rule's exactly (every node, float64, for the view's exact pose); the page hands
+// the engine's sort a lead's drawn centre during a hand-over (resource.centers).
 import * as pc from './playcanvas.min.mjs';
+import * as treeRule from './clod_tree.mjs';
 
 const q = new URLSearchParams(location.search);
 const cfg = await (await fetch('clod.json')).json();
@@ -107,6 +119,88 @@ void modifySplatColor(vec3 center, inout vec4 color) {
 }
 `;
 
+// the merge tree's step 5 on the GPU (clod_tree.mjs picks per node, on the CPU): clodT = (w, how:
+// clod_tree.mjs's HIDDEN, FADE, LEAD or SIBLING, the parent's row, 0). A lead in a hand-over
+// (w < 1) reads its parent's row of the same splat data and is drawn with w times its own and 1 - w
+// times the parent's centre, log-scales, rotation (the parent's negated when their dot product is
+// negative), colour (each one's SH evaluated toward the drawn centre: SH is linear in its
+// coefficients) and opacity; a sibling shrinks (scales times max(w, 1e-4)) and fades (opacity w a);
+// a node that leaves fades; the others have no footprint
+const TREE_GLSL = /* glsl */ `
+uniform vec3 uClodCam;
+const float CLOD_HIDDEN = ${treeRule.HIDDEN}.0, CLOD_FADE = ${treeRule.FADE}.0;
+const float CLOD_LEAD = ${treeRule.LEAD}.0, CLOD_SIBLING = ${treeRule.SIBLING}.0;
+
+vec4 clodNode() { return texelFetch(clodT, splat.uv, 0); }
+bool clodToParent(vec4 t) { return t.y == CLOD_LEAD && t.x < 1.0; }
+
+// the parent's centre, rotation (xyzw, as the modifier gets the splat's own) and scale
+void clodParent(vec4 t, out vec3 c, out vec4 r, out vec3 s) {
+    uint row = splat.index;
+    setSplat(uint(t.z));
+    c = getCenter();
+    r = getRotation().yzwx;
+    s = getScale();
+    setSplat(row);
+}
+
+// the current splat's colour (its SH toward dir) and opacity
+vec4 clodColor(vec3 dir) {
+    vec4 c = getColor();
+#if SH_BANDS > 0
+    vec3 sh[SH_COEFFS];
+    float scale;
+    readSHData(sh, scale);
+    c.rgb += evalSH(sh, dir) * scale;
+#endif
+    return c;
+}
+
+void modifySplatCenter(inout vec3 center) {
+    vec4 t = clodNode();
+    if (clodToParent(t)) {
+        vec3 c, s;
+        vec4 r;
+        clodParent(t, c, r, s);
+        center = mix(c, center, t.x);
+    }
+}
+
+void modifySplatRotationScale(vec3 originalCenter, vec3 modifiedCenter, inout vec4 rotation, inout vec3 scale) {
+    vec4 t = clodNode();
+    if (t.y == CLOD_HIDDEN) {
+        scale = vec3(0.0);
+    } else if (t.y == CLOD_SIBLING) {
+        scale *= max(t.x, 1e-4);
+    } else if (clodToParent(t)) {
+        vec3 c, s;
+        vec4 r;
+        clodParent(t, c, r, s);
+        vec4 q = normalize(rotation), qp = normalize(r);
+        rotation = normalize(mix(dot(q, qp) < 0.0 ? -qp : qp, q, t.x));
+        rotation = rotation.w < 0.0 ? -rotation : rotation;  // the work buffer keeps xyz, w >= 0
+        scale = exp(mix(log(s), log(scale), t.x));
+    }
+}
+
+void modifySplatColor(vec3 center, inout vec4 color) {
+    vec4 t = clodNode();
+    if (t.y == CLOD_HIDDEN) {
+        color.a = 0.0;
+    } else if (t.y == CLOD_FADE || t.y == CLOD_SIBLING) {
+        color.a *= t.x;
+    } else if (clodToParent(t)) {
+        vec3 dir = normalize(center - uClodCam);
+        vec4 own = clodColor(dir);
+        uint row = splat.index;
+        setSplat(uint(t.z));
+        vec4 par = clodColor(dir);
+        setSplat(row);
+        color = mix(par, own, t.x);
+    }
+}
+`;
+
 // --- the engine ----------------------------------------------------------------------------------
 const canvas = document.getElementById('c');
 const fixed = q.has('w') && q.has('h');
@@ -191,21 +285,33 @@ if (fixed) {
     window.addEventListener('resize', () => app.resizeCanvas());
 }
 
-// --- the models: the adapted model and its parent tier (cfg.tier) ------------------------------------
+// --- the models: the adapted model and its parent tier (cfg.tier), or a merge tree (cfg.tree) --------
 // reorder: false keeps the file's order (the engine sorts a .ply along a Morton curve by default),
-// so splat i of the resource is row i of its .bin. Both are unified gsplat entities, so the engine
+// so splat i of the resource is row i of its .bin. All are unified gsplat entities, so the engine
 // sorts their splats together by depth, as render_lod composites a model and its parents.
-async function loadModel(name, spec, st) {
-    const N = spec.count;
-    const raw = new Float32Array(await (await fetch(spec.data)).arrayBuffer());
-    const col = Object.fromEntries(cfg.streams.map((k, i) => [k, raw.subarray(i * N, (i + 1) * N)]));
-    const asset = new pc.Asset(name, 'gsplat', { url: spec.model }, { reorder: false });
+async function loadAsset(name, url) {
+    const asset = new pc.Asset(name, 'gsplat', { url }, { reorder: false });
     app.assets.add(asset);
     await new Promise((resolve, reject) => {
         asset.ready(resolve);
         asset.on('error', reject);
         app.assets.load(asset);
     });
+    return asset;
+}
+function addEntity(name, asset, glsl) {
+    const entity = new pc.Entity(name);
+    entity.addComponent('gsplat', { asset, unified: true });
+    app.root.addChild(entity);
+    entity.gsplat.setWorkBufferModifier({ glsl });
+    entity.gsplat.workBufferUpdate = pc.WORKBUFFER_UPDATE_ALWAYS;
+    return entity;
+}
+async function loadModel(name, spec, st) {
+    const N = spec.count;
+    const raw = new Float32Array(await (await fetch(spec.data)).arrayBuffer());
+    const col = Object.fromEntries(cfg.streams.map((k, i) => [k, raw.subarray(i * N, (i + 1) * N)]));
+    const asset = await loadAsset(name, spec.model);
     const resource = asset.resource;
     resource.format.addExtraStreams([{ name: 'clodA', format: pc.PIXELFORMAT_RGBA32F },
                                      { name: 'clodB', format: pc.PIXELFORMAT_RGBA32F }]);
@@ -220,20 +326,31 @@ async function loadModel(name, spec, st) {
     const zeros = new Float32Array(N);
     fill('clodA', [col.sigma_d, col.opacity_logit, col.opacity_gain || zeros, col.scale_gain || zeros]);
     fill('clodB', [col.f_dc_gain_0 || zeros, col.f_dc_gain_1 || zeros, col.f_dc_gain_2 || zeros, col.static_rank]);
-    const entity = new pc.Entity(name);
-    entity.addComponent('gsplat', { asset, unified: true });
-    app.root.addChild(entity);
-    entity.gsplat.setWorkBufferModifier({ glsl: GLSL });
-    entity.gsplat.workBufferUpdate = pc.WORKBUFFER_UPDATE_ALWAYS;
+    const entity = addEntity(name, asset, GLSL);
     return { N, col, st, r: rule(st), entity, stride: Math.max(1, Math.ceil(N / 200000)), ranks: new Float32Array(N),
              drawn: 0, inFrustum: 0, level: 0, dmax: 0, ramp: st.fade_ramp_s_v };
 }
-const model = await loadModel('model', cfg, st);
+// a merge tree: every tier's nodes in one entity (the rows of model.ply and clod.bin), the rule's
+// choice per node in the stream clodT (its third channel the parent's row, set once here)
+async function loadTree() {
+    const raw = new Float32Array(await (await fetch(cfg.data)).arrayBuffer());
+    const tr = treeRule.readTree(cfg.tree, cfg.streams, raw);
+    const asset = await loadAsset('tree', cfg.model);
+    asset.resource.format.addExtraStreams([{ name: 'clodT', format: pc.PIXELFORMAT_RGBA32F }]);
+    const tex = asset.resource.getTexture('clodT');
+    const data = tex.lock();
+    for (let i = 0; i < tr.N; i++) data[4 * i + 2] = tr.parent[i];
+    tex.unlock();
+    return { tr, tex, resource: asset.resource, entity: addEntity('tree', asset, TREE_GLSL),
+             out: { w: new Float32Array(tr.N), kind: new Uint8Array(tr.N) }, moved: new Uint8Array(tr.N) };
+}
+const tree = cfg.tree ? await loadTree() : null;
+const model = tree ? null : await loadModel('model', cfg, st);
 // the chain of tiers (camera_lod.tier_chain): the model, then cfg.tier, its own .tier, ...
-const tiers = [model];
-for (let spec = cfg.tier, k = 1; spec; spec = spec.tier, k++) tiers.push(await loadModel(`tier${k}`, spec, spec.settings));
+const tiers = tree ? [] : [model];
+for (let spec = tree ? null : cfg.tier, k = 1; spec; spec = spec.tier, k++) tiers.push(await loadModel(`tier${k}`, spec, spec.settings));
 const parents = tiers.length > 1 ? tiers[1] : null;
-const N = model.N;
+const N = tree ? cfg.tree.counts[0] : model.N;
 
 const camera = new pc.Entity('camera');
 camera.addComponent('camera', { clearColor: new pc.Color(0, 0, 0, 1), nearClip: 0.01, farClip: 1e4 });
@@ -283,9 +400,13 @@ app.on('postrender', () => {
 // are drawn; the others then keep their last frame's values); tierU: the parent tiers' share of the
 // image (1 - the model's weight), parentSv: the first parent tier's own s_v, drawnParents: every
 // parent tier's drawn count (0 without a tier or below its switch), parents: the first parent tier's
-// other values as the model's; tiers: [{weight, sv, drawn}] per tier of the chain
+// other values as the model's; tiers: [{weight, sv, drawn}] per tier of the chain. A merge tree:
+// sv the level drawn (the budget's), budget the count budget or null, drawn the drawn nodes with
+// their centre in the frustum (what a budget counts), inFrustum tier 0's centres there, and tree:
+// {drawn, inView} per tier (every drawn node; those in the frustum) and handOver (the leads and
+// siblings drawn with 0 < w < 1)
 const state = { sv: 1, static: false, cam: 0, drawn: 0, inFrustum: 0, level: 0, dmax: 0, ramp: 1.1, frameMs: NaN, updates: 0,
-                tierU: 0, parentSv: 1, drawnParents: 0, parents: null };
+                tierU: 0, parentSv: 1, drawnParents: 0, parents: null, budget: null, tree: null };
 const inv = new pc.Mat4();
 const p = new pc.Vec3();
 
@@ -394,8 +515,7 @@ function updateModel(m, s, mul, isStatic) {
 
 // the frame's levels: each tier at its own s_v with its share of the image (camera_lod.chain_parts;
 // render_lod's cross-fades); the static cut: the model's own Gaussians alone
-function update() {
-    inv.copy(camera.getWorldTransform()).invert();
+function updateChain() {
     const s = state.sv;
     const ws = chainWeights(s, tiers.map((t) => t.st));
     tiers.forEach((t, k) => updateModel(t, ws[k][1], state.static ? (k ? 0 : 1) : ws[k][0], state.static && !k));
@@ -407,8 +527,53 @@ function update() {
         const { drawn, inFrustum, level, dmax, ramp } = parents;
         state.parents = { drawn, inFrustum, level, dmax, ramp };
     }
+}
+
+// the merge tree's cut for the view (its exact pose, the projection's K) at s_v or within the
+// budget (clod_tree.mjs), each node's weight and kind uploaded to clodT
+function updateTree() {
+    const { tr, tex, out, entity, resource, moved } = tree;
+    const cam = { viewmat: cfg.cameras[state.cam].viewmat, K: intrinsics(), width: canvas.width, height: canvas.height };
+    const tt = treeRule.terms(tr, cam);
+    const r = treeRule.draw(tr, cam, state.sv, state.budget, out, tt);
+    const data = tex.lock();
+    for (let i = 0; i < tr.N; i++) {
+        data[4 * i] = out.w[i];
+        data[4 * i + 1] = out.kind[i];
+    }
+    tex.unlock();
+    // the centres the engine sorts by: a lead in a hand-over where TREE_GLSL draws it
+    const cs = resource.centers;
+    let changed = false;
+    for (let i = 0; i < tr.N; i++) {
+        const m = out.kind[i] === treeRule.LEAD && out.w[i] < 1;
+        if (!m && !moved[i]) continue;
+        const w = m ? out.w[i] : 1, p = tr.parent[i];
+        cs[3 * i] = w * tr.x[i] + (1 - w) * tr.x[p];
+        cs[3 * i + 1] = w * tr.y[i] + (1 - w) * tr.y[p];
+        cs[3 * i + 2] = w * tr.z[i] + (1 - w) * tr.z[p];
+        moved[i] = m ? 1 : 0;
+        changed = true;
+    }
+    if (changed) resource.centersVersion++;
+    const cp = camera.getPosition();
+    entity.gsplat.setParameter('uClodCam', [cp.x, cp.y, cp.z]);
+    let inFrustum = 0;
+    for (let i = 0; i < tr.n[0]; i++) inFrustum += tt.frustum[i];
+    Object.assign(state, { sv: r.s_v, drawn: r.inView.reduce((a, b) => a + b, 0), inFrustum,
+                           tree: { drawn: r.drawn, inView: r.inView, handOver: r.handOver } });
+    if (state.budget !== null) slider.value = sliderOf(state.sv);
+    document.getElementById('ttiers').textContent = r.drawn.map((x) => x.toLocaleString()).join(' / ');
+    document.getElementById('thand').textContent = r.handOver.toLocaleString();
+}
+
+function update() {
+    inv.copy(camera.getWorldTransform()).invert();
+    if (tree) updateTree();
+    else updateChain();
+    const s = state.sv;
     state.updates++;
-    document.getElementById('svv').textContent = s.toFixed(2);
+    document.getElementById('svv').textContent = s.toFixed(2) + (state.budget !== null ? ' (the budget\'s)' : '');
     document.getElementById('share').textContent = `${(100 * Math.pow(s, -1.5)).toFixed(1)} %`;
     document.getElementById('drawn').textContent = state.drawn.toLocaleString();
     document.getElementById('infrustum').textContent = state.inFrustum.toLocaleString();
@@ -424,12 +589,33 @@ function update() {
 // --- the page: slider, toggle, cameras, frame time -------------------------------------------------
 const slider = document.getElementById('sv');
 // log scale from 1 to 1.2 max_sv, or with tiers on until the last reaches 1.2 times its own max_sv
-// (camera_lod.tier_reach)
+// (camera_lod.tier_reach); a merge tree's to clod.json's tree.sv_max, as far
 const reach = tiers.slice(0, -1).reduce((a, t) => a * t.st.tier_fade * t.st.tier_s_v / t.st.tier_start, 1);
-const svMax = Math.max(st.max_sv * 1.2, parents ? 1.2 * tiers[tiers.length - 1].st.max_sv * reach : 0);
+const svMax = tree ? cfg.tree.sv_max : Math.max(st.max_sv * 1.2, parents ? 1.2 * tiers[tiers.length - 1].st.max_sv * reach : 0);
 const svOfSlider = (v) => Math.exp(Math.log(svMax) * v / 1000);
+const sliderOf = (s) => Math.round(1000 * Math.log(s) / Math.log(svMax));
 if (parents) document.getElementById('tier').hidden = false;
-slider.addEventListener('input', () => { state.sv = svOfSlider(+slider.value); update(); });
+// a merge tree: the budget field instead of the static cut (a count of drawn nodes in view; empty: off)
+const budgetField = document.getElementById('budget');
+const budgetOf = (k) => (tree && k !== null && k !== '' && Number.isFinite(+k) ? Math.max(0, Math.floor(+k)) : null);
+if (tree) {
+    document.getElementById('budgetrow').hidden = false;
+    document.getElementById('staticrow').hidden = true;
+    document.getElementById('treeinfo').hidden = false;
+    document.getElementById('tnodes').textContent = tree.tr.N.toLocaleString();
+}
+function setBudget(k) {
+    state.budget = budgetOf(k);
+    budgetField.value = state.budget ?? '';
+    update();
+}
+budgetField.addEventListener('change', () => setBudget(budgetField.value));
+slider.addEventListener('input', () => {
+    state.budget = null;
+    budgetField.value = '';
+    state.sv = svOfSlider(+slider.value);
+    update();
+});
 document.getElementById('static').addEventListener('change', (e) => { state.static = e.target.checked; update(); });
 document.getElementById('prev').addEventListener('click', () => setCamera(state.cam - 1));
 document.getElementById('next').addEventListener('click', () => setCamera(state.cam + 1));
@@ -445,12 +631,26 @@ app.on('frameend', () => {
     document.getElementById('ms').textContent = state.frameMs.toFixed(1);
 });
 app.start();
+// ?s_v=X, ?budget=K (a merge tree), ?cam=i
+if (q.has('s_v')) {
+    state.sv = Math.max(1, +q.get('s_v') || 1);
+    slider.value = sliderOf(state.sv);
+}
+state.budget = budgetOf(q.get('budget'));
+budgetField.value = state.budget ?? '';
 setCamera(+(q.get('cam') || 0));
 
 // the page's API (tests, scripts): set the level or the toggle, read what is drawn
 window.clod = {
     state,
-    setSv(s) { state.sv = Math.max(1, +s); slider.value = Math.round(1000 * Math.log(state.sv) / Math.log(svMax)); update(); },
+    setSv(s) {
+        state.sv = Math.max(1, +s);
+        state.budget = null;
+        budgetField.value = '';
+        slider.value = sliderOf(state.sv);
+        update();
+    },
+    setBudget,  // a merge tree: draw within k drawn nodes in view (null: the slider's level again)
     setStatic(on) { state.static = !!on; document.getElementById('static').checked = state.static; update(); },
     setCamera,
     svMax,  // the slider's top

@@ -148,9 +148,10 @@ def assign_parents(children: Gaussians, parents: Gaussians, *, candidates: int =
 
 
 def _frustum(t: Gaussians, camera) -> Tensor:
-    """[N] bool: the centres in front of ``camera`` (z > 0.01) projecting inside its image."""
+    """[N] bool: the centres in front of ``camera`` (z > 0.01) projecting inside its image (one pass
+    of the C++ kernel of :func:`clod_adapter.lod.frame_terms` on the CPU)."""
     m = t.means.detach()
-    return lod.in_frustum(m, camera.viewmat.to(m), camera.K.to(m), int(camera.width), int(camera.height))
+    return lod.frame_terms(m, camera.viewmat.to(m), camera.K.to(m), int(camera.width), int(camera.height))[0]
 
 
 def _camera(tiers: Sequence[Gaussians], camera) -> tuple[Tensor, float, Tensor]:
@@ -456,6 +457,11 @@ def budget_s_v(tt: TreeTerms, k: float, weights: Optional[Sequence[Tensor]] = No
     Non-increasing in ``k``."""
     if weights is None:
         weights = [f.double() for f in tt.frustum]
+    if _native(tt.tiers):
+        from .render.native import load
+
+        return load().tree_budget([e.contiguous() for e in tt.entry], [u.contiguous() for u in tt.upper],
+                                  [w.double().contiguous() for w in weights], float(k))
     sel = [(w > 0) & (u > n.clamp_min(1.0)) for w, n, u in zip(weights, tt.entry, tt.upper)]
     lo = torch.cat([n[m] for n, m in zip(tt.entry, sel)]).clamp_min(1.0)
     hi = torch.cat([u[m] for u, m in zip(tt.upper, sel)])

@@ -1,7 +1,6 @@
-"""The merge-tree drawing rule of a ``clod-adapt`` model, from ``docs/lod_rule.md`` alone: numpy
-and plyfile, no ``clod_adapter`` import. Copy it into a renderer; ``tests/test_tree.py``
-holds the library to it, ``tests/test_web_tree.py`` the web page's JavaScript port
-(``clod_adapter/viewer/web_page/clod_tree.mjs``, the same functions step by step). Files without ``tree=True``: ``examples/reference_lod_chain.py``.
+"""The merge-tree drawing rule of a ``clod-adapt`` model, from ``docs/lod_rule.md`` alone: numpy and
+plyfile, no ``clod_adapter`` import. ``tests/test_tree.py`` holds the library to it, ``test_web_tree.py``
+the web page's port (``viewer/web_page/clod_tree.mjs``). Without ``tree=True``: ``reference_lod_chain.py``.
 
     python examples/reference_lod.py MODEL.ply [--s-v 2] [--budget K]   # what one camera draws
 

@@ -307,18 +307,29 @@ def test_the_cpp_cut_and_attributes_equal_their_torch_twins(model):
     ts = tree.tiers_of(g)
     handing = 0
     for cam in cams:
+        with torch.no_grad():
+            with native.use_impl("cpp"):
+                ta = tree.terms(ts, cam)
+            with native.use_impl("torch"):
+                tb = tree.terms(ts, cam)
+        for x, y in zip(ta.entry + ta.upper + ta.fade, tb.entry + tb.upper + tb.fade):
+            assert torch.equal(x, y)
+        for k in (0, 1, 7, 40, 300, 5000):  # a count budget, and a cost budget in pixels
+            costs = [torch.rand(len(t), dtype=torch.float64, generator=torch.Generator().manual_seed(3)) * 50
+                     for t in ts]
+            with native.use_impl("cpp"):
+                sa, ca = tree.budget_s_v(ta, k), tree.budget_s_v(ta, 20 * k, costs)
+            with native.use_impl("torch"):
+                sb, cb = tree.budget_s_v(ta, k), tree.budget_s_v(ta, 20 * k, costs)
+            assert sa == sb and ca == cb
         for s in S_VS:
             with torch.no_grad():
                 with native.use_impl("cpp"):
                     a = tree.cut(ts, cam, float(s))
                     attrs_a = tree.cut_attributes(ts, a)
-                    ta = tree.terms(ts, cam)
                 with native.use_impl("torch"):
                     b = tree.cut(ts, cam, float(s))
                     attrs_b = tree.cut_attributes(ts, a)  # the same cut: w rounded alike
-                    tb = tree.terms(ts, cam)
-            for x, y in zip(ta.entry + ta.upper + ta.fade, tb.entry + tb.upper + tb.fade):
-                assert torch.equal(x, y)
             assert all(torch.equal(x, y) for x, y in zip(a.ids, b.ids))
             assert all(torch.equal(x, y) for x, y in zip(a.fade, b.fade))
             assert all(torch.allclose(x, y, atol=1e-6) for x, y in zip(a.t, b.t))

@@ -13,6 +13,9 @@
 #include <algorithm>
 #include <cmath>
 #include <cstdint>
+#include <cstring>
+#include <limits>
+#include <type_traits>
 #include <vector>
 
 namespace {
@@ -197,7 +200,88 @@ std::vector<torch::Tensor> attributes_impl(const std::vector<torch::Tensor>& att
     return {o_means, o_quats, o_scales, o_opac, o_col};
 }
 
+// the smallest position from which the summed weight of the intervals [lo, hi) holding it stays
+// <= k (budget_s_v); events sorted by position with an LSD radix sort on the float's bits (positive
+// floats order as their bits), three passes of 11 bits
+template <typename S>
+double budget_impl(const std::vector<torch::Tensor>& E, const std::vector<torch::Tensor>& U,
+                   const std::vector<torch::Tensor>& weights, double k) {
+    size_t total = 1;
+    for (const auto& e : E) total += 2 * static_cast<size_t>(e.numel());
+    std::vector<S> pos;
+    std::vector<double> delta;
+    pos.reserve(total);
+    delta.reserve(total);
+    for (size_t t = 0; t < E.size(); ++t) {
+        const S* e = E[t].data_ptr<S>();
+        const S* u = U[t].data_ptr<S>();
+        const double* w = weights[t].data_ptr<double>();
+        const int64_t n = E[t].numel();
+        for (int64_t i = 0; i < n; ++i) {
+            const S lo = std::max(e[i], S(1));
+            if (w[i] > 0 && u[i] > lo) {
+                pos.push_back(lo), delta.push_back(w[i]);
+                pos.push_back(u[i]), delta.push_back(-w[i]);
+            }
+        }
+    }
+    pos.push_back(S(1)), delta.push_back(0.0);
+    const size_t m = pos.size();
+    std::vector<uint32_t> order(m), tmp(m);
+    for (size_t i = 0; i < m; ++i) order[i] = static_cast<uint32_t>(i);
+    if constexpr (std::is_same_v<S, float>) {
+        std::vector<uint32_t> key(m), key_tmp(m);
+        std::memcpy(key.data(), pos.data(), m * sizeof(uint32_t));
+        for (int shift = 0; shift < 32; shift += 11) {  // keys and rows moved together: sequential reads
+            std::vector<size_t> count(2049, 0);
+            for (size_t i = 0; i < m; ++i) ++count[((key[i] >> shift) & 2047u) + 1];
+            for (size_t b = 1; b < count.size(); ++b) count[b] += count[b - 1];
+            for (size_t i = 0; i < m; ++i) {
+                const size_t to = count[(key[i] >> shift) & 2047u]++;
+                key_tmp[to] = key[i];
+                tmp[to] = order[i];
+            }
+            key.swap(key_tmp);
+            order.swap(tmp);
+        }
+    } else {
+        std::stable_sort(order.begin(), order.end(), [&](uint32_t a, uint32_t b) { return pos[a] < pos[b]; });
+    }
+    std::vector<S> uniq;
+    std::vector<double> count;  // summed weight drawn on [uniq[j], uniq[j + 1])
+    double run = 0.0;
+    for (size_t j = 0; j < m; ++j) {
+        const size_t i = order[j];
+        if (uniq.empty() || pos[i] != uniq.back()) {
+            if (!uniq.empty()) count.push_back(run);
+            uniq.push_back(pos[i]);
+        }
+        run += delta[i];
+    }
+    count.push_back(run);
+    const double limit = k + 1e-9 * std::abs(k);  // summed in another order than k was
+    int64_t first = -1;
+    double suffix = -std::numeric_limits<double>::infinity();
+    for (int64_t j = static_cast<int64_t>(uniq.size()) - 1; j >= 0; --j) {
+        suffix = std::max(suffix, count[j]);
+        if (suffix <= limit) first = j;
+        else break;
+    }
+    return static_cast<double>(first >= 0 ? uniq[first] : uniq.back());
+}
+
 }  // namespace
+
+// clod_adapter.tree.budget_s_v: per tier E, U [N_k] and weights [N_k] float64
+double tree_budget_cpu(std::vector<torch::Tensor> E, std::vector<torch::Tensor> U,
+                       std::vector<torch::Tensor> weights, double k) {
+    TORCH_CHECK(!E.empty() && U.size() == E.size() && weights.size() == E.size(), "tree_budget: one entry per tier");
+    double out = 0.0;
+    AT_DISPATCH_FLOATING_TYPES(E[0].scalar_type(), "tree_budget", [&] {
+        out = budget_impl<scalar_t>(E, U, weights, k);
+    });
+    return out;
+}
 
 // clod_adapter.tree.cut at one s_v from every node's terms (d_norm: per tier [N_k] its d', as
 // tree._distances rounds it): per tier [ids (int64, ascending), w, fade]

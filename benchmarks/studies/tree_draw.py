@@ -14,6 +14,8 @@ budgets from 100 % to 1 % of the Gaussians in view, and timed in ``--rounds`` in
 * the worst cost step: the largest frame time over the frame time of any more detailed frame of the
   same sweep (goal: <= 1.05), and the largest frame time over the input's (goal: <= 1);
 * the best PSNR within 75 / 50 / 25 / 10 % of the input's frame, for both;
+* the best PSNR of splat-transform's two decimators (``qvt.DECIMATE_SHARES`` of the input, static
+  models; when ``npx splat-transform`` is installed) within the same shares of the frame;
 * ``clod-eval``'s popping ratio (:func:`clod_adapter.popping.popping_ratio`) on every scored view,
   the median and the smallest.
 
@@ -78,6 +80,14 @@ def run_input(name: str, args) -> list[str]:
         for b in SHARES:
             settings.append(qvt.Setting(label, f"budget={b:g}", [qvt.lod_render(g, c, budget=b, budget_in_view=True)
                                                                  for c in cams], 0))
+    from clod_adapter.baselines import merge_decimate
+    from clod_adapter.splat_transform import find_splat_transform
+
+    tool = find_splat_transform()
+    for method, mode in (qvt.DECIMATORS.items() if tool is not None else ()):  # the decimators, static
+        for share in qvt.DECIMATE_SHARES:
+            m = merge_decimate(base, max(1, int(round(share * len(base)))), mode=mode, tool=tool)
+            settings.append(qvt.Setting("static", f"{method}={share:g}", [qvt.lod_render(m, c) for c in cams], 0))
     qvt.score(settings, gts)
     qvt.retime(settings, args.rounds)
     t_in = settings[0].ms
@@ -95,6 +105,12 @@ def run_input(name: str, args) -> list[str]:
     scores = lightgaussian_significance(base, list(fit))
     pops = {label: [float(popping_ratio(g, base, c, scores)["ratio"]) for c in cams]
             for label, g in (("chain", chain), ("tree", model))}
+    static = [(st.ms, st.psnr) for st in settings if st.method == "static"]
+    if static:
+        best = [max([p for m, p in static if m <= w * t_in], default=float("nan")) for w in WITHIN]
+        lines.append(f"- splat-transform's decimators ({', '.join(f'{x:g}' for x in qvt.DECIMATE_SHARES)} of the "
+                     f"input), best static dB within {' / '.join(f'{int(w * 100)}' for w in WITHIN)} % of the "
+                     f"input's frame: {' / '.join(f'{b:.2f}' for b in best)}")
     for label in ("chain", "tree", "unfit"):
         sweep = [by[(label, f"s_v={s:.4g}")].ms for s in s_vs]
         bud = [by[(label, f"budget={b:g}")].ms for b in SHARES]

@@ -11,21 +11,20 @@ interpolates the children toward their parent so that the image is continuous at
 merged node replaces its children once ``d' s_v`` reaches its ``sigma_d``, the level at which Eq.
 2's exponent ``(d' s_v)^2 / (2 sigma_d^2)`` reaches 1/2, so far things hand over first.
 
-Per camera (:func:`terms`, :func:`cut`), with ``F_k`` the width of tier ``k``'s hand-overs and
-exits (:data:`HAND_OVER` for tier 0, :data:`HAND_OVER_COARSE` above):
+Per camera (:func:`terms`, :func:`cut`), with ``F`` = :data:`HAND_OVER`:
 
 1. ``d'_i = |mu_i - c| / D`` for every node, ``D`` the largest distance of the last tier's centres
    in the frustum (CLoD-GS's normaliser, over the coarsest stand-in for the scene: a walk from the
    roots, :func:`walk`, needs no other tier's).
-2. A merged node's *entry*, from the last tier down: ``E_i = max(min(sigma_d_i / d'_i, E_p / F_k),
-   F_0 ... F_(k-1))`` (``p`` its parent, ``k`` its tier; no ``E_p`` in the last tier), so a node is
-   drawn over at least a factor ``F_k`` of ``s_v`` before its parent takes over, and ``s_v = 1`` is tier 0
+2. A merged node's *entry*, from the last tier down: ``E_i = max(min(sigma_d_i / d'_i, E_p / F),
+   F^k)`` (``p`` its parent, ``k`` its tier; no ``E_p`` in the last tier), so a node is drawn over
+   at least a factor ``F`` of ``s_v`` before its parent takes over, and ``s_v = 1`` is tier 0
    whole. Tier 0 enters at 0.
 3. A node is drawn at ``s_v`` iff ``E_i <= s_v < U_i``, its end ``U_i`` its parent's entry ``E_p``
    for the parent's *lead* child (:func:`leads`, the most massive), the smaller of ``E_p`` and its
-   own exit ``X_i = max(x_i / d'_i, F_k max(E_i, 1))`` for the others (``x_i``, ``extra["exit"]``),
+   own exit ``X_i = max(x_i / d'_i, F max(E_i, 1))`` for the others (``x_i``, ``extra["exit"]``),
    ``X_i`` in the last tier. No path crosses the cut twice.
-4. A drawn node at ``t = clamp(ln(U_i / s_v) / ln F_k, 0, 1)`` whose end is its own exit *leaves*:
+4. A drawn node at ``t = clamp(ln(U_i / s_v) / ln F, 0, 1)`` whose end is its own exit *leaves*:
    its opacity is times ``t``. A lead that hands over is drawn with its attributes interpolated
    toward its parent's (``t = 1`` its own, ``t = 0`` the parent's; position, log-scales, rotation,
    SH linearly) and opacity ``t a_i + (1 - t) a_p``; its siblings shrink (log-scales plus ``ln
@@ -60,12 +59,9 @@ from .gaussians import Gaussians
 __all__ = ["HAND_OVER", "PARENT_KEY", "is_tree", "tiers_of", "tier_scales", "assign_parents", "build", "cut", "walk",
            "budget_s_v", "TreeCut", "TreeTerms", "terms", "cut_attributes", "leads"]
 
-#: ``F_0``: a hand-over or an exit of tier 0 lasts from ``U / F_0`` to ``U`` in ``s_v``; a node is
-#: drawn over at least this factor of ``s_v``
+#: ``F``: a hand-over or an exit lasts from ``U / F`` to ``U`` in ``s_v``; a node is drawn over at
+#: least this factor of ``s_v``
 HAND_OVER = 1.25
-#: ``F_c``: the hand-over's width from tier 1 on (merged nodes, larger on screen: a wider hand-over
-#: spreads their change over more of ``s_v``), and the width of their exits
-HAND_OVER_COARSE = 2.0
 #: the ``Gaussians.extra`` key (and .ply property) of a node's parent index in the next tier
 PARENT_KEY = "parent"
 #: the ``Gaussians.extra`` key (and .ply property) of every node's exit constant
@@ -308,17 +304,6 @@ class TreeTerms:
         return self._frustum
 
 
-def _w(k: int, hand_over: float) -> float:
-    """``F_k``, the width of tier ``k``'s hand-overs and exits: ``hand_over`` for tier 0,
-    :data:`HAND_OVER_COARSE` (at least ``hand_over``) above."""
-    return float(hand_over) if k == 0 else max(HAND_OVER_COARSE, float(hand_over))
-
-
-def _floor(k: int, hand_over: float) -> float:
-    """The lowest entry of tier ``k``: ``F_0 F_1 ... F_(k-1)`` (1 for tier 0)."""
-    return math.prod(_w(j, hand_over) for j in range(k))
-
-
 @torch.no_grad()
 def terms(tiers: Sequence[Gaussians], camera, *, hand_over: float = HAND_OVER) -> TreeTerms:
     """Steps 1-3 of the module docstring for ``camera`` (``viewmat`` [4, 4] world-to-camera, ``K``
@@ -327,9 +312,7 @@ def terms(tiers: Sequence[Gaussians], camera, *, hand_over: float = HAND_OVER) -
     level needs. Raises KeyError where a tier lacks ``extra["parent"]`` or ``extra["exit"]``."""
     F = float(hand_over)
     if _native(tiers):
-        T = len(tiers) - 1
-        out = _native_call("tree_terms", tiers, camera, [_w(k, F) for k in range(T + 1)],
-                           [_floor(k, F) for k in range(T + 1)])
+        out = _native_call("tree_terms", tiers, camera, F)
         return TreeTerms(out[0::3], out[1::3], out[2::3], list(tiers), camera)
     ds = _distances(tiers, camera)
     T = len(tiers) - 1
@@ -338,8 +321,8 @@ def terms(tiers: Sequence[Gaussians], camera, *, hand_over: float = HAND_OVER) -
     for k in range(T, 0, -1):
         e = tiers[k].sigma_d.detach() / ds[k].clamp_min(1e-12)
         if k < T:
-            e = torch.minimum(e, entry[k + 1][tiers[k].extra[PARENT_KEY].long()] / _w(k, F))
-        entry[k] = e.clamp_min(_floor(k, F))
+            e = torch.minimum(e, entry[k + 1][tiers[k].extra[PARENT_KEY].long()] / F)
+        entry[k] = e.clamp_min(F ** k)
     ends = [_end(tiers, k, None, entry[k], entry[k + 1][tiers[k].extra[PARENT_KEY].long()] if k < T else None,
                  ds[k], F) for k in range(T + 1)]
     return TreeTerms(entry, [e for e, _ in ends], [f for _, f in ends], list(tiers), camera)
@@ -351,7 +334,7 @@ def _end(tiers: Sequence[Gaussians], k: int, rows: Optional[Tensor], E: Tensor, 
     parents' entries ``U`` (None in the last tier) and ``d'``: ``(end, fades)``."""
     x = tiers[k].extra[EXIT_KEY].detach()
     x = x if rows is None else x[rows]
-    X = torch.maximum(x.to(d) / d.clamp_min(1e-12), _w(k, F) * E.clamp_min(1.0))
+    X = torch.maximum(x.to(d) / d.clamp_min(1e-12), F * E.clamp_min(1.0))
     if U is None:
         return X, torch.ones_like(X, dtype=torch.bool)
     lead = leads(tiers[k])
@@ -370,11 +353,12 @@ def cut(tiers: Sequence[Gaussians], camera, s_v: float, *, hand_over: float = HA
         if _native(tiers):
             return _native_cut(tiers, camera, s, float(hand_over))
         return walk(tiers, camera, s, hand_over=hand_over)
+    lnF = math.log(hand_over)
     ids, ts, fades = [], [], []
-    for k, (n, u, f) in enumerate(zip(tt.entry, tt.upper, tt.fade)):
+    for n, u, f in zip(tt.entry, tt.upper, tt.fade):
         i = torch.nonzero((n <= s) & (s < u)).flatten()
         ids.append(i)
-        ts.append(torch.clamp(torch.log(u[i] / s) / math.log(_w(k, hand_over)), 0.0, 1.0))
+        ts.append(torch.clamp(torch.log(u[i] / s) / lnF, 0.0, 1.0))
         fades.append(f[i])
     return TreeCut(ids, ts, s, int(tt.frustum[0].sum()), fades)
 
@@ -410,9 +394,7 @@ def _native_call(name: str, tiers: Sequence[Gaussians], camera, *args) -> list:
 
 def _native_cut(tiers: Sequence[Gaussians], camera, s: float, F: float) -> TreeCut:
     """:func:`cut` by the C++ twin of :func:`terms` + :func:`cut` (every node, one pass per tier)."""
-    T = len(tiers) - 1
-    out = _native_call("tree_cut", tiers, camera, s, [_w(k, F) for k in range(T + 1)],
-                       [_floor(k, F) for k in range(T + 1)])
+    out = _native_call("tree_cut", tiers, camera, s, F)
     return TreeCut(out[0::3], out[1::3], s, lambda: int(_frustum(tiers[0], camera).sum()), out[2::3])
 
 
@@ -431,14 +413,14 @@ def walk(tiers: Sequence[Gaussians], camera, s_v: float, *, hand_over: float = H
     """:func:`cut` computed from the roots down: only the children of nodes not yet entered at
     ``s_v`` (>= 1; below, 1) are visited, so a coarse frame touches few nodes. Returns the same
     :class:`TreeCut` as :func:`cut` from :func:`terms` (``tests/test_tree.py``)."""
-    F, s = float(hand_over), max(float(s_v), 1.0)
+    F, s, lnF = float(hand_over), max(float(s_v), 1.0), math.log(hand_over)
     T = len(tiers) - 1
     c, D, d_last = _camera(tiers, camera)
     last = tiers[T]
-    E = (last.sigma_d.detach() / d_last.clamp_min(1e-12)).clamp_min(_floor(T, F))
+    E = (last.sigma_d.detach() / d_last.clamp_min(1e-12)).clamp_min(F ** T)
     U, f = _end(tiers, T, None, E, None, d_last, F)
     i = torch.nonzero((E <= s) & (s < U)).flatten()
-    ids, ts, fades = [i], [torch.clamp(torch.log(U[i] / s) / math.log(_w(T, F)), 0.0, 1.0)], [f[i]]
+    ids, ts, fades = [i], [torch.clamp(torch.log(U[i] / s) / lnF, 0.0, 1.0)], [f[i]]
     open_rows = torch.nonzero(s < E).flatten()  # roots not yet entered: their subtrees are drawn
     E_open = E[open_rows]
     for k in range(T - 1, -1, -1):
@@ -452,12 +434,12 @@ def walk(tiers: Sequence[Gaussians], camera, s_v: float, *, hand_over: float = H
         if k == 0:
             E_c = torch.zeros_like(U_c)
         else:
-            E_c = torch.minimum(tiers[k].sigma_d.detach()[rows] / d.clamp_min(1e-12), U_c / _w(k, F)).clamp_min(_floor(k, F))
+            E_c = torch.minimum(tiers[k].sigma_d.detach()[rows] / d.clamp_min(1e-12), U_c / F).clamp_min(F ** k)
         end, f = _end(tiers, k, rows, E_c, U_c, d, F)
         drawn = (E_c <= s) & (s < end)  # s < U_c holds for every child of an open node
         sel, srt = torch.sort(rows[drawn])
         ids.append(sel)
-        ts.append(torch.clamp(torch.log(end[drawn][srt] / s) / math.log(_w(k, F)), 0.0, 1.0))
+        ts.append(torch.clamp(torch.log(end[drawn][srt] / s) / lnF, 0.0, 1.0))
         fades.append(f[drawn][srt])
         opened = s < E_c  # not entered yet: its subtree is drawn
         open_rows, E_open = rows[opened], E_c[opened]

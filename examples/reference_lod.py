@@ -15,8 +15,7 @@ import math
 import numpy as np
 from plyfile import PlyData
 
-F = (1.25, 2.0)  # the width in s_v of tier 0's hand-overs and exits, and of the merged tiers'
-Fk = lambda k: F[min(k, 1)]  # noqa: E731
+F = 1.25  # the hand-over's width in s_v
 
 
 def read_tree(path) -> list[dict]:
@@ -65,11 +64,11 @@ def terms(tiers, viewmat, K, width, height):
     for k in range(T, 0, -1):
         e = tiers[k]["sigma_d"] / d[k]
         if k < T:
-            e = np.minimum(e, E[k + 1][tiers[k]["parent"]] / Fk(k))
-        E[k] = np.maximum(e, math.prod(Fk(j) for j in range(k)))
+            e = np.minimum(e, E[k + 1][tiers[k]["parent"]] / F)
+        E[k] = np.maximum(e, F ** k)
     U, fade = [], []
     for k, t in enumerate(tiers):
-        X = np.maximum(t["exit"] / d[k], Fk(k) * np.maximum(E[k], 1.0))
+        X = np.maximum(t["exit"] / d[k], F * np.maximum(E[k], 1.0))
         if k == T:
             U.append(X)
             fade.append(np.ones(len(X), bool))
@@ -110,7 +109,7 @@ def draw(tiers, viewmat, K, width, height, s_v=None, budget=None) -> dict:
     out = {"ids": [], "s_v": s, "means": [], "quats": [], "log_scales": [], "opacities": [], "sh": []}
     for k, (t, n, u, f) in enumerate(zip(tiers, ns, ups, fades)):
         i = np.flatnonzero((n <= s) & (s < u))
-        w, f = np.clip(np.log(u[i] / s) / math.log(Fk(k)), 0, 1), f[i]
+        w, f = np.clip(np.log(u[i] / s) / math.log(F), 0, 1), f[i]
         mu, q, ls, sh, a = t["means"][i], t["quats"][i], t["log_scales"][i], t["sh"][i], t["opacity"][i]
         if k + 1 < len(tiers):
             w = np.where(f, 1.0, w)  # a row fading out keeps its attributes
@@ -125,7 +124,7 @@ def draw(tiers, viewmat, K, width, height, s_v=None, budget=None) -> dict:
             q = np.where(lc, wc * q + (1 - wc) * qp, q)
             sh = np.where(lc[:, :, None], wc[:, None] * sh + (1 - wc[:, None]) * par["sh"][p], sh)
             a = w * a + (1 - w) * np.where(lead, par["opacity"][p], 0.0)
-            w = np.clip(np.log(u[i] / s) / math.log(Fk(k)), 0, 1)
+            w = np.clip(np.log(u[i] / s) / math.log(F), 0, 1)
         a = np.where(f, a * w, a)
         for key, val in (("ids", i), ("means", mu), ("quats", q), ("log_scales", ls), ("opacities", a), ("sh", sh)):
             out[key].append(val)
@@ -135,7 +134,8 @@ def draw(tiers, viewmat, K, width, height, s_v=None, budget=None) -> dict:
 def main(argv=None) -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("ply")
-    ap.add_argument("--s-v", type=float, default=2.0), ap.add_argument("--budget", type=int, default=None)
+    ap.add_argument("--s-v", type=float, default=2.0)
+    ap.add_argument("--budget", type=int, default=None)
     a = ap.parse_args(argv)
     tiers = read_tree(a.ply)
     viewmat = np.eye(4)  # a camera 2.5 median radii behind the model's median, looking down +z

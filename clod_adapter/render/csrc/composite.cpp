@@ -643,12 +643,10 @@ torch::Tensor lod_critical_cpu(torch::Tensor opacities, torch::Tensor d_norm, to
 // tree_cut.cpp (the merge tree's cut and drawn attributes)
 std::vector<torch::Tensor> tree_cut_cpu(std::vector<torch::Tensor> d_norm, std::vector<torch::Tensor> sigma_d,
                                         std::vector<torch::Tensor> exits, std::vector<torch::Tensor> parents,
-                                        std::vector<torch::Tensor> leads, double s, std::vector<double> F,
-                                        std::vector<double> floors);
+                                        std::vector<torch::Tensor> leads, double s, double F);
 std::vector<torch::Tensor> tree_terms_cpu(std::vector<torch::Tensor> d_norm, std::vector<torch::Tensor> sigma_d,
                                           std::vector<torch::Tensor> exits, std::vector<torch::Tensor> parents,
-                                          std::vector<torch::Tensor> leads, std::vector<double> F,
-                                          std::vector<double> floors);
+                                          std::vector<torch::Tensor> leads, double F);
 double tree_budget_cpu(std::vector<torch::Tensor> E, std::vector<torch::Tensor> U,
                        std::vector<torch::Tensor> weights, double k);
 std::vector<torch::Tensor> tree_attributes_cpu(std::vector<torch::Tensor> attrs, std::vector<torch::Tensor> ids,

@@ -53,8 +53,8 @@ void cut_tier(int64_t n, const S* d_norm, const S* sigma_d, const S* exits, cons
 template <typename S>
 void terms_impl(const std::vector<torch::Tensor>& d_norm, const std::vector<torch::Tensor>& sigma_d,
                 const std::vector<torch::Tensor>& exits, const std::vector<torch::Tensor>& parents,
-                const std::vector<torch::Tensor>& leads, const std::vector<double>& F,
-                const std::vector<double>& floors, std::vector<torch::Tensor>& E, std::vector<torch::Tensor>& U, std::vector<torch::Tensor>& fade) {
+                const std::vector<torch::Tensor>& leads, double F,
+                std::vector<torch::Tensor>& E, std::vector<torch::Tensor>& U, std::vector<torch::Tensor>& fade) {
     const int64_t T = static_cast<int64_t>(d_norm.size()) - 1;
     E.assign(T + 1, torch::Tensor());
     U.assign(T + 1, torch::Tensor());
@@ -67,8 +67,8 @@ void terms_impl(const std::vector<torch::Tensor>& d_norm, const std::vector<torc
         fade[k] = torch::empty({n}, opts.dtype(torch::kBool));
         cut_tier<S>(n, d_norm[k].data_ptr<S>(), sigma_d[k].data_ptr<S>(), exits[k].data_ptr<S>(),
                     k < T ? parents[k].data_ptr<int64_t>() : nullptr, k < T ? leads[k].data_ptr<bool>() : nullptr,
-                    k < T ? E[k + 1].data_ptr<S>() : nullptr, static_cast<S>(F[k]),
-                    static_cast<S>(floors[k]), k == 0, k == T, E[k].data_ptr<S>(),
+                    k < T ? E[k + 1].data_ptr<S>() : nullptr, static_cast<S>(F),
+                    static_cast<S>(std::pow(F, static_cast<double>(k))), k == 0, k == T, E[k].data_ptr<S>(),
                     U[k].data_ptr<S>(), fade[k].data_ptr<bool>());
     }
 }
@@ -76,19 +76,17 @@ void terms_impl(const std::vector<torch::Tensor>& d_norm, const std::vector<torc
 template <typename S>
 std::vector<torch::Tensor> cut_impl(const std::vector<torch::Tensor>& d_norm, const std::vector<torch::Tensor>& sigma_d,
                                     const std::vector<torch::Tensor>& exits, const std::vector<torch::Tensor>& parents,
-                                    const std::vector<torch::Tensor>& leads, double s, const std::vector<double>& F,
-                                    const std::vector<double>& floors) {
+                                    const std::vector<torch::Tensor>& leads, double s, double F) {
     const int64_t T = static_cast<int64_t>(d_norm.size()) - 1;
-    const S sv = static_cast<S>(s);
+    const S lnF = std::log(static_cast<S>(F)), sv = static_cast<S>(s);
     std::vector<torch::Tensor> E, U, fade;
-    terms_impl<S>(d_norm, sigma_d, exits, parents, leads, F, floors, E, U, fade);
+    terms_impl<S>(d_norm, sigma_d, exits, parents, leads, F, E, U, fade);
     std::vector<torch::Tensor> out;
     for (int64_t k = 0; k <= T; ++k) {  // drawn iff E <= s < U; ids ascending (sequential: they are few or cheap)
         const int64_t n = d_norm[k].size(0);
         const S* Ek = E[k].data_ptr<S>();
         const S* Uk = U[k].data_ptr<S>();
         const bool* fk = fade[k].data_ptr<bool>();
-        const S lnF = static_cast<S>(std::log(F[k]));  // as the twin: the log in double
         std::vector<int64_t> ids;
         for (int64_t i = 0; i < n; ++i)
             if (Ek[i] <= sv && sv < Uk[i]) ids.push_back(i);
@@ -289,14 +287,12 @@ double tree_budget_cpu(std::vector<torch::Tensor> E, std::vector<torch::Tensor> 
 // tree._distances rounds it): per tier [ids (int64, ascending), w, fade]
 std::vector<torch::Tensor> tree_cut_cpu(std::vector<torch::Tensor> d_norm, std::vector<torch::Tensor> sigma_d,
                                         std::vector<torch::Tensor> exits, std::vector<torch::Tensor> parents,
-                                        std::vector<torch::Tensor> leads, double s, std::vector<double> F,
-                                        std::vector<double> floors) {
+                                        std::vector<torch::Tensor> leads, double s, double F) {
     TORCH_CHECK(!d_norm.empty() && sigma_d.size() == d_norm.size() && exits.size() == d_norm.size() &&
-                parents.size() + 1 == d_norm.size() && leads.size() + 1 == d_norm.size() &&
-                F.size() == d_norm.size() && floors.size() == d_norm.size(), "tree_cut: one entry per tier");
+                parents.size() + 1 == d_norm.size() && leads.size() + 1 == d_norm.size(), "tree_cut: one entry per tier");
     std::vector<torch::Tensor> out;
     AT_DISPATCH_FLOATING_TYPES(d_norm[0].scalar_type(), "tree_cut", [&] {
-        out = cut_impl<scalar_t>(d_norm, sigma_d, exits, parents, leads, s, F, floors);
+        out = cut_impl<scalar_t>(d_norm, sigma_d, exits, parents, leads, s, F);
     });
     return out;
 }
@@ -304,14 +300,12 @@ std::vector<torch::Tensor> tree_cut_cpu(std::vector<torch::Tensor> d_norm, std::
 // clod_adapter.tree.terms: per tier [E, U, fade] of every node
 std::vector<torch::Tensor> tree_terms_cpu(std::vector<torch::Tensor> d_norm, std::vector<torch::Tensor> sigma_d,
                                           std::vector<torch::Tensor> exits, std::vector<torch::Tensor> parents,
-                                          std::vector<torch::Tensor> leads, std::vector<double> F,
-                                          std::vector<double> floors) {
+                                          std::vector<torch::Tensor> leads, double F) {
     TORCH_CHECK(!d_norm.empty() && sigma_d.size() == d_norm.size() && exits.size() == d_norm.size() &&
-                parents.size() + 1 == d_norm.size() && leads.size() + 1 == d_norm.size() &&
-                F.size() == d_norm.size() && floors.size() == d_norm.size(), "tree_terms: one entry per tier");
+                parents.size() + 1 == d_norm.size() && leads.size() + 1 == d_norm.size(), "tree_terms: one entry per tier");
     std::vector<torch::Tensor> E, U, fade, out;
     AT_DISPATCH_FLOATING_TYPES(d_norm[0].scalar_type(), "tree_terms", [&] {
-        terms_impl<scalar_t>(d_norm, sigma_d, exits, parents, leads, F, floors, E, U, fade);
+        terms_impl<scalar_t>(d_norm, sigma_d, exits, parents, leads, F, E, U, fade);
     });
     for (size_t k = 0; k < E.size(); ++k) {
         out.push_back(E[k]);

@@ -9,10 +9,7 @@
 // its weight w and how (KIND); the attributes themselves are interpolated on the GPU by clod.mjs's
 // work-buffer modifier (TREE_GLSL), which reads the parent's row of the same splat data.
 
-// the width in s_v of tier 0's hand-overs and exits, and of the merged tiers'
-export const F = [1.25, 2.0];
-export const Fk = (k) => F[Math.min(k, 1)];
-const floorOf = (k) => { let p = 1; for (let j = 0; j < k; j++) p *= Fk(j); return p; };
+export const F = 1.25;  // the hand-over's width in s_v
 // how a node is drawn (draw's out.kind): not at all, as it is with its opacity times w (it
 // leaves, or the last tier fades), the lead growing into its parent, a sibling shrinking and fading
 export const HIDDEN = 0, FADE = 1, LEAD = 2, SIBLING = 3;
@@ -67,14 +64,14 @@ export function terms(tr, cam) {
     for (let k = T; k > 0; k--) {
         for (let i = off[k]; i < off[k] + n[k]; i++) {
             let e = tr.sigmaD[i] / d[i];
-            if (k < T) e = Math.min(e, E[parent[i]] / Fk(k));
-            E[i] = Math.max(e, floorOf(k));
+            if (k < T) e = Math.min(e, E[parent[i]] / F);
+            E[i] = Math.max(e, F ** k);
         }
     }
     const U = new Float64Array(N), fade = new Uint8Array(N);
     for (let k = 0; k <= T; k++) {
         for (let i = off[k]; i < off[k] + n[k]; i++) {
-            const X = Math.max(tr.exit[i] / d[i], Fk(k) * Math.max(E[i], 1.0));
+            const X = Math.max(tr.exit[i] / d[i], F * Math.max(E[i], 1.0));
             if (k === T) {
                 U[i] = X;
                 fade[i] = 1;
@@ -145,11 +142,10 @@ export function draw(tr, cam, sv, budget = null, out = { w: new Float32Array(tr.
                      tt = terms(tr, cam)) {
     const { E: ns, U: ups, fade: fades, frustum: fr } = tt, { w: ws, kind: kinds } = out, lead = tr.lead;
     const s = budget !== null && budget !== undefined ? budgetSv(tr, tt, budget) : Math.max(+sv, 1.0);
-    const drawn = [], inView = [];
+    const drawn = [], inView = [], lnF = Math.log(F);
     let handOver = 0;
     for (let k = 0; k <= tr.T; k++) {
         let nd = 0, nv = 0;
-        const lnF = Math.log(Fk(k));
         for (let i = tr.off[k], end = tr.off[k] + tr.n[k]; i < end; i++) {
             if (!(ns[i] <= s && s < ups[i])) {
                 ws[i] = 0;

@@ -1608,17 +1608,22 @@ def _render_tree(gaussians: Gaussians, camera, s_v: Optional[float] = None, *, b
     rasterised as one set. Returns its ``LodRender`` (``selection``: tier 0's drawn rows;
     ``n_rendered``: the cut's nodes in view, as the rasteriser culls them; ``n_parents``: the merged
     ones among them; ``level`` 0). ``s_v = 1`` is tier 0 whole, drawn as a plain model (no per-node
-    terms)."""
+    terms), and so is a budget that holds it (its level solved, then no cut gathered)."""
     from .render.dispatch import rasterization
 
-    if s_v is not None and float(s_v) <= 1.0:
+    def whole(select_ms: float = 0.0):
         out = render_lod(gaussians.with_sigma_d(None), camera, background=background, sh_degree=sh_degree,
                          backend=backend)
-        out.s_v = 1.0
+        out.s_v, out.select_ms = 1.0, (out.select_ms or 0.0) + select_ms
         return out
+
+    if s_v is not None and float(s_v) <= 1.0:
+        return whole()
     t0 = time.perf_counter()
     c = tree_cut(gaussians, camera, s_v, budget=budget, budget_cost=budget_cost, budget_ms=budget_ms,
                  time_model=time_model, budget_in_view=budget_in_view)
+    if c.s_v <= 1.0:  # every s_v >= 1 cut fits the budget: tier 0 whole, as s_v = 1 draws it
+        return whole((time.perf_counter() - t0) * 1e3)
     means, quats, scales, opacities, colors = tree.cut_attributes(tree.tiers_of(gaussians), c)
     t1 = time.perf_counter()
     bg = None

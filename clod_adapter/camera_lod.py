@@ -1562,10 +1562,6 @@ def tree_select(gaussians: Gaussians, camera, s_v: Optional[float] = None, *, bu
     Raises:
         ValueError: not exactly one of ``s_v`` and the budgets; ``s_v < 1``.
     """
-    if sum(x is not None for x in (s_v, budget, budget_cost, budget_ms)) != 1:
-        raise ValueError("tree_select: give exactly one of s_v, budget, budget_cost, budget_ms")
-    if s_v is not None and not float(s_v) >= 1.0:
-        raise ValueError(f"s_v must be >= 1, got {s_v}")
     c = tree_cut(gaussians, camera, s_v, budget=budget, budget_cost=budget_cost, budget_ms=budget_ms,
                  time_model=time_model, budget_in_view=budget_in_view, hand_over=hand_over)
     return c, tree.cut_attributes(tree.tiers_of(gaussians), c)

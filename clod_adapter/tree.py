@@ -505,25 +505,24 @@ def leads(tier: Gaussians) -> Tensor:
 
 
 def _handed_over(t: Gaussians, par: Gaussians, rows: Tensor, w: Tensor, mu: Tensor, ls: Tensor, q: Tensor,
-                 col: Optional[Tensor], a: Tensor) -> tuple:
+                 col: Tensor, a: Tensor) -> tuple:
     """Tier rows ``rows`` [h] in a hand-over at positions ``w`` [h] (module docstring, step 4), from
     their own attributes gathered for this frame (``mu`` [h, 3], ``ls`` [h, 3] log-scales, ``q``
-    [h, 4], ``col`` [h, K, 3] SH or None, ``a`` [h] opacities; written in place where autograd
-    does not record): ``(mu, ls, q, col, a)`` as drawn."""
+    [h, 4], ``col`` [h, K, 3] SH, ``a`` [h] opacities; written in place where autograd does not
+    record): ``(mu, ls, q, col, a)`` as drawn."""
     wh = w.to(mu.dtype)
     li = torch.nonzero(leads(t)[rows]).flatten()  # the leads grow into their parents
     p, wl = t.extra[PARENT_KEY].long()[rows[li]], wh[li]
     grown = [wl[:, None] * mu[li] + (1.0 - wl[:, None]) * par.means[p],
              wl[:, None] * ls[li] + (1.0 - wl[:, None]) * par.log_scales[p],
-             _quat_lerp(q[li], par.quats[p], wl), None,
+             _quat_lerp(q[li], par.quats[p], wl),
+             wl[:, None, None] * col[li] + (1.0 - wl[:, None, None]) * torch.cat([par.sh0[p], par.shN[p]], 1),
              wl * a[li] + (1.0 - wl) * torch.sigmoid(par.opacity_logits[p])]
-    if col is not None:
-        grown[3] = wl[:, None, None] * col[li] + (1.0 - wl[:, None, None]) * torch.cat([par.sh0[p], par.shN[p]], 1)
     ls = ls + torch.log(wh.clamp_min(SHRINK_FLOOR))[:, None]  # the siblings shrink and fade where they are
     a = wh * a
     in_place = not torch.is_grad_enabled()
-    return tuple(x if v is None else x.index_put_((li,), v) if in_place or not v.requires_grad
-                 else x.index_put((li,), v) for x, v in zip((mu, ls, q, col, a), grown))
+    return tuple(x.index_put_((li,), v) if in_place or not v.requires_grad else x.index_put((li,), v)
+                 for x, v in zip((mu, ls, q, col, a), grown))
 
 
 def cut_attributes(tiers: Sequence[Gaussians], c: TreeCut) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
@@ -562,4 +561,3 @@ def cut_attributes(tiers: Sequence[Gaussians], c: TreeCut) -> tuple[Tensor, Tens
         for lst, v in zip(out, (mu, q, torch.exp(ls), a, col)):
             lst.append(v)
     return tuple(v[0] if len(v) == 1 or all(x.numel() == 0 for x in v[1:]) else torch.cat(v) for v in out)
-

@@ -21,8 +21,9 @@ asks for more than the input scores: each is capped at input - 0.1 dB):
 * frame time along the ``s_v`` sweep and along count budgets from 100 % to 1 % of the Gaussians
   in view: no frame over 1.05x a more detailed frame of the same sweep, none over the input's; at
   each equal-count point at most 1.1x the decimator's frame (``frame_time.png``);
-* popping (``clod-eval``'s ratio from the first scored view: one static switch against the
-  largest step of the sweep through every tier's hand-over): >= 10;
+* popping (``clod-eval``'s ratio: one static switch against the largest step of the sweep through
+  every tier's hand-over, and of a count-budget sweep from 100 % to 1 % of the Gaussians in view),
+  smallest and median over the scored views: >= 10;
 * the whole default ``clod-adapt`` (every merged tier included; ``metrics.json`` ``job_seconds``
   of the cached adaptation, which ran with ``metrics.json`` ``threads`` threads): <= 15 minutes
   (a cached run without it is reported as a miss: adapt it again);
@@ -86,8 +87,8 @@ def run_input(name: str, args, config: dict, tag: str, lpips_fn, tool: str) -> d
                        repeats=args.repeats, log=log, ceiling_views=ceiling_views(scene, args),
                        ceiling_steps=args.ceiling_steps)
     cs = qvt.cells(comp)
-    rows = goals(name, comp, cs) + cost_goals(name, comp) + [popping_goal(name, load_model(ply), g0, fit, cams[0]),
-                                                             adapt_goal(name, common.metrics_of(ply))]
+    rows = (goals(name, comp, cs) + cost_goals(name, comp) + popping_goals(name, load_model(ply), g0, fit, cams)
+            + [adapt_goal(name, common.metrics_of(ply))])
     inp = comp.input
     log(f"input {inp.psnr:.2f} dB in {inp.ms:.1f} ms ({len(gts)} {args.split} views, "
         f"{time.perf_counter() - t0:.0f} s):")
@@ -160,16 +161,23 @@ def cost_goals(name: str, comp: qvt.Comparison) -> list[dict]:
              "rule": None, "at_most": True} for g, v, t in rows]
 
 
-def popping_goal(name: str, adapted, base, fit, camera) -> dict:
-    """Goal 5's row: ``clod-eval``'s popping ratio from the first scored view (one static switch of
-    the input cut by LightGaussian significance against the largest step of the sweep through
-    every tier, :func:`clod_adapter.popping.popping_ratio`) >= :data:`clod_adapter.popping.POPPING_GOAL`."""
+def popping_goals(name: str, adapted, base, fit, cameras) -> list[dict]:
+    """Goal 6's rows: ``clod-eval``'s popping ratio (one static switch of the input cut by
+    LightGaussian significance against the largest step of the sweep) along ``s_v`` through every
+    tier (:func:`clod_adapter.popping.popping_ratio`) and along count budgets from 100 % to 1 % of
+    the Gaussians in view (:func:`clod_adapter.popping.popping_budget_ratio`), on every scored
+    view: the smallest and the median of each >= :data:`clod_adapter.popping.POPPING_GOAL`."""
     from clod_adapter.baselines import lightgaussian_significance
-    from clod_adapter.popping import POPPING_GOAL, popping_ratio
+    from clod_adapter.popping import POPPING_GOAL, popping_budget_ratio, popping_ratio
 
-    r = float(popping_ratio(adapted, base, camera, lightgaussian_significance(base, list(fit)))["ratio"])
-    return {"input": name, "goal": f"popping ratio, view {camera.name}", "value": r, "target": POPPING_GOAL,
-            "met": bool(r >= POPPING_GOAL), "rule": None}
+    scores = lightgaussian_significance(base, list(fit))
+    rows = []
+    for sweep, fn in (("s_v", popping_ratio), ("count budgets", popping_budget_ratio)):
+        r = [float(fn(adapted, base, c, scores)["ratio"]) for c in cameras]
+        for what, v in (("smallest", min(r)), ("median", statistics.median(r))):
+            rows.append({"input": name, "goal": f"popping ratio along {sweep}, {what} of {len(r)} views", "value": v,
+                         "target": POPPING_GOAL, "met": bool(v >= POPPING_GOAL), "rule": None})
+    return rows
 
 
 def adapt_goal(name: str, metrics: dict) -> dict:
@@ -204,7 +212,9 @@ def summary_md(rec: dict) -> str:
             for s in sorted(comp.settings, key=lambda s: (s.method != "input", s.method, -s.ms))]
     return "\n".join([f"### {rec['label']}", "",
                       f"{rec['gaussians']:,} Gaussians, {rec['views']} test views; input {inp.psnr:.2f} dB in "
-                      f"{inp.ms:.1f} ms per frame.", "", rec["verdict"], "", qvt.cells_markdown(rec["cells"]), "",
+                      f"{inp.ms:.1f} ms per frame. Storage: the input {rec['input_bytes'] / 1e6:.1f} MB, the adapted "
+                      f"model {rec['adapted_bytes'] / 1e6:.1f} MB (every tier of its tree in one file, "
+                      f"{rec['adapted_bytes'] / rec['input_bytes']:.2f}x).", "", rec["verdict"], "", qvt.cells_markdown(rec["cells"]), "",
                       "Goals:", ""] + gl + ["", "Every point:", ""] + head + body) + "\n"
 
 

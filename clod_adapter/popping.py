@@ -4,7 +4,8 @@ between two static levels (``clod-eval``'s measure, issue 36's goal 5: >= 10x sm
 :func:`popping_sweep` gives the sweep (through every tier's hand-over on a model with merged
 tiers), :func:`popping_curve` the per-step image change of the model along it and the one jump of
 a discrete switch, :func:`popping_ratio` ``clod-eval``'s ratio from one camera (the input cut by
-LightGaussian significance as the discrete levels). :func:`tail_width` is ``clod-adapt``'s rule
+LightGaussian significance as the discrete levels), :func:`popping_budget_ratio` the same along
+count budgets. :func:`tail_width` is ``clod-adapt``'s rule
 for the coarsest tier's window: widened, on the training views, until the sweep's largest step is
 :data:`POPPING_GOAL` times smaller than the switch's.
 """
@@ -36,6 +37,9 @@ TAIL_WIDTHS = (1.0, 2.0, 3.0)
 #: views (never trained on) the median ratio came out 0.79-1.02x of the training views' (skull,
 #: MaskGaussian fern, fern; docs/studies.md "The coarsest tier's window")
 TAIL_MARGIN = 1.2
+#: the smallest count budget of :func:`popping_budget_ratio`'s sweep, a share of the Gaussians in
+#: view (issue 62's budget sweep: 100 % to 1 %)
+BUDGET_LOWEST = 0.01
 #: frames of the sweep (``clod-eval``'s ``popping_steps``)
 SWEEP_STEPS = 61
 
@@ -70,7 +74,8 @@ def image_change(a: Tensor, b: Tensor) -> float:
 def popping_curve(gaussians: Gaussians, camera, s_vs: Sequence[float], *,
                   discrete_model: Optional[Gaussians] = None, discrete_scores: Optional[Tensor] = None,
                   switch_s_v: Optional[float] = None, tau: Optional[float] = None, background=None,
-                  backend: str = "auto", on_render: Optional[Callable[[], None]] = None) -> dict:
+                  backend: str = "auto", on_render: Optional[Callable[[], None]] = None,
+                  budgets: bool = False) -> dict:
     """Popping of continuous LoD vs a discrete LoD switch, from one fixed camera.
 
     Continuous: render ``gaussians`` at each ``s_v`` in ``s_vs`` (increasing, small steps) and
@@ -79,7 +84,9 @@ def popping_curve(gaussians: Gaussians, camera, s_vs: Sequence[float], *,
     ``discrete_model`` (default: ``gaussians`` without ``sigma_d``) by a global ranking
     ``discrete_scores`` [N] (default: opacity), at the Gaussian counts the continuous sweep
     renders at its first and last ``s_v``, switched once at ``switch_s_v`` (default: the middle
-    of the range); its step change is 0 except at the switch.
+    of the range); its step change is 0 except at the switch. With ``budgets``, ``s_vs`` are count
+    budgets instead, shares of the Gaussians in view (``render_lod``'s ``budget_in_view``), in the
+    order swept (e.g. 1 down to 0.01).
 
     Returns:
         dict with ``s_v`` [S], ``gaussians`` [S] (continuous), ``step_s_v`` [S-1] (step
@@ -93,8 +100,12 @@ def popping_curve(gaussians: Gaussians, camera, s_vs: Sequence[float], *,
         raise ValueError("popping_curve needs at least 2 values of s_v")
     frames, counts = [], []
     for s in s_vs:
-        out = render_lod(gaussians, camera, s, tau=tau, background=background, backend=backend,
-                         estimator="paper")
+        if budgets:  # a count-budget sweep: s is a share of the Gaussians in view
+            out = render_lod(gaussians, camera, budget=s, budget_in_view=True, tau=tau, background=background,
+                             backend=backend, estimator="paper")
+        else:
+            out = render_lod(gaussians, camera, s, tau=tau, background=background, backend=backend,
+                             estimator="paper")
         frames.append(out.image.clamp(0, 1))
         counts.append(out.n_rendered)
         if on_render:
@@ -140,6 +151,27 @@ def popping_ratio(model: Gaussians, base: Gaussians, camera, scores: Optional[Te
         background = torch.as_tensor(background, dtype=model.means.dtype)
     return popping_curve(model, camera, svs, discrete_model=base, discrete_scores=scores, background=background,
                          on_render=on_render)
+
+
+def popping_budget_ratio(model: Gaussians, base: Gaussians, camera, scores: Optional[Tensor] = None, *,
+                         steps: int = SWEEP_STEPS, lowest: float = BUDGET_LOWEST, background=None) -> dict:
+    """Popping along a count budget from ``camera``: :func:`popping_curve` of ``model`` at
+    ``steps`` budgets log-spaced from all the Gaussians in view down to ``lowest`` of them
+    (shares, ``render_lod``'s ``budget_in_view``), the discrete levels cut from ``base`` by
+    ``scores`` as :func:`popping_ratio` does. Returns :func:`popping_curve`'s dict (``s_v``: the
+    budgets).
+
+    Raises:
+        ValueError: ``steps`` < 2 or ``lowest`` not in (0, 1)."""
+    if not 0.0 < lowest < 1.0:
+        raise ValueError(f"lowest must be in (0, 1), got {lowest}")
+    if steps < 2:
+        raise ValueError(f"need at least 2 budget steps, got {steps}")
+    shares = [float(x) for x in np.geomspace(1.0, lowest, steps)]
+    if background is not None and not isinstance(background, Tensor):
+        background = torch.as_tensor(background, dtype=model.means.dtype)
+    return popping_curve(model, camera, shares, discrete_model=base, discrete_scores=scores, background=background,
+                         budgets=True)
 
 
 def with_coarsest_width(model: Gaussians, width: float) -> Gaussians:

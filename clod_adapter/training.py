@@ -169,11 +169,13 @@ class AdaptConfig:
             ``"on"``, or ``"auto"`` (default), the rule scoring the higher PSNR on the training
             views (:func:`clod_adapter.tiers.choose_count_mix`; docs/studies.md "A count budget
             between two tiers, mixed by distance").
-        tier_draw: how a model with merged tiers is drawn: ``"chain"`` (default), whole tiers
+        tier_draw: how a model with merged tiers is drawn: ``"tree"`` (default), the tiers linked
+            into a merge tree (each Gaussian names its parent in the next tier), fitted on its cuts
+            and drawn as one cut per frame (:mod:`clod_adapter.tree`; docs/method.md "The merge
+            tree"; docs/studies.md "The merge tree": on the validation views no frame along
+            ``s_v`` or count budgets over 1.05x a more detailed one); ``"chain"``, whole tiers
             cross-faded at each hand-over (two sets drawn there; the coarsest tier's window and
-            ``count_mix`` apply to it only); ``"tree"``, the tiers linked into a merge tree (each
-            Gaussian names its parent in the next tier), fitted on its cuts and drawn as one cut
-            per frame (:mod:`clod_adapter.tree`; docs/method.md "The merge tree").
+            ``count_mix`` apply to it only).
         tree_steps: with ``tier_draw="tree"``, the merged tiers are fitted on the tree's own cuts
             for this many steps, at most ``iterations`` (:func:`clod_adapter.tree_train.finetune`;
             0: not fitted).
@@ -244,7 +246,7 @@ class AdaptConfig:
     popping_goal: Optional[float] = None
     tier_hand_over: Optional[float] = None
     count_mix: str = "auto"
-    tier_draw: str = "chain"
+    tier_draw: str = "tree"
     tree_steps: int = 1000
     faint_share: Optional[float] = None
     keep_share: float = 1.0

@@ -101,3 +101,19 @@ def test_count_mix_config():
     assert AdaptConfig().count_mix == "auto" and AdaptConfig(count_mix="off").count_mix == "off"
     with pytest.raises(ValueError, match="count_mix must be one of off, on, auto"):
         AdaptConfig(count_mix="yes")
+
+
+def test_the_budget_sweep_draws_fewer_gaussians_as_the_budget_falls(chain):
+    """popping_budget_ratio sweeps count budgets from every Gaussian in view down to the lowest
+    share: the drawn counts never rise along it and end far below the start, and its ratio is the
+    switch's jump over the largest step it measured."""
+    from clod_adapter.popping import popping_budget_ratio
+
+    model, cams = chain
+    p = popping_budget_ratio(model, model.with_sigma_d(None), cams[0], steps=9, lowest=0.05)
+    n = p["gaussians"]
+    assert p["s_v"][0] == 1.0 and abs(p["s_v"][-1] - 0.05) < 1e-12
+    assert all(b <= a for a, b in zip(n[:-1], n[1:])) and n[-1] < 0.2 * n[0]
+    assert p["ratio"] == pytest.approx(p["discrete_max"] / p["continuous_max"])
+    with pytest.raises(ValueError, match="lowest"):
+        popping_budget_ratio(model, model, cams[0], lowest=1.5)

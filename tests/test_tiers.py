@@ -314,8 +314,8 @@ def test_tier_downscale_sets_the_later_tiers_resolution():
 
 def test_adapt_job_builds_the_tier_or_says_why_not(tiny_model, tmp_path, monkeypatch):
     """clod-adapt: under PARENT_MIN_GAUSSIANS no tier (and metrics.json says why); over it, the
-    merged input is adapted into OUT/parents and, when it pays, stored as the lod_parent element
-    (with the default ``--count-mix auto``'s choice)."""
+    merged input is adapted into OUT/parents and, when it pays, stored as the lod_parent element,
+    linked into a merge tree (the default ``--tier-draw tree``)."""
     import json
 
     from clod_adapter.cli.adapt import main
@@ -359,9 +359,9 @@ def test_adapt_job_builds_the_tier_or_says_why_not(tiny_model, tmp_path, monkeyp
     g = read_ply(out / "point_cloud.ply")
     assert (g.parents is not None) == tier["used"]
     if tier["used"]:
-        assert g.lod.tier_s_v == tier["tier_s_v"] and len(g.parents) == n_parents and not g.lod.tree
-        # --count-mix auto (the default): chosen on the training views, recorded, and carried by the file
-        assert g.lod.count_mix is tier["count_mix"]["count_mix"] is (tier["count_mix"]["gain_db"] > 0)
+        # --tier-draw tree (the default): the tiers linked into one merge tree, its sizes recorded
+        assert g.lod.tier_s_v == tier["tier_s_v"] and len(g.parents) == n_parents and g.lod.tree
+        assert tier["tree"][:2] == [len(g), n_parents] and "count_mix" not in tier and "tail" not in tier
 
 
 @pytest.mark.slow

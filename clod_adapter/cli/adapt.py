@@ -135,10 +135,10 @@ def _tier_flags(p) -> None:
                    help="with merged tiers, draw a count budget between two tiers from both (the finer tier's nearer "
                         "Gaussians, the coarser's farther ones): 'on', 'off' (cut the finer tier to it) or "
                         "'auto' (default: whichever scores higher on the training views; docs/studies.md)")
-    p.add_argument("--tier-draw", choices=("tree", "chain"), default="chain",
-                   help="with merged tiers: 'chain' (default) cross-fades whole tiers at each hand-over; 'tree' links "
-                        "them into a merge tree, fits it on its cuts and draws one cut of it per frame, one set "
-                        "(docs/method.md)")
+    p.add_argument("--tier-draw", choices=("tree", "chain"), default="tree",
+                   help="with merged tiers: 'tree' (default) links them into a merge tree, fits it on its cuts and "
+                        "draws one cut of it per frame, one set; 'chain' cross-fades whole tiers at each hand-over, "
+                        "two sets drawn there (docs/method.md)")
     p.add_argument("--tree-steps", type=int, default=1000, metavar="N",
                    help="with --tier-draw tree, fit the merged tiers on the tree's own cuts for N steps, at most "
                         "--iterations (default 1000; 0: not fitted)")

@@ -1626,9 +1626,9 @@ def _render_tree(gaussians: Gaussians, camera, s_v: Optional[float] = None, *, b
     if background is not None:
         bg = torch.as_tensor(background, dtype=means.dtype, device=means.device).reshape(1, -1)
     sh = gaussians.sh_degree if sh_degree is None else sh_degree
-    image, alpha, meta = rasterization(means, quats, scales, opacities, colors, camera.viewmat[None],
-                                       camera.K[None], int(camera.width), int(camera.height), eps2d=EPS2D,
-                                       sh_degree=sh, backgrounds=bg, backend=backend)
+    vm, K = (m.to(means.device, means.dtype)[None] for m in (camera.viewmat, camera.K))  # CUDA models too
+    image, alpha, meta = rasterization(means, quats, scales, opacities, colors, vm, K, int(camera.width),
+                                       int(camera.height), eps2d=EPS2D, sh_degree=sh, backgrounds=bg, backend=backend)
     t2 = time.perf_counter()
     n0 = int(c.ids[0].numel())
     n_vis = int(torch.as_tensor(meta.get("n_visible", c.n_drawn)).sum())  # the cut's nodes in view

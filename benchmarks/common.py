@@ -219,8 +219,10 @@ def parse_config(items) -> tuple[dict, str]:
 LEGACY_CONFIG = {"s_v_sampling": "uniform", "level_max": 1.0, "trained_order_share": 1.0, "parent_share": 0.0,
                  "keep_share": 1.0, "recovery_steps": 1000, "tier_finetune_steps": 0, "tier_iteration_share": 1.0,
                  "faint_share": 0.0, "tier_merge": "decimate",
-                 "tier_time_cap": 0.0, "popping_goal": 0.0, "count_mix": "off",
-                 "tier_hand_over": 0.0, "tier_downscale": 1, "tier_draw": "chain", "tree_steps": 0}
+                 "tier_time_cap": 0.0, "tier_hand_over": 0.0, "tier_downscale": 1, "tier_draw": "chain", "tree_steps": 0}
+#: AdaptConfig keys removed since runs were cached: a cached run matches without them where they
+#: changed nothing it drew (the chain's coarsest window and count rule; a tree uses neither)
+RETIRED_CONFIG = ("popping_goal", "count_mix")
 
 
 def adapt_cached(name: str, cfg: AdaptConfig, tag: str, *, split: str = "test", log=print) -> Path:
@@ -241,6 +243,9 @@ def adapt_cached(name: str, cfg: AdaptConfig, tag: str, *, split: str = "test", 
         try:
             have = json.loads(mj.read_text())
             have_cfg = {**LEGACY_CONFIG, **(have.get("config") or {})}
+            if have_cfg["tier_draw"] == "tree" or not have_cfg["parent_share"]:
+                for k in RETIRED_CONFIG:
+                    have_cfg.pop(k, None)
             if (have_cfg == json.loads(json.dumps(asdict(cfg))) and have.get("input_ply") == str(ply)
                     and bool(have.get("holdout_val", False)) == holdout):
                 log(f"[{name}/{tag}] reusing {out} ({have.get('train_seconds')} s of training)")

@@ -919,8 +919,7 @@ def render_lod(
     :func:`tier_chain`) cross-fades to its parents beyond ``tier_s_v`` at a given ``s_v``
     (:func:`chain_parts`: both drawn in one image, the Gaussians' opacities times ``1 - u``, the
     parents' times ``u``, the parents at their own ``s_v``, and so on down the chain); a budget
-    whose solution passes a hand-over draws the next tier alone within it (:func:`budget_walk`;
-    with ``LodSettings.count_mix``, a count budget between two tiers both, mixed by distance); a given
+    whose solution passes a hand-over draws the next tier alone within it (:func:`budget_walk`); a given
     ``level`` draws the Gaussians alone.
 
     Args:
@@ -1078,21 +1077,16 @@ def chain_weights(s_v: float, settings: Sequence[lod.LodSettings]) -> list[tuple
 
 class TierBudget(NamedTuple):
     """A budget drawn past a hand-over of a chain of tiers (:func:`budget_walk`): ``sel`` of tier
-    ``depth`` (>= 1) in its ``view``, ``s_v`` the model's ``s_v`` it stands for, and for a count
-    budget between two tiers mixed by distance (``LodSettings.count_mix``, :func:`clod_adapter.tier_mix.mix`)
-    ``finer``, the finer tier's ``(view, selection, depth)`` drawn with it (the nearer part), else
-    None."""
+    ``depth`` (>= 1) in its ``view``, ``s_v`` the model's ``s_v`` it stands for."""
 
     view: "LodView"
     sel: LodSelection
     s_v: float
     depth: int
-    finer: Optional[tuple] = None
 
     def parts(self) -> list:
-        """``[(depth, view, selection)]``, finest first: what the frame draws."""
-        own = [(self.depth, self.view, self.sel)]
-        return own if self.finer is None else [(self.finer[2], self.finer[0], self.finer[1])] + own
+        """``[(depth, view, selection)]``: what the frame draws (one tier)."""
+        return [(self.depth, self.view, self.sel)]
 
     def views(self) -> list:
         """``[(view, selection)]``, finest first: :func:`rasterize_views`' parts."""
@@ -1110,7 +1104,7 @@ def cost_budget_parents(gaussians: Gaussians, camera, view: LodView, sel: Option
                         count: Optional[int] = None):
     """A budget on a model with tiers (:func:`budget_walk` with the model's :func:`tier_chain`):
     a :class:`TierBudget` (the tier drawn, its selection, the model's ``s_v`` it stands for, its
-    depth >= 1, and a count budget's finer tier mixed with it), else None (the model's own
+    depth >= 1), else None (the model's own
     selection ``sel`` of ``view`` stands; ``sel`` may be None as :func:`budget_walk` allows,
     ``count`` the count budget's count in ``view``)."""
     models = tier_chain(gaussians)
@@ -1135,8 +1129,7 @@ def _budget_parents_first(gaussians: Gaussians, camera, view: LodView, *, level,
         if budget_in_view:
             return False, None
         # tier 1 cannot take a count over its size: the budget is then solved in this view
-        count = view.budget_drawn(budget, min_s_v, solving=not _mixes([m.lod for m in models])
-                                  and _taken_at(budget_count(budget, view.n)) > len(models[1]))
+        count = view.budget_drawn(budget, min_s_v, solving=_taken_at(budget_count(budget, view.n)) > len(models[1]))
         if count is None:
             return False, None
     return True, cost_budget_parents(gaussians, camera, view, None, budget=budget, budget_cost=budget_cost,
@@ -1160,9 +1153,7 @@ def budget_walk(settings: Sequence[lod.LodSettings], view_of: Callable[[int], Lo
     (:meth:`LodView.full_detail_estimate`).
     It is then solved in that tier (from its
     ``tier_start`` level on), and so on down the chain; so a smaller budget never draws a finer
-    tier. With ``settings[0].count_mix``, a count budget that ends in a tier whose start
-    holds more than ``k`` in view, with a next tier that refused it, is not cut from that tier:
-    the two tiers' starts are mixed by distance, ``k`` together (:func:`clod_adapter.tier_mix.mix`).
+    tier.
     Returns a :class:`TierBudget` (``depth >= 1``), or None (``sel`` stands).
 
     Only the tier the walk ends in is solved: a cost or time budget is tested against each tier's
@@ -1221,11 +1212,6 @@ def budget_walk(settings: Sequence[lod.LodSettings], view_of: Callable[[int], Lo
             break
         d, vp, sel_p = d + 1, vn, sel_n
         scales.append(st.tier_fade * st.tier_s_v / st.tier_start)  # the tier's s -> the model's (lod.tier_weight)
-    if k0 is not None and _mixes(settings) and k == k0 and d + 1 < len(settings) and settings[d] is not None \
-            and settings[d].tier_s_v > 0:  # tier d holds k, the next tier refused it: the two mixed
-        mixed = _count_mix(settings, view_of, view if vp is None else vp, d, depth, k0, scales)
-        if mixed is not None:
-            return mixed
     if vp is None:
         return None
     start = settings[d - 1].tier_start
@@ -1240,25 +1226,6 @@ def budget_walk(settings: Sequence[lod.LodSettings], view_of: Callable[[int], Lo
     for f in reversed(scales):  # from the deepest tier up, as each hand-over maps it
         s_equiv = s_equiv * f
     return TierBudget(vp, sel_p, s_equiv, d)
-
-
-def _count_mix(settings: Sequence[lod.LodSettings], view_of: Callable[[int], LodView], va: LodView, d: int,
-               depth: int, k: int, scales: list) -> Optional[TierBudget]:
-    """:func:`budget_walk`'s count budget of ``k`` ending in tier ``d`` (view ``va``) whose next tier
-    refused it: tier ``d``'s and ``d + 1``'s starts mixed by distance
-    (:func:`clod_adapter.tier_mix.mix`), or None where tier ``d``'s start holds no more than ``k``
-    (it is then drawn alone, as the walk does). ``scales`` map tier ``d``'s ``s_v`` to the model's."""
-    from .tier_mix import mix
-
-    s_a = 1.0 if d == depth else max(1.0, settings[d - 1].tier_start)
-    if not va.draws_at_least(s_a, k + 1):
-        return None
-    s_b = max(1.0, settings[d].tier_start)
-    vb = view_of(d + 1)
-    up = math.prod(scales)
-    near, far, s_equiv = mix(va, vb, va.select(s_a), vb.select(s_b), k, s_a * up,
-                             s_b * up * settings[d].tier_fade * settings[d].tier_s_v / settings[d].tier_start)
-    return TierBudget(vb, far, s_equiv, d + 1, (va, near, d))
 
 
 def count_budget_walk(settings: Sequence[lod.LodSettings], view_of: Callable[[int], LodView], view: LodView,
@@ -1308,21 +1275,12 @@ def _taken_at(k: int) -> int:
     return min(k, max(1, math.ceil(COUNT_TAKE_SHARE * k - 1e-9))) if k > 0 else 0
 
 
-def _mixes(settings: Sequence[lod.LodSettings]) -> bool:
-    """Whether a chain's count budgets between two tiers draw both mixed by distance: the model's
-    (tier 0's) ``LodSettings.count_mix`` (chosen by :func:`clod_adapter.tiers.choose_count_mix`;
-    docs/studies.md "A count budget between two tiers, mixed by distance")."""
-    return bool(settings) and settings[0] is not None and settings[0].count_mix
-
-
 def _may_take(settings: Sequence[lod.LodSettings], view_of: Callable[[int], LodView], d: int, k: int) -> bool:
     """Whether tier ``d + 1`` of a chain could take a count budget of ``k`` over from tier ``d``
-    (it exists and holds :func:`_taken_at` ``(k)`` Gaussians; with :func:`_mixes`, it exists:
-    tier ``d`` is then mixed with it, not solved): where not, a budget that tier ``d`` takes is
+    (it exists and holds :func:`_taken_at` ``(k)`` Gaussians): where not, a budget that tier ``d`` takes is
     solved there (:meth:`LodView.draws_at_least`'s ``solving``)."""
     st = settings[d]
-    return d + 1 < len(settings) and st is not None and st.tier_s_v > 0 and (
-        _mixes(settings) or view_of(d + 1).n >= _taken_at(k))
+    return d + 1 < len(settings) and st is not None and st.tier_s_v > 0 and view_of(d + 1).n >= _taken_at(k)
 
 
 def _chain_views(gaussians: Gaussians, camera, tau, eps, view: Optional[LodView] = None):
@@ -1468,8 +1426,7 @@ def lod_subset(gaussians: Gaussians, camera, s_v: Optional[float] = None, *,
     attributes (same arguments; no gradient). For viewers and exporters that rasterise
     elsewhere. A model with a parent tier, at an ``s_v`` past its ``tier_s_v``: the Gaussians
     and the parents it draws there, concatenated (:class:`LodSubset` ``parent_indices``); at a
-    budget past it, the tier it ends in alone (:func:`cost_budget_parents`; with
-    ``LodSettings.count_mix``, a count budget's two tiers mixed by distance). No ``s_v`` and no
+    budget past it, the tier it ends in alone (:func:`cost_budget_parents`). No ``s_v`` and no
     budget (``budget``, ``budget_cost``, ``budget_ms``): every Gaussian in view, unchanged.
 
     Raises:

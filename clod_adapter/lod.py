@@ -93,12 +93,6 @@ class LodSettings:
         tier_start: the parents' own ``s_v`` from ``tier_s_v`` to the cross-fade's end (>= 1);
             beyond, they are drawn at ``tier_start * s_v / (tier_fade * tier_s_v)``.
         tier_fade: the cross-fade lasts from ``tier_s_v`` to ``tier_fade * tier_s_v`` (> 1).
-        count_mix: a count budget between two merged tiers draws both, the finer tier's nearer
-            Gaussians and the coarser's farther ones, the budget together
-            (:func:`clod_adapter.tier_mix.mix`), where False cuts the finer tier to it
-            (:func:`clod_adapter.camera_lod.budget_walk`); the model's setting (tier 0's) holds
-            for the whole chain. Chosen per scene by ``clod-adapt --count-mix auto``
-            (:func:`clod_adapter.tiers.choose_count_mix`).
         tree: the tiers form a merge tree (each Gaussian of a tier names its parent in the next,
             ``Gaussians.extra["parent"]``) and an ``s_v`` or count budget draws one cut of it
             (:mod:`clod_adapter.tree`; docs/lod_rule.md) instead of cross-fading whole tiers.
@@ -113,7 +107,6 @@ class LodSettings:
     tier_s_v: float = 0.0
     tier_start: float = 1.0
     tier_fade: float = 1.25
-    count_mix: bool = False
     tree: bool = False
 
     def __post_init__(self) -> None:
@@ -133,8 +126,6 @@ class LodSettings:
             raise ValueError(f"tier_start must be finite and >= 1, got {self.tier_start}")
         if not (self.tier_fade > 1.0 and math.isfinite(self.tier_fade)):
             raise ValueError(f"tier_fade must be finite and > 1, got {self.tier_fade}")
-        if not isinstance(self.count_mix, bool):
-            raise ValueError(f"count_mix must be a bool, got {self.count_mix!r}")
         if not isinstance(self.tree, bool):
             raise ValueError(f"tree must be a bool, got {self.tree!r}")
 

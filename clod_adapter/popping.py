@@ -5,14 +5,11 @@ between two static levels (``clod-eval``'s measure, issue 36's goal 5: >= 10x sm
 tiers), :func:`popping_curve` the per-step image change of the model along it and the one jump of
 a discrete switch, :func:`popping_ratio` ``clod-eval``'s ratio from one camera (the input cut by
 LightGaussian significance as the discrete levels), :func:`popping_budget_ratio` the same along
-count budgets. :func:`tail_width` is ``clod-adapt``'s rule
-for the coarsest tier's window: widened, on the training views, until the sweep's largest step is
-:data:`POPPING_GOAL` times smaller than the switch's.
+count budgets.
 """
 from __future__ import annotations
 
 import statistics
-from dataclasses import replace
 from typing import Callable, Optional, Sequence
 
 import numpy as np
@@ -20,23 +17,13 @@ import torch
 from torch import Tensor
 
 from .baselines import ranking_selection, render_subset
-from .camera_lod import render_lod, tier_chain, tier_reach
+from .camera_lod import render_lod, tier_reach
 from .gaussians import Gaussians
 
 #: the sweep's end past the trained maximum (``clod-eval``'s ``s_v`` grid ends at 1.2 ``max_sv``)
 SWEEP_OVERSHOOT = 1.2
 #: issue 36's goal 5: the sweep's largest step at least this many times smaller than one switch
 POPPING_GOAL = 10.0
-#: the coarsest tier's window widths :func:`tail_width` tries past the model's own (log-opacity
-#: units, :class:`clod_adapter.lod.LodSettings` ``fade_width``). On skull's validation views a
-#: window of 3 raised the smallest ratio over the views from 10.3x (at 2) to 11.7x and 4 dropped it
-#: to 8.4x; fern and MaskGaussian fern reach the goal narrower, and 3 cost them 0.4-0.7 dB within
-#: 25 % of the frame where they were given it (docs/studies.md "The coarsest tier's window")
-TAIL_WIDTHS = (1.0, 2.0, 3.0)
-#: :func:`tail_width` asks the training views for this many times the goal: on the validation
-#: views (never trained on) the median ratio came out 0.79-1.02x of the training views' (skull,
-#: MaskGaussian fern, fern; docs/studies.md "The coarsest tier's window")
-TAIL_MARGIN = 1.2
 #: the smallest count budget of :func:`popping_budget_ratio`'s sweep, a share of the Gaussians in
 #: view (issue 62's budget sweep: 100 % to 1 %)
 BUDGET_LOWEST = 0.01
@@ -172,51 +159,3 @@ def popping_budget_ratio(model: Gaussians, base: Gaussians, camera, scores: Opti
         background = torch.as_tensor(background, dtype=model.means.dtype)
     return popping_curve(model, camera, shares, discrete_model=base, discrete_scores=scores, background=background,
                          budgets=True)
-
-
-def with_coarsest_width(model: Gaussians, width: float) -> Gaussians:
-    """``model`` with the window ``fade_width`` of the last tier of its chain
-    (:func:`clod_adapter.camera_lod.tier_chain`) set to ``width``; the other tiers as they are."""
-    st = model.lod
-    if model.parents is not None and st is not None and st.tier_s_v > 0:
-        return replace(model, parents=with_coarsest_width(model.parents, width))
-    return replace(model, lod=replace(st, fade_width=float(width)))
-
-
-def tail_width(model: Gaussians, base: Gaussians, cameras: Sequence, scores: Optional[Tensor] = None, *,
-               goal: float = POPPING_GOAL, widths: Sequence[float] = TAIL_WIDTHS, steps: int = SWEEP_STEPS,
-               background=None, log: Callable[[str], None] = lambda m: None) -> tuple[Gaussians, dict]:
-    """``clod-adapt``'s window for the coarsest tier of a model with merged tiers: the narrowest of
-    the tier's own ``fade_width`` and the wider ``widths`` whose median :func:`popping_ratio` over
-    ``cameras`` (training views) reaches ``goal`` times :data:`TAIL_MARGIN`; where none does, the
-    widest. On skull's validation views (never trained on) the widest, 3, had the largest
-    smallest ratio over the views (11.7x against 10.3x at 2 and 7.3x at 1; 4 dropped it to 8.4x;
-    docs/studies.md "The coarsest tier's window"), and the goal is met or missed per view.
-    Down to its last few merged splats the coarsest tier's Gaussians each leave within a step or
-    two of the sweep, and a wider window lets them leave over more of it; a narrow one keeps the
-    cheap frames sharper, so it is widened only as far as the scene needs.
-
-    Args:
-        model: the adapted model; ``base``: the input; ``scores``: [N_base] as :func:`popping_ratio`.
-
-    Returns:
-        (the model with the chosen width, ``{"widths": [[width, median ratio, [ratio per view]]],
-        "chosen": width}``); a model without tiers is returned as it is (``{"chosen": None}``).
-    """
-    chain = tier_chain(model)
-    if len(chain) < 2 or model.sigma_d is None:
-        return model, {"chosen": None, "widths": []}
-    own = float(chain[-1].lod.fade_width)
-    tried, chosen = [], own
-    for w in [own] + [float(x) for x in widths if x > own]:
-        m = with_coarsest_width(model, w)
-        ratios = [float(popping_ratio(m, base, c, scores, steps=steps, background=background)["ratio"])
-                  for c in cameras]
-        med = statistics.median(ratios)
-        tried.append([w, med, ratios])
-        log(f"coarsest tier's window {w:g}: popping {med:.1f}x (median of {len(ratios)} training views)")
-        chosen = w  # the widest tried so far: kept where none reaches the goal
-        if med >= goal * TAIL_MARGIN:
-            break
-    return with_coarsest_width(model, chosen), {"chosen": chosen, "widths": tried, "goal": goal,
-                                               "asked": goal * TAIL_MARGIN}

@@ -231,8 +231,7 @@ def clod_rasterization(
             Drawn at an ``s_v`` past ``lod_settings.tier_s_v`` (cross-fade, then alone, at the
             parents' ``s_v``, :func:`clod_adapter.lod.tier_weight`; their own ``parents`` likewise down the
             chain, :func:`clod_adapter.camera_lod.chain_parts`); a budget whose solution passes a
-            hand-over draws that tier alone (:func:`clod_adapter.camera_lod.budget_walk`; with
-            ``lod_settings.count_mix``, that tier and the finer one mixed by distance).
+            hand-over draws that tier alone (:func:`clod_adapter.camera_lod.budget_walk`).
         parent: [N] int, a merge tree's parent of each Gaussian in ``parents`` (each tier's own
             under ``"parent"`` in its dict; :func:`clod_kwargs`): with ``lod_settings.tree`` an
             ``s_v`` or a budget draws one cut of the tree (:func:`clod_adapter.camera_lod.tree_select`).

@@ -27,7 +27,7 @@ from typing import Optional, Sequence
 import torch
 
 from .baselines import merge_decimate
-from .camera_lod import render_lod, tier_chain, view_lod
+from .camera_lod import view_lod
 from .cost import DEFAULT_FRAME_TIME_MODEL, FrameTimeModel, splat_cost
 from .gaussians import Gaussians
 from .metrics import psnr
@@ -324,38 +324,6 @@ def link(model: Gaussians, candidates: Sequence[Gaussians], cameras: Sequence, i
     return model, tried
 
 
-#: the count budgets :func:`choose_count_mix` compares the two rules at: shares of the model's
-#: Gaussians in view
-COUNT_MIX_SHARES = (0.5, 0.3, 0.15, 0.08)
-
-
-@torch.no_grad()
-def choose_count_mix(model: Gaussians, cameras: Sequence, images: Sequence, *, shares=COUNT_MIX_SHARES,
-                     background=None) -> tuple[Gaussians, dict]:
-    """Whether a model with merged tiers draws a count budget between two tiers from both, mixed
-    by distance (``LodSettings.count_mix``, :func:`clod_adapter.tier_mix.mix`), or cuts the finer
-    tier to it: the rule whose frames score the higher mean PSNR at ``shares`` of the Gaussians in
-    view of each camera (views a user has: the training views; images [H, W, 3] float32 in
-    [0, 1]). On the shared scenes this picks, on the training views, the rule that scores better
-    on views the checkpoint never saw (docs/studies.md "A count budget between two tiers, mixed by
-    distance"). Returns ``(model with its choice, {"count_mix", "gain_db", "shares"})``; a model
-    without tiers is returned unchanged (``count_mix`` False, ``gain_db`` None)."""
-    if model.lod is None or len(tier_chain(model)) < 2:
-        return model, {"count_mix": False, "gain_db": None, "shares": list(shares)}
-    rules = {m: replace(model, lod=replace(model.lod, count_mix=m)) for m in (False, True)}
-    scores = {m: [] for m in rules}
-    bg = None if background is None else torch.as_tensor(background, dtype=model.means.dtype)
-    for cam, img in zip(cameras, images):
-        n = view_lod(replace(model, parents=None), cam).n_in_view
-        for share in shares:
-            k = max(1, round(share * n))
-            for m, g in rules.items():
-                scores[m].append(psnr(render_lod(g, cam, budget=k, background=bg).image, img, cap=True))
-    gain = statistics.mean(scores[True]) - statistics.mean(scores[False])
-    return rules[gain > 0], {"count_mix": gain > 0, "gain_db": round(gain, 3), "shares": list(shares)}
-
-
 __all__ = ["decimated", "MERGES", "choice_views", "predicted_ms", "first_share", "TIER_TIME_CAP", "TIER_SHARE_STEP",
            "TIER_SHARE_TRIES", "TIER_HAND_OVER", "attach", "choose", "link", "level_curve", "TierChoice", "SWITCH_S_V",
-           "PARENT_S_V", "PARENT_MIN_GAUSSIANS", "CHOOSE_VIEWS", "DEFAULT_SHARES", "CHOOSE_RULES", "CHOOSE_RULE", "CHOOSE_MARGIN_DB",
-           "choose_count_mix", "COUNT_MIX_SHARES"]
+           "PARENT_S_V", "PARENT_MIN_GAUSSIANS", "CHOOSE_VIEWS", "DEFAULT_SHARES", "CHOOSE_RULES", "CHOOSE_RULE", "CHOOSE_MARGIN_DB"]

@@ -57,8 +57,6 @@ GAIN_LR = {"opacity_logit_gain": OFFICIAL_LR["opacity_logits"], "log_scale_gain"
 RANKINGS = ("lightgaussian", "opacity")
 
 
-#: AdaptConfig.count_mix's values
-COUNT_MIX_RULES = ("off", "on", "auto")
 #: AdaptConfig.tier_draw's values
 TIER_DRAWS = ("tree", "chain")
 
@@ -149,14 +147,6 @@ class AdaptConfig:
             MaskGaussian fern's 50 % merge is predicted at 83 % and its first tier becomes 35 %;
             the vanilla checkpoints' 50 % merges (fern 77 %, skull 69 %) are kept. 0: the shares
             as given (docs/studies.md "A first tier that saves time").
-        popping_goal: with merged tiers, the coarsest tier's window ``fade_width`` is widened
-            (1, 2, 3 past its own) until ``clod-eval``'s popping ratio (one static switch
-            against the largest step of the sweep through every tier) reaches
-            :data:`clod_adapter.popping.TAIL_MARGIN` (1.2) times this on the median of 4 training
-            views, or to the widest (3) where none does
-            (:func:`clod_adapter.popping.tail_width`). Default
-            :data:`clod_adapter.popping.POPPING_GOAL` (10, issue 36's goal) with the calibrated
-            schedule; 0: the tier's own window (docs/studies.md "The coarsest tier's window").
         tier_hand_over: with merged tiers, the latest ``s_v`` (of the tier's own) at which each
             merged tier hands over to the next (:func:`clod_adapter.tiers.link`; the input's own
             hand-over to the first tier stays where the time rule puts it). Default
@@ -164,18 +154,12 @@ class AdaptConfig:
             where the time rule puts it (docs/studies.md "The coarsest tier's window": on the
             validation views popping median fern 15.6 -> 17.9, MaskGaussian fern 15.2 -> 16.6,
             skull 9.3 -> 11.9, no quality cell down by more than 0.01 dB).
-        count_mix: with merged tiers, whether a count budget between two tiers draws both mixed
-            by distance (``LodSettings.count_mix``): ``"off"`` (cut the finer tier to it),
-            ``"on"``, or ``"auto"`` (default), the rule scoring the higher PSNR on the training
-            views (:func:`clod_adapter.tiers.choose_count_mix`; docs/studies.md "A count budget
-            between two tiers, mixed by distance").
         tier_draw: how a model with merged tiers is drawn: ``"tree"`` (default), the tiers linked
             into a merge tree (each Gaussian names its parent in the next tier), fitted on its cuts
             and drawn as one cut per frame (:mod:`clod_adapter.tree`; docs/method.md "The merge
             tree"; docs/studies.md "The merge tree": on the validation views no frame along
             ``s_v`` or count budgets over 1.05x a more detailed one); ``"chain"``, whole tiers
-            cross-faded at each hand-over (two sets drawn there; the coarsest tier's window and
-            ``count_mix`` apply to it only).
+            cross-faded at each hand-over (two sets drawn there).
         tree_steps: with ``tier_draw="tree"``, the merged tiers are fitted on the tree's own cuts
             for this many steps, at most ``iterations`` (:func:`clod_adapter.tree_train.finetune`;
             0: not fitted).
@@ -243,9 +227,7 @@ class AdaptConfig:
     tier_downscale: int = 2
     tier_merge: str = "decimate"
     tier_time_cap: Optional[float] = None
-    popping_goal: Optional[float] = None
     tier_hand_over: Optional[float] = None
-    count_mix: str = "auto"
     tier_draw: str = "tree"
     tree_steps: int = 1000
     faint_share: Optional[float] = None
@@ -340,13 +322,6 @@ class AdaptConfig:
         if not (math.isfinite(self.tier_time_cap) and 0.0 <= self.tier_time_cap <= 1.0):
             raise ValueError(f"tier_time_cap must be in [0, 1] (a share of the input's frame time), "
                              f"got {self.tier_time_cap}")
-        if self.popping_goal is None:
-            from .popping import POPPING_GOAL
-
-            self.popping_goal = POPPING_GOAL if cal else 0.0
-        self.popping_goal = float(self.popping_goal)
-        if not (math.isfinite(self.popping_goal) and self.popping_goal >= 0.0):
-            raise ValueError(f"popping_goal must be >= 0 (a ratio), got {self.popping_goal}")
         if self.tier_hand_over is None:
             from .tiers import TIER_HAND_OVER
 
@@ -359,8 +334,6 @@ class AdaptConfig:
         self.tree_steps = int(self.tree_steps)
         if self.tier_draw not in TIER_DRAWS:
             raise ValueError(f"tier_draw must be one of {', '.join(TIER_DRAWS)}, got {self.tier_draw!r}")
-        if self.count_mix not in COUNT_MIX_RULES:
-            raise ValueError(f"count_mix must be one of {', '.join(COUNT_MIX_RULES)}, got {self.count_mix!r}")
         self.tier_iteration_share = float(self.tier_iteration_share)
         if not 0.0 < self.tier_iteration_share <= 1.0:
             raise ValueError(f"tier_iteration_share must be in (0, 1], got {self.tier_iteration_share}")

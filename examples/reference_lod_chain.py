@@ -39,7 +39,7 @@ def read_model(path) -> dict:
         if parts and parts[0] == "clod_lod":
             for kv in parts[1:]:
                 k, _, val = kv.partition("=")
-                settings[k] = val if k == "fade" else (val == "True") if k == "count_mix" else float(val)
+                settings[k] = val if k in ("fade", "count_mix") else float(val)  # count_mix: no longer drawn
     m = _element(ply["vertex"].data, settings)
     own = {}  # "clod_lod_tier k tier_s_v=.. tier_start=.. tier_fade=..": tier k's hand-over to tier k + 1
     for c in ply.comments:

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 import torch
 
-from clod_adapter import lod, tiers
+from clod_adapter import tiers
 from clod_adapter.camera_lod import (COUNT_TAKE_SHARE, chain_weights, lod_subset, render_lod, tier_chain, tier_reach,
                                      view_lod)
 from clod_adapter.io.ply import PlyFormatError, read_ply, write_ply
@@ -33,11 +33,6 @@ def chain():
 
 
 FADE = 1.25  # tiers.attach's tier_fade
-
-
-def _mixing(g, mix: bool):
-    """``g`` whose count budgets between two tiers are mixed by distance (``LodSettings.count_mix``)."""
-    return replace(g, lod=replace(g.lod, count_mix=mix))
 
 
 def _model_s_v_of_tier1(s1: float) -> float:
@@ -181,7 +176,7 @@ def test_consumers_draw_what_render_lod_draws(chain, s_v):
     import tempfile
 
     with tempfile.TemporaryDirectory() as d:
-        m = refmod.read_model(write_ply(Path(d) / "c.ply", _mixing(g, True)))  # count_mix: budgets only
+        m = refmod.read_model(write_ply(Path(d) / "c.ply", g))
     out = refmod.draw_tiered(m, cam.viewmat.double().numpy(), cam.K.double().numpy(), cam.width, cam.height, s_v)
     got = [out["model"]] + out["tiers"]
     want = [sub.indices] + sub.tier_indices
@@ -210,32 +205,27 @@ def test_adapt_config_takes_descending_shares():
             AdaptConfig(parent_share=bad)
 
 
-@pytest.mark.parametrize("mix", [False, True])
-def test_count_budgets_hand_over_in_every_consumer(chain, mix):
-    """A count budget past a hand-over draws the next tier (from its tier_start level on), alone
-    (or, with the model's count_mix, mixed by distance with the finer tier), never more than the
-    budget: render_lod, lod_subset, the renderer hook and bake agree; a budget of every Gaussian
+def test_count_budgets_hand_over_in_every_consumer(chain):
+    """A count budget past a hand-over draws the next tier (from its tier_start level on), alone,
+    never more than the budget: render_lod, lod_subset, the renderer hook and bake agree; a budget of every Gaussian
     in view draws the model's own."""
     from clod_adapter import clod_kwargs, clod_rasterization
     from clod_adapter.bake import bake
 
-    g, cams = _mixing(chain[0], mix), chain[1]
+    g, cams = chain
     cam = cams[0]
     every = view_lod(replace(g, parents=None), cam).n_in_view
     big = render_lod(g, cam, budget=every)
     assert big.n_parents == 0 and torch.equal(big.image, render_lod(replace(g, parents=None), cam, budget=every).image)
-    depths, mixed = [], 0
+    depths = []
     for b in (0.8, 0.5, 0.2, 0.05, 0.01):
         own = view_lod(replace(g, parents=None), cam).select(budget=b)
         r = render_lod(g, cam, budget=b)
         sub = lod_subset(g, cam, budget=b)
         drawn = [0] * bool(sub.indices.numel()) + [1 + i for i, t in enumerate(sub.tier_indices) if t is not None]
         depths.append(drawn[-1])
-        assert len(drawn) <= 2 and drawn == list(range(drawn[0], drawn[-1] + 1)), drawn  # neighbours
+        assert len(drawn) == 1, drawn  # one tier
         assert r.n_rendered <= own.indices.numel() and len(sub.means) == r.n_rendered
-        if len(drawn) == 2:  # mixed: exactly the budget
-            assert r.n_rendered == own.indices.numel() and 0 < r.n_parents
-            mixed += 1
         col, _, meta = clod_rasterization(g.means, g.quats, g.scales, g.opacities, g.colors, cam.viewmat[None],
                                           cam.K[None], cam.width, cam.height, sh_degree=g.sh_degree,
                                           **clod_kwargs(g), budget=b, backend="cpu")
@@ -243,43 +233,18 @@ def test_count_budgets_hand_over_in_every_consumer(chain, mix):
         assert meta["lod_n_parents"] == [r.n_parents] and meta["lod_s_v"][0] == pytest.approx(r.s_v)
         baked, info = bake(g, [cam], budget=b, opacity="mean", return_info=True)
         assert info.n_parents == r.n_parents and len(baked) == r.n_rendered
-    assert depths == sorted(depths) and depths[-1] >= 1 and (mixed > 0) == mix
+    assert depths == sorted(depths) and depths[-1] >= 1
 
 
-def _mix_literally(views, tiers_, d, k, lo_s):
-    """tier_mix's count budget of ``k`` between tiers ``d`` and ``d + 1``, literally: both starts
-    (``lo_s``: tier d's start level), every candidate split tried; ``[(d, rows), (d + 1, rows)]``
-    as LodSelections of each start's rows (the finer nearer than the split, the coarser beyond),
-    the largest split whose count fits ``k``."""
-    from clod_adapter.camera_lod import LodSelection
-
-    sa, sb = views[d].select(lo_s), views[d + 1].select(max(1.0, tiers_[d].lod.tier_start))
-    c = lod.camera_center(views[0].viewmat)
-    ra = [float((views[d].means[i] - c).norm()) for i in sa.indices]
-    rb = [float((views[d + 1].means[i] - c).norm()) for i in sb.indices]
-    best = None
-    for split in sorted(ra + rb):
-        if sum(r < split for r in ra) + sum(r >= split for r in rb) <= k:
-            best = split
-    near = torch.tensor([r < best for r in ra], dtype=torch.bool)
-    far = torch.tensor([r >= best for r in rb], dtype=torch.bool)
-    return [(d, LodSelection(sa.indices[near], sa.opacities[near], None, None, sa.level, sa.eta, n=views[d].n)),
-            (d + 1, LodSelection(sb.indices[far], sb.opacities[far], None, None, sb.level, sb.eta, n=views[d + 1].n))]
-
-
-def _walk_solving_every_tier(g, cam, mix=None, **budget):
+def _walk_solving_every_tier(g, cam, **budget):
     """docs/lod_rule.md's budget hand-over, literally: solve the budget in each tier, and pass it to
     the next tier while that tier, as the s_v rule first draws it alone, holds it (count: draws at
     least COUNT_TAKE_SHARE of the count tier 0 draws, and is asked for that count; cost: costs at
     least the budget; ms: predicted at least that long). A start at the tier's full detail
     (tier_start <= 1) and a cost share's full cost, where the budget passes on, are estimated from
-    a sample (LodView.full_detail_estimate; models of COST_SAMPLE_MIN or more). A count budget
-    that the tier it ends in holds in full, with more Gaussians at its start and a next tier that
-    refused it (``mix``, default the model's count_mix): the two tiers' starts mixed by distance
-    (:func:`_mix_literally`). Returns ``[(depth, selection)]``, finest first (one tier, or two mixed)."""
+    a sample (LodView.full_detail_estimate; models of COST_SAMPLE_MIN or more). Returns
+    ``[(depth, selection)]``, the one tier drawn."""
     from clod_adapter.cost import DEFAULT_FRAME_TIME_MODEL, splat_cost
-
-    mix = g.lod.count_mix if mix is None else mix
 
     tiers_ = tier_chain(g)
     views = [view_lod(replace(t, parents=None), cam) for t in tiers_]
@@ -288,7 +253,7 @@ def _walk_solving_every_tier(g, cam, mix=None, **budget):
         return views[k].full_detail_estimate()
 
     b = budget.get("budget_cost")
-    sel, depth, lo_s = views[0].select(**budget), 0, 1.0
+    sel, depth = views[0].select(**budget), 0
     if b is not None and b <= 1.0:
         b = max(b * estimate(0)[0], 1.0 + 1e-6)  # absolute from the first tier below on
     k0 = int(sel.indices.numel())  # a count budget: tier 0's count, asked of every tier below
@@ -310,12 +275,8 @@ def _walk_solving_every_tier(g, cam, mix=None, **budget):
         else:
             fits = budget["budget_ms"] <= DEFAULT_FRAME_TIME_MODEL.ms(cost, drawn)
         if not fits:
-            if mix and "budget" in budget and int(sel.indices.numel()) == k0 \
-                    and int(views[depth].select(lo_s).indices.numel()) > k0:
-                return _mix_literally(views, tiers_, depth, k0, lo_s)
             break
         depth += 1
-        lo_s = max(1.0, start_s)
         sel = views[depth].select(**kw, min_s_v=start_s)
     return [(depth, sel)]
 
@@ -328,23 +289,18 @@ def _rows(sub, depth):
 @pytest.mark.parametrize("kind,values", [("budget", [900, 400, 150, 60, 20, 3, 0.3, 0.02]),
                                          ("budget_cost", [0.9, 0.5, 0.2, 0.08, 0.03, 0.01]),
                                          ("budget_ms", [40.0, 5.0, 2.5, 2.0, 1.0, 0.1])])
-@pytest.mark.parametrize("starts", ["chain", (1.0, 1.0), "sampled", "mix"])
+@pytest.mark.parametrize("starts", ["chain", (1.0, 1.0), "sampled"])
 def test_budgets_solve_only_the_tier_they_end_in_as_the_rule_walks(chain, kind, values, starts, monkeypatch):
     """render_lod's budget walk solves only the tier it ends in (and passes a count on without
     solving it where the rule gives it: each tier first drawn alone at its full detail,
     ``tier_start`` 1, as ``clod-adapt`` links them): the same tiers, rows and opacities as solving
     the budget in every tier on the way, at every depth of the chain; a count budget between two
-    tiers draws the next tier alone or cuts the finer one (with count_mix, both mixed by
-    distance). ``"sampled"``: the tiers handed over at their full detail
-    and costed from every 3rd Gaussian (the chain's tiers are below COST_SAMPLE_MIN, lowered here
-    so the estimate is what is walked); ``"mix"``: ``count_mix`` on, a count budget between two
-    tiers drawn by both, mixed by distance, not cut from the finer one's survivors."""
+    tiers draws the next tier alone or cuts the finer one. ``"sampled"``: the tiers handed over at
+    their full detail and costed from every 3rd Gaussian (the chain's tiers are below
+    COST_SAMPLE_MIN, lowered here so the estimate is what is walked)."""
     from clod_adapter import camera_lod
 
     g, cams = chain
-    mix = starts == "mix"
-    if mix:
-        g, starts = _mixing(g, True), "chain"
     if starts == "sampled":
         monkeypatch.setattr(camera_lod, "COST_SAMPLE_MIN", 50)
         monkeypatch.setattr(camera_lod, "COST_SAMPLE_STEP", 3)
@@ -353,13 +309,12 @@ def test_budgets_solve_only_the_tier_they_end_in_as_the_rule_walks(chain, kind, 
         t1 = g.parents
         t1 = replace(t1, lod=replace(t1.lod, tier_start=starts[1]))
         g = replace(g, parents=t1, lod=replace(g.lod, tier_start=starts[0]))
-    depths, mixed = set(), 0
+    depths = set()
     for cam in cams:
         for v in values:
-            ref = _walk_solving_every_tier(g, cam, mix=mix, **{kind: v})
+            ref = _walk_solving_every_tier(g, cam, **{kind: v})
             r = render_lod(g, cam, **{kind: v}, backend="cpu")
             depths |= {d for d, _ in ref}
-            mixed += len(ref) == 2
             sub = lod_subset(g, cam, **{kind: v})
             for depth, sel in ref:
                 got = r.selection.indices if (depth == 0 and len(ref) == 1) else _rows(sub, depth)
@@ -378,7 +333,6 @@ def test_budgets_solve_only_the_tier_they_end_in_as_the_rule_walks(chain, kind, 
                     hook = meta["lod_indices"][0] if depth == 0 else meta["lod_tier_indices"][0][depth - 1]
                     assert torch.equal(hook, sel.indices), (v, depth)
     assert depths == {0, 1, 2}, depths
-    assert (mixed > 0) == (mix and kind == "budget"), mixed
 
 
 def test_export_of_a_chain(tiny_adapted, tiny_model, tmp_path):
@@ -465,81 +419,18 @@ def test_a_count_budget_passes_through_a_tier_without_its_critical_order(chain):
     assert {0, 1, 2} <= seen, seen
 
 
-def test_split_distance_is_the_largest_split_that_fits():
-    """tier_mix.split_distance against every candidate tried: the largest split whose count (the
-    finer tier's nearer rows plus the coarser tier's rows at or beyond it) fits k, exactly k where
-    the coarser tier alone is below k and the finer above it."""
-    from clod_adapter.tier_mix import split_distance
-
-    gen = torch.Generator().manual_seed(3)
-    for a_n, b_n in ((40, 9), (200, 60), (7, 2)):
-        ra, rb = torch.rand(a_n, generator=gen) * 10, torch.rand(b_n, generator=gen) * 10 + 1
-        for k in range(b_n + 1, a_n):
-            split = split_distance(ra, rb, k)
-            count = int((ra < split).sum() + (rb >= split).sum())
-            fits = [c for c in torch.cat([ra, rb]).tolist()
-                    if int((ra < c).sum() + (rb >= c).sum()) <= k]
-            assert split == max(fits) and count == k, (a_n, b_n, k)
-    assert split_distance(torch.ones(3), torch.ones(1), 3) == float("inf")
-
-
-def test_count_budgets_between_two_tiers_change_the_image_by_small_steps(chain):
-    """With count_mix, a count budget falling from every Gaussian in view to what the next tier
-    takes over draws the two tiers mixed by distance (tier_mix), exactly the budget: the image
-    changes by small steps, far below the jump from the model's full detail to tier 1's."""
-    g, cams = _mixing(chain[0], True), chain[1]
-    cam = cams[0]
-    n0 = view_lod(replace(g, parents=None), cam).n_in_view
-    n1 = view_lod(replace(g.parents, parents=None), cam).n_in_view  # tier 1's full detail in view
-    lo = max(n1, math.ceil(n1 / COUNT_TAKE_SHARE - 1e-9)) + 1  # the mix's smallest budget
-    assert n0 > lo + 20, (n0, lo)
-    ks = list(range(n0, lo - 1, -max(1, (n0 - lo) // 60)))
-    outs = [render_lod(g, cam, budget=k) for k in ks]
-    assert [o.n_rendered for o in outs] == ks  # exactly the budget
-    parents = [o.n_parents for o in outs]
-    assert parents[0] == 0 and parents == sorted(parents) and 0 < parents[-1] < ks[-1]  # the split nears the camera
-    imgs = [o.image for o in outs]
-    steps = [float((a - b).abs().mean()) for a, b in zip(imgs, imgs[1:])]
-    jump = float((imgs[0] - render_lod(replace(g.parents, parents=None), cam, 1.0).image).abs().mean())
-    assert jump > 0 and max(steps) < jump / 5, (max(steps), jump)
-
-
-def test_count_mix_is_kept_by_the_ply_and_written_only_where_set(chain, tmp_path):
-    """LodSettings.count_mix round-trips through the .ply header (``count_mix=True`` in the
-    ``clod_lod`` comment), is left out of it where False (files as without it), and a bad value is
-    refused naming the file."""
-    import plyfile
-
+def test_a_file_with_count_mix_from_an_earlier_version_still_reads(chain, tmp_path):
+    """Earlier versions wrote ``count_mix=True`` into the ``clod_lod`` comment (count budgets
+    between two tiers mixed by distance, no longer drawn): such a file reads, and draws as the
+    same model without it; a malformed value is still refused with the file named."""
     g, cams = chain
-    on, off = write_ply(tmp_path / "on.ply", _mixing(g, True)), write_ply(tmp_path / "off.ply", g)
-    assert read_ply(on).lod.count_mix is True and read_ply(off).lod.count_mix is False
-    header = {p: " ".join(plyfile.PlyData.read(str(p)).comments) for p in (on, off)}
-    assert "count_mix" not in header[off] and "count_mix=True" in header[on]
-    k = view_lod(replace(g, parents=None), cams[0]).n_in_view // 2
-    assert torch.equal(render_lod(read_ply(on), cams[0], budget=k).image, render_lod(_mixing(g, True), cams[0],
-                                                                                      budget=k).image)
+    path = write_ply(tmp_path / "old.ply", g)
+    old = tmp_path / "with_mix.ply"
+    old.write_bytes(path.read_bytes().replace(b"comment clod_lod ", b"comment clod_lod count_mix=True ", 1))
+    assert b"count_mix=True" in old.read_bytes()[:4000]
+    a, b = render_lod(read_ply(old), cams[0], budget=0.3), render_lod(g, cams[0], budget=0.3)
+    assert torch.equal(a.image, b.image)
     bad = tmp_path / "bad.ply"
-    bad.write_bytes(on.read_bytes().replace(b"count_mix=True", b"count_mix=yes!"))
+    bad.write_bytes(old.read_bytes().replace(b"count_mix=True", b"count_mix=yes!"))
     with pytest.raises(PlyFormatError, match="bad.ply.*count_mix"):
         read_ply(bad)
-
-
-def test_choose_count_mix_takes_the_rule_that_scores_higher(chain):
-    """tiers.choose_count_mix: the rule whose count-budget frames score the higher mean PSNR on
-    the views given is the model's count_mix; a model without tiers is left as it is."""
-    from clod_adapter.metrics import psnr
-
-    g, cams = chain
-    for target_mix in (False, True):  # ground truths drawn by one rule: that rule must be chosen
-        gts = [render_lod(_mixing(g, target_mix), c, budget=max(1, round(
-            0.6 * view_lod(replace(g, parents=None), c).n_in_view))).image for c in cams]
-        chosen, info = tiers.choose_count_mix(g, cams, gts, shares=(0.6,))
-        scores = {m: sum(psnr(render_lod(_mixing(g, m), c, budget=max(1, round(
-            0.6 * view_lod(replace(g, parents=None), c).n_in_view))).image, gt, cap=True) for c, gt in zip(cams, gts))
-            for m in (False, True)}
-        assert scores[target_mix] > scores[not target_mix]  # the two rules draw different frames
-        assert chosen.lod.count_mix is target_mix is info["count_mix"] and (info["gain_db"] > 0) == target_mix
-        assert chosen.parents is g.parents
-    alone = replace(g, parents=None)
-    same, info = tiers.choose_count_mix(alone, cams, gts)
-    assert same is alone and info["count_mix"] is False and info["gain_db"] is None

@@ -101,7 +101,7 @@ def build_parser():
 
 
 def _tier_flags(p) -> None:
-    """The merged tiers (AdaptConfig's ``parent_share``, ``tier_*``, ``popping_goal`` and ``count_mix``)."""
+    """The merged tiers (AdaptConfig's ``parent_share``, ``tier_*`` and ``tree_steps``)."""
     p.add_argument("--parent-share", type=_shares, default=None, metavar="SHARE[,SHARE...]",
                    help="calibrated schedule: also adapt the input merged by splat-transform --decimate to each SHARE "
                         "of its Gaussians (descending), each tier handing over to the next at the levels where it "
@@ -123,18 +123,10 @@ def _tier_flags(p) -> None:
                    help="lower the first tier's share (0.7x per try) while its merge is predicted to draw a frame "
                         "in more than SHARE of the input's (default 0.8 with the calibrated schedule; 0: the shares "
                         "as given; docs/studies.md)")
-    p.add_argument("--popping-goal", type=float, default=None, metavar="RATIO",
-                   help="with merged tiers, widen the coarsest tier's fade window until the popping ratio on the "
-                        "training views reaches 1.2 x RATIO, else to 3 (default 10 with the calibrated schedule; "
-                        "0: keep it; docs/studies.md)")
     p.add_argument("--tier-hand-over", type=float, default=None, metavar="S_V",
                    help="with merged tiers, each merged tier hands over to the next at its own S_V at the latest "
                         "(default 1.6 with the calibrated schedule; 0: where the time rule puts it; the input's own "
                         "hand-over stays the rule's; docs/studies.md)")
-    p.add_argument("--count-mix", choices=("off", "on", "auto"), default="auto",
-                   help="with merged tiers, draw a count budget between two tiers from both (the finer tier's nearer "
-                        "Gaussians, the coarser's farther ones): 'on', 'off' (cut the finer tier to it) or "
-                        "'auto' (default: whichever scores higher on the training views; docs/studies.md)")
     p.add_argument("--tier-draw", choices=("tree", "chain"), default="tree",
                    help="with merged tiers: 'tree' (default) links them into a merge tree, fits it on its cuts and "
                         "draws one cut of it per frame, one set; 'chain' cross-fades whole tiers at each hand-over, "
@@ -205,8 +197,8 @@ def _config(args, world: int):
                            level_max=args.level_max, parent_share=args.parent_share,
                            tier_finetune_steps=args.tier_finetune_steps,
                            tier_iteration_share=args.tier_iteration_share, tier_downscale=args.tier_downscale,
-                           tier_merge=args.tier_merge, tier_time_cap=args.tier_time_cap, popping_goal=args.popping_goal,
-                           tier_hand_over=args.tier_hand_over, count_mix=args.count_mix, tier_draw=args.tier_draw,
+                           tier_merge=args.tier_merge, tier_time_cap=args.tier_time_cap,
+                           tier_hand_over=args.tier_hand_over, tier_draw=args.tier_draw,
                            tree_steps=args.tree_steps,
                            faint_share=args.faint_share, keep_share=args.keep_share, recovery_steps=args.recovery_steps, **kw)
     except ValueError as e:  # "<field> must be ...": the field is the flag

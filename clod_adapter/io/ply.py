@@ -78,7 +78,7 @@ def lod_comment(settings: LodSettings) -> str:
     """The header comment that stores ``settings`` (``clod_lod key=value ...``)."""
     items = {k: v for k, v in settings.to_dict().items()
              if (not k.startswith("tier_") or settings.tier_s_v > 0)  # a model without a tier: no tier keys
-             and (k not in ("count_mix", "tree") or v)}  # written only where set
+             and (k != "tree" or v)}  # written only where set
     return LOD_COMMENT + " " + " ".join(f"{k}={v!r}" if isinstance(v, float) else f"{k}={v}"
                                         for k, v in items.items())
 
@@ -101,10 +101,11 @@ def parse_lod_comment(comments, path: PathLike = "<ply>") -> "LodSettings | None
                     kw[k] = float(v)
                 elif k == "fade":
                     kw[k] = v
-                elif k in ("count_mix", "tree"):
+                elif k in ("count_mix", "tree"):  # count_mix: written by earlier versions, no longer drawn
                     if v not in ("True", "False"):
                         raise ValueError(f"{k} must be True or False, got {v!r}")
-                    kw[k] = v == "True"
+                    if k == "tree":
+                        kw[k] = v == "True"
             return LodSettings(**kw)
         except (ValueError, TypeError) as e:
             raise PlyFormatError(path, f"bad '{LOD_COMMENT}' header comment {c!r}: {e}") from None

@@ -611,7 +611,7 @@ def _add_parent_tier(ply_path: Path, scene_root: Path, out_dir: Path, cfg: Adapt
     if linked.parents is None:
         return done("no merged tier beats the model at equal predicted time on the training views")
     if not nested:
-        linked = _drawing_rule(linked, ply_path, scene_root, out_dir, scene, cams, imgs, cfg, o, quiet, info)
+        linked = _drawing_rule(linked, scene_root, out_dir, scene, cfg, o, info)
     write_ply(out_dir / PLY_NAME, linked)
     st = linked.lod
     info.update({"used": True, "tier_s_v": st.tier_s_v, "tier_start": st.tier_start, "attached": len(linked.parents),
@@ -621,16 +621,14 @@ def _add_parent_tier(ply_path: Path, scene_root: Path, out_dir: Path, cfg: Adapt
     return done()
 
 
-def _drawing_rule(linked, ply_path: Path, scene_root: Path, out_dir: Path, scene, cams, imgs, cfg: AdaptConfig,
-                  o: AdaptOptions, quiet, info: dict):
+def _drawing_rule(linked, scene_root: Path, out_dir: Path, scene, cfg: AdaptConfig, o: AdaptOptions, info: dict):
     """How the linked model's tiers are drawn (``cfg.tier_draw``): ``"tree"``, linked into a merge
     tree (:func:`clod_adapter.tree.build`; ``info["tree"]`` its tiers' sizes), its merged tiers fitted
     on its cuts (:func:`clod_adapter.tree_train.finetune`, ``cfg.tree_steps`` at most
-    ``cfg.iterations``; ``info["tree_fit"]``) and ``lod_strip.png`` redrawn through it; ``"chain"``, the coarsest tier's window (``cfg.popping_goal``) and the
-    count rule (``cfg.count_mix``)."""
+    ``cfg.iterations``; ``info["tree_fit"]``) and ``lod_strip.png`` redrawn through it;
+    ``"chain"``, the linked tiers as they are."""
     if cfg.tier_draw == "tree":
         from .. import tree
-
         from ..tree_train import finetune
 
         linked = tree.build(linked, scene.train, log=lambda m: o.log("clod-adapt: " + m))
@@ -640,11 +638,6 @@ def _drawing_rule(linked, ply_path: Path, scene_root: Path, out_dir: Path, scene
                           background=cfg.background, seed=cfg.seed, log=lambda m: o.log("clod-adapt: " + m))
         info["tree_fit"] = {"steps": steps, "seconds": round(time.perf_counter() - t0, 1)}
         _final_strip(out_dir, linked, scene_root, cfg, o)
-        return linked
-    if cfg.popping_goal > 0:
-        linked = _tail_width(linked, ply_path, scene, cams, cfg, o, quiet, info)
-    if cfg.count_mix != "off":
-        linked = _count_rule(linked, cams, imgs, cfg, o, info)
     return linked
 
 
@@ -663,39 +656,6 @@ def _final_strip(out_dir: Path, model, scene_root: Path, cfg: AdaptConfig, o: Ad
     top = cfg.max_sv * tier_reach(model)
     levels = [2.0 ** i for i in range(int(math.log2(top)) + 1)][:7]
     write_strip(out_dir / STRIP_NAME, model, cam, levels, cfg.background, gt=scene.load_image(cam))
-
-
-def _tail_width(linked, ply_path: Path, scene, cams, cfg: AdaptConfig, o: AdaptOptions, quiet, info: dict):
-    """The coarsest tier's window for ``cfg.popping_goal`` (:func:`clod_adapter.popping.tail_width`
-    on every other choice view, against the input cut by LightGaussian significance as
-    ``clod-eval`` measures it); recorded in ``info["tail"]``."""
-    from ..baselines import lightgaussian_significance
-    from ..popping import tail_width
-
-    t0 = time.perf_counter()
-    base = _read_model(resolve_model_path(ply_path, o.iteration), cfg, quiet)[0]
-    scores = lightgaussian_significance(base, scene.train)
-    linked, tail = tail_width(linked, base, cams[::2], scores, goal=cfg.popping_goal, background=cfg.background,
-                              log=lambda m: o.log("clod-adapt: " + m))
-    info["tail"] = {**tail, "seconds": round(time.perf_counter() - t0, 1)}
-    return linked
-
-
-def _count_rule(linked, cams, imgs, cfg: AdaptConfig, o: AdaptOptions, info: dict):
-    """``cfg.count_mix`` on the linked model: ``"on"`` sets ``LodSettings.count_mix``; ``"auto"``
-    chooses it on the choice views (:func:`clod_adapter.tiers.choose_count_mix`); recorded in
-    ``info["count_mix"]``."""
-    from .. import tiers
-
-    if cfg.count_mix == "on":
-        info["count_mix"] = {"count_mix": True, "gain_db": None}
-        return replace(linked, lod=replace(linked.lod, count_mix=True))
-    t0 = time.perf_counter()
-    linked, choice = tiers.choose_count_mix(linked, cams, imgs, background=cfg.background)
-    info["count_mix"] = {**choice, "seconds": round(time.perf_counter() - t0, 1)}
-    o.log(f"clod-adapt: count budgets between two tiers {'mixed by distance' if choice['count_mix'] else 'cut'} "
-          f"(mix - cut {choice['gain_db']:+.2f} dB on {len(cams)} training views)")
-    return linked
 
 
 def _finetuned_tier(parents_in, scene, cfg: AdaptConfig, info: dict):

@@ -204,7 +204,8 @@ def test_time_interleaved_rounds_and_order():
     first_b = calls.index("b")
     assert first_b < calls.count("a")  # interleaved: b runs before all of a's renders are done
     assert res["a"]["ms_total"] == pytest.approx(21.0) and res["b"]["ms_total"] == pytest.approx(6.0)
-    assert res["a"]["ms_total_min"] <= res["a"]["ms_total"] <= res["a"]["ms_total_max"]
+    # every round times the same 21 ms per frame: the spread over rounds is none
+    assert res["a"]["ms_total_min"] == pytest.approx(21.0) and res["a"]["ms_total_max"] == pytest.approx(21.0)
     assert res["a"]["per_view"][1]["ms_raster"] == pytest.approx(30.0)
 
 
@@ -212,7 +213,7 @@ def test_metrics_timing_spread(tiny_adapted):
     m = json.loads((tiny_adapted / "metrics.json").read_text())
     assert m["timing"]["method"] == "interleaved"
     for d in [m["input_model"]] + m["levels"]:
-        assert d["ms_per_frame_min"] <= d["ms_per_frame"] <= d["ms_per_frame_max"]
+        assert 0 < d["ms_per_frame_min"] <= d["ms_per_frame"] <= d["ms_per_frame_max"] < 1e4
 
 
 # --- outputs ---------------------------------------------------------------------------------------

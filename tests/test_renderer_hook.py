@@ -118,5 +118,15 @@ def test_example_script_runs(tmp_path):
                         "--n", "300", "--width", "48", "--height", "36", "--out", str(out)],
                        cwd=tmp_path, capture_output=True, text=True, timeout=300)
     assert r.returncode == 0, r.stderr
-    assert out.is_file() and out.stat().st_size > 0
-    assert "s_v=4" in r.stdout and "budget" in r.stdout
+    import re
+
+    import numpy as np
+    from PIL import Image
+
+    drawn = {m[1]: int(m[2]) for m in re.finditer(r"^\s*(\S+): +(\d+) Gaussians rendered", r.stdout, re.M)}
+    assert list(drawn)[:3] == ["s_v=1", "s_v=2", "s_v=4"], r.stdout
+    assert drawn["s_v=1"] >= drawn["s_v=2"] >= drawn["s_v=4"] and drawn["s_v=1"] > drawn["s_v=4"]  # fewer as s_v grows
+    (k, n), = [(int(lab.split("=")[1]), n) for lab, n in drawn.items() if lab.startswith("budget=")]
+    assert k == max(1, drawn["s_v=1"] // 4) and 0 < n <= k  # a budget draws at most its count
+    sheet = np.asarray(Image.open(out).convert("RGB"), dtype=np.float32)
+    assert sheet.shape[1] >= 4 * 48 and sheet.std() > 1.0  # four panels, not a blank image

@@ -266,12 +266,16 @@ def results_table(records: list[dict], cells: dict) -> str:
 
 def behind_line(records: list[dict], cells: dict) -> str:
     """One sentence: each scene's time cells and equal-count points where the adapted model is
-    behind the best peer, with the margins."""
+    behind the best peer, with the margins, and any cell a peer fills where the adapted model has
+    no level (it is then behind there too)."""
     parts = []
     for r in records:
         cs = cells[r["name"]]
         t = [f"within {100 * c['share']:.0f} % {c['margin_db']:+.2f} dB ({c['peer']['method']})" for c in cs
              if c["kind"] == "time" and c["margin_db"] is not None and c["margin_db"] < 0]
+        t += [(f"within {100 * c['share']:.0f} %" if c["kind"] == "time" else f"at {100 * c['share']:.1f} % in view")
+              + f" no adapted level ({c['peer']['method']} {c['peer']['psnr']:.2f} dB)"
+              for c in cs if c["kind"] in ("time", "count") and c["ours"] is None and c["peer"] is not None]
         n = [c["margin_db"] for c in cs if c["kind"] == "count"]
         lo = [m for m in n if m < 0]
         if lo:

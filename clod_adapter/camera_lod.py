@@ -1538,7 +1538,11 @@ def tree_cut(gaussians: Gaussians, camera, s_v: Optional[float] = None, *, budge
         return tree.cut(tiers, camera, float(s_v), hand_over=hand_over)
     tt = tree.terms(tiers, camera, hand_over=hand_over)
     if budget is not None:
-        k = _tree_count(budget, len(gaussians), int(tt.frustum[0].sum()), budget_in_view)
+        fr0 = tree.in_frustum(tiers[0], camera)
+        k = _tree_count(budget, len(gaussians), int(fr0.sum()), budget_in_view)
+        if k >= int(fr0.sum()):  # every tier-0 node in the frustum: the level is 1, no sweep
+            return tree.cut(tiers, camera, 1.0, hand_over=hand_over, tt=tt)
+        tt.frustum_masks = [fr0] + [tree.in_frustum(t, camera) for t in tiers[1:]]
         s_v = tree.budget_s_v(tt, k)
     elif budget_cost is not None or budget_ms is not None:
         from .cost import DEFAULT_FRAME_TIME_MODEL

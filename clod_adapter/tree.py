@@ -57,7 +57,7 @@ from .budget import critical_s_v
 from .gaussians import Gaussians
 
 __all__ = ["HAND_OVER", "PARENT_KEY", "is_tree", "tiers_of", "tier_scales", "assign_parents", "build", "cut", "walk",
-           "budget_s_v", "TreeCut", "TreeTerms", "terms", "cut_attributes", "leads"]
+           "budget_s_v", "TreeCut", "TreeTerms", "terms", "cut_attributes", "leads", "in_frustum"]
 
 #: ``F``: a hand-over or an exit lasts from ``U / F`` to ``U`` in ``s_v``; a node is drawn over at
 #: least this factor of ``s_v``
@@ -147,7 +147,7 @@ def assign_parents(children: Gaussians, parents: Gaussians, *, candidates: int =
     return out.to(children.means.device)
 
 
-def _frustum(t: Gaussians, camera) -> Tensor:
+def in_frustum(t: Gaussians, camera) -> Tensor:
     """[N] bool: the centres in front of ``camera`` (z > 0.01) projecting inside its image (one pass
     of the C++ kernel of :func:`clod_adapter.lod.frame_terms` on the CPU)."""
     m = t.means.detach()
@@ -160,7 +160,7 @@ def _camera(tiers: Sequence[Gaussians], camera) -> tuple[Tensor, float, Tensor]:
     roots = tiers[-1].means.detach()
     c = lod.camera_center(camera.viewmat.detach().double()).to(roots)
     d = torch.linalg.vector_norm(roots - c, dim=-1)
-    fr = _frustum(tiers[-1], camera)
+    fr = in_frustum(tiers[-1], camera)
     inside = d[fr] if bool(fr.any()) else d
     D = max(float(inside.max()), 1e-12) if inside.numel() else 1.0
     return c, D, d / D
@@ -181,7 +181,7 @@ def reference_distances(tiers: Sequence[Gaussians], cameras) -> list[Tensor]:
     s_all = [torch.zeros(len(t), dtype=torch.float64) for t in tiers]
     for cam in cameras:
         ds = _distances(tiers, cam)
-        frs = [_frustum(t, cam) for t in tiers]
+        frs = [in_frustum(t, cam) for t in tiers]
         for k, (fr, d) in enumerate(zip(frs, ds)):
             d = d.double()
             s_all[k] += d.cpu()
@@ -287,21 +287,21 @@ class TreeCut:
 @dataclass
 class TreeTerms:
     """The per-camera terms of a tree (:func:`terms`): per tier the entry ``E`` and the end ``U``
-    of each node's interval [N_k], whether it ends by fading out ([N_k] bool), and (on first use)
-    the frustum [N_k] bool."""
+    of each node's interval [N_k], whether it ends by fading out ([N_k] bool), and (on first use,
+    or as given in ``frustum_masks``) the frustum [N_k] bool (:func:`in_frustum`)."""
 
     entry: list
     upper: list
     fade: list
     tiers: list
     camera: object
-    _frustum: Optional[list] = None
+    frustum_masks: Optional[list] = None
 
     @property
     def frustum(self) -> list:
-        if self._frustum is None:
-            self._frustum = [_frustum(t, self.camera) for t in self.tiers]
-        return self._frustum
+        if self.frustum_masks is None:
+            self.frustum_masks = [in_frustum(t, self.camera) for t in self.tiers]
+        return self.frustum_masks
 
 
 @torch.no_grad()
@@ -395,7 +395,7 @@ def _native_call(name: str, tiers: Sequence[Gaussians], camera, *args) -> list:
 def _native_cut(tiers: Sequence[Gaussians], camera, s: float, F: float) -> TreeCut:
     """:func:`cut` by the C++ twin of :func:`terms` + :func:`cut` (every node, one pass per tier)."""
     out = _native_call("tree_cut", tiers, camera, s, F)
-    return TreeCut(out[0::3], out[1::3], s, lambda: int(_frustum(tiers[0], camera).sum()), out[2::3])
+    return TreeCut(out[0::3], out[1::3], s, lambda: int(in_frustum(tiers[0], camera).sum()), out[2::3])
 
 
 def _children(tier: Gaussians) -> tuple[Tensor, Tensor, Tensor]:
@@ -446,7 +446,7 @@ def walk(tiers: Sequence[Gaussians], camera, s_v: float, *, hand_over: float = H
     ids.reverse()
     ts.reverse()
     fades.reverse()
-    return TreeCut(ids, ts, s, lambda: int(_frustum(tiers[0], camera).sum()), fades)  # counted on first use
+    return TreeCut(ids, ts, s, lambda: int(in_frustum(tiers[0], camera).sum()), fades)  # counted on first use
 
 
 @torch.no_grad()

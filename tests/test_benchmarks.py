@@ -87,3 +87,21 @@ def test_adapt_time_goal_reads_the_whole_jobs_seconds(common):
     assert not late["met"] and qvt_bench.margin(late) == -2.0
     assert not qvt_bench.adapt_goal("skull", {"threads": 2})["met"]
     assert qvt_bench.margin({"value": 3.0, "target": 1.0}) == 2.0  # at-least goals: value - target
+
+
+def test_behind_line_names_cells_the_adapted_model_cannot_reach(common):
+    """quality_vs_time.py's 'where behind' sentence: a cell behind the peer with its margin, a
+    cell a peer fills where the adapted model has no level (not 'nowhere'), and 'nowhere' only
+    when neither happens."""
+    import importlib
+
+    qvt_bench = importlib.import_module("quality_vs_time")
+    pt = lambda m, db: {"method": m, "setting": "x", "psnr": db, "time_share": 0.1}  # noqa: E731
+    cells = {"a": [{"kind": "time", "share": 0.5, "ours": pt("clod", 20.0), "peer": pt("decimate", 21.0),
+                    "margin_db": -1.0},
+                   {"kind": "time", "share": 0.1, "ours": None, "peer": pt("opacity", 9.0), "margin_db": None}],
+             "b": [{"kind": "time", "share": 0.5, "ours": pt("clod", 22.0), "peer": pt("decimate", 21.0),
+                    "margin_db": 1.0}]}
+    line = qvt_bench.behind_line([{"name": "a", "label": "A"}, {"name": "b", "label": "B"}], cells)
+    assert "A: within 50 % -1.00 dB (decimate); within 10 % no adapted level (opacity 9.00 dB)" in line
+    assert "B: nowhere" in line

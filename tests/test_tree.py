@@ -197,6 +197,27 @@ def test_cost_and_time_budgets_are_cuts_of_the_tree(model):
     assert all(b >= a for a, b in zip(ms, ms[1:]))
 
 
+def test_a_count_budget_that_holds_tier_0_draws_it_without_a_sweep(model, monkeypatch):
+    """A count budget of every tier-0 node in the frustum (or more) is the level s_v = 1: drawn as
+    s_v = 1 draws, found without the budget sweep; one node fewer is solved by the sweep and
+    draws fewer."""
+    g, cams = model
+    cam = cams[0]
+    n0 = int(tree.in_frustum(tree.tiers_of(g)[0], cam).sum())
+    assert 1 < n0 < len(g)
+    want = render_lod(g, cam, 1.0)
+    calls = []
+    real = tree.budget_s_v
+    monkeypatch.setattr(tree, "budget_s_v", lambda *a, **k: calls.append(1) or real(*a, **k))
+    for b in (1.0, n0, n0 + 5):
+        r = render_lod(g, cam, budget=b, budget_in_view=isinstance(b, float))
+        assert r.s_v == 1.0 and torch.equal(r.image, want.image) and r.n_rendered == want.n_rendered
+        assert tree_select(g, cam, budget=b, budget_in_view=isinstance(b, float))[0].s_v == 1.0
+    assert not calls
+    fewer = render_lod(g, cam, budget=n0 - 1)
+    assert calls and fewer.s_v > 1.0 and fewer.n_rendered < want.n_rendered
+
+
 def test_the_renderer_hook_draws_the_cut(model):
     from clod_adapter.renderer_hook import clod_kwargs, clod_rasterization
 

@@ -1529,6 +1529,14 @@ def tree_cut(gaussians: Gaussians, camera, s_v: Optional[float] = None, *, budge
              budget_ms=None, time_model=None, budget_in_view: bool = False,
              hand_over: float = tree.HAND_OVER) -> "tree.TreeCut":
     """The cut of :func:`tree_select` (same arguments and errors), without its attributes."""
+    return _tree_cut(gaussians, camera, s_v, budget=budget, budget_cost=budget_cost, budget_ms=budget_ms,
+                     time_model=time_model, budget_in_view=budget_in_view, hand_over=hand_over)
+
+
+def _tree_cut(gaussians: Gaussians, camera, s_v: Optional[float] = None, *, budget=None, budget_cost=None,
+              budget_ms=None, time_model=None, budget_in_view: bool = False, hand_over: float = tree.HAND_OVER,
+              frustum0: Optional[Tensor] = None) -> "tree.TreeCut":
+    """:func:`tree_cut`, given tier 0's frustum mask [N_0] bool where the caller has it."""
     if sum(x is not None for x in (s_v, budget, budget_cost, budget_ms)) != 1:
         raise ValueError("tree_select: give exactly one of s_v, budget, budget_cost, budget_ms")
     if s_v is not None and not float(s_v) >= 1.0:
@@ -1536,25 +1544,26 @@ def tree_cut(gaussians: Gaussians, camera, s_v: Optional[float] = None, *, budge
     tiers = tree.tiers_of(gaussians)
     if s_v is not None:  # a level: no per-node terms kept
         return tree.cut(tiers, camera, float(s_v), hand_over=hand_over)
-    tt = tree.terms(tiers, camera, hand_over=hand_over)
     if budget is not None:
-        fr0 = tree.in_frustum(tiers[0], camera)
+        fr0 = tree.in_frustum(tiers[0], camera) if frustum0 is None else frustum0
         k = _tree_count(budget, len(gaussians), int(fr0.sum()), budget_in_view)
         if k >= int(fr0.sum()):  # every tier-0 node in the frustum: the level is 1, no sweep
-            return tree.cut(tiers, camera, 1.0, hand_over=hand_over, tt=tt)
+            return tree.cut(tiers, camera, 1.0, hand_over=hand_over)
+        tt = tree.terms(tiers, camera, hand_over=hand_over)
         tt.frustum_masks = [fr0] + [tree.in_frustum(t, camera) for t in tiers[1:]]
         s_v = tree.budget_s_v(tt, k)
-    elif budget_cost is not None or budget_ms is not None:
-        from .cost import DEFAULT_FRAME_TIME_MODEL
+        return tree.cut(tiers, camera, float(s_v), hand_over=hand_over, tt=tt)
+    from .cost import DEFAULT_FRAME_TIME_MODEL
 
-        costs = tree_node_costs(tiers, camera, tt)
-        if budget_cost is not None:
-            limit = float(budget_cost) * float(costs[0].sum()) if float(budget_cost) <= 1.0 else float(budget_cost)
-            s_v = tree.budget_s_v(tt, limit, costs)
-        else:
-            tm = DEFAULT_FRAME_TIME_MODEL if time_model is None else time_model
-            weights = [torch.where(c > 0, tm.per_splat_ms(c), c) for c in costs]
-            s_v = tree.budget_s_v(tt, float(budget_ms) - tm.c0_ms, weights)
+    tt = tree.terms(tiers, camera, hand_over=hand_over)
+    costs = tree_node_costs(tiers, camera, tt)
+    if budget_cost is not None:
+        limit = float(budget_cost) * float(costs[0].sum()) if float(budget_cost) <= 1.0 else float(budget_cost)
+        s_v = tree.budget_s_v(tt, limit, costs)
+    else:
+        tm = DEFAULT_FRAME_TIME_MODEL if time_model is None else time_model
+        weights = [torch.where(c > 0, tm.per_splat_ms(c), c) for c in costs]
+        s_v = tree.budget_s_v(tt, float(budget_ms) - tm.c0_ms, weights)
     return tree.cut(tiers, camera, float(s_v), hand_over=hand_over, tt=tt)
 
 
@@ -1577,8 +1586,13 @@ def _render_tree(gaussians: Gaussians, camera, s_v: Optional[float] = None, *, b
     if s_v is not None and float(s_v) <= 1.0:
         return whole()
     t0 = time.perf_counter()
-    c = tree_cut(gaussians, camera, s_v, budget=budget, budget_cost=budget_cost, budget_ms=budget_ms,
-                 time_model=time_model, budget_in_view=budget_in_view)
+    fr0 = None
+    if budget is not None:  # a count budget that holds tier 0's frustum is s_v = 1: no cut gathered
+        fr0 = tree.in_frustum(tree.tiers_of(gaussians)[0], camera)
+        if _tree_count(budget, len(gaussians), int(fr0.sum()), budget_in_view) >= int(fr0.sum()):
+            return whole((time.perf_counter() - t0) * 1e3)
+    c = _tree_cut(gaussians, camera, s_v, budget=budget, budget_cost=budget_cost, budget_ms=budget_ms,
+                  time_model=time_model, budget_in_view=budget_in_view, frustum0=fr0)
     if c.s_v <= 1.0:  # every s_v >= 1 cut fits the budget: tier 0 whole, as s_v = 1 draws it
         return whole((time.perf_counter() - t0) * 1e3)
     means, quats, scales, opacities, colors = tree.cut_attributes(tree.tiers_of(gaussians), c)

@@ -214,7 +214,8 @@ def summary_md(rec: dict) -> str:
                       f"{rec['gaussians']:,} Gaussians, {rec['views']} test views; input {inp.psnr:.2f} dB in "
                       f"{inp.ms:.1f} ms per frame. Storage: the input {rec['input_bytes'] / 1e6:.1f} MB, the adapted "
                       f"model {rec['adapted_bytes'] / 1e6:.1f} MB (every tier of its tree in one file, "
-                      f"{rec['adapted_bytes'] / rec['input_bytes']:.2f}x).", "", rec["verdict"], "", qvt.cells_markdown(rec["cells"]), "",
+                      f"{rec['adapted_bytes'] / rec['input_bytes']:.2f}x).", "", rec["verdict"], "",
+                      qvt.cells_markdown(rec["cells"]), "",
                       "Goals:", ""] + gl + ["", "Every point:", ""] + head + body) + "\n"
 
 

@@ -1535,8 +1535,9 @@ def tree_cut(gaussians: Gaussians, camera, s_v: Optional[float] = None, *, budge
 
 def _tree_cut(gaussians: Gaussians, camera, s_v: Optional[float] = None, *, budget=None, budget_cost=None,
               budget_ms=None, time_model=None, budget_in_view: bool = False, hand_over: float = tree.HAND_OVER,
-              frustum0: Optional[Tensor] = None) -> "tree.TreeCut":
-    """:func:`tree_cut`, given tier 0's frustum mask [N_0] bool where the caller has it."""
+              whole_as_none: bool = False) -> Optional["tree.TreeCut"]:
+    """:func:`tree_cut`; with ``whole_as_none``, None for a count budget that holds every tier-0
+    node in the frustum (its level is 1: the caller draws tier 0 whole, no cut gathered)."""
     if sum(x is not None for x in (s_v, budget, budget_cost, budget_ms)) != 1:
         raise ValueError("tree_select: give exactly one of s_v, budget, budget_cost, budget_ms")
     if s_v is not None and not float(s_v) >= 1.0:
@@ -1545,10 +1546,10 @@ def _tree_cut(gaussians: Gaussians, camera, s_v: Optional[float] = None, *, budg
     if s_v is not None:  # a level: no per-node terms kept
         return tree.cut(tiers, camera, float(s_v), hand_over=hand_over)
     if budget is not None:
-        fr0 = tree.in_frustum(tiers[0], camera) if frustum0 is None else frustum0
+        fr0 = tree.in_frustum(tiers[0], camera)
         k = _tree_count(budget, len(gaussians), int(fr0.sum()), budget_in_view)
         if k >= int(fr0.sum()):  # every tier-0 node in the frustum: the level is 1, no sweep
-            return tree.cut(tiers, camera, 1.0, hand_over=hand_over)
+            return None if whole_as_none else tree.cut(tiers, camera, 1.0, hand_over=hand_over)
         tt = tree.terms(tiers, camera, hand_over=hand_over)
         tt.frustum_masks = [fr0] + [tree.in_frustum(t, camera) for t in tiers[1:]]
         s_v = tree.budget_s_v(tt, k)
@@ -1574,7 +1575,7 @@ def _render_tree(gaussians: Gaussians, camera, s_v: Optional[float] = None, *, b
     rasterised as one set. Returns its ``LodRender`` (``selection``: tier 0's drawn rows;
     ``n_rendered``: the cut's nodes in view, as the rasteriser culls them; ``n_parents``: the merged
     ones among them; ``level`` 0). ``s_v = 1`` is tier 0 whole, drawn as a plain model (no per-node
-    terms), and so is a budget that holds it (its level solved, then no cut gathered)."""
+    terms), and so is a count budget that holds tier 0's frustum (decided before any cut)."""
     from .render.dispatch import rasterization
 
     def whole(select_ms: float = 0.0):
@@ -1586,14 +1587,9 @@ def _render_tree(gaussians: Gaussians, camera, s_v: Optional[float] = None, *, b
     if s_v is not None and float(s_v) <= 1.0:
         return whole()
     t0 = time.perf_counter()
-    fr0 = None
-    if budget is not None:  # a count budget that holds tier 0's frustum is s_v = 1: no cut gathered
-        fr0 = tree.in_frustum(tree.tiers_of(gaussians)[0], camera)
-        if _tree_count(budget, len(gaussians), int(fr0.sum()), budget_in_view) >= int(fr0.sum()):
-            return whole((time.perf_counter() - t0) * 1e3)
     c = _tree_cut(gaussians, camera, s_v, budget=budget, budget_cost=budget_cost, budget_ms=budget_ms,
-                  time_model=time_model, budget_in_view=budget_in_view, frustum0=fr0)
-    if c.s_v <= 1.0:  # every s_v >= 1 cut fits the budget: tier 0 whole, as s_v = 1 draws it
+                  time_model=time_model, budget_in_view=budget_in_view, whole_as_none=True)
+    if c is None or c.s_v <= 1.0:  # the budget holds tier 0: drawn whole, as s_v = 1 draws it
         return whole((time.perf_counter() - t0) * 1e3)
     means, quats, scales, opacities, colors = tree.cut_attributes(tree.tiers_of(gaussians), c)
     t1 = time.perf_counter()

@@ -1546,12 +1546,12 @@ def _tree_cut(gaussians: Gaussians, camera, s_v: Optional[float] = None, *, budg
     if s_v is not None:  # a level: no per-node terms kept
         return tree.cut(tiers, camera, float(s_v), hand_over=hand_over)
     if budget is not None:
-        fr0 = tree.in_frustum(tiers[0], camera)
-        k = _tree_count(budget, len(gaussians), int(fr0.sum()), budget_in_view)
-        if k >= int(fr0.sum()):  # every tier-0 node in the frustum: the level is 1, no sweep
+        at = tree.frame(tiers, camera)
+        n0 = int(at[1][0].sum())
+        k = _tree_count(budget, len(gaussians), n0, budget_in_view)
+        if k >= n0:  # every tier-0 node in the frustum: the level is 1, no sweep
             return None if whole_as_none else tree.cut(tiers, camera, 1.0, hand_over=hand_over)
-        tt = tree.terms(tiers, camera, hand_over=hand_over)
-        tt.frustum_masks = [fr0] + [tree.in_frustum(t, camera) for t in tiers[1:]]
+        tt = tree.terms(tiers, camera, hand_over=hand_over, at=at)
         s_v = tree.budget_s_v(tt, k)
         return tree.cut(tiers, camera, float(s_v), hand_over=hand_over, tt=tt)
     from .cost import DEFAULT_FRAME_TIME_MODEL

@@ -150,26 +150,63 @@ def assign_parents(children: Gaussians, parents: Gaussians, *, candidates: int =
 def in_frustum(t: Gaussians, camera) -> Tensor:
     """[N] bool: the centres in front of ``camera`` (z > 0.01) projecting inside its image (one pass
     of the C++ kernel of :func:`clod_adapter.lod.frame_terms` on the CPU)."""
-    m = t.means.detach()
-    return lod.frame_terms(m, camera.viewmat.to(m), camera.K.to(m), int(camera.width), int(camera.height))[0]
+    with torch.no_grad():  # the model's own tensor: its cached rows (lod.centre_columns) are reused
+        return lod.frame_terms(t.means, camera.viewmat.to(t.means), camera.K.to(t.means), int(camera.width),
+                               int(camera.height))[0]
 
 
-def _camera(tiers: Sequence[Gaussians], camera) -> tuple[Tensor, float, Tensor]:
-    """Step 1's camera terms: ``(c [3] in the centres' dtype, D, the last tier's d' [N_T])``, ``D``
-    the largest distance of the last tier's centres in the frustum (of all of them when none is)."""
-    roots = tiers[-1].means.detach()
-    c = lod.camera_center(camera.viewmat.detach().double()).to(roots)
-    d = torch.linalg.vector_norm(roots - c, dim=-1)
-    fr = in_frustum(tiers[-1], camera)
-    inside = d[fr] if bool(fr.any()) else d
-    D = max(float(inside.max()), 1e-12) if inside.numel() else 1.0
+def _centre(camera) -> list:
+    """The camera centre in world units, as three Python floats (double)."""
+    return lod.camera_center(camera.viewmat.detach().double()).tolist()
+
+
+def _node_distances(means: Tensor, c: Sequence[float]) -> Tensor:
+    """[N] ``|mu - c|`` in double, rounded to the centres' dtype (as ``tree_frame`` computes it)."""
+    m = means.detach().double()
+    return ((m[:, 0] - c[0]).square() + (m[:, 1] - c[1]).square() + (m[:, 2] - c[2]).square()).sqrt().to(means.dtype)
+
+
+def _normaliser(d_last: Tensor, fr_last: Tensor) -> float:
+    """``D``: the largest distance of the last tier's centres in the frustum (of all of them when
+    none is), at least 1e-12; 1 for an empty tier."""
+    inside = d_last[fr_last] if bool(fr_last.any()) else d_last
+    return max(float(inside.max()), 1e-12) if inside.numel() else 1.0
+
+
+@torch.no_grad()
+def frame(tiers: Sequence[Gaussians], camera) -> tuple[list, list]:
+    """Step 1 for ``camera``, per tier: ``(d' [N_k] in the centres' dtype, frustum [N_k] bool)``
+    (:func:`in_frustum`). One pass of the C++ kernel over every node on the CPU; its twin
+    elsewhere (the same rounding: distances in double rounded to the dtype, divided by ``D``)."""
+    c = _centre(camera)
+    if _native(tiers):
+        from .render.native import load
+
+        dt = tiers[0].means.dtype
+        vm = camera.viewmat.detach().to(torch.float64)
+        K = camera.K.detach().to(torch.float64)
+        out = load().tree_frame([lod.centre_columns(t.means, dt) for t in tiers], vm[:3, :3].reshape(-1).tolist(),
+                                vm[:3, 3].tolist(), float(K[0, 0]), float(K[0, 2]), float(K[1, 1]), float(K[1, 2]),
+                                int(camera.width), int(camera.height), 0.01, c)
+        return out[1::2], out[0::2]
+    frs = [in_frustum(t, camera) for t in tiers]
+    ds = [_node_distances(t.means, c) for t in tiers]
+    D = _normaliser(ds[-1], frs[-1])
+    return [d / D for d in ds], frs
+
+
+def _camera(tiers: Sequence[Gaussians], camera) -> tuple[list, float, Tensor]:
+    """Step 1's camera terms for :func:`walk`: ``(c, D, the last tier's d' [N_T])`` (``c`` three
+    floats), ``D`` the largest distance of the last tier's centres in the frustum."""
+    c = _centre(camera)
+    d = _node_distances(tiers[-1].means, c)
+    D = _normaliser(d, in_frustum(tiers[-1], camera))
     return c, D, d / D
 
 
 def _distances(tiers: Sequence[Gaussians], camera) -> list:
     """Step 1: per tier [N_k] ``d'``, in the centres' dtype."""
-    c, D, d_last = _camera(tiers, camera)
-    return [torch.linalg.vector_norm(t.means.detach() - c, dim=-1) / D for t in tiers[:-1]] + [d_last]
+    return frame(tiers, camera)[0]
 
 
 @torch.no_grad()
@@ -180,8 +217,7 @@ def reference_distances(tiers: Sequence[Gaussians], cameras) -> list[Tensor]:
     c_in = [torch.zeros(len(t), dtype=torch.float64) for t in tiers]
     s_all = [torch.zeros(len(t), dtype=torch.float64) for t in tiers]
     for cam in cameras:
-        ds = _distances(tiers, cam)
-        frs = [in_frustum(t, cam) for t in tiers]
+        ds, frs = frame(tiers, cam)
         for k, (fr, d) in enumerate(zip(frs, ds)):
             d = d.double()
             s_all[k] += d.cpu()
@@ -305,16 +341,18 @@ class TreeTerms:
 
 
 @torch.no_grad()
-def terms(tiers: Sequence[Gaussians], camera, *, hand_over: float = HAND_OVER) -> TreeTerms:
+def terms(tiers: Sequence[Gaussians], camera, *, hand_over: float = HAND_OVER,
+          at: Optional[tuple] = None) -> TreeTerms:
     """Steps 1-3 of the module docstring for ``camera`` (``viewmat`` [4, 4] world-to-camera, ``K``
     [3, 3] pixels, ``width``, ``height`` pixels): every node's entry and end, in ``s_v`` (the
     centres' dtype), and whether it fades. Every node is visited; :func:`walk` visits only what a
-    level needs. Raises KeyError where a tier lacks ``extra["parent"]`` or ``extra["exit"]``."""
+    level needs. ``at``: :func:`frame` of this camera, when the caller has it. Raises KeyError where
+    a tier lacks ``extra["parent"]`` or ``extra["exit"]``."""
     F = float(hand_over)
+    ds, frs = frame(tiers, camera) if at is None else at
     if _native(tiers):
-        out = _native_call("tree_terms", tiers, camera, F)
-        return TreeTerms(out[0::3], out[1::3], out[2::3], list(tiers), camera)
-    ds = _distances(tiers, camera)
+        out = _native_call("tree_terms", tiers, ds, F)
+        return TreeTerms(out[0::3], out[1::3], out[2::3], list(tiers), camera, frs)
     T = len(tiers) - 1
     entry = [None] * (T + 1)
     entry[0] = torch.zeros_like(ds[0])
@@ -325,7 +363,7 @@ def terms(tiers: Sequence[Gaussians], camera, *, hand_over: float = HAND_OVER) -
         entry[k] = e.clamp_min(F ** k)
     ends = [_end(tiers, k, None, entry[k], entry[k + 1][tiers[k].extra[PARENT_KEY].long()] if k < T else None,
                  ds[k], F) for k in range(T + 1)]
-    return TreeTerms(entry, [e for e, _ in ends], [f for _, f in ends], list(tiers), camera)
+    return TreeTerms(entry, [e for e, _ in ends], [f for _, f in ends], list(tiers), camera, frs)
 
 
 def _end(tiers: Sequence[Gaussians], k: int, rows: Optional[Tensor], E: Tensor, U: Optional[Tensor], d: Tensor,
@@ -380,12 +418,13 @@ def _int_parents(tier: Gaussians) -> Tensor:
     return lod.cached_value(tier.extra[PARENT_KEY], "tree_parent64", lambda p: p.long().contiguous())
 
 
-def _native_call(name: str, tiers: Sequence[Gaussians], camera, *args) -> list:
-    """A kernel of ``render/csrc/tree_cut.cpp`` over the tiers' node constants for ``camera``."""
+def _native_call(name: str, tiers: Sequence[Gaussians], ds: Sequence[Tensor], *args) -> list:
+    """A kernel of ``render/csrc/tree_cut.cpp`` over the tiers' node constants at the nodes' ``d'``
+    ``ds`` (:func:`frame`)."""
     from .render.native import load
 
     dt = tiers[0].means.dtype
-    return getattr(load(), name)([d.contiguous() for d in _distances(tiers, camera)],  # d' as the twins round it
+    return getattr(load(), name)([d.contiguous() for d in ds],
                                  [t.sigma_d.detach().to(dt).contiguous() for t in tiers],
                                  [t.extra[EXIT_KEY].detach().to(dt).contiguous() for t in tiers],
                                  [_int_parents(t) for t in tiers[:-1]], [leads(t).contiguous() for t in tiers[:-1]],
@@ -394,8 +433,9 @@ def _native_call(name: str, tiers: Sequence[Gaussians], camera, *args) -> list:
 
 def _native_cut(tiers: Sequence[Gaussians], camera, s: float, F: float) -> TreeCut:
     """:func:`cut` by the C++ twin of :func:`terms` + :func:`cut` (every node, one pass per tier)."""
-    out = _native_call("tree_cut", tiers, camera, s, F)
-    return TreeCut(out[0::3], out[1::3], s, lambda: int(in_frustum(tiers[0], camera).sum()), out[2::3])
+    ds, frs = frame(tiers, camera)
+    out = _native_call("tree_cut", tiers, ds, s, F)
+    return TreeCut(out[0::3], out[1::3], s, lambda: int(frs[0].sum()), out[2::3])
 
 
 def _children(tier: Gaussians) -> tuple[Tensor, Tensor, Tensor]:
@@ -430,7 +470,7 @@ def walk(tiers: Sequence[Gaussians], camera, s_v: float, *, hand_over: float = H
         offset = torch.arange(int(n.sum()), device=n.device) - torch.repeat_interleave(torch.cumsum(n, 0) - n, n)
         rows = order[first + offset]
         U_c = torch.repeat_interleave(E_open, n)
-        d = torch.linalg.vector_norm(tiers[k].means.detach()[rows] - c, dim=-1) / D
+        d = _node_distances(tiers[k].means[rows], c) / D
         if k == 0:
             E_c = torch.zeros_like(U_c)
         else:

@@ -649,6 +649,9 @@ std::vector<torch::Tensor> tree_terms_cpu(std::vector<torch::Tensor> d_norm, std
                                           std::vector<torch::Tensor> leads, double F);
 double tree_budget_cpu(std::vector<torch::Tensor> E, std::vector<torch::Tensor> U,
                        std::vector<torch::Tensor> weights, double k);
+std::vector<torch::Tensor> tree_frame_cpu(std::vector<torch::Tensor> cols, std::vector<double> R, std::vector<double> t,
+                                          double fx, double cx, double fy, double cy, int64_t width, int64_t height,
+                                          double near_plane, std::vector<double> center);
 std::vector<torch::Tensor> tree_attributes_cpu(std::vector<torch::Tensor> attrs, std::vector<torch::Tensor> ids,
                                                std::vector<torch::Tensor> ws, std::vector<torch::Tensor> fades,
                                                std::vector<torch::Tensor> parents, std::vector<torch::Tensor> leads,
@@ -665,5 +668,6 @@ PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
     m.def("tree_cut", &tree_cut_cpu, "the merge tree's cut at one s_v (tree.terms + tree.cut)");
     m.def("tree_terms", &tree_terms_cpu, "every node's entry, end and fade (tree.terms)");
     m.def("tree_budget", &tree_budget_cpu, "the level a budget draws (tree.budget_s_v)");
+    m.def("tree_frame", &tree_frame_cpu, "every node's frustum test and d' (tree.frame)");
     m.def("tree_attributes", &tree_attributes_cpu, "a cut's drawn attributes (tree.cut_attributes)");
 }

@@ -201,17 +201,45 @@ std::vector<torch::Tensor> attributes_impl(const std::vector<torch::Tensor>& att
 }
 
 // the smallest position from which the summed weight of the intervals [lo, hi) holding it stays
-// <= k (budget_s_v); events sorted by position with an LSD radix sort on the float's bits (positive
-// floats order as their bits), three passes of 11 bits
+// <= k (budget_s_v). The events are binned by the top bits of the position (positive floats order
+// as their bits; 128 bins an octave for float, 16 for double): a bin whose start count plus all its
+// entries stays <= k cannot break the bound, so only the last bin that may is sorted and scanned
+// (and the one before it, should the bound prove loose). Exact: the same position as a full sort.
+template <typename S>
+struct BinKey;
+template <>
+struct BinKey<float> {
+    using U = uint32_t;
+    static constexpr int kShift = 16;
+};
+template <>
+struct BinKey<double> {
+    using U = uint64_t;
+    static constexpr int kShift = 48;
+};
+
+template <typename S>
+int64_t bin_of(S v, int64_t base) {
+    typename BinKey<S>::U bits;
+    std::memcpy(&bits, &v, sizeof(S));
+    return static_cast<int64_t>(bits >> BinKey<S>::kShift) - base;
+}
+
 template <typename S>
 double budget_impl(const std::vector<torch::Tensor>& E, const std::vector<torch::Tensor>& U,
                    const std::vector<torch::Tensor>& weights, double k) {
-    size_t total = 1;
-    for (const auto& e : E) total += 2 * static_cast<size_t>(e.numel());
-    std::vector<S> pos;
-    std::vector<double> delta;
-    pos.reserve(total);
-    delta.reserve(total);
+    const int64_t base = bin_of<S>(S(1), 0);
+    const int64_t nbins = bin_of<S>(std::numeric_limits<S>::quiet_NaN(), base) + 2;  // up to inf and NaN
+    std::vector<double> plus(nbins, 0.0), net(nbins, 0.0);
+    std::vector<S> lowest(nbins, std::numeric_limits<S>::infinity());
+    std::vector<char> used(nbins, 0);
+    auto note = [&](S pos, double dw, int64_t b) {
+        if (dw > 0) plus[b] += dw;
+        net[b] += dw;
+        used[b] = 1;
+        lowest[b] = std::min(lowest[b], pos);
+    };
+    note(S(1), 0.0, bin_of<S>(S(1), base));
     for (size_t t = 0; t < E.size(); ++t) {
         const S* e = E[t].data_ptr<S>();
         const S* u = U[t].data_ptr<S>();
@@ -220,57 +248,131 @@ double budget_impl(const std::vector<torch::Tensor>& E, const std::vector<torch:
         for (int64_t i = 0; i < n; ++i) {
             const S lo = std::max(e[i], S(1));
             if (w[i] > 0 && u[i] > lo) {
-                pos.push_back(lo), delta.push_back(w[i]);
-                pos.push_back(u[i]), delta.push_back(-w[i]);
+                note(lo, w[i], bin_of<S>(lo, base));
+                note(u[i], -w[i], std::min(bin_of<S>(u[i], base), nbins - 1));
             }
         }
     }
-    pos.push_back(S(1)), delta.push_back(0.0);
-    const size_t m = pos.size();
-    std::vector<uint32_t> order(m), tmp(m);
-    for (size_t i = 0; i < m; ++i) order[i] = static_cast<uint32_t>(i);
-    if constexpr (std::is_same_v<S, float>) {
-        std::vector<uint32_t> key(m), key_tmp(m);
-        std::memcpy(key.data(), pos.data(), m * sizeof(uint32_t));
-        for (int shift = 0; shift < 32; shift += 11) {  // keys and rows moved together: sequential reads
-            std::vector<size_t> count(2049, 0);
-            for (size_t i = 0; i < m; ++i) ++count[((key[i] >> shift) & 2047u) + 1];
-            for (size_t b = 1; b < count.size(); ++b) count[b] += count[b - 1];
-            for (size_t i = 0; i < m; ++i) {
-                const size_t to = count[(key[i] >> shift) & 2047u]++;
-                key_tmp[to] = key[i];
-                tmp[to] = order[i];
-            }
-            key.swap(key_tmp);
-            order.swap(tmp);
-        }
-    } else {
-        std::stable_sort(order.begin(), order.end(), [&](uint32_t a, uint32_t b) { return pos[a] < pos[b]; });
-    }
-    std::vector<S> uniq;
-    std::vector<double> count;  // summed weight drawn on [uniq[j], uniq[j + 1])
-    double run = 0.0;
-    for (size_t j = 0; j < m; ++j) {
-        const size_t i = order[j];
-        if (uniq.empty() || pos[i] != uniq.back()) {
-            if (!uniq.empty()) count.push_back(run);
-            uniq.push_back(pos[i]);
-        }
-        run += delta[i];
-    }
-    count.push_back(run);
+    std::vector<double> start(nbins + 1, 0.0);  // summed weight drawn before each bin's first position
+    for (int64_t b = 0; b < nbins; ++b) start[b + 1] = start[b] + net[b];
     const double limit = k + 1e-9 * std::abs(k);  // summed in another order than k was
-    int64_t first = -1;
-    double suffix = -std::numeric_limits<double>::infinity();
-    for (int64_t j = static_cast<int64_t>(uniq.size()) - 1; j >= 0; --j) {
-        suffix = std::max(suffix, count[j]);
-        if (suffix <= limit) first = j;
-        else break;
+    bool have = false;  // the smallest position seen so far from which the bound holds
+    S answer = S(1);
+    for (int64_t b = nbins - 1; b >= 0; --b) {
+        if (!used[b]) continue;
+        if (start[b] + plus[b] <= limit) {  // no position of this bin can exceed k
+            answer = lowest[b], have = true;
+            continue;
+        }
+        std::vector<std::pair<S, double>> ev;  // this bin's events, sorted
+        for (size_t t = 0; t < E.size(); ++t) {
+            const S* e = E[t].data_ptr<S>();
+            const S* u = U[t].data_ptr<S>();
+            const double* w = weights[t].data_ptr<double>();
+            const int64_t n = E[t].numel();
+            for (int64_t i = 0; i < n; ++i) {
+                const S lo = std::max(e[i], S(1));
+                if (w[i] > 0 && u[i] > lo) {
+                    if (bin_of<S>(lo, base) == b) ev.emplace_back(lo, w[i]);
+                    if (std::min(bin_of<S>(u[i], base), nbins - 1) == b) ev.emplace_back(u[i], -w[i]);
+                }
+            }
+        }
+        if (bin_of<S>(S(1), base) == b) ev.emplace_back(S(1), 0.0);
+        std::sort(ev.begin(), ev.end(), [](const auto& x, const auto& y) { return x.first < y.first; });
+        std::vector<S> uniq;
+        std::vector<double> count;  // summed weight drawn on [uniq[j], uniq[j + 1])
+        double run = start[b];
+        for (const auto& [pos, dw] : ev) {
+            if (uniq.empty() || pos != uniq.back()) {
+                if (!uniq.empty()) count.push_back(run);
+                uniq.push_back(pos);
+            }
+            run += dw;
+        }
+        count.push_back(run);
+        for (int64_t j = static_cast<int64_t>(uniq.size()) - 1; j >= 0; --j) {
+            if (count[j] > limit) {  // the bound breaks here: it holds from the next position on
+                if (j + 1 < static_cast<int64_t>(uniq.size())) return static_cast<double>(uniq[j + 1]);
+                return static_cast<double>(have ? answer : uniq[j]);
+            }
+            answer = uniq[j], have = true;
+        }
     }
-    return static_cast<double>(first >= 0 ? uniq[first] : uniq.back());
+    return static_cast<double>(answer);
+}
+
+// tree_frame: per tier the frustum test and d' of every node (docs/lod_rule.md step 1): the
+// distance to the camera in double, rounded to S, over D = the largest of the last tier's in the
+// frustum (of all of them when none is), divided in S (tree._frame_twin rounds alike)
+template <typename S>
+std::vector<torch::Tensor> frame_impl(const std::vector<torch::Tensor>& cols, const double* R, const double* t,
+                                      double fx, double cx, double fy, double cy, double width, double height,
+                                      double near_plane, const double* c) {
+    const size_t T = cols.size();
+    std::vector<torch::Tensor> fr(T), d(T);
+    for (size_t k = 0; k < T; ++k) {
+        const int64_t n = cols[k].size(1);
+        fr[k] = torch::empty({n}, cols[k].options().dtype(torch::kBool));
+        d[k] = torch::empty({n}, cols[k].options());
+        const S* x = cols[k].data_ptr<S>();
+        const S *y = x + n, *z = x + 2 * n;
+        bool* f = fr[k].data_ptr<bool>();
+        S* dd = d[k].data_ptr<S>();
+        at::parallel_for(0, n, kGrainCut, [&](int64_t b, int64_t e) {
+            for (int64_t i = b; i < e; ++i) {
+                const double px = x[i], py = y[i], pz = z[i];
+                const double cz = R[6] * px + R[7] * py + R[8] * pz + t[2];
+                const double cxs = R[0] * px + R[1] * py + R[2] * pz + t[0];
+                const double cys = R[3] * px + R[4] * py + R[5] * pz + t[1];
+                const double a = fx * cxs + cx * cz, bb = fy * cys + cy * cz;  // pixel * z
+                f[i] = (cz > near_plane) & (a >= 0.0) & (a < cz * width) & (bb >= 0.0) & (bb < cz * height);
+                const double dx = px - c[0], dy = py - c[1], dz = pz - c[2];
+                dd[i] = static_cast<S>(std::sqrt(dx * dx + dy * dy + dz * dz));
+            }
+        });
+    }
+    const int64_t nT = cols[T - 1].size(1);
+    const bool* fT = fr[T - 1].data_ptr<bool>();
+    const S* dT = d[T - 1].data_ptr<S>();
+    S D = S(0);
+    bool any = false;
+    for (int64_t i = 0; i < nT; ++i)
+        if (fT[i]) D = any ? std::max(D, dT[i]) : dT[i], any = true;
+    if (!any)
+        for (int64_t i = 0; i < nT; ++i) D = i ? std::max(D, dT[i]) : dT[i];
+    D = std::max(D, static_cast<S>(1e-12));
+    if (nT == 0) D = S(1);
+    std::vector<torch::Tensor> out;
+    for (size_t k = 0; k < T; ++k) {
+        S* dd = d[k].data_ptr<S>();
+        const int64_t n = d[k].numel();
+        for (int64_t i = 0; i < n; ++i) dd[i] = dd[i] / D;
+        out.push_back(fr[k]);
+        out.push_back(d[k]);
+    }
+    return out;
 }
 
 }  // namespace
+
+// clod_adapter.tree.frame: cols per tier [3, N_k] contiguous (lod.centre_columns, one dtype); R [9]
+// row-major and t [3] of the world-to-camera matrix; intrinsics and image size in pixels; the camera
+// centre (world). Returns per tier [frustum [N_k] bool, d' [N_k]].
+std::vector<torch::Tensor> tree_frame_cpu(std::vector<torch::Tensor> cols, std::vector<double> R, std::vector<double> t,
+                                          double fx, double cx, double fy, double cy, int64_t width, int64_t height,
+                                          double near_plane, std::vector<double> center) {
+    TORCH_CHECK(!cols.empty() && R.size() == 9 && t.size() == 3 && center.size() == 3, "tree_frame: tiers, R [9], t [3], c [3]");
+    for (const auto& c : cols)
+        TORCH_CHECK(c.dim() == 2 && c.size(0) == 3 && c.is_contiguous() && c.device().is_cpu() &&
+                    c.scalar_type() == cols[0].scalar_type(), "tree_frame: contiguous CPU [3, N] columns of one dtype");
+    std::vector<torch::Tensor> out;
+    AT_DISPATCH_FLOATING_TYPES(cols[0].scalar_type(), "tree_frame", [&] {
+        out = frame_impl<scalar_t>(cols, R.data(), t.data(), fx, cx, fy, cy, static_cast<double>(width),
+                                   static_cast<double>(height), near_plane, center.data());
+    });
+    return out;
+}
 
 // clod_adapter.tree.budget_s_v: per tier E, U [N_k] and weights [N_k] float64
 double tree_budget_cpu(std::vector<torch::Tensor> E, std::vector<torch::Tensor> U,

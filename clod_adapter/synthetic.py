@@ -22,7 +22,7 @@ from .render import rasterization
 DEMO_WIDTH, DEMO_HEIGHT = 160, 120
 
 
-def _look_at(center: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
+def look_at(center: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
     """[4, 4] world-to-camera (OpenCV: x right, y down, z forward) looking from center at target."""
     f = target - center
     f = f / f.norm()
@@ -88,7 +88,7 @@ def make_cameras(rows: int = 3, cols: int = 5, width: int = DEMO_WIDTH,
         for j in range(cols):
             c = torch.tensor([(j - (cols - 1) / 2) * 0.35, (i - (rows - 1) / 2) * 0.3, 0.0],
                              dtype=torch.float64)
-            vm = _look_at(c, target).float()
+            vm = look_at(c, target).float()
             name = f"view{i * cols + j:03d}.png"
             cams.append(Camera(name=name, image_path=Path(name), viewmat=vm, K=K.clone(),
                                width=width, height=height))

@@ -41,7 +41,7 @@ def _synthetic(n: int, width: int, height: int):
 
 def _look_at_model(model, width: int, height: int):
     from clod_adapter.io.scene import Camera
-    from clod_adapter.synthetic import _look_at
+    from clod_adapter.synthetic import look_at
 
     m = model.means.detach().double()
     target = m.median(dim=0).values
@@ -49,7 +49,7 @@ def _look_at_model(model, width: int, height: int):
     center = target - torch.tensor([0.0, 0.0, 1.5], dtype=torch.float64) * spread
     f = 0.9 * width
     K = torch.tensor([[f, 0.0, width / 2], [0.0, f, height / 2], [0.0, 0.0, 1.0]])
-    return Camera(name="view", image_path=Path("view"), viewmat=_look_at(center, target).float(),
+    return Camera(name="view", image_path=Path("view"), viewmat=look_at(center, target).float(),
                   K=K, width=width, height=height)
 
 

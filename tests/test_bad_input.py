@@ -461,6 +461,33 @@ def test_model_from_another_scene_is_refused(tmp_path, capfd):
     assert not out.exists()
 
 
+@pytest.mark.parametrize("damaged", [1, 2])
+def test_a_damaged_training_image_is_named(tiny_model, tmp_path, capfd, damaged):
+    """Checked training images decoded as a cut-short JPEG often is (grey below the break): the
+    message names those images, not the checkpoint. One of three: a warning and the job goes on;
+    two of three (the model's mean PSNR below a flat image's): refused, nothing written."""
+    from clod_adapter.io.load import load_scene
+
+    scene = tmp_path / "scene"
+    shutil.copytree(tiny_model["scene"], scene)
+    train = load_scene(scene).train
+    hit = [Path(train[0].image_path), Path(train[-1].image_path)][:damaged]  # among the checked views
+    for p in hit:
+        with Image.open(p) as im:
+            arr = np.asarray(im.convert("RGB")).copy()
+        arr[arr.shape[0] // 20:] = 128
+        Image.fromarray(arr).save(p)
+    out = tmp_path / "out"
+    code = adapt_main([str(tiny_model["ply"]), "--images", str(scene), "-o", str(out), *FAST])
+    o, e = capfd.readouterr()
+    text = e if damaged == 2 else o
+    assert all(p.stem in text for p in hit) and "damaged" in text and f"renders {3 - damaged} of 3" in text, text
+    if damaged == 2:
+        assert code == 2 and len(e.strip().splitlines()) == 1 and "Traceback" not in e and not out.exists()
+    else:
+        assert code == 0 and "warning:" in o, e
+
+
 @pytest.mark.slow
 def test_allow_mismatch_goes_on(tmp_path, capfd):
     ply = shared_path("fixtures", "plys", "inria_sh3_9080.ply")

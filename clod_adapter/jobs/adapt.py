@@ -139,10 +139,10 @@ MISMATCH_MARGIN_DB = 1.0
 def scene_match(gaussians, cameras, images, *, background, views: int = 3) -> dict:
     """Evidence that ``gaussians`` was trained on this scene, from up to ``views`` training views.
 
-    Returns ``{"psnr", "flat_psnr", "margin_db", "in_view_fraction", "views"}``: the model's mean
-    PSNR on those views, the mean PSNR of a flat image of each view's mean colour, their
-    difference, and the fraction of Gaussians whose centre lies in any training view (over all
-    ``cameras``). ``margin_db < MISMATCH_MARGIN_DB`` means a model from another scene: any model
+    Returns ``{"psnr", "flat_psnr", "margin_db", "in_view_fraction", "views", "view_psnr",
+    "view_flat_psnr"}``: the model's mean PSNR on those views, the mean PSNR of a flat image of each
+    view's mean colour, their difference, the fraction of Gaussians whose centre lies in any
+    training view (over all ``cameras``), the views' names and both PSNRs per view. ``margin_db < MISMATCH_MARGIN_DB`` means a model from another scene: any model
     trained on these views renders them far better than a constant colour.
     """
     from ..metrics import psnr
@@ -160,7 +160,7 @@ def scene_match(gaussians, cameras, images, *, background, views: int = 3) -> di
         fr |= lod.in_frustum(gaussians.means, c.viewmat.to(dev), c.K.to(dev), c.width, c.height)
     m, f = sum(pm) / len(pm), sum(pf) / len(pf)
     return {"psnr": m, "flat_psnr": f, "margin_db": m - f, "in_view_fraction": float(fr.float().mean()),
-            "views": [cameras[i].name for i in idx]}
+            "views": [cameras[i].name for i in idx], "view_psnr": pm, "view_flat_psnr": pf}
 
 
 def resolution_note(train_size, eval_size, source: str) -> Optional[str]:
@@ -803,7 +803,17 @@ def _check_scene_match(inp: _Inputs, cfg: AdaptConfig, o: AdaptOptions) -> None:
         raise InputError(f"{inp.ply_path}: no Gaussian lies inside any training view of {inp.scene_root}; "
                          "is the model from another scene?")
     match = scene_match(g, inp.scene.train, inp.train_imgs, background=cfg.background)
-    if match["margin_db"] < MISMATCH_MARGIN_DB:
+    margins = [a - b for a, b in zip(match["view_psnr"], match["view_flat_psnr"])]
+    bad = [i for i, v in enumerate(margins) if v < MISMATCH_MARGIN_DB]
+    if bad and len(bad) < len(margins):  # the model renders the others: the images are suspect
+        views = ", ".join(f"{match['views'][i]} ({match['view_psnr'][i]:.2f} dB, a flat image "
+                          f"{match['view_flat_psnr'][i]:.2f} dB)" for i in bad)
+        what = (f"{inp.scene_root}: the model {inp.ply_path} renders {len(margins) - len(bad)} of {len(margins)} "
+                f"checked training views but not {views}: is that image damaged, or from another capture?")
+        if match["margin_db"] < MISMATCH_MARGIN_DB and not o.allow_mismatch:
+            raise InputError(what + " (--allow-mismatch goes on anyway)")
+        o.log(f"clod-adapt: warning: {what}; going on")
+    elif match["margin_db"] < MISMATCH_MARGIN_DB:
         what = (f"{inp.ply_path}: the model does not render {inp.scene_root}: {match['psnr']:.2f} dB PSNR on "
                 f"{len(match['views'])} training views, not above a flat image of their mean colour "
                 f"({match['flat_psnr']:.2f} dB); {100 * match['in_view_fraction']:.0f} % of its Gaussians "
@@ -1021,7 +1031,7 @@ def deterministic_mode(on: bool = True):
         return
     from ..render import composite
 
-    prev = composite._DETERMINISTIC
+    prev = composite.deterministic_override()
     prev_alg = torch.are_deterministic_algorithms_enabled()
     prev_warn = torch.is_deterministic_algorithms_warn_only_enabled()
     composite.set_deterministic(True)

@@ -29,6 +29,7 @@ __all__ = [
     "rasterize_to_pixels",
     "cpp_extension_available",
     "deterministic_enabled",
+    "deterministic_override",
     "set_deterministic",
 ]
 
@@ -59,6 +60,11 @@ def set_deterministic(flag: Optional[bool]) -> None:
     bits. The forward and the PyTorch twin are deterministic either way."""
     global _DETERMINISTIC
     _DETERMINISTIC = None if flag is None else bool(flag)
+
+
+def deterministic_override() -> Optional[bool]:
+    """What :func:`set_deterministic` last set (None: the environment decides), to restore it."""
+    return _DETERMINISTIC
 
 
 def deterministic_enabled() -> bool:

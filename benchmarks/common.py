@@ -41,7 +41,7 @@ RUNS = REPO / "runs" / "bench"
 if (SHARED / "lpips" / "lpips_alex_v0.1.safetensors").is_file():  # the package looks in the user cache
     os.environ.setdefault("CLOD_LPIPS_WEIGHTS", str(SHARED / "lpips" / "lpips_alex_v0.1.safetensors"))
 
-from clod_adapter.training import AdaptConfig  # noqa: E402
+from clod_adapter.train.config import AdaptConfig  # noqa: E402
 from clod_adapter.io.load import load_model  # noqa: E402
 from clod_adapter.io.load import load_scene  # noqa: E402
 from clod_adapter.io.scene import validation_split  # noqa: E402
@@ -176,7 +176,7 @@ def resolve_input(name: str) -> tuple[Path, Path, int]:
     if name in INPUTS:
         ply, scene, res = INPUTS[name]
         if name == "demo":
-            from clod_adapter.synthetic import build_demo_scene
+            from clod_adapter.io.synthetic import build_demo_scene
 
             root = RUNS / "demo_input"
             scene, ply = root / "scene", root / "pretrained" / "point_cloud.ply"
@@ -201,7 +201,7 @@ def parse_config(items) -> tuple[dict, str]:
     Raises:
         SystemExit: a key AdaptConfig does not have, or an item without ``=``.
     """
-    from clod_adapter.training import AdaptConfig
+    from clod_adapter.train.config import AdaptConfig
 
     base, config = AdaptConfig(), {}
     for kv in items:

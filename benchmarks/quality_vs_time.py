@@ -3,7 +3,7 @@
 For each input (default: the shared fern, MaskGaussian fern and skull checkpoints; any checkpoint
 with ``--input NAME=PLY:SCENE[:RES]``) this adapts the pretrained model with ``clod-adapt``'s
 defaults (cached under ``runs/bench/<input>/default``, common.py), then runs the comparison
-``clod-eval`` runs (:func:`clod_adapter.quality_vs_time.compare`, one implementation): the input;
+``clod-eval`` runs (:func:`clod_adapter.evaluate.comparison.compare`, one implementation): the input;
 the adapted model along ``s_v`` and at cost budgets; LightGaussian and opacity cuts; splat-transform
 3.7.0's ``--decimate`` and ``--decimate-adaptive`` (required: a missing splat-transform stops the
 benchmark); the equal-count points; every setting timed in interleaved shuffled rounds in one run,
@@ -29,7 +29,7 @@ asks for more than the input scores: each is capped at input - 0.1 dB):
   (a cached run without it is reported as a miss: adapt it again);
 * where the per-budget ceiling (test split, ``--ceiling-steps``; one model per decimator share,
   fine-tuned on the fit views, its step chosen on the validation views,
-  :func:`clod_adapter.quality_vs_time.ceiling_settings`) scores below a target, the target is the
+  :func:`clod_adapter.evaluate.comparison.ceiling_settings`) scores below a target, the target is the
   ceiling - 0.2 dB; each goal row names the rule that set its target.
 
 Outputs in ``runs/bench/quality_vs_time{_val}/<tag>/``: ``<input>.csv`` (every point),
@@ -60,10 +60,10 @@ import common
 from common import LABELS, REPO, add_inputs_args, add_split_arg, adapt_cached, load_input, parse_config, \
     scene_views, selected_inputs, setup_threads, split_suffix
 
-from clod_adapter import quality_vs_time as qvt
+from clod_adapter.evaluate import comparison as qvt
 from clod_adapter.io.atomic import atomic_write
 from clod_adapter.io.load import load_model
-from clod_adapter.training import AdaptConfig
+from clod_adapter.train.config import AdaptConfig
 
 FULL_DB, FULL_MS, MARGIN_DB, COUNT_DB, CEILING_DB = 0.1, 1.05, 1.0, 0.5, 0.2
 #: issue 62's cost goals: the largest frame-time step along a sweep, and at equal count against a decimator
@@ -149,7 +149,7 @@ def goals(name: str, comp: qvt.Comparison, cs: list) -> list[dict]:
 
 
 def cost_goals(name: str, comp: qvt.Comparison) -> list[dict]:
-    """Issue 62's goals 1 and 2 (:func:`clod_adapter.quality_vs_time.cost_follows`): along the
+    """Issue 62's goals 1 and 2 (:func:`clod_adapter.evaluate.comparison.cost_follows`): along the
     ``s_v`` sweep and the count budgets no frame over :data:`COST_STEP` x a more detailed frame's
     time, none over the input's; at equal count at most :data:`COUNT_MS` x the decimator's time."""
     c = qvt.cost_follows(comp)
@@ -164,11 +164,11 @@ def cost_goals(name: str, comp: qvt.Comparison) -> list[dict]:
 def popping_goals(name: str, adapted, base, fit, cameras) -> list[dict]:
     """Goal 6's rows: ``clod-eval``'s popping ratio (one static switch of the input cut by
     LightGaussian significance against the largest step of the sweep) along ``s_v`` through every
-    tier (:func:`clod_adapter.popping.popping_ratio`) and along count budgets from 100 % to 1 % of
-    the Gaussians in view (:func:`clod_adapter.popping.popping_budget_ratio`), on every scored
-    view: the smallest and the median of each >= :data:`clod_adapter.popping.POPPING_GOAL`."""
-    from clod_adapter.baselines import lightgaussian_significance
-    from clod_adapter.popping import POPPING_GOAL, popping_budget_ratio, popping_ratio
+    tier (:func:`clod_adapter.evaluate.popping.popping_ratio`) and along count budgets from 100 % to 1 % of
+    the Gaussians in view (:func:`clod_adapter.evaluate.popping.popping_budget_ratio`), on every scored
+    view: the smallest and the median of each >= :data:`clod_adapter.evaluate.popping.POPPING_GOAL`."""
+    from clod_adapter.lod.rankings import lightgaussian_significance
+    from clod_adapter.evaluate.popping import POPPING_GOAL, popping_budget_ratio, popping_ratio
 
     scores = lightgaussian_significance(base, list(fit))
     rows = []
@@ -232,7 +232,7 @@ def table_record(rec: dict) -> dict:
 
 def within_from_cells(cells: list[dict]) -> dict:
     """The table's best adapted and best peer PSNR within each of :data:`TABLE_SHARES`, read
-    from the comparison's time cells (:func:`clod_adapter.quality_vs_time.cells_json`)."""
+    from the comparison's time cells (:func:`clod_adapter.evaluate.comparison.cells_json`)."""
     out = {}
     for sh in TABLE_SHARES:
         c = next(c for c in cells if c["kind"] == "time" and math.isclose(c["share"], sh))
@@ -245,7 +245,7 @@ def within_from_cells(cells: list[dict]) -> dict:
 def results_table(records: list[dict], cells: dict) -> str:
     """The README's results table from docs/results.json's records (PSNR in dB on the test views)
     and, below it, where the adapted model is behind the best peer (from ``cells``: input name ->
-    :func:`clod_adapter.quality_vs_time.cells_json`)."""
+    :func:`clod_adapter.evaluate.comparison.cells_json`)."""
     f = lambda v: "-" if v is None else f"{v:.2f}"  # noqa: E731
     head = ("| scene | Gaussians | input | adapted, full detail (time) | "
             + " | ".join(f"within {100 * s:.0f} %: adapted / best peer" for s in TABLE_SHARES)
@@ -378,7 +378,7 @@ def main(argv=None) -> int:
     names = selected_inputs(args)
     config, tag = parse_config(args.config)
     setup_threads(args.threads)
-    from clod_adapter.splat_transform import find_splat_transform
+    from clod_adapter.io.splat_transform import find_splat_transform
 
     tool = find_splat_transform()
     if tool is None:
@@ -387,7 +387,7 @@ def main(argv=None) -> int:
     out.mkdir(parents=True, exist_ok=True)
     lpips_fn = None
     if not args.no_lpips:
-        from clod_adapter.lpips import load_lpips
+        from clod_adapter.evaluate.lpips import load_lpips
 
         lpips_fn = load_lpips()
     records = []

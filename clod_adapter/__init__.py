@@ -21,15 +21,15 @@ __version__ = "0.1.0"
 
 #: public name -> (module, attribute)
 _EXPORTS = {
-    "Gaussians": ("gaussians", "Gaussians"), "LodSettings": ("lod", "LodSettings"),
+    "Gaussians": ("gaussians", "Gaussians"), "LodSettings": ("lod_settings", "LodSettings"),
     "load_model": ("io.load", "load_model"), "read_ply": ("io.ply", "read_ply"), "write_ply": ("io.ply", "write_ply"),
     "load_scene": ("io.load", "load_scene"), "Camera": ("io.scene", "Camera"), "Scene": ("io.scene", "Scene"),
-    "render_lod": ("camera_lod", "render_lod"), "lod_subset": ("camera_lod", "lod_subset"),
-    "view_lod": ("camera_lod", "view_lod"), "LodView": ("camera_lod", "LodView"),
-    "clod_rasterization": ("renderer_hook", "clod_rasterization"),
-    "clod_kwargs": ("renderer_hook", "clod_kwargs"),
+    "render_lod": ("lod.draw", "render_lod"), "lod_subset": ("lod.draw", "lod_subset"),
+    "view_lod": ("lod.draw", "view_lod"), "LodView": ("lod.draw", "LodView"),
+    "clod_rasterization": ("lod.hook", "clod_rasterization"),
+    "clod_kwargs": ("lod.hook", "clod_kwargs"),
     "rasterization": ("render", "rasterization"),
-    "AdaptConfig": ("training", "AdaptConfig"), "prepare": ("training", "prepare"), "adapt": ("training", "adapt"),
+    "AdaptConfig": ("train.config", "AdaptConfig"), "prepare": ("train.loop", "prepare"), "adapt": ("train.loop", "adapt"),
     "run_adapt_job": ("jobs.adapt", "run"), "AdaptOptions": ("jobs.adapt", "AdaptOptions"),
     "evaluate_report": ("jobs.eval", "evaluate_report"), "EvalOptions": ("jobs.eval", "EvalOptions"),
     "export_model": ("jobs.export", "export"), "ExportOptions": ("jobs.export", "ExportOptions"),

@@ -8,10 +8,10 @@ SH coefficients split as ``sh0`` [N, 1, 3] and ``shN`` [N, K-1, 3] with K = (deg
 (Cheng et al., ICLR 2026, Eq. 2; ``None`` for a model that has not been adapted).
 
 An adapted model may also carry *level gains* (this project's extension, docs/method.md "The
-calibrated schedule"): raw offsets added at level ``l`` in [0, 1] (:func:`clod_adapter.lod.level`)
+calibrated schedule"): raw offsets added at level ``l`` in [0, 1] (:func:`clod_adapter.lod.rule.level`)
 as ``opacity_logits + l * opacity_logit_gain``, ``log_scales + l * log_scale_gain`` (one scalar
 for the three axes) and ``sh0 + l * sh0_gain``. At full detail (``l = 0``) the model is exactly
-its base attributes. ``lod`` holds the settings it is drawn with (:class:`clod_adapter.lod.LodSettings`).
+its base attributes. ``lod`` holds the settings it is drawn with (:class:`clod_adapter.lod.rule.LodSettings`).
 
 ``extra`` carries per-Gaussian values the model does not use but a checkpoint had (e.g.
 MaskGaussian's ``masks_0``/``masks_1``), so that they survive a read, an adaptation and a write
@@ -26,7 +26,7 @@ from typing import Optional, Sequence
 import torch
 from torch import Tensor
 
-from .lod import LodSettings
+from .lod_settings import LodSettings
 
 SH_C0 = 0.28209479177387814  # Y_0^0, as in the official 3DGS utils/sh_utils.py
 
@@ -64,9 +64,9 @@ class Gaussians:
             rendered (e.g. ``masks_0``, ``masks_1``); empty by default.
         parents: the parent tier, or None: an adapted model of merged Gaussians (M of them, its
             own ``sigma_d`` and gains) that the coarse levels cross-fade to from
-            ``lod.tier_s_v`` on (:func:`clod_adapter.lod.tier_weight`; docs/method.md "Merged tiers"),
+            ``lod.tier_s_v`` on (:func:`clod_adapter.lod.rule.tier_weight`; docs/method.md "Merged tiers"),
             with its own ``parents`` for the next tier of a chain
-            (:func:`clod_adapter.camera_lod.tier_chain`). Moved and copied with the model; a
+            (:func:`clod_adapter.lod.draw.tier_chain`). Moved and copied with the model; a
             :meth:`subset` drops it.
     """
 
@@ -143,7 +143,7 @@ class Gaussians:
 
     def at_level(self, ell: float) -> "Gaussians":
         """The model's attributes at level ``ell`` (>= 0; 1 at ``max_sv``, up to
-        ``LodSettings.level_max``: :func:`clod_adapter.lod.level`): base attributes plus ``ell``
+        ``LodSettings.level_max``: :func:`clod_adapter.lod.rule.level`): base attributes plus ``ell``
         times the level gains (differentiable in both). ``ell = 0`` or no gains: ``self``."""
         if ell == 0.0 or not self.has_gains:
             return self

@@ -54,7 +54,7 @@ class LodSettings:
         tier_fade: the cross-fade lasts from ``tier_s_v`` to ``tier_fade * tier_s_v`` (> 1).
         tree: the tiers form a merge tree (each Gaussian of a tier names its parent in the next,
             ``Gaussians.extra["parent"]``) and an ``s_v`` or count budget draws one cut of it
-            (:mod:`clod_adapter.tree`; docs/lod_rule.md) instead of cross-fading whole tiers.
+            (:mod:`clod_adapter.lod.tree`; docs/lod_rule.md) instead of cross-fading whole tiers.
     """
 
     max_sv: float = 5.0

@@ -5,7 +5,7 @@
 
 PLY defaults to ``runs/fern/point_cloud.ply`` when it exists (the output of ``clod-adapt``, which
 carries ``sigma_d``); otherwise (or with ``--synthetic``) a small synthetic model is built with
-``clod_adapter.synthetic`` and given a made-up ``sigma_d``. The camera is the first test view of
+``clod_adapter.io.synthetic`` and given a made-up ``sigma_d``. The camera is the first test view of
 ``--scene`` (COLMAP or NeRF-synthetic folder) when given, else the synthetic camera grid's centre
 view, else a camera looking at the model's median from its -z side. One camera is rendered at
 s_v = 1, 2, 4, at a budget of a quarter of the Gaussians at s_v = 1 and, for a model with a parent
@@ -30,7 +30,7 @@ DEFAULT_PLY = REPO / "runs" / "fern" / "point_cloud.ply"
 
 
 def _synthetic(n: int, width: int, height: int):
-    from clod_adapter.synthetic import make_cameras, make_ground_truth
+    from clod_adapter.io.synthetic import make_cameras, make_ground_truth
 
     gt = make_ground_truth(n, seed=0)
     g = torch.Generator().manual_seed(0)
@@ -41,7 +41,7 @@ def _synthetic(n: int, width: int, height: int):
 
 def _look_at_model(model, width: int, height: int):
     from clod_adapter.io.scene import Camera
-    from clod_adapter.synthetic import look_at
+    from clod_adapter.io.synthetic import look_at
 
     m = model.means.detach().double()
     target = m.median(dim=0).values
@@ -110,7 +110,7 @@ def main(argv=None) -> int:
             print(f"{label:>12}: {n:8d} Gaussians rendered{par} (s_v {meta['lod_s_v'][0]:.3f}), {ms:8.1f} ms")
             tiles.append(col[0])
             caps.append(f"{label}\n{n:,} Gaussians")
-    from clod_adapter.figures import label_panels
+    from clod_adapter.export.figures import label_panels
 
     out = Path(args.out)
     out.parent.mkdir(parents=True, exist_ok=True)

@@ -60,12 +60,12 @@ def write_tiny_scene(root: Path, n: int = 400, rows: int = 2, cols: int = 5, wid
                      height: int = 48, seed: int = 4):
     """A tiny synthetic COLMAP scene under ``root``: returns (scene folder, pretrained .ply).
 
-    Ground truth from :func:`clod_adapter.synthetic.make_ground_truth` rendered from a
+    Ground truth from :func:`clod_adapter.io.synthetic.make_ground_truth` rendered from a
     ``rows x cols`` camera grid; the .ply is a perturbed copy (the "pretrained" stand-in).
     """
     from clod_adapter.io.ply import write_ply
     from clod_adapter.io.colmap import write_colmap_scene
-    from clod_adapter.synthetic import make_cameras, make_ground_truth, perturb
+    from clod_adapter.io.synthetic import make_cameras, make_ground_truth, perturb
 
     gt = make_ground_truth(n, seed=seed)
     cams = make_cameras(rows, cols, width=width, height=height)

@@ -37,7 +37,7 @@ RUN_FAST = ["--iterations", "2", "--max-sv", "2"]
 @pytest.fixture(scope="module")
 def tiny_src(tmp_path_factory) -> Path:
     from clod_adapter.io.colmap import write_colmap_scene
-    from clod_adapter.synthetic import make_cameras, make_ground_truth, perturb
+    from clod_adapter.io.synthetic import make_cameras, make_ground_truth, perturb
 
     root = tmp_path_factory.mktemp("tiny")
     gt = make_ground_truth(300, seed=4)
@@ -192,7 +192,7 @@ def test_nan_inf_is_an_error_by_default(tiny, capfd):
 
 
 def test_sanitize_drops_nonfinite_and_clamps_inf_opacity(tiny, capfd):
-    from clod_adapter.jobs.adapt import SANITIZE_OPACITY_LOGIT
+    from clod_adapter.jobs.adapt_inputs import SANITIZE_OPACITY_LOGIT
 
     ply = _with_nonfinite(tiny)
     before = ply.read_bytes()
@@ -208,7 +208,7 @@ def test_sanitize_drops_nonfinite_and_clamps_inf_opacity(tiny, capfd):
 
 def test_real_inf_opacity_fixture(tiny, capfd):
     """guitar_sh0_nonormals.ply stores 667 opacities of exactly 1 as logit +Inf."""
-    from clod_adapter.jobs.adapt import SANITIZE_OPACITY_LOGIT, check_finite
+    from clod_adapter.jobs.adapt_inputs import SANITIZE_OPACITY_LOGIT, check_finite
 
     guitar = shared_path("fixtures", "plys", "guitar_sh0_nonormals.ply")
     _assert_bad(tiny, [guitar, "--images", tiny / "scene"], capfd, "guitar_sh0_nonormals.ply",
@@ -486,6 +486,28 @@ def test_a_damaged_training_image_is_named(tiny_model, tmp_path, capfd, damaged)
         assert code == 2 and len(e.strip().splitlines()) == 1 and "Traceback" not in e and not out.exists()
     else:
         assert code == 0 and "warning:" in o, e
+
+
+def test_an_internal_error_is_not_reported_as_bad_input(tiny_model, tmp_path, monkeypatch, capfd):
+    """A ValueError from inside a job is a bug, not bad input: it propagates with its traceback
+    (exit status 1 from the console script) instead of one 'error:' line and exit 2; an
+    InputError (and the .ply / scene errors, which are InputErrors) is the one-line exit 2."""
+    from clod_adapter.errors import InputError
+    from clod_adapter.io.ply import PlyFormatError
+    from clod_adapter.io.scene import SceneError
+    from clod_adapter.jobs import adapt_inputs, run_cli
+
+    def broken(*a, **k):
+        raise ValueError("internal: an index went wrong")
+
+    monkeypatch.setattr(adapt_inputs, "scene_match", broken)
+    out = tmp_path / "out"
+    with pytest.raises(ValueError, match="internal: an index went wrong"):
+        adapt_main([str(tiny_model["ply"]), "--images", str(tiny_model["scene"]), "-o", str(out), *FAST])
+    assert issubclass(PlyFormatError, InputError) and issubclass(SceneError, InputError)
+    capfd.readouterr()
+    assert run_cli("prog", lambda: (_ for _ in ()).throw(SceneError("here", "no images"))) == 2
+    assert err_line(capfd) == "prog: error: here: no images"
 
 
 @pytest.mark.slow

@@ -1,4 +1,4 @@
-"""The merging-decimator peer (clod_adapter.baselines.merge_decimate): the pinned splat-transform
+"""The merging-decimator peer (clod_adapter.lod.rankings.merge_decimate): the pinned splat-transform
 (root package.json, installed by ``npm ci``) run for real when it is found, and the failure modes
 with stand-in scripts (absent tool, a tool that fails, one that returns another count)."""
 from __future__ import annotations
@@ -11,10 +11,11 @@ from pathlib import Path
 import pytest
 import torch
 
-from clod_adapter import baselines, splat_transform
-from clod_adapter.baselines import merge_decimate
-from clod_adapter.splat_transform import SPLAT_TRANSFORM_ENV, find_splat_transform
-from clod_adapter.synthetic import make_ground_truth
+from clod_adapter.lod import rankings as baselines
+from clod_adapter.io import splat_transform
+from clod_adapter.lod.rankings import merge_decimate
+from clod_adapter.io.splat_transform import SPLAT_TRANSFORM_ENV, find_splat_transform
+from clod_adapter.io.synthetic import make_ground_truth
 
 TOOL = find_splat_transform()
 needs_tool = pytest.mark.skipif(

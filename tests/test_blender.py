@@ -16,7 +16,7 @@ from clod_adapter.io.blender import load_blender_scene
 from clod_adapter.io.scene import SceneError
 from clod_adapter.io.load import load_scene, scene_format
 from clod_adapter.render import rasterization
-from clod_adapter.synthetic import make_cameras, make_ground_truth, perturb
+from clod_adapter.io.synthetic import make_cameras, make_ground_truth, perturb
 
 REPO = Path(__file__).resolve().parents[1]
 W, H = 40, 30

@@ -4,8 +4,8 @@ from dataclasses import replace
 import pytest
 import torch
 
-from clod_adapter import lod
-from clod_adapter.budget import budget_count, critical_s_v, select_budget
+from clod_adapter.lod import rule as lod
+from clod_adapter.lod.budget import budget_count, critical_s_v, select_budget
 
 
 def _rand(n=400, seed=0):
@@ -72,8 +72,8 @@ def test_budget_count():
 
 
 def test_render_lod_budget_renders_exactly_k():
-    from clod_adapter.camera_lod import render_lod
-    from clod_adapter.synthetic import make_cameras, make_ground_truth
+    from clod_adapter.lod.draw import render_lod
+    from clod_adapter.io.synthetic import make_cameras, make_ground_truth
 
     gt = make_ground_truth(600, seed=1)
     g = gt.with_sigma_d(torch.rand(600, generator=torch.Generator().manual_seed(0)) * 0.5 + 0.05)
@@ -88,8 +88,8 @@ def test_render_lod_budget_renders_exactly_k():
 
 
 def test_render_lod_budget_is_a_cap_at_s_v_1():
-    from clod_adapter.camera_lod import render_lod
-    from clod_adapter.synthetic import make_cameras, make_ground_truth
+    from clod_adapter.lod.draw import render_lod
+    from clod_adapter.io.synthetic import make_cameras, make_ground_truth
 
     gt = make_ground_truth(600, seed=1)
     g = gt.with_sigma_d(torch.rand(600, generator=torch.Generator().manual_seed(0)) * 0.5 + 0.05)
@@ -105,7 +105,7 @@ def test_render_lod_budget_is_a_cap_at_s_v_1():
 def test_select_budget_matches_a_stable_sort():
     """The O(N) selection returns what a stable descending sort does (ties broken by index),
     over many ties, candidate masks and k."""
-    from clod_adapter.budget import _select_budget_sorted
+    from clod_adapter.lod.budget import _select_budget_sorted
 
     g = torch.Generator().manual_seed(0)
     for trial in range(60):
@@ -138,8 +138,8 @@ def test_a_budget_projects_a_prefix_and_selects_what_the_whole_projection_select
     frustum, never in view) and ties; and projects fewer than the whole model for a small one."""
     from dataclasses import replace as dc_replace
 
-    from clod_adapter.camera_lod import view_lod
-    from clod_adapter.synthetic import make_cameras, make_ground_truth
+    from clod_adapter.lod.view import view_lod
+    from clod_adapter.io.synthetic import make_cameras, make_ground_truth
 
     n = 3000
     gen = torch.Generator().manual_seed(3)
@@ -179,7 +179,7 @@ def test_a_budget_projects_a_prefix_and_selects_what_the_whole_projection_select
 def _window_model(n: int, seed: int, share_small: float = 0.5):
     """A window-fade model in which ``share_small`` of the Gaussians have a tiny ``sigma_d``, so
     their critical s_v is below 1 (the paper's mask drops them at s_v = 1; full detail draws them)."""
-    from clod_adapter.synthetic import make_ground_truth
+    from clod_adapter.io.synthetic import make_ground_truth
 
     g = make_ground_truth(n, seed=seed)
     gen = torch.Generator().manual_seed(seed + 3)
@@ -193,9 +193,10 @@ def test_a_window_budget_never_draws_more_than_k():
     s_v is below 1 in the view. A budget between what the mask keeps at s_v = 1 and every Gaussian in
     view draws exactly k (at the solved s_v below 1), not full detail; one that holds every
     Gaussian in view draws full detail; through a chain of tiers (tier_start 1) no budget draws more."""
-    from clod_adapter import tiers
-    from clod_adapter.camera_lod import render_lod, view_lod
-    from clod_adapter.synthetic import make_cameras
+    from clod_adapter.train import tiers
+    from clod_adapter.lod.draw import render_lod
+    from clod_adapter.lod.view import view_lod
+    from clod_adapter.io.synthetic import make_cameras
 
     g = _window_model(800, 0)
     cam = make_cameras(1, 1, 64, 48)[0]

@@ -1,4 +1,4 @@
-"""clod_adapter.camera_lod (and the weighted training budget that uses it): levels and frame cost,
+"""clod_adapter.lod.draw (and the weighted training budget that uses it): levels and frame cost,
 full detail in every view, the s_v frame that projects only what its mask keeps, and in-view shares
 (the cost-weighted calibration is tested in test_whole_range.py beside the count one)."""
 from __future__ import annotations
@@ -8,11 +8,13 @@ from dataclasses import replace
 import pytest
 import torch
 
-from clod_adapter import lod
-from clod_adapter.training import AdaptConfig, weighted_count
-from clod_adapter.cost import splat_cost
-from clod_adapter.synthetic import make_cameras, make_ground_truth
-from clod_adapter.camera_lod import render_lod, view_lod
+from clod_adapter.lod import rule as lod
+from clod_adapter.train.config import AdaptConfig
+from clod_adapter.train.loop import weighted_count
+from clod_adapter.lod.cost import splat_cost
+from clod_adapter.io.synthetic import make_cameras, make_ground_truth
+from clod_adapter.lod.draw import render_lod
+from clod_adapter.lod.view import view_lod
 
 
 @pytest.fixture(scope="module")

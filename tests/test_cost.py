@@ -4,10 +4,11 @@ from dataclasses import replace
 import pytest
 import torch
 
-from clod_adapter import lod
-from clod_adapter.cost import FrameTimeModel, cost_prefix, cost_units, splat_cost
-from clod_adapter.synthetic import make_cameras, make_ground_truth
-from clod_adapter.camera_lod import lod_subset, render_lod, view_lod
+from clod_adapter.lod import rule as lod
+from clod_adapter.lod.cost import FrameTimeModel, cost_prefix, cost_units, splat_cost
+from clod_adapter.io.synthetic import make_cameras, make_ground_truth
+from clod_adapter.lod.draw import lod_subset, render_lod
+from clod_adapter.lod.view import view_lod
 
 
 def _model(n=1500, seed=0, window=False, gains=False):
@@ -202,9 +203,3 @@ def test_eq2_cost_budget_is_exact(scene):
         assert _drawn_cost(view, sel) <= b + 1e-6
         nxt = view.select(budget=k + 1, min_s_v=0.0)
         assert _drawn_cost(view, nxt) > b
-
-
-def test_constants_match_the_view():
-    from clod_adapter import camera_lod as view, cost
-
-    assert (cost.EPS2D, cost.TILE_SIZE) == (view.EPS2D, view.TILE_SIZE)

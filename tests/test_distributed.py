@@ -25,7 +25,8 @@ from pathlib import Path
 import pytest
 import torch
 
-from clod_adapter.training import AdaptConfig, load_state
+from clod_adapter.train.config import AdaptConfig
+from clod_adapter.train.state import load_state
 from conftest import REPO, write_tiny_scene
 
 ITERATIONS = 24
@@ -204,9 +205,9 @@ def test_views_per_step_is_the_mean_of_the_views():
 
 
 def _check_views_per_step():
-    from clod_adapter.training import adapt, prepare, view_loss
-    from clod_adapter import lod
-    from clod_adapter.synthetic import make_cameras, make_ground_truth, perturb
+    from clod_adapter.train.loop import adapt, prepare, view_loss
+    from clod_adapter.lod import rule as lod
+    from clod_adapter.io.synthetic import make_cameras, make_ground_truth, perturb
     from conftest import render_views
 
     gt = make_ground_truth(300, seed=2)
@@ -272,9 +273,9 @@ def test_a_stop_request_from_another_rank_stops_after_the_same_step():
     step 3, this rank finishes step 3 and stops before step 4 (saving through on_interrupt),
     although it never saw a signal itself. The other rank is simulated: it adds nothing to the
     gradients and the records of its views, and its stop flag at the third reduction."""
-    from clod_adapter.training import adapt, prepare
-    from clod_adapter.distributed import Group
-    from clod_adapter.synthetic import make_cameras, make_ground_truth, perturb
+    from clod_adapter.train.loop import adapt, prepare
+    from clod_adapter.train.distributed import Group
+    from clod_adapter.io.synthetic import make_cameras, make_ground_truth, perturb
     from conftest import render_views
 
     class OtherRankSignals(Group):

@@ -1,4 +1,4 @@
-"""The per-budget ceiling (clod_adapter.dlod_ceiling): the recovery schedule, its loss history and
+"""The per-budget ceiling (clod_adapter.train.finetune): the recovery schedule, its loss history and
 convergence check, and the choice of the start subset on validation views."""
 from __future__ import annotations
 
@@ -7,13 +7,12 @@ import math
 import pytest
 import torch
 
-from clod_adapter.official import OFFICIAL_LR, scene_extent
-from clod_adapter.dlod_ceiling import (RECOVERY_DECAY, RECOVERY_ITERATIONS, best_start, convergence, finetune_subset,
-                               means_lr)
+from clod_adapter.train.official import OFFICIAL_LR, scene_extent
+from clod_adapter.train.finetune import RECOVERY_DECAY, RECOVERY_ITERATIONS, best_start, convergence, finetune_subset, means_lr
 from clod_adapter.io.scene import validation_split
-from clod_adapter.losses import render_loss
-from clod_adapter.synthetic import make_cameras, make_ground_truth, perturb
-from clod_adapter.camera_lod import render_lod
+from clod_adapter.train.losses import render_loss
+from clod_adapter.io.synthetic import make_cameras, make_ground_truth, perturb
+from clod_adapter.lod.draw import render_lod
 from conftest import render_views
 
 

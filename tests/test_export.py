@@ -1,4 +1,4 @@
-"""clod-export and clod_adapter.bake on a tiny synthetic scene (random sigma_d as the adapted model)."""
+"""clod-export and clod_adapter.export.bake on a tiny synthetic scene (random sigma_d as the adapted model)."""
 from __future__ import annotations
 
 from dataclasses import replace
@@ -9,10 +9,10 @@ import plyfile
 import pytest
 import torch
 
-from clod_adapter import bake as ex
+from clod_adapter.export import bake as ex
 from clod_adapter.io.ply import read_ply, write_ply
 from clod_adapter.io.colmap import load_colmap_scene
-from clod_adapter.camera_lod import render_lod
+from clod_adapter.lod.draw import render_lod
 
 from conftest import write_tiny_scene
 

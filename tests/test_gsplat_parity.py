@@ -9,7 +9,7 @@ import pytest
 import torch
 
 from clod_adapter.render.gsplat_backend import gsplat_unavailable_reason
-from clod_adapter.camera_lod import render_lod
+from clod_adapter.lod.draw import render_lod
 
 _reason = gsplat_unavailable_reason()
 pytestmark = pytest.mark.skipif(_reason is not None, reason=f"gsplat backend: {_reason}")
@@ -21,9 +21,9 @@ LEVELS = [{"s_v": 1.0}, {"s_v": 3.0}, {"s_v": 5.0}, {"budget": 0.5}, {"budget": 
 def calibrated_model():
     from dataclasses import replace
 
-    from clod_adapter import lod
-    from clod_adapter.training import reference_distances
-    from clod_adapter.synthetic import make_cameras, make_ground_truth
+    from clod_adapter.lod import rule as lod
+    from clod_adapter.train.loop import reference_distances
+    from clod_adapter.io.synthetic import make_cameras, make_ground_truth
 
     g = make_ground_truth(6000, seed=0)
     cams = make_cameras(3, 5)
@@ -74,9 +74,10 @@ def test_gradients_match(calibrated_model):
                          ids=lambda kw: "-".join(f"{k}{v}" for k, v in kw.items()))
 def test_a_merge_tree_draws_the_same_cut(level):
     """A merge tree (the default way merged tiers are drawn) on CUDA tensors with gsplat: the cut
-    (torch forms of clod_adapter.tree; the C++ kernels are CPU-only) and the image equal the CPU's."""
-    from clod_adapter import tiers, tree
-    from clod_adapter.synthetic import make_cameras
+    (torch forms of clod_adapter.lod.tree; the C++ kernels are CPU-only) and the image equal the CPU's."""
+    from clod_adapter.train import tiers
+    from clod_adapter.lod import tree
+    from clod_adapter.io.synthetic import make_cameras
 
     from test_tiers import _adapted
 

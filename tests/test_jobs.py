@@ -52,7 +52,7 @@ def test_resolve_model_path_cases(tiny_model, tmp_path):
 def test_real_official_model_folder():
     """fern/pretrained is an official -m folder: its latest iteration and training size."""
     from clod_adapter.io.load import resolve_model_path, training_size
-    from clod_adapter.jobs.adapt import resolution_note
+    from clod_adapter.jobs.adapt_inputs import resolution_note
 
     folder = shared_path("fern", "pretrained")
     ply = resolve_model_path(folder)
@@ -72,7 +72,7 @@ def test_real_pairs_match(which, resolution):
 
     from clod_adapter.io.load import load_model, resolve_model_path
     from clod_adapter.io.load import load_scene
-    from clod_adapter.jobs.adapt import MISMATCH_MARGIN_DB, scene_match
+    from clod_adapter.jobs.adapt_inputs import MISMATCH_MARGIN_DB, scene_match
 
     g = load_model(resolve_model_path(shared_path("fern", which)))
     scene = load_scene(shared_path("fern"), resolution=resolution)
@@ -87,7 +87,7 @@ def test_synthetic_scene_matches(tiny_model):
     import torch
 
     from clod_adapter.io.colmap import load_colmap_scene
-    from clod_adapter.jobs.adapt import MISMATCH_MARGIN_DB, scene_match
+    from clod_adapter.jobs.adapt_inputs import MISMATCH_MARGIN_DB, scene_match
 
     scene = load_colmap_scene(tiny_model["scene"])
     with torch.no_grad():
@@ -174,7 +174,7 @@ def test_clod_adapt_flag_defaults_are_the_configs():
     import dataclasses
 
     from clod_adapter.cli import adapt
-    from clod_adapter.training import AdaptConfig
+    from clod_adapter.train.config import AdaptConfig
 
     cfg, fields = AdaptConfig(), {f.name for f in dataclasses.fields(AdaptConfig)}
     checked = []
@@ -189,7 +189,7 @@ def test_clod_adapt_flag_defaults_are_the_configs():
 def test_time_interleaved_rounds_and_order():
     from types import SimpleNamespace
 
-    from clod_adapter.timing import time_interleaved
+    from clod_adapter.evaluate.timing import time_interleaved
 
     calls = []
 
@@ -255,7 +255,7 @@ def test_clod_render_views_and_video(tiny_adapted, tiny_model, tmp_path, capsys)
     # a model with a parent tier: the sweep goes on (in ln s_v) to where its parents reach max_sv
     import torch
 
-    from clod_adapter import tiers
+    from clod_adapter.train import tiers
     from clod_adapter.io.ply import write_ply
 
     g = read_ply(tiny_adapted / "point_cloud.ply")

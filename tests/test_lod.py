@@ -1,11 +1,11 @@
-"""The CLoD-GS mechanism (clod_adapter.lod): Eq. 2, the mask, eta estimators, L_reg, w_s."""
+"""The CLoD-GS mechanism (clod_adapter.lod.rule): Eq. 2, the mask, eta estimators, L_reg, w_s."""
 
 import math
 
 import pytest
 import torch
 
-from clod_adapter import lod
+from clod_adapter.lod import rule as lod
 
 
 def _setup(n=200, seed=0):

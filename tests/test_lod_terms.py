@@ -1,12 +1,12 @@
 """The per-frame LoD terms' C++ kernel (``csrc/lod_terms.cpp``) against its torch twin
-(:func:`clod_adapter.lod.in_frustum` + :func:`normalized_distances`, :func:`lod_mask`), and the
-activation cache of a fixed model (:func:`clod_adapter.lod.activated`)."""
+(:func:`clod_adapter.lod.rule.in_frustum` + :func:`normalized_distances`, :func:`lod_mask`), and the
+activation cache of a fixed model (:func:`clod_adapter.lod.rule.activated`)."""
 import math
 
 import pytest
 import torch
 
-from clod_adapter import lod
+from clod_adapter.lod import rule as lod
 from clod_adapter.render import native
 
 pytestmark = pytest.mark.skipif(not native.available(), reason="the C++ kernels do not build here")
@@ -165,8 +165,8 @@ def test_activated_caches_per_version_and_keeps_autograd():
 def test_render_under_inference_mode_matches():
     """Tensors made under ``torch.inference_mode`` have no version counter: nothing is cached, the
     frame is the same."""
-    from clod_adapter.camera_lod import render_lod
-    from clod_adapter.synthetic import make_ground_truth
+    from clod_adapter.lod.draw import render_lod
+    from clod_adapter.io.synthetic import make_ground_truth
 
     g = make_ground_truth(200, seed=3).with_sigma_d(torch.full((200,), 0.5))
 
@@ -230,7 +230,7 @@ def test_critical_kernel_matches_its_twin(dtype):
     """The critical s_v (budget.critical_s_v): the kernel against the torch twin, to 1e-12
     relative, with dead decays (<= 0), alpha = 0, d' = 0, NaN, and a tiny and a large eps; and
     both the root of the margin."""
-    from clod_adapter.budget import critical_s_v
+    from clod_adapter.lod.budget import critical_s_v
 
     g = torch.Generator().manual_seed(5)
     n = 5000

@@ -8,7 +8,7 @@ import torch
 import torch.nn.functional as F
 from PIL import Image
 
-from clod_adapter import lpips as L
+from clod_adapter.evaluate import lpips as L
 from conftest import shared_path
 
 

@@ -12,7 +12,7 @@ import pytest
 import torch
 
 from clod_adapter.cli.adapt import main as adapt_main
-from clod_adapter.training import AdaptConfig
+from clod_adapter.train.config import AdaptConfig
 from clod_adapter.gaussians import Gaussians
 from clod_adapter.io.load import DEFAULT_MASK_POLICY, MASK_POLICIES, apply_masks, load_model
 from clod_adapter.io.ply import PlyFormatError, ply_property_names, read_ply, write_ply

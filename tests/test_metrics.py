@@ -6,7 +6,7 @@ import pytest
 import torch
 from skimage.metrics import structural_similarity
 
-from clod_adapter.losses import clod_loss, render_loss
+from clod_adapter.train.losses import clod_loss, render_loss
 from clod_adapter.metrics import psnr, ssim, ssim_map
 
 

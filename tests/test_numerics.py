@@ -20,10 +20,10 @@ import torch
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from clod_adapter import lod
-from clod_adapter.budget import critical_s_v, select_budget
+from clod_adapter.lod import rule as lod
+from clod_adapter.lod.budget import critical_s_v, select_budget
 from clod_adapter.gaussians import Gaussians
-from clod_adapter.camera_lod import render_lod
+from clod_adapter.lod.draw import render_lod
 from clod_adapter.render import rasterization
 from clod_adapter.render.composite import cpp_extension_available, use_impl
 
@@ -117,7 +117,7 @@ def _cols(rows, dtype):
 
 
 # ----------------------------------------------------------------------------------------------
-# 1. the mechanism (clod_adapter.lod)
+# 1. the mechanism (clod_adapter.lod.rule)
 # ----------------------------------------------------------------------------------------------
 @FAST
 @given(rows=ROWS, s_v=S_V, eps=EPS, dtype=st.sampled_from([torch.float32, torch.float64]),
@@ -244,7 +244,7 @@ def test_extreme_scalars_mechanism():
 
 
 # ----------------------------------------------------------------------------------------------
-# 2. the budget solver (clod_adapter.budget)
+# 2. the budget solver (clod_adapter.lod.budget)
 # ----------------------------------------------------------------------------------------------
 @FAST
 @given(rows=ROWS, eps=EPS, s_list=st.lists(S_V, min_size=1, max_size=4))

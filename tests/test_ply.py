@@ -317,7 +317,7 @@ def test_truncated_empty_and_garbage(tmp_path):
 
 def test_lod_comment_round_trip_and_legacy():
     from clod_adapter.io.ply import lod_comment, parse_lod_comment
-    from clod_adapter.lod import LodSettings
+    from clod_adapter.lod_settings import LodSettings
 
     st = LodSettings(max_sv=7.5, fade="window", level_max=2.5)
     assert parse_lod_comment([lod_comment(st)]) == st

@@ -1,12 +1,12 @@
-"""Popping (clod_adapter.popping): clod-eval's ratio along an s_v sweep through every tier and
+"""Popping (clod_adapter.evaluate.popping): clod-eval's ratio along an s_v sweep through every tier and
 along a count-budget sweep."""
 from __future__ import annotations
 
 import pytest
 
-from clod_adapter import tiers
-from clod_adapter.popping import popping_ratio
-from clod_adapter.synthetic import make_cameras
+from clod_adapter.train import tiers
+from clod_adapter.evaluate.popping import popping_ratio
+from clod_adapter.io.synthetic import make_cameras
 
 from test_tiers import _adapted
 
@@ -21,20 +21,21 @@ def chain():
 def test_the_s_v_sweep_runs_through_every_tier(chain):
     """popping_ratio sweeps s_v from 1 past the coarsest tier's reach (log-spaced), the drawn
     count falls along it, and the ratio is the static switch's jump over the largest step."""
-    from clod_adapter.camera_lod import tier_reach
+    from clod_adapter.lod.draw import tier_reach
 
     model, cams = chain
     p = popping_ratio(model, model.with_sigma_d(None), cams[0], steps=9)
     assert p["s_v"][0] == 1.0 and p["s_v"][-1] == pytest.approx(1.2 * model.lod.max_sv * tier_reach(model))
     assert p["gaussians"][-1] < 0.2 * p["gaussians"][0]
     assert p["ratio"] == pytest.approx(p["discrete_max"] / p["continuous_max"]) and p["continuous_max"] > 0
+    assert p["ratio"] > 1  # through every tier, no step as large as one static switch
 
 
 def test_the_budget_sweep_draws_fewer_gaussians_as_the_budget_falls(chain):
     """popping_budget_ratio sweeps count budgets from every Gaussian in view down to the lowest
     share: the drawn counts never rise along it and end far below the start, and its ratio is the
     switch's jump over the largest step it measured."""
-    from clod_adapter.popping import popping_budget_ratio
+    from clod_adapter.evaluate.popping import popping_budget_ratio
 
     model, cams = chain
     p = popping_budget_ratio(model, model.with_sigma_d(None), cams[0], steps=9, lowest=0.05)

@@ -1,14 +1,14 @@
-"""Leaving out what a scene does not need first (clod_adapter.pruning, clod-adapt --keep-share)."""
+"""Leaving out what a scene does not need first (clod_adapter.train.pruning, clod-adapt --keep-share)."""
 import json
 from dataclasses import replace
 
 import pytest
 import torch
 
-from clod_adapter import pruning
-from clod_adapter.camera_lod import render_lod
+from clod_adapter.train import pruning
+from clod_adapter.lod.draw import render_lod
 from clod_adapter.io.ply import read_ply
-from clod_adapter.synthetic import make_cameras, make_ground_truth
+from clod_adapter.io.synthetic import make_cameras, make_ground_truth
 
 
 @pytest.fixture(scope="module")

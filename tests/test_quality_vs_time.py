@@ -1,4 +1,4 @@
-"""The quality-against-frame-time comparison (clod_adapter.quality_vs_time): its cells and verdict,
+"""The quality-against-frame-time comparison (clod_adapter.evaluate.comparison): its cells and verdict,
 clod-eval and benchmarks/quality_vs_time.py giving the same cells, and README's results table
 held to the generated docs/results.json and docs/results.md."""
 import json
@@ -7,7 +7,7 @@ import sys
 
 import pytest
 
-from clod_adapter import quality_vs_time as qvt
+from clod_adapter.evaluate import comparison as qvt
 from conftest import REPO
 
 
@@ -116,7 +116,7 @@ def test_clod_eval_gives_the_benchmarks_cells(tmp_path, monkeypatch, capsys):
     exactly (wall time would differ between two runs). clod-eval's progress ends at 90-100 % of
     its total (qvt.n_renders counts the comparison's renders), never past it."""
     from clod_adapter.cli.eval import main as eval_main
-    from clod_adapter.splat_transform import find_splat_transform
+    from clod_adapter.io.splat_transform import find_splat_transform
 
     if find_splat_transform() is None:
         pytest.skip("splat-transform not installed (`npm ci`): the comparison's decimators")

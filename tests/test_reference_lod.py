@@ -11,13 +11,14 @@ import numpy as np
 import pytest
 import torch
 
-from clod_adapter import lod
-from clod_adapter.camera_lod import render_lod, view_lod
+from clod_adapter.lod import rule as lod
+from clod_adapter.lod.draw import render_lod
+from clod_adapter.lod.view import view_lod
 from clod_adapter.io.ply import write_ply
 from clod_adapter.io.scene import Camera
 from clod_adapter.render.dispatch import rasterization
-from clod_adapter.synthetic import make_cameras, make_ground_truth
-from clod_adapter.training import reference_distances
+from clod_adapter.io.synthetic import make_cameras, make_ground_truth
+from clod_adapter.train.loop import reference_distances
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "examples"))
 import reference_lod_chain as ref  # noqa: E402
@@ -112,8 +113,8 @@ def test_images_agree_when_the_page_selection_is_rasterised(tmp_path):
 def test_parent_tier_as_the_page_says(tmp_path):
     """A tiered file (docs/lod_rule_chain.md "The tiers"): the model and its parents drawn by the
     numpy page are what lod_subset hands the rasteriser, below, across and beyond the switch."""
-    from clod_adapter import tiers
-    from clod_adapter.camera_lod import lod_subset
+    from clod_adapter.train import tiers
+    from clod_adapter.lod.draw import lod_subset
 
     g, cams = _model("window", 1.0, seed=2)
     parents, _ = _model("window", 1.0, seed=3, fast=0.0)

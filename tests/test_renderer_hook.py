@@ -8,9 +8,9 @@ from pathlib import Path
 import pytest
 import torch
 
-from clod_adapter.camera_lod import render_lod
+from clod_adapter.lod.draw import render_lod
 from clod_adapter import clod_rasterization, rasterization
-from clod_adapter.synthetic import make_cameras, make_ground_truth
+from clod_adapter.io.synthetic import make_cameras, make_ground_truth
 
 REPO = Path(__file__).resolve().parents[1]
 

@@ -25,10 +25,10 @@ from pathlib import Path
 import pytest
 import torch
 
-from clod_adapter.training import load_state
+from clod_adapter.train.state import load_state
 from clod_adapter.io.ply import write_ply
 from clod_adapter.io.colmap import write_colmap_scene
-from clod_adapter.synthetic import make_cameras, make_ground_truth, perturb
+from clod_adapter.io.synthetic import make_cameras, make_ground_truth, perturb
 from conftest import REPO, uint8_views
 
 ITERATIONS = 24
@@ -133,7 +133,7 @@ def test_signal_then_resume_is_bit_exact(scene, tmp_path, sig):
 
 
 def _inprocess_run(scene: Path, out: Path, **kw):
-    from clod_adapter.training import AdaptConfig
+    from clod_adapter.train.config import AdaptConfig
     from clod_adapter.jobs.adapt import AdaptOptions, run
 
     cfg = AdaptConfig(max_sv=MAX_SV, iterations=ITERATIONS, seed=SEED)

@@ -1,4 +1,4 @@
-"""clod_adapter.storage.ply_bytes: the exact size of the .ply write_ply writes, computed without
+"""clod_adapter.evaluate.storage.ply_bytes: the exact size of the .ply write_ply writes, computed without
 writing it (plain model, adapted model with sigma_d, level gains and LoD settings, extra
 properties of several types, no normals, an empty model)."""
 from __future__ import annotations
@@ -10,9 +10,9 @@ import torch
 
 from clod_adapter.gaussians import GAIN_NAMES
 from clod_adapter.io.ply import write_ply
-from clod_adapter.lod import LodSettings
-from clod_adapter.storage import ply_bytes, ply_row_bytes
-from clod_adapter.synthetic import make_ground_truth
+from clod_adapter.lod_settings import LodSettings
+from clod_adapter.evaluate.storage import ply_bytes, ply_row_bytes
+from clod_adapter.io.synthetic import make_ground_truth
 
 
 def _plain(n=300):

@@ -78,7 +78,7 @@ def find_cycle(graph: dict[str, set[str]]):
 
 def test_no_import_cycle():
     graph = import_graph()
-    assert "clod_adapter.camera_lod" in graph and graph["clod_adapter.renderer_hook"] >= {"clod_adapter.camera_lod"}
+    assert "clod_adapter.lod.draw" in graph and graph["clod_adapter.lod.hook"] >= {"clod_adapter.lod.draw"}
     cycle = find_cycle(graph)
     assert cycle is None, " -> ".join(cycle)
 
@@ -120,21 +120,25 @@ OVER_LIMIT = {
 }
 
 
-def body_lengths() -> dict[str, int]:
-    """``module:function`` -> lines from its first statement after the docstring to its last."""
-    out = {}
+def functions():
+    """Every function of the package: ``(module:function, its ast node)``."""
     for path in PKG.rglob("*.py"):
         mod = _module_name(path)
         for node in ast.walk(ast.parse(path.read_text(), str(path))):
-            if not isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef)):
-                continue
-            body = node.body
-            if body and isinstance(body[0], ast.Expr) and isinstance(getattr(body[0], "value", None), ast.Constant) \
-                    and isinstance(body[0].value.value, str):
-                body = body[1:]
-            if body:
-                out[f"{mod}:{node.name}"] = max(out.get(f"{mod}:{node.name}", 0),
-                                                body[-1].end_lineno - body[0].lineno + 1)
+            if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef)):
+                yield f"{mod}:{node.name}", node
+
+
+def body_lengths() -> dict[str, int]:
+    """``module:function`` -> lines from its first statement after the docstring to its last."""
+    out = {}
+    for key, node in functions():
+        body = node.body
+        if body and isinstance(body[0], ast.Expr) and isinstance(getattr(body[0], "value", None), ast.Constant) \
+                and isinstance(body[0].value.value, str):
+            body = body[1:]
+        if body:
+            out[key] = max(out.get(key, 0), body[-1].end_lineno - body[0].lineno + 1)
     return out
 
 
@@ -155,22 +159,75 @@ def test_no_root_export_shadowed_by_a_submodule():
     assert sorted(set(clod_adapter._EXPORTS) & submodules) == []
 
 
-#: the training and evaluation logic (docs/guide.md "How the code is laid out"): above the model, the
-#: mechanism and the I/O, below the jobs.
-LOGIC = {"training", "official", "distributed", "losses", "baselines", "dlod_ceiling", "level_metrics", "timing",
-         "frontier", "quality_vs_time", "bake", "tiers", "pruning", "popping", "tree_train"}
+#: the package's folders from the bottom layer up (docs/guide.md "How the code is laid out"): a module's
+#: layer is its folder's (the package root's modules, ``""``, are the model, its settings, the
+#: image metrics and progress, which everything uses); no module imports one of a higher layer.
+LAYERS = ["", "render", "io", "lod", "train", "evaluate", "export", "viewer", "jobs", "cli"]
 
 
 def layer(module: str) -> int:
-    """1 the model, mechanism, renderer and I/O; 2 the logic; 3 the jobs and the viewer; 4 the CLIs."""
+    """The index in :data:`LAYERS` of the module's folder (``clod_adapter.lod.tree`` -> ``lod``)."""
     parts = module.split(".")
-    if len(parts) > 1 and parts[1] == "cli":
-        return 4
-    if len(parts) > 1 and parts[1] in ("jobs", "viewer"):
-        return 3
-    return 2 if len(parts) > 1 and parts[1] in LOGIC else 1
+    folder = parts[1] if len(parts) > 2 or (len(parts) == 2 and (PKG / parts[1]).is_dir()) else ""
+    return LAYERS.index(folder)
+
+
+def test_every_folder_has_a_layer():
+    folders = sorted(p.name for p in PKG.iterdir() if (p / "__init__.py").is_file())
+    assert sorted(set(LAYERS) - {""}) == folders
 
 
 def test_layers_import_downwards_only():
     up = sorted(f"{a} -> {b}" for a, bs in import_graph().items() for b in bs if layer(b) > layer(a))
     assert up == []
+
+
+#: at most this many modules at the top of the package (issue 63): the rest live in stage folders
+MAX_TOP_MODULES = 10
+
+
+def test_the_top_of_the_package_stays_small():
+    top = sorted(p.name for p in PKG.glob("*.py"))
+    assert len(top) <= MAX_TOP_MODULES, top
+
+
+#: the longest a module may be, in lines (issue 63)
+MAX_MODULE_LINES = 800
+
+
+def test_no_module_over_the_length_limit():
+    long = {str(p.relative_to(PKG)): n for p in PKG.rglob("*.py") if (n := len(p.read_text().splitlines())) >
+            MAX_MODULE_LINES}
+    assert long == {}, f"modules over {MAX_MODULE_LINES} lines (split them by what they hold): {long}"
+
+
+#: the most parameters a function may take (issue 63), ``self`` not counted
+MAX_PARAMETERS = 12
+#: the functions allowed more: gsplat's ``rasterization`` signature and the functions mirroring it;
+#: and, each with the count it may not grow past, those whose loose budget arguments a ``Budget``
+#: type is to replace
+OVER_PARAMETERS = {
+    "clod_adapter.render.dispatch:rasterization": 17, "clod_adapter.render.cpu:rasterization_cpu": 16,
+    "clod_adapter.render.gsplat_backend:rasterization_gsplat": 16, "clod_adapter.lod.hook:clod_rasterization": 35,
+    "clod_adapter.lod.hook:_tree_frames": 19, "clod_adapter.lod.draw:render_lod": 19,
+    "clod_adapter.lod.view:view_lod_tensors": 14, "clod_adapter.evaluate.comparison:compare": 16,
+    "clod_adapter.train.finetune:finetune_subset": 16,
+}
+
+
+def parameter_counts() -> dict[str, int]:
+    """``module:function`` -> its parameters (``self`` / ``cls`` not counted)."""
+    out = {}
+    for key, node in functions():
+        a = node.args
+        n = len(a.posonlyargs) + len(a.args) + len(a.kwonlyargs) + bool(a.vararg) + bool(a.kwarg)
+        out[key] = max(out.get(key, 0), n - (bool(a.args) and a.args[0].arg in ("self", "cls")))
+    return out
+
+
+def test_no_function_takes_too_many_parameters():
+    counts = parameter_counts()
+    over = {k: n for k, n in counts.items() if n > MAX_PARAMETERS and n > OVER_PARAMETERS.get(k, 0)}
+    assert over == {}, f"functions over {MAX_PARAMETERS} parameters (group them in an options object): {over}"
+    stale = [k for k in OVER_PARAMETERS if counts.get(k, 0) <= MAX_PARAMETERS]
+    assert stale == [], f"now within the limit, drop from OVER_PARAMETERS: {stale}"

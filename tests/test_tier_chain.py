@@ -7,11 +7,11 @@ import numpy as np
 import pytest
 import torch
 
-from clod_adapter import tiers
-from clod_adapter.camera_lod import (COUNT_TAKE_SHARE, chain_weights, lod_subset, render_lod, tier_chain, tier_reach,
-                                     view_lod)
+from clod_adapter.train import tiers
+from clod_adapter.lod.draw import COUNT_TAKE_SHARE, chain_weights, lod_subset, render_lod, tier_chain, tier_reach
+from clod_adapter.lod.view import view_lod
 from clod_adapter.io.ply import PlyFormatError, read_ply, write_ply
-from clod_adapter.synthetic import make_cameras
+from clod_adapter.io.synthetic import make_cameras
 
 from test_tiers import _adapted
 
@@ -111,7 +111,7 @@ def test_ply_round_trip_keeps_the_chain(chain, tmp_path):
     narrow = replace(back, parents=replace(back.parents, parents=replace(t2, lod=replace(t2.lod, fade_width=0.5))))
     far = _model_s_v_of_tier2(3.0)  # the coarsest tier alone: its window width is what is drawn
     assert not torch.equal(render_lod(narrow, cams[0], far).image, render_lod(back, cams[0], far).image)
-    from clod_adapter.storage import ply_bytes
+    from clod_adapter.evaluate.storage import ply_bytes
 
     assert ply_bytes(g) == path.stat().st_size
     # a second tier's element without the first: refused, naming the file
@@ -188,14 +188,14 @@ def test_consumers_draw_what_render_lod_draws(chain, s_v):
             order = np.argsort(d["ids"])
             np.testing.assert_allclose(d["opacities"][order], o.double().numpy()[np.argsort(w.numpy())],
                                        rtol=1e-4, atol=1e-6)
-    from clod_adapter.bake import bake
+    from clod_adapter.export.bake import bake
 
     baked, info = bake(g, [cam], s_v=s_v, opacity="mean", return_info=True)
     assert info.n_parents == ref.n_parents and len(baked) == ref.n_rendered
 
 
 def test_adapt_config_takes_descending_shares():
-    from clod_adapter.training import AdaptConfig
+    from clod_adapter.train.config import AdaptConfig
 
     assert AdaptConfig().parent_share == tiers.DEFAULT_SHARES
     assert AdaptConfig(parent_share=0.1).parent_share == (0.1,)
@@ -210,7 +210,7 @@ def test_count_budgets_hand_over_in_every_consumer(chain):
     never more than the budget: render_lod, lod_subset, the renderer hook and bake agree; a budget of every Gaussian
     in view draws the model's own."""
     from clod_adapter import clod_kwargs, clod_rasterization
-    from clod_adapter.bake import bake
+    from clod_adapter.export.bake import bake
 
     g, cams = chain
     cam = cams[0]
@@ -244,7 +244,7 @@ def _walk_solving_every_tier(g, cam, **budget):
     (tier_start <= 1) and a cost share's full cost, where the budget passes on, are estimated from
     a sample (LodView.full_detail_estimate; models of COST_SAMPLE_MIN or more). Returns
     ``[(depth, selection)]``, the one tier drawn."""
-    from clod_adapter.cost import DEFAULT_FRAME_TIME_MODEL, splat_cost
+    from clod_adapter.lod.cost import DEFAULT_FRAME_TIME_MODEL, splat_cost
 
     tiers_ = tier_chain(g)
     views = [view_lod(replace(t, parents=None), cam) for t in tiers_]
@@ -298,12 +298,12 @@ def test_budgets_solve_only_the_tier_they_end_in_as_the_rule_walks(chain, kind, 
     tiers draws the next tier alone or cuts the finer one. ``"sampled"``: the tiers handed over at
     their full detail and costed from every 3rd Gaussian (the chain's tiers are below
     COST_SAMPLE_MIN, lowered here so the estimate is what is walked)."""
-    from clod_adapter import camera_lod
+    from clod_adapter.lod import cost as lod_cost
 
     g, cams = chain
     if starts == "sampled":
-        monkeypatch.setattr(camera_lod, "COST_SAMPLE_MIN", 50)
-        monkeypatch.setattr(camera_lod, "COST_SAMPLE_STEP", 3)
+        monkeypatch.setattr(lod_cost, "COST_SAMPLE_MIN", 50)
+        monkeypatch.setattr(lod_cost, "COST_SAMPLE_STEP", 3)
         starts = (1.0, 1.0)
     if starts != "chain":  # the same tiers handed over at their full detail
         t1 = g.parents
@@ -342,7 +342,7 @@ def test_export_of_a_chain(tiny_adapted, tiny_model, tmp_path):
     import json
 
     from clod_adapter.cli.export import main as export_main
-    from clod_adapter.splat_transform import find_splat_transform, read_info
+    from clod_adapter.io.splat_transform import find_splat_transform, read_info
     from clod_adapter.viewer.web import find_playcanvas
 
     if find_splat_transform() is None:
@@ -376,7 +376,7 @@ def test_export_of_a_chain(tiny_adapted, tiny_model, tmp_path):
 def test_the_comparison_samples_each_tier_where_it_is_first_drawn_alone(chain):
     """quality_vs_time.clod_s_vs: beside the grid, each tier's entry (the end of the cross-fade
     into it), where that tier is drawn alone at its tier_start level, its full detail."""
-    from clod_adapter import quality_vs_time as qvt
+    from clod_adapter.evaluate import comparison as qvt
 
     g, cams = chain
     s_vs = qvt.clod_s_vs(g)
@@ -392,7 +392,7 @@ def test_a_count_budget_passes_through_a_tier_without_its_critical_order(chain):
     projecting only that many of their centres in the frustum: their critical ``s_v`` (the
     budget's order) is never computed, only that of the tier the walk ends in (and of a deeper
     one that refused it); the count and tier are those of the step-by-step walk."""
-    from clod_adapter.camera_lod import count_budget_walk
+    from clod_adapter.lod.draw import count_budget_walk
 
     g, cams = chain
     g = replace(g, parents=replace(g.parents, lod=replace(g.parents.lod, tier_start=1.0)),

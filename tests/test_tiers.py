@@ -1,13 +1,14 @@
-"""The parent tier (clod_adapter.tiers): the cross-fade rule, drawing, the .ply element, the choice."""
+"""The parent tier (clod_adapter.train.tiers): the cross-fade rule, drawing, the .ply element, the choice."""
 from dataclasses import replace
 
 import pytest
 import torch
 
-from clod_adapter import lod, tiers
-from clod_adapter.camera_lod import render_lod
+from clod_adapter.lod import rule as lod
+from clod_adapter.train import tiers
+from clod_adapter.lod.draw import render_lod
 from clod_adapter.io.ply import PlyFormatError, lod_comment, read_ply, write_ply
-from clod_adapter.synthetic import make_cameras, make_ground_truth
+from clod_adapter.io.synthetic import make_cameras, make_ground_truth
 
 
 def _adapted(n, seed):
@@ -112,7 +113,7 @@ def test_attach_refuses_a_plain_model():
 
 
 def test_storage_counts_the_parent_element(tiered, tmp_path):
-    from clod_adapter.storage import ply_bytes
+    from clod_adapter.evaluate.storage import ply_bytes
 
     g, _ = tiered
     assert ply_bytes(g) == write_ply(tmp_path / "s.ply", g).stat().st_size > ply_bytes(replace(g, parents=None))
@@ -122,7 +123,7 @@ def test_finetuned_fits_a_merge_to_the_training_views():
     """tiers.finetuned: a merge (here a perturbed model) fitted at full detail scores higher on
     the views it was fitted to; same count and SH degree; 0 steps is the merge itself."""
     from clod_adapter.metrics import psnr
-    from clod_adapter.synthetic import perturb
+    from clod_adapter.io.synthetic import perturb
 
     gt = make_ground_truth(300, seed=3)
     cams = make_cameras(1, 3, width=48, height=36)
@@ -139,7 +140,7 @@ def test_finetuned_fits_a_merge_to_the_training_views():
 
 
 def test_tier_finetune_steps_must_be_a_count():
-    from clod_adapter.training import AdaptConfig
+    from clod_adapter.train.config import AdaptConfig
 
     assert AdaptConfig().tier_finetune_steps == 400
     with pytest.raises(ValueError, match="tier_finetune_steps"):
@@ -147,7 +148,7 @@ def test_tier_finetune_steps_must_be_a_count():
 
 
 def test_tier_merge_names_a_decimator():
-    from clod_adapter.training import AdaptConfig
+    from clod_adapter.train.config import AdaptConfig
 
     assert AdaptConfig().tier_merge == "decimate"
     assert AdaptConfig(tier_merge="adaptive").tier_merge == "adaptive"
@@ -213,7 +214,7 @@ def test_first_share_lowers_a_slow_first_merge(monkeypatch):
 
 def test_tier_time_cap_is_a_share_of_the_frame(tiny_model, tmp_path, capfd):
     from clod_adapter.cli.adapt import main
-    from clod_adapter.training import AdaptConfig
+    from clod_adapter.train.config import AdaptConfig
     from conftest import FAST, err_line
 
     assert AdaptConfig().tier_time_cap == tiers.TIER_TIME_CAP
@@ -250,7 +251,7 @@ def test_link_hands_a_merged_tier_over_no_later_than_asked(tiered, monkeypatch):
 
 def test_tier_hand_over_is_an_s_v_or_the_time_rule(tiny_model, tmp_path, capfd):
     from clod_adapter.cli.adapt import main
-    from clod_adapter.training import AdaptConfig
+    from clod_adapter.train.config import AdaptConfig
     from conftest import FAST, err_line
 
     assert AdaptConfig().tier_hand_over == tiers.TIER_HAND_OVER == 1.6
@@ -269,7 +270,7 @@ def test_adapt_job_caps_only_the_merged_tiers_hand_overs(tiny_model, tmp_path, m
     """clod-adapt with two merged tiers: the first tier's own link (to the second) is capped at
     --tier-hand-over, the input's link to the first tier is not."""
     from clod_adapter.cli.adapt import main
-    from clod_adapter.splat_transform import find_splat_transform
+    from clod_adapter.io.splat_transform import find_splat_transform
     from conftest import FAST
 
     if find_splat_transform() is None:
@@ -289,7 +290,7 @@ def test_adapt_job_caps_only_the_merged_tiers_hand_overs(tiny_model, tmp_path, m
 
 
 def test_tier_iteration_share_sets_each_tiers_steps():
-    from clod_adapter.training import AdaptConfig
+    from clod_adapter.train.config import AdaptConfig
 
     assert AdaptConfig().tier_iterations() == AdaptConfig().iterations
     assert AdaptConfig(iterations=1000, tier_iteration_share=0.5).tier_iterations() == 500
@@ -302,7 +303,7 @@ def test_tier_iteration_share_sets_each_tiers_steps():
 
 def test_tier_downscale_sets_the_later_tiers_resolution():
     """``tier_downscale``: the later tiers' scene resolution factor, the model's times it, at most 8."""
-    from clod_adapter.training import AdaptConfig
+    from clod_adapter.train.config import AdaptConfig
 
     assert AdaptConfig().tier_downscale == 2
     assert [AdaptConfig().tier_resolution(r) for r in (1, 2, 4, 8)] == [2, 4, 8, 8]
@@ -319,7 +320,7 @@ def test_adapt_job_builds_the_tier_or_says_why_not(tiny_model, tmp_path, monkeyp
     import json
 
     from clod_adapter.cli.adapt import main
-    from clod_adapter.splat_transform import find_splat_transform
+    from clod_adapter.io.splat_transform import find_splat_transform
     from conftest import FAST
 
     args = [str(tiny_model["ply"]), "--images", str(tiny_model["scene"]), *FAST]
@@ -370,9 +371,9 @@ def test_adapt_job_builds_a_tree(tiny_model, tmp_path, monkeypatch):
     drawn through it."""
     import json
 
-    from clod_adapter import tree
+    from clod_adapter.lod import tree
     from clod_adapter.cli.adapt import main
-    from clod_adapter.splat_transform import find_splat_transform
+    from clod_adapter.io.splat_transform import find_splat_transform
     from conftest import FAST
 
     if find_splat_transform() is None:
@@ -440,7 +441,7 @@ def test_renderer_hook_and_lod_subset_draw_the_tier(tiered, s_v):
     """clod_rasterization (with clod_kwargs' parents) and lod_subset draw what render_lod draws,
     below the switch, in the cross-fade and beyond it."""
     from clod_adapter import clod_kwargs, clod_rasterization
-    from clod_adapter.camera_lod import lod_subset
+    from clod_adapter.lod.draw import lod_subset
 
     g, cams = tiered
     cam = cams[0]
@@ -516,8 +517,9 @@ def test_budgets_draw_the_parents_once_they_can_fill_them(tiered):
     tier_start level), cost less than the budget (a count budget: draw less than
     COUNT_TAKE_SHARE of it); from there the parents alone within the same budget (a share of the
     model's full cost), from their tier_start level on; lod_subset hands over the same rows."""
-    from clod_adapter.camera_lod import COUNT_TAKE_SHARE, lod_subset, view_lod
-    from clod_adapter.cost import DEFAULT_FRAME_TIME_MODEL, splat_cost
+    from clod_adapter.lod.draw import COUNT_TAKE_SHARE, lod_subset
+    from clod_adapter.lod.view import view_lod
+    from clod_adapter.lod.cost import DEFAULT_FRAME_TIME_MODEL, splat_cost
 
     g, cams = tiered
     children = replace(g, parents=None)
@@ -552,21 +554,21 @@ def test_budgets_draw_the_parents_once_they_can_fill_them(tiered):
 
 
 def test_cost_budgets_pass_on_by_the_sampled_full_detail(tiered, monkeypatch):
-    """With the tiers costed from every n-th Gaussian (camera_lod.COST_SAMPLE_STEP, models of at
+    """With the tiers costed from every n-th Gaussian (lod_cost.COST_SAMPLE_STEP, models of at
     least COST_SAMPLE_MIN; lowered here to the fixture's size), a cost budget passes to the parents
     by the estimates (LodView.full_detail_estimate: the model's full cost for the share, the
     parents' full detail for the test), not by the exact costs; below the minimum the estimate
     is the exact cost."""
-    from clod_adapter import camera_lod
-    from clod_adapter.camera_lod import view_lod
+    from clod_adapter.lod import cost as lod_cost
+    from clod_adapter.lod.view import view_lod
 
     g, cams = tiered
     children = replace(g, parents=None)
     cam = cams[0]
     exact = (view_lod(children, cam).full_cost(), view_lod(g.parents, cam).full_cost())
     assert view_lod(children, cam).full_detail_estimate() == (exact[0], float(view_lod(children, cam).n_in_view))
-    monkeypatch.setattr(camera_lod, "COST_SAMPLE_MIN", 100)
-    monkeypatch.setattr(camera_lod, "COST_SAMPLE_STEP", 3)
+    monkeypatch.setattr(lod_cost, "COST_SAMPLE_MIN", 100)
+    monkeypatch.setattr(lod_cost, "COST_SAMPLE_STEP", 3)
     est = (view_lod(children, cam).full_detail_estimate()[0], view_lod(g.parents, cam).full_detail_estimate()[0])
     assert est[0] != exact[0] and est[1] != exact[1]
     assert abs(est[0] / exact[0] - 1) < 0.25 and abs(est[1] / exact[1] - 1) < 0.25
@@ -585,7 +587,8 @@ def test_sampled_full_detail_is_close_on_a_larger_model():
     """LodView.full_detail_estimate on a model above COST_SAMPLE_MIN: the widest 3 % and every 8th
     of the rest give the full cost and the count in view within 10 % (the synthetic scene's
     cameras), without projecting the model itself."""
-    from clod_adapter.camera_lod import COST_SAMPLE_MIN, COST_SAMPLE_STEP, COST_SAMPLE_TOP, view_lod
+    from clod_adapter.lod.view import view_lod
+    from clod_adapter.lod.cost import COST_SAMPLE_MIN, COST_SAMPLE_STEP, COST_SAMPLE_TOP
 
     g = _adapted(2 * COST_SAMPLE_MIN, 0)
     for cam in make_cameras(3, 2):

@@ -5,10 +5,12 @@ import json
 import pytest
 import torch
 
-from clod_adapter.training import AdaptConfig, adapt, load_state, prepare, save_state
+from clod_adapter.train.config import AdaptConfig
+from clod_adapter.train.loop import adapt, prepare
+from clod_adapter.train.state import load_state, save_state
 from clod_adapter.io.ply import read_ply
-from clod_adapter.camera_lod import render_lod
-from clod_adapter.synthetic import make_cameras, make_ground_truth, perturb
+from clod_adapter.lod.draw import render_lod
+from clod_adapter.io.synthetic import make_cameras, make_ground_truth, perturb
 from conftest import render_views, write_tiny_scene
 
 
@@ -132,7 +134,7 @@ def test_pipeline_outputs(tmp_path):
 
 def test_dlod_finetune_trains_inside_no_grad(tiny):
     """clod-eval's report is a no_grad function; its per-budget ceiling must still train."""
-    from clod_adapter.dlod_ceiling import finetune_subset
+    from clod_adapter.train.finetune import finetune_subset
 
     model, cams, imgs = tiny
     with torch.no_grad():
@@ -141,7 +143,7 @@ def test_dlod_finetune_trains_inside_no_grad(tiny):
 
 
 def test_merged_order_keeps_the_learned_top_and_the_start_order_below():
-    from clod_adapter.training import merged_order
+    from clod_adapter.train.loop import merged_order
 
     learned = torch.tensor([5.0, 1.0, 4.0, 2.0, 3.0, 0.0])  # learned order: 0, 2, 4, 3, 1, 5
     start = torch.tensor([0.0, 6.0, 1.0, 5.0, 2.0, 3.0])    # start order: 1, 3, 5, 4, 2, 0
@@ -163,8 +165,8 @@ def test_trained_order_share_is_validated():
 def test_trained_order_share_zero_restores_the_starting_order(tiny):
     """The final recalibration with ``trained_order_share = 0`` ranks every Gaussian by the
     starting ranking again (the same sigma_d as the calibrated start), and 1 keeps the learned one."""
-    from clod_adapter.budget import critical_s_v
-    from clod_adapter.training import reference_distances
+    from clod_adapter.lod.budget import critical_s_v
+    from clod_adapter.train.loop import reference_distances
 
     model, cams, imgs = tiny
     orders = {}

@@ -1,4 +1,4 @@
-"""The merge tree (clod_adapter.tree): the tree is whole, a frame draws one cut of it, the children
+"""The merge tree (clod_adapter.lod.tree): the tree is whole, a frame draws one cut of it, the children
 composite to their parent at the switch, the frame's cost falls with the level and the budget,
 the file round-trips, and every consumer draws what render_lod draws."""
 from dataclasses import replace
@@ -7,12 +7,14 @@ import numpy as np
 import pytest
 import torch
 
-from clod_adapter import tiers, tree
-from clod_adapter.camera_lod import lod_subset, render_lod, tree_node_costs, tree_select
+from clod_adapter.train import tiers
+from clod_adapter.lod import tree
+from clod_adapter.lod.draw import lod_subset, render_lod
+from clod_adapter.lod.cut import tree_node_costs, tree_select
 from clod_adapter.io.ply import PlyFormatError, read_ply, write_ply
 from clod_adapter.render import native
 from clod_adapter.render.dispatch import rasterization
-from clod_adapter.synthetic import make_cameras
+from clod_adapter.io.synthetic import make_cameras
 
 from test_tiers import _adapted
 
@@ -219,7 +221,7 @@ def test_a_count_budget_that_holds_tier_0_draws_it_without_a_sweep(model, monkey
 
 
 def test_the_renderer_hook_draws_the_cut(model):
-    from clod_adapter.renderer_hook import clod_kwargs, clod_rasterization
+    from clod_adapter.lod.hook import clod_kwargs, clod_rasterization
 
     g, cams = model
     vm = torch.stack([c.viewmat for c in cams])
@@ -235,7 +237,7 @@ def test_the_renderer_hook_draws_the_cut(model):
 
 
 def test_a_baked_level_holds_the_cut(model):
-    from clod_adapter.bake import bake
+    from clod_adapter.export.bake import bake
 
     g, cams = model
     baked, info = bake(g, cams, 6.0, return_info=True)
@@ -248,8 +250,8 @@ def test_a_baked_level_holds_the_cut(model):
 def test_fitting_on_cuts_trains_the_merged_tiers_only(model):
     """tree_train.finetune: tier 0 (full detail) untouched, the merged tiers moved, and the cuts'
     error against the full-detail renders smaller after the fit than before."""
-    from clod_adapter.losses import render_loss
-    from clod_adapter.tree_train import finetune
+    from clod_adapter.train.losses import render_loss
+    from clod_adapter.train.tree_fit import finetune
 
     g, _ = model
     cams = make_cameras(2, 3)
@@ -272,7 +274,7 @@ def test_export_of_a_tree(model, tmp_path, tiny_model):
     import json
 
     from clod_adapter.cli.export import main as export_main
-    from clod_adapter.splat_transform import find_splat_transform, read_info
+    from clod_adapter.io.splat_transform import find_splat_transform, read_info
 
     g, _ = model
     src = write_ply(tmp_path / "tree.ply", g)

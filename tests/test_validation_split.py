@@ -7,7 +7,7 @@ import random
 import pytest
 
 from clod_adapter.io.scene import Scene, holdout_validation, validation_split
-from clod_adapter.synthetic import make_cameras
+from clod_adapter.io.synthetic import make_cameras
 from conftest import shared_path
 
 

@@ -18,10 +18,11 @@ import numpy as np
 import pytest
 import torch
 
-from clod_adapter.baselines import ranking_selection
-from clod_adapter.camera_lod import in_view, lod_subset
+from clod_adapter.lod.rankings import ranking_selection
+from clod_adapter.lod.draw import lod_subset
+from clod_adapter.lod.view import in_view
 from clod_adapter.render.sh import spherical_harmonics
-from clod_adapter.synthetic import make_cameras, make_ground_truth
+from clod_adapter.io.synthetic import make_cameras, make_ground_truth
 from clod_adapter.viewer import (BYTES_PER_GAUSSIAN, DEFAULT_MAX_SV, camera_from_pose, covariances,
                                  default_start_view, model_max_sv, pose_from_camera, view_payload)
 from clod_adapter.viewer.cameras import robust_bounds, scene_start_view
@@ -114,7 +115,8 @@ def test_a_parent_tier_is_sent_past_its_switch():
     parents'), and its slider reaches where the parents are drawn at 2 max_sv."""
     from dataclasses import replace
 
-    from clod_adapter import lod, tiers
+    from clod_adapter.lod import rule as lod
+    from clod_adapter.train import tiers
     from clod_adapter.viewer.app import LodViewer
 
     g = replace(lod_model(), lod=lod.LodSettings(fade="window"))

@@ -17,8 +17,8 @@ import numpy as np
 import pytest
 import torch
 
-from clod_adapter.camera_lod import lod_subset, render_lod
-from clod_adapter.synthetic import make_ground_truth
+from clod_adapter.lod.draw import lod_subset, render_lod
+from clod_adapter.io.synthetic import make_ground_truth
 
 WAIT_S = 120  # software WebGL on 2 shared cores: generous
 WINDOW = (960, 600)

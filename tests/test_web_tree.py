@@ -15,9 +15,10 @@ from urllib.parse import urlencode
 import numpy as np
 import pytest
 
-from clod_adapter import tiers, tree
+from clod_adapter.train import tiers
+from clod_adapter.lod import tree
 from clod_adapter.io.ply import write_ply
-from clod_adapter.synthetic import make_cameras
+from clod_adapter.io.synthetic import make_cameras
 from clod_adapter.viewer.web import TREE_STREAMS, find_playcanvas
 from test_tiers import _adapted
 
@@ -141,7 +142,8 @@ def test_tree_page_in_headless_chromium(tree_model, tmp_path):
     from browser import browser_missing, chromium_driver, compare_frames, open_web_viewer, serve_folder, web_viewer_frame
     from conftest import write_tiny_scene
 
-    from clod_adapter.camera_lod import render_lod, tree_select
+    from clod_adapter.lod.draw import render_lod
+    from clod_adapter.lod.cut import tree_select
     from clod_adapter.cli.export import main as export_main
     from clod_adapter.io.load import load_scene
     from clod_adapter.io.ply import read_ply

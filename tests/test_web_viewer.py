@@ -59,7 +59,7 @@ def test_web_export_files_and_data(tiny_adapted, tiny_model, tmp_path):
 
 
 def test_static_rank_follows_the_scores():
-    from clod_adapter.synthetic import make_ground_truth
+    from clod_adapter.io.synthetic import make_ground_truth
 
     g = make_ground_truth(50, seed=1)
     g = g.with_sigma_d(torch.ones(50))
@@ -101,7 +101,8 @@ def test_continuous_lod_in_headless_chromium(fern_web, tmp_path):
     from browser import (browser_missing, chromium_driver, compare_frames, frame_change, open_web_viewer,
                          serve_folder, web_viewer_frame, web_viewer_popping)
 
-    from clod_adapter.camera_lod import render_lod, view_lod
+    from clod_adapter.lod.draw import render_lod
+    from clod_adapter.lod.view import view_lod
     from clod_adapter.io.load import load_model, load_scene
 
     why = browser_missing(("selenium",))
@@ -150,7 +151,7 @@ def test_continuous_lod_in_headless_chromium(fern_web, tmp_path):
     assert full["psnr"] - 0.5 < full16["psnr"] and full16["psnr"] >= MIN_PSNR_DB, (full16, full)
     # the page's level of the gains: lod.level_of_fraction of its drawn share (past the view's
     # ramp, so not scaled down), held at 1 beyond max_sv or growing on up to level_max
-    from clod_adapter import lod
+    from clod_adapter.lod import rule as lod
 
     for s, st_, lm in ((5.0, states[5.0], 1.0), (3 * max_sv, states[3 * max_sv], 1.0), (3 * max_sv, state2, 2.0)):
         want = lod.level_of_fraction(st_["drawn"] / st_["inFrustum"], max_sv, lm)
@@ -185,7 +186,7 @@ def test_page_draws_splats_larger_than_the_screen(tiny_adapted, tiny_model, tmp_
 
     from browser import browser_missing, chromium_driver, compare_frames, open_web_viewer, serve_folder, web_viewer_frame
 
-    from clod_adapter.camera_lod import render_lod
+    from clod_adapter.lod.draw import render_lod
     from clod_adapter.io.load import load_model, load_scene
     from clod_adapter.io.ply import write_ply
 
@@ -224,16 +225,16 @@ def test_page_draws_splats_larger_than_the_screen(tiny_adapted, tiny_model, tmp_
     assert got["psnr"] >= 33, got  # ... and the page draws it as render_lod does
 
 
-# --- the parent tier (clod_adapter.tiers) on the page ----------------------------------------------------
+# --- the parent tier (clod_adapter.train.tiers) on the page ----------------------------------------------------
 @needs_engine
 def test_web_files_of_a_tiered_model(tmp_path):
     from dataclasses import replace
 
     from test_tiers import _adapted
 
-    from clod_adapter import tiers
+    from clod_adapter.train import tiers
     from clod_adapter.io.ply import read_ply
-    from clod_adapter.synthetic import make_cameras
+    from clod_adapter.io.synthetic import make_cameras
     from clod_adapter.viewer.web import write_web_viewer
 
     children, parents = _adapted(400, 0), replace(_adapted(60, 1), lod=None)
@@ -280,7 +281,7 @@ def tiered_web(tmp_path_factory) -> dict:
     starting at their s_v = 1.2. Its page is written by write_web_viewer."""
     from conftest import FAST, write_tiny_scene
 
-    from clod_adapter import tiers
+    from clod_adapter.train import tiers
     from clod_adapter.cli.adapt import main as adapt_main
     from clod_adapter.io.load import load_model, load_scene
     from clod_adapter.io.ply import write_ply
@@ -307,8 +308,8 @@ def test_tiered_page_in_headless_chromium(tiered_web, tmp_path):
 
     from browser import browser_missing, chromium_driver, compare_frames, open_web_viewer, serve_folder, web_viewer_frame
 
-    from clod_adapter import lod
-    from clod_adapter.camera_lod import render_lod
+    from clod_adapter.lod import rule as lod
+    from clod_adapter.lod.draw import render_lod
 
     why = browser_missing(("selenium",))
     if why:
@@ -374,8 +375,8 @@ def test_chain_of_tiers_page_in_headless_chromium(tiered_web, tmp_path):
 
     from browser import browser_missing, chromium_driver, compare_frames, open_web_viewer, serve_folder, web_viewer_frame
 
-    from clod_adapter import tiers
-    from clod_adapter.camera_lod import chain_weights, render_lod, tier_chain
+    from clod_adapter.train import tiers
+    from clod_adapter.lod.draw import chain_weights, render_lod, tier_chain
     from clod_adapter.viewer.web import write_web_viewer
 
     why = browser_missing(("selenium",))

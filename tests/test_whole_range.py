@@ -8,14 +8,16 @@ import math
 import pytest
 import torch
 
-from clod_adapter import lod
-from clod_adapter.training import AdaptConfig, adapt, prepare, reference_distances, view_statistics
-from clod_adapter.baselines import ranking_selection, render_subset
-from clod_adapter.budget import critical_s_v
+from clod_adapter.lod import rule as lod
+from clod_adapter.train.config import AdaptConfig
+from clod_adapter.train.loop import adapt, prepare, reference_distances, view_statistics
+from clod_adapter.lod.rankings import ranking_selection, render_subset
+from clod_adapter.lod.budget import critical_s_v
 from clod_adapter.gaussians import Gaussians
-from clod_adapter.camera_lod import in_view, lod_subset, render_lod
+from clod_adapter.lod.draw import lod_subset, render_lod
+from clod_adapter.lod.view import in_view
 from clod_adapter.metrics import psnr
-from clod_adapter.synthetic import make_cameras, make_ground_truth, perturb
+from clod_adapter.io.synthetic import make_cameras, make_ground_truth, perturb
 from conftest import render_views
 
 #: full-detail tolerance of the calibrated schedule (docs/method.md: the base attributes are frozen and

@@ -25,9 +25,9 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # benchmarks/: com
 from common import (LABELS, RUNS, adapt_cached, add_inputs_args, add_split_arg, load_input,  # noqa: E402
                     metrics_of, scene_views, selected_inputs, setup_threads, split_suffix, table)
 
-from clod_adapter.training import AdaptConfig  # noqa: E402
+from clod_adapter.train.config import AdaptConfig  # noqa: E402
 from clod_adapter.io.ply import read_ply  # noqa: E402
-from clod_adapter.camera_lod import render_lod  # noqa: E402
+from clod_adapter.lod.draw import render_lod  # noqa: E402
 from clod_adapter.metrics import psnr  # noqa: E402
 
 #: (tag, description, AdaptConfig overrides); "default" first.

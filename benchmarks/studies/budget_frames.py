@@ -9,7 +9,7 @@ with merged tiers every tier down to the one that took the budget. Both forms dr
 Gaussians at the same ``s_v``; this study holds them to the same image and times both, as
 ``clod-eval``'s equal-count comparison asks them (``render_lod(budget=k, min_s_v=0)``, ``k`` a
 share of the input's Gaussians in each test view), in interleaved shuffled rounds in one run
-(:func:`clod_adapter.timing.time_interleaved`, wall time of the whole ``render_lod`` call), on
+(:func:`clod_adapter.evaluate.timing.time_interleaved`, wall time of the whole ``render_lod`` call), on
 each input's default adaptation (cached: ``benchmarks/common.adapt_cached``).
 
 Goal (exit 1 when missed): every image equal, and the prefix form no slower than the whole
@@ -35,11 +35,12 @@ from common import (LABELS, adapt_cached, add_inputs_args, load_input, selected_
 
 import torch  # noqa: E402
 
-from clod_adapter import camera_lod  # noqa: E402
-from clod_adapter.camera_lod import render_lod, view_lod  # noqa: E402
+from clod_adapter.lod import draw as camera_lod, view as lod_view  # noqa: E402
+from clod_adapter.lod.draw import render_lod
+from clod_adapter.lod.view import view_lod  # noqa: E402
 from clod_adapter.io.load import load_model  # noqa: E402
-from clod_adapter.timing import time_interleaved  # noqa: E402
-from clod_adapter.training import AdaptConfig  # noqa: E402
+from clod_adapter.evaluate.timing import time_interleaved  # noqa: E402
+from clod_adapter.train.config import AdaptConfig  # noqa: E402
 
 #: budgets as shares of the input's Gaussians in each view (the decimators' points of clod-eval)
 SHARES = (0.5, 0.3, 0.15, 0.08, 0.04)
@@ -53,14 +54,14 @@ class _Timed:  # what time_interleaved reads from a render: the wall time of the
 
 
 def _render(model, cam, k: int, prefix: bool):
-    tries = camera_lod.PREFIX_TRIES
-    camera_lod.PREFIX_TRIES = tries if prefix else 0  # 0: the whole model projected, as before
+    tries = lod_view.PREFIX_TRIES
+    lod_view.PREFIX_TRIES = tries if prefix else 0  # 0: the whole model projected, as before
     try:
         t0 = time.perf_counter()
         out = render_lod(model, cam, budget=k, min_s_v=0.0)
         return _Timed((time.perf_counter() - t0) * 1e3, out)
     finally:
-        camera_lod.PREFIX_TRIES = tries
+        lod_view.PREFIX_TRIES = tries
 
 
 def study(name: str, repeats: int) -> tuple[list[list], bool]:

@@ -4,7 +4,7 @@ For choosing a default, and for the ablation at equal time: each input (default:
 is adapted with ``clod-adapt``'s defaults and with each ``--config KEY=VALUE ...`` (one variant
 per ``--config``; cached, common.py; ``--split val``: fit views only), and every model is
 rendered from the evaluation views along the same ``s_v`` grid as ``quality_vs_time.py`` (its
-:func:`clod_adapter.quality_vs_time.clod_s_vs`: past every tier's hand-over), every
+:func:`clod_adapter.evaluate.comparison.clod_s_vs`: past every tier's hand-over), every
 setting of every model and the input timed in the same interleaved rounds.
 Printed per input: each model's best PSNR within 90 / 75 / 50 / 25 / 15 / 10 % of the input's
 frame time (the frontier line of ``quality_vs_time.py``) and the popping of ``clod-eval`` from
@@ -31,17 +31,17 @@ from common import RUNS, adapt_cached, load_input, parse_config, parse_inputs_ar
 
 import torch  # noqa: E402
 
-from clod_adapter.camera_lod import render_lod  # noqa: E402
-from clod_adapter.frontier import Point, best_within  # noqa: E402
+from clod_adapter.lod.draw import render_lod  # noqa: E402
+from clod_adapter.evaluate.frontier import Point, best_within  # noqa: E402
 from clod_adapter.io.atomic import atomic_write  # noqa: E402
 from clod_adapter.io.load import load_model  # noqa: E402
 from clod_adapter.jobs.eval import popping_curve, popping_sweep  # noqa: E402
 from clod_adapter.metrics import psnr  # noqa: E402
-from clod_adapter.timing import time_interleaved  # noqa: E402
-from clod_adapter.training import AdaptConfig  # noqa: E402
+from clod_adapter.evaluate.timing import time_interleaved  # noqa: E402
+from clod_adapter.train.config import AdaptConfig  # noqa: E402
 
-from clod_adapter.camera_lod import tier_reach  # noqa: E402
-from clod_adapter.quality_vs_time import clod_s_vs  # noqa: E402  (the s_v grid of benchmarks/quality_vs_time.py)
+from clod_adapter.lod.draw import tier_reach  # noqa: E402
+from clod_adapter.evaluate.comparison import clod_s_vs  # noqa: E402  (the s_v grid of benchmarks/quality_vs_time.py)
 
 SHARES = (0.9, 0.75, 0.5, 0.25, 0.15, 0.1)
 
@@ -52,7 +52,7 @@ class _Timed:
 
 
 def timed_render(g, cam, s_v):
-    """A zero-argument job for :func:`clod_adapter.timing.time_interleaved`: one whole
+    """A zero-argument job for :func:`clod_adapter.evaluate.timing.time_interleaved`: one whole
     ``render_lod(g, cam, s_v)`` frame, timed as raster ms (``s_v`` None: the model as it is)."""
     def f():
         t0 = time.perf_counter()

@@ -2,20 +2,20 @@
 
 For fern (images_2) and skull (360 degrees, resolution 1), or any checkpoint (``--input
 NAME=PLY:SCENE[:RES]``), a few cameras each, the pretrained model and its subsets (random, LightGaussian-ranked, opacity-ranked; several sizes) are drawn
-through the LoD path (:meth:`clod_adapter.camera_lod.LodView.rasterize` of a static cut, i.e. what a
+through the LoD path (:meth:`clod_adapter.lod.view.LodView.rasterize` of a static cut, i.e. what a
 budget draws: finishing the projection of the drawn rows, SH colours, tile binning,
 compositing) and timed (median of ``--repeats``). Per candidate unit (tile intersections,
-clipped bounding-box pixels, clipped ellipse pixels; see :func:`clod_adapter.cost.cost_units`)
+clipped bounding-box pixels, clipped ellipse pixels; see :func:`clod_adapter.lod.cost.cost_units`)
 it fits ``ms = c0 + c1 * cost_sum + c2 * count`` over both scenes and prints the coefficients,
 R^2 and the relative errors per scene, and the same with the count alone for comparison. The
-chosen unit (:data:`clod_adapter.cost.COST_UNIT`) is then checked: exit status 1 when its
+chosen unit (:data:`clod_adapter.lod.cost.COST_UNIT`) is then checked: exit status 1 when its
 median relative error exceeds 20 % on a scene.
 
     python benchmarks/studies/cost_model.py                # ~2 min on 2 threads
     python benchmarks/studies/cost_model.py --repeats 5 --cameras 4
 
 The coefficients printed for the chosen unit are the defaults of
-:class:`clod_adapter.cost.FrameTimeModel` (refit on another machine with this command).
+:class:`clod_adapter.lod.cost.FrameTimeModel` (refit on another machine with this command).
 """
 from __future__ import annotations
 
@@ -34,9 +34,9 @@ import torch  # noqa: E402
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # benchmarks/: common.py
 from common import add_inputs_args, resolve_input, selected_inputs  # noqa: E402
 
-from clod_adapter.cost import COST_UNIT, cost_units  # noqa: E402
+from clod_adapter.lod.cost import COST_UNIT, cost_units  # noqa: E402
 from clod_adapter.render.projection import finish_projection  # noqa: E402
-from clod_adapter.camera_lod import EPS2D, view_lod  # noqa: E402
+from clod_adapter.lod.view import EPS2D, view_lod  # noqa: E402
 
 UNITS = ("tiles", "bbox_px", "ellipse_px")
 FRACTIONS = (1.0, 0.5, 0.25, 0.1, 0.04, 0.015)
@@ -46,7 +46,7 @@ def collect(name: str, n_cams: int, repeats: int, rng: torch.Generator) -> list[
     """The draws of one scene, timed in ``repeats`` interleaved rounds (each round draws every
     subset once, so a burst of load on a shared machine hits one round, not one subset); per
     draw the minimum wall ms and the minimum process CPU ms over the rounds."""
-    from clod_adapter.baselines import lightgaussian_significance, topk_in_view
+    from clod_adapter.lod.rankings import lightgaussian_significance, topk_in_view
     from clod_adapter.io.load import load_model, load_scene
 
     ply, root, res = resolve_input(name)

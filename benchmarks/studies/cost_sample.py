@@ -1,13 +1,13 @@
 """How many Gaussians does a budget walking down a chain of tiers need to cost a tier's full detail?
 
-A cost or time budget on a model with merged tiers (:func:`clod_adapter.camera_lod.budget_walk`)
+A cost or time budget on a model with merged tiers (:func:`clod_adapter.lod.draw.budget_walk`)
 compares each tier's full detail (its cost and count in view) with the budget, and a
 ``budget_cost`` share is a share of the model's full cost. Costed exactly, each tier is projected
 whole for a test, most of a cheap frame's selection time. Costed from every n-th Gaussian by
 index, with the widest share (``max(scales) / d'``) costed exactly
-(:meth:`clod_adapter.camera_lod.LodView.full_detail_estimate`, n =
-:data:`clod_adapter.camera_lod.COST_SAMPLE_STEP`, the share
-:data:`clod_adapter.camera_lod.COST_SAMPLE_TOP`), only about 1/n of it is.
+(:meth:`clod_adapter.lod.view.LodView.full_detail_estimate`, n =
+:data:`clod_adapter.lod.cost.COST_SAMPLE_STEP`, the share
+:data:`clod_adapter.lod.cost.COST_SAMPLE_TOP`), only about 1/n of it is.
 
 For each input (default: skull, fern and MaskGaussian fern; the checkpoint as a user has it) and
 each view of ``--split`` (default: the validation views), each step n in ``--steps`` and widest share in ``--tops``: the
@@ -20,9 +20,9 @@ count in view (mean and worst over the views). No goal is enforced (a study: exi
 
 ``--frames``: instead, the default adaptation of each input (cached, benchmarks/common.py; adapted
 on the fit views first for ``--split val``) drawn at the cost budgets of ``quality_vs_time.py``
-(:data:`clod_adapter.quality_vs_time.COST_SHARES`) from every view of ``--split``, with the tiers
+(:data:`clod_adapter.evaluate.comparison.COST_SHARES`) from every view of ``--split``, with the tiers
 costed exactly and from the sample, both in the same interleaved rounds
-(:func:`clod_adapter.timing.time_interleaved`, whole ``render_lod`` calls) with the input at full
+(:func:`clod_adapter.evaluate.timing.time_interleaved`, whole ``render_lod`` calls) with the input at full
 detail: ms and share of the input's frame, and Gaussians drawn per view.
 
 Written: ``runs/bench/cost_sample/summary.md`` (``cost_sample_frames`` with ``--frames``). Under a
@@ -41,12 +41,13 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # benchmarks/: com
 from common import (SPLITS, adapt_cached, add_inputs_args, load_input, scene_views, selected_inputs,  # noqa: E402
                     setup_threads, write_summary)
 
-from clod_adapter import camera_lod  # noqa: E402
-from clod_adapter.camera_lod import render_lod, view_lod  # noqa: E402
+from clod_adapter.lod import cost as lod_cost, draw as camera_lod  # noqa: E402
+from clod_adapter.lod.draw import render_lod
+from clod_adapter.lod.view import view_lod  # noqa: E402
 from clod_adapter.io.load import load_model  # noqa: E402
-from clod_adapter.quality_vs_time import COST_SHARES  # noqa: E402
-from clod_adapter.timing import time_interleaved  # noqa: E402
-from clod_adapter.training import AdaptConfig  # noqa: E402
+from clod_adapter.evaluate.comparison import COST_SHARES  # noqa: E402
+from clod_adapter.evaluate.timing import time_interleaved  # noqa: E402
+from clod_adapter.train.config import AdaptConfig  # noqa: E402
 
 
 def _timed(f, repeats: int):
@@ -60,25 +61,25 @@ def _timed(f, repeats: int):
 
 def study(name: str, split: str, steps, tops, repeats: int) -> list[str]:
     """One table row per (step, widest share) for ``name``: ms, cost error mean / worst, count
-    error mean / worst. The share is set by assigning ``camera_lod.COST_SAMPLE_TOP`` (restored)."""
+    error mean / worst. The share is set by assigning ``lod_cost.COST_SAMPLE_TOP`` (restored)."""
     g, scene, _ = load_input(name, split)
     g = g.with_sigma_d(None)
     cams = scene_views(scene, split)[1]
     variants = [(n, t) for n in steps for t in (tops if n > 1 else tops[:1])]
     rows = {v: ([], [], []) for v in variants}
-    keep = camera_lod.COST_SAMPLE_TOP
+    keep = lod_cost.COST_SAMPLE_TOP
     try:
         for cam in cams:
             exact = view_lod(g, cam)
             ref = (exact.full_cost(), float(exact.n_in_view))
             for n, t in variants:
-                camera_lod.COST_SAMPLE_TOP = t
+                lod_cost.COST_SAMPLE_TOP = t
                 ms, (cost, count) = _timed(lambda: view_lod(g, cam).full_detail_estimate(n), repeats)
                 rows[(n, t)][0].append(ms)
                 rows[(n, t)][1].append(cost / ref[0] - 1.0)
                 rows[(n, t)][2].append(count / ref[1] - 1.0)
     finally:
-        camera_lod.COST_SAMPLE_TOP = keep
+        lod_cost.COST_SAMPLE_TOP = keep
     out = []
     for v in variants:
         ms, ec, en = rows[v]
@@ -95,14 +96,14 @@ def _frame(g, cam, exact: bool, **kw):
     raster time), the tiers costed exactly (``exact``: ``COST_SAMPLE_MIN`` above any tier) or from
     the sample; the constant is restored after the call."""
     def f():
-        keep = camera_lod.COST_SAMPLE_MIN
-        camera_lod.COST_SAMPLE_MIN = 1 << 62 if exact else keep
+        keep = lod_cost.COST_SAMPLE_MIN
+        lod_cost.COST_SAMPLE_MIN = 1 << 62 if exact else keep
         try:
             t0 = time.perf_counter()
             r = render_lod(g, cam, **kw)
             ms = (time.perf_counter() - t0) * 1e3
         finally:
-            camera_lod.COST_SAMPLE_MIN = keep
+            lod_cost.COST_SAMPLE_MIN = keep
         f.drawn = r.n_rendered
         return SimpleNamespace(select_ms=0.0, raster_ms=ms)
     return f

@@ -1,8 +1,8 @@
 """When should a count budget pass to the next merged tier?
 
 A count budget of ``k`` on a model with merged tiers walks down the chain
-(:func:`clod_adapter.camera_lod.budget_walk`): the next tier takes it over where that tier, as the
-``s_v`` rule first draws it alone, draws at least :data:`clod_adapter.camera_lod.COUNT_TAKE_SHARE`
+(:func:`clod_adapter.lod.draw.budget_walk`): the next tier takes it over where that tier, as the
+``s_v`` rule first draws it alone, draws at least :data:`clod_adapter.lod.draw.COUNT_TAKE_SHARE`
 of ``k``. At 1 a tier takes only budgets it fills, so a budget between two tiers' sizes is the
 finer tier cut to ``k``; below 1 it may be the coarser tier drawn whole, fewer than ``k``.
 
@@ -29,10 +29,12 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # benchmarks/: com
 from common import (SPLITS, adapt_cached, add_inputs_args, load_input, load_model, scene_views,  # noqa: E402
                     selected_inputs, setup_threads, write_summary)
 
-from clod_adapter import camera_lod, tiers  # noqa: E402
-from clod_adapter.camera_lod import render_lod, view_lod  # noqa: E402
+from clod_adapter.lod import draw as camera_lod
+from clod_adapter.train import tiers  # noqa: E402
+from clod_adapter.lod.draw import render_lod
+from clod_adapter.lod.view import view_lod  # noqa: E402
 from clod_adapter.metrics import psnr  # noqa: E402
-from clod_adapter.training import AdaptConfig  # noqa: E402
+from clod_adapter.train.config import AdaptConfig  # noqa: E402
 
 #: the decimators' shares of the input whose counts per view are the budgets
 POINTS = (0.5, 0.3, 0.15, 0.08)

@@ -2,11 +2,11 @@
 
 For each input (default: MaskGaussian fern, fern, skull) the Gaussians whose blending weight
 summed over the fit views is under a share of one view's pixels
-(:func:`clod_adapter.pruning.faint`, ``AdaptConfig.faint_share``) are left out, with no recovery.
+(:func:`clod_adapter.train.pruning.faint`, ``AdaptConfig.faint_share``) are left out, with no recovery.
 The fit views are what the shared checkpoints were trained on, as a user's checkpoint is trained on
 all its training views; the validation views were in neither. Printed per share: how many are left
 out, the change in validation PSNR at full detail, and the frame time against the input's
-(:func:`clod_adapter.timing.time_interleaved`, interleaved rounds on the validation views, one
+(:func:`clod_adapter.evaluate.timing.time_interleaved`, interleaved rounds on the validation views, one
 run). The default share is the largest that costs no input 0.02 dB. No goal is enforced (a study:
 exit 0)::
 
@@ -26,10 +26,10 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # benchmarks/: com
 from common import (add_inputs_args, load_input, scene_views, selected_inputs, setup_threads,  # noqa: E402
                     write_summary)
 
-from clod_adapter.camera_lod import render_lod  # noqa: E402
+from clod_adapter.lod.draw import render_lod  # noqa: E402
 from clod_adapter.metrics import psnr  # noqa: E402
-from clod_adapter.pruning import FAINT_SHARE, faint  # noqa: E402
-from clod_adapter.timing import time_interleaved  # noqa: E402
+from clod_adapter.train.pruning import FAINT_SHARE, faint  # noqa: E402
+from clod_adapter.evaluate.timing import time_interleaved  # noqa: E402
 
 SHARES = (5e-6, FAINT_SHARE, 2e-5, 4e-5)
 

@@ -5,7 +5,7 @@ detail strays from the input is most of its error there. The shared checkpoints 
 views they never saw, and there a level that strays from the input can score higher than one that
 keeps it; this study takes the photographs out. On the validation views of each input's default
 validation adaptation (``--split val``, common.py; adapted when not cached), the comparison of
-``benchmarks/quality_vs_time.py`` (:func:`clod_adapter.quality_vs_time.compare`: the adapted model
+``benchmarks/quality_vs_time.py`` (:func:`clod_adapter.evaluate.comparison.compare`: the adapted model
 along ``s_v`` and at budgets, LightGaussian and opacity cuts, splat-transform 3.7.0's ``--decimate``
 and ``--decimate-adaptive``, every setting timed in the same interleaved rounds, CPU rasteriser) is
 scored with the input's own render of each view as the image (PSNR in dB; the input itself is
@@ -24,12 +24,12 @@ from common import adapt_cached, load_input, run_per_input, scene_views  # noqa:
 
 import torch
 
-from clod_adapter import quality_vs_time as qvt
-from clod_adapter.baselines import render_subset
-from clod_adapter.frontier import Point, best_within
+from clod_adapter.evaluate import comparison as qvt
+from clod_adapter.lod.rankings import render_subset
+from clod_adapter.evaluate.frontier import Point, best_within
 from clod_adapter.io.load import load_model
-from clod_adapter.splat_transform import find_splat_transform
-from clod_adapter.training import AdaptConfig
+from clod_adapter.io.splat_transform import find_splat_transform
+from clod_adapter.train.config import AdaptConfig
 
 SHARES = (0.95, 0.9, 0.8, 0.7, 0.6, 0.5, 0.45, 0.4, 0.35, 0.3, 0.25)
 ROUNDS = 3

@@ -2,7 +2,7 @@
 
 For each input (default: fern, maskgaussian, skull) the input is merged by splat-transform's
 ``--decimate`` to 50 % of its Gaussians and to 0.7x and 0.49x that (the shares
-:func:`clod_adapter.tiers.first_share` tries). Printed per merge: the frame time that
+:func:`clod_adapter.train.tiers.first_share` tries). Printed per merge: the frame time that
 ``clod-adapt`` predicts for it at full detail (the fitted frame-time model on the 8 training views
 the job chooses on: the fit views, the validation views held out) as a share of the input's, the
 frame time measured at full detail on the validation views (the input and every merge timed in the
@@ -24,8 +24,8 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # benchmarks/: common.py
 from common import add_inputs_args, load_input, scene_views, selected_inputs, setup_threads, write_summary  # noqa: E402
 
-from clod_adapter import quality_vs_time as qvt  # noqa: E402
-from clod_adapter import tiers  # noqa: E402
+from clod_adapter.evaluate import comparison as qvt  # noqa: E402
+from clod_adapter.train import tiers  # noqa: E402
 
 
 def study(name: str, cap: float, repeats: int, log) -> list[str]:

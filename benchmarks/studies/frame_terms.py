@@ -6,16 +6,16 @@ camera and evaluates Eq. 2's mask before it knows what it draws: O(N) work that 
 pays in full. Three forms, interleaved in one run, random centres in front of a 960x540 camera,
 2 threads, ``OMP_WAIT_POLICY=PASSIVE`` (the CLIs' default):
 
-* ``kernel``: :func:`clod_adapter.lod.frame_terms` + :func:`clod_adapter.lod.lod_mask` on the
+* ``kernel``: :func:`clod_adapter.lod.rule.frame_terms` + :func:`clod_adapter.lod.rule.lod_mask` on the
   C++ kernel (``csrc/lod_terms.cpp``: one pass each, in double);
-* ``rows``: the same calls on their torch twin (:func:`clod_adapter.lod.in_frustum`,
-  :func:`clod_adapter.lod.normalized_distances`, the torch ``lod_mask``) on the centres' cached
+* ``rows``: the same calls on their torch twin (:func:`clod_adapter.lod.rule.in_frustum`,
+  :func:`clod_adapter.lod.rule.normalized_distances`, the torch ``lod_mask``) on the centres' cached
   [3, N] rows, about 35 elementwise operations, each of which wakes OpenMP's second thread above
   32,768 elements (about 0.1 ms per operation under ``PASSIVE``);
 * ``[N, 3]``: the frustum and distances as a [N, 3] x [3, 3] product and a division per
   coordinate (what the rows replaced), plus the torch mask;
 * ``keep``: given the frame's terms, what an ``s_v`` frame needs of the mask: the kept indices
-  and the frustum counts (``eta``, the level) from :func:`clod_adapter.lod.lod_keep` in one call,
+  and the frustum counts (``eta``, the level) from :func:`clod_adapter.lod.rule.lod_keep` in one call,
   against ``mask_ids``: the kernel's mask, then ``nonzero`` and two sums over [N] (what
   ``LodView.select`` did before), each a pass that wakes the second thread.
 
@@ -42,7 +42,7 @@ import torch  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[2]))  # the repository
 
-from clod_adapter import lod  # noqa: E402
+from clod_adapter.lod import rule as lod  # noqa: E402
 from clod_adapter.render import native  # noqa: E402
 
 #: (form, against, centres) -> the least speed-up (module docstring)

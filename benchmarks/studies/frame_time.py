@@ -1,6 +1,6 @@
 """Where a frame's time goes: projection (+ in-view test), LoD selection, rasterisation.
 
-One :func:`clod_adapter.camera_lod.render_lod` frame is split into the projection of the Gaussians in
+One :func:`clod_adapter.lod.draw.render_lod` frame is split into the projection of the Gaussians in
 front of the camera (done once per frame and reused by the rasteriser), the LoD selection
 (frustum, d', the Eq. 2 mask and the drawn opacities) and the rasterisation (finishing the
 projection of the drawn set, colours, tiles, compositing). Inputs: the fern checkpoint with a
@@ -31,9 +31,9 @@ import torch  # noqa: E402
 REPO = Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(REPO))
 
-from clod_adapter import lod  # noqa: E402
-from clod_adapter.training import reference_distances  # noqa: E402
-from clod_adapter.camera_lod import render_lod  # noqa: E402
+from clod_adapter.lod import rule as lod  # noqa: E402
+from clod_adapter.train.loop import reference_distances  # noqa: E402
+from clod_adapter.lod.draw import render_lod  # noqa: E402
 
 
 def fern_model(adapted: str | None):
@@ -56,7 +56,7 @@ def calibrated(g, cams):
 
 
 def synthetic(n: int):
-    from clod_adapter.synthetic import make_cameras, make_ground_truth
+    from clod_adapter.io.synthetic import make_cameras, make_ground_truth
 
     g = make_ground_truth(n, seed=0)
     cams = make_cameras(1, 3, width=960, height=540)

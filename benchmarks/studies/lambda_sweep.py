@@ -28,8 +28,9 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # benchmarks/: com
 
 from common import add_inputs_args, add_split_arg, resolve_input, scene_views, selected_inputs  # noqa: E402
 
-from clod_adapter.training import AdaptConfig, adapt, prepare  # noqa: E402
-from clod_adapter.level_metrics import evaluate_level  # noqa: E402
+from clod_adapter.train.config import AdaptConfig
+from clod_adapter.train.loop import adapt, prepare  # noqa: E402
+from clod_adapter.evaluate.level_metrics import evaluate_level  # noqa: E402
 from clod_adapter.io.load import load_model, load_scene  # noqa: E402
 
 

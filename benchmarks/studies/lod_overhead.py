@@ -3,7 +3,7 @@ made of exactly what that frame draws.
 
 For each input (default: skull and fern, their cached default adaptations, common.py) and each
 ``s_v``, every evaluation view gets a plain model holding the Gaussians ``render_lod(g, cam, s_v)``
-hands the rasteriser, with the attributes it draws them with (:func:`clod_adapter.camera_lod.lod_subset`:
+hands the rasteriser, with the attributes it draws them with (:func:`clod_adapter.lod.draw.lod_subset`:
 level scales and colours, faded opacities). The two render the same image (checked: largest
 |difference| printed) and differ only in the per-frame LoD work: the frustum and ``d'`` over all N
 Gaussians, Eq. 2's mask, the kept indices and counts, the level gains and the fade. The two of
@@ -32,10 +32,10 @@ from common import adapt_cached, load_input, parse_inputs_args, scene_views  # n
 
 import torch
 
-from clod_adapter.camera_lod import lod_subset, render_lod
+from clod_adapter.lod.draw import lod_subset, render_lod
 from clod_adapter.gaussians import Gaussians
 from clod_adapter.io.load import load_model
-from clod_adapter.training import AdaptConfig
+from clod_adapter.train.config import AdaptConfig
 
 GOAL_SHARE = 0.03
 

@@ -4,12 +4,12 @@ For each input (default: fern and skull, a 360-degree capture) this takes the de
 (cached, common.py) and builds two PlayCanvas streamed-SOG LoD sets with splat-transform 3.7.0:
 
 * ``clod``: the adapted model's levels as ``clod-export --lod-meta`` cuts them
-  (:func:`clod_adapter.bake.lod_level` at each of :func:`clod_adapter.bake.lod_set_s_vs`,
+  (:func:`clod_adapter.export.bake.lod_level` at each of :func:`clod_adapter.export.bake.lod_set_s_vs`,
   reference distances from the fit views);
 * ``decimate`` / ``decimate_adaptive``: splat-transform's own levels for the same counts, the
   chain a LoD builder runs: level 0 the input, level k + 1 the tool's ``--decimate`` (or
   ``--decimate-adaptive``) of level k down to our level k + 1's count;
-* ``ordered``: the prefixes of ``clod-export --ordered``'s file (:func:`clod_adapter.bake.importance_order`
+* ``ordered``: the prefixes of ``clod-export --ordered``'s file (:func:`clod_adapter.export.bake.importance_order`
   over the fit views, base attributes: what a viewer that streams the file in order draws) at
   the same counts, scored as plain .ply files.
 
@@ -38,14 +38,15 @@ from common import LABELS, RUNS, adapt_cached, load_input, parse_inputs_args, sc
 
 import torch
 
-from clod_adapter.bake import importance_order, lod_level, lod_set_s_vs
-from clod_adapter.baselines import merge_decimate
-from clod_adapter.camera_lod import render_lod
+from clod_adapter.export.bake import importance_order, lod_level, lod_set_s_vs
+from clod_adapter.lod.rankings import merge_decimate
+from clod_adapter.lod.draw import render_lod
 from clod_adapter.io.load import load_model
 from clod_adapter.io.ply import write_ply
 from clod_adapter.metrics import psnr, ssim
-from clod_adapter.splat_transform import find_splat_transform, run_splat_transform, write_lod_set
-from clod_adapter.training import AdaptConfig, reference_distances
+from clod_adapter.io.splat_transform import find_splat_transform, run_splat_transform, write_lod_set
+from clod_adapter.train.config import AdaptConfig
+from clod_adapter.train.loop import reference_distances
 
 PEERS = {"decimate": "decimate", "decimate_adaptive": "adaptive"}
 COLUMNS = ["input", "method", "level", "s_v", "gaussians", "psnr", "ssim", "set_bytes"]

@@ -1,6 +1,6 @@
 """How a LoD set's levels are cut (``clod-export --lod-meta``): the union of what each view draws
-(:func:`clod_adapter.bake.bake`, how ``--s-v`` bakes one level) against the view-independent cut at
-each Gaussian's reference distance (:func:`clod_adapter.bake.lod_level`, the choice), each against
+(:func:`clod_adapter.export.bake.bake`, how ``--s-v`` bakes one level) against the view-independent cut at
+each Gaussian's reference distance (:func:`clod_adapter.export.bake.lod_level`, the choice), each against
 splat-transform's ``--decimate`` of the input at the same count. Validation views of the default
 validation adaptations (``--split val``, common.py), plain .ply levels (no SOG round trip).
 Prints one line per level::
@@ -15,12 +15,13 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # benchmarks/: common.py
 from common import adapt_cached, load_input, run_per_input, scene_views  # noqa: E402
 
-from clod_adapter.bake import bake, lod_level, lod_set_s_vs
-from clod_adapter.baselines import merge_decimate
-from clod_adapter.camera_lod import render_lod
+from clod_adapter.export.bake import bake, lod_level, lod_set_s_vs
+from clod_adapter.lod.rankings import merge_decimate
+from clod_adapter.lod.draw import render_lod
 from clod_adapter.io.load import load_model
 from clod_adapter.metrics import psnr
-from clod_adapter.training import AdaptConfig, reference_distances
+from clod_adapter.train.config import AdaptConfig
+from clod_adapter.train.loop import reference_distances
 
 
 def run_input(name: str) -> None:

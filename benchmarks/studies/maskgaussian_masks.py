@@ -64,8 +64,8 @@ import torch.nn.functional as F  # noqa: E402
 REPO = Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(REPO))
 
-from clod_adapter.official import OFFICIAL_LR, scene_extent  # noqa: E402
-from clod_adapter.level_metrics import evaluate_level  # noqa: E402
+from clod_adapter.train.official import OFFICIAL_LR, scene_extent  # noqa: E402
+from clod_adapter.evaluate.level_metrics import evaluate_level  # noqa: E402
 from clod_adapter.gaussians import Gaussians  # noqa: E402
 from clod_adapter.io.load import apply_masks, load_model  # noqa: E402
 from clod_adapter.io.ply import read_ply, write_ply  # noqa: E402

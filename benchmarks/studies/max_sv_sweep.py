@@ -31,13 +31,12 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # benchmarks/: com
 from common import (LABELS, RUNS, adapt_cached, add_inputs_args, add_split_arg, fmt_pct, load_input,  # noqa: E402
                     metrics_of, scene_views, selected_inputs, setup_threads, split_suffix, table)
 
-from clod_adapter.training import AdaptConfig
-from clod_adapter.splat_transform import find_splat_transform
-from clod_adapter.baselines import (lightgaussian_significance, merge_decimate,
-                                    ranking_selection, render_subset)
-from clod_adapter.budget import budget_count
+from clod_adapter.train.config import AdaptConfig
+from clod_adapter.io.splat_transform import find_splat_transform
+from clod_adapter.lod.rankings import lightgaussian_significance, merge_decimate, ranking_selection, render_subset
+from clod_adapter.lod.budget import budget_count
 from clod_adapter.io.ply import read_ply
-from clod_adapter.camera_lod import render_lod
+from clod_adapter.lod.draw import render_lod
 from clod_adapter.metrics import psnr, ssim
 from clod_adapter.jobs.eval import resolve_lpips
 

@@ -2,7 +2,7 @@
 model, at equal frame time (coarse levels drawn from merged Gaussians rather than survivors only).
 
 For each input (default: skull and fern; validation views by default, a design question) it
-builds the settings of ``benchmarks/quality_vs_time.py`` (:func:`clod_adapter.quality_vs_time.build_settings`:
+builds the settings of ``benchmarks/quality_vs_time.py`` (:func:`clod_adapter.evaluate.comparison.build_settings`:
 the input, the adapted model without a tier along the ``s_v`` grid and at cost budgets, the static
 peers: LightGaussian and opacity cuts, splat-transform 3.7.0's ``--decimate`` and
 ``--decimate-adaptive``), and adds, for each ``--parents`` share ``f``, a *parent tier*:
@@ -40,16 +40,16 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # benchmarks/: com
 from common import (RUNS, adapt_cached, add_inputs_args, add_split_arg, load_input, resolve_input,  # noqa: E402
                     scene_views, selected_inputs, setup_threads, split_suffix)
 
-from clod_adapter import quality_vs_time as qvt  # noqa: E402
-from clod_adapter import tiers  # noqa: E402
-from clod_adapter.baselines import merge_decimate  # noqa: E402
-from clod_adapter.frontier import Point, best_within  # noqa: E402
+from clod_adapter.evaluate import comparison as qvt  # noqa: E402
+from clod_adapter.train import tiers  # noqa: E402
+from clod_adapter.lod.rankings import merge_decimate  # noqa: E402
+from clod_adapter.evaluate.frontier import Point, best_within  # noqa: E402
 from clod_adapter.io.atomic import atomic_write  # noqa: E402
 from clod_adapter.io.load import load_model  # noqa: E402
 from clod_adapter.io.ply import write_ply  # noqa: E402
-from clod_adapter.splat_transform import find_splat_transform  # noqa: E402
-from clod_adapter.storage import ply_bytes  # noqa: E402
-from clod_adapter.training import AdaptConfig  # noqa: E402
+from clod_adapter.io.splat_transform import find_splat_transform  # noqa: E402
+from clod_adapter.evaluate.storage import ply_bytes  # noqa: E402
+from clod_adapter.train.config import AdaptConfig  # noqa: E402
 
 SHARES = (0.75, 0.5, 0.25, 0.15, 0.1)
 #: the goals' margin over the best static cut (``benchmarks/quality_vs_time.py``).

@@ -5,7 +5,7 @@
 Each configuration runs in a fresh Python process (OpenMP reads ``OMP_WAIT_POLICY`` when torch
 loads it): the demo scene (6,000 Gaussians, 160x120, as ``clod-adapt --demo``) is built in memory,
 ``sigma_d`` attached (fixed attenuation 0.99, no calibration), 5 untimed steps, then
-``--iterations`` timed steps of :func:`clod_adapter.training.adapt`. ``--loads``: how many competing
+``--iterations`` timed steps of :func:`clod_adapter.train.loop.adapt`. ``--loads``: how many competing
 busy processes (pure-Python spin loops, one core each) run meanwhile. Configurations:
 
 * ``default``: ``OMP_WAIT_POLICY`` unset (libgomp's default: idle threads spin before sleeping),
@@ -40,8 +40,9 @@ CHILD = r"""
 import json, sys, time
 sys.path.insert(0, sys.argv[1])
 import torch
-from clod_adapter.training import AdaptConfig, adapt, prepare
-from clod_adapter.synthetic import make_cameras, make_ground_truth, perturb
+from clod_adapter.train.config import AdaptConfig
+from clod_adapter.train.loop import adapt, prepare
+from clod_adapter.io.synthetic import make_cameras, make_ground_truth, perturb
 from clod_adapter.render import rasterization
 iters = int(sys.argv[2])
 gt = make_ground_truth(6000, seed=0)

@@ -4,10 +4,10 @@ frame time, on validation views.
 Rankings of the input's Gaussians over the fit views: ``weight`` (each Gaussian's blending weight
 ``alpha T`` summed over every pixel of every fit view: the gradient of the rendered image's sum
 with respect to a constant per-Gaussian colour), ``weight_per_cost`` (that over its footprint
-pixels, :func:`clod_adapter.cost.splat_cost`), LightGaussian significance and opacity. Each cut
+pixels, :func:`clod_adapter.lod.cost.splat_cost`), LightGaussian significance and opacity. Each cut
 keeps the top ``--keeps`` of the model; with ``--recover N`` the ``weight`` cut at the first keep
 is then fine-tuned (every attribute, LightGaussian's recovery schedule,
-:func:`clod_adapter.dlod_ceiling.finetune_subset`) for N steps on the fit views. Every model is
+:func:`clod_adapter.train.finetune.finetune_subset`) for N steps on the fit views. Every model is
 scored on the validation views (PSNR; the input fits them, it was trained on them), or with
 ``--split test`` on the test views (the recovery then fits every training view), and timed
 against the input in the same interleaved rounds (2 threads)::
@@ -15,7 +15,7 @@ against the input in the same interleaved rounds (2 threads)::
     python benchmarks/studies/prune_study.py --inputs fern --recover 600
     python benchmarks/studies/prune_study.py --inputs fern --split test --keeps 0.6 0.7 --recover 1000
 
-``clod-adapt --keep-share`` (:mod:`clod_adapter.pruning`) is the ``weight`` cut with this
+``clod-adapt --keep-share`` (:mod:`clod_adapter.train.pruning`) is the ``weight`` cut with this
 recovery, kept when it beats the cut on held-out training views. ``--coverages 0.99 ...`` adds
 ``weight`` cuts sized by blending-weight coverage (the fewest Gaussians carrying that share of the
 fit views' total weight): a rule that needs no held-out view.
@@ -32,17 +32,18 @@ from compare_configs import timed_render
 
 import torch
 
-from clod_adapter.baselines import lightgaussian_significance
-from clod_adapter.camera_lod import render_lod, view_lod
-from clod_adapter.cost import splat_cost
-from clod_adapter.dlod_ceiling import finetune_subset, global_cut
+from clod_adapter.lod.rankings import lightgaussian_significance
+from clod_adapter.lod.draw import render_lod
+from clod_adapter.lod.view import view_lod
+from clod_adapter.lod.cost import splat_cost
+from clod_adapter.train.finetune import finetune_subset, global_cut
 from clod_adapter.metrics import psnr
-from clod_adapter.pruning import blend_weights
-from clod_adapter.timing import time_interleaved
+from clod_adapter.train.pruning import blend_weights
+from clod_adapter.evaluate.timing import time_interleaved
 
 
 def blend_weight(g, cameras) -> tuple:
-    """([N] summed blending weight (:func:`clod_adapter.pruning.blend_weights`), [N] summed
+    """([N] summed blending weight (:func:`clod_adapter.train.pruning.blend_weights`), [N] summed
     footprint pixels) over ``cameras``."""
     cost = torch.zeros(len(g), dtype=torch.float64)
     for c in cameras:

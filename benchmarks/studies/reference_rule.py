@@ -1,6 +1,6 @@
 """``render_lod`` against ``docs/lod_rule.md`` on the real scenes: each input's default adaptation
 (cached, common.py) drawn from every test view at ``s_v`` 1 ... 30 by the library
-(:func:`clod_adapter.camera_lod.lod_subset`: the model's Gaussians and, past its ``tier_s_v``, its
+(:func:`clod_adapter.lod.draw.lod_subset`: the model's Gaussians and, past its ``tier_s_v``, its
 parent tier) and by the page's numpy implementation (``examples/reference_lod.py``
 ``draw_tiered``, which reads the .ply itself). Prints the Gaussians (and parents) drawn by one and
 not the other and the largest opacity difference; exits 1 when a single one differs::
@@ -18,9 +18,9 @@ from common import adapt_cached, load_input, parse_inputs_args, scene_views  # n
 import numpy as np
 import torch
 
-from clod_adapter.camera_lod import lod_subset
+from clod_adapter.lod.draw import lod_subset
 from clod_adapter.io.load import load_model
-from clod_adapter.training import AdaptConfig
+from clod_adapter.train.config import AdaptConfig
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "examples"))
 import reference_lod_chain as ref  # noqa: E402

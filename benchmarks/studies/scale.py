@@ -5,14 +5,14 @@ Usage: python benchmarks/studies/scale.py [--sizes 100000,300000,1000000] [--ste
 
 Each size runs in a fresh subprocess (``--one N``), so sizes do not share caches or peak memory:
 
-* the scene: :func:`clod_adapter.synthetic.make_ground_truth` with N Gaussians, SH degree 3
+* the scene: :func:`clod_adapter.io.synthetic.make_ground_truth` with N Gaussians, SH degree 3
   (degree-2/3 coefficients added, small), scales shrunk by ``sqrt(6000 / N)`` so the surface
   coverage (Gaussians per pixel) stays that of the 6,000-Gaussian demo whatever N; a
   ``rows x cols`` grid of forward-facing cameras (:func:`make_cameras`) whose images are the
   ground truth rendered by our rasteriser; the "pretrained" model is a perturbed copy;
 * ``prepare`` (the calibrated schedule's initialisation: LightGaussian ranking, reference
   distances, ``sigma_d``);
-* ``--steps`` steps of :func:`clod_adapter.training.adapt` (the default calibrated schedule: a
+* ``--steps`` steps of :func:`clod_adapter.train.loop.adapt` (the default calibrated schedule: a
   per-view exact budget of ``s_v^-1.5`` of the Gaussians in view, level gains, base attributes
   frozen), the first one discarded as warm-up; per step the wall time split into
   selection (frustum, in-view test, critical s_v, budget), projection, raster forward (SH,
@@ -21,10 +21,10 @@ Each size runs in a fresh subprocess (``--one N``), so sizes do not share caches
 * ``recalibrate`` (run once, after the last step);
 * one evaluation frame (``render_lod`` at s_v = 1, no gradient; median of 3 after a warm-up);
 * with ``--tiers``, the phases the merged tiers and the leave-out add to ``clod-adapt``: the faint
-  Gaussians (:func:`clod_adapter.pruning.faint`, one render and backward per training view), the
-  first merge (:func:`clod_adapter.tiers.decimated` to half the model: splat-transform's
+  Gaussians (:func:`clod_adapter.train.pruning.faint`, one render and backward per training view), the
+  first merge (:func:`clod_adapter.train.tiers.decimated` to half the model: splat-transform's
   ``--decimate`` in a child process, whose own peak is ``ru_maxrss`` of the children) and its
-  fit (:func:`clod_adapter.tiers.finetuned`, ``--steps`` steps; seconds per step). The tier's own
+  fit (:func:`clod_adapter.train.tiers.finetuned`, ``--steps`` steps; seconds per step). The tier's own
   adaptation is the same step on the smaller merged model.
 
 Peak memory is the process's resident high-water mark (``VmHWM`` of /proc/self/status), reset
@@ -88,7 +88,7 @@ def build(n: int, rows: int, cols: int, width: int, height: int, seed: int = 0):
 
     from clod_adapter.gaussians import Gaussians
     from clod_adapter.render import rasterization
-    from clod_adapter.synthetic import make_cameras, make_ground_truth, perturb
+    from clod_adapter.io.synthetic import make_cameras, make_ground_truth, perturb
 
     torch.set_num_threads(2)
     gt = make_ground_truth(n, seed)
@@ -123,7 +123,7 @@ def instrument(timers: Timers, state) -> None:
     """Wrap the functions a step calls so each adds its wall time to ``timers``."""
     import torch
 
-    import clod_adapter.training as ad
+    import clod_adapter.train.loop as ad
 
     real_render, real_bwd = ad.render_lod, torch.Tensor.backward
 
@@ -180,11 +180,12 @@ def one(n: int, args) -> dict:
     import torch
 
     torch.set_num_threads(args.threads)
-    from clod_adapter.training import AdaptConfig, adapt, prepare, recalibrate
+    from clod_adapter.train.config import AdaptConfig
+    from clod_adapter.train.loop import adapt, prepare, recalibrate
     from clod_adapter.io.load import load_model
     from clod_adapter.io.load import load_scene
     from clod_adapter.io.view_images import ViewImages
-    from clod_adapter.camera_lod import render_lod
+    from clod_adapter.lod.draw import render_lod
     from clod_adapter.render.composite import cpp_extension_available
 
     assert cpp_extension_available(), "the C++ compositor is needed for timings"
@@ -263,8 +264,8 @@ def tier_phases(row: dict, model, train, train_imgs, args) -> None:
     """The ``--tiers`` phases (module docstring) into ``row``."""
     import resource
 
-    from clod_adapter import tiers
-    from clod_adapter.pruning import faint
+    from clod_adapter.train import tiers
+    from clod_adapter.train.pruning import faint
 
     reset_peak()
     t0 = time.perf_counter()

@@ -2,9 +2,9 @@
 
 For each input (default: skull and fern) the merges ``clod-adapt`` builds for its tiers
 (``--parent-share 0.5,0.15,0.04``: splat-transform 3.7.0's ``--decimate`` of the input, each next
-tier merged from the fitted tier above it, :func:`clod_adapter.tiers.decimated`) are fine-tuned
-at full detail on the fit views (:func:`clod_adapter.dlod_ceiling.finetune_subset`, LightGaussian's
-recovery rates, the schedule of :func:`clod_adapter.tiers.finetuned`), and scored on the
+tier merged from the fitted tier above it, :func:`clod_adapter.train.tiers.decimated`) are fine-tuned
+at full detail on the fit views (:func:`clod_adapter.train.finetune.finetune_subset`, LightGaussian's
+recovery rates, the schedule of :func:`clod_adapter.train.tiers.finetuned`), and scored on the
 validation views (never in the fit, nor in the shared checkpoints' training) every ``--every``
 steps up to ``--steps``. Printed: each merge's PSNR at each step against the input's, and the step
 each merge scores best at. No goal is enforced (a study: exit 0)::
@@ -27,11 +27,11 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # benchmarks/: com
 from common import (add_inputs_args, load_input, scene_views, selected_inputs, setup_threads,  # noqa: E402
                     write_summary)
 
-from clod_adapter import tiers  # noqa: E402
-from clod_adapter.camera_lod import render_lod  # noqa: E402
-from clod_adapter.dlod_ceiling import finetune_subset  # noqa: E402
+from clod_adapter.train import tiers  # noqa: E402
+from clod_adapter.lod.draw import render_lod  # noqa: E402
+from clod_adapter.train.finetune import finetune_subset  # noqa: E402
 from clod_adapter.metrics import psnr  # noqa: E402
-from clod_adapter.training import AdaptConfig  # noqa: E402
+from clod_adapter.train.config import AdaptConfig  # noqa: E402
 
 
 def val_psnr(model, cams, imgs) -> float:

@@ -3,8 +3,8 @@
 
 For each input (default: skull and fern) the chain of merges ``clod-adapt`` builds for its tiers
 (``--parent-share 0.5,0.15,0.04``, each next tier merged from the fitted tier above it, each fitted
-for ``--tier-finetune-steps`` steps on the fit views, :func:`clod_adapter.tiers.finetuned`) is built
-once with each of splat-transform 3.7.0's merging decimators (:data:`clod_adapter.tiers.MERGES`).
+for ``--tier-finetune-steps`` steps on the fit views, :func:`clod_adapter.train.tiers.finetuned`) is built
+once with each of splat-transform 3.7.0's merging decimators (:data:`clod_adapter.train.tiers.MERGES`).
 Every merge is scored at full detail on the validation views (never in the fit, nor in the shared
 checkpoints' training), and the input and every merge are timed at full detail in the same
 interleaved rounds. Printed per merge: validation PSNR before and after the fit, frame time as a
@@ -24,10 +24,10 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # benchmarks/: com
 from common import (add_inputs_args, load_input, scene_views, selected_inputs, setup_threads,  # noqa: E402
                     write_summary)
 
-from clod_adapter import quality_vs_time as qvt  # noqa: E402
-from clod_adapter import tiers  # noqa: E402
-from clod_adapter.storage import ply_bytes  # noqa: E402
-from clod_adapter.training import AdaptConfig  # noqa: E402
+from clod_adapter.evaluate import comparison as qvt  # noqa: E402
+from clod_adapter.train import tiers  # noqa: E402
+from clod_adapter.evaluate.storage import ply_bytes  # noqa: E402
+from clod_adapter.train.config import AdaptConfig  # noqa: E402
 
 
 def study(name: str, shares, steps: int, repeats: int, log) -> list[str]:

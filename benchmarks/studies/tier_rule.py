@@ -8,7 +8,7 @@ as ``benchmarks/quality_vs_time.py`` caches it: the model and each merged tier a
 ``parents/``, ``parents/parents/``, ...), detaches every tier and links them again, from the
 coarsest up, by each rule of :data:`VARIANTS`:
 
-* ``default``: :func:`clod_adapter.tiers.link` (by predicted time, the tier at full detail, within
+* ``default``: :func:`clod_adapter.train.tiers.link` (by predicted time, the tier at full detail, within
   ``CHOOSE_MARGIN_DB`` = 1.5 dB of the tier above on the fit views; else the coarsest tier by PSNR);
 * ``margin 1.0``: the same with a 1 dB margin;
 * ``psnr``: each tier where some level of it first scores at least the tier above in no more
@@ -39,13 +39,13 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # benchmarks/: com
 from common import (adapt_cached, add_inputs_args, add_split_arg, load_input,  # noqa: E402
                     scene_views, selected_inputs, setup_threads, split_suffix, write_summary)
 
-from clod_adapter import quality_vs_time as qvt  # noqa: E402
-from clod_adapter import tiers  # noqa: E402
-from clod_adapter.camera_lod import tier_chain  # noqa: E402
+from clod_adapter.evaluate import comparison as qvt  # noqa: E402
+from clod_adapter.train import tiers  # noqa: E402
+from clod_adapter.lod.draw import tier_chain  # noqa: E402
 from clod_adapter.io.load import load_model  # noqa: E402
-from clod_adapter.splat_transform import find_splat_transform  # noqa: E402
-from clod_adapter.storage import ply_bytes  # noqa: E402
-from clod_adapter.training import AdaptConfig  # noqa: E402
+from clod_adapter.io.splat_transform import find_splat_transform  # noqa: E402
+from clod_adapter.evaluate.storage import ply_bytes  # noqa: E402
+from clod_adapter.train.config import AdaptConfig  # noqa: E402
 
 VARIANTS = ("default", "margin 1.0", "psnr", "4 % tier", "no tier")
 

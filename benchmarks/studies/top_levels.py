@@ -25,12 +25,14 @@ from common import adapt_cached, load_input, run_per_input, scene_views  # noqa:
 
 import torch
 
-from clod_adapter.baselines import lightgaussian_significance, topk_in_view
-from clod_adapter.budget import critical_s_v
-from clod_adapter.camera_lod import render_lod, view_lod
+from clod_adapter.lod.rankings import lightgaussian_significance, topk_in_view
+from clod_adapter.lod.budget import critical_s_v
+from clod_adapter.lod.draw import render_lod
+from clod_adapter.lod.view import view_lod
 from clod_adapter.io.load import load_model
 from clod_adapter.metrics import psnr
-from clod_adapter.training import AdaptConfig, reference_distances
+from clod_adapter.train.config import AdaptConfig
+from clod_adapter.train.loop import reference_distances
 
 S_VS = (1.12, 1.25, 1.5, 2.0, 3.0)
 MERGE_TOP = 0.3

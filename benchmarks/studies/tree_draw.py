@@ -3,8 +3,8 @@
 For each input (default: fern, skull and MaskGaussian fern) the ``tier_draw = chain`` adaptation
 (cached, benchmarks/common.py: the tiers cross-faded whole at each hand-over) is drawn as it is
 (``chain``) and with the same tiers linked into a merge tree and fitted on its cuts on the fit views,
-as ``--tier-draw tree`` does after the same tiers (``tree``: :func:`clod_adapter.tree.build`,
-:func:`clod_adapter.tree_train.finetune`, ``--fit-steps``, seed 0), and not fitted (``unfit``). All,
+as ``--tier-draw tree`` does after the same tiers (``tree``: :func:`clod_adapter.lod.tree.build`,
+:func:`clod_adapter.train.tree_fit.finetune`, ``--fit-steps``, seed 0), and not fitted (``unfit``). All,
 and the input, are drawn
 on the scored views at ``--steps`` log-spaced ``s_v`` from 1 to past the coarsest tier and at count
 budgets from 100 % to 1 % of the Gaussians in view, and timed in ``--rounds`` interleaved rounds
@@ -16,7 +16,7 @@ budgets from 100 % to 1 % of the Gaussians in view, and timed in ``--rounds`` in
 * the best PSNR within 75 / 50 / 25 / 10 % of the input's frame, for both;
 * the best PSNR of splat-transform's two decimators (``qvt.DECIMATE_SHARES`` of the input, static
   models; when ``npx splat-transform`` is installed) within the same shares of the frame;
-* ``clod-eval``'s popping ratio (:func:`clod_adapter.popping.popping_ratio`) on every scored view,
+* ``clod-eval``'s popping ratio (:func:`clod_adapter.evaluate.popping.popping_ratio`) on every scored view,
   the median and the smallest.
 
 No goal is enforced (a study: exit 0)::
@@ -41,12 +41,13 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # benchmarks/: com
 from common import (SPLITS, adapt_cached, add_inputs_args, load_input, load_model, scene_views,  # noqa: E402
                     selected_inputs, setup_threads, write_summary)
 
-from clod_adapter import quality_vs_time as qvt, tree  # noqa: E402
-from clod_adapter.tree_train import TREE_STEPS, finetune, level_range  # noqa: E402
-from clod_adapter.baselines import lightgaussian_significance  # noqa: E402
-from clod_adapter.camera_lod import tier_reach  # noqa: E402
-from clod_adapter.popping import popping_ratio  # noqa: E402
-from clod_adapter.training import AdaptConfig  # noqa: E402
+from clod_adapter.evaluate import comparison as qvt
+from clod_adapter.lod import tree  # noqa: E402
+from clod_adapter.train.tree_fit import TREE_STEPS, finetune, level_range  # noqa: E402
+from clod_adapter.lod.rankings import lightgaussian_significance  # noqa: E402
+from clod_adapter.lod.draw import tier_reach  # noqa: E402
+from clod_adapter.evaluate.popping import popping_ratio  # noqa: E402
+from clod_adapter.train.config import AdaptConfig  # noqa: E402
 
 SHARES = (1.0, 0.75, 0.5, 0.3, 0.2, 0.1, 0.05, 0.02, 0.01)
 WITHIN = (0.75, 0.5, 0.25, 0.1)
@@ -80,8 +81,8 @@ def run_input(name: str, args) -> list[str]:
         for b in SHARES:
             settings.append(qvt.Setting(label, f"budget={b:g}", [qvt.lod_render(g, c, budget=b, budget_in_view=True)
                                                                  for c in cams], 0))
-    from clod_adapter.baselines import merge_decimate
-    from clod_adapter.splat_transform import find_splat_transform
+    from clod_adapter.lod.rankings import merge_decimate
+    from clod_adapter.io.splat_transform import find_splat_transform
 
     tool = find_splat_transform()
     for method, mode in (qvt.DECIMATORS.items() if tool is not None else ()):  # the decimators, static

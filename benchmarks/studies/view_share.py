@@ -29,13 +29,15 @@ from compare_configs import timed_render
 
 import torch
 
-from clod_adapter import lod
-from clod_adapter.camera_lod import render_lod, view_lod
-from clod_adapter.frontier import Point, best_within
+from clod_adapter.lod import rule as lod
+from clod_adapter.lod.draw import render_lod
+from clod_adapter.lod.view import view_lod
+from clod_adapter.evaluate.frontier import Point, best_within
 from clod_adapter.io.load import load_model
 from clod_adapter.metrics import psnr
-from clod_adapter.timing import time_interleaved
-from clod_adapter.training import AdaptConfig, weighted_count
+from clod_adapter.evaluate.timing import time_interleaved
+from clod_adapter.train.config import AdaptConfig
+from clod_adapter.train.loop import weighted_count
 
 S_VS = (1.5, 1.75, 2.0, 2.5, 3.0, 4.0, 5.0, 6.0, 7.5, 10.0, 15.0, 20.0, 30.0, 50.0)
 SHARES = (0.9, 0.75, 0.6, 0.5, 0.4, 0.3, 0.25, 0.2, 0.15, 0.1)

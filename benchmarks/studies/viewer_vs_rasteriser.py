@@ -34,7 +34,7 @@ REPO = Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(REPO))
 
 from clod_adapter.io.load import load_scene  # noqa: E402
-from clod_adapter.camera_lod import render_lod  # noqa: E402
+from clod_adapter.lod.draw import render_lod  # noqa: E402
 from clod_adapter.metrics import psnr  # noqa: E402
 from clod_adapter.render import rasterization  # noqa: E402
 from clod_adapter.viewer import camera_from_pose, load_view_model, model_max_sv  # noqa: E402

@@ -25,11 +25,11 @@ from common import REPO, adapt_cached, load_input, parse_inputs_args, scene_view
 
 import torch
 
-from clod_adapter.baselines import lightgaussian_significance
-from clod_adapter.camera_lod import render_lod
+from clod_adapter.lod.rankings import lightgaussian_significance
+from clod_adapter.lod.draw import render_lod
 from clod_adapter.io.load import load_model
 from clod_adapter.jobs.eval import image_change
-from clod_adapter.training import AdaptConfig
+from clod_adapter.train.config import AdaptConfig
 from clod_adapter.viewer.web import find_playcanvas, write_web_viewer
 
 sys.path.insert(0, str(REPO / "tests"))  # the headless-browser helpers live with the tests

@@ -27,10 +27,10 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # benchmarks/: com
 from common import (LABELS, RUNS, adapt_cached, add_inputs_args, fmt_pct, metrics_of, resolve_input,  # noqa: E402
                     selected_inputs, setup_threads, table)
 
-from clod_adapter.training import AdaptConfig
-from clod_adapter.splat_transform import find_splat_transform
+from clod_adapter.train.config import AdaptConfig
+from clod_adapter.io.splat_transform import find_splat_transform
 from clod_adapter.io.load import load_scene
-from clod_adapter.level_metrics import budget_levels
+from clod_adapter.evaluate.level_metrics import budget_levels
 from clod_adapter.jobs.eval import EvalOptions, evaluate_report
 
 STATIC = ("constant_sigma", "lightgaussian", "random", "decimate", "decimate_adaptive")

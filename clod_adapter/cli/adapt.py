@@ -184,7 +184,7 @@ def _run_flags(p) -> None:
 def _config(args, world: int):
     """The run's AdaptConfig from the flags; its own checks (AdaptConfig.__post_init__, the one
     place the settings' rules live) reported with the flag's name."""
-    from clod_adapter.training import AdaptConfig
+    from clod_adapter.train.config import AdaptConfig
 
     iterations = args.iterations if args.iterations is not None else (400 if args.demo else 1000)
     kw = {} if args.tau is None else {"tau": args.tau}
@@ -218,15 +218,15 @@ def main(argv: list[str] | None = None) -> int:
         try:
             return _main(args)
         except RuntimeError as e:
-            from clod_adapter.distributed import PeerLost
+            from clod_adapter.train.distributed import PeerLost
 
             if not isinstance(e, PeerLost):
                 raise
             print(f"clod-adapt: error: {jobs.one_line(e)}", file=sys.stderr, flush=True)
             return EXIT_PEER_LOST
     code = jobs.run_cli("clod-adapt", body)
-    if "clod_adapter.distributed" in sys.modules:  # a data-parallel process: end it without the
-        from clod_adapter.distributed import exit_process  # interpreter's shutdown (see there)
+    if "clod_adapter.train.distributed" in sys.modules:  # a data-parallel process: end it without the
+        from clod_adapter.train.distributed import exit_process  # interpreter's shutdown (see there)
 
         return exit_process(code)
     return code
@@ -248,7 +248,7 @@ def _main(args) -> int:
         check_flag(args.iteration >= 0, "--iteration", ">= 0", args.iteration)
     if args.save_every is not None:
         check_flag(args.save_every >= 0, "--save-every", ">= 0", args.save_every)
-    from clod_adapter.distributed import launched_by_torchrun
+    from clod_adapter.train.distributed import launched_by_torchrun
 
     distributed = args.distributed or launched_by_torchrun()
     if args.distributed and not launched_by_torchrun():
@@ -266,8 +266,8 @@ def _main(args) -> int:
     force = args.force
     cfg = _config(args, world)  # checked before anything is written (the demo scene included)
     if args.demo:
-        from clod_adapter.jobs.adapt import check_output_dir
-        from clod_adapter.synthetic import build_demo_scene
+        from clod_adapter.jobs.adapt_inputs import check_output_dir
+        from clod_adapter.io.synthetic import build_demo_scene
 
         check_output_dir(out, [], create=False, force=args.force, resume=args.resume)
         scene, ply = build_demo_scene(out / "demo")

@@ -129,7 +129,7 @@ def _lpips_spec(args):
         return None
     lpips = args.lpips_weights if args.lpips_weights is not None else "auto"
     if lpips != "auto":
-        from clod_adapter.lpips import load_lpips
+        from clod_adapter.evaluate.lpips import load_lpips
 
         try:
             load_lpips(lpips)
@@ -142,7 +142,7 @@ def _merge_tool(args):
     """The splat-transform executable for the decimators, or None (--no-merge, or not found: said)."""
     if args.no_merge:
         return None
-    from clod_adapter.splat_transform import find_splat_transform
+    from clod_adapter.io.splat_transform import find_splat_transform
 
     tool = args.splat_transform or find_splat_transform()
     if tool is None:
@@ -162,10 +162,11 @@ def _main(args) -> int:
         raise InputError(f"{scene_root}: no such scene folder")
     jobs.set_threads(args.threads)
 
-    from clod_adapter.training import max_sv_from_state
-    from clod_adapter.splat_transform import PeerError
+    from clod_adapter.train.state import max_sv_from_state
+    from clod_adapter.io.splat_transform import PeerError
     from clod_adapter.io.load import load_scene, training_size
-    from clod_adapter.jobs.adapt import METRICS_NAME, resolution_note
+    from clod_adapter.jobs.adapt import METRICS_NAME
+    from clod_adapter.jobs.adapt_inputs import resolution_note
     from clod_adapter.jobs.eval import OUTPUT_NAMES, EvalOptions, evaluate_report
 
     dev = jobs.pick_device(args.device)
@@ -180,7 +181,7 @@ def _main(args) -> int:
     max_sv = args.max_sv if args.max_sv is not None else (adapted.lod.max_sv if adapted.lod else None) \
         or max_sv_from_state(ply) or 5.0
     if budgets is None:
-        from clod_adapter.level_metrics import budget_levels
+        from clod_adapter.evaluate.level_metrics import budget_levels
 
         budgets = budget_levels(max_sv)
     dlod_it = args.dlod_iterations

@@ -16,7 +16,7 @@ OUTDIR/export.json (sizes,
 counts, PSNRs, pruning and SH results). ``--prune`` drops Gaussians no training view renders at
 any s_v >= 1; ``--sh-max-drop-db D`` lowers the SH degree while the training-view PSNR at
 s_v = 1 drops by at most D dB. Both apply to every file written. The job is
-:func:`clod_adapter.jobs.export.export` (operations: :mod:`clod_adapter.bake`).
+:func:`clod_adapter.jobs.export.export` (operations: :mod:`clod_adapter.export.bake`).
 
 Exit status: 0 done, 2 bad input (one line on stderr naming the file or flag, nothing written),
 130 interrupted.
@@ -89,7 +89,7 @@ def _check_tools(spz: bool, lod_dir, web_dir) -> None:
         except ImportError:
             raise InputError("--spz: needs the gsply package (pip install -e \".[spz]\")") from None
     if lod_dir is not None:
-        from clod_adapter.splat_transform import NPM_INSTALL, find_splat_transform
+        from clod_adapter.io.splat_transform import NPM_INSTALL, find_splat_transform
 
         if find_splat_transform() is None:
             raise InputError(f"--lod-meta: splat-transform not found; install the pinned version with `{NPM_INSTALL}` "
@@ -157,7 +157,7 @@ def _main(args, argv) -> int:
     names = [EXTENDED_NAME, JSON_NAME] + ([ORDERED_NAME] if args.ordered else []) + ([baked_name] if baked_name else [])
     if args.spz:
         names += [Path(n).with_suffix(".spz").name for n in names if n.endswith(".ply")]
-    from clod_adapter.splat_transform import LOD_META_NAME
+    from clod_adapter.io.splat_transform import LOD_META_NAME
 
     _check_outputs(out, ply, names, [(lod_dir, [LOD_META_NAME]), (web_dir, ["index.html"])], args.force)
     dev = jobs.pick_device(args.device)

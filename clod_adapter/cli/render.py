@@ -82,7 +82,7 @@ def _render_views(model, scene, cams, level: dict, bg, out: Path, bar) -> list:
 
     from clod_adapter.io.atomic import atomic_save
     from clod_adapter.metrics import psnr
-    from clod_adapter.camera_lod import render_lod
+    from clod_adapter.lod.draw import render_lod
 
     views = []
     for c in cams:
@@ -99,13 +99,13 @@ def _render_views(model, scene, cams, level: dict, bg, out: Path, bar) -> list:
 
 def _render_video(model, scene, args, level: dict, max_sv: float, bg, path: Path, bar) -> dict:
     """The MP4 along the camera path (1 -> max_sv -> 1, or the fixed level; a model with a parent
-    tier, without ``--max-sv``: 1 -> ``max_sv`` times :func:`clod_adapter.camera_lod.tier_reach` -> 1, even in ``ln s_v``), each
+    tier, without ``--max-sv``: 1 -> ``max_sv`` times :func:`clod_adapter.lod.draw.tier_reach` -> 1, even in ``ln s_v``), each
     frame captioned with its s_v and count; returns its record."""
     import numpy as np
 
-    from clod_adapter.figures import label_panels
-    from clod_adapter.video import camera_path, orbit_path, write_mp4
-    from clod_adapter.camera_lod import render_lod, tier_reach
+    from clod_adapter.export.figures import label_panels
+    from clod_adapter.export.video import camera_path, orbit_path, write_mp4
+    from clod_adapter.lod.draw import render_lod, tier_reach
 
     n_frames, n = args.frames, len(model)
     cams = camera_path(scene.cameras, n_frames) if args.path == "cameras" else \
@@ -140,7 +140,7 @@ def _main(args) -> int:
         raise InputError(f"{ply}: no such file")
     if not scene_root.is_dir():
         raise InputError(f"{scene_root}: no such scene folder")
-    from clod_adapter.video import video_available
+    from clod_adapter.export.video import video_available
 
     if not args.no_video:
         why = video_available()
@@ -150,7 +150,7 @@ def _main(args) -> int:
 
     import torch
 
-    from clod_adapter.training import max_sv_from_state
+    from clod_adapter.train.state import max_sv_from_state
     from clod_adapter.io.atomic import atomic_write
     from clod_adapter.io.load import load_scene, resolve_model_path
     from clod_adapter.io.ply import read_ply

@@ -11,7 +11,7 @@ One implementation for ``clod-eval`` (its verdict, ``quality_vs_time.csv`` and
   view*): ``lightgaussian`` (LightGaussian significance on the fit views) and ``opacity``;
 * when splat-transform is given: its untrained merging decimators ``decimate`` and
   ``decimate_adaptive`` (:data:`DECIMATE_SHARES` of the model;
-  :func:`clod_adapter.baselines.merge_decimate`);
+  :func:`clod_adapter.lod.rankings.merge_decimate`);
 * at each decimator point whose drawn share per view lies in ``[max_sv^-1.5, 0.5]``: the adapted
   model, LightGaussian and opacity at exactly the decimator's drawn count in every view
   (setting ``match:<decimator>:<its setting>``);
@@ -21,11 +21,11 @@ One implementation for ``clod-eval`` (its verdict, ``quality_vs_time.csv`` and
   caps what a goal may ask;
 
 scores every setting (PSNR, SSIM, LPIPS when a scorer is given), then times every setting with
-the same renderer in interleaved shuffled rounds (:func:`clod_adapter.timing.time_interleaved`:
+the same renderer in interleaved shuffled rounds (:func:`clod_adapter.evaluate.timing.time_interleaved`:
 each render's whole wall time: projection, selection, rasterisation), and the input against
 ``s_v = 1`` alone in :data:`FULL_ROUNDS` paired rounds. A static cut is timed as the smaller model
 it is (only its Gaussians are projected). Times are read as shares of the input's frame in the same
-run (:mod:`clod_adapter.frontier`).
+run (:mod:`clod_adapter.evaluate.frontier`).
 
 The *cells* (:func:`cells`) are what both callers report: full detail; our best PSNR and the
 peers' best within each share of :data:`TIME_SHARES` of the input's frame time; ours against the
@@ -43,14 +43,15 @@ from typing import Callable, Optional, Sequence
 
 import torch
 
-from .baselines import lightgaussian_significance, merge_decimate, topk_in_view
-from .camera_lod import render_lod, tier_chain, tier_reach, view_lod
+from ..lod.rankings import lightgaussian_significance, merge_decimate, topk_in_view
+from ..lod.draw import render_lod, tier_chain, tier_reach
+from ..lod.view import view_lod
 from .frontier import Point, frontier, time_margins
-from .gaussians import Gaussians
-from .metrics import psnr, ssim
+from ..gaussians import Gaussians
+from ..metrics import psnr, ssim
 from .storage import ply_bytes
 from .timing import time_interleaved
-from .tree import is_tree
+from ..lod.tree import is_tree
 
 #: ``s_v`` levels and cost budgets of the adapted model.
 S_VS = (1.0, 1.1, 1.2, 1.3, 1.4, 1.5, 1.75, 2.0, 2.5, 3.0, 4.0, 5.0, 6.0, 7.5, 10.0, 12.5, 15.0, 17.5, 20.0, 25.0,
@@ -146,7 +147,7 @@ class Comparison:
 
 def lod_render(g: Gaussians, cam, **kw) -> Callable:
     """One view's render as a zero-argument callable returning (image, drawn, wall ms of the
-    whole :func:`clod_adapter.camera_lod.render_lod` call, via :func:`timed_call`)."""
+    whole :func:`clod_adapter.lod.draw.render_lod` call, via :func:`timed_call`)."""
     def f():
         out, ms = timed_call(lambda: render_lod(g, cam, **kw))
         return out.image, out.n_rendered, ms
@@ -180,10 +181,10 @@ TREE_LEVELS = 40
 
 def clod_s_vs(adapted: Gaussians) -> list[float]:
     """The adapted model's levels compared: :data:`S_VS`, and for a model with merged tiers more
-    levels spaced by 1.25 in ``s_v`` up to ``S_VS[-1] x`` :func:`clod_adapter.camera_lod.tier_reach`,
+    levels spaced by 1.25 in ``s_v`` up to ``S_VS[-1] x`` :func:`clod_adapter.lod.draw.tier_reach`,
     so the last tier is taken as far down as a model without tiers, and each tier's entry: the
     ``s_v`` where it is first drawn alone, at its ``tier_start`` level (the end of the cross-fade
-    into it, :func:`clod_adapter.lod.tier_weight`). A merge tree (:func:`clod_adapter.tree.is_tree`):
+    into it, :func:`clod_adapter.lod.rule.tier_weight`). A merge tree (:func:`clod_adapter.lod.tree.is_tree`):
     :data:`TREE_LEVELS` log-spaced levels from 1 to ``S_VS[-1] x`` its reach."""
     reach = tier_reach(adapted)
     if is_tree(adapted):  # one sweep through the whole tree, log-spaced (its cost must fall along it)
@@ -208,13 +209,13 @@ def build_settings(adapted: Gaussians, base: Gaussians, fit_cams: Sequence, cams
         adapted, base, fit_cams, cams, merge_tool, background, log: as :func:`compare`.
         significance: [N] float32 LightGaussian significance of ``base`` on ``fit_cams`` when the
             caller has it (default: computed here,
-            :func:`clod_adapter.baselines.lightgaussian_significance`).
+            :func:`clod_adapter.lod.rankings.lightgaussian_significance`).
 
     Returns:
         (settings, the context :func:`matched_settings` reads).
 
     Raises:
-        RuntimeError: a decimator failed (:func:`clod_adapter.baselines.merge_decimate`).
+        RuntimeError: a decimator failed (:func:`clod_adapter.lod.rankings.merge_decimate`).
     """
     kw = {} if background is None else {"background": background}
     n0 = len(base)
@@ -294,10 +295,10 @@ def ceiling_settings(settings: Sequence[Setting], ctx: _Context, max_sv: float, 
                      steps: int = CEILING_STEPS, log: Callable[[str], None] = lambda s: None) -> list[Setting]:
     """The honest ceiling at each in-range decimator share (issue 36's goal 4): per model share,
     the best start among both decimators' outputs and the LightGaussian cut of the input to the
-    same count (:func:`clod_adapter.dlod_ceiling.best_start` on the validation views), every
+    same count (:func:`clod_adapter.train.finetune.best_start` on the validation views), every
     attribute fine-tuned on the fit views for up to ``steps`` steps with LightGaussian's recovery
     schedule, keeping the checkpoint (start, every :data:`CEILING_VAL_EVERY` steps, end) that
-    scores best on the validation views (:func:`clod_adapter.dlod_ceiling.finetune_subset`). One
+    scores best on the validation views (:func:`clod_adapter.train.finetune.finetune_subset`). One
     static model per budget, as a discrete-LoD pipeline ships; scored and timed as every setting.
 
     Args:
@@ -312,7 +313,7 @@ def ceiling_settings(settings: Sequence[Setting], ctx: _Context, max_sv: float, 
     Returns:
         one :class:`Setting` per model share, method ``ceiling``, setting ``model=<share>``.
     """
-    from .dlod_ceiling import best_start, finetune_subset, global_cut
+    from ..train.finetune import best_start, finetune_subset, global_cut
 
     fit_cams, fit_imgs, val_cams, val_imgs = ceiling_views
     bg = ctx.render_kw.get("background", (0.0, 0.0, 0.0))
@@ -581,7 +582,7 @@ def plot(path, results: dict) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from .io.atomic import atomic_save
+    from ..io.atomic import atomic_save
 
     fig, axes = plt.subplots(1, len(results), figsize=(5.2 * len(results), 4.2), squeeze=False)
     for ax, (title, comp) in zip(axes[0], results.items()):
@@ -617,7 +618,7 @@ def plot_cost(path, results: dict) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from .io.atomic import atomic_save
+    from ..io.atomic import atomic_save
 
     fig, axes = plt.subplots(len(results), 2, figsize=(10.4, 3.4 * len(results)), squeeze=False)
     for (ax_l, ax_b), (title, comp) in zip(axes, results.items()):

@@ -1,7 +1,7 @@
 """Quality against frame time: each method's PSNR-vs-ms frontier and the margins between them.
 
 A level of detail exists to make a frame cheaper, so methods are compared at equal *frame time*
-(same renderer, interleaved timing rounds, one run: :mod:`clod_adapter.timing`), not only at
+(same renderer, interleaved timing rounds, one run: :mod:`clod_adapter.evaluate.timing`), not only at
 equal counts. Every method contributes *points* (one per setting: a level, a budget, a cut):
 mean quality over the views and the median frame time. A method's frontier at time ``t`` is the
 best quality among its points that take at most ``t`` ms (a step function: a method offers

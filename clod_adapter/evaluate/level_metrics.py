@@ -15,9 +15,9 @@ import torch
 from torch import Tensor
 
 
-from .gaussians import Gaussians
-from .camera_lod import render_lod
-from .metrics import psnr, ssim
+from ..gaussians import Gaussians
+from ..lod.draw import render_lod
+from ..metrics import psnr, ssim
 
 
 @dataclass

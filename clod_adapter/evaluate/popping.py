@@ -16,9 +16,9 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from .baselines import ranking_selection, render_subset
-from .camera_lod import render_lod, tier_reach
-from .gaussians import Gaussians
+from ..lod.rankings import ranking_selection, render_subset
+from ..lod.draw import render_lod, tier_reach
+from ..gaussians import Gaussians
 
 #: the sweep's end past the trained maximum (``clod-eval``'s ``s_v`` grid ends at 1.2 ``max_sv``)
 SWEEP_OVERSHOOT = 1.2
@@ -34,7 +34,7 @@ SWEEP_STEPS = 61
 def popping_sweep(max_sv: float, reach: float = 1.0, steps: int = SWEEP_STEPS) -> list[float]:
     """The ``s_v`` values of ``clod-eval``'s popping sweep: ``steps`` of them from 1 to the end of
     ``clod-eval``'s ``s_v`` grid (:data:`SWEEP_OVERSHOOT` ``max_sv``), evenly spaced; for a model
-    with merged tiers (``reach`` > 1, :func:`clod_adapter.camera_lod.tier_reach`) evenly in
+    with merged tiers (``reach`` > 1, :func:`clod_adapter.lod.draw.tier_reach`) evenly in
     ``ln s_v`` to that end times ``reach``, through every tier's hand-over to the last tier's 1.2
     ``max_sv``.
 
@@ -128,7 +128,7 @@ def popping_ratio(model: Gaussians, base: Gaussians, camera, scores: Optional[Te
     """``clod-eval``'s popping from ``camera``: :func:`popping_curve` of ``model`` along
     :func:`popping_sweep` (``steps`` frames through every tier's hand-over), the discrete levels
     cut from ``base`` (the input) by ``scores`` [N_base] (LightGaussian significance,
-    :func:`clod_adapter.baselines.lightgaussian_significance`; None: opacity). Returns
+    :func:`clod_adapter.lod.rankings.lightgaussian_significance`; None: opacity). Returns
     :func:`popping_curve`'s dict (``ratio``: the switch's jump over the largest step).
 
     Raises:

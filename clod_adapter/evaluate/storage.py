@@ -11,8 +11,8 @@ from __future__ import annotations
 import numpy as np
 import plyfile
 
-from .gaussians import Gaussians
-from .io.ply import ply_comments, ply_vertex_dtype, tier_chain_of, tier_element
+from ..gaussians import Gaussians
+from ..io.ply import ply_comments, ply_vertex_dtype, tier_chain_of, tier_element
 
 __all__ = ["ply_bytes", "ply_row_bytes"]
 

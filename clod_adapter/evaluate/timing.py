@@ -24,7 +24,7 @@ def time_interleaved(jobs: Mapping[Hashable, Sequence[Callable[[], object]]], *,
     Args:
         jobs: setting key -> one zero-argument callable per view; each call renders once and
             returns an object with ``select_ms`` and ``raster_ms`` (ms), e.g.
-            the result of :func:`clod_adapter.camera_lod.render_lod`.
+            the result of :func:`clod_adapter.lod.draw.render_lod`.
         repeats: timed rounds (>= 1).
         warmup: untimed rounds first (one-off costs: extension load, allocator, caches).
         seed: seed of the per-round shuffle.

@@ -10,7 +10,7 @@
 * :func:`reduce_sh`: drop SH bands whose removal costs less than a set PSNR on training views.
 
 Persistence (the choice made here). A Gaussian is rendered from a view iff it is in view
-(:func:`clod_adapter.camera_lod.in_view`) and ``s_v < s*`` (:func:`clod_adapter.budget.critical_s_v`,
+(:func:`clod_adapter.lod.view.in_view`) and ``s_v < s*`` (:func:`clod_adapter.lod.budget.critical_s_v`,
 which folds opacity, ``sigma_d`` and the view's normalised distance into one number). Its
 persistence is the largest ``s*`` over the views that see it, i.e. the coarsest level at which
 *some* view still draws it; 0 for a Gaussian no view sees. The maximum (not the mean) is used so
@@ -25,12 +25,13 @@ from typing import Optional, Sequence
 import torch
 from torch import Tensor
 
-from . import lod
-from .gaussians import Gaussians, concat
-from .metrics import psnr
-from .camera_lod import (chain_parts, chain_weights, count_budget_walk, render_lod, tier_chain, tiered, tree_select,
-                         view_lod)
-from .tree import is_tree
+from ..lod import rule as lod
+from ..gaussians import Gaussians, concat
+from ..metrics import psnr
+from ..lod.draw import chain_parts, chain_weights, count_budget_walk, render_lod, tier_chain, tiered
+from ..lod.view import view_lod
+from ..lod.cut import tree_select
+from ..lod.tree import is_tree
 
 __all__ = ["persistence", "importance_order", "bake", "lod_set_s_vs", "lod_level", "prune_never_rendered",
            "reduce_sh", "truncate_sh", "BakeInfo"]
@@ -112,7 +113,7 @@ def bake(gaussians: Gaussians, cameras: Sequence, s_v: Optional[float] = None, b
     A model with parent tiers, at an ``s_v`` past its ``tier_s_v``: the kept Gaussians of each
     tier drawn there, finest first, each at its own mean level, their opacities weighted by the
     tier's share of the image (``1 - u`` and ``u`` across a hand-over,
-    :func:`clod_adapter.camera_lod.chain_weights`; ``BakeInfo.n_parents`` counts the tiers' rows).
+    :func:`clod_adapter.lod.draw.chain_weights`; ``BakeInfo.n_parents`` counts the tiers' rows).
     A merge tree: each tier's nodes of the cut a view draws, at their own attributes ("original")
     or their mean drawn opacity ("mean"; a node in a hand-over is baked as itself, not on its way
     to its parent).
@@ -188,7 +189,7 @@ def bake(gaussians: Gaussians, cameras: Sequence, s_v: Optional[float] = None, b
 
 
 def _tree_sels(gaussians: Gaussians, cam, s_v, budget) -> tuple[list, float]:
-    """What one camera draws of a merge tree (:func:`clod_adapter.camera_lod.tree_select`) as one
+    """What one camera draws of a merge tree (:func:`clod_adapter.lod.cut.tree_select`) as one
     selection-like record per tier (``indices``, drawn ``opacities``, ``level`` 0), and the level."""
     from types import SimpleNamespace
 
@@ -230,7 +231,7 @@ class _Drawn:
 @torch.no_grad()
 def lod_set_s_vs(max_sv: float) -> list[float]:
     """The ``s_v`` of a discrete LoD set's levels, finest first: 1, then each ``s_v`` whose target
-    share of the Gaussians in view, ``s_v^-1.5`` (:func:`clod_adapter.lod.target_fraction`),
+    share of the Gaussians in view, ``s_v^-1.5`` (:func:`clod_adapter.lod.rule.target_fraction`),
     is half the previous level's: ``2^(2k/3)`` = 1, 1.59, 2.52, 4, 6.35, ... up to ``max_sv``
     (the trained range; 4 levels for the default 5). ``max_sv < 1.59`` gives ``[1.0]``."""
     out, k = [], 0
@@ -243,10 +244,10 @@ def lod_set_s_vs(max_sv: float) -> list[float]:
 @torch.no_grad()
 def lod_level(gaussians: Gaussians, cameras: Sequence, s_v: float, *, d_ref: Optional[Tensor] = None) -> Gaussians:
     """One level of a discrete LoD set: a standard model (``sigma_d = None``) of the Gaussians
-    whose critical ``s_v`` (:func:`clod_adapter.budget.critical_s_v`) at their reference distance
-    (:func:`clod_adapter.training.reference_distances` over ``cameras``: the mean ``d'`` over the
+    whose critical ``s_v`` (:func:`clod_adapter.lod.budget.critical_s_v`) at their reference distance
+    (:func:`clod_adapter.train.loop.reference_distances` over ``cameras``: the mean ``d'`` over the
     views that see them) exceeds ``s_v``, with the attributes at ``s_v``'s level coordinate
-    (:func:`clod_adapter.lod.level`: the level gains) and their own opacity. ``s_v <= 1``: the
+    (:func:`clod_adapter.lod.rule.level`: the level gains) and their own opacity. ``s_v <= 1``: the
     whole model at its base attributes (full detail).
 
     View-independent, unlike :func:`bake` (the union of what each view draws): an engine that
@@ -269,8 +270,8 @@ def lod_level(gaussians: Gaussians, cameras: Sequence, s_v: float, *, d_ref: Opt
     Raises:
         ValueError: the model has no ``sigma_d``.
     """
-    from .budget import critical_s_v
-    from .training import reference_distances
+    from ..lod.budget import critical_s_v
+    from ..train.loop import reference_distances
 
     _require_sigma(gaussians, "lod_level")
     if s_v <= 1.0:

@@ -7,8 +7,8 @@ from pathlib import Path
 
 import torch
 
-from .io.atomic import atomic_save
-from .camera_lod import render_lod
+from ..io.atomic import atomic_save
+from ..lod.draw import render_lod
 
 
 def _font(size: int):

@@ -22,7 +22,7 @@ from typing import Sequence
 import numpy as np
 import torch
 
-from .io.scene import Camera
+from ..io.scene import Camera
 
 
 def _c2w(cam: Camera) -> tuple[np.ndarray, np.ndarray]:

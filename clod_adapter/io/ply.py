@@ -33,9 +33,10 @@ import plyfile
 import torch
 from numpy.lib import recfunctions as rfn
 
+from clod_adapter.errors import InputError
 from clod_adapter.gaussians import Gaussians
 from clod_adapter.io.atomic import atomic_write
-from clod_adapter.lod import LodSettings
+from clod_adapter.lod_settings import LodSettings
 
 __all__ = ["PlyFormatError", "read_ply", "write_ply", "ply_property_names", "ply_vertex_dtype", "ply_comments",
            "tier_element", "tier_chain_of", "TIER_COMMENT", "TIER_KEYS"]
@@ -61,7 +62,7 @@ TIER_KEYS = HAND_OVER_KEYS + ("fade_width",)
 
 
 def tier_element(k: int) -> str:
-    """The element holding tier ``k >= 1`` of a model (:func:`clod_adapter.camera_lod.tier_chain`):
+    """The element holding tier ``k >= 1`` of a model (:func:`clod_adapter.lod.draw.tier_chain`):
     ``lod_parent`` for the first parent tier, ``lod_parent_k`` for the next ones."""
     return PARENT_ELEMENT if k == 1 else f"{PARENT_ELEMENT}_{k}"
 
@@ -112,7 +113,7 @@ def parse_lod_comment(comments, path: PathLike = "<ply>") -> "LodSettings | None
     return None
 
 
-class PlyFormatError(ValueError):
+class PlyFormatError(InputError):
     """A .ply file is not a readable 3DGS checkpoint; the message is ``"<path>: <problem>"``."""
 
     def __init__(self, path: PathLike, problem: str) -> None:

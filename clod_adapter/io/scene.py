@@ -28,6 +28,7 @@ import torch
 from PIL import Image
 from torch import Tensor
 
+from ..errors import InputError
 
 __all__ = ["Camera", "Scene", "SceneError", "validation_split", "holdout_validation", "RESOLUTIONS", "image_size"]
 
@@ -37,7 +38,7 @@ PathLike = Union[str, "os.PathLike[str]"]
 RESOLUTIONS = (1, 2, 4, 8)
 
 
-class SceneError(ValueError):
+class SceneError(InputError):
     """A scene folder cannot be used; the message is one line ``"<path>: <problem>"``."""
 
     def __init__(self, path: PathLike, problem: str) -> None:
@@ -75,10 +76,10 @@ class Camera:
 
     @property
     def center(self) -> Tensor:
-        """[3] float32 camera centre in world units, ``-R^T t`` (:func:`clod_adapter.lod.camera_center`)."""
-        from ..lod import camera_center
-
-        return camera_center(self.viewmat)
+        """[3] float32 camera centre in world units, ``-R^T t`` (as
+        :func:`clod_adapter.lod.rule.camera_center`)."""
+        R, t = self.viewmat[:3, :3], self.viewmat[:3, 3]
+        return -(R.T @ t)
 
 
 @dataclass

@@ -1,6 +1,6 @@
 """PlayCanvas splat-transform (npm ``@playcanvas/splat-transform``, pinned to 3.7.0 by the root
 ``package.json``, installed by ``npm ci``): finding it, running it on the CPU, and the two things
-this project asks of it besides decimation (:func:`clod_adapter.baselines.merge_decimate`):
+this project asks of it besides decimation (:func:`clod_adapter.lod.rankings.merge_decimate`):
 
 * :func:`write_lod_set`: a streamed-SOG LoD set (``lod-meta.json`` plus one folder of SOG chunks
   per level, the format PlayCanvas, SuperSplat and Babylon.js stream), built as the tool's help

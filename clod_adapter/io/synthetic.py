@@ -13,11 +13,11 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from .gaussians import SH_C0, Gaussians
-from .io.ply import write_ply
-from .io.scene import Camera
-from .io.colmap import write_colmap_scene
-from .render import rasterization
+from ..gaussians import SH_C0, Gaussians
+from .ply import write_ply
+from .scene import Camera
+from .colmap import write_colmap_scene
+from ..render import rasterization
 
 DEMO_WIDTH, DEMO_HEIGHT = 160, 120
 

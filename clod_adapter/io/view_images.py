@@ -11,6 +11,8 @@ from typing import Sequence
 import torch
 from torch import Tensor
 
+from ..errors import InputError
+
 #: environment variable: the decoded-image budget in MB of :class:`ViewImages` (default 1024).
 CACHE_MB_ENV = "CLOD_IMAGE_CACHE_MB"
 DEFAULT_CACHE_MB = 1024.0
@@ -20,7 +22,7 @@ def cache_bytes(environ=os.environ) -> int:
     """The decoded-image budget in bytes (``CLOD_IMAGE_CACHE_MB``, default 1024 MB).
 
     Raises:
-        ValueError: the variable is not a number >= 0 (message names it).
+        InputError: the variable is not a number >= 0 (message names it).
     """
     raw = environ.get(CACHE_MB_ENV)
     if not raw:
@@ -30,7 +32,7 @@ def cache_bytes(environ=os.environ) -> int:
     except ValueError:
         v = -1.0
     if not v >= 0:
-        raise ValueError(f"{CACHE_MB_ENV}={raw!r}: must be a number of MB >= 0")
+        raise InputError(f"{CACHE_MB_ENV}={raw!r}: must be a number of MB >= 0")
     return int(v * 2**20)
 
 

@@ -11,6 +11,7 @@ import sys
 from pathlib import Path
 from typing import Callable, Iterable, Optional, Sequence
 
+from ..errors import InputError  # noqa: F401  (the jobs' bad-input error, one import)
 from ..progress import LineProgress, progress_bar  # noqa: F401  (the jobs' progress, one import)
 
 EXIT_BAD_INPUT = 2
@@ -45,10 +46,6 @@ def set_threads(n: Optional[int]) -> None:
         import torch
 
         torch.set_num_threads(int(n))
-
-
-class InputError(ValueError):
-    """Bad user input (a file, a folder or a flag); the message is one line naming it."""
 
 
 class ArgumentParser(argparse.ArgumentParser):
@@ -116,14 +113,13 @@ def one_line(e: object) -> str:
 
 
 def run_cli(prog: str, body: Callable[[], int]) -> int:
-    """Run ``body`` and turn bad input into ``prog: error: ...`` on one stderr line (exit 2),
-    Ctrl-C / SIGTERM into exit 130."""
-    from ..io.ply import PlyFormatError
-    from ..io.scene import SceneError
-
+    """Run ``body`` and turn bad input (:class:`clod_adapter.errors.InputError`, which a .ply or
+    scene that cannot be read raises too, or an unreadable input / unwritable output, ``OSError``)
+    into ``prog: error: ...`` on one stderr line (exit 2), Ctrl-C / SIGTERM into exit 130. Any
+    other exception is a bug: it propagates (its traceback, exit status 1)."""
     try:
         return body()
-    except (InputError, PlyFormatError, SceneError, ValueError) as e:
+    except InputError as e:
         print(f"{prog}: error: {one_line(e)}", file=sys.stderr)
         return EXIT_BAD_INPUT
     except OSError as e:  # an unreadable input or unwritable output the checks missed
@@ -136,9 +132,9 @@ def run_cli(prog: str, body: Callable[[], int]) -> int:
 
 # --- flags ------------------------------------------------------------------------------------
 def parse_budget(text: str, flag: str = "--budget"):
-    """One budget from a flag: :func:`clod_adapter.budget.normalize_budget` of the number, a
+    """One budget from a flag: :func:`clod_adapter.lod.budget.normalize_budget` of the number, a
     fraction in [0, 1] (float) or a count > 1 (int). Raises InputError naming ``flag``."""
-    from ..budget import normalize_budget
+    from ..lod.budget import normalize_budget
 
     try:
         v = float(str(text).strip())

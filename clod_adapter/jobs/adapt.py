@@ -8,13 +8,12 @@ Outputs (all written atomically) in ``out_dir``:
   and max_sv^-1.5 of the Gaussians in view (PSNR, SSIM, mean rendered Gaussians, ms per frame) and the input
   model's PSNR/SSIM;
 * ``lod_strip.png``: one test view rendered at several s_v, side by side.
-* with ``keep_share < 1`` (:mod:`clod_adapter.pruning`), first: ``kept_input.ply`` (the input less what
+* with ``keep_share < 1`` (:mod:`clod_adapter.train.pruning`), first: ``kept_input.ply`` (the input less what
   the training views need least, recovered: what the LoD is learned on) and ``leave_out.json``.
 """
 from __future__ import annotations
 
 import contextlib
-import hashlib
 import json
 import math
 import os
@@ -25,158 +24,20 @@ from typing import Callable, Optional
 
 import torch
 
-from .. import __version__, jobs, lod
-from ..training import STATE_NAME, AdaptConfig, StopFlag, adapt, load_state, prepare, save_state
-from ..figures import write_strip, write_training_plot
-from ..gaussians import Gaussians
-from ..level_metrics import budget_levels, evaluate_level, evaluate_levels, sv_levels
+from .. import __version__
+from ..train.state import STATE_NAME, save_state
+from ..train.config import AdaptConfig
+from ..train.loop import StopFlag, adapt, prepare
+from ..export.figures import write_strip, write_training_plot
+from ..evaluate.level_metrics import budget_levels, evaluate_level, evaluate_levels, sv_levels
 from ..io.atomic import atomic_write
-from ..io.load import apply_masks, load_model, resolve_model_path, training_size
+from ..io.load import resolve_model_path
 from . import InputError, pick_device  # noqa: F401 (public here since the first release)
-from ..io.ply import PlyFormatError, write_ply
-from ..io.view_images import ViewImages
+from ..io.ply import write_ply
 from ..io.load import load_scene
 from ..render.composite import deterministic_enabled
-from ..camera_lod import render_lod
-
-PLY_NAME = "point_cloud.ply"
-METRICS_NAME = "metrics.json"
-STRIP_NAME = "lod_strip.png"
-
-
-#: the training curve (loss, PSNR, rendered fraction against the step).
-TRAINING_PLOT_NAME = "training.png"
-#: written with ``layout="inria"`` (besides the files above): the official 3DGS model folder.
-INRIA_FILES = ("point_cloud", "cameras.json", "cfg_args")
-TENSORBOARD_DIR = "tensorboard"
-OUTPUT_NAMES = (PLY_NAME, STATE_NAME, METRICS_NAME, STRIP_NAME, TRAINING_PLOT_NAME)
-
-
-def check_output_dir(out_dir: Path, inputs: list[Path], *, create: bool = True, force: bool = False,
-                     resume: bool = False, ignore=()) -> None:
-    """:func:`clod_adapter.jobs.check_output_dir` for this job's outputs: refuse an output that
-    would overwrite an input, a non-empty folder (unless ``force`` or ``resume``) or one that
-    cannot be written; with ``create`` make the folder.
-
-    Raises:
-        InputError: naming the folder and the problem.
-    """
-    jobs.check_output_dir(out_dir, inputs, OUTPUT_NAMES, create=create, force=force, resume=resume,
-                          ignore=ignore)
-
-
-#: ``--sanitize`` maps +Inf opacity logits (opacity exactly 1, as some exporters write) to
-#: logit(1 - 1e-7) ~ 16.12 instead of dropping those Gaussians: rendering is unchanged (alpha is
-#: clamped to 0.999 anyway) and the value is finite, so optimisation stays well defined.
-SANITIZE_OPACITY_LOGIT = float(math.log((1.0 - 1e-7) / 1e-7))
-
-
-_PLY_FIELD = {"means": "x/y/z", "quats": "rot_*", "log_scales": "scale_*", "opacity_logits": "opacity",
-              "sh0": "f_dc_*", "shN": "f_rest_*", "sigma_d": "sigma_d"}  # the .ply property names
-
-
-def check_finite(gaussians, ply_path: Path, sanitize: bool = False, log=print):
-    """Reject (default) or repair (``sanitize``) Gaussians with NaN/Inf values.
-
-    Returns ``(gaussians, info)``: the (possibly reduced) model and ``{"dropped": n,
-    "opacity_clamped": m}`` (zeros when everything was finite).
-
-    Raises:
-        InputError: non-finite values and not ``sanitize`` (the message names the file and
-            counts the Gaussians), or nothing left after sanitising.
-    """
-    n = len(gaussians)
-    info = {"dropped": 0, "opacity_clamped": 0}
-    if n == 0:
-        return gaussians, info
-    pos_inf_op = torch.isposinf(gaussians.opacity_logits)
-    bad_fields = []
-    rows_bad = torch.zeros(n, dtype=torch.bool)   # any non-finite value but a +Inf opacity logit
-    any_bad = torch.zeros(n, dtype=torch.bool)
-    counts = {"NaN": 0, "+Inf": 0, "-Inf": 0}
-    for name, t in gaussians.tensors().items():
-        v = t.detach().reshape(n, -1)
-        nonfin = ~torch.isfinite(v)
-        if not bool(nonfin.any()):
-            continue
-        bad_fields.append(_PLY_FIELD.get(name, name))
-        counts["NaN"] += int(torch.isnan(v).sum())
-        counts["+Inf"] += int(torch.isposinf(v).sum())
-        counts["-Inf"] += int(torch.isneginf(v).sum())
-        any_bad |= nonfin.any(1)
-        if name == "opacity_logits":
-            nonfin = nonfin & ~pos_inf_op[:, None]
-        rows_bad |= nonfin.any(1)
-    if not bool(any_bad.any()):
-        return gaussians, info
-    if not sanitize:
-        what = ", ".join(f"{c:,} {k}" for k, c in counts.items() if c)
-        raise InputError(f"{ply_path}: {int(any_bad.sum()):,} of {n:,} Gaussians have non-finite values "
-                         f"({what} in {', '.join(bad_fields)}); pass --sanitize to drop them "
-                         "(+Inf opacity logits are clamped instead)")
-    clamp = pos_inf_op & ~rows_bad
-    info = {"dropped": int(rows_bad.sum()), "opacity_clamped": int(clamp.sum())}
-    if info["opacity_clamped"]:
-        op = gaussians.opacity_logits
-        gaussians = replace(gaussians, opacity_logits=torch.where(
-            clamp, torch.full_like(op, SANITIZE_OPACITY_LOGIT), op))
-    if info["dropped"]:
-        gaussians = gaussians.subset(~rows_bad)
-    if len(gaussians) == 0:
-        raise InputError(f"{ply_path}: every Gaussian has non-finite values; nothing left after --sanitize")
-    log(f"clod-adapt: --sanitize: dropped {info['dropped']:,} of {n:,} Gaussians with NaN/Inf values; "
-        f"set {info['opacity_clamped']:,} +Inf opacity logits to {SANITIZE_OPACITY_LOGIT:.2f} (opacity 1 - 1e-7)")
-    return gaussians, info
-
-
-#: a model whose training-view PSNR is not at least this far above that of a flat image of the
-#: views' mean colour does not belong to the scene (every real pair measured is >= 6.2 dB above
-#: it, fern even at --resolution 8; models from other scenes were 0.8-7.4 dB below it).
-MISMATCH_MARGIN_DB = 1.0
-
-
-@torch.no_grad()
-def scene_match(gaussians, cameras, images, *, background, views: int = 3) -> dict:
-    """Evidence that ``gaussians`` was trained on this scene, from up to ``views`` training views.
-
-    Returns ``{"psnr", "flat_psnr", "margin_db", "in_view_fraction", "views", "view_psnr",
-    "view_flat_psnr"}``: the model's mean PSNR on those views, the mean PSNR of a flat image of each
-    view's mean colour, their difference, the fraction of Gaussians whose centre lies in any
-    training view (over all ``cameras``), the views' names and both PSNRs per view. ``margin_db < MISMATCH_MARGIN_DB`` means a model from another scene: any model
-    trained on these views renders them far better than a constant colour.
-    """
-    from ..metrics import psnr
-
-    idx = torch.linspace(0, len(cameras) - 1, min(views, len(cameras))).round().long().tolist()
-    pm, pf = [], []
-    for i in idx:
-        gt = images[i]
-        img = render_lod(gaussians, cameras[i], None, background=background).image.clamp(0, 1)
-        pm.append(psnr(img, gt))
-        pf.append(psnr(gt.mean(dim=(0, 1), keepdim=True).expand_as(gt), gt))
-    dev = gaussians.means.device
-    fr = torch.zeros(len(gaussians), dtype=torch.bool, device=dev)
-    for c in cameras:
-        fr |= lod.in_frustum(gaussians.means, c.viewmat.to(dev), c.K.to(dev), c.width, c.height)
-    m, f = sum(pm) / len(pm), sum(pf) / len(pf)
-    return {"psnr": m, "flat_psnr": f, "margin_db": m - f, "in_view_fraction": float(fr.float().mean()),
-            "views": [cameras[i].name for i in idx], "view_psnr": pm, "view_flat_psnr": pf}
-
-
-def resolution_note(train_size, eval_size, source: str) -> Optional[str]:
-    """A note when the images are evaluated at another size than the checkpoint was trained at
-    (more than rounding apart), else None: the renders then alias (smaller) or blur (larger), and
-    coarser levels can score *higher* than full detail."""
-    if not train_size:
-        return None
-    tw, th = train_size
-    w, h = eval_size
-    if abs(tw - w) <= 1 and abs(th - h) <= 1:
-        return None
-    ratio = tw / max(w, 1)
-    return (f"the checkpoint was trained at {tw}x{th} ({source}) but is evaluated at {w}x{h} "
-            f"({ratio:.2g}x {'smaller' if ratio > 1 else 'larger'}): 3DGS renders alias at other "
-            "resolutions, so PSNR can rise with s_v; use the training resolution (--resolution) to compare levels")
+from ..lod.draw import render_lod
+from .adapt_inputs import METRICS_NAME, PLY_NAME, STRIP_NAME, TENSORBOARD_DIR, TRAINING_PLOT_NAME, Inputs, input_iteration, read_inputs, read_model
 
 
 def write_inria_layout(out_dir: Path, model, scene, *, iteration: int, resolution: int, background,
@@ -212,23 +73,12 @@ def write_inria_layout(out_dir: Path, model, scene, *, iteration: int, resolutio
     return [str(rel_ply), "cameras.json", "cfg_args"]
 
 
-def input_iteration(ply_path: Path) -> Optional[int]:
-    """N of a ``.../iteration_N/point_cloud.ply`` input, else None."""
-    name = Path(ply_path).parent.name
-    if name.startswith("iteration_"):
-        try:
-            return int(name[len("iteration_"):])
-        except ValueError:
-            return None
-    return None
-
-
 @torch.no_grad()
 def retime_levels(input_model, model, cameras, levels, *, tau, background, repeats: int) -> dict:
-    """Interleaved render timings (:func:`clod_adapter.timing.time_interleaved`) of the input
+    """Interleaved render timings (:func:`clod_adapter.evaluate.timing.time_interleaved`) of the input
     model and of ``model`` at each s_v in ``levels``, on ``cameras``: keys ``"input"`` and each
     level."""
-    from ..timing import time_interleaved
+    from ..evaluate.timing import time_interleaved
 
     jobs_ = {"input": [lambda c=c: render_lod(input_model, c, None, tau=tau, background=background,
                                               estimator="paper") for c in cameras]}
@@ -241,7 +91,7 @@ def retime_levels(input_model, model, cameras, levels, *, tau, background, repea
 @dataclass
 class AdaptOptions:
     """How one ``clod-adapt`` run goes, besides its model, scene, output folder and
-    :class:`clod_adapter.training.AdaptConfig` (what the fine-tuning is). Checked once, on creation.
+    :class:`clod_adapter.train.config.AdaptConfig` (what the fine-tuning is). Checked once, on creation.
 
     Attributes:
         resolution: scene images at 1/R (``images_R/`` when present).
@@ -260,9 +110,9 @@ class AdaptOptions:
         iteration: with an official model folder, ``point_cloud/iteration_N`` (default the largest).
         layout: ``"clod"`` or ``"inria"`` (also the official model folder, :func:`write_inria_layout`).
         tensorboard: log loss, PSNR, s_v, rendered fraction per step to ``out_dir/tensorboard``.
-        timing_repeats: interleaved timing rounds of the final ms/frame (:mod:`clod_adapter.timing`).
+        timing_repeats: interleaved timing rounds of the final ms/frame (:mod:`clod_adapter.evaluate.timing`).
         masks: a MaskGaussian .ply's mask policy (:func:`clod_adapter.io.load.apply_masks`).
-        distributed: data-parallel over the processes torchrun started (:mod:`clod_adapter.distributed`).
+        distributed: data-parallel over the processes torchrun started (:mod:`clod_adapter.train.distributed`).
         save_every: also write the resumable state every this many steps (0: only on a signal
             and at the end; None: every 10 % of the run when distributed, else 0).
         holdout_val: fit on the fit views, score on the validation views
@@ -309,7 +159,7 @@ def run(ply_path: os.PathLike, scene_root: os.PathLike, out_dir: os.PathLike, cf
     ``force`` (replace files of the same name) or ``resume``. ``options``: :class:`AdaptOptions`
     (default: its defaults).
 
-    The job runs as named phases, in order: :func:`_read_inputs` (load and check every input;
+    The job runs as named phases, in order: :func:`read_inputs` (load and check every input;
     nothing is written before all of them pass), :func:`_start_state` (the input's quality, the
     initial or resumed state), :func:`_train` (with resumable saves on a signal, at checkpoints
     and at the end), :func:`_evaluate` (the levels and budgets on the test views, timed) and
@@ -335,7 +185,7 @@ def run(ply_path: os.PathLike, scene_root: os.PathLike, out_dir: os.PathLike, cf
         input (one-line messages naming the file). Nothing is written before inputs are checked.
         KeyboardInterrupt: after SIGINT/SIGTERM, once the resumable state has been saved (or
         before anything was written).
-        clod_adapter.distributed.PeerLost: (``distributed``) another process died or stopped
+        clod_adapter.train.distributed.PeerLost: (``distributed``) another process died or stopped
             answering; the message says which state is on disk.
     """
     o = options if options is not None else AdaptOptions()
@@ -344,7 +194,7 @@ def run(ply_path: os.PathLike, scene_root: os.PathLike, out_dir: os.PathLike, cf
         group = None
         try:
             if o.distributed:
-                from .. import distributed as dd
+                from ..train import distributed as dd
 
                 group = dd.init(pick_device(o.device))
                 if not group.is_main:  # rank 0 speaks for the run
@@ -379,45 +229,10 @@ METRICS_KEYS = ("version", "input_ply", "scene", "resolution", "image_size", "de
                 "timing", "levels", "budgets", "dead_sigma_d", "notes")
 
 
-@dataclass
-class _Inputs:
-    """What :func:`_read_inputs` loaded and checked (phase 1 of a run)."""
-
-    ply_path: Path
-    scene_root: Path
-    out_dir: Path
-    gaussians: Gaussians
-    mask_info: object
-    sanitized: object
-    scene: object
-    dev: torch.device
-    train_imgs: ViewImages
-    test_cams: list
-    test_imgs: ViewImages
-    input_sha256: str
-    scene_fp: str
-    resumed: Optional[tuple]
-    match: dict
-    notes: list
-    size: tuple
-    main: bool
-    given: Optional[Gaussians] = None  # the input as read, when faint Gaussians were left out
-    faint: Optional[dict] = None  # what _leave_out_faint did (metrics.json "faint")
-
-    @property
-    def input_model(self) -> Gaussians:
-        """The input as given (what every level is compared with and timed against)."""
-        return self.gaussians if self.given is None else self.given
-
-    @property
-    def state_path(self) -> Path:
-        return self.out_dir / STATE_NAME
-
-
 def _run(ply_path: Path, scene_root: Path, out_dir: Path, cfg: AdaptConfig, o: AdaptOptions, stop: StopFlag,
          group) -> dict:
     t_start = time.perf_counter()
-    inp = _read_inputs(ply_path, scene_root, out_dir, cfg, o, stop, group)
+    inp = read_inputs(ply_path, scene_root, out_dir, cfg, o, stop, group)
     state, cfg, input_eval, init_s_v1 = _start_state(inp, cfg, o, stop, group)
     meta = {"input_ply": str(inp.ply_path), "scene": str(inp.scene_root), "resolution": o.resolution,
             "input_sha256": inp.input_sha256, "scene_key": inp.scene_fp, "init_s_v1": json.dumps(init_s_v1),
@@ -459,23 +274,23 @@ def _run(ply_path: Path, scene_root: Path, out_dir: Path, cfg: AdaptConfig, o: A
 
 
 #: phase 0's files (``keep_share < 1``): the kept, recovered input the LoD is learned on, and
-#: what :func:`clod_adapter.pruning.leave_out` did (read back by ``--resume``)
+#: what :func:`clod_adapter.train.pruning.leave_out` did (read back by ``--resume``)
 KEPT_INPUT_NAME = "kept_input.ply"
 LEAVE_OUT_NAME = "leave_out.json"
 
 
 def _leave_out(ply_path: Path, scene_root: Path, out_dir: Path, cfg: AdaptConfig, o: AdaptOptions,
                stop: StopFlag, group) -> tuple[Path, dict]:
-    """Phase 0 (``cfg.keep_share < 1``, :mod:`clod_adapter.pruning`): every input checked as
-    :func:`_read_inputs` checks it (nothing written before), then the input less what the
+    """Phase 0 (``cfg.keep_share < 1``, :mod:`clod_adapter.train.pruning`): every input checked as
+    :func:`read_inputs` checks it (nothing written before), then the input less what the
     training views need least, recovered, written to ``out_dir/kept_input.ply`` (the input the
     following phases adapt) with ``leave_out.json``. With ``resume`` and both files there, they
     are reused. Returns (the kept input's path, the ``metrics.json`` ``leave_out`` record).
 
     Raises:
-        InputError: a data-parallel run, or any input :func:`_read_inputs` refuses.
+        InputError: a data-parallel run, or any input :func:`read_inputs` refuses.
     """
-    from .. import pruning
+    from ..train import pruning
 
     kept_path, info_path = out_dir / KEPT_INPUT_NAME, out_dir / LEAVE_OUT_NAME
     if group is not None:
@@ -484,7 +299,7 @@ def _leave_out(ply_path: Path, scene_root: Path, out_dir: Path, cfg: AdaptConfig
     if o.resume and kept_path.is_file() and info_path.is_file():
         o.log(f"clod-adapt: resuming with the kept input {kept_path}")
         return kept_path, json.loads(info_path.read_text())
-    inp = _read_inputs(ply_path, scene_root, out_dir, cfg, replace(o, resume=False), stop, group)
+    inp = read_inputs(ply_path, scene_root, out_dir, cfg, replace(o, resume=False), stop, group)
     input_eval = evaluate_level(inp.gaussians, inp.test_cams, inp.test_imgs, None, background=cfg.background)
     kept, info = pruning.leave_out(inp.gaussians, inp.scene.train, inp.train_imgs, keep_share=cfg.keep_share,
                                    recovery_steps=cfg.recovery_steps, background=cfg.background, seed=cfg.seed,
@@ -529,20 +344,20 @@ PARENT_INPUT_NAME = "parents_input.ply"
 
 def _add_parent_tier(ply_path: Path, scene_root: Path, out_dir: Path, cfg: AdaptConfig, o: AdaptOptions,
                      stop: StopFlag, group, metrics: dict, nested: bool = False) -> dict:
-    """Phase 6 (``cfg.parent_share``, :mod:`clod_adapter.tiers`): the input merged by
+    """Phase 6 (``cfg.parent_share``, :mod:`clod_adapter.train.tiers`): the input merged by
     splat-transform to the first of ``parent_share`` of its Gaussians (lowered while the merge is
-    predicted to draw over ``tier_time_cap`` of the input's frame: :func:`clod_adapter.tiers.first_share`;
+    predicted to draw over ``tier_time_cap`` of the input's frame: :func:`clod_adapter.train.tiers.first_share`;
     ``out_dir/parents_input.ply``),
     fine-tuned and adapted (the second and later tiers at 1/``cfg.tier_downscale`` of the
     resolution, :meth:`AdaptConfig.tier_resolution`) by the same job into ``out_dir/parents/`` (its
     own state, metrics (untimed) and strip, and the
     next shares as its own parent tiers, ``out_dir/parents/parents/``, ...), and attached to
     ``point_cloud.ply`` where it beats the model at equal predicted frame time on the training
-    views (:func:`clod_adapter.tiers.choose`; a merged tier's own hand-over at its
-    ``cfg.tier_hand_over`` at the latest, :func:`clod_adapter.tiers.link`). Left out, with a note
-    in ``metrics["tier"]``, for an input under :data:`clod_adapter.tiers.PARENT_MIN_GAUSSIANS`
+    views (:func:`clod_adapter.train.tiers.choose`; a merged tier's own hand-over at its
+    ``cfg.tier_hand_over`` at the latest, :func:`clod_adapter.train.tiers.link`). Left out, with a note
+    in ``metrics["tier"]``, for an input under :data:`clod_adapter.train.tiers.PARENT_MIN_GAUSSIANS`
     Gaussians, a data-parallel run, or without splat-transform."""
-    from .. import tiers
+    from ..train import tiers
     from ..io.ply import read_ply
 
     t0 = time.perf_counter()
@@ -568,7 +383,7 @@ def _add_parent_tier(ply_path: Path, scene_root: Path, out_dir: Path, cfg: Adapt
     scene = _tier_scene(scene_root, cfg, o)
     cams = tiers.choice_views(scene.train)
     try:
-        source = _read_model(resolve_model_path(ply_path, o.iteration), cfg, quiet)[0]
+        source = read_model(resolve_model_path(ply_path, o.iteration), cfg, quiet)[0]
         if nested:  # a tier's own tiers: shares relative to it, as the first tier's share left them
             parents_in = tiers.decimated(source, share, merge=cfg.tier_merge)
         else:
@@ -623,13 +438,13 @@ def _add_parent_tier(ply_path: Path, scene_root: Path, out_dir: Path, cfg: Adapt
 
 def _drawing_rule(linked, scene_root: Path, out_dir: Path, scene, cfg: AdaptConfig, o: AdaptOptions, info: dict):
     """How the linked model's tiers are drawn (``cfg.tier_draw``): ``"tree"``, linked into a merge
-    tree (:func:`clod_adapter.tree.build`; ``info["tree"]`` its tiers' sizes), its merged tiers fitted
-    on its cuts (:func:`clod_adapter.tree_train.finetune`, ``cfg.tree_steps`` at most
+    tree (:func:`clod_adapter.lod.tree.build`; ``info["tree"]`` its tiers' sizes), its merged tiers fitted
+    on its cuts (:func:`clod_adapter.train.tree_fit.finetune`, ``cfg.tree_steps`` at most
     ``cfg.iterations``; ``info["tree_fit"]``) and ``lod_strip.png`` redrawn through it;
     ``"chain"``, the linked tiers as they are."""
     if cfg.tier_draw == "tree":
-        from .. import tree
-        from ..tree_train import finetune
+        from ..lod import tree
+        from ..train.tree_fit import finetune
 
         linked = tree.build(linked, scene.train, log=lambda m: o.log("clod-adapt: " + m))
         info["tree"] = [len(t) for t in tree.tiers_of(linked)]
@@ -644,8 +459,8 @@ def _drawing_rule(linked, scene_root: Path, out_dir: Path, scene, cfg: AdaptConf
 def _final_strip(out_dir: Path, model, scene_root: Path, cfg: AdaptConfig, o: AdaptOptions) -> None:
     """``lod_strip.png`` of the model with its tree attached: the first test view (validation view
     with ``o.holdout_val``) from ``s_v = 1`` to past the coarsest tier's reach, doubling."""
-    from ..camera_lod import tier_reach
-    from ..figures import write_strip
+    from ..lod.draw import tier_reach
+    from ..export.figures import write_strip
 
     scene = load_scene(scene_root, resolution=o.resolution, background=cfg.background)
     if o.holdout_val:
@@ -660,9 +475,9 @@ def _final_strip(out_dir: Path, model, scene_root: Path, cfg: AdaptConfig, o: Ad
 
 def _finetuned_tier(parents_in, scene, cfg: AdaptConfig, info: dict):
     """A merge fine-tuned for ``cfg.tier_finetune_steps`` on ``scene``'s training views, at most
-    ``cfg.iterations`` (:func:`clod_adapter.tiers.finetuned`; ``info["finetune"]`` notes steps and
+    ``cfg.iterations`` (:func:`clod_adapter.train.tiers.finetuned`; ``info["finetune"]`` notes steps and
     seconds)."""
-    from .. import tiers
+    from ..train import tiers
 
     steps = min(cfg.tier_finetune_steps, cfg.iterations)  # --iterations bounds every stage of the job
     if steps <= 0:
@@ -695,153 +510,7 @@ def _tier_dirs(pdir: Path) -> list[Path]:
     return out
 
 
-def _read_model(ply_path: Path, cfg: AdaptConfig, o: AdaptOptions):
-    """The input model with its masks applied and non-finite values checked: (model, mask info,
-    sanitize info)."""
-    try:
-        gaussians = load_model(ply_path, masks="all", allow_nonfinite=True)
-        gaussians, mask_info = apply_masks(gaussians, o.masks, seed=cfg.seed, path=ply_path)
-    except ValueError as e:  # an unknown policy (a PlyFormatError names the file already)
-        if isinstance(e, PlyFormatError):
-            raise
-        raise InputError(f"--masks: {e}") from None
-    if len(gaussians) == 0:
-        raise InputError(f"{ply_path}: the model has no Gaussians")
-    if mask_info is not None:
-        o.log(f"clod-adapt: MaskGaussian masks {mask_info.describe()} (--masks argmax|gumbel|all)")
-    gaussians, sanitized = check_finite(gaussians, ply_path, o.sanitize, log=o.log)
-    return gaussians, mask_info, sanitized
-
-
-def _read_inputs(ply_path: Path, scene_root: Path, out_dir: Path, cfg: AdaptConfig, o: AdaptOptions,
-                 stop: StopFlag, group) -> _Inputs:
-    """Phase 1: load and check the model, the scene, the output folder and (``resume``) the state;
-    the folder is created only once every input has passed."""
-    if not ply_path.exists():
-        raise InputError(f"{ply_path}: no such file")
-    ply_path = resolve_model_path(ply_path, o.iteration)
-    if not scene_root.is_dir():
-        raise InputError(f"{scene_root}: no such scene folder")
-    if o.tensorboard:
-        try:
-            from torch.utils.tensorboard import SummaryWriter  # noqa: F401
-        except Exception:
-            raise InputError("--tensorboard: the tensorboard package is not installed "
-                             "(pip install -e \".[tensorboard]\")") from None
-    dev = pick_device(o.device) if group is None else group.device
-    gaussians, mask_info, sanitized = _read_model(ply_path, cfg, o)
-    scene = load_scene(scene_root, resolution=o.resolution, background=cfg.background)
-    stop.reinstall()  # importing pycolmap (COLMAP scenes only) replaces the SIGTERM handler
-    if o.holdout_val:  # fit on the training views minus the validation views, score on those
-        from ..io.scene import holdout_validation
-
-        scene = holdout_validation(scene)
-    if not scene.train:
-        raise InputError(f"{scene_root}: no training views (every image is a test view)")
-    given = gaussians
-    gaussians, faint = _leave_out_faint(gaussians, scene, cfg, o, group, ply_path)
-    state_path = out_dir / STATE_NAME
-    if o.resume and not state_path.is_file():
-        raise InputError(f"{state_path}: no state to resume from")
-    check_output_dir(out_dir, [ply_path], create=False, force=o.force, resume=o.resume)  # checks only
-    input_sha256, scene_fp = file_sha256(ply_path), scene_key(scene.train)
-    resumed = None
-    if o.resume:
-        resumed = load_resume_state(state_path, cfg, input_sha256=input_sha256, scene_fp=scene_fp,
-                                    resolution=o.resolution, num_gaussians=len(gaussians),
-                                    iterations_from_state=o.iterations_from_state, device=dev,
-                                    views_from_state=o.views_from_state)
-    gaussians = gaussians.to(dev)
-    # decoded on first use, kept within a memory budget (CLOD_IMAGE_CACHE_MB): a data-parallel
-    # rank decodes only its own views, and hundreds of large views do not fill the memory
-    scene.cache_size = 0
-    train_imgs = ViewImages(scene, scene.train, dev)
-    test_cams = scene.test or scene.train[:1]
-    inp = _Inputs(ply_path, scene_root, out_dir, gaussians, mask_info, sanitized, scene, dev, train_imgs,
-                  test_cams, ViewImages(scene, test_cams, dev), input_sha256, scene_fp, resumed, {}, [],
-                  (scene.train[0].width, scene.train[0].height), group is None or group.is_main,
-                  given.to(dev) if len(given) != len(gaussians) else None, faint)
-    _check_scene_match(inp, cfg, o)
-    if inp.main:
-        check_output_dir(out_dir, [ply_path], force=True)  # every input is valid: create the output folder
-    _log_inputs(inp, cfg, o, group)
-    return inp
-
-
-def _leave_out_faint(gaussians: Gaussians, scene, cfg: AdaptConfig, o: AdaptOptions, group,
-                     ply_path: Path) -> tuple[Gaussians, Optional[dict]]:
-    """Leave out the Gaussians the scene does not need (``cfg.faint_share``,
-    :func:`clod_adapter.pruning.faint` on the training views; in a data-parallel run rank 0's
-    choice is broadcast). Returns (the kept model, the ``metrics.json`` ``faint`` record, None when
-    the rule is off)."""
-    if cfg.faint_share <= 0.0:
-        return gaussians, None
-    from ..pruning import faint
-
-    t0 = time.perf_counter()
-    out, px = faint(gaussians, scene.train, cfg.faint_share)
-    if group is not None:
-        out = group.broadcast(out.to(torch.uint8).to(group.device), "the faint Gaussians").to(out.device).bool()
-    n, k = len(gaussians), int(out.sum())
-    info = {"faint_share": cfg.faint_share, "px": round(px, 3), "input": n, "left_out": k,
-            "views": len(scene.train), "seconds": round(time.perf_counter() - t0, 1)}
-    o.log(f"clod-adapt: {ply_path.name}: left out {k:,} of {n:,} Gaussians ({100 * k / max(n, 1):.1f} %) painting "
-          f"under {px:.2g} px of the {len(scene.train)} training views together (--faint-share "
-          f"{cfg.faint_share:g}; {info['seconds']:.0f} s)")
-    return (gaussians.subset(~out) if k else gaussians), info
-
-
-def _check_scene_match(inp: _Inputs, cfg: AdaptConfig, o: AdaptOptions) -> None:
-    """Refuse a model from another scene (no Gaussian in any training view, or renders no better
-    than a flat colour, unless ``allow_mismatch``); notes a resolution that differs from the
-    model's training one."""
-    g, dev = inp.input_model, inp.dev  # the model given, before the faint ones are left out
-    fr_any = torch.zeros(len(g), dtype=torch.bool, device=dev)
-    for c in inp.scene.train:
-        fr_any |= lod.in_frustum(g.means, c.viewmat.to(dev), c.K.to(dev), c.width, c.height)
-    if not bool(fr_any.any()):
-        raise InputError(f"{inp.ply_path}: no Gaussian lies inside any training view of {inp.scene_root}; "
-                         "is the model from another scene?")
-    match = scene_match(g, inp.scene.train, inp.train_imgs, background=cfg.background)
-    margins = [a - b for a, b in zip(match["view_psnr"], match["view_flat_psnr"])]
-    bad = [i for i, v in enumerate(margins) if v < MISMATCH_MARGIN_DB]
-    if bad and len(bad) < len(margins):  # the model renders the others: the images are suspect
-        views = ", ".join(f"{match['views'][i]} ({match['view_psnr'][i]:.2f} dB, a flat image "
-                          f"{match['view_flat_psnr'][i]:.2f} dB)" for i in bad)
-        what = (f"{inp.scene_root}: the model {inp.ply_path} renders {len(margins) - len(bad)} of {len(margins)} "
-                f"checked training views but not {views}: is that image damaged, or from another capture?")
-        if match["margin_db"] < MISMATCH_MARGIN_DB and not o.allow_mismatch:
-            raise InputError(what + " (--allow-mismatch goes on anyway)")
-        o.log(f"clod-adapt: warning: {what}; going on")
-    elif match["margin_db"] < MISMATCH_MARGIN_DB:
-        what = (f"{inp.ply_path}: the model does not render {inp.scene_root}: {match['psnr']:.2f} dB PSNR on "
-                f"{len(match['views'])} training views, not above a flat image of their mean colour "
-                f"({match['flat_psnr']:.2f} dB); {100 * match['in_view_fraction']:.0f} % of its Gaussians "
-                "lie in any training view")
-        if not o.allow_mismatch:
-            raise InputError(what + "; is the model from another scene? (--allow-mismatch goes on anyway)")
-        o.log(f"clod-adapt: warning: {what}; going on (--allow-mismatch)")
-    inp.match = match
-    note = resolution_note(training_size(inp.ply_path), inp.size, "cameras.json of the model folder")
-    if note:
-        inp.notes.append(note)
-        o.log(f"clod-adapt: note: {note}")
-
-
-def _log_inputs(inp: _Inputs, cfg: AdaptConfig, o: AdaptOptions, group) -> None:
-    g, size = inp.gaussians, inp.size
-    o.log(f"clod-adapt: {inp.ply_path}: {len(g):,} Gaussians (SH degree {g.sh_degree}); "
-          f"{len(inp.scene.train)} train / {len(inp.scene.test)} test views at {size[0]}x{size[1]}; device "
-          f"{inp.dev}, {torch.get_num_threads()} threads; training-view PSNR {inp.match['psnr']:.2f} dB")
-    if group is not None:
-        o.log(f"clod-adapt: data-parallel over {group.world_size} processes ({group.backend}), "
-              f"{cfg.views_per_step} views per step; rank 0 writes")
-        if cfg.views_per_step < group.world_size:
-            o.log(f"clod-adapt: note: {cfg.views_per_step} views per step for {group.world_size} processes: "
-                  f"{group.world_size - cfg.views_per_step} of them render nothing (--views-per-step)")
-
-
-def _start_state(inp: _Inputs, cfg: AdaptConfig, o: AdaptOptions, stop: StopFlag, group):
+def _start_state(inp: Inputs, cfg: AdaptConfig, o: AdaptOptions, stop: StopFlag, group):
     """Phase 2: the input's quality on the test views, then the initial state (:func:`prepare`)
     or the resumed one. Returns (state, cfg (the state's, when resumed), input evaluation, the
     initial model's s_v = 1 quality)."""
@@ -871,13 +540,13 @@ def _start_state(inp: _Inputs, cfg: AdaptConfig, o: AdaptOptions, stop: StopFlag
             init_s_v1 = {"psnr": init_eval.psnr, "ssim": init_eval.ssim,
                          "psnr_drop_db": input_eval.psnr - init_eval.psnr, **state.init}
     if group is not None:
-        from ..distributed import broadcast_params
+        from ..train.distributed import broadcast_params
 
         broadcast_params(state, group)  # every rank starts from rank 0's parameters
     return state, cfg, input_eval, init_s_v1
 
 
-def _step_hooks(inp: _Inputs, cfg: AdaptConfig, o: AdaptOptions, stop: StopFlag, group, meta: dict,
+def _step_hooks(inp: Inputs, cfg: AdaptConfig, o: AdaptOptions, stop: StopFlag, group, meta: dict,
                 saved: dict):
     """(called after each step or None, the tensorboard writer or None): periodic saves
     (``save_every``), the test hook's progress file, tensorboard scalars."""
@@ -916,8 +585,8 @@ def _step_hooks(inp: _Inputs, cfg: AdaptConfig, o: AdaptOptions, stop: StopFlag,
     return on_step, writer
 
 
-def _train(inp: _Inputs, state, cfg: AdaptConfig, o: AdaptOptions, stop: StopFlag, group, meta: dict) -> float:
-    """Phase 3: the fine-tuning (:func:`clod_adapter.training.adapt`) with its saves; returns its
+def _train(inp: Inputs, state, cfg: AdaptConfig, o: AdaptOptions, stop: StopFlag, group, meta: dict) -> float:
+    """Phase 3: the fine-tuning (:func:`clod_adapter.train.loop.adapt`) with its saves; returns its
     seconds. Raises KeyboardInterrupt when a signal stopped it (the state saved first)."""
     saved = {"iteration": state.iteration if o.resume else None}  # the state on disk
 
@@ -935,11 +604,11 @@ def _train(inp: _Inputs, state, cfg: AdaptConfig, o: AdaptOptions, stop: StopFla
         finished = adapt(state, inp.scene.train, inp.train_imgs, cfg, progress=o.progress,
                          on_interrupt=on_interrupt, stop=stop, on_step=on_step, group=group)
         if group is not None and finished:
-            from ..distributed import check_in_sync
+            from ..train.distributed import check_in_sync
 
             check_in_sync(state, group)
     except Exception as e:
-        from ..distributed import PeerLost
+        from ..train.distributed import PeerLost
 
         if isinstance(e, PeerLost):
             how = "continue with --resume, with any number of processes"
@@ -959,7 +628,7 @@ def _train(inp: _Inputs, state, cfg: AdaptConfig, o: AdaptOptions, stop: StopFla
     return time.perf_counter() - t_train
 
 
-def _evaluate(inp: _Inputs, model, cfg: AdaptConfig, o: AdaptOptions, input_eval) -> dict:
+def _evaluate(inp: Inputs, model, cfg: AdaptConfig, o: AdaptOptions, input_eval) -> dict:
     """Phase 4: the adapted model at every level and budget on the test views, the input and the
     levels timed in interleaved rounds; returns the metrics dict (without the run's training
     facts, which :func:`_run` adds)."""
@@ -998,7 +667,7 @@ def _evaluate(inp: _Inputs, model, cfg: AdaptConfig, o: AdaptOptions, input_eval
     }
 
 
-def _write_outputs(inp: _Inputs, model, state, cfg: AdaptConfig, o: AdaptOptions, metrics: dict) -> list:
+def _write_outputs(inp: Inputs, model, state, cfg: AdaptConfig, o: AdaptOptions, metrics: dict) -> list:
     """Phase 5: every output, each atomically (a signal from here on only lets them complete);
     returns the names written."""
     bg = cfg.background
@@ -1041,68 +710,6 @@ def deterministic_mode(on: bool = True):
     finally:
         composite.set_deterministic(prev)
         torch.use_deterministic_algorithms(prev_alg, warn_only=prev_warn)
-
-
-def file_sha256(path: os.PathLike) -> str:
-    """Hex SHA-256 of a file's bytes (read in 1 MiB blocks); stored in the state so --resume
-    can refuse another input. Raises OSError when unreadable."""
-    h = hashlib.sha256()
-    with open(path, "rb") as f:
-        for chunk in iter(lambda: f.read(1 << 20), b""):
-            h.update(chunk)
-    return h.hexdigest()
-
-
-def scene_key(cameras) -> str:
-    """Fingerprint of the training views (names, sizes, intrinsics, poses)."""
-    h = hashlib.sha256()
-    for c in cameras:
-        h.update(f"{c.name}:{c.width}x{c.height};".encode())
-        h.update(c.K.double().cpu().numpy().tobytes())
-        h.update(c.viewmat.double().cpu().numpy().tobytes())
-    return h.hexdigest()
-
-
-def load_resume_state(state_path: Path, cfg: AdaptConfig, *, input_sha256: str, scene_fp: str,
-                      resolution: int, num_gaussians: int, iterations_from_state: bool, device,
-                      views_from_state: bool = False):
-    """Load ``state_path`` for ``--resume`` and check it belongs to this input and these settings.
-
-    Returns:
-        (state, config, metadata); the config is ``cfg`` (with the state's iterations when
-        ``iterations_from_state``, and its views per step when ``views_from_state``).
-
-    Raises:
-        InputError: unreadable state, or saved for another input/scene/resolution/settings.
-    """
-    try:
-        state, saved, meta = load_state(state_path, device)
-    except (ValueError, KeyError, RuntimeError) as e:
-        msg = str(e).splitlines()[0] if str(e) else type(e).__name__
-        raise InputError(msg if str(state_path) in msg else f"{state_path}: {msg}") from None
-    if iterations_from_state:
-        cfg.iterations = saved.iterations
-    if views_from_state:
-        cfg.views_per_step = saved.views_per_step
-    want, have = asdict(cfg), asdict(saved)
-    diffs = [f"{k}={have[k]!r} (now {want[k]!r})" for k in want if k != "iterations" and want[k] != have.get(k)]
-    if diffs:
-        raise InputError(f"{state_path}: saved with other settings: {', '.join(diffs)}; "
-                         "resume with the same flags or use another -o")
-    if meta.get("input_sha256", input_sha256) != input_sha256:
-        raise InputError(f"{state_path}: saved for another input model ({meta.get('input_ply')}); "
-                         "resume with the same PLY or use another -o")
-    if meta.get("scene_key", scene_fp) != scene_fp:
-        raise InputError(f"{state_path}: saved for another scene ({meta.get('scene')}); "
-                         "resume with the same --images or use another -o")
-    if str(meta.get("resolution", resolution)) != str(resolution):
-        raise InputError(f"{state_path}: saved at --resolution {meta.get('resolution')}, now {resolution}")
-    n = int(state.params["means"].shape[0])
-    if n != num_gaussians:
-        raise InputError(f"{state_path}: holds {n:,} Gaussians, the input has {num_gaussians:,}")
-    if state.iteration > cfg.iterations:
-        raise InputError(f"{state_path}: already at iteration {state.iteration} > --iterations {cfg.iterations}")
-    return state, cfg, meta
 
 
 def format_summary(metrics: dict) -> str:

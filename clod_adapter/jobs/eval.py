@@ -4,23 +4,23 @@
 
 * ``clod``: the adapted model over a grid of ``s_v`` (1 to past the trained maximum);
 * ``clod_budget``: the adapted model at hard budgets, ``s_v`` solved exactly per view
-  (:mod:`clod_adapter.budget`);
+  (:mod:`clod_adapter.lod.budget`);
 * ``constant_sigma``, ``lightgaussian``, ``random``: baselines from the pretrained model at the
-  *same per-view Gaussian counts* as ``clod_budget`` (:mod:`clod_adapter.baselines`);
+  *same per-view Gaussian counts* as ``clod_budget`` (:mod:`clod_adapter.lod.rankings`);
 * ``merge`` (when splat-transform is available): the pretrained model simplified to the budget's
-  share of the model by the merging decimator viewers ship (:func:`clod_adapter.baselines.merge_decimate`),
+  share of the model by the merging decimator viewers ship (:func:`clod_adapter.lod.rankings.merge_decimate`),
   every Gaussian in view drawn;
 * ``dlod_finetuned`` (``dlod_iterations > 0``): the per-budget ceiling, one model per level: the
   pretrained model cut to the budget by the best static ranking of this report, fine-tuned on the
-  training views (:mod:`clod_adapter.dlod_ceiling`); its storage is the sum of the levels;
+  training views (:mod:`clod_adapter.train.finetune`); its storage is the sum of the levels;
 * ``pretrained``: the pretrained model in full (reference);
 
 then runs the quality-against-frame-time comparison with the peers a user already has
-(:func:`clod_adapter.quality_vs_time.compare`, the same code as ``benchmarks/quality_vs_time.py``:
+(:func:`clod_adapter.evaluate.comparison.compare`, the same code as ``benchmarks/quality_vs_time.py``:
 the adapted model along ``s_v`` and at cost budgets, LightGaussian and opacity cuts, the
 decimators, the equal-count points; its one-paragraph verdict opens ``report.md``);
 scores each render (PSNR, SSIM in the 3DGS form, LPIPS-alex when weights exist), times it
-(:mod:`clod_adapter.timing`: after the quality pass, which warms up, ``timing_repeats`` rounds
+(:mod:`clod_adapter.evaluate.timing`: after the quality pass, which warms up, ``timing_repeats`` rounds
 render every method x setting x view once in a shuffled order, so load from other processes hits
 all methods alike; ms = median over rounds of the median over views, split into LoD selection
 and rasterisation, with the smallest and largest round as the spread) and measures popping
@@ -61,8 +61,6 @@ ms_max      largest per-round ms_total
 """
 from __future__ import annotations
 
-import csv
-import io
 import json
 import math
 import os
@@ -76,77 +74,38 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from .. import __version__, lod
-from .. import quality_vs_time as qvt
-from ..training import max_sv_from_state
-from ..baselines import (SIGMA_C_CANDIDATES, Selection, constant_sigma_selection,
-                        lightgaussian_significance, tune_sigma_c,
-                        random_scores, ranking_selection, render_subset)
-from ..budget import normalize_budget
+from .. import __version__
+from ..errors import InputError
+from ..lod import rule as lod
+from ..evaluate import comparison as qvt
+from ..train.state import max_sv_from_state
+from ..lod.rankings import SIGMA_C_CANDIDATES, Selection, lightgaussian_significance, tune_sigma_c, random_scores, render_subset
+from ..lod.budget import normalize_budget
 from ..gaussians import Gaussians
-from ..io.atomic import atomic_save, atomic_write
-from ..frontier import Point, frontier
+from ..io.atomic import atomic_write
 from ..io.ply import read_ply
-from ..storage import ply_bytes, ply_row_bytes
-from ..camera_lod import render_lod, tier_reach
-from ..popping import SWEEP_OVERSHOOT, SWEEP_STEPS, image_change, popping_curve, popping_sweep  # noqa: F401 (clod-eval's popping)
+from ..evaluate.storage import ply_bytes, ply_row_bytes
+from ..lod.draw import render_lod, tier_reach
+from ..evaluate.popping import SWEEP_OVERSHOOT, SWEEP_STEPS, image_change, popping_curve, popping_sweep  # noqa: F401 (clod-eval's popping)
 from ..metrics import psnr, ssim
+from .eval_methods import BASELINES, DECIMATORS, METHOD_REGISTRY, RankingContext
+from .eval_report import csv_text, format_markdown, format_table, jsonable, plot_popping, plot_quality, \
+    plot_time_curve
+
 
 CSV_COLUMNS = ("method", "setting", "s_v", "budget", "gaussians", "fraction", "psnr", "ssim", "lpips",
                "ms_total", "ms_select", "ms_raster", "bytes", "views", "ms_min", "ms_max")
+
+
 PER_VIEW_COLUMNS = ("method", "setting", "view", "s_v", "budget", "gaussians", "fraction", "psnr", "ssim",
                     "lpips", "ms_total", "ms_select", "ms_raster", "bytes")
 
 
-@dataclass(frozen=True)
-class RankingContext:
-    """What the ranking baselines select from, computed once per report: the pretrained model's
-    LightGaussian significance on the training views and a seeded random ranking (both [N]
-    float32), and the constant-sigma baseline's ``sigma_c`` and ``tau``."""
-
-    lightgaussian: Tensor
-    random: Tensor
-    sigma_c: float
-    tau: float
-
-
-@dataclass(frozen=True)
-class Method:
-    """One method of the report: its plot style (matplotlib colour, line style, marker) and, for
-    a ranking baseline, how it selects ``k`` Gaussians of the pretrained model in one view
-    (``select(base, camera, k, ctx: RankingContext) -> Selection``); ``decimate``: the
-    ``merge_decimate`` mode of a splat-transform decimator. Adding a baseline is one entry of
-    :data:`METHOD_REGISTRY`."""
-
-    style: tuple
-    select: Optional[Callable] = None
-    decimate: Optional[str] = None
-
-
-#: every method of the report, in table and legend order.
-METHOD_REGISTRY: dict[str, Method] = {
-    "clod": Method(("C0", "-", ".")),
-    "clod_budget": Method(("C0", "", "o")),
-    "constant_sigma": Method(("C1", "--", "s"), select=lambda base, cam, k, ctx: constant_sigma_selection(
-        base, cam, k, ctx.sigma_c, tau=ctx.tau)),
-    "lightgaussian": Method(("C2", "--", "^"), select=lambda base, cam, k, ctx: ranking_selection(
-        base, cam, ctx.lightgaussian, k)),
-    "random": Method(("C3", ":", "x"), select=lambda base, cam, k, ctx: ranking_selection(base, cam, ctx.random, k)),
-    # splat-transform 3.7.0's untrained decimators
-    "decimate": Method(("C4", "--", "D"), decimate="decimate"),
-    "decimate_adaptive": Method(("C6", "--", "v"), decimate="adaptive"),
-    "dlod_finetuned": Method(("C5", "-.", "P")),
-    "pretrained": Method(("k", "", "*")),
-}
-#: the ranking baselines (drawn at the adapted budgets' per-view counts).
-BASELINES = tuple(k for k, m in METHOD_REGISTRY.items() if m.select is not None)
-#: the decimators (method name -> ``merge_decimate`` mode).
-DECIMATORS = {k: m.decimate for k, m in METHOD_REGISTRY.items() if m.decimate is not None}
-METHODS = tuple(METHOD_REGISTRY)
 OUTPUT_NAMES = ("report.csv", "report_per_view.csv", "report.json", "report.md", "quality_vs_gaussians.png",
                 "levels_vs_time.png", "quality_vs_time.png", "quality_vs_time.csv", "popping.png", "lod_strip.png")
-DEFAULT_BUDGETS = (1.0, 0.5, 0.25, 0.1)
 
+
+DEFAULT_BUDGETS = (1.0, 0.5, 0.25, 0.1)
 LpipsSpec = Union[str, os.PathLike, Callable, None]
 
 
@@ -158,7 +117,7 @@ def sv_grid(max_sv: float, steps: int = 25, overshoot: float = SWEEP_OVERSHOOT, 
     "the merged parent tier") then ``tier_steps`` values spaced evenly in ``ln s_v`` from the middle of
     its cross-fade (``tier_s_v sqrt(tier_fade)``) to where the parents are drawn at
     ``overshoot`` times their own ``max_sv`` (``overshoot max_sv tier_fade tier_s_v / tier_start``; with a
-    chain of tiers, ``overshoot max_sv reach``, :func:`clod_adapter.camera_lod.tier_reach`), those
+    chain of tiers, ``overshoot max_sv reach``, :func:`clod_adapter.lod.draw.tier_reach`), those
     beyond the even part."""
     if steps < 2:
         raise ValueError(f"need at least 2 s_v steps, got {steps}")
@@ -181,28 +140,22 @@ def budget_label(b: float | int) -> str:
 
 def normalize_budgets(budgets: Sequence) -> list:
     """Budgets as floats in [0, 1] (fractions) or ints > 1 (counts)
-    (:func:`clod_adapter.budget.normalize_budget` each). Raises ValueError."""
+    (:func:`clod_adapter.lod.budget.normalize_budget` each). Raises ValueError."""
     return [normalize_budget(b) for b in budgets]
-
-
-def _finite(x):
-    if isinstance(x, float) and not math.isfinite(x):
-        return None
-    return x
 
 
 def resolve_lpips(spec: LpipsSpec) -> tuple[Optional[Callable], str]:
     """LPIPS scorer and a note. ``spec``: ``"auto"`` (argument-less
-    :func:`clod_adapter.lpips.load_lpips`: ``$CLOD_LPIPS_WEIGHTS``, then the user cache),
+    :func:`clod_adapter.evaluate.lpips.load_lpips`: ``$CLOD_LPIPS_WEIGHTS``, then the user cache),
     a weights path, a callable ``f(img [H,W,3], gt [H,W,3]) -> scalar``, or None (skip)."""
     if spec is None:
         return None, "LPIPS skipped (disabled)"
     if callable(spec):
         return spec, "LPIPS from a caller-supplied model"
     try:
-        from .. import lpips as lp
+        from ..evaluate import lpips as lp
     except ImportError as e:
-        return None, f"LPIPS skipped: clod_adapter.lpips unavailable ({e})"
+        return None, f"LPIPS skipped: clod_adapter.evaluate.lpips unavailable ({e})"
     path = None if spec == "auto" else spec
     model = lp.load_lpips(path)
     if model is None:
@@ -225,7 +178,7 @@ class Sample:
 
 
 def _sample(fn: Callable[[], Sample]) -> Sample:
-    """Run a render once and remember how to repeat it (:mod:`clod_adapter.timing`)."""
+    """Run a render once and remember how to repeat it (:mod:`clod_adapter.evaluate.timing`)."""
     s = fn()
     s.again = fn
     return s
@@ -279,7 +232,7 @@ def _score(rows: _Rows, method: str, setting: str, budget, samples: list[Sample]
 
 def _retime(rows: _Rows, repeats: int, seed: int, on_render=None) -> None:
     """Replace the quality pass's times of every row with interleaved timing rounds."""
-    from ..timing import time_interleaved
+    from ..evaluate.timing import time_interleaved
 
     if repeats <= 0 or not rows.redo:
         return
@@ -297,205 +250,11 @@ def _retime(rows: _Rows, repeats: int, seed: int, on_render=None) -> None:
 def _adapted_cut(adapted: Gaussians, k: int, cameras) -> Gaussians:
     """The adapted model's own ``k``-Gaussian level as a static model (a start for
     ``dlod_finetuned``): the first ``k`` of its importance order over ``cameras``
-    (:func:`clod_adapter.bake.importance_order`), base attributes, no ``sigma_d``."""
-    from ..bake import importance_order
+    (:func:`clod_adapter.export.bake.importance_order`), base attributes, no ``sigma_d``."""
+    from ..export.bake import importance_order
 
     keep = torch.sort(importance_order(adapted, cameras)[:k]).values
     return adapted.subset(keep).with_sigma_d(None)
-
-
-# --- outputs ----------------------------------------------------------------------------------
-def _csv_text(rows: list[dict], columns: Sequence[str]) -> str:
-    buf = io.StringIO()
-    w = csv.DictWriter(buf, fieldnames=list(columns), extrasaction="ignore", lineterminator="\n")
-    w.writeheader()
-    for r in rows:
-        w.writerow({k: ("" if r.get(k) is None else (f"{r[k]:.6g}" if isinstance(r[k], float) else r[k]))
-                    for k in columns})
-    return buf.getvalue()
-
-
-def _jsonable(o):
-    if isinstance(o, dict):
-        return {k: _jsonable(v) for k, v in o.items()}
-    if isinstance(o, (list, tuple)):
-        return [_jsonable(v) for v in o]
-    if isinstance(o, float):
-        return _finite(o)
-    return o
-
-
-def _save_fig(fig, path: Path) -> None:
-    import matplotlib.pyplot as plt
-
-    atomic_save(path, lambda tmp: fig.savefig(tmp, format="png", dpi=110, bbox_inches="tight"))
-    plt.close(fig)
-
-
-def _plot_quality(rows: list[dict], x: str, xlabel: str, path: Path, extra=None, time_axis: bool = False,
-                  mark: Optional[tuple] = None) -> None:
-    """Quality against ``x``. ``time_axis``: markers only, each with a horizontal bar from the
-    fastest to the slowest timing round, never joined by lines (a line across budgets would turn
-    timing noise into a trend), and the x axis log-scaled. ``mark``: (x, label) of a dotted
-    vertical line (the coarsest trained level, max_sv^-1.5)."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    metrics = [m for m in ("psnr", "ssim", "lpips") if any(r[m] is not None for r in rows)]
-    ncol = len(metrics) + (1 if extra else 0)
-    fig, axes = plt.subplots(1, ncol, figsize=(4.2 * ncol, 3.4), squeeze=False)
-    for ax, m in zip(axes[0], metrics):
-        for method in METHODS:
-            # ordered by Gaussian count, so the sweep's line follows the level of detail
-            rs = sorted((r for r in rows if r["method"] == method and r[m] is not None and r[x] is not None),
-                        key=lambda r: (r["gaussians"], r[x]))
-            if not rs:
-                continue
-            c, ls, mk = METHOD_REGISTRY[method].style
-            ms = 6 if method != "pretrained" else 11
-            xs, ys = [r[x] for r in rs], [r[m] for r in rs]
-            if time_axis:
-                lo = [max(r[x] - (r.get("ms_min") if r.get("ms_min") is not None else r[x]), 0.0) for r in rs]
-                hi = [max((r.get("ms_max") if r.get("ms_max") is not None else r[x]) - r[x], 0.0) for r in rs]
-                ax.errorbar(xs, ys, xerr=[lo, hi], color=c, linestyle="none", marker=mk, ms=ms * 0.8,
-                            capsize=2, elinewidth=0.8, label=method)
-                # the method's frontier: its best quality within each time (lpips: lower is better)
-                sign = -1.0 if m == "lpips" else 1.0
-                fr = frontier(Point(method, "", xx, sign * yy) for xx, yy in zip(xs, ys))
-                if len(fr) > 1:
-                    ax.step([q.ms for q in fr], [sign * q.psnr for q in fr], where="post", color=c, lw=0.9,
-                            alpha=0.7)
-            else:
-                ax.plot(xs, ys, color=c, linestyle=ls or "none", marker=mk, label=method, ms=ms)
-        if mark is not None:
-            ax.axvline(mark[0], color="0.4", linestyle=":", linewidth=1)
-            ax.annotate(mark[1], (mark[0], 0.02), xycoords=("data", "axes fraction"), fontsize=7,
-                        color="0.3", rotation=90, ha="right", va="bottom")
-        ax.set_xlabel(xlabel, fontsize=8 if time_axis else None)
-        if time_axis:
-            from matplotlib.ticker import LogLocator, ScalarFormatter
-
-            ax.set_xscale("log")
-            ax.xaxis.set_major_locator(LogLocator(subs=(1.0, 2.0, 5.0)))
-            ax.xaxis.set_major_formatter(ScalarFormatter())
-            ax.xaxis.set_minor_formatter(matplotlib.ticker.NullFormatter())
-        ax.set_ylabel({"psnr": "PSNR (dB)", "ssim": "SSIM", "lpips": "LPIPS-alex (lower is better)"}[m])
-        ax.grid(alpha=0.3)
-    axes[0][0].legend(fontsize=7)
-    if extra:
-        extra(axes[0][-1])
-    fig.tight_layout()
-    _save_fig(fig, path)
-
-
-def _plot_time_curve(rows: list[dict]):
-    def draw(ax):
-        rs = sorted((r for r in rows if r["method"] == "clod"), key=lambda r: r["s_v"])
-        sv = [r["s_v"] for r in rs]
-        for k, lab in (("ms_total", "total"), ("ms_select", "LoD selection"), ("ms_raster", "rasterisation")):
-            ax.plot(sv, [r[k] for r in rs], marker=".", label=lab)
-        if rs and all(r.get("ms_min") is not None for r in rs):
-            ax.fill_between(sv, [r["ms_min"] for r in rs], [r["ms_max"] for r in rs], color="C0", alpha=0.2,
-                            label="total: fastest-slowest round")
-        ax.set_ylim(bottom=0)
-        ax.set_xlabel("s_v")
-        ax.set_ylabel("median ms per frame")
-        ax.set_title("render time, clod sweep", fontsize=9)
-        ax.grid(alpha=0.3)
-        ax.legend(fontsize=7)
-    return draw
-
-
-def _plot_popping(pop: dict, path: Path) -> None:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    fig, ax = plt.subplots(figsize=(6.5, 3.6))
-    ax.plot(pop["step_s_v"], pop["continuous_step"], marker=".", label="continuous (clod, s_v sweep)")
-    ax.plot(pop["step_s_v"], pop["discrete_step"], drawstyle="steps-mid",
-            label=f"discrete switch {pop['discrete_counts'][0]}->{pop['discrete_counts'][1]} G at s_v={pop['switch_s_v']:.2f}")
-    ax.set_yscale("symlog", linthresh=1e-4)
-    ax.set_xlabel("s_v")
-    ax.set_ylabel("per-step image change (mean |dI|)")
-    ax.set_title(f"popping: max step ratio discrete/continuous = {pop['ratio']:.1f}", fontsize=9)
-    ax.grid(alpha=0.3)
-    ax.legend(fontsize=7)
-    fig.tight_layout()
-    _save_fig(fig, path)
-
-
-def format_table(rows: list[dict]) -> str:
-    """Short text table of the aggregated rows."""
-    wm = max([len("method")] + [len(r["method"]) for r in rows]) + 1  # columns never run into each other
-    ws = max([len("setting")] + [len(r["setting"]) for r in rows]) + 1
-    head = f"{'method':<{wm}}{'setting':<{ws}}{'s_v':>6}{'Gaussians':>11}{'%':>6}{'PSNR':>7}{'SSIM':>7}{'LPIPS':>7}{'ms':>8}"
-    lines = [head]
-    for r in rows:
-        f = lambda v, spec: ("-" if v is None else format(v, spec))  # noqa: E731
-        lines.append(f"{r['method']:<{wm}}{r['setting']:<{ws}}{f(r['s_v'], '6.2f'):>6}{r['gaussians']:11.0f}"
-                     f"{100 * r['fraction']:6.1f}{r['psnr']:7.2f}{r['ssim']:7.4f}{f(r['lpips'], '7.4f'):>7}"
-                     f"{r['ms_total']:8.1f}")
-    return "\n".join(lines)
-
-
-def format_markdown(report: dict) -> str:
-    """The report's headline tables as Markdown (``report.md``): quality per method at each
-    budget, the adapted model's s_v sweep with render times, and the popping ratio."""
-    rows = report["rows"]
-    qt = report.get("quality_vs_time")
-    head = [] if qt is None else ["## Quality against frame time", "", qt["verdict"], "", qt["cells_markdown"], "",
-                                  "![PSNR against frame time](quality_vs_time.png)", "", "## Levels and budgets", ""]
-    fmt = lambda v, f: "-" if v is None or (isinstance(v, float) and v != v) else format(v, f)  # noqa: E731
-    budgets = [r["setting"] for r in rows if r["method"] == "clod_budget"]
-    methods = [m for m in METHODS if m not in ("clod", "pretrained") and any(r["method"] == m for r in rows)]
-    out = head + [f"{report['num_gaussians']['adapted']:,} Gaussians; views: {', '.join(report['views'])} "
-           f"at {report['image_size'][0]}x{report['image_size'][1]}; {report['device']}, "
-           f"{report['threads']} threads; constant-sigma c = {report['settings']['sigma_c']:g} "
-           f"({report['settings']['sigma_c_rule']}).", "",
-           "PSNR / SSIM / LPIPS (mean Gaussians rendered per view):", "",
-           "| method | " + " | ".join(b.replace("budget=", "budget ") for b in budgets) + " |",
-           "|---|" + "---|" * len(budgets)]
-    for m in methods:
-        cells = []
-        for b in budgets:
-            r = next((r for r in rows if r["method"] == m and r["setting"] == b), None)
-            cells.append("-" if r is None else f"{fmt(r['psnr'], '.2f')} / {fmt(r['ssim'], '.3f')} / "
-                         f"{fmt(r['lpips'], '.3f')} ({r['gaussians']:,.0f})")
-        out.append(f"| {m} | " + " | ".join(cells) + " |")
-    ref = next((r for r in rows if r["method"] == "pretrained"), None)
-    if ref is not None:
-        out += ["", f"Pretrained, full: {fmt(ref['psnr'], '.2f')} / {fmt(ref['ssim'], '.3f')} / "
-                f"{fmt(ref['lpips'], '.3f')} ({ref['gaussians']:,.0f} Gaussians, {fmt(ref['ms_total'], '.0f')} ms, "
-                f"rounds {fmt(ref.get('ms_min'), '.0f')}-{fmt(ref.get('ms_max'), '.0f')} ms)."]
-    t = report.get("timing", {})
-    out += ["", f"Adapted model over s_v (ms per frame = LoD selection + rasterisation; median of "
-            f"{t.get('repeats', 1) or 1} interleaved round(s) of the median over views; range: fastest-slowest round):", "",
-            "| s_v | Gaussians | % | PSNR | SSIM | LPIPS | ms | ms range | ms select | ms raster | MB rendered |",
-            "|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
-    for r in rows:
-        if r["method"] == "clod":
-            out.append(f"| {r['s_v']:.2f} | {r['gaussians']:,.0f} | {100 * r['fraction']:.1f} | "
-                       f"{fmt(r['psnr'], '.2f')} | {fmt(r['ssim'], '.4f')} | {fmt(r['lpips'], '.4f')} | "
-                       f"{fmt(r['ms_total'], '.1f')} | {fmt(r.get('ms_min'), '.1f')}-{fmt(r.get('ms_max'), '.1f')} | "
-                       f"{fmt(r['ms_select'], '.1f')} | "
-                       f"{fmt(r['ms_raster'], '.1f')} | {r['bytes'] / 1e6:.2f} |")
-    st = report.get("storage")
-    if st:
-        out += ["", "Storage (MB): " + ", ".join(f"{k[:-6].replace('_', ' ')} {v / 1e6:.2f}" for k, v in st.items()
-                                               if k.endswith("_bytes")) + "."]
-        if st.get("dlod_levels"):
-            out.append("dlod_finetuned: the full model plus one fine-tuned level per budget ("
-                       + ", ".join(f"{k}: {v:,} Gaussians, cut by {st['dlod_ranking'][k]}" for k, v in st["dlod_levels"].items())
-                       + f"; {st['dlod_iterations']} steps each).")
-    pop = report["popping"]
-    out += ["", f"Popping (camera {pop['camera']}, mean |dI| per step): continuous max "
-            f"{pop['continuous_max']:.3g}, median {pop['continuous_median']:.3g}; discrete switch "
-            f"{pop['discrete_max']:.3g}; ratio {pop['ratio']:.1f}."]
-    return "\n".join(out) + "\n"
 
 
 # --- the report -----------------------------------------------------------------------------
@@ -514,26 +273,26 @@ class EvalOptions:
             ``adapt_state.safetensors`` beside the .ply, else 5).
         popping_steps: frames of the popping sweep, s_v from 1 to the sweep's end (a model with
             merged tiers: evenly in ln s_v, through every hand-over to where the last tier is at
-            1.2 times its max_sv, :func:`clod_adapter.camera_lod.tier_reach`).
+            1.2 times its max_sv, :func:`clod_adapter.lod.draw.tier_reach`).
         lpips: see :func:`resolve_lpips`.
         sigma_c: the constant decay of the constant-sigma baseline (default: the best on training
-            views, :func:`clod_adapter.baselines.tune_sigma_c`).
+            views, :func:`clod_adapter.lod.rankings.tune_sigma_c`).
         seed: seed of the random baseline. tau: the LoD threshold (default: the adapted model's).
         background: [3] RGB behind the scene. device: where to render (CUDA renders with gsplat).
         progress: show progress (a tqdm bar on a terminal, else a plain line every 10 %).
         log: where the final text table goes (None: nowhere).
         timing_repeats: interleaved timing rounds after the quality pass
-            (:mod:`clod_adapter.timing`); 0 keeps the quality pass's own (single) times.
+            (:mod:`clod_adapter.evaluate.timing`); 0 keeps the quality pass's own (single) times.
         notes: extra notes for the report (e.g. a resolution warning).
         dlod_iterations: > 0 adds ``dlod_finetuned``: for each budget below 1, the best start on
-            validation views (:func:`clod_adapter.dlod_ceiling.best_start`) fine-tuned for this many steps
-            (:func:`clod_adapter.dlod_ceiling.finetune_subset`).
+            validation views (:func:`clod_adapter.train.finetune.best_start`) fine-tuned for this many steps
+            (:func:`clod_adapter.train.finetune.finetune_subset`).
         merge_tool: a splat-transform executable: adds splat-transform's decimators at each
             budget's share of the model and to the quality-against-time comparison; a failing run
             raises RuntimeError (a peer never silently drops out of the report). None: they are not
             run, and the report says so.
         full_rounds: paired rounds of the comparison's full-detail time ratio
-            (:func:`clod_adapter.quality_vs_time.full_detail_ratio`; 0: not measured).
+            (:func:`clod_adapter.evaluate.comparison.full_detail_ratio`; 0: not measured).
     """
 
     pretrained: Union[os.PathLike, str, Gaussians, None] = None
@@ -686,7 +445,7 @@ def evaluate_report(adapted: Union[os.PathLike, Gaussians], scene, out_dir: os.P
 
 def _compare_time(ev: _Eval, significance: Tensor) -> None:
     """Phase 3b: the quality-against-frame-time comparison with the peers
-    (:func:`clod_adapter.quality_vs_time.compare`, the one ``benchmarks/quality_vs_time.py`` runs),
+    (:func:`clod_adapter.evaluate.comparison.compare`, the one ``benchmarks/quality_vs_time.py`` runs),
     with the LightGaussian significance the ranking baselines already computed on the same views."""
     ev.bar.set_postfix_str("quality against time")
     ev.comparison = qvt.compare(ev.adapted, ev.base, ev.train_cams, ev.cams, ev.gts, max_sv=ev.max_sv,
@@ -705,7 +464,7 @@ def _eval_inputs(adapted, scene, o: EvalOptions) -> _Eval:
         ply_path = Path(adapted)
         adapted = read_ply(ply_path)
     if adapted.sigma_d is None:
-        raise ValueError("evaluate_report: the adapted model has no sigma_d (run clod-adapt first)")
+        raise InputError(f"{ply_path or 'the model'}: no sigma_d: not an adapted model (run clod-adapt first)")
     max_sv = o.max_sv
     if max_sv is None:
         max_sv = (adapted.lod.max_sv if adapted.lod is not None else None) \
@@ -751,8 +510,8 @@ def _score_sweep(ev: _Eval) -> None:
 
 def _dlod_rankings(ev: _Eval, ctx: RankingContext) -> dict:
     """The global rankings the dlod ceiling may start from (name -> [N] scores)."""
-    from ..training import reference_distances
-    from ..budget import critical_s_v
+    from ..train.loop import reference_distances
+    from ..lod.budget import critical_s_v
 
     d_ref = reference_distances(ev.base, ev.train_cams)
     return {"lightgaussian": ctx.lightgaussian, "random": ctx.random,
@@ -778,7 +537,7 @@ def _score_budget(ev: _Eval, b, ctx: RankingContext, global_scores: dict) -> Non
     nb = len(ev.base)
     share = (b if isinstance(b, float) else b / max(nb, 1))
     if ev.o.merge_tool and share < 1.0:
-        from ..baselines import merge_decimate
+        from ..lod.rankings import merge_decimate
 
         for method, mode in DECIMATORS.items():
             ev.bar.set_postfix_str(f"{lab} {method}")
@@ -795,7 +554,7 @@ def _score_dlod(ev: _Eval, b, lab: str, share: float, global_scores: dict) -> No
     views; the test views only score the result), fine-tuned with the recovery schedule on the
     other training views, keeping the checkpoint (every 500 steps, the start included) with the
     best validation PSNR."""
-    from ..dlod_ceiling import best_start, finetune_subset, global_cut
+    from ..train.finetune import best_start, finetune_subset, global_cut
     from ..io.scene import validation_split
 
     fit_cams, val_cams = validation_split(ev.train_cams)
@@ -868,33 +627,33 @@ def _comparison_dict(comp: qvt.Comparison) -> dict:
             "points": [{"method": s.method, "setting": s.setting, "psnr": s.psnr, "ssim": s.ssim, "lpips": s.lpips,
                         "ms": s.ms, "time_share": s.ms / comp.input.ms, "drawn_per_view": statistics.mean(s.drawn),
                         "in_view_share": comp.in_view_share(s), "storage_bytes": s.storage} for s in comp.settings],
-            "what": "clod_adapter.quality_vs_time.compare: every point timed in interleaved rounds in one run; "
+            "what": "clod_adapter.evaluate.comparison.compare: every point timed in interleaved rounds in one run; "
                     "time_share = ms / the input's ms"}
 
 
 def _write_report(ev: _Eval, out_dir: Path, report: dict, pop: dict, t_start: float) -> None:
     """Phase 4: the CSVs, the figures, the strip, ``report.json`` and ``report.md``, each atomically."""
-    from ..figures import write_strip
-    from ..level_metrics import sv_levels
+    from ..export.figures import write_strip
+    from ..evaluate.level_metrics import sv_levels
 
     rows = ev.rows
     with atomic_write(out_dir / "report.csv", "w", newline="") as f:
-        f.write(_csv_text(rows.rows, CSV_COLUMNS))
+        f.write(csv_text(rows.rows, CSV_COLUMNS))
     with atomic_write(out_dir / "report_per_view.csv", "w", newline="") as f:
-        f.write(_csv_text(rows.per_view, PER_VIEW_COLUMNS))
+        f.write(csv_text(rows.per_view, PER_VIEW_COLUMNS))
     mark = ev.max_sv ** -1.5
-    _plot_quality(rows.rows, "gaussians", "mean Gaussians rendered per view", out_dir / "quality_vs_gaussians.png",
+    plot_quality(rows.rows, "gaussians", "mean Gaussians rendered per view", out_dir / "quality_vs_gaussians.png",
                   mark=(len(ev.adapted) * mark, f"max_sv^-1.5 = {100 * mark:.1f} %"))
-    _plot_quality(rows.rows, "ms_total", "median ms per frame (bars: fastest-slowest round)",
-                  out_dir / "levels_vs_time.png", extra=_plot_time_curve(rows.rows), time_axis=True)
+    plot_quality(rows.rows, "ms_total", "median ms per frame (bars: fastest-slowest round)",
+                  out_dir / "levels_vs_time.png", extra=plot_time_curve(rows.rows), time_axis=True)
     title = f"{Path(str(report.get('scene') or 'scene')).name}: adapted model against the peers (clod-eval)"
     qvt.plot(out_dir / "quality_vs_time.png", {title: ev.comparison})
     with atomic_write(out_dir / "quality_vs_time.csv", "w", newline="") as f:
         f.write(qvt.csv_text(ev.comparison))
-    _plot_popping(pop, out_dir / "popping.png")
+    plot_popping(pop, out_dir / "popping.png")
     write_strip(out_dir / "lod_strip.png", ev.adapted, ev.cams[0], sv_levels(ev.max_sv), ev.bg, gt=ev.gts[0])
     report["wall_seconds"] = round(time.perf_counter() - t_start, 1)
     with atomic_write(out_dir / "report.json", "w") as f:
-        json.dump(_jsonable(report), f, indent=1)
+        json.dump(jsonable(report), f, indent=1)
     with atomic_write(out_dir / "report.md", "w") as f:
         f.write(format_markdown(report))

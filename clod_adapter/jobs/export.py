@@ -1,7 +1,7 @@
 """The ``clod-export`` job: the extended .ply, a baked standard .ply for one setting, an
 importance-ordered .ply, a streamed-SOG LoD set of the model's levels (through splat-transform),
 a static web page drawing the continuous LoD on the GPU (PlayCanvas), optional pruning and SH
-reduction, and ``export.json`` (the operations are :mod:`clod_adapter.bake`; the CLI,
+reduction, and ``export.json`` (the operations are :mod:`clod_adapter.export.bake`; the CLI,
 ``clod_adapter/cli/export.py``, only parses and checks flags).
 Everything is computed first, then each file is written atomically."""
 from __future__ import annotations
@@ -35,10 +35,10 @@ class ExportOptions:
         spz: also an .spz of every .ply (:data:`EXPORT_FORMATS`).
         lod_dir: where to write a streamed-SOG LoD set (``lod-meta.json`` + chunk folders, the
             format PlayCanvas / SuperSplat / Babylon.js stream) of the model's levels
-            (:func:`clod_adapter.bake.lod_level` at each of :func:`clod_adapter.bake.lod_set_s_vs`;
+            (:func:`clod_adapter.export.bake.lod_level` at each of :func:`clod_adapter.export.bake.lod_set_s_vs`;
             None: no set).
         sog_sh_iterations: splat-transform's ``--sh-iterations`` for the LoD set (None: its
-            default, 10; :func:`clod_adapter.splat_transform.write_lod_set`).
+            default, 10; :func:`clod_adapter.io.splat_transform.write_lod_set`).
         web_dir: where to write the web viewer (:func:`clod_adapter.viewer.web.write_web_viewer`;
             None: none).
         progress: one step per phase (a tqdm bar on a terminal, else a line per phase).
@@ -88,7 +88,7 @@ def export(model, scene, train_imgs, test_cams, test_imgs, out: Path, ply: Path,
                  "train_views": len(scene.train), "test_views": [c.name for c in test_cams],
                  "resolution": [test_cams[0].width, test_cams[0].height]}
     if model.parents is not None:  # docs/method.md "Merged tiers"
-        from ..camera_lod import tier_chain
+        from ..lod.draw import tier_chain
 
         rep["tier"] = {"parents_in": sum(len(t) for t in tier_chain(model)[1:]), "tier_s_v": model.lod.tier_s_v,
                        "tier_start": model.lod.tier_start, "tiers": [len(t) for t in tier_chain(model)[1:]],
@@ -109,9 +109,9 @@ def export(model, scene, train_imgs, test_cams, test_imgs, out: Path, ply: Path,
 
 def _reduce(model, scene, train_imgs, test_cams, test_imgs, o: ExportOptions, rep: dict, step):
     """The input's test PSNR, then pruning and SH bands as asked; returns the model to export."""
-    from .. import bake as ex
-    from ..camera_lod import tier_chain
-    from ..storage import ply_row_bytes
+    from ..export import bake as ex
+    from ..lod.draw import tier_chain
+    from ..evaluate.storage import ply_row_bytes
 
     rep["psnr_test_sv1_in"] = _mean_psnr(ex, model, test_cams, test_imgs)
     step()
@@ -144,7 +144,7 @@ def _reduce(model, scene, train_imgs, test_cams, test_imgs, o: ExportOptions, re
 
 def _derive(model, scene, test_cams, test_imgs, o: ExportOptions, rep: dict, step):
     """The baked level and the importance-ordered model as asked: (baked or None, ordered or None)."""
-    from .. import bake as ex
+    from ..export import bake as ex
     from ..metrics import psnr
 
     baked = None
@@ -174,15 +174,15 @@ def _derive(model, scene, test_cams, test_imgs, o: ExportOptions, rep: dict, ste
 def _lod_levels(model, scene, test_cams, test_imgs, rep: dict, step) -> list:
     """The LoD set's levels, finest first, each scored on the test views as a plain model;
     ``rep["lod_meta"]`` says how they were cut. A model without tiers: the model cut at each of
-    :func:`clod_adapter.bake.lod_set_s_vs` of its ``max_sv`` (:func:`clod_adapter.bake.lod_level`,
+    :func:`clod_adapter.export.bake.lod_set_s_vs` of its ``max_sv`` (:func:`clod_adapter.export.bake.lod_level`,
     reference distances from the training views). A model with merged tiers
-    (:func:`clod_adapter.camera_lod.tier_chain`): the model at full detail, then each tier as the
+    (:func:`clod_adapter.lod.draw.tier_chain`): the model at full detail, then each tier as the
     ``s_v`` rule first draws it alone (at the level of the tier above's ``tier_start``), then the
     last tier cut at the coarser ``lod_set_s_vs`` of its own ``max_sv``. Returns the levels."""
-    from .. import bake as ex
-    from ..camera_lod import tier_chain
+    from ..export import bake as ex
+    from ..lod.draw import tier_chain
     from ..metrics import psnr
-    from ..training import reference_distances
+    from ..train.loop import reference_distances
 
     chain = tier_chain(model)
     max_sv = model.lod.max_sv if model.lod is not None else 5.0
@@ -209,7 +209,7 @@ def _lod_levels(model, scene, test_cams, test_imgs, rep: dict, step) -> list:
 
 def _tree_levels(chain, test_cams, test_imgs, rep: dict, step) -> list:
     """:func:`_lod_levels` of a merge tree: each tier whole, finest first, as a plain model."""
-    from .. import bake as ex
+    from ..export import bake as ex
     from ..metrics import psnr
 
     levels, rows = [], []
@@ -226,10 +226,10 @@ def _tree_levels(chain, test_cams, test_imgs, rep: dict, step) -> list:
 def _web_inputs(model, scene, test_cams, step) -> dict:
     """What the web page needs besides the model: its cameras (the test views, then the
     training views) and the static cut's ranking (LightGaussian significance on the training
-    views, :func:`clod_adapter.baselines.lightgaussian_significance`; None for a merge tree, whose
+    views, :func:`clod_adapter.lod.rankings.lightgaussian_significance`; None for a merge tree, whose
     page has no static cut)."""
-    from ..baselines import lightgaussian_significance
-    from ..tree import is_tree
+    from ..lod.rankings import lightgaussian_significance
+    from ..lod.tree import is_tree
 
     scores = None if is_tree(model) else lightgaussian_significance(model.with_sigma_d(None), scene.train)
     step()
@@ -252,12 +252,12 @@ def _write_web(model, web_dir: Path, web: dict, rep: dict) -> list[str]:
 
 def _write_lod_set(levels: list, lod_dir: Path, rep: dict, sh_iterations: Optional[int]) -> None:
     """The levels as plain .ply files in a scratch folder, then splat-transform's LoD set in
-    ``lod_dir`` (:func:`clod_adapter.splat_transform.write_lod_set`); ``rep["lod_meta"]`` gets
+    ``lod_dir`` (:func:`clod_adapter.io.splat_transform.write_lod_set`); ``rep["lod_meta"]`` gets
     the folder, the names written and what the tool reads back."""
     import tempfile
 
     from ..io.ply import write_ply
-    from ..splat_transform import SPLAT_TRANSFORM_VERSION, write_lod_set
+    from ..io.splat_transform import SPLAT_TRANSFORM_VERSION, write_lod_set
 
     with tempfile.TemporaryDirectory(prefix="clod-lod-") as tmp:
         plys = [write_ply(Path(tmp) / f"lod{k}.ply", g) for k, g in enumerate(levels)]

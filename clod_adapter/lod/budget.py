@@ -18,8 +18,8 @@ from typing import Optional
 import torch
 from torch import Tensor
 
-from . import lod
-from .render.native import load as load_kernels, wanted as kernels_wanted
+from . import rule as lod
+from ..render.native import load as load_kernels, wanted as kernels_wanted
 
 _NEWTON_STEPS = 80
 

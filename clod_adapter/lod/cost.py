@@ -14,7 +14,7 @@ tile-intersection count (``"tiles"``, what the binning emits) and against the cl
 (``"bbox_px"``); the ellipse had the smallest relative errors (docs/method.md "Budgets:
 count, cost, time").
 
-* :func:`splat_cost`: [k] per-Gaussian cost of a :class:`clod_adapter.camera_lod.LodView`'s rows,
+* :func:`splat_cost`: [k] per-Gaussian cost of a :class:`clod_adapter.lod.view.LodView`'s rows,
   from the projection the view already has (no second projection);
 * :func:`cost_prefix`: the top-scored Gaussians in view whose cumulative cost fits a budget
   (the static cut behind ``LodView.select(budget_cost=...)``, usable by baselines);
@@ -29,15 +29,16 @@ from typing import Optional
 import torch
 from torch import Tensor
 
-from .render.projection import ALPHA_THRESHOLD, GAUSSIAN_EXTEND, MAX_RADIUS, VisibleProjection, finish_projection
-from .render.tiles import tile_rects
+from . import rule as lod
+from ..render.projection import ALPHA_THRESHOLD, GAUSSIAN_EXTEND, MAX_RADIUS, VisibleProjection, finish_projection
+from ..render.tiles import tile_rects
 
 __all__ = ["splat_cost", "cost_units", "cost_prefix", "order_in_view", "prefix_count", "level_opacities",
            "FrameTimeModel", "DEFAULT_FRAME_TIME_MODEL", "COST_UNIT"]
 
 #: the cost unit of :func:`splat_cost`
 COST_UNIT = "ellipse_px"
-#: gsplat 1.5.3's ``eps2d`` and tile size, as :mod:`clod_adapter.camera_lod` draws (``camera_lod.EPS2D``,
+#: gsplat 1.5.3's ``eps2d`` and tile size, as :mod:`clod_adapter.lod.draw` draws (``camera_lod.EPS2D``,
 #: ``view.TILE_SIZE``; this module does not import the view, which imports it)
 EPS2D, TILE_SIZE = 0.3, 16
 
@@ -102,12 +103,12 @@ def splat_cost(view, indices: Optional[Tensor] = None, *, level: float = 0.0, op
                unit: str = COST_UNIT) -> Tensor:
     """Per-Gaussian rasterisation cost of drawing ``indices`` from ``view``'s camera.
 
-    Finishes the rows of the projection the :class:`clod_adapter.camera_lod.LodView` already has (as
+    Finishes the rows of the projection the :class:`clod_adapter.lod.view.LodView` already has (as
     :meth:`LodView.rasterize` does: the ``eps2d`` blur, the opacity-aware extent, culling), with
     the level's covariance scaling ``exp(2 level log_scale_gain)`` when ``level > 0``.
 
     Args:
-        view: a :class:`clod_adapter.camera_lod.LodView`.
+        view: a :class:`clod_adapter.lod.view.LodView`.
         indices: [k] int64 model indices (any order; default: every Gaussian in view, ascending).
         level: level of the gains in [0, 1] (0: base attributes).
         opacities: [k] the opacities drawn (e.g. ``LodSelection.opacities``); default the
@@ -224,7 +225,7 @@ def order_in_view(order_scores: Tensor, visible: Tensor) -> Tensor:
 
 def cost_prefix(order_scores: Tensor, cost: Tensor, visible: Tensor, budget_cost: float) -> Tensor:
     """The top-scored Gaussians in view whose cumulative cost fits ``budget_cost``: a static cut
-    by cost (as :func:`clod_adapter.baselines.topk_in_view` is by count).
+    by cost (as :func:`clod_adapter.lod.rankings.topk_in_view` is by count).
 
     Args:
         order_scores: [N] scores, higher first (ties broken by lower index), e.g. the critical
@@ -255,7 +256,7 @@ class FrameTimeModel:
     per_gaussian_ms * count``, ``cost_sum`` in :data:`COST_UNIT` (clipped ellipse pixels,
     :func:`splat_cost`) of the drawn set and ``count`` its number of Gaussians.
 
-    The time is that of :meth:`clod_adapter.camera_lod.LodView.rasterize` (``LodRender.raster_ms``:
+    The time is that of :meth:`clod_adapter.lod.view.LodView.rasterize` (``LodRender.raster_ms``:
     finishing the projection of the drawn rows, SH colours, tile binning, compositing). The
     view's projection of the whole model (``LodRender.project_ms``) and the selection are paid
     before any budget applies and are not in it.
@@ -294,3 +295,207 @@ class FrameTimeModel:
 
 #: :class:`FrameTimeModel` fitted on the development machine (see its docstring)
 DEFAULT_FRAME_TIME_MODEL = FrameTimeModel(c0_ms=2.42, per_cost_ms=5.53e-6, per_gaussian_ms=9.31e-4)
+
+
+# --- a view's cost budgets (LodView.cost_count, full_cost, full_detail_estimate) ----------------
+#: a budget walking down a chain of tiers compares each tier's full detail estimated from the
+#: widest :data:`COST_SAMPLE_TOP` share and every this many-th of the rest
+#: (:meth:`LodView.full_detail_estimate`; ``benchmarks/studies/cost_sample.py``, docs/studies.md
+#: "Costing the tiers from a sample")
+COST_SAMPLE_STEP = 8
+#: the share of a model's Gaussians, the widest on screen, that the estimate costs exactly
+COST_SAMPLE_TOP = 0.03
+#: models with fewer Gaussians than this are costed whole (:meth:`LodView.full_detail_estimate`)
+COST_SAMPLE_MIN = 4096
+
+
+def view_cost_count(view, budget_cost: Optional[float] = None, budget_ms: Optional[float] = None, *,
+                    level: Optional[float] = None, time_model: Optional[FrameTimeModel] = None,
+                    min_s_v: float = 1.0) -> int:
+    """How many Gaussians a cost budget draws: the longest prefix of the count budgets' order
+    (the Gaussians in view by :attr:`critical` descending, ties by index) whose cost fits.
+
+    Per-Gaussian costs are :func:`clod_adapter.lod.cost.splat_cost` (clipped ellipse pixels) of
+    the prefix as :meth:`select` would draw it with ``budget=k``:
+
+    * Eq. 2 drawing: with the attenuated opacities ``alpha''`` at the ``s_v`` solved for the
+      prefix (raised to ``min_s_v``): exact. The cost of a prefix grows with its length
+      (longer prefix, smaller ``s_v``, larger ``alpha''``), so the count is searched (regula
+      falsi, then bisection) between the prefix at the base opacities (fits) and the prefix
+      at the first one's ``s_v`` (bounds it): 10-15 evaluations, 15-30 ms on fern and skull
+      against 5 ms for a count budget (2 threads, shared machine);
+    * window fade: at the base level (or ``level`` when given): the footprints the calibrated
+      schedule measures its levels in (:func:`clod_adapter.train.loop.weighted_count`), one prefix
+      search, monotone in the budget. The level gains change what is drawn (survivors grow
+      to cover for those that left), so the drawn pixel work of a coarse level is larger
+      than its base cost; ``benchmarks/quality_vs_time.py`` times what is drawn. (Costing
+      each prefix at its own level has no monotone solution: a shorter prefix sits at a
+      coarser level whose grown footprints cost more, and the search settled on a few
+      hundred huge splats.)
+
+    Args:
+        budget_cost: a float in (0, 1]: that share of the cost of drawing every Gaussian in
+            view at full detail (base opacities, level 0); > 1: an absolute cost (pixels,
+            :data:`clod_adapter.lod.cost.COST_UNIT`).
+        budget_ms: predicted rasterisation ms (:class:`clod_adapter.lod.cost.FrameTimeModel`,
+            ``time_model`` or the defaults): the longest prefix whose predicted ms fits.
+        level: the level of the gains to draw at (window fade; None: from the share).
+        min_s_v: the budget rule of :meth:`select` (Eq. 2: the ``s_v`` floor of the drawing).
+
+    Returns:
+        the count k (0 <= k <= :attr:`n_in_view`), non-decreasing in the budget.
+    """
+
+    if (budget_cost is None) == (budget_ms is None):
+        raise ValueError("cost_count: give budget_cost or budget_ms")
+    b = float(budget_cost if budget_cost is not None else budget_ms)
+    if not b >= 0:
+        raise ValueError(f"render_lod: cost budgets must be >= 0, got {b}")
+    tm = time_model or DEFAULT_FRAME_TIME_MODEL
+    order, fp, weights = _view_cost_weights(view, level)
+    n_vis = order.numel()
+    if n_vis == 0:
+        return 0
+    eq2 = view.settings.fade == "eq2"
+    if budget_ms is not None:
+        weights = tm.per_splat_ms(weights)
+        limit = b - tm.c0_ms
+    elif b <= 1.0:
+        # the same float64 cumulative sum as the prefix search: 1.0 draws every Gaussian
+        limit = b * float(torch.cumsum(weights.double(), 0)[-1])
+    else:
+        limit = b
+    k = prefix_count(weights, limit)
+    if eq2 and k < n_vis:
+        unit = (lambda c: c) if budget_ms is None else tm.per_splat_ms
+        k = _view_eq2_cost_count(view, order, fp, k, limit, unit, min_s_v)
+    return k
+
+
+def _view_cost_weights(view, level: Optional[float] = None):
+    """``(order, footprints, costs)`` of the Gaussians in view in the count budgets' order:
+    window fade at the base level (or ``level`` given), the unit the calibrated levels are
+    measured in; Eq. 2 at the base opacities (:meth:`cost_count` then searches exactly)."""
+
+    lv = float(level) if (level is not None and view.settings.fade != "eq2") else 0.0
+    if view._costs is not None and view._costs[0] == lv:  # a cost budget, then the tier's full cost
+        return view._costs[1:]
+    order = order_in_view(view.critical, view.visible)
+    if order.numel() == 0:
+        return order, None, view.means.new_zeros(0)
+    fp = Footprints(view, order, lv)
+    view._costs = (lv, order, fp, fp.cost(level_opacities(view, order, lv)))
+    return view._costs[1:]
+
+
+def view_full_cost(view) -> float:
+    """The cost (:func:`clod_adapter.lod.cost.splat_cost`, pixels) of every Gaussian in view at full
+    detail: what a ``budget_cost`` share is a share of."""
+    if not view.n_in_view:
+        return 0.0
+    if view._costs is not None and view._costs[0] == 0.0:  # a cost budget's weights: the same cost
+        return float(torch.cumsum(view._costs[3].double(), 0)[-1])
+    # order-free: no critical s_v and no sort (a tier's budget walk reads only this of the model)
+
+    ids = torch.nonzero(view.visible, as_tuple=False).squeeze(1)
+    return float(Footprints(view, ids, 0.0).cost(level_opacities(view, ids, 0.0)).double().sum())
+
+
+def view_full_detail_estimate(view, step: Optional[int] = None) -> tuple[float, float]:
+    """``(cost, count)`` of every Gaussian in view at full detail (:meth:`full_cost`,
+    :attr:`n_in_view`) estimated without projecting the model whole: the
+    :data:`COST_SAMPLE_TOP` share of the Gaussians with the largest ``max(scales) / d'`` (the
+    widest on screen, which carry most of the cost) costed exactly, and every ``step``-th of
+    the rest by index (default :data:`COST_SAMPLE_STEP`) weighted by the rest over the rows
+    taken. What a budget walking down a chain of tiers compares (:func:`budget_walk`). Exact
+    (the whole model) below :data:`COST_SAMPLE_MIN` Gaussians or with ``step`` 1.
+
+    Returns:
+        (cost in :data:`clod_adapter.lod.cost.COST_UNIT`, clipped ellipse pixels; the count of
+        Gaussians in view), both float; within 5.1 % of the exact cost on the validation views
+        of the shared checkpoints (docs/studies.md "Costing the tiers from a sample")."""
+
+    step = COST_SAMPLE_STEP if step is None else int(step)
+    n = view.n
+    if step <= 1 or n < COST_SAMPLE_MIN:
+        return view_full_cost(view), float(view.n_in_view)
+    size = view.scales.detach().amax(-1) / view.d_norm.detach().clamp_min(1e-12)
+    dev = view.means.device
+    top = torch.topk(size, int(COST_SAMPLE_TOP * n)).indices
+    rest = torch.ones(n, dtype=torch.bool, device=dev)
+    rest[top] = False
+    rest_ids = torch.nonzero(rest, as_tuple=False).squeeze(1)
+    taken = rest_ids[::step]
+    ids, _ = torch.sort(torch.cat([top, taken]))
+    weight = torch.zeros(n, dtype=torch.float64, device=dev)
+    weight[top] = 1.0
+    weight[taken] = rest_ids.numel() / max(taken.numel(), 1)
+    sub = type(view)(means=view.means[ids], quats=view.quats[ids], scales=view.scales[ids],
+                  opacity_logits=view.opacity_logits[ids], colors=None, sigma_d=None, gains={},
+                  settings=view.settings, viewmat=view.viewmat, K=view.K, width=view.width,
+                  height=view.height, frustum=view.frustum[ids])
+    vis = torch.nonzero(sub.visible, as_tuple=False).squeeze(1)
+    w = weight[ids].index_select(0, vis)
+    cost = Footprints(sub, vis, 0.0).cost(level_opacities(sub, vis, 0.0)).double()
+    return float((cost * w).sum()), float(w.sum())
+
+
+def _view_eq2_cost_count(view, order: Tensor, fp, k_lo: int, limit: float, unit, min_s_v: float) -> int:
+    """:meth:`cost_count` for Eq. 2 drawing: the largest k whose prefix of ``order``, drawn with
+    ``alpha''`` at its own ``s_v``, costs <= ``limit``; ``k_lo`` fits (base opacities); ``fp``:
+    the :class:`clod_adapter.lod.cost.Footprints` of ``order`` at level 0."""
+
+    crit = view.critical.index_select(0, order)  # descending
+    m = order.numel()
+    op = view.opacities.detach().index_select(0, order)
+    d = view.d_norm.detach().index_select(0, order)
+    sd = view.sigma_d.detach().index_select(0, order)
+    eps = view.settings.eps
+
+    def s_of(k: int) -> float:  # select_budget's s_v for the top k, with the min_s_v rule
+        if k <= 0:
+            s = float(crit[0])
+        elif k >= m:
+            s = float(crit[-1]) * 0.5
+        else:
+            hi, lo = float(crit[k - 1]), float(crit[k])
+            s = hi if hi == lo else (hi * lo) ** 0.5 if lo > 0 else hi * 0.5
+        return max(s, 1e-12, float(min_s_v))
+
+    def drawn(k: int) -> float:  # the cost of the first k drawn at s_v(k)
+        if k == 0:
+            return 0.0
+        s = s_of(k)
+        c = unit(fp.cost(lod.lod_opacities(op[:k], d[:k], sd[:k], s, eps), first=k))
+        return float(torch.cumsum(c.double(), 0)[-1])
+
+    # A prefix's drawn cost grows with k (smaller s_v, larger alpha''), and for k >= lo the
+    # costs at s_v(lo) are <= the drawn ones: their prefix bounds the answer from above.
+    lo, c_lo = k_lo, drawn(k_lo)
+    full = unit(fp.cost(lod.lod_opacities(op, d, sd, s_of(lo), eps)))
+    hi = max(lo, prefix_count(full, limit))
+    if hi > lo:
+        c_hi = drawn(hi)
+        if c_hi <= limit:
+            return hi
+        side, steps = 0, 0
+        while hi - lo > 1:  # lo fits, hi does not: regula falsi (Illinois), then bisection
+            steps += 1
+            if c_hi > c_lo and steps <= 8:
+                t = (limit - c_lo) / (c_hi - c_lo)
+                mid = lo + int(t * (hi - lo))
+            else:
+                mid = (lo + hi) // 2
+            mid = min(max(mid, lo + 1), hi - 1)
+            c_mid = drawn(mid)
+            if c_mid <= limit:
+                lo, c_lo = mid, c_mid
+                if side == -1:
+                    c_hi = limit + 0.5 * (c_hi - limit)
+                side = -1
+            else:
+                hi, c_hi = mid, c_mid
+                if side == 1:
+                    c_lo = limit - 0.5 * (limit - c_lo)
+                side = 1
+    return lo

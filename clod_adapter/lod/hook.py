@@ -4,14 +4,14 @@
 opacities, ``viewmats`` [C, 4, 4], ``Ks`` [C, 3, 3], ...) plus the per-Gaussian distance decay
 ``sigma_d`` and either a virtual distance scale ``s_v`` or a Gaussian ``budget``. Per camera it
 applies Eq. 2 (``alpha'' = alpha exp(-(d' s_v)^2 / (2 ReLU(sigma_d)^2 + eps))``) and the
-``alpha'' > tau s_v`` mask (or the exact budget selection of :mod:`clod_adapter.budget`), and hands
+``alpha'' > tau s_v`` mask (or the exact budget selection of :mod:`clod_adapter.lod.budget`), and hands
 the selected Gaussians to :func:`clod_adapter.render.rasterization` (gsplat on CUDA, CPU
-otherwise). The selection is the one :func:`clod_adapter.camera_lod.render_lod` makes, so both
+otherwise). The selection is the one :func:`clod_adapter.lod.draw.render_lod` makes, so both
 give the same image.
 
 A model with parent tiers (docs/method.md "Merged tiers") passes them too (``parents=``, each
 tier's own ``parents`` nested in it), and at an ``s_v`` past ``lod_settings.tier_s_v`` the tiers are
-drawn as ``render_lod`` draws them (:func:`clod_adapter.camera_lod.chain_parts`). :func:`clod_kwargs` gives every LoD keyword of an
+drawn as ``render_lod`` draws them (:func:`clod_adapter.lod.draw.chain_parts`). :func:`clod_kwargs` gives every LoD keyword of an
 adapted model.
 
 Without ``sigma_d``, or with neither ``s_v`` nor ``budget``, it is exactly ``rasterization``.
@@ -23,9 +23,11 @@ from typing import Any, Dict, Optional, Tuple
 import torch
 from torch import Tensor
 
-from . import lod
-from .render.dispatch import rasterization
-from .camera_lod import chain_parts, count_budget_walk, rasterize_views, tree_select, view_lod_tensors
+from . import rule as lod
+from ..render.dispatch import rasterization
+from .draw import chain_parts, count_budget_walk, rasterize_views
+from .view import view_lod_tensors
+from .cut import tree_select
 
 __all__ = ["clod_rasterization", "clod_kwargs"]
 
@@ -75,7 +77,7 @@ def _tree_tier(means, quats, scales, logits, colors, sigma_d, settings, parent, 
     SH, or [N, D] stored as a degree-0 block and drawn as given), its parents ``above``."""
     from dataclasses import replace as _replace
 
-    from .gaussians import Gaussians
+    from ..gaussians import Gaussians
 
     col = colors if colors.ndim == 3 else colors[:, None, :]
     g = Gaussians(means=means, quats=quats, log_scales=torch.log(scales), opacity_logits=logits,
@@ -86,7 +88,7 @@ def _tree_tier(means, quats, scales, logits, colors, sigma_d, settings, parent, 
 
 
 def _tree_model(means, quats, scales, logits, colors, sigma_d, settings, node, parents, per_cam: Optional[int]):
-    """The model and its ``parents=`` chain as one tree (:mod:`clod_adapter.tree`); ``per_cam``:
+    """The model and its ``parents=`` chain as one tree (:mod:`clod_adapter.lod.tree`); ``per_cam``:
     the camera whose colours to take from [C, N, D] colours."""
     def build(d, settings_above):
         st = d.get("lod_settings") or settings_above
@@ -220,7 +222,7 @@ def clod_rasterization(
         budget: instead of ``s_v``: render exactly this many Gaussians (int) or this fraction
             of N (float in [0, 1]) per camera, ``s_v`` solved per camera (capped by the
             Gaussians in view; never more; raised to at least ``min_s_v``, see ``render_lod``).
-        lod_settings: how the model is drawn (:class:`clod_adapter.lod.LodSettings`; the
+        lod_settings: how the model is drawn (:class:`clod_adapter.lod.rule.LodSettings`; the
             adapted .ply's ``Gaussians.lod``); None: the paper's Eq. 2 drawing.
         opacity_logit_gain, log_scale_gain: [N] level gains, sh0_gain: [N, 1, 3] (SH colours
             only): the adapted model's (None: none).
@@ -229,12 +231,12 @@ def clod_rasterization(
             M rows), ``sigma_d`` [M], optional gains, ``opacity_logits`` and ``lod_settings``
             (the parents' own).
             Drawn at an ``s_v`` past ``lod_settings.tier_s_v`` (cross-fade, then alone, at the
-            parents' ``s_v``, :func:`clod_adapter.lod.tier_weight`; their own ``parents`` likewise down the
-            chain, :func:`clod_adapter.camera_lod.chain_parts`); a budget whose solution passes a
-            hand-over draws that tier alone (:func:`clod_adapter.camera_lod.budget_walk`).
+            parents' ``s_v``, :func:`clod_adapter.lod.rule.tier_weight`; their own ``parents`` likewise down the
+            chain, :func:`clod_adapter.lod.draw.chain_parts`); a budget whose solution passes a
+            hand-over draws that tier alone (:func:`clod_adapter.lod.draw.budget_walk`).
         parent: [N] int, a merge tree's parent of each Gaussian in ``parents`` (each tier's own
             under ``"parent"`` in its dict; :func:`clod_kwargs`): with ``lod_settings.tree`` an
-            ``s_v`` or a budget draws one cut of the tree (:func:`clod_adapter.camera_lod.tree_select`).
+            ``s_v`` or a budget draws one cut of the tree (:func:`clod_adapter.lod.cut.tree_select`).
         lod_exit: [N] a merge tree's exit constants (``"exit"`` in each tier's dict; :func:`clod_kwargs`).
         opacity_logits: [N] the raw opacities ``opacities`` came from: the rule works on logits
             (the gains shift them), and a float32 opacity near 1 keeps few digits of ``1 - o``
@@ -337,7 +339,7 @@ def clod_rasterization(
 
 def _tree_frames(means, quats, scales, logits, colors, sigma_d, settings, parent, parents, viewmats, Ks, w, h,
                  s_v, budget, backgrounds, sh_degree, backend, per_cam_colors):
-    """:func:`clod_rasterization` of a merge tree: per camera the cut of :func:`clod_adapter.camera_lod.tree_select`
+    """:func:`clod_rasterization` of a merge tree: per camera the cut of :func:`clod_adapter.lod.cut.tree_select`
     rasterised as one set (meta as documented there; ``lod_tier_indices`` the cut's rows per tier)."""
     from types import SimpleNamespace
 

@@ -1,14 +1,14 @@
 """Baselines for fixed Gaussian budgets: which ``k`` Gaussians of a pretrained model to render.
 
-Every selection picks among the same population as :func:`clod_adapter.camera_lod.render_lod`
-(:func:`clod_adapter.camera_lod.in_view`: Gaussians whose footprint reaches the image), so a
+Every selection picks among the same population as :func:`clod_adapter.lod.draw.render_lod`
+(:func:`clod_adapter.lod.view.in_view`: Gaussians whose footprint reaches the image), so a
 budget of ``k`` means the same thing for every method, and returns the indices plus the
 opacities to draw them with. :func:`render_subset` then hands exactly those Gaussians to the
 rasteriser, the way ``render_lod`` does.
 
 * :func:`constant_sigma_selection`: CLoD-GS Eq. 2 with one constant ``sigma_d = c`` for every
   Gaussian (the paper's "fair comparison" of opacity ranking without a learned decay). The
-  ``k`` Gaussians with the largest critical ``s_v`` are kept (:mod:`clod_adapter.budget`) and
+  ``k`` Gaussians with the largest critical ``s_v`` are kept (:mod:`clod_adapter.lod.budget`) and
   drawn with Eq. 2's attenuated opacities at the solved ``s_v``. Default ``c``: the median of
   the adapted model's ``ReLU(sigma_d)`` (:func:`default_sigma_c`).
 * :func:`lightgaussian_significance`: LightGaussian's global significance (Fan et al., NeurIPS
@@ -29,12 +29,12 @@ from typing import Literal, Optional, Sequence
 import torch
 from torch import Tensor
 
-from . import lod
+from . import rule as lod
 from .budget import select_budget
-from .gaussians import Gaussians
-from .render.projection import ALPHA_THRESHOLD, GAUSSIAN_EXTEND, project_visible
-from .camera_lod import LodView, view_lod
-from .splat_transform import PeerError, run_splat_transform
+from ..gaussians import Gaussians
+from ..render.projection import ALPHA_THRESHOLD, GAUSSIAN_EXTEND, project_visible
+from .view import LodView, view_lod
+from ..io.splat_transform import PeerError, run_splat_transform
 
 #: LightGaussian's volume exponent (``--v_pow 0.1`` in their prune scripts).
 LIGHTGAUSSIAN_V_POW = 0.1
@@ -49,7 +49,7 @@ class Selection:
         opacities: [k] float32 opacities to draw them with.
         s_v: the solved virtual distance scale (constant-sigma baseline), else None.
         select_ms: wall time of the selection for this camera (in-view test + ranking), ms.
-        view: the camera's :class:`clod_adapter.camera_lod.LodView` (its projection is reused to draw).
+        view: the camera's :class:`clod_adapter.lod.view.LodView` (its projection is reused to draw).
     """
 
     indices: Tensor
@@ -83,7 +83,7 @@ def render_subset(gaussians: Gaussians, camera, indices: Tensor, opacities: Opti
         opacities: [k] opacities for them (default: the model's activated opacities).
         background: [3] RGB behind the scene (default black).
         sh_degree, backend: as :func:`clod_adapter.render.rasterization`.
-        view: the camera's :class:`clod_adapter.camera_lod.LodView` of ``gaussians`` when the caller
+        view: the camera's :class:`clod_adapter.lod.view.LodView` of ``gaussians`` when the caller
             has it (its projection is reused).
     """
     v = view if view is not None else view_lod(gaussians.with_sigma_d(None), camera)
@@ -139,7 +139,7 @@ def constant_sigma_selection(gaussians: Gaussians, camera, k: int, sigma_c: floa
 
     For one constant decay the critical ``s*`` of each Gaussian (rendered iff ``s_v < s*``)
     grows with its opacity and shrinks with its frustum-normalised distance ``d'``; the ``k``
-    largest among the Gaussians in view are kept (:func:`clod_adapter.budget.select_budget`,
+    largest among the Gaussians in view are kept (:func:`clod_adapter.lod.budget.select_budget`,
     ties by index). They are drawn with their original opacities (a pure selection baseline);
     ``fade=True`` draws them with Eq. 2's ``alpha''`` at the solved ``s_v`` instead, which with
     one shared small decay fades almost every kept Gaussian (on fern: ~5 dB at 50 %).
@@ -182,7 +182,7 @@ def tune_sigma_c(gaussians: Gaussians, cameras: Sequence, images: Sequence[Tenso
     Returns:
         the chosen c (one of ``candidates``).
     """
-    from .metrics import psnr
+    from ..metrics import psnr
 
     idx = torch.linspace(0, len(cameras) - 1, min(views, len(cameras))).round().long().tolist()
     k = int(round(fraction * len(gaussians)))
@@ -293,7 +293,7 @@ def merge_decimate(gaussians: Gaussians, count: int, *, mode: Literal["decimate"
         count: target number of Gaussians, clamped to [1, N].
         mode: ``"decimate"`` or ``"adaptive"``.
         tool: the splat-transform executable (default
-            :func:`clod_adapter.splat_transform.find_splat_transform`).
+            :func:`clod_adapter.io.splat_transform.find_splat_transform`).
         timeout: seconds before the run is abandoned.
 
     Returns:
@@ -309,8 +309,8 @@ def merge_decimate(gaussians: Gaussians, count: int, *, mode: Literal["decimate"
     import tempfile
     from pathlib import Path
 
-    from .io.load import load_model
-    from .io.ply import write_ply
+    from ..io.load import load_model
+    from ..io.ply import write_ply
 
     if mode not in MERGE_MODES:
         raise ValueError(f"merge_decimate: mode must be one of {', '.join(MERGE_MODES)}, got {mode!r}")

@@ -37,7 +37,7 @@ The node constants are set by :func:`build` from the chain the job linked: at th
 over the training views a tier's nodes enter around ``s_v = G_k`` (:func:`tier_scales`, where the
 chain hands over to the tier), spread over a factor :data:`SPREAD` by the order the tier below
 learned, and every node leaves where its tier's own level of detail (its trained Eq. 2
-``sigma_d``) drops it at its usual distance; ``clod_adapter.tree_train`` then fits the merged
+``sigma_d``) drops it at its usual distance; ``clod_adapter.train.tree_fit`` then fits the merged
 tiers on the cuts. Between hand-overs nothing is dimmed or grown: every
 drawn node is a Gaussian of one tier as trained; ``s_v = 1`` is the model at full detail. A
 budget draws the cut at the smallest ``s_v >= 1`` from which no cut holds more
@@ -52,9 +52,9 @@ from typing import Optional, Sequence
 import torch
 from torch import Tensor
 
-from . import lod
+from . import rule as lod
 from .budget import critical_s_v
-from .gaussians import Gaussians
+from ..gaussians import Gaussians
 
 __all__ = ["HAND_OVER", "PARENT_KEY", "is_tree", "tiers_of", "tier_scales", "assign_parents", "build", "cut", "walk",
            "budget_s_v", "TreeCut", "TreeTerms", "terms", "cut_attributes", "leads", "in_frustum"]
@@ -82,7 +82,7 @@ def is_tree(gaussians: Gaussians) -> bool:
 
 def tiers_of(gaussians: Gaussians) -> list[Gaussians]:
     """The tree's tiers, finest first: the model, then each ``parents`` while the tier above has a
-    hand-over (``lod.tier_s_v > 0``; ``clod_adapter.camera_lod.tier_chain``)."""
+    hand-over (``lod.tier_s_v > 0``; ``clod_adapter.lod.draw.tier_chain``)."""
     out = [gaussians]
     while out[-1].parents is not None and out[-1].lod is not None and out[-1].lod.tier_s_v > 0:
         out.append(out[-1].parents)
@@ -92,7 +92,7 @@ def tiers_of(gaussians: Gaussians) -> list[Gaussians]:
 def tier_scales(tiers: Sequence[Gaussians]) -> list[float]:
     """``G_k`` per tier: 1 for tier 0, then the product over the tiers above of ``tier_fade *
     tier_s_v / tier_start`` (their hand-over settings), the factor that turns a tier's own ``s_v``
-    into the model's (``clod_adapter.camera_lod.tier_reach``)."""
+    into the model's (``clod_adapter.lod.draw.tier_reach``)."""
     out, g = [], 1.0
     for k, t in enumerate(tiers):
         out.append(g)
@@ -105,7 +105,7 @@ def tier_scales(tiers: Sequence[Gaussians]) -> list[float]:
 def _covariance_factors(g: Gaussians) -> tuple[Tensor, Tensor]:
     """``(R [M, 3, 3], inverse scales [M, 3])`` of the Gaussians' covariances, the scales floored
     at 1e-3 of their median (a flat Gaussian still accepts children beside its plane)."""
-    from .render.projection import quat_to_rotmat_rows
+    from ..render.projection import quat_to_rotmat_rows
 
     R = torch.stack(quat_to_rotmat_rows(g.quats.detach().double()), dim=-1).reshape(-1, 3, 3)
     s = torch.exp(g.log_scales.detach().double())
@@ -149,7 +149,7 @@ def assign_parents(children: Gaussians, parents: Gaussians, *, candidates: int =
 
 def in_frustum(t: Gaussians, camera) -> Tensor:
     """[N] bool: the centres in front of ``camera`` (z > 0.01) projecting inside its image (one pass
-    of the C++ kernel of :func:`clod_adapter.lod.frame_terms` on the CPU)."""
+    of the C++ kernel of :func:`clod_adapter.lod.rule.frame_terms` on the CPU)."""
     with torch.no_grad():  # the model's own tensor: its cached rows (lod.centre_columns) are reused
         return lod.frame_terms(t.means, camera.viewmat.to(t.means), camera.K.to(t.means), int(camera.width),
                                int(camera.height))[0]
@@ -180,7 +180,7 @@ def frame(tiers: Sequence[Gaussians], camera) -> tuple[list, list]:
     elsewhere (the same rounding: distances in double rounded to the dtype, divided by ``D``)."""
     c = _centre(camera)
     if _native(tiers):
-        from .render.native import load
+        from ..render.native import load
 
         dt = tiers[0].means.dtype
         vm = camera.viewmat.detach().to(torch.float64)
@@ -404,7 +404,7 @@ def cut(tiers: Sequence[Gaussians], camera, s_v: float, *, hand_over: float = HA
 def _native(tiers: Sequence[Gaussians]) -> bool:
     """Whether the C++ kernels (``render/csrc/tree_cut.cpp``) draw these tiers: CPU, one dtype, one
     SH size, no autograd recording, and the kernels wanted (``clod_adapter.render.native``)."""
-    from .render.native import wanted
+    from ..render.native import wanted
 
     t0 = tiers[0]
     records = torch.is_grad_enabled() and any(x.requires_grad for t in tiers for x in (
@@ -421,7 +421,7 @@ def _int_parents(tier: Gaussians) -> Tensor:
 def _native_call(name: str, tiers: Sequence[Gaussians], ds: Sequence[Tensor], *args) -> list:
     """A kernel of ``render/csrc/tree_cut.cpp`` over the tiers' node constants at the nodes' ``d'``
     ``ds`` (:func:`frame`)."""
-    from .render.native import load
+    from ..render.native import load
 
     dt = tiers[0].means.dtype
     return getattr(load(), name)([d.contiguous() for d in ds],
@@ -498,7 +498,7 @@ def budget_s_v(tt: TreeTerms, k: float, weights: Optional[Sequence[Tensor]] = No
     if weights is None:
         weights = [f.double() for f in tt.frustum]
     if _native(tt.tiers):
-        from .render.native import load
+        from ..render.native import load
 
         return load().tree_budget([e.contiguous() for e in tt.entry], [u.contiguous() for u in tt.upper],
                                   [w.double().contiguous() for w in weights], float(k))
@@ -571,7 +571,7 @@ def cut_attributes(tiers: Sequence[Gaussians], c: TreeCut) -> tuple[Tensor, Tens
     layout)``, each node interpolated toward its parent by its ``t`` (module docstring, step 4;
     only the rows in a hand-over are interpolated)."""
     if c.fade is not None and _native(tiers):
-        from .render.native import load
+        from ..render.native import load
 
         attrs = [x.detach().contiguous() for t in tiers
                  for x in (t.means, t.quats, t.log_scales, t.opacity_logits, t.sh0, t.shN)]

@@ -1,10 +1,10 @@
 """The project's C++ kernels, one extension built on first use (``csrc/*.cpp``):
 
 * the per-pixel compositor (``csrc/composite.cpp``; :mod:`clod_adapter.render.composite`);
-* the per-frame LoD terms (``csrc/lod_terms.cpp``; :func:`clod_adapter.lod.frame_terms`,
-  :func:`clod_adapter.lod.lod_mask`, :func:`clod_adapter.budget.critical_s_v`);
-* the merge tree's cut and drawn attributes (``csrc/tree_cut.cpp``; :func:`clod_adapter.tree.cut`,
-  :func:`clod_adapter.tree.cut_attributes`).
+* the per-frame LoD terms (``csrc/lod_terms.cpp``; :func:`clod_adapter.lod.rule.frame_terms`,
+  :func:`clod_adapter.lod.rule.lod_mask`, :func:`clod_adapter.lod.budget.critical_s_v`);
+* the merge tree's cut and drawn attributes (``csrc/tree_cut.cpp``; :func:`clod_adapter.lod.tree.cut`,
+  :func:`clod_adapter.lod.tree.cut_attributes`).
 
 Built with ``torch.utils.cpp_extension.load`` and cached (honours ``TORCH_EXTENSIONS_DIR``).
 Where it cannot be built every kernel falls back to its pure-PyTorch twin. :func:`use_impl`

@@ -14,7 +14,7 @@ Schedules (``schedule=``):
   rate and decay log-linearly to ``decay`` (0.01) x it at the last step (LightGaussian holds the
   final rate constant; the decay lets the run settle, so the end of the run is converged, see
   :func:`convergence`); every other attribute at the official constant rates
-  (:data:`clod_adapter.official.OFFICIAL_LR`); 5,000 steps by default.
+  (:data:`clod_adapter.train.official.OFFICIAL_LR`); 5,000 steps by default.
 * ``"official"``: the schedule of the first version: positions restart at the official
   *initial* rate 1.6e-4 x extent and decay to the final one over the run (a fresh 3DGS training
   schedule; too hot for a finished model: its ceiling ended below the adapted model).
@@ -37,9 +37,9 @@ import torch
 from torch import Tensor
 
 from .official import OFFICIAL_LR, scene_extent
-from .gaussians import Gaussians
+from ..gaussians import Gaussians
 from .losses import render_loss
-from .camera_lod import render_lod
+from ..lod.draw import render_lod
 
 _FIELDS = ("means", "quats", "log_scales", "opacity_logits", "sh0", "shN")
 
@@ -167,8 +167,8 @@ def finetune_subset(gaussians: Gaussians, train_cameras: Sequence, train_images:
     Returns:
         the fine-tuned model (detached copy), or ``(model, FinetuneInfo)`` with ``return_info``.
     """
-    from .metrics import psnr
-    from .progress import progress_bar
+    from ..metrics import psnr
+    from ..progress import progress_bar
 
     if schedule not in FINETUNE_SCHEDULES:
         raise ValueError(f"schedule must be one of {FINETUNE_SCHEDULES}, got {schedule!r}")
@@ -260,7 +260,7 @@ def best_start(candidates: Mapping[str, Gaussians], val_cameras: Sequence, val_i
     Raises:
         ValueError: no candidates or no validation views.
     """
-    from .metrics import psnr
+    from ..metrics import psnr
 
     if not candidates:
         raise ValueError("best_start: no candidates")

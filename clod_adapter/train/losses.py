@@ -2,14 +2,14 @@
 
 ``L_render = 0.8 L1 + 0.2 (1 - SSIM)`` (Kerbl et al. 2023, lambda_dssim = 0.2);
 ``L = w_s (L_render + lambda_reg L_reg)`` (CLoD-GS, Cheng et al. ICLR 2026; ``w_s`` and ``L_reg``
-live in :mod:`clod_adapter.lod`).
+live in :mod:`clod_adapter.lod.rule`).
 """
 from __future__ import annotations
 
 from torch import Tensor
 
-from . import lod
-from .metrics import ssim
+from ..lod import rule as lod
+from ..metrics import ssim
 
 LAMBDA_DSSIM = 0.2
 

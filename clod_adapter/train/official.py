@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import torch
 
-from . import lod
+from ..lod import rule as lod
 
 __all__ = ["OFFICIAL_LR", "scene_extent"]
 

@@ -1,12 +1,12 @@
 """Leaving out what a scene does not need before its level of detail is learned (opt-in:
-``clod-adapt --keep-share``, :attr:`clod_adapter.training.AdaptConfig.keep_share`;
+``clod-adapt --keep-share``, :attr:`clod_adapter.train.config.AdaptConfig.keep_share`;
 docs/method.md "Leaving Gaussians out first").
 
 The input's Gaussians are ranked by their *blending weight*: ``sum alpha_i T_i`` over every
 pixel of every training view, the share of the training images each one paints (the importance
 Mini-Splatting prunes by, Fang & Wang, ECCV 2024; :func:`blend_weights`). The top ``keep_share``
 are kept and every attribute of the survivors is fine-tuned with LightGaussian's recovery
-schedule (:func:`clod_adapter.dlod_ceiling.finetune_subset`) on the training views less a
+schedule (:func:`clod_adapter.train.finetune.finetune_subset`) on the training views less a
 held-out few (:func:`clod_adapter.io.scene.validation_split`). The recovery is kept whole when its
 last step scores above the static cut on the held-out views, else the static cut is (skull:
 33.10 dB for the cut, 30.43 after 1,000 steps, so the cut; fern: 26.97 -> 27.53, so the
@@ -25,8 +25,8 @@ from typing import Callable, Optional, Sequence
 import torch
 from torch import Tensor
 
-from .dlod_ceiling import finetune_subset, global_cut
-from .gaussians import Gaussians
+from .finetune import finetune_subset, global_cut
+from ..gaussians import Gaussians
 
 #: ``AdaptConfig.faint_share``'s calibrated default: a Gaussian whose blending weight summed over
 #: every training view is under this share of one view's pixels is left out (1.7-1.8 px on the
@@ -54,7 +54,7 @@ def blend_weights(gaussians: Gaussians, cameras: Sequence, *, backend: str = "au
     Returns:
         [N] float64 weights (pixels; 0 for a Gaussian no view draws).
     """
-    from .render import rasterization
+    from ..render import rasterization
 
     g = gaussians.with_sigma_d(None)
     dev = g.means.device
@@ -140,7 +140,7 @@ def leave_out(gaussians: Gaussians, cameras: Sequence, images, *,
         cameras: the training views; images: their [H, W, 3] float32 images in [0, 1],
             ``images[i]`` for ``cameras[i]`` (a list, or :class:`clod_adapter.io.view_images.ViewImages`).
         keep_share: share of the N kept, in (0, 1]; 1 returns the model unchanged.
-        recovery_steps: steps of :func:`clod_adapter.dlod_ceiling.finetune_subset` (recovery
+        recovery_steps: steps of :func:`clod_adapter.train.finetune.finetune_subset` (recovery
             schedule) on the fit views of :func:`clod_adapter.io.scene.validation_split`, kept
             when the last step scores above the static cut on its validation views (a single
             training view: no held-out view, the recovery is kept). 0: the static cut.
@@ -153,7 +153,7 @@ def leave_out(gaussians: Gaussians, cameras: Sequence, images, *,
     Raises:
         ValueError: ``keep_share`` outside (0, 1], ``recovery_steps < 0`` or no camera.
     """
-    from .io.scene import validation_split
+    from ..io.scene import validation_split
 
     if not 0.0 < keep_share <= 1.0:
         raise ValueError(f"keep_share must be in (0, 1], got {keep_share}")

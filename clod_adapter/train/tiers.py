@@ -8,13 +8,13 @@ nearest pairs, :func:`decimated`) to each of a few shares of it (:data:`DEFAULT_
 validation views: docs/studies.md "Merged tiers"; the first lowered by :func:`first_share` where
 its merge would save little time), each adapted like any input (its own
 ``sigma_d`` and level gains) and drawn instead of the tier above from that tier's
-``LodSettings.tier_s_v`` on, after a cross-fade in ``s_v`` (:func:`clod_adapter.lod.tier_weight`,
-:func:`clod_adapter.camera_lod.chain_parts`). They are stored in the same .ply as more elements
+``LodSettings.tier_s_v`` on, after a cross-fade in ``s_v`` (:func:`clod_adapter.lod.rule.tier_weight`,
+:func:`clod_adapter.lod.draw.chain_parts`). They are stored in the same .ply as more elements
 (``lod_parent``, ``lod_parent_2``, ...) that viewers reading only ``vertex`` leave out.
 
 :func:`choose` picks where a tier takes over from the one above, on the views it is given
 (training views, never validation or test views), by the fitted frame-time model
-(:class:`clod_adapter.cost.FrameTimeModel`: no wall clock, so the choice is reproducible): the
+(:class:`clod_adapter.lod.cost.FrameTimeModel`: no wall clock, so the choice is reproducible): the
 first level of the tier above at which some level of the tier is at least as good in PSNR and
 predicted no slower. When there is none, the scene does not need the tier and it is left out.
 """
@@ -26,11 +26,11 @@ from typing import Optional, Sequence
 
 import torch
 
-from .baselines import merge_decimate
-from .camera_lod import view_lod
-from .cost import DEFAULT_FRAME_TIME_MODEL, FrameTimeModel, splat_cost
-from .gaussians import Gaussians
-from .metrics import psnr
+from ..lod.rankings import merge_decimate
+from ..lod.view import view_lod
+from ..lod.cost import DEFAULT_FRAME_TIME_MODEL, FrameTimeModel, splat_cost
+from ..gaussians import Gaussians
+from ..metrics import psnr
 
 #: models with fewer Gaussians get no merged tiers (their coarsest frames already cost little)
 PARENT_MIN_GAUSSIANS = 10_000
@@ -54,14 +54,14 @@ PARENT_S_V = (1.0, 1.1, 1.25, 1.5, 1.75, 2.0, 2.5, 3.0, 4.0, 5.0, 6.0, 7.5, 10.0
 
 
 #: the merges a tier may start from: splat-transform 3.7.0's ``--decimate`` and
-#: ``--decimate-adaptive`` (:func:`clod_adapter.baselines.merge_decimate`'s modes)
+#: ``--decimate-adaptive`` (:func:`clod_adapter.lod.rankings.merge_decimate`'s modes)
 MERGES = ("decimate", "adaptive")
 
 
 def decimated(gaussians: Gaussians, share: float, *, merge: str = "decimate", tool: Optional[str] = None) -> Gaussians:
     """The parent tier's starting point: ``gaussians`` merged to ``share`` of its count by
     splat-transform 3.7.0's ``--decimate`` (``merge="decimate"``) or ``--decimate-adaptive``
-    (``merge="adaptive"``) (:func:`clod_adapter.baselines.merge_decimate`), a plain 3DGS model
+    (``merge="adaptive"``) (:func:`clod_adapter.lod.rankings.merge_decimate`), a plain 3DGS model
     (no ``sigma_d``).
 
     Raises:
@@ -90,7 +90,7 @@ TIER_SHARE_TRIES = 3
 def predicted_ms(gaussians: Gaussians, cameras: Sequence, *,
                  time_model: FrameTimeModel = DEFAULT_FRAME_TIME_MODEL) -> float:
     """Mean predicted drawing time (ms) of ``gaussians`` at full detail over ``cameras``: every
-    Gaussian in view at its base attributes (:func:`clod_adapter.cost.splat_cost`, an upper bound
+    Gaussian in view at its base attributes (:func:`clod_adapter.lod.cost.splat_cost`, an upper bound
     of what the LoD rule draws at ``s_v = 1``) through ``time_model``. No wall clock: the same
     inputs give the same number. ``cameras``: objects with ``viewmat`` [4, 4], ``K`` [3, 3]
     (pixels), ``width``, ``height``.
@@ -156,11 +156,11 @@ def finetuned(merged: Gaussians, cameras: Sequence, images: Sequence, steps: int
     """A merged tier fitted to the training views: every base attribute of ``merged`` (N
     Gaussians, no ``sigma_d``) fine-tuned at full detail for ``steps`` Adam steps, one view each,
     on ``0.8 L1 + 0.2 D-SSIM``, with LightGaussian's post-pruning recovery rates
-    (:func:`clod_adapter.dlod_ceiling.finetune_subset`, ``schedule="recovery"``). A merge by
+    (:func:`clod_adapter.train.finetune.finetune_subset`, ``schedule="recovery"``). A merge by
     moment matching keeps each cluster's mass and covariance, not its look; a few hundred steps
     recover most of what it lost (docs/studies.md "Merged tiers"). ``steps = 0`` returns
     ``merged``. Images are [H, W, 3] float32 in [0, 1]; the count and SH degree are unchanged."""
-    from .dlod_ceiling import finetune_subset
+    from .finetune import finetune_subset
 
     if steps <= 0:
         return merged
@@ -173,11 +173,11 @@ def attach(gaussians: Gaussians, parents: Gaussians, tier_s_v: float, tier_start
            tier_fade: float = 1.25) -> Gaussians:
     """``gaussians`` (adapted) with the adapted ``parents`` as its parent tier, taking over from
     ``tier_s_v`` (the parents then drawn at their own ``s_v = tier_start``). ``parents`` keep
-    their own parent tiers (a chain: :func:`clod_adapter.camera_lod.tier_chain`).
+    their own parent tiers (a chain: :func:`clod_adapter.lod.draw.tier_chain`).
 
     Raises:
         ValueError: a model without ``sigma_d`` or settings, SH degrees that differ, or
-            settings out of range (:class:`clod_adapter.lod.LodSettings`).
+            settings out of range (:class:`clod_adapter.lod.rule.LodSettings`).
     """
     if gaussians.sigma_d is None or gaussians.lod is None or parents.sigma_d is None:
         raise ValueError("attach: both the model and its parents must be adapted (sigma_d and settings)")

@@ -1,12 +1,12 @@
 """Fitting a merge tree on its own cuts: the merged tiers trained where the tree draws them.
 
-Each tier of a tree was fitted as a whole model of its own (``clod_adapter.tiers.finetuned``),
+Each tier of a tree was fitted as a whole model of its own (``clod_adapter.train.tiers.finetuned``),
 but a cut draws parts of several tiers side by side and their hand-overs in between. So, as
 Hierarchical 3DGS optimises its hierarchy on cuts sampled at random (Kerbl et al. 2024,
 ``train_post.py``), :func:`finetune` draws a training view at a level ``s_v`` sampled
-log-uniformly over the tree's range, renders that view's cut (:func:`clod_adapter.tree.cut`,
-:func:`clod_adapter.tree.cut_attributes`: the hand-overs interpolated as they are drawn) and takes
-an Adam step on ``0.8 L1 + 0.2 D-SSIM`` (``clod_adapter.losses.render_loss``) for the merged
+log-uniformly over the tree's range, renders that view's cut (:func:`clod_adapter.lod.tree.cut`,
+:func:`clod_adapter.lod.tree.cut_attributes`: the hand-overs interpolated as they are drawn) and takes
+an Adam step on ``0.8 L1 + 0.2 D-SSIM`` (``clod_adapter.train.losses.render_loss``) for the merged
 tiers' attributes only. Tier 0, the model at full detail, is never changed, and neither is where
 the cut falls (``sigma_d`` and the exits): the cut is chosen without gradient.
 """
@@ -18,11 +18,11 @@ from typing import Optional, Sequence
 
 import torch
 
-from . import tree
-from .gaussians import Gaussians
+from ..lod import tree
+from ..gaussians import Gaussians
 from .losses import render_loss
 from .official import OFFICIAL_LR
-from .render.dispatch import rasterization
+from ..render.dispatch import rasterization
 
 __all__ = ["finetune", "TREE_STEPS", "level_range"]
 
@@ -36,7 +36,7 @@ MEANS_LR_SCALE = 0.1
 
 def level_range(model: Gaussians, cameras: Sequence) -> float:
     """The largest ``s_v`` any of ``cameras`` draws something at: the largest end ``U`` of the
-    last tier's nodes (:func:`clod_adapter.tree.terms`), at least 1."""
+    last tier's nodes (:func:`clod_adapter.lod.tree.terms`), at least 1."""
     tiers = tree.tiers_of(model)
     top = 1.0
     for cam in cameras:
@@ -52,7 +52,7 @@ def _tiers_with(tiers: list, params: list) -> list:
 
 def finetune(model: Gaussians, cameras: Sequence, images: Sequence, steps: int = TREE_STEPS, *,
              background=None, seed: int = 0, log=None) -> Gaussians:
-    """``model`` (a merge tree, :func:`clod_adapter.tree.is_tree`) with its merged tiers fitted on
+    """``model`` (a merge tree, :func:`clod_adapter.lod.tree.is_tree`) with its merged tiers fitted on
     its cuts (module docstring) for ``steps`` steps on ``cameras`` (training views) and their
     ``images`` ([H, W, 3] float32 in [0, 1]). ``s_v`` is sampled log-uniformly in ``[1, top]``,
     ``top`` the coarsest level the views draw (:func:`level_range`, capped at 1e4). ``steps <= 0``

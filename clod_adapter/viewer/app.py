@@ -3,7 +3,7 @@
 Each connected browser gets its own panel and its own copy of the model's splats: on every
 camera move (throttled to one update per ``throttle_s``) and on every control change, the
 selection for *that* client camera is recomputed (:func:`clod_adapter.viewer.selection.view_payload`,
-i.e. :func:`clod_adapter.camera_lod.lod_subset`: frustum, d', the LoD rule or the budget solver),
+i.e. :func:`clod_adapter.lod.draw.lod_subset`: frustum, d', the LoD rule or the budget solver),
 coloured by the SH at that camera and sent as one splat buffer (``n x 32`` bytes).
 
 Controls: the level (``s_v`` slider from 1 to 2 x the trained ``max_sv``, further with a parent
@@ -25,7 +25,7 @@ from typing import Callable, Optional, Sequence
 
 import numpy as np
 
-from clod_adapter.camera_lod import tier_reach
+from clod_adapter.lod.draw import tier_reach
 from clod_adapter.gaussians import Gaussians
 from clod_adapter.io.scene import Camera
 
@@ -246,7 +246,7 @@ class LodViewer:
         gaussians: the model (CPU); with ``sigma_d`` for LoD, without it every Gaussian in view.
         max_sv: the trained maximum ``s_v`` (:func:`clod_adapter.viewer.model.model_max_sv`); the
             slider runs from 1 to ``2 * max_sv`` (a model with a parent tier: to where its parents
-            are drawn at ``2 * max_sv``: ``2 max_sv`` times :func:`clod_adapter.camera_lod.tier_reach`).
+            are drawn at ``2 * max_sv``: ``2 max_sv`` times :func:`clod_adapter.lod.draw.tier_reach`).
         scene_cameras: ``(name, camera)`` pairs for the camera dropdown; the first is the start
             view. Empty: the start view is outside the model's bounding box
             (:func:`clod_adapter.viewer.cameras.default_start_view`).

@@ -20,7 +20,7 @@ def model_max_sv(ply_path: os.PathLike | str, model: Gaussians | None = None) ->
     (its ``config`` metadata; :func:`clod_adapter.jobs.eval.max_sv_from_state`); :data:`DEFAULT_MAX_SV`
     (5) when neither holds a positive finite value.
     """
-    from clod_adapter.training import max_sv_from_state
+    from clod_adapter.train.state import max_sv_from_state
 
     v = model.lod.max_sv if (model is not None and model.lod is not None) else None
     if v is None:

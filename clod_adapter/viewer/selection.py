@@ -1,13 +1,13 @@
 """What a viewer sends for one camera at one level of detail.
 
 The selection and the drawn attributes (positions, rotations, scales, opacities after the LoD
-rule, SH coefficients) come from :func:`clod_adapter.camera_lod.lod_subset` only, so the viewer
+rule, SH coefficients) come from :func:`clod_adapter.lod.draw.lod_subset` only, so the viewer
 draws what our renderer rasterises for that camera, whatever rule ``lod_subset`` implements.
 The viewer then turns them into what viser's splat renderer takes: world-space covariances
 ``R diag(s)^2 R^T`` and RGB colours evaluated from the SH at the camera centre
 (:func:`clod_adapter.render.sh.spherical_harmonics`, then ``+ 0.5``, clamped at 0, as 3DGS).
 
-The static comparison is :func:`clod_adapter.baselines.ranking_selection` on the model without
+The static comparison is :func:`clod_adapter.lod.rankings.ranking_selection` on the model without
 ``sigma_d``, scored by opacity (the pretrained-style cut: the ``k`` most opaque Gaussians in
 view, original opacities) at the count the LoD level draws.
 """
@@ -20,9 +20,9 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from clod_adapter.baselines import ranking_selection
+from clod_adapter.lod.rankings import ranking_selection
 from clod_adapter.gaussians import Gaussians
-from clod_adapter.camera_lod import lod_subset
+from clod_adapter.lod.draw import lod_subset
 from clod_adapter.render.projection import quat_to_rotmat_rows
 from clod_adapter.render.sh import spherical_harmonics
 
@@ -45,7 +45,7 @@ class ViewPayload:
 
     Attributes:
         indices: [k] int64 indices into the model, ascending (where a parent tier is drawn,
-            :func:`clod_adapter.camera_lod.lod_subset`, only the model's own rows: the arrays
+            :func:`clod_adapter.lod.draw.lod_subset`, only the model's own rows: the arrays
             below hold them followed by the parents drawn).
         means: [k, 3] float32 centres; covariances: [k, 3, 3] float32 world-space covariances;
         rgbs: [k, 3] float32 colours at the camera (>= 0, not clipped above);
@@ -119,7 +119,7 @@ def view_payload(gaussians: Gaussians, camera, *, s_v: Optional[float] = None,
             (e.g. :func:`clod_adapter.viewer.cameras.camera_from_pose`).
         s_v: virtual distance scale >= 1, or
         budget: a count (int) or fraction of the model (float in [0, 1]); as
-            :func:`clod_adapter.camera_lod.lod_subset` (a budget is a cap at the s_v = 1 level).
+            :func:`clod_adapter.lod.draw.lod_subset` (a budget is a cap at the s_v = 1 level).
             Neither: s_v = 1.
         compare: send the static opacity cut at the count the level draws instead.
         max_drawn: cap on what is sent (>= 1): a larger level is replaced by

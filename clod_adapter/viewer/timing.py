@@ -17,7 +17,7 @@ import numpy as np
 import torch
 
 from clod_adapter.gaussians import Gaussians
-from clod_adapter.camera_lod import in_view
+from clod_adapter.lod.view import in_view
 from clod_adapter.render import rasterization
 
 __all__ = ["RasterTimeModel", "calibrate_raster_time"]

@@ -1,7 +1,7 @@
 """``clod-export --web``: a static page drawing the continuous LoD per frame on the GPU with the
 PlayCanvas engine (npm ``playcanvas``, pinned to :data:`PLAYCANVAS_VERSION` by the root
 ``package.json``, installed by ``npm ci``; copied into the export, never fetched from a CDN).
-The page is ``web_page/`` (``index.html``, ``clod.mjs``: the LoD rule of :mod:`clod_adapter.lod`
+The page is ``web_page/`` (``index.html``, ``clod.mjs``: the LoD rule of :mod:`clod_adapter.lod.rule`
 as a PlayCanvas work-buffer modifier; ``clod_tree.mjs``: the merge tree's rule of
 ``docs/lod_rule.md``, ported from ``examples/reference_lod.py``); :func:`write_web_viewer` adds
 the engine, the model and its per-splat LoD data.
@@ -29,7 +29,7 @@ ENGINE_FILE = "playcanvas.min.mjs"
 def find_playcanvas() -> Optional[Path]:
     """``node_modules/playcanvas/build/playcanvas.min.mjs`` under the project root or the current
     directory (where ``npm ci`` installs it), or None."""
-    from ..splat_transform import project_root
+    from ..io.splat_transform import project_root
 
     for folder in (project_root(), Path.cwd()):
         if folder is not None:
@@ -103,7 +103,7 @@ def tree_streams(model) -> tuple[dict, list[int]]:
     import numpy as np
     import torch
 
-    from .. import tree
+    from ..lod import tree
 
     ts = tree.tiers_of(model)
     counts = [len(t) for t in ts]
@@ -138,12 +138,12 @@ def write_web_viewer(model, out_dir: Path, cameras, static_scores, *, engine: Op
     Gaussians) and a ``"tier"`` entry in ``clod.json`` (``model``, ``data``, ``count`` = M,
     the parents' own ``settings``, and their own ``"tier"`` for a chain of tiers: ``parents_2.ply``,
     ...); the page cross-fades from each tier to the next as
-    :func:`clod_adapter.camera_lod.render_lod` does. A merge tree (:func:`clod_adapter.tree.is_tree`)
+    :func:`clod_adapter.lod.draw.render_lod` does. A merge tree (:func:`clod_adapter.lod.tree.is_tree`)
     is written as one set instead: ``model.ply`` holds every tier's nodes (tier 0's first),
     ``clod.bin`` their :func:`tree_streams` and ``clod.json`` a ``"tree"`` entry (the tiers'
     ``counts`` and the slider's top ``sv_max``, 1.2 times the last tier's ``max_sv`` at the model's
     ``s_v``); the page draws the cut of ``docs/lod_rule.md`` at its ``s_v`` or within a count
-    budget, as :func:`clod_adapter.camera_lod.render_lod` does. Each file is written atomically.
+    budget, as :func:`clod_adapter.lod.draw.render_lod` does. Each file is written atomically.
 
     Args:
         model: an adapted :class:`clod_adapter.gaussians.Gaussians` (``sigma_d`` required),
@@ -166,11 +166,11 @@ def write_web_viewer(model, out_dir: Path, cameras, static_scores, *, engine: Op
     from dataclasses import replace
     from importlib import resources
 
-    from .. import tree as tree_mod
+    from ..lod import tree as tree_mod
     from ..gaussians import concat
     from ..io.atomic import atomic_write
     from ..io.ply import write_ply
-    from ..lod import FADE_RAMP_S_V, LodSettings
+    from ..lod_settings import FADE_RAMP_S_V, LodSettings
 
     if model.sigma_d is None:
         raise ValueError("write_web_viewer: the model has no sigma_d (run clod-adapt first)")

@@ -1,8 +1,8 @@
 // Per-frame LoD terms of CLoD-GS (Cheng et al., ICLR 2026, Sec. 3 and Eq. 2) in one pass each.
 //
-// Twins: clod_adapter.lod.in_frustum + normalized_distances (frustum_distances) and
-// clod_adapter.lod.lod_mask (lod_mask), lod_keep (lod_keep) and window_opacities
-// (lod_window_opacities); clod_adapter.budget.critical_s_v (lod_critical); tests/test_lod_terms.py
+// Twins: clod_adapter.lod.rule.in_frustum + normalized_distances (frustum_distances) and
+// clod_adapter.lod.rule.lod_mask (lod_mask), lod_keep (lod_keep) and window_opacities
+// (lod_window_opacities); clod_adapter.lod.budget.critical_s_v (lod_critical); tests/test_lod_terms.py
 // holds them together.
 // Every frame of a level of detail runs these over all N Gaussians before it knows what it draws.
 // As ~30 elementwise torch operations at N = 60,000 each one pays OpenMP's wake-up of the

@@ -1,7 +1,7 @@
 // The merge tree's per-frame cut and its drawn attributes (docs/lod_rule.md steps 1-5) in one
 // pass over the nodes each.
 //
-// Twins: clod_adapter.tree.terms + cut (tree_cut) and clod_adapter.tree.cut_attributes
+// Twins: clod_adapter.lod.tree.terms + cut (tree_cut) and clod_adapter.lod.tree.cut_attributes
 // (tree_attributes); tests/test_tree.py holds them together. As some 60 torch operations per
 // frame, most over every node or every drawn row (gathers of the SH, interpolation of the rows
 // in a hand-over, the concatenation of the tiers), the twins cost a fifth of a full-detail frame on
@@ -239,20 +239,23 @@ double budget_impl(const std::vector<torch::Tensor>& E, const std::vector<torch:
         used[b] = 1;
         lowest[b] = std::min(lowest[b], pos);
     };
-    note(S(1), 0.0, bin_of<S>(S(1), base));
-    for (size_t t = 0; t < E.size(); ++t) {
-        const S* e = E[t].data_ptr<S>();
-        const S* u = U[t].data_ptr<S>();
-        const double* w = weights[t].data_ptr<double>();
-        const int64_t n = E[t].numel();
-        for (int64_t i = 0; i < n; ++i) {
-            const S lo = std::max(e[i], S(1));
-            if (w[i] > 0 && u[i] > lo) {
-                note(lo, w[i], bin_of<S>(lo, base));
-                note(u[i], -w[i], std::min(bin_of<S>(u[i], base), nbins - 1));
+    auto events = [&](auto&& visit) {  // every interval's two events: (position, weight change, bin)
+        for (size_t t = 0; t < E.size(); ++t) {
+            const S* e = E[t].data_ptr<S>();
+            const S* u = U[t].data_ptr<S>();
+            const double* w = weights[t].data_ptr<double>();
+            const int64_t n = E[t].numel();
+            for (int64_t i = 0; i < n; ++i) {
+                const S lo = std::max(e[i], S(1));
+                if (w[i] > 0 && u[i] > lo) {
+                    visit(lo, w[i], bin_of<S>(lo, base));
+                    visit(u[i], -w[i], std::min(bin_of<S>(u[i], base), nbins - 1));
+                }
             }
         }
-    }
+    };
+    note(S(1), 0.0, bin_of<S>(S(1), base));
+    events(note);
     std::vector<double> start(nbins + 1, 0.0);  // summed weight drawn before each bin's first position
     for (int64_t b = 0; b < nbins; ++b) start[b + 1] = start[b] + net[b];
     const double limit = k + 1e-9 * std::abs(k);  // summed in another order than k was
@@ -265,19 +268,9 @@ double budget_impl(const std::vector<torch::Tensor>& E, const std::vector<torch:
             continue;
         }
         std::vector<std::pair<S, double>> ev;  // this bin's events, sorted
-        for (size_t t = 0; t < E.size(); ++t) {
-            const S* e = E[t].data_ptr<S>();
-            const S* u = U[t].data_ptr<S>();
-            const double* w = weights[t].data_ptr<double>();
-            const int64_t n = E[t].numel();
-            for (int64_t i = 0; i < n; ++i) {
-                const S lo = std::max(e[i], S(1));
-                if (w[i] > 0 && u[i] > lo) {
-                    if (bin_of<S>(lo, base) == b) ev.emplace_back(lo, w[i]);
-                    if (std::min(bin_of<S>(u[i], base), nbins - 1) == b) ev.emplace_back(u[i], -w[i]);
-                }
-            }
-        }
+        events([&](S pos, double dw, int64_t bin) {
+            if (bin == b) ev.emplace_back(pos, dw);
+        });
         if (bin_of<S>(S(1), base) == b) ev.emplace_back(S(1), 0.0);
         std::sort(ev.begin(), ev.end(), [](const auto& x, const auto& y) { return x.first < y.first; });
         std::vector<S> uniq;
@@ -356,7 +349,7 @@ std::vector<torch::Tensor> frame_impl(const std::vector<torch::Tensor>& cols, co
 
 }  // namespace
 
-// clod_adapter.tree.frame: cols per tier [3, N_k] contiguous (lod.centre_columns, one dtype); R [9]
+// clod_adapter.lod.tree.frame: cols per tier [3, N_k] contiguous (lod.centre_columns, one dtype); R [9]
 // row-major and t [3] of the world-to-camera matrix; intrinsics and image size in pixels; the camera
 // centre (world). Returns per tier [frustum [N_k] bool, d' [N_k]].
 std::vector<torch::Tensor> tree_frame_cpu(std::vector<torch::Tensor> cols, std::vector<double> R, std::vector<double> t,
@@ -374,7 +367,7 @@ std::vector<torch::Tensor> tree_frame_cpu(std::vector<torch::Tensor> cols, std::
     return out;
 }
 
-// clod_adapter.tree.budget_s_v: per tier E, U [N_k] and weights [N_k] float64
+// clod_adapter.lod.tree.budget_s_v: per tier E, U [N_k] and weights [N_k] float64
 double tree_budget_cpu(std::vector<torch::Tensor> E, std::vector<torch::Tensor> U,
                        std::vector<torch::Tensor> weights, double k) {
     TORCH_CHECK(!E.empty() && U.size() == E.size() && weights.size() == E.size(), "tree_budget: one entry per tier");
@@ -385,7 +378,7 @@ double tree_budget_cpu(std::vector<torch::Tensor> E, std::vector<torch::Tensor> 
     return out;
 }
 
-// clod_adapter.tree.cut at one s_v from every node's terms (d_norm: per tier [N_k] its d', as
+// clod_adapter.lod.tree.cut at one s_v from every node's terms (d_norm: per tier [N_k] its d', as
 // tree._distances rounds it): per tier [ids (int64, ascending), w, fade]
 std::vector<torch::Tensor> tree_cut_cpu(std::vector<torch::Tensor> d_norm, std::vector<torch::Tensor> sigma_d,
                                         std::vector<torch::Tensor> exits, std::vector<torch::Tensor> parents,
@@ -399,7 +392,7 @@ std::vector<torch::Tensor> tree_cut_cpu(std::vector<torch::Tensor> d_norm, std::
     return out;
 }
 
-// clod_adapter.tree.terms: per tier [E, U, fade] of every node
+// clod_adapter.lod.tree.terms: per tier [E, U, fade] of every node
 std::vector<torch::Tensor> tree_terms_cpu(std::vector<torch::Tensor> d_norm, std::vector<torch::Tensor> sigma_d,
                                           std::vector<torch::Tensor> exits, std::vector<torch::Tensor> parents,
                                           std::vector<torch::Tensor> leads, double F) {
@@ -417,7 +410,7 @@ std::vector<torch::Tensor> tree_terms_cpu(std::vector<torch::Tensor> d_norm, std
     return out;
 }
 
-// clod_adapter.tree.cut_attributes: attrs per tier (means, quats, log_scales, opacity_logits, sh0, shN),
+// clod_adapter.lod.tree.cut_attributes: attrs per tier (means, quats, log_scales, opacity_logits, sh0, shN),
 // the cut's ids / w / fade per tier; returns (means, quats, scales, opacities, colors [M, K, 3])
 std::vector<torch::Tensor> tree_attributes_cpu(std::vector<torch::Tensor> attrs, std::vector<torch::Tensor> ids,
                                                std::vector<torch::Tensor> ws, std::vector<torch::Tensor> fades,

@@ -1,5 +1,5 @@
 // clod-adapter's continuous level of detail on the GPU, in the PlayCanvas engine (vendored beside
-// this file by `clod-export --web`). The LoD rule of clod_adapter/lod.py (CLoD-GS Eq. 2 with the
+// this file by `clod-export --web`). The LoD rule of clod_adapter/lod/rule.py (CLoD-GS Eq. 2 with the
 // window fade, the fade ramp near s_v = 1 and the learned level gains) runs per splat and per frame
 // in a work-buffer modifier (PlayCanvas's per-splat shader hook); s_v, the camera, the distance
 // normaliser and the level are uniforms. Per-splat data (sigma_d, opacity logit, the gains, a
@@ -32,7 +32,7 @@ const cfg = await (await fetch('clod.json')).json();
 const st = cfg.settings;
 const SH_C0 = 0.28209479177387814;
 
-// --- the rule's scalars (clod_adapter/lod.py) for one model's settings ---------------------------
+// --- the rule's scalars (clod_adapter/lod/rule.py) for one model's settings ---------------------------
 function rule(st) {
     const ramp = (s, r = st.fade_ramp_s_v) => Math.min(1, Math.max(Math.log(Math.max(s, 1)) / Math.log(Math.max(r, st.fade_ramp_s_v)), 0));
     const rampCap = Math.max(st.fade_ramp_s_v, Math.sqrt(Math.max(st.max_sv, 1)));     // lod.ramp_cap

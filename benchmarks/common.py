@@ -35,7 +35,6 @@ os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 import torch  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(REPO))
 SHARED = REPO.parent / "shared" / "data"
 RUNS = REPO / "runs" / "bench"
 if (SHARED / "lpips" / "lpips_alex_v0.1.safetensors").is_file():  # the package looks in the user cache

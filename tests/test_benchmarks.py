@@ -12,8 +12,7 @@ BENCH = REPO / "benchmarks"
 
 @pytest.fixture
 def common(monkeypatch):
-    monkeypatch.syspath_prepend(str(BENCH))
-    import common as mod
+    from benchmarks import common as mod
 
     monkeypatch.setattr(mod, "INPUTS", dict(mod.INPUTS))
     monkeypatch.setattr(mod, "LABELS", dict(mod.LABELS))
@@ -67,12 +66,13 @@ def test_unknown_shared_name_exits(common):
 def test_results_scripts_say_what_they_produce_and_how_long_they_take():
     """The scripts left in benchmarks/ (the studies are in benchmarks/studies/) produce
     docs/results.md: each docstring names it and the time it takes."""
-    scripts = sorted(p for p in BENCH.glob("*.py") if p.name != "common.py")
+    scripts = sorted(p for p in BENCH.glob("*.py") if p.name not in ("common.py", "__init__.py"))
     assert [p.name for p in scripts] == ["quality_vs_time.py"]
     for p in scripts:
         doc = ast.get_docstring(ast.parse(p.read_text()))
         assert "docs/results.md" in doc and "minutes" in doc, p
     assert len(list((BENCH / "studies").glob("*.py"))) >= 20
+    assert not [p.name for p in BENCH.rglob("*.py") if "sys.path.insert(0, str(" in p.read_text()]  # a package
 
 
 def test_adapt_time_goal_reads_the_whole_jobs_seconds(common):
@@ -80,7 +80,7 @@ def test_adapt_time_goal_reads_the_whole_jobs_seconds(common):
     at-most goal whose margin is the minutes left; a run that did not record it is a miss."""
     import importlib
 
-    qvt_bench = importlib.import_module("quality_vs_time")
+    qvt_bench = importlib.import_module("benchmarks.quality_vs_time")
     met = qvt_bench.adapt_goal("skull", {"job_seconds": 600.0, "threads": 2})
     assert met["met"] and met["value"] == 10.0 and qvt_bench.margin(met) == 5.0 and "2 threads" in met["goal"]
     late = qvt_bench.adapt_goal("skull", {"job_seconds": 1020.0, "threads": 2})
@@ -95,7 +95,7 @@ def test_behind_line_names_cells_the_adapted_model_cannot_reach(common):
     when neither happens."""
     import importlib
 
-    qvt_bench = importlib.import_module("quality_vs_time")
+    qvt_bench = importlib.import_module("benchmarks.quality_vs_time")
     pt = lambda m, db: {"method": m, "setting": "x", "psnr": db, "time_share": 0.1}  # noqa: E731
     cells = {"a": [{"kind": "time", "share": 0.5, "ours": pt("clod", 20.0), "peer": pt("decimate", 21.0),
                     "margin_db": -1.0},

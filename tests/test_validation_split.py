@@ -95,15 +95,9 @@ def test_clod_adapt_holdout_val_fits_without_the_validation_views(tmp_path):
 
 
 def test_benchmarks_scene_views():
-    import sys
-
     from conftest import REPO
+    from benchmarks.common import scene_views, split_suffix
 
-    sys.path.insert(0, str(REPO / "benchmarks"))
-    try:
-        from common import scene_views, split_suffix
-    finally:
-        sys.path.remove(str(REPO / "benchmarks"))
     cams = make_cameras(2, 5, width=8, height=6)
     sc = Scene(root=REPO, train=cams[1:8] + cams[9:], test=[cams[0], cams[8]])
     tr, te = scene_views(sc, "test")

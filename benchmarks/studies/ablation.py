@@ -6,9 +6,9 @@ default, plus the paper's recipe; every variant is scored at s_v = 1 and at the 
 trained without them, ``clod-adapt --holdout-val``; the choice never sees a test view) or on
 the test views (``--split test``, to report):
 
-    python benchmarks/studies/ablation.py                  # fern, 1000 steps, validation views
-    python benchmarks/studies/ablation.py --inputs demo --iterations 400
-    python benchmarks/studies/ablation.py --split test     # the table in docs/studies.md (test views)
+    python -m benchmarks.studies.ablation                  # fern, 1000 steps, validation views
+    python -m benchmarks.studies.ablation --inputs demo --iterations 400
+    python -m benchmarks.studies.ablation --split test     # the table in docs/studies.md (test views)
 
 Writes ``runs/bench/ablation_val.md`` / ``.csv`` (``ablation.md`` / ``.csv`` with ``--split test``).
 """
@@ -16,13 +16,10 @@ from __future__ import annotations
 
 import argparse
 import csv
-import sys
-from pathlib import Path
 
 import torch
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # benchmarks/: common.py
-from common import (LABELS, RUNS, adapt_cached, add_inputs_args, add_split_arg, load_input,  # noqa: E402
+from benchmarks.common import (LABELS, RUNS, adapt_cached, add_inputs_args, add_split_arg, load_input,  # noqa: E402
                     metrics_of, scene_views, selected_inputs, setup_threads, split_suffix, table)
 
 from clod_adapter.train.config import AdaptConfig  # noqa: E402

@@ -15,8 +15,8 @@ each input's default adaptation (cached: ``benchmarks/common.adapt_cached``).
 Goal (exit 1 when missed): every image equal, and the prefix form no slower than the whole
 projection at any share (a ratio above 1.05 of the median frame)::
 
-    python benchmarks/studies/budget_frames.py
-    python benchmarks/studies/budget_frames.py --inputs skull --repeats 7
+    python -m benchmarks.studies.budget_frames
+    python -m benchmarks.studies.budget_frames --inputs skull --repeats 7
 
 Written: ``runs/bench/budget_frames/summary.md``. About 1 minute per input on 2 cores once the
 adaptations are cached (each is a whole ``clod-adapt`` run otherwise).
@@ -27,15 +27,13 @@ import argparse
 import statistics
 import sys
 import time
-from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # benchmarks/: common.py
-from common import (LABELS, adapt_cached, add_inputs_args, load_input, selected_inputs, setup_threads,  # noqa: E402
+from benchmarks.common import (LABELS, adapt_cached, add_inputs_args, load_input, selected_inputs, setup_threads,  # noqa: E402
                     table, write_summary)
 
 import torch  # noqa: E402
 
-from clod_adapter.lod import draw as camera_lod, view as lod_view  # noqa: E402
+from clod_adapter.lod import view as lod_view  # noqa: E402
 from clod_adapter.lod.draw import render_lod
 from clod_adapter.lod.view import view_lod  # noqa: E402
 from clod_adapter.io.load import load_model  # noqa: E402

@@ -12,8 +12,8 @@ the first view (the largest of 31 steps of its sweep, :func:`clod_adapter.jobs.e
 mean |dI|, and the
 switch between the opacity cuts at the first and last counts over it)::
 
-    python benchmarks/studies/compare_configs.py --config fade_width=0.75            # validation views
-    python benchmarks/studies/compare_configs.py --config gains= --config fade=eq2   # two variants
+    python -m benchmarks.studies.compare_configs --config fade_width=0.75            # validation views
+    python -m benchmarks.studies.compare_configs --config gains= --config fade=eq2   # two variants
 
 Also written: ``runs/bench/compare_configs/<tags><_val>.csv`` (input, variant, s_v, PSNR, ms,
 share of the input's frame) and ``.md`` (the frontier lines).
@@ -24,10 +24,8 @@ import csv
 import statistics
 import sys
 import time
-from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # benchmarks/: common.py
-from common import RUNS, adapt_cached, load_input, parse_config, parse_inputs_args, scene_views, split_suffix  # noqa: E402
+from benchmarks.common import RUNS, adapt_cached, load_input, parse_config, parse_inputs_args, scene_views, split_suffix  # noqa: E402
 
 import torch  # noqa: E402
 

@@ -5,7 +5,7 @@ spread over (and slightly beyond) the image, log-normal-ish screen radii of
 a few to tens of pixels, random anisotropy/rotation, opacities skewed high,
 tile lists from a 3-sigma bounding box sorted by a random depth.
 
-Usage:  python benchmarks/studies/composite.py [--configs 10000:128,50000:256,200000:512]
+Usage:  python -m benchmarks.studies.composite [--configs 10000:128,50000:256,200000:512]
         [--repeat 3] [--skip-torch-above 0]
 
 Prints, per config: intersections, mean list length, forward and
@@ -20,13 +20,10 @@ os.environ.setdefault("OMP_NUM_THREADS", "2")
 import argparse  # noqa: E402
 import math  # noqa: E402
 import resource  # noqa: E402
-import sys  # noqa: E402
 import time  # noqa: E402
-from pathlib import Path  # noqa: E402
 
 import torch  # noqa: E402
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[2]))  # the repository
 from clod_adapter.render.composite import use_impl  # noqa: E402
 from clod_adapter.render.composite import (  # noqa: E402
     cpp_extension_available,

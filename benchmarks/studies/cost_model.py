@@ -11,8 +11,8 @@ R^2 and the relative errors per scene, and the same with the count alone for com
 chosen unit (:data:`clod_adapter.lod.cost.COST_UNIT`) is then checked: exit status 1 when its
 median relative error exceeds 20 % on a scene.
 
-    python benchmarks/studies/cost_model.py                # ~2 min on 2 threads
-    python benchmarks/studies/cost_model.py --repeats 5 --cameras 4
+    python -m benchmarks.studies.cost_model                # ~2 min on 2 threads
+    python -m benchmarks.studies.cost_model --repeats 5 --cameras 4
 
 The coefficients printed for the chosen unit are the defaults of
 :class:`clod_adapter.lod.cost.FrameTimeModel` (refit on another machine with this command).
@@ -31,8 +31,7 @@ os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
 import torch  # noqa: E402
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # benchmarks/: common.py
-from common import add_inputs_args, resolve_input, selected_inputs  # noqa: E402
+from benchmarks.common import add_inputs_args, resolve_input, selected_inputs  # noqa: E402
 
 from clod_adapter.lod.cost import COST_UNIT, cost_units  # noqa: E402
 from clod_adapter.render.projection import finish_projection  # noqa: E402

@@ -14,9 +14,9 @@ each view of ``--split`` (default: the validation views), each step n in ``--ste
 estimate's time (median of ``--repeats``, 2 threads) and its error against the exact full cost and
 count in view (mean and worst over the views). No goal is enforced (a study: exit 0)::
 
-    python benchmarks/studies/cost_sample.py                      # validation views
-    python benchmarks/studies/cost_sample.py --steps 1 8 --tops 0 0.03 --inputs skull
-    python benchmarks/studies/cost_sample.py --frames --split test
+    python -m benchmarks.studies.cost_sample                      # validation views
+    python -m benchmarks.studies.cost_sample --steps 1 8 --tops 0 0.03 --inputs skull
+    python -m benchmarks.studies.cost_sample --frames --split test
 
 ``--frames``: instead, the default adaptation of each input (cached, benchmarks/common.py; adapted
 on the fit views first for ``--split val``) drawn at the cost budgets of ``quality_vs_time.py``
@@ -34,14 +34,12 @@ import argparse
 import statistics
 import sys
 import time
-from pathlib import Path
 from types import SimpleNamespace
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # benchmarks/: common.py
-from common import (SPLITS, adapt_cached, add_inputs_args, load_input, scene_views, selected_inputs,  # noqa: E402
+from benchmarks.common import (SPLITS, adapt_cached, add_inputs_args, load_input, scene_views, selected_inputs,  # noqa: E402
                     setup_threads, write_summary)
 
-from clod_adapter.lod import cost as lod_cost, draw as camera_lod  # noqa: E402
+from clod_adapter.lod import cost as lod_cost  # noqa: E402
 from clod_adapter.lod.draw import render_lod
 from clod_adapter.lod.view import view_lod  # noqa: E402
 from clod_adapter.io.load import load_model  # noqa: E402

@@ -13,8 +13,8 @@ For each input (default: skull, fern and MaskGaussian fern) the default adaptati
 ``--shares``. Printed per point: the decimator's PSNR, and per share the adapted model's PSNR and
 drawn count over the budget. No goal is enforced (a study: exit 0)::
 
-    python benchmarks/studies/count_take_share.py --split val          # skull, fern, MaskGaussian fern
-    python benchmarks/studies/count_take_share.py --split val --inputs skull --shares 1 0.6 0.4
+    python -m benchmarks.studies.count_take_share --split val          # skull, fern, MaskGaussian fern
+    python -m benchmarks.studies.count_take_share --split val --inputs skull --shares 1 0.6 0.4
 
 Written: ``runs/bench/count_take_share/summary.md``. About 2 minutes per scene on 2 cores.
 """
@@ -23,10 +23,8 @@ from __future__ import annotations
 import argparse
 import statistics
 import sys
-from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # benchmarks/: common.py
-from common import (SPLITS, adapt_cached, add_inputs_args, load_input, load_model, scene_views,  # noqa: E402
+from benchmarks.common import (SPLITS, adapt_cached, add_inputs_args, load_input, load_model, scene_views,  # noqa: E402
                     selected_inputs, setup_threads, write_summary)
 
 from clod_adapter.lod import draw as camera_lod

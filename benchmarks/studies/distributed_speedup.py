@@ -1,7 +1,7 @@
 """Speed of data-parallel fine-tuning on this machine: 2 gloo ranks against 1 process, the same
 total views.
 
-Usage: python benchmarks/studies/distributed_speedup.py [--inputs demo|fern|...] [--input NAME=PLY:SCENE[:RES]]
+Usage: python -m benchmarks.studies.distributed_speedup [--inputs demo|fern|...] [--input NAME=PLY:SCENE[:RES]]
        [--iterations 60] [--rounds 3]
 
 Every configuration runs ``clod-adapt`` with ``--views-per-step 2`` (two views per step, so the
@@ -29,8 +29,7 @@ import tempfile
 import time
 from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # benchmarks/: common.py
-from common import REPO, add_inputs_args, resolve_input, selected_inputs, table  # noqa: E402
+from benchmarks.common import REPO, add_inputs_args, resolve_input, selected_inputs, table  # noqa: E402
 
 CONFIGS = {
     "1 process x 2 threads": {"procs": 1, "threads": 2},

@@ -10,8 +10,8 @@ out, the change in validation PSNR at full detail, and the frame time against th
 run). The default share is the largest that costs no input 0.02 dB. No goal is enforced (a study:
 exit 0)::
 
-    python benchmarks/studies/faint.py
-    python benchmarks/studies/faint.py --inputs skull --shares 1e-5 4e-5
+    python -m benchmarks.studies.faint
+    python -m benchmarks.studies.faint --inputs skull --shares 1e-5 4e-5
 
 Written: ``runs/bench/faint/summary.md``. About 2 minutes in all on 2 cores.
 """
@@ -20,10 +20,8 @@ from __future__ import annotations
 import argparse
 import statistics
 import sys
-from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # benchmarks/: common.py
-from common import (add_inputs_args, load_input, scene_views, selected_inputs, setup_threads,  # noqa: E402
+from benchmarks.common import (add_inputs_args, load_input, scene_views, selected_inputs, setup_threads,  # noqa: E402
                     write_summary)
 
 from clod_adapter.lod.draw import render_lod  # noqa: E402

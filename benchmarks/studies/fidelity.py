@@ -12,15 +12,12 @@ scored with the input's own render of each view as the image (PSNR in dB; the in
 exact). Prints, per input, the best PSNR within each share of the input's frame time for the
 adapted model, the better decimator and the better cut, and every point by time::
 
-    python benchmarks/studies/fidelity.py --inputs skull fern
+    python -m benchmarks.studies.fidelity --inputs skull fern
 """
 from __future__ import annotations
 
-import sys
-from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # benchmarks/: common.py
-from common import adapt_cached, load_input, run_per_input, scene_views  # noqa: E402
+from benchmarks.common import adapt_cached, load_input, run_per_input, scene_views  # noqa: E402
 
 import torch
 

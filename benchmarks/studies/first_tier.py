@@ -9,7 +9,7 @@ frame time measured at full detail on the validation views (the input and every 
 same interleaved rounds), and the share the default cap (``tiers.TIER_TIME_CAP``) picks. The merges
 are not fitted here (the job fits the one it picks). No goal is enforced (a study: exit 0)::
 
-    python benchmarks/studies/first_tier.py                    # fern, maskgaussian, skull
+    python -m benchmarks.studies.first_tier                    # fern, maskgaussian, skull
 
 The quality each first share buys is measured by ``benchmarks/studies/compare_configs.py``
 (docs/studies.md "A first tier that saves time"). Written: ``runs/bench/first_tier/summary.md``.
@@ -19,10 +19,8 @@ from __future__ import annotations
 
 import argparse
 import sys
-from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # benchmarks/: common.py
-from common import add_inputs_args, load_input, scene_views, selected_inputs, setup_threads, write_summary  # noqa: E402
+from benchmarks.common import add_inputs_args, load_input, scene_views, selected_inputs, setup_threads, write_summary  # noqa: E402
 
 from clod_adapter.evaluate import comparison as qvt  # noqa: E402
 from clod_adapter.train import tiers  # noqa: E402

@@ -24,7 +24,7 @@ centres (the size of the scenes here, where the wake-ups dominate) and at least 
 1,000,000; the rows at least 2x faster than [N, 3] at 1,000,000; ``keep`` at least 1.3x faster
 than ``mask_ids`` at 60,000 and at 1,000,000::
 
-    python benchmarks/studies/frame_terms.py                 # 60,000 and 1,000,000 centres
+    python -m benchmarks.studies.frame_terms                 # 60,000 and 1,000,000 centres
 """
 from __future__ import annotations
 
@@ -33,14 +33,12 @@ import os
 import statistics
 import sys
 import time
-from pathlib import Path
 
 os.environ.setdefault("OMP_NUM_THREADS", "2")
 os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
 import torch  # noqa: E402
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[2]))  # the repository
 
 from clod_adapter.lod import rule as lod  # noqa: E402
 from clod_adapter.render import native  # noqa: E402

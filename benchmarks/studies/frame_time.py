@@ -9,8 +9,8 @@ calibrated ``sigma_d`` (its adapted model when given) at ``images_2``, and a syn
 ``--repeats`` rounds after a warm-up, so machine load hits all alike; the spread (min-max over
 rounds) is printed beside it:
 
-    python benchmarks/studies/frame_time.py                      # fern + 1M synthetic
-    python benchmarks/studies/frame_time.py --sizes 200000 --no-fern
+    python -m benchmarks.studies.frame_time                      # fern + 1M synthetic
+    python -m benchmarks.studies.frame_time --sizes 200000 --no-fern
 
 Goal: selection <= 3 % of the frame.
 """
@@ -19,7 +19,6 @@ from __future__ import annotations
 import argparse
 import os
 import statistics
-import sys
 import time
 from pathlib import Path
 
@@ -29,7 +28,6 @@ os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 import torch  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[2]
-sys.path.insert(0, str(REPO))
 
 from clod_adapter.lod import rule as lod  # noqa: E402
 from clod_adapter.train.loop import reference_distances  # noqa: E402

@@ -8,7 +8,7 @@ validation views and scored on those (:func:`clod_adapter.io.scene.validation_sp
 ``--split test`` trained on every training view and scored on the test views. The table of
 "Choosing lambda_reg" (docs/studies.md) was measured on the test views:
 
-    python benchmarks/studies/lambda_sweep.py --split test 1:500 0.1:500 0.01:500 0.03:1000 0.05:1000
+    python -m benchmarks.studies.lambda_sweep --split test 1:500 0.1:500 0.01:500 0.03:1000 0.05:1000
 
 (LAMBDA:STEPS per run; 2.5-5 min each on 2 cores).
 """
@@ -16,17 +16,14 @@ from __future__ import annotations
 
 import argparse
 import os
-import sys
 import time
-from pathlib import Path
 
 os.environ.setdefault("OMP_NUM_THREADS", "2")
 
 import torch  # noqa: E402
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # benchmarks/: common.py
 
-from common import add_inputs_args, add_split_arg, resolve_input, scene_views, selected_inputs  # noqa: E402
+from benchmarks.common import add_inputs_args, add_split_arg, resolve_input, scene_views, selected_inputs  # noqa: E402
 
 from clod_adapter.train.config import AdaptConfig
 from clod_adapter.train.loop import adapt, prepare  # noqa: E402

@@ -12,8 +12,8 @@ alternating order over the rounds after a warm-up round, so the machine's drift 
 pair; the overhead is the median over views and rounds of
 (LoD - static), read as a share of the input's frame (the median of its frames)::
 
-    python benchmarks/studies/lod_overhead.py                    # skull, fern; test views
-    python benchmarks/studies/lod_overhead.py --inputs skull --s-v 10 20
+    python -m benchmarks.studies.lod_overhead                    # skull, fern; test views
+    python -m benchmarks.studies.lod_overhead --inputs skull --s-v 10 20
 
 Goal (exit 1 when missed): the overhead at most 3 % of the input's frame at every ``s_v``. The
 model's parent tier, where it has one, is left out: this is the cost of the rule over the model's
@@ -25,10 +25,8 @@ import statistics
 import sys
 import time
 from dataclasses import replace
-from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # benchmarks/: common.py
-from common import adapt_cached, load_input, parse_inputs_args, scene_views  # noqa: E402
+from benchmarks.common import adapt_cached, load_input, parse_inputs_args, scene_views  # noqa: E402
 
 import torch
 

@@ -22,8 +22,8 @@ better decimator's, for the LoD set and for the prefixes; the script prints the 
 1 when one is missed. Outputs ``runs/bench/lod_set{_val}/<input>.csv`` (one per input run) and
 ``summary.md`` (every input with a .csv there; ``--summary-only`` rewrites it without running)::
 
-    python benchmarks/studies/lod_set.py                 # fern and skull, test views
-    python benchmarks/studies/lod_set.py --inputs skull --split val
+    python -m benchmarks.studies.lod_set                 # fern and skull, test views
+    python -m benchmarks.studies.lod_set --inputs skull --split val
 """
 from __future__ import annotations
 
@@ -33,8 +33,7 @@ import tempfile
 import time
 from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # benchmarks/: common.py
-from common import LABELS, RUNS, adapt_cached, load_input, parse_inputs_args, scene_views, split_suffix, table  # noqa: E402
+from benchmarks.common import LABELS, RUNS, adapt_cached, load_input, parse_inputs_args, scene_views, split_suffix, table  # noqa: E402
 
 import torch
 

@@ -5,15 +5,12 @@ splat-transform's ``--decimate`` of the input at the same count. Validation view
 validation adaptations (``--split val``, common.py), plain .ply levels (no SOG round trip).
 Prints one line per level::
 
-    python benchmarks/studies/lod_set_cuts.py --inputs fern skull
+    python -m benchmarks.studies.lod_set_cuts --inputs fern skull
 """
 from __future__ import annotations
 
-import sys
-from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # benchmarks/: common.py
-from common import adapt_cached, load_input, run_per_input, scene_views  # noqa: E402
+from benchmarks.common import adapt_cached, load_input, run_per_input, scene_views  # noqa: E402
 
 from clod_adapter.export.bake import bake, lod_level, lod_set_s_vs
 from clod_adapter.lod.rankings import merge_decimate

@@ -6,22 +6,19 @@ seed; the rendered fraction of the test views at several s_v is printed before a
 PSNR. With the paper's as-written estimator L_reg has no gradient, so sigma_d is moved by the
 rendering loss alone and the fraction does not fall; with ours it does.
 
-    python benchmarks/studies/lreg_ablation.py [--iterations 300] [--inputs fern]
+    python -m benchmarks.studies.lreg_ablation [--iterations 300] [--inputs fern]
 """
 from __future__ import annotations
 
 import argparse
 import os
-import sys
 import time
-from pathlib import Path
 
 os.environ.setdefault("OMP_NUM_THREADS", "2")
 
 import torch  # noqa: E402
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # benchmarks/: common.py
-from common import add_inputs_args, resolve_input, selected_inputs  # noqa: E402
+from benchmarks.common import add_inputs_args, resolve_input, selected_inputs  # noqa: E402
 
 from clod_adapter.train.config import AdaptConfig
 from clod_adapter.train.loop import adapt, prepare  # noqa: E402

@@ -16,7 +16,7 @@ file and scores the loading policies of ``clod_adapter.io.load.apply_masks`` on 
    ``--seeds`` seeds: mean, spread) and ``all``, next to the vanilla input; prints a table and
    writes it to ``runs/bench/maskgaussian_masks/table.md``.
 
-    python benchmarks/studies/maskgaussian_masks.py [--steps 300] [--mask-lr 0.03] [--seeds 8]
+    python -m benchmarks.studies.maskgaussian_masks [--steps 300] [--mask-lr 0.03] [--seeds 8]
 
 Deviations from the official recipe (to finish in about 5 minutes on 2 CPU cores): ``--steps``
 (300) instead of 1,500-5,000 post-training iterations, with the mask learning rate scaled up
@@ -62,7 +62,6 @@ import torch  # noqa: E402
 import torch.nn.functional as F  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[2]
-sys.path.insert(0, str(REPO))
 
 from clod_adapter.train.official import OFFICIAL_LR, scene_extent  # noqa: E402
 from clod_adapter.evaluate.level_metrics import evaluate_level  # noqa: E402

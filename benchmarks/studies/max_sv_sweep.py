@@ -10,9 +10,9 @@ merging decimator. Writes ``runs/bench/<name>.csv``, ``<name>.md`` and ``<name>.
 Gaussians drawn, one curve per max_sv plus the static cuts, one panel per input, max_sv^-1.5
 marked):
 
-    python benchmarks/studies/max_sv_sweep.py                          # fern, max_sv 1 3 5 7, validation views
-    python benchmarks/studies/max_sv_sweep.py --inputs fern demo --max-svs 3 5
-    python benchmarks/studies/max_sv_sweep.py --split test             # the table in docs/studies.md (test views)
+    python -m benchmarks.studies.max_sv_sweep                          # fern, max_sv 1 3 5 7, validation views
+    python -m benchmarks.studies.max_sv_sweep --inputs fern demo --max-svs 3 5
+    python -m benchmarks.studies.max_sv_sweep --split test             # the table in docs/studies.md (test views)
 
 With ``--split val`` the outputs are ``<name>_val.*``. robustness.py (a report, beside this file) defaults to
 ``--split test``.
@@ -27,8 +27,7 @@ from pathlib import Path
 
 import torch
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # benchmarks/: common.py
-from common import (LABELS, RUNS, adapt_cached, add_inputs_args, add_split_arg, fmt_pct, load_input,  # noqa: E402
+from benchmarks.common import (LABELS, RUNS, adapt_cached, add_inputs_args, add_split_arg, fmt_pct, load_input,  # noqa: E402
                     metrics_of, scene_views, selected_inputs, setup_threads, split_suffix, table)
 
 from clod_adapter.train.config import AdaptConfig

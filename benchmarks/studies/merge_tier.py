@@ -23,8 +23,8 @@ Printed per input: the best PSNR within 75 / 50 / 25 / 15 / 10 % of the input's 
 and the goal margins of ``quality_vs_time.py`` at 50 / 25 / 10 % (ours >= best static + 1 dB)
 for each. No goal is enforced (a study: exit 0)::
 
-    python benchmarks/studies/merge_tier.py                        # skull, fern; validation views
-    python benchmarks/studies/merge_tier.py --inputs skull --parents 0.04 0.08 0.15 --split test
+    python -m benchmarks.studies.merge_tier                        # skull, fern; validation views
+    python -m benchmarks.studies.merge_tier --inputs skull --parents 0.04 0.08 0.15 --split test
 
 Written: ``runs/bench/merge_tier<_val>/{<input>.csv, summary.md}``.
 """
@@ -34,10 +34,8 @@ import argparse
 import json
 import sys
 import time
-from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # benchmarks/: common.py
-from common import (RUNS, adapt_cached, add_inputs_args, add_split_arg, load_input, resolve_input,  # noqa: E402
+from benchmarks.common import (RUNS, adapt_cached, add_inputs_args, add_split_arg, load_input, resolve_input,  # noqa: E402
                     scene_views, selected_inputs, setup_threads, split_suffix)
 
 from clod_adapter.evaluate import comparison as qvt  # noqa: E402

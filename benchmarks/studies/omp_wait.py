@@ -1,6 +1,6 @@
 """OpenMP wait policy and thread count against machine load: seconds per adaptation step.
 
-    python benchmarks/studies/omp_wait.py [--iterations 30] [--loads 0,1,2] [--configs default,passive,passive1]
+    python -m benchmarks.studies.omp_wait [--iterations 30] [--loads 0,1,2] [--configs default,passive,passive1]
 
 Each configuration runs in a fresh Python process (OpenMP reads ``OMP_WAIT_POLICY`` when torch
 loads it): the demo scene (6,000 Gaussians, 160x120, as ``clod-adapt --demo``) is built in memory,

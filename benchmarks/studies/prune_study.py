@@ -12,8 +12,8 @@ scored on the validation views (PSNR; the input fits them, it was trained on the
 ``--split test`` on the test views (the recovery then fits every training view), and timed
 against the input in the same interleaved rounds (2 threads)::
 
-    python benchmarks/studies/prune_study.py --inputs fern --recover 600
-    python benchmarks/studies/prune_study.py --inputs fern --split test --keeps 0.6 0.7 --recover 1000
+    python -m benchmarks.studies.prune_study --inputs fern --recover 600
+    python -m benchmarks.studies.prune_study --inputs fern --split test --keeps 0.6 0.7 --recover 1000
 
 ``clod-adapt --keep-share`` (:mod:`clod_adapter.train.pruning`) is the ``weight`` cut with this
 recovery, kept when it beats the cut on held-out training views. ``--coverages 0.99 ...`` adds
@@ -23,12 +23,9 @@ fit views' total weight): a rule that needs no held-out view.
 from __future__ import annotations
 
 import statistics
-import sys
-from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # benchmarks/: common.py
-from common import load_input, parse_inputs_args, scene_views  # noqa: E402
-from compare_configs import timed_render
+from benchmarks.common import load_input, parse_inputs_args, scene_views  # noqa: E402
+from benchmarks.studies.compare_configs import timed_render
 
 import torch
 

@@ -1,6 +1,6 @@
 """Benchmark the CPU rasterizer (projection + SH + binning + compositor), 2 threads.
 
-Usage: python benchmarks/studies/rasterizer.py [--quick] [--profile] [--sizes 10000,50000,200000]
+Usage: python -m benchmarks.studies.rasterizer [--quick] [--profile] [--sizes 10000,50000,200000]
        [--res 128,256,512] [--torch-limit 20]
 
 Scenes: N Gaussians in front of a pinhole camera (depth 2..10, inside the frustum), SH
@@ -18,13 +18,10 @@ os.environ.setdefault("OMP_NUM_THREADS", "2")
 import argparse  # noqa: E402
 import math  # noqa: E402
 import resource  # noqa: E402
-import sys  # noqa: E402
 import time  # noqa: E402
-from pathlib import Path  # noqa: E402
 
 import torch  # noqa: E402
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[2]))  # the repository
 from clod_adapter.render import rasterization  # noqa: E402
 from clod_adapter.render.composite import use_impl  # noqa: E402
 

@@ -5,15 +5,13 @@ parent tier) and by the page's numpy implementation (``examples/reference_lod.py
 ``draw_tiered``, which reads the .ply itself). Prints the Gaussians (and parents) drawn by one and
 not the other and the largest opacity difference; exits 1 when a single one differs::
 
-    python benchmarks/studies/reference_rule.py                 # fern, skull
+    python -m benchmarks.studies.reference_rule                 # fern, skull
 """
 from __future__ import annotations
 
 import sys
-from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # benchmarks/: common.py
-from common import adapt_cached, load_input, parse_inputs_args, scene_views  # noqa: E402
+from benchmarks.common import adapt_cached, load_input, parse_inputs_args, scene_views  # noqa: E402
 
 import numpy as np
 import torch
@@ -22,8 +20,7 @@ from clod_adapter.lod.draw import lod_subset
 from clod_adapter.io.load import load_model
 from clod_adapter.train.config import AdaptConfig
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "examples"))
-import reference_lod_chain as ref  # noqa: E402
+from examples import reference_lod_chain as ref
 
 S_VS = (1.0, 1.05, 1.2, 1.5, 2.0, 3.0, 5.0, 10.0, 30.0)
 

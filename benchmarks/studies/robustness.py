@@ -8,13 +8,13 @@ merging decimator. Writes ``runs/bench/robustness.csv``, ``robustness.md`` and `
 (the paper's form: PSNR vs Gaussians drawn, one curve per max_sv plus the static cuts, one panel
 per input model):
 
-    python benchmarks/studies/robustness.py
+    python -m benchmarks.studies.robustness
 
 It shares adaptations with max_sv_sweep.py and whole_range.py (runs/bench/, same settings).
 A report, not a choice: scored on the test views by default (``--split val`` for the
 validation views).
 """
-from max_sv_sweep import main
+from benchmarks.studies.max_sv_sweep import main
 
 if __name__ == "__main__":
     main(default_inputs=("fern", "maskgaussian"), out_name="robustness", default_split="test")

@@ -1,6 +1,6 @@
 """How the cost of an adaptation step and of an evaluation frame grows with the model size N.
 
-Usage: python benchmarks/studies/scale.py [--sizes 100000,300000,1000000] [--steps 6] [--threads 2]
+Usage: python -m benchmarks.studies.scale [--sizes 100000,300000,1000000] [--steps 6] [--threads 2]
        [--width 320 --height 240] [--views 16] [--tiers] [--out runs/scale.md]
 
 Each size runs in a fresh subprocess (``--one N``), so sizes do not share caches or peak memory:
@@ -377,8 +377,6 @@ def main(argv=None) -> int:
     p.add_argument("--json", default=None, help=argparse.SUPPRESS)
     p.add_argument("--build", type=int, default=None, help=argparse.SUPPRESS)
     args = p.parse_args(argv)
-    if args.one is not None or args.build is not None:
-        sys.path.insert(0, str(REPO))
     if args.build is not None:
         root = Path(args.scenes) / f"n{args.build}"
         root.mkdir(parents=True, exist_ok=True)
@@ -398,13 +396,14 @@ def main(argv=None) -> int:
                                                          "scenes")] + (["--tiers"] if args.tiers else [])
         env = dict(os.environ, OMP_NUM_THREADS=str(args.threads))
         print(f"scale: N = {n:,}: building the scene (cached in {args.scenes}) ...", file=sys.stderr, flush=True)
-        r = subprocess.run([sys.executable, __file__, "--build", str(n)] + common, env=env)
+        r = subprocess.run([sys.executable, "-m", "benchmarks.studies.scale", "--build", str(n)] + common, env=env, cwd=REPO)
         if r.returncode != 0:
             print(f"scale: building N = {n:,} failed (exit {r.returncode}); stopping", file=sys.stderr)
             break
         print(f"scale: N = {n:,}: measuring ...", file=sys.stderr, flush=True)
         t0 = time.perf_counter()
-        r = subprocess.run([sys.executable, __file__, "--one", str(n), "--json", str(js)] + common, env=env)
+        r = subprocess.run([sys.executable, "-m", "benchmarks.studies.scale", "--one", str(n), "--json", str(js)] + common, env=env,
+                           cwd=REPO)
         if r.returncode != 0:
             print(f"scale: N = {n:,} failed (exit {r.returncode}); stopping", file=sys.stderr)
             break

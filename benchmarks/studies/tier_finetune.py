@@ -9,9 +9,9 @@ validation views (never in the fit, nor in the shared checkpoints' training) eve
 steps up to ``--steps``. Printed: each merge's PSNR at each step against the input's, and the step
 each merge scores best at. No goal is enforced (a study: exit 0)::
 
-    python benchmarks/studies/tier_finetune.py                 # skull, fern; 400 steps
-    python benchmarks/studies/tier_finetune.py --inputs skull --steps 600 --every 100
-    python benchmarks/studies/tier_finetune.py --chain-steps 200   # each next merge from a 200-step fit
+    python -m benchmarks.studies.tier_finetune                 # skull, fern; 400 steps
+    python -m benchmarks.studies.tier_finetune --inputs skull --steps 600 --every 100
+    python -m benchmarks.studies.tier_finetune --chain-steps 200   # each next merge from a 200-step fit
 
 Written: ``runs/bench/tier_finetune/summary.md``. About 4 minutes per scene on 2 cores.
 """
@@ -21,10 +21,8 @@ import argparse
 import statistics
 import sys
 import time
-from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # benchmarks/: common.py
-from common import (add_inputs_args, load_input, scene_views, selected_inputs, setup_threads,  # noqa: E402
+from benchmarks.common import (add_inputs_args, load_input, scene_views, selected_inputs, setup_threads,  # noqa: E402
                     write_summary)
 
 from clod_adapter.train import tiers  # noqa: E402

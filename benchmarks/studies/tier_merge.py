@@ -10,7 +10,7 @@ checkpoints' training), and the input and every merge are timed at full detail i
 interleaved rounds. Printed per merge: validation PSNR before and after the fit, frame time as a
 share of the input's, and bytes. No goal is enforced (a study: exit 0)::
 
-    python benchmarks/studies/tier_merge.py                    # skull, fern
+    python -m benchmarks.studies.tier_merge                    # skull, fern
 
 Written: ``runs/bench/tier_merge/summary.md``. About 3 minutes per scene on 2 cores.
 """
@@ -18,10 +18,8 @@ from __future__ import annotations
 
 import argparse
 import sys
-from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # benchmarks/: common.py
-from common import (add_inputs_args, load_input, scene_views, selected_inputs, setup_threads,  # noqa: E402
+from benchmarks.common import (add_inputs_args, load_input, scene_views, selected_inputs, setup_threads,  # noqa: E402
                     write_summary)
 
 from clod_adapter.evaluate import comparison as qvt  # noqa: E402

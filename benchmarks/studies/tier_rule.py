@@ -23,8 +23,8 @@ variant: the chain (Gaussians per tier, each hand-over's ``tier_s_v`` / ``tier_s
 PSNR within 75 / 50 / 25 / 10 % of the input's frame time with its margin over the best peer, and
 the margins at equal count. No goal is enforced (a study: exit 0)::
 
-    python benchmarks/studies/tier_rule.py                     # skull, fern; validation views
-    python benchmarks/studies/tier_rule.py --inputs fern maskgaussian skull --split test
+    python -m benchmarks.studies.tier_rule                     # skull, fern; validation views
+    python -m benchmarks.studies.tier_rule --inputs fern maskgaussian skull --split test
 
 Written: ``runs/bench/tier_rule<_val>/summary.md``.
 """
@@ -33,10 +33,8 @@ from __future__ import annotations
 import argparse
 import sys
 from dataclasses import replace
-from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # benchmarks/: common.py
-from common import (adapt_cached, add_inputs_args, add_split_arg, load_input,  # noqa: E402
+from benchmarks.common import (adapt_cached, add_inputs_args, add_split_arg, load_input,  # noqa: E402
                     scene_views, selected_inputs, setup_threads, split_suffix, write_summary)
 
 from clod_adapter.evaluate import comparison as qvt  # noqa: E402

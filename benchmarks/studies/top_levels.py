@@ -13,15 +13,12 @@ common.py) this renders, at ``s_v`` = 1.12 ... 3:
 
 Prints one line per ``s_v`` (PSNR, mean drawn share of the Gaussians in view)::
 
-    python benchmarks/studies/top_levels.py --inputs fern skull
+    python -m benchmarks.studies.top_levels --inputs fern skull
 """
 from __future__ import annotations
 
-import sys
-from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # benchmarks/: common.py
-from common import adapt_cached, load_input, run_per_input, scene_views  # noqa: E402
+from benchmarks.common import adapt_cached, load_input, run_per_input, scene_views  # noqa: E402
 
 import torch
 

@@ -21,8 +21,8 @@ budgets from 100 % to 1 % of the Gaussians in view, and timed in ``--rounds`` in
 
 No goal is enforced (a study: exit 0)::
 
-    python benchmarks/studies/tree_draw.py --split val
-    python benchmarks/studies/tree_draw.py --split val --inputs fern --rounds 3
+    python -m benchmarks.studies.tree_draw --split val
+    python -m benchmarks.studies.tree_draw --split val --inputs fern --rounds 3
 
 Written: ``runs/bench/tree_draw/summary.md``. The adaptation takes 12-15 minutes per scene when not
 cached; the fit about 3 minutes and the sweep about 5 per scene on 2 cores.
@@ -33,12 +33,10 @@ import argparse
 import math
 import sys
 import time
-from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # benchmarks/: common.py
-from common import (SPLITS, adapt_cached, add_inputs_args, load_input, load_model, scene_views,  # noqa: E402
+from benchmarks.common import (SPLITS, adapt_cached, add_inputs_args, load_input, load_model, scene_views,  # noqa: E402
                     selected_inputs, setup_threads, write_summary)
 
 from clod_adapter.evaluate import comparison as qvt

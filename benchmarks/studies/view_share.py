@@ -11,8 +11,8 @@ itself (``distance``), on the default adaptation, every setting and the input ti
 interleaved rounds. The per-view scales are found before timing (a budget's exact solve), so the
 times leave out that search and favour ``share`` and ``cost``::
 
-    python benchmarks/studies/view_share.py                  # skull, validation views
-    python benchmarks/studies/view_share.py --inputs fern skull --split test
+    python -m benchmarks.studies.view_share                  # skull, validation views
+    python -m benchmarks.studies.view_share --inputs fern skull --split test
 
 Printed per input and mode: PSNR / share of the input's frame at each ``s_v``, then the best PSNR
 within 90 ... 10 % of the input's frame time (the frontier line of ``quality_vs_time.py``).
@@ -21,11 +21,9 @@ from __future__ import annotations
 
 import statistics
 import sys
-from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # benchmarks/: common.py
-from common import adapt_cached, load_input, parse_inputs_args, scene_views  # noqa: E402
-from compare_configs import timed_render
+from benchmarks.common import adapt_cached, load_input, parse_inputs_args, scene_views  # noqa: E402
+from benchmarks.studies.compare_configs import timed_render
 
 import torch
 

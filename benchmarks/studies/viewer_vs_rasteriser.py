@@ -10,7 +10,7 @@ compares that frame with
   either covers, mean absolute difference);
 * the photo, next to our own ``render_lod`` of the same view and level against the photo.
 
-    python benchmarks/studies/viewer_vs_rasteriser.py ../shared/data/fern/pretrained/point_cloud/iteration_7000/point_cloud.ply \\
+    python -m benchmarks.studies.viewer_vs_rasteriser ../shared/data/fern/pretrained/point_cloud/iteration_7000/point_cloud.ply \\
         --images ../shared/data/fern --resolution 2
 
 (an adapted model gets one row per ``--sv`` level). Needs chromium + chromium-driver and the
@@ -31,7 +31,6 @@ import numpy as np  # noqa: E402
 import torch  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[2]
-sys.path.insert(0, str(REPO))
 
 from clod_adapter.io.load import load_scene  # noqa: E402
 from clod_adapter.lod.draw import render_lod  # noqa: E402
@@ -40,8 +39,7 @@ from clod_adapter.render import rasterization  # noqa: E402
 from clod_adapter.viewer import camera_from_pose, load_view_model, model_max_sv  # noqa: E402
 from clod_adapter.viewer.app import LodViewer, apply_pose, scene_camera_list  # noqa: E402
 from clod_adapter.viewer.cameras import scene_start_view  # noqa: E402
-sys.path.insert(0, str(REPO / "tests"))  # the headless-browser helpers live with the tests
-from browser import (browser_missing, chromium_driver, compare_frames,  # noqa: E402
+from tests.browser import (browser_missing, chromium_driver, compare_frames,  # noqa: E402
                      fit_canvas_aspect, stable_render)
 
 

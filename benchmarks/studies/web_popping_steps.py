@@ -10,8 +10,8 @@ the level of the gains, the page's and the CPU's mean |dI|, and the ratios (the 
 switch over each sweep's largest step). ``--query KEY=VALUE ...`` adds page options (e.g.
 ``blend=16``: blending in a half-float target)::
 
-    python benchmarks/studies/web_popping_steps.py --inputs fern
-    python benchmarks/studies/web_popping_steps.py --inputs fern --query blend=16
+    python -m benchmarks.studies.web_popping_steps --inputs fern
+    python -m benchmarks.studies.web_popping_steps --inputs fern --query blend=16
 """
 from __future__ import annotations
 
@@ -20,8 +20,7 @@ import tempfile
 from pathlib import Path
 from urllib.parse import urlencode
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # benchmarks/: common.py
-from common import REPO, adapt_cached, load_input, parse_inputs_args, scene_views  # noqa: E402
+from benchmarks.common import adapt_cached, load_input, parse_inputs_args, scene_views  # noqa: E402
 
 import torch
 
@@ -32,8 +31,7 @@ from clod_adapter.jobs.eval import image_change
 from clod_adapter.train.config import AdaptConfig
 from clod_adapter.viewer.web import find_playcanvas, write_web_viewer
 
-sys.path.insert(0, str(REPO / "tests"))  # the headless-browser helpers live with the tests
-from browser import (browser_missing, chromium_driver, frame_change, open_web_viewer, serve_folder,  # noqa: E402
+from tests.browser import (browser_missing, chromium_driver, frame_change, open_web_viewer, serve_folder,  # noqa: E402
                      web_viewer_frame, web_viewer_popping)
 
 

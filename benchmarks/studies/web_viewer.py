@@ -29,9 +29,9 @@ Writes ``runs/bench/web_viewer{_val}/summary.md``, ``docs/web_viewer.png`` (the 
 first input at s_v = 1, 2, 5 and the static cut at s_v = 5's count) and ``docs/web_viewer_page.png``
 (the page at s_v = 2, its panel included). Exits 1 when a goal is missed::
 
-    python benchmarks/studies/web_viewer.py                 # fern and skull, test views
-    python benchmarks/studies/web_viewer.py --full-detail-only --config level_max=2
-    python benchmarks/studies/web_viewer.py --tier --inputs skull fern
+    python -m benchmarks.studies.web_viewer                 # fern and skull, test views
+    python -m benchmarks.studies.web_viewer --full-detail-only --config level_max=2
+    python -m benchmarks.studies.web_viewer --tier --inputs skull fern
 """
 from __future__ import annotations
 
@@ -42,8 +42,7 @@ from pathlib import Path
 from typing import Optional
 from urllib.parse import urlencode
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # benchmarks/: common.py
-from common import REPO, RUNS, adapt_cached, load_input, parse_config, parse_inputs_args, scene_views, split_suffix  # noqa: E402
+from benchmarks.common import REPO, RUNS, adapt_cached, load_input, parse_config, parse_inputs_args, scene_views, split_suffix  # noqa: E402
 
 import numpy as np
 import torch
@@ -55,8 +54,7 @@ from clod_adapter.jobs.eval import image_change
 from clod_adapter.train.config import AdaptConfig
 from clod_adapter.viewer.web import find_playcanvas, write_web_viewer
 
-sys.path.insert(0, str(REPO / "tests"))  # the headless-browser helpers live with the tests
-from browser import (browser_missing, chromium_driver, compare_frames, open_web_viewer,  # noqa: E402
+from tests.browser import (browser_missing, chromium_driver, compare_frames, open_web_viewer,  # noqa: E402
                      serve_folder, web_viewer_frame, web_viewer_popping)
 
 MIN_PSNR_DB = 25.0

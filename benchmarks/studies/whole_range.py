@@ -8,8 +8,8 @@ decimator when installed) and ``dlod_finetuned`` (one model per budget, fine-tun
 number of steps). It prints and writes ``runs/bench/whole_range.md`` (the equal-count tables) and
 ``runs/bench/whole_range.csv``:
 
-    python benchmarks/studies/whole_range.py                       # fern, maskgaussian, demo
-    python benchmarks/studies/whole_range.py --inputs fern --iterations 1000
+    python -m benchmarks.studies.whole_range                       # fern, maskgaussian, demo
+    python -m benchmarks.studies.whole_range --inputs fern --iterations 1000
 
 Criteria checked: full detail >= input - 0.1 dB; every
 budget >= best static cut + 1 dB; within 1.5 dB of dlod_finetuned.
@@ -23,8 +23,7 @@ import sys
 import time
 from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # benchmarks/: common.py
-from common import (LABELS, RUNS, adapt_cached, add_inputs_args, fmt_pct, metrics_of, resolve_input,  # noqa: E402
+from benchmarks.common import (LABELS, RUNS, adapt_cached, add_inputs_args, fmt_pct, metrics_of, resolve_input,  # noqa: E402
                     selected_inputs, setup_threads, table)
 
 from clod_adapter.train.config import AdaptConfig

@@ -261,7 +261,7 @@ class FrameTimeModel:
     view's projection of the whole model (``LodRender.project_ms``) and the selection are paid
     before any budget applies and are not in it.
 
-    Defaults: fitted by ``python benchmarks/studies/cost_model.py`` (fern images_2 and skull, 3 cameras
+    Defaults: fitted by ``python -m benchmarks.studies.cost_model`` (fern images_2 and skull, 3 cameras
     each, full models and random / LightGaussian / opacity-ranked subsets of 1.5-100 % of the
     Gaussians in view; 2 threads, minimum of 5 interleaved rounds) on the 2-core development
     machine, shared with other jobs: ``c0_ms = 2.42``, ``per_cost_ms = 5.53e-6`` (per ellipse pixel),

@@ -94,7 +94,7 @@ class AdaptConfig:
             :data:`clod_adapter.train.tiers.PARENT_MIN_GAUSSIANS` Gaussians, and when splat-transform
             is not installed). Stored as a tuple; ``()`` or 0: no tier. Default
             :data:`clod_adapter.train.tiers.DEFAULT_SHARES` (calibrated), none (paper). Chosen on the
-            validation views: ``python benchmarks/quality_vs_time.py --split val --config
+            validation views: ``python -m benchmarks.quality_vs_time --split val --config
             parent_share=...`` (docs/studies.md).
         tier_finetune_steps: each merged tier's base attributes are fine-tuned at full detail
             for this many steps on the training views (:func:`clod_adapter.train.tiers.finetuned`,

@@ -333,9 +333,16 @@ def test_adapt_job_builds_the_tier_or_says_why_not(tiny_model, tmp_path, monkeyp
     if find_splat_transform() is None:
         pytest.skip("splat-transform is not installed (npm ci): the tier's merge needs it")
     monkeypatch.setattr(tiers, "PARENT_MIN_GAUSSIANS", 100)
+    from clod_adapter.jobs import adapt_inputs
+
+    reads, read = [], adapt_inputs.load_model  # every checkpoint the job reads, as it reads it
+    monkeypatch.setattr(adapt_inputs, "load_model", lambda path, *a, **k: reads.append(str(path)) or read(path, *a, **k))
     out = tmp_path / "tier"
     assert main(args + ["-o", str(out), "--parent-share", "0.2,0.1", "--tier-finetune-steps", "7",
                         "--tier-iteration-share", "0.5", "--tier-downscale", "2"]) == 0
+    # read once each: the input, then each tier's merged input by the adaptation of that tier
+    assert reads == [str(tiny_model["ply"]), str(out / "parents_input.ply"),
+                     str(out / "parents" / "parents_input.ply")], reads
     top = json.loads((out / "metrics.json").read_text())
     tier = top["tier"]
     assert top["job_seconds"] >= top["train_seconds"] + tier["seconds"]  # the whole job, every tier included

@@ -36,8 +36,10 @@ from . import InputError, pick_device  # noqa: F401 (public here since the first
 from ..io.ply import write_ply
 from ..io.load import load_scene
 from ..render.composite import deterministic_enabled
+from ..gaussians import Gaussians
 from ..lod.draw import render_lod
-from .adapt_inputs import METRICS_NAME, PLY_NAME, STRIP_NAME, TENSORBOARD_DIR, TRAINING_PLOT_NAME, Inputs, input_iteration, read_inputs, read_model
+from .adapt_inputs import (METRICS_NAME, PLY_NAME, STRIP_NAME, TENSORBOARD_DIR, TRAINING_PLOT_NAME, Inputs,
+                           input_iteration, read_inputs, read_model)
 
 
 def write_inria_layout(out_dir: Path, model, scene, *, iteration: int, resolution: int, background,
@@ -204,12 +206,13 @@ def run(ply_path: os.PathLike, scene_root: os.PathLike, out_dir: os.PathLike, cf
                 src, left = _leave_out(src, Path(scene_root), Path(out_dir), cfg, o, stop, group)
             ro = o if left is None else replace(o, force=True, iteration=None,  # the folder was checked
                                                 resume=o.resume and (Path(out_dir) / STATE_NAME).is_file())
-            metrics = _run(src, Path(scene_root), Path(out_dir), cfg, ro, stop, group)
+            metrics, given = _run(src, Path(scene_root), Path(out_dir), cfg, ro, stop, group)
             if left is not None and "rank" not in metrics:
                 metrics = _record_leave_out(Path(out_dir), metrics, left)
+                given = None  # the tiers are merged from the input itself, not the kept part
             if cfg.parent_share and "rank" not in metrics:
                 metrics = _add_parent_tier(Path(ply_path), Path(scene_root), Path(out_dir), cfg, o, stop, group,
-                                           metrics)
+                                           metrics, source=given)
             if "rank" not in metrics:
                 metrics = _record_job_seconds(Path(out_dir), metrics, time.perf_counter() - t_job)
             return metrics
@@ -230,7 +233,10 @@ METRICS_KEYS = ("version", "input_ply", "scene", "resolution", "image_size", "de
 
 
 def _run(ply_path: Path, scene_root: Path, out_dir: Path, cfg: AdaptConfig, o: AdaptOptions, stop: StopFlag,
-         group) -> dict:
+         group) -> tuple[dict, Optional[Gaussians]]:
+    """One adaptation of ``ply_path``: ``(its metrics, the input model as read and checked)``, the
+    model handed on so that the merged tiers are built without reading the checkpoint again (None
+    on a data-parallel rank other than 0)."""
     t_start = time.perf_counter()
     inp = read_inputs(ply_path, scene_root, out_dir, cfg, o, stop, group)
     state, cfg, input_eval, init_s_v1 = _start_state(inp, cfg, o, stop, group)
@@ -249,7 +255,7 @@ def _run(ply_path: Path, scene_root: Path, out_dir: Path, cfg: AdaptConfig, o: A
         group.barrier("the final save")  # the others may leave once the final state is on disk
         if not inp.main:
             return {"rank": group.rank, "world_size": group.world_size, "iteration": state.iteration,
-                    "train_seconds": round(train_s, 2)}
+                    "train_seconds": round(train_s, 2)}, None
     stop.set_abortable(True)  # the evaluation writes nothing; raises if a signal came meanwhile
     metrics = _evaluate(inp, model, cfg, o, input_eval)
     stop.set_abortable(False)
@@ -270,7 +276,7 @@ def _run(ply_path: Path, scene_root: Path, out_dir: Path, cfg: AdaptConfig, o: A
     o.log(format_summary(metrics))
     o.log(f"clod-adapt: wrote {', '.join(written)} to {inp.out_dir} in {metrics['wall_seconds']:.0f} s "
           f"({metrics['seconds_per_iteration']:.3f} s per iteration)")
-    return metrics
+    return metrics, inp.input_model
 
 
 #: phase 0's files (``keep_share < 1``): the kept, recovered input the LoD is learned on, and
@@ -343,7 +349,8 @@ PARENT_INPUT_NAME = "parents_input.ply"
 
 
 def _add_parent_tier(ply_path: Path, scene_root: Path, out_dir: Path, cfg: AdaptConfig, o: AdaptOptions,
-                     stop: StopFlag, group, metrics: dict, nested: bool = False) -> dict:
+                     stop: StopFlag, group, metrics: dict, nested: bool = False,
+                     source: Optional[Gaussians] = None) -> dict:
     """Phase 6 (``cfg.parent_share``, :mod:`clod_adapter.train.tiers`): the input merged by
     splat-transform to the first of ``parent_share`` of its Gaussians (lowered while the merge is
     predicted to draw over ``tier_time_cap`` of the input's frame: :func:`clod_adapter.train.tiers.first_share`;
@@ -356,7 +363,8 @@ def _add_parent_tier(ply_path: Path, scene_root: Path, out_dir: Path, cfg: Adapt
     views (:func:`clod_adapter.train.tiers.choose`; a merged tier's own hand-over at its
     ``cfg.tier_hand_over`` at the latest, :func:`clod_adapter.train.tiers.link`). Left out, with a note
     in ``metrics["tier"]``, for an input under :data:`clod_adapter.train.tiers.PARENT_MIN_GAUSSIANS`
-    Gaussians, a data-parallel run, or without splat-transform."""
+    Gaussians, a data-parallel run, or without splat-transform. ``source``: the input model as the
+    adaptation read it (read again from ``ply_path`` when not given)."""
     from ..train import tiers
     from ..io.ply import read_ply
 
@@ -383,7 +391,9 @@ def _add_parent_tier(ply_path: Path, scene_root: Path, out_dir: Path, cfg: Adapt
     scene = _tier_scene(scene_root, cfg, o)
     cams = tiers.choice_views(scene.train)
     try:
-        source = read_model(resolve_model_path(ply_path, o.iteration), cfg, quiet)[0]
+        if source is None:  # the input was not handed on (a leave-out adapted another file)
+            source = read_model(resolve_model_path(ply_path, o.iteration), cfg, quiet)[0]
+        source = source.to("cpu")
         if nested:  # a tier's own tiers: shares relative to it, as the first tier's share left them
             parents_in = tiers.decimated(source, share, merge=cfg.tier_merge)
         else:
@@ -410,9 +420,10 @@ def _add_parent_tier(ply_path: Path, scene_root: Path, out_dir: Path, cfg: Adapt
     pcfg = replace(cfg, parent_share=tuple(x / share for x in rest), keep_share=1.0, faint_share=0.0,
                    iterations=cfg.tier_iterations(), tier_iteration_share=1.0,
                    tier_downscale=1 if nested else cfg.tier_downscale)  # the nested call downscales once
-    pm = _run(out_dir / PARENT_INPUT_NAME, scene_root, pdir, pcfg, po, stop, None)
+    pm, p_given = _run(out_dir / PARENT_INPUT_NAME, scene_root, pdir, pcfg, po, stop, None)
     if pcfg.parent_share:  # the tier's own parent tiers, shares relative to it
-        _add_parent_tier(out_dir / PARENT_INPUT_NAME, scene_root, pdir, pcfg, po, stop, None, pm, nested=True)
+        _add_parent_tier(out_dir / PARENT_INPUT_NAME, scene_root, pdir, pcfg, po, stop, None, pm, nested=True,
+                         source=p_given)
     model, parents = read_ply(out_dir / PLY_NAME), read_ply(pdir / PLY_NAME)
     imgs = [scene.load_image(c) for c in cams]
     dirs = _tier_dirs(pdir)

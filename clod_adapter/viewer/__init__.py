@@ -13,7 +13,7 @@ browser camera.
 from .cameras import camera_from_pose, default_start_view, pose_from_camera, scene_start_view
 from .model import DEFAULT_MAX_SV, load_view_model, model_max_sv
 from .selection import DEFAULT_MAX_DRAWN, BYTES_PER_GAUSSIAN, ViewPayload, covariances, view_colors, view_payload
-from .timing import RasterTimeModel, calibrate_raster_time
+from .raster_time import RasterTimeModel, calibrate_raster_time
 
 __all__ = [
     "camera_from_pose", "pose_from_camera", "default_start_view", "scene_start_view",

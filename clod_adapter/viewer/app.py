@@ -32,7 +32,7 @@ from clod_adapter.io.scene import Camera
 from .cameras import ViewPose, camera_from_pose, default_start_view, scene_start_view
 from .model import DEFAULT_MAX_SV
 from .selection import (DEFAULT_MAX_DRAWN, METHOD_ALL, METHOD_STATIC, ViewPayload, view_payload)
-from .timing import RasterTimeModel, calibrate_raster_time
+from .raster_time import RasterTimeModel, calibrate_raster_time
 
 __all__ = ["LodViewer", "ViewRecord", "require_viser"]
 

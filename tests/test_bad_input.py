@@ -506,7 +506,11 @@ def test_an_internal_error_is_not_reported_as_bad_input(tiny_model, tmp_path, mo
         adapt_main([str(tiny_model["ply"]), "--images", str(tiny_model["scene"]), "-o", str(out), *FAST])
     assert issubclass(PlyFormatError, InputError) and issubclass(SceneError, InputError)
     capfd.readouterr()
-    assert run_cli("prog", lambda: (_ for _ in ()).throw(SceneError("here", "no images"))) == 2
+
+    def bad_scene():
+        raise SceneError("here", "no images")
+
+    assert run_cli("prog", bad_scene) == 2
     assert err_line(capfd) == "prog: error: here: no images"
 
 

@@ -14,8 +14,8 @@ from clod_adapter.io.ply import write_ply
 from clod_adapter.io.colmap import load_colmap_scene, write_colmap_scene
 from clod_adapter.lod.draw import render_lod
 from clod_adapter.lod.view import in_view
-from clod_adapter.jobs.eval import (BASELINES, CSV_COLUMNS, OUTPUT_NAMES, PER_VIEW_COLUMNS, EvalOptions, evaluate_report,
-                                 popping_curve)
+from clod_adapter.jobs.eval import CSV_COLUMNS, OUTPUT_NAMES, PER_VIEW_COLUMNS, EvalOptions, evaluate_report, popping_curve
+from clod_adapter.jobs.eval_methods import BASELINES
 from clod_adapter.io.synthetic import make_cameras, make_ground_truth, perturb
 from conftest import uint8_views
 
@@ -221,7 +221,7 @@ def test_report_runs_both_decimators_and_a_failing_peer_stops_it(tiny, tmp_path)
 
 def test_format_table_columns_never_run_into_each_other():
     """A long method name and setting stay two words (``decimate_adaptive budget=0.0894427``)."""
-    from clod_adapter.jobs.eval import format_table
+    from clod_adapter.jobs.eval_report import format_table
 
     rows = [{"method": "decimate_adaptive", "setting": "budget=0.0894427", "s_v": None, "gaussians": 514.0,
              "fraction": 0.086, "psnr": 17.8, "ssim": 0.5467, "lpips": None, "ms_total": 3.1}]

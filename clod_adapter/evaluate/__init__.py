@@ -1,1 +1,2 @@
-"""Scoring a model: the quality-vs-time comparison against the peers, popping, metrics per level, the frontier, timing, LPIPS, storage."""
+"""Scoring a model: the quality-vs-time comparison against the peers (``comparison``), popping,
+metrics per level, the frontier, interleaved timing, LPIPS, storage."""

@@ -76,10 +76,11 @@ class Camera:
 
     @property
     def center(self) -> Tensor:
-        """[3] float32 camera centre in world units, ``-R^T t`` (as
-        :func:`clod_adapter.lod.rule.camera_center`)."""
-        R, t = self.viewmat[:3, :3], self.viewmat[:3, 3]
-        return -(R.T @ t)
+        """[3] float32 camera centre in world units, ``-R^T t``
+        (:func:`clod_adapter.render.projection.camera_center`)."""
+        from ..render.projection import camera_center
+
+        return camera_center(self.viewmat)
 
 
 @dataclass

@@ -127,7 +127,8 @@ def scene_match(gaussians, cameras, images, *, background, views: int = 3) -> di
     Returns ``{"psnr", "flat_psnr", "margin_db", "in_view_fraction", "views", "view_psnr",
     "view_flat_psnr"}``: the model's mean PSNR on those views, the mean PSNR of a flat image of each
     view's mean colour, their difference, the fraction of Gaussians whose centre lies in any
-    training view (over all ``cameras``), the views' names and both PSNRs per view. ``margin_db < MISMATCH_MARGIN_DB`` means a model from another scene: any model
+    training view (over all ``cameras``), the views' names and both PSNRs per view.
+    ``margin_db < MISMATCH_MARGIN_DB`` means a model from another scene: any model
     trained on these views renders them far better than a constant colour.
     """
     from ..metrics import psnr

@@ -79,7 +79,8 @@ from ..errors import InputError
 from ..lod import rule as lod
 from ..evaluate import comparison as qvt
 from ..train.state import max_sv_from_state
-from ..lod.rankings import SIGMA_C_CANDIDATES, Selection, lightgaussian_significance, tune_sigma_c, random_scores, render_subset
+from ..lod.rankings import (SIGMA_C_CANDIDATES, Selection, lightgaussian_significance, random_scores, render_subset,
+                            tune_sigma_c)
 from ..lod.budget import normalize_budget
 from ..gaussians import Gaussians
 from ..io.atomic import atomic_write

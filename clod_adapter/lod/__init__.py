@@ -1,1 +1,3 @@
-"""The level-of-detail mechanism: the rule (Eq. 2), a camera's view and what it draws, the merge tree, budgets and their cost, the static rankings, the renderer hook."""
+"""The level-of-detail mechanism: the rule (Eq. 2, ``rule``), one camera's terms (``view``), what a
+frame draws (``draw``), the merge tree and its cut (``tree``, ``cut``), budgets and their cost
+(``budget``, ``cost``), the static rankings (``rankings``) and the renderer hook (``hook``)."""

@@ -313,10 +313,10 @@ def view_cost_count(view, budget_cost: Optional[float] = None, budget_ms: Option
                     level: Optional[float] = None, time_model: Optional[FrameTimeModel] = None,
                     min_s_v: float = 1.0) -> int:
     """How many Gaussians a cost budget draws: the longest prefix of the count budgets' order
-    (the Gaussians in view by :attr:`critical` descending, ties by index) whose cost fits.
+    (the Gaussians in view by :attr:`LodView.critical` descending, ties by index) whose cost fits.
 
     Per-Gaussian costs are :func:`clod_adapter.lod.cost.splat_cost` (clipped ellipse pixels) of
-    the prefix as :meth:`select` would draw it with ``budget=k``:
+    the prefix as :meth:`LodView.select` would draw it with ``budget=k``:
 
     * Eq. 2 drawing: with the attenuated opacities ``alpha''`` at the ``s_v`` solved for the
       prefix (raised to ``min_s_v``): exact. The cost of a prefix grows with its length
@@ -340,10 +340,10 @@ def view_cost_count(view, budget_cost: Optional[float] = None, budget_ms: Option
         budget_ms: predicted rasterisation ms (:class:`clod_adapter.lod.cost.FrameTimeModel`,
             ``time_model`` or the defaults): the longest prefix whose predicted ms fits.
         level: the level of the gains to draw at (window fade; None: from the share).
-        min_s_v: the budget rule of :meth:`select` (Eq. 2: the ``s_v`` floor of the drawing).
+        min_s_v: the budget rule of :meth:`LodView.select` (Eq. 2: the ``s_v`` floor of the drawing).
 
     Returns:
-        the count k (0 <= k <= :attr:`n_in_view`), non-decreasing in the budget.
+        the count k (0 <= k <= :attr:`LodView.n_in_view`), non-decreasing in the budget.
     """
 
     if (budget_cost is None) == (budget_ms is None):
@@ -375,7 +375,7 @@ def view_cost_count(view, budget_cost: Optional[float] = None, budget_ms: Option
 def _view_cost_weights(view, level: Optional[float] = None):
     """``(order, footprints, costs)`` of the Gaussians in view in the count budgets' order:
     window fade at the base level (or ``level`` given), the unit the calibrated levels are
-    measured in; Eq. 2 at the base opacities (:meth:`cost_count` then searches exactly)."""
+    measured in; Eq. 2 at the base opacities (:func:`view_cost_count` then searches exactly)."""
 
     lv = float(level) if (level is not None and view.settings.fade != "eq2") else 0.0
     if view._costs is not None and view._costs[0] == lv:  # a cost budget, then the tier's full cost
@@ -402,8 +402,8 @@ def view_full_cost(view) -> float:
 
 
 def view_full_detail_estimate(view, step: Optional[int] = None) -> tuple[float, float]:
-    """``(cost, count)`` of every Gaussian in view at full detail (:meth:`full_cost`,
-    :attr:`n_in_view`) estimated without projecting the model whole: the
+    """``(cost, count)`` of every Gaussian in view at full detail (:func:`view_full_cost`,
+    :attr:`LodView.n_in_view`) estimated without projecting the model whole: the
     :data:`COST_SAMPLE_TOP` share of the Gaussians with the largest ``max(scales) / d'`` (the
     widest on screen, which carry most of the cost) costed exactly, and every ``step``-th of
     the rest by index (default :data:`COST_SAMPLE_STEP`) weighted by the rest over the rows
@@ -441,7 +441,7 @@ def view_full_detail_estimate(view, step: Optional[int] = None) -> tuple[float, 
 
 
 def _view_eq2_cost_count(view, order: Tensor, fp, k_lo: int, limit: float, unit, min_s_v: float) -> int:
-    """:meth:`cost_count` for Eq. 2 drawing: the largest k whose prefix of ``order``, drawn with
+    """:func:`view_cost_count` for Eq. 2 drawing: the largest k whose prefix of ``order``, drawn with
     ``alpha''`` at its own ``s_v``, costs <= ``limit``; ``k_lo`` fits (base opacities); ``fp``:
     the :class:`clod_adapter.lod.cost.Footprints` of ``order`` at level 0."""
 

@@ -62,18 +62,11 @@ def tree_select(gaussians: Gaussians, camera, s_v: Optional[float] = None, *, bu
 
 @torch.no_grad()
 def tree_cut(gaussians: Gaussians, camera, s_v: Optional[float] = None, *, budget=None, budget_cost=None,
-             budget_ms=None, time_model=None, budget_in_view: bool = False,
-             hand_over: float = tree.HAND_OVER) -> "tree.TreeCut":
-    """The cut of :func:`tree_select` (same arguments and errors), without its attributes."""
-    return cut_or_whole(gaussians, camera, s_v, budget=budget, budget_cost=budget_cost, budget_ms=budget_ms,
-                        time_model=time_model, budget_in_view=budget_in_view, hand_over=hand_over)
-
-
-def cut_or_whole(gaussians: Gaussians, camera, s_v: Optional[float] = None, *, budget=None, budget_cost=None,
-              budget_ms=None, time_model=None, budget_in_view: bool = False, hand_over: float = tree.HAND_OVER,
-              whole_as_none: bool = False) -> Optional["tree.TreeCut"]:
-    """:func:`tree_cut`; with ``whole_as_none``, None for a count budget that holds every tier-0
-    node in the frustum (its level is 1: the caller draws tier 0 whole, no cut gathered)."""
+             budget_ms=None, time_model=None, budget_in_view: bool = False, hand_over: float = tree.HAND_OVER,
+             whole_as_none: bool = False) -> Optional["tree.TreeCut"]:
+    """The cut of :func:`tree_select` (same arguments and errors), without its attributes; with
+    ``whole_as_none``, None for a count budget that holds every tier-0 node in the frustum (its
+    level is 1: the caller draws tier 0 whole, no cut gathered)."""
     if sum(x is not None for x in (s_v, budget, budget_cost, budget_ms)) != 1:
         raise ValueError("tree_select: give exactly one of s_v, budget, budget_cost, budget_ms")
     if s_v is not None and not float(s_v) >= 1.0:

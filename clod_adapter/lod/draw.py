@@ -24,7 +24,7 @@ from ..lod_settings import Estimator
 from ..render.dispatch import Backend
 from .budget import budget_count
 from .cost import FrameTimeModel
-from .cut import cut_or_whole, tree_select
+from .cut import tree_cut, tree_select
 from ..gaussians import Gaussians
 from .view import EPS2D, LodSelection, LodView, composite_parts, view_lod
 
@@ -666,7 +666,7 @@ def _render_tree(gaussians: Gaussians, camera, s_v: Optional[float] = None, *, b
     if s_v is not None and float(s_v) <= 1.0:
         return whole()
     t0 = time.perf_counter()
-    c = cut_or_whole(gaussians, camera, s_v, budget=budget, budget_cost=budget_cost, budget_ms=budget_ms,
+    c = tree_cut(gaussians, camera, s_v, budget=budget, budget_cost=budget_cost, budget_ms=budget_ms,
                   time_model=time_model, budget_in_view=budget_in_view, whole_as_none=True)
     if c is None or c.s_v <= 1.0:  # the budget holds tier 0: drawn whole, as s_v = 1 draws it
         return whole((time.perf_counter() - t0) * 1e3)

@@ -48,6 +48,7 @@ from torch import Tensor
 from ..lod_settings import (DEFAULT_EPS, DEFAULT_FADE_WIDTH, DEFAULT_TAU, EPS_FLOOR, ETA_ESTIMATORS,  # noqa: F401
                             FADE_RAMP_S_V, FADES, Estimator, Fade, LodSettings)
 from ..render.native import load as load_kernels, wanted as kernels_wanted
+from ..render.projection import camera_center  # noqa: F401 (lod.camera_center: where the LoD terms use it)
 
 
 def _work_dtype(*ts: Tensor) -> torch.dtype:
@@ -141,13 +142,6 @@ def in_frustum(means: Tensor, viewmat: Tensor, K: Tensor, width: int, height: in
         ok &= a >= 0
         ok &= a < z * float(size)
     return ok
-
-
-def camera_center(viewmat: Tensor) -> Tensor:
-    """[3] camera centre in world units from a [4, 4] world-to-camera matrix (c = -R^T t)."""
-    R = viewmat[:3, :3]
-    t = viewmat[:3, 3]
-    return -(R.T @ t)
 
 
 def normalized_distances(means: Tensor, center: Tensor, frustum: Tensor) -> Tensor:

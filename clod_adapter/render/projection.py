@@ -44,6 +44,14 @@ class VisibleProjection(NamedTuple):
     rows: Optional[Tensor] = None  # [V] int64
 
 
+def camera_center(viewmat: Tensor) -> Tensor:
+    """[3] camera centre in world units from a [4, 4] world-to-camera matrix (OpenCV axes, gsplat
+    ``viewmats``): ``c = -R^T t``, in ``viewmat``'s dtype and device."""
+    R = viewmat[:3, :3]
+    t = viewmat[:3, 3]
+    return -(R.T @ t)
+
+
 def quat_to_rotmat_rows(quats: Tensor) -> Tuple[Tensor, ...]:
     """Nine [n] entries (row-major) of the rotation of the normalised wxyz quaternions."""
     q = quats / torch.linalg.vector_norm(quats, dim=-1, keepdim=True).clamp_min(1e-12)

@@ -65,22 +65,23 @@ def state_config(ply_path: os.PathLike) -> Optional[dict]:
         return None
 
 
-def max_sv_from_state(ply_path: os.PathLike) -> Optional[float]:
-    """``max_sv`` of the adaptation state beside ``ply_path``, or None."""
+def _config_value(ply_path: os.PathLike, key: str, cast):
+    """``cast(config[key])`` of the adaptation state beside ``ply_path``, or None."""
     cfg = state_config(ply_path)
     try:
-        return float(cfg["max_sv"]) if cfg else None
+        return cast(cfg[key]) if cfg else None
     except (KeyError, TypeError, ValueError):
         return None
+
+
+def max_sv_from_state(ply_path: os.PathLike) -> Optional[float]:
+    """``max_sv`` of the adaptation state beside ``ply_path``, or None."""
+    return _config_value(ply_path, "max_sv", float)
 
 
 def iterations_from_state(ply_path: os.PathLike) -> Optional[int]:
     """``iterations`` of the adaptation state beside ``ply_path``, or None."""
-    cfg = state_config(ply_path)
-    try:
-        return int(cfg["iterations"]) if cfg else None
-    except (KeyError, TypeError, ValueError):
-        return None
+    return _config_value(ply_path, "iterations", int)
 
 
 def save_state(path: os.PathLike, state: AdaptState, cfg: AdaptConfig, extra_meta: Optional[dict] = None) -> None:

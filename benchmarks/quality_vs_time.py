@@ -83,9 +83,9 @@ def run_input(name: str, args, config: dict, tag: str, lpips_fn, tool: str) -> d
     ply = adapt_cached(name, cfg, tag, split=args.split, log=lambda *a: log(" ".join(map(str, a))))
     g0, scene, gts = load_input(name, split=args.split)
     fit, cams = scene_views(scene, args.split)
-    comp = qvt.compare(load_model(ply), g0, fit, cams, gts, max_sv=cfg.max_sv, merge_tool=tool, lpips_fn=lpips_fn,
-                       repeats=args.repeats, log=log, ceiling_views=ceiling_views(scene, args),
-                       ceiling_steps=args.ceiling_steps)
+    opts = qvt.CompareOptions(merge_tool=tool, lpips_fn=lpips_fn, repeats=args.repeats,
+                              ceiling_views=ceiling_views(scene, args), ceiling_steps=args.ceiling_steps)
+    comp = qvt.compare(load_model(ply), g0, fit, cams, gts, max_sv=cfg.max_sv, options=opts, log=log)
     cs = qvt.cells(comp)
     rows = (goals(name, comp, cs) + cost_goals(name, comp) + popping_goals(name, load_model(ply), g0, fit, cams)
             + [adapt_goal(name, common.metrics_of(ply))])

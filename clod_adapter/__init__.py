@@ -25,6 +25,7 @@ _EXPORTS = {
     "load_model": ("io.load", "load_model"), "read_ply": ("io.ply", "read_ply"), "write_ply": ("io.ply", "write_ply"),
     "load_scene": ("io.load", "load_scene"), "Camera": ("io.scene", "Camera"), "Scene": ("io.scene", "Scene"),
     "render_lod": ("lod.draw", "render_lod"), "lod_subset": ("lod.draw", "lod_subset"),
+    "Budget": ("lod.budget", "Budget"), "EtaGradient": ("lod_settings", "EtaGradient"),
     "view_lod": ("lod.draw", "view_lod"), "LodView": ("lod.draw", "LodView"),
     "clod_rasterization": ("lod.hook", "clod_rasterization"),
     "clod_kwargs": ("lod.hook", "clod_kwargs"),

@@ -32,6 +32,24 @@ FADE_RAMP_S_V = 1.1
 
 
 @dataclass(frozen=True)
+class EtaGradient:
+    """How the drawn share ``eta`` of an ``s_v`` frame carries a gradient (training only; CLoD-GS's
+    ``L_reg``, :func:`clod_adapter.lod.rule.rendered_fraction`).
+
+    Attributes:
+        estimator: ``"ste"`` (straight-through), ``"sigmoid"`` or ``"paper"`` (no gradient).
+        temperature: width of the sigmoid relaxation, log-opacity units.
+        sigma_only: the gradient reaches ``sigma_d`` only (opacities and positions detached in the
+            margin), so the count regulariser cuts Gaussians through their decay instead of eroding
+            their opacity at every level.
+    """
+
+    estimator: Estimator = "ste"
+    temperature: float = 1.0
+    sigma_only: bool = True
+
+
+@dataclass(frozen=True)
 class LodSettings:
     """How an adapted model is drawn at a level of detail (stored in its .ply header).
 

@@ -5,7 +5,7 @@ import pytest
 import torch
 
 from clod_adapter.lod import rule as lod
-from clod_adapter.lod.budget import budget_count, critical_s_v, select_budget
+from clod_adapter.lod.budget import Budget, as_budget, budget_count, critical_s_v, select_budget
 
 
 def _rand(n=400, seed=0):
@@ -80,11 +80,43 @@ def test_render_lod_budget_renders_exactly_k():
     cam = make_cameras(1, 1, 64, 48)[0]
     full = render_lod(g, cam, None).n_rendered
     for k in (0, 1, 50, 300, full, 10_000):
-        out = render_lod(g, cam, budget=k, min_s_v=0.0)
+        out = render_lod(g, cam, budget=Budget(count=k, min_s_v=0.0))
         assert out.n_rendered == min(k, full)
         assert torch.isfinite(out.image).all()
-    out = render_lod(g, cam, budget=0.5, min_s_v=0.0)
+    out = render_lod(g, cam, budget=Budget(share=0.5, min_s_v=0.0))
     assert out.n_rendered == min(300, full)
+
+
+def test_one_budget_type_one_meaning():
+    """A count of 1 is one Gaussian and a share of 1.0 all of them, through every way in; a
+    Budget names one amount; the renderer hook's plain numbers read as an int count or a float
+    share; ``in_view`` is a share of the Gaussians in view."""
+    from clod_adapter.lod.draw import lod_subset, render_lod
+    from clod_adapter.lod.view import view_lod
+    from clod_adapter.io.synthetic import make_cameras, make_ground_truth
+
+    gt = make_ground_truth(600, seed=1)
+    g = gt.with_sigma_d(torch.rand(600, generator=torch.Generator().manual_seed(0)) * 0.5 + 0.05)
+    cam = make_cameras(1, 1, 64, 48)[0]
+    v = view_lod(g, cam)
+    one, every = Budget(count=1, min_s_v=0.0), Budget(share=1.0, min_s_v=0.0)
+    assert render_lod(g, cam, budget=one).n_rendered == 1 == lod_subset(g, cam, budget=one).indices.numel()
+    assert render_lod(g, cam, budget=every).n_rendered == v.n_in_view > 1
+    assert as_budget(1) == Budget(count=1) and as_budget(1.0) == Budget(share=1.0)
+    assert as_budget(7, 0.0) == Budget(count=7, min_s_v=0.0) and as_budget(None) is None
+    with pytest.raises(ValueError):
+        as_budget(2.5)  # a float is a share
+    with pytest.raises(TypeError):
+        as_budget("10")
+    half = Budget(in_view=0.5, min_s_v=0.0)
+    assert half.of(600, v.n_in_view) == round(0.5 * v.n_in_view)
+    assert render_lod(g, cam, budget=half).n_rendered == round(0.5 * v.n_in_view)
+    with pytest.raises(ValueError):
+        half.of(600)  # a share of the view needs the view
+    with pytest.raises(ValueError):
+        Budget(ms=5.0).of(600)  # a time budget is not a count
+    assert Budget(cost=0.3).floored(2.0) == Budget(cost=0.3, min_s_v=2.0)
+    assert (one.kind, one.counts, Budget(ms=3).kind, Budget(ms=3).counts) == ("count", True, "ms", False)
 
 
 def test_render_lod_budget_is_a_cap_at_s_v_1():
@@ -96,9 +128,9 @@ def test_render_lod_budget_is_a_cap_at_s_v_1():
     cam = make_cameras(1, 1, 64, 48)[0]
     at1 = render_lod(g, cam, 1.0).n_rendered
     assert 0 < at1 < render_lod(g, cam, None).n_rendered  # the decay cuts some at s_v = 1
-    big = render_lod(g, cam, budget=10_000)
+    big = render_lod(g, cam, budget=Budget(count=10_000))
     assert big.s_v == 1.0 and big.n_rendered == at1  # capped at the full-detail level
-    small = render_lod(g, cam, budget=at1 // 2)
+    small = render_lod(g, cam, budget=Budget(count=at1 // 2))
     assert small.n_rendered == at1 // 2 and small.s_v > 1.0
 
 
@@ -164,8 +196,8 @@ def test_a_budget_projects_a_prefix_and_selects_what_the_whole_projection_select
     for k in (0, 1, 2, 6, 17, n_vis // 5, n_vis // 2, n_vis - 1, n_vis, n_vis + 1, n):
         for min_s_v in (0.0, 1.0, 3.0):
             fresh = view_lod(g, cam)
-            a = fresh.select(budget=k, min_s_v=min_s_v)
-            b = _full_projection_first(view_lod(g, cam)).select(budget=k, min_s_v=min_s_v)
+            a = fresh.select(budget=Budget(count=k, min_s_v=min_s_v))
+            b = _full_projection_first(view_lod(g, cam)).select(budget=Budget(count=k, min_s_v=min_s_v))
             assert torch.equal(a.indices, b.indices), (k, min_s_v)
             assert a.s_v == b.s_v and torch.equal(a.opacities, b.opacities), (k, min_s_v)
             if k == 17 and min_s_v == 0.0:  # a small budget projects only its prefix
@@ -173,7 +205,7 @@ def test_a_budget_projects_a_prefix_and_selects_what_the_whole_projection_select
             assert view_lod(g, cam).draws_at_least(1.0, k) == (ref_view.select(1.0).indices.numel() >= k)
             # the count a tier's budget walk reads without solving it (camera_lod.budget_walk)
             given = fade == "window" and min_s_v <= 1.0
-            assert view_lod(g, cam).budget_drawn(k, min_s_v) == (a.indices.numel() if given else None), (k, min_s_v)
+            assert view_lod(g, cam).budget_drawn(Budget(count=k, min_s_v=min_s_v)) == (a.indices.numel() if given else None), (k, min_s_v)
 
 
 def _window_model(n: int, seed: int, share_small: float = 0.5):
@@ -206,15 +238,15 @@ def test_a_window_budget_never_draws_more_than_k():
     full = render_lod(g, cam, 1.0)
     assert full.n_rendered == n
     for k in (n - 1, n - below // 2, n - below, n - below - 10, 5):
-        r = render_lod(g, cam, budget=k)  # default min_s_v = 1
+        r = render_lod(g, cam, budget=Budget(count=k))  # default min_s_v = 1
         assert r.n_rendered == k, (k, n, below)
         assert torch.isfinite(r.image).all()
-    whole = render_lod(g, cam, budget=n)
+    whole = render_lod(g, cam, budget=Budget(count=n))
     assert whole.s_v == 1.0 and torch.equal(whole.image, full.image)
     chain = tiers.attach(_window_model(1200, 1, 0.1), _window_model(600, 2), 2.0, 1.0)
     vc = view_lod(replace(chain, parents=None), cam)
     m = vc.n_in_view
     for k in (m - 1, (3 * m) // 4, m // 2, m // 3, m // 5, 10):
-        r = render_lod(chain, cam, budget=k)
+        r = render_lod(chain, cam, budget=Budget(count=k))
         assert r.n_rendered <= k, (k, r.n_rendered, r.n_parents)
-    assert any(render_lod(chain, cam, budget=k).n_parents > 0 for k in (m // 3, m // 5, 10))
+    assert any(render_lod(chain, cam, budget=Budget(count=k)).n_parents > 0 for k in (m // 3, m // 5, 10))

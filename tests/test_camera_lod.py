@@ -15,6 +15,7 @@ from clod_adapter.lod.cost import splat_cost
 from clod_adapter.io.synthetic import make_cameras, make_ground_truth
 from clod_adapter.lod.draw import render_lod
 from clod_adapter.lod.view import view_lod
+from clod_adapter.lod.budget import Budget
 
 
 @pytest.fixture(scope="module")
@@ -56,7 +57,7 @@ def test_full_detail_is_the_whole_model_in_every_view(scene):
         assert full.n_rendered == plain.n_rendered
         assert torch.allclose(full.image, plain.image, atol=1e-6)
         # a budget capped at full detail draws the same
-        capped = render_lod(tiny, cam, budget=1.0, budget_in_view=True)
+        capped = render_lod(tiny, cam, budget=Budget(in_view=1.0))
         assert torch.allclose(capped.image, plain.image, atol=1e-6)
         # this view's ramp is longer than the fixed one: the rule keeps under half at s_v = 1
         kept1 = float((lod.lod_mask(v.opacities, v.d_norm, v.sigma_d, 1.0) & v.frustum).sum()) / v.n_frustum
@@ -132,9 +133,9 @@ def test_in_view_share_budgets(scene):
     g, cams = scene
     for cam in cams[:2]:
         v = view_lod(g, cam)
-        out = render_lod(g, cam, budget=0.25, budget_in_view=True, min_s_v=0.0)
+        out = render_lod(g, cam, budget=Budget(in_view=0.25, min_s_v=0.0))
         assert out.n_rendered == round(0.25 * v.n_in_view)
-        whole = render_lod(g, cam, budget=0.25, min_s_v=0.0)  # a share of the model
+        whole = render_lod(g, cam, budget=Budget(share=0.25, min_s_v=0.0))  # a share of the model
         assert whole.n_rendered == round(0.25 * len(g))
 
 
@@ -147,7 +148,7 @@ def test_level_grows_to_level_max_below_the_trained_share(scene):
         for cam in cams[:2]:
             v = view_lod(gl, cam)
             for k in (1, 3, max(1, round(0.05 * v.n_frustum))):
-                sel = v.select(budget=k, min_s_v=0.0)
+                sel = v.select(budget=Budget(count=k, min_s_v=0.0))
                 want = lod.level_of_fraction(sel.indices.numel() / v.n_frustum, 5.0, lm)
                 assert sel.level == pytest.approx(want)
                 assert 1.0 <= sel.level <= lm

@@ -9,6 +9,7 @@ from clod_adapter.lod.cost import FrameTimeModel, cost_prefix, cost_units, splat
 from clod_adapter.io.synthetic import make_cameras, make_ground_truth
 from clod_adapter.lod.draw import lod_subset, render_lod
 from clod_adapter.lod.view import view_lod
+from clod_adapter.lod.budget import Budget
 
 
 def _model(n=1500, seed=0, window=False, gains=False):
@@ -42,11 +43,11 @@ def test_drawn_cost_within_budget(window, gains):
     view = view_lod(g, make_cameras(1, 1)[0])
     total = float(splat_cost(view).sum())
     for share in (0.05, 0.2, 0.5, 0.9):
-        sel = view.select(budget_cost=share, min_s_v=0.0)
+        sel = view.select(budget=Budget(cost=share, min_s_v=0.0))
         assert 0 < sel.indices.numel() < view.n_in_view
         assert _drawn_cost(view, sel) <= share * total + 1e-6
     absolute = 0.3 * total
-    sel = view.select(budget_cost=absolute, min_s_v=0.0)
+    sel = view.select(budget=Budget(cost=absolute, min_s_v=0.0))
     assert _drawn_cost(view, sel) <= absolute + 1e-6
 
 
@@ -56,7 +57,7 @@ def test_count_monotone_and_nested(scene):
         view = view_lod(g, cam)
         prev = None
         for share in torch.linspace(0.02, 1.0, 10).tolist():
-            sel = view.select(budget_cost=share, min_s_v=0.0)
+            sel = view.select(budget=Budget(cost=share, min_s_v=0.0))
             if prev is not None:
                 assert sel.indices.numel() >= prev.numel()
                 assert bool(torch.isin(prev, sel.indices).all())
@@ -67,9 +68,9 @@ def test_full_share_draws_every_gaussian_in_view(scene):
     g, cams = scene
     for cam in cams:
         view = view_lod(g, cam)
-        sel = view.select(budget_cost=1.0, min_s_v=0.0)
+        sel = view.select(budget=Budget(cost=1.0, min_s_v=0.0))
         assert torch.equal(sel.mask, view.visible)
-        r = render_lod(g, cam, budget_cost=1.0, min_s_v=0.0)
+        r = render_lod(g, cam, budget=Budget(cost=1.0, min_s_v=0.0))
         assert r.n_rendered == view.n_in_view
 
 
@@ -79,9 +80,9 @@ def test_prefix_of_the_count_order(scene):
     view = view_lod(g, cams[0])
     for share in (0.1, 0.3, 0.7):
         for min_s_v in (0.0, 1.0):
-            sel = view.select(budget_cost=share, min_s_v=min_s_v)
-            k = view.cost_count(share, min_s_v=min_s_v)
-            ref = view.select(budget=k, min_s_v=min_s_v)
+            sel = view.select(budget=Budget(cost=share, min_s_v=min_s_v))
+            k = view.cost_count(Budget(cost=share, min_s_v=min_s_v))
+            ref = view.select(budget=Budget(count=k, min_s_v=min_s_v))
             assert torch.equal(sel.indices, ref.indices) and sel.s_v == ref.s_v
             if min_s_v == 0.0:
                 assert sel.indices.numel() == k
@@ -97,29 +98,36 @@ def test_budget_ms_monotone_and_consistent(scene):
     tm = FrameTimeModel(c0_ms=1.0, per_cost_ms=2e-4, per_gaussian_ms=1e-3)
     prev = -1
     for ms in (0.5, 1.0, 2.0, 5.0, 10.0, 50.0, 1e4):
-        sel = view.select(budget_ms=ms, min_s_v=0.0, time_model=tm)
+        sel = view.select(budget=Budget(ms=ms, min_s_v=0.0, time_model=tm))
         k = sel.indices.numel()
         assert k >= prev
         prev = k
         cost = _drawn_cost(view, sel)
         assert tm.ms(cost, k) <= ms + 1e-9 or k == 0
     assert prev == view.n_in_view
-    assert view.select(budget_ms=0.5, min_s_v=0.0, time_model=tm).indices.numel() == 0
+    assert view.select(budget=Budget(ms=0.5, min_s_v=0.0, time_model=tm)).indices.numel() == 0
     # cost_for_ms inverts ms
     assert tm.ms(tm.cost_for_ms(7.0, 100), 100) == pytest.approx(7.0)
 
 
 def test_two_budgets_raise(scene):
+    """A Budget names one amount; a frame takes a level or a budget; a bare number is refused (an
+    int count and a float share would read alike)."""
     g, cams = scene
     cam = cams[0]
-    for kw in ({"s_v": 2.0, "budget_cost": 0.5}, {"budget": 100, "budget_cost": 0.5},
-               {"budget_cost": 0.5, "budget_ms": 10.0}, {"budget": 0.5, "budget_ms": 10.0}):
+    for kw in ({"count": 100, "cost": 0.5}, {"cost": 0.5, "ms": 10.0}, {"share": 0.5, "ms": 10.0}, {},
+               {"cost": -1.0}, {"share": 1.5}, {"count": 2.5}, {"in_view": 0.3, "time_model": object()}):
         with pytest.raises(ValueError):
-            render_lod(g, cam, **kw)
-        with pytest.raises(ValueError):
-            lod_subset(g, cam, **kw)
+            Budget(**kw)
     with pytest.raises(ValueError):
-        render_lod(g, cam, budget_cost=-1.0)
+        render_lod(g, cam, 2.0, budget=Budget(cost=0.5))
+    with pytest.raises(ValueError):
+        lod_subset(g, cam, 2.0, budget=Budget(count=100))
+    for bare in (100, 0.5):
+        with pytest.raises(TypeError):
+            render_lod(g, cam, budget=bare)
+        with pytest.raises(TypeError):
+            lod_subset(g, cam, budget=bare)
 
 
 def test_splat_cost_matches_the_rasteriser(scene):
@@ -129,7 +137,7 @@ def test_splat_cost_matches_the_rasteriser(scene):
     for window in (False, True):
         gg = replace(_model(gains=True), lod=lod.LodSettings(fade="window")) if window else g
         view = view_lod(gg, cams[0])
-        for sel in (view.select(s_v=2.0), view.select(budget_cost=0.4, min_s_v=0.0), view.select()):
+        for sel in (view.select(s_v=2.0), view.select(budget=Budget(cost=0.4, min_s_v=0.0)), view.select()):
             _, _, meta = view.rasterize(sel)
             ids = meta["visible_ids"]
             tiles = torch.zeros(gg.means.shape[0], dtype=torch.float64)
@@ -150,7 +158,7 @@ def test_base_opacity_cost_bounds_the_drawn_cost():
     g = _model(window=True, gains=True)
     view = view_lod(g, make_cameras(1, 1)[0])
     for share in (0.1, 0.5):
-        sel = view.select(budget_cost=share, min_s_v=0.0)
+        sel = view.select(budget=Budget(cost=share, min_s_v=0.0))
         est = splat_cost(view, sel.indices, level=sel.level)
         drawn = splat_cost(view, sel.indices, level=sel.level, opacities=sel.opacities)
         # the drawn opacities come from the C++ kernel in double (lod.window_opacities): within
@@ -184,10 +192,10 @@ def test_cost_prefix_static_cut():
 
 def test_lod_subset_accepts_cost_budgets(scene):
     g, cams = scene
-    a = lod_subset(g, cams[0], budget_cost=0.3, min_s_v=0.0)
-    b = render_lod(g, cams[0], budget_cost=0.3, min_s_v=0.0)
+    a = lod_subset(g, cams[0], budget=Budget(cost=0.3, min_s_v=0.0))
+    b = render_lod(g, cams[0], budget=Budget(cost=0.3, min_s_v=0.0))
     assert torch.equal(a.indices, torch.nonzero(b.mask).squeeze(1))
-    c = lod_subset(g, cams[0], budget_ms=3.0)
+    c = lod_subset(g, cams[0], budget=Budget(ms=3.0))
     assert c.indices.numel() <= a.n_in_view
 
 
@@ -198,8 +206,8 @@ def test_eq2_cost_budget_is_exact(scene):
     total = float(splat_cost(view).sum())
     for share in (0.05, 0.3, 0.6):
         b = share * total
-        sel = view.select(budget_cost=share, min_s_v=0.0)
+        sel = view.select(budget=Budget(cost=share, min_s_v=0.0))
         k = sel.indices.numel()
         assert _drawn_cost(view, sel) <= b + 1e-6
-        nxt = view.select(budget=k + 1, min_s_v=0.0)
+        nxt = view.select(budget=Budget(count=k + 1, min_s_v=0.0))
         assert _drawn_cost(view, nxt) > b

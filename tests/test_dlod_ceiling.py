@@ -8,7 +8,8 @@ import pytest
 import torch
 
 from clod_adapter.train.official import OFFICIAL_LR, scene_extent
-from clod_adapter.train.finetune import RECOVERY_DECAY, RECOVERY_ITERATIONS, best_start, convergence, finetune_subset, means_lr
+from clod_adapter.train.finetune import (RECOVERY_DECAY, RECOVERY_ITERATIONS, FinetuneOptions, best_start, convergence,
+                                         finetune_subset, means_lr)
 from clod_adapter.io.scene import validation_split
 from clod_adapter.train.losses import render_loss
 from clod_adapter.io.synthetic import make_cameras, make_ground_truth, perturb
@@ -63,7 +64,7 @@ def test_recovery_lowers_training_loss_and_records_history(tiny):
     steps = 60
     before = _train_loss(model, cams, imgs)
     with torch.no_grad():  # a caller's no_grad (clod-eval) does not stop training
-        out, info = finetune_subset(model, cams, imgs, iterations=steps, return_info=True)
+        out, info = finetune_subset(model, cams, imgs, FinetuneOptions(iterations=steps), return_info=True)
     after = _train_loss(out, cams, imgs)
     assert after < 0.9 * before, (before, after)
     assert info.schedule == "recovery" and info.iterations == steps
@@ -75,7 +76,7 @@ def test_recovery_lowers_training_loss_and_records_history(tiny):
     assert sum(info.loss[-10:]) < sum(info.loss[:10])
     assert set(info.to_dict()) >= {"loss", "convergence", "schedule"}
     # positions move far less than under the old schedule (which restarted at 1.6e-4 x extent)
-    old = finetune_subset(model, cams, imgs, iterations=steps, schedule="official")
+    old = finetune_subset(model, cams, imgs, FinetuneOptions(iterations=steps, schedule="official"))
     assert isinstance(old, type(out))
     moved_new = (out.means - model.means).norm(dim=1).mean()
     moved_old = (old.means - model.means).norm(dim=1).mean()
@@ -102,10 +103,10 @@ def test_finetune_shows_progress_lines_in_a_log(tiny, capsys):
     """A long ceiling fine-tune (clod-eval --dlod-iterations 5000: 20 minutes) prints a line every
     10 % of its steps when stderr is a log, not a terminal."""
     _, model, cams, imgs = tiny
-    finetune_subset(model, cams, imgs, iterations=10, progress=True, desc="dlod test")
+    finetune_subset(model, cams, imgs, FinetuneOptions(iterations=10), progress="dlod test")
     lines = [ln for ln in capsys.readouterr().err.splitlines() if ln.startswith("dlod test:")]
     assert len(lines) >= 10 and lines[-1].startswith("dlod test: 10/10 step"), lines
-    finetune_subset(model, cams, imgs, iterations=3)
+    finetune_subset(model, cams, imgs, FinetuneOptions(iterations=3))
     assert "dlod" not in capsys.readouterr().err
 
 
@@ -124,12 +125,12 @@ def test_finetune_keeps_the_checkpoint_best_on_validation_views(tiny):
         with torch.no_grad():
             return sum(psnr(render_lod(m, c, None).image, t, cap=True) for c, t in zip(val, val_imgs)) / len(val)
 
-    out, info = finetune_subset(model, fit, black, iterations=20, return_info=True, val_cameras=val,
-                                val_images=val_imgs, val_every=5)
+    out, info = finetune_subset(model, fit, black, FinetuneOptions(iterations=20, val_every=5), val=(val, val_imgs),
+                                return_info=True)
     assert [s for s, _ in info.val_psnr] == [0, 5, 10, 15, 20]
     assert info.best_step == 0 and info.val_psnr[-1][1] < info.val_psnr[0][1] - 1.0
     assert torch.equal(out.means, model.means) and torch.equal(out.opacity_logits, model.opacity_logits)
-    out, info = finetune_subset(model, fit, imgs[:4], iterations=40, return_info=True, val_cameras=val,
-                                val_images=val_imgs, val_every=10)
+    out, info = finetune_subset(model, fit, imgs[:4], FinetuneOptions(iterations=40, val_every=10),
+                                val=(val, val_imgs), return_info=True)
     best = max(p for _, p in info.val_psnr)
     assert info.best_step > 0 and math.isclose(val_psnr(out), best, abs_tol=1e-4)

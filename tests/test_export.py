@@ -13,6 +13,7 @@ from clod_adapter.export import bake as ex
 from clod_adapter.io.ply import read_ply, write_ply
 from clod_adapter.io.colmap import load_colmap_scene
 from clod_adapter.lod.draw import render_lod
+from clod_adapter.lod.budget import Budget
 
 from conftest import write_tiny_scene
 
@@ -111,8 +112,8 @@ def test_bake_opacity_modes_and_budget(setup):
     g_mean = ex.bake(m, cams, s_v=2.0, opacity="mean")
     assert len(g_orig) == len(g_mean) == len(g_auto)
     assert bool((g_mean.opacity_logits <= g_orig.opacity_logits + 1e-5).all())  # attenuation <= 1
-    gb = ex.bake(m, cams, budget=50)  # union of per-view budgets (never below s_v = 1)
-    per_view = [int(render_lod(m, c, budget=50).mask.sum()) for c in cams]
+    gb = ex.bake(m, cams, budget=Budget(count=50))  # union of per-view budgets (never below s_v = 1)
+    per_view = [int(render_lod(m, c, budget=Budget(count=50)).mask.sum()) for c in cams]
     assert max(per_view) <= len(gb) <= sum(per_view)
 
 

@@ -21,7 +21,8 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from clod_adapter.lod import rule as lod
-from clod_adapter.lod.budget import critical_s_v, select_budget
+from clod_adapter.lod.budget import Budget, critical_s_v, select_budget
+from clod_adapter.lod_settings import EtaGradient
 from clod_adapter.gaussians import Gaussians
 from clod_adapter.lod.draw import render_lod
 from clod_adapter.render import rasterization
@@ -485,11 +486,11 @@ def test_render_lod_extreme_scenes(kind, impl):
     for k in (0, 1, len(model)):
         g = _model(model.means.detach(), model.log_scales.detach(), model.quats.detach(),
                    model.opacity_logits.detach(), model.sigma_d.detach())
-        out = _render_and_check(g, cam, None, impl, budget=k, min_s_v=0.0)
+        out = _render_and_check(g, cam, None, impl, budget=Budget(count=k, min_s_v=0.0))
         assert out.n_rendered == min(k, counts[0])  # exactly k (capped by what is in view)
         g = _model(model.means.detach(), model.log_scales.detach(), model.quats.detach(),
                    model.opacity_logits.detach(), model.sigma_d.detach())
-        out = _render_and_check(g, cam, None, impl, budget=k)  # default: capped at s_v = 1
+        out = _render_and_check(g, cam, None, impl, budget=Budget(count=k))  # default: capped at s_v = 1
         assert out.n_rendered == min(k, counts[1]) and out.s_v >= 1.0
 
 
@@ -523,7 +524,7 @@ def test_render_lod_count_non_increasing_and_finite(rows, s_list, impl, estimato
     prev = None
     for s_v in sorted(s_list):
         g = _model(means, logits=lg, sigma_d=sig, seed=n)
-        out = _render_and_check(g, _cam(), s_v, impl, estimator=estimator, eta_grad_sigma_only=sigma_only)
+        out = _render_and_check(g, _cam(), s_v, impl, eta_grad=EtaGradient(estimator, sigma_only=sigma_only))
         if prev is not None:
             assert out.n_rendered <= prev
         prev = out.n_rendered

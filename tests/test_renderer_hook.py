@@ -11,6 +11,7 @@ import torch
 from clod_adapter.lod.draw import render_lod
 from clod_adapter import clod_rasterization, rasterization
 from clod_adapter.io.synthetic import make_cameras, make_ground_truth
+from clod_adapter.lod.budget import Budget, as_budget
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -52,11 +53,13 @@ def test_fewer_gaussians_farther(scene):
     assert n[0] >= n[1] >= n[2] and n[0] > n[2]
 
 
-@pytest.mark.parametrize("budget", [50, 0.3])
+@pytest.mark.parametrize("budget", [50, 0.3, Budget(in_view=0.4)])
 def test_equals_render_lod_budget(scene, budget):
+    """The hook's budget keyword: an int a count, a float a share of the model (converted to a
+    Budget at its edge), or a Budget; as render_lod draws it."""
     m, cams = scene
     cam = cams[0]
-    ref = render_lod(m, cam, budget=budget, backend="cpu")
+    ref = render_lod(m, cam, budget=as_budget(budget), backend="cpu")
     col, _, meta = clod_rasterization(*_args(m, [cam]), sh_degree=m.sh_degree, sigma_d=m.sigma_d,
                                       budget=budget, backend="cpu")
     assert meta["lod_n_rendered"] == [ref.n_rendered]

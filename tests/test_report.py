@@ -17,6 +17,7 @@ from clod_adapter.lod.view import in_view
 from clod_adapter.jobs.eval import CSV_COLUMNS, OUTPUT_NAMES, PER_VIEW_COLUMNS, EvalOptions, evaluate_report, popping_curve
 from clod_adapter.jobs.eval_methods import BASELINES
 from clod_adapter.io.synthetic import make_cameras, make_ground_truth, perturb
+from clod_adapter.lod.budget import Budget
 from conftest import uint8_views
 
 
@@ -74,7 +75,7 @@ def test_constant_sigma_matches_render_lod_budget(tiny):
     pre, cam = tiny["pre"], tiny["cams"][1]
     c = 0.25
     sel = constant_sigma_selection(pre, cam, 100, c, fade=True)
-    ref = render_lod(pre.with_sigma_d(torch.full((len(pre),), c)), cam, budget=100, backend="cpu")
+    ref = render_lod(pre.with_sigma_d(torch.full((len(pre),), c)), cam, budget=Budget(count=100), backend="cpu")
     assert torch.equal(sel.indices, torch.nonzero(ref.mask).squeeze(1))
     assert sel.s_v == pytest.approx(ref.s_v)
     img = render_subset(pre, cam, sel.indices, sel.opacities, backend="cpu").image

@@ -208,15 +208,12 @@ def test_no_module_over_the_length_limit():
 
 #: the most parameters a function may take (issue 63), ``self`` not counted
 MAX_PARAMETERS = 12
-#: the functions allowed more: gsplat's ``rasterization`` signature and the functions mirroring it;
-#: and, each with the count it may not grow past, those whose loose budget arguments a ``Budget``
-#: type is to replace
+#: the functions allowed more: gsplat's ``rasterization`` signature and the functions mirroring it
+#: (the renderer hook adds the level of detail's keywords to it), each with the count it may not
+#: grow past
 OVER_PARAMETERS = {
     "clod_adapter.render.dispatch:rasterization": 17, "clod_adapter.render.cpu:rasterization_cpu": 16,
     "clod_adapter.render.gsplat_backend:rasterization_gsplat": 16, "clod_adapter.lod.hook:clod_rasterization": 35,
-    "clod_adapter.lod.hook:_tree_frames": 19, "clod_adapter.lod.draw:render_lod": 19,
-    "clod_adapter.lod.view:view_lod_tensors": 14, "clod_adapter.evaluate.comparison:compare": 16,
-    "clod_adapter.train.finetune:finetune_subset": 16,
 }
 
 

@@ -10,6 +10,7 @@ import torch
 from clod_adapter.train import tiers
 from clod_adapter.lod.draw import COUNT_TAKE_SHARE, chain_weights, lod_subset, render_lod, tier_chain, tier_reach
 from clod_adapter.lod.view import view_lod
+from clod_adapter.lod.budget import Budget
 from clod_adapter.io.ply import PlyFormatError, read_ply, write_ply
 from clod_adapter.io.synthetic import make_cameras
 
@@ -132,18 +133,18 @@ def test_cost_budgets_walk_down_the_chain_and_fit(chain):
     full = view_lod(replace(g, parents=None), cam).full_cost()
     depth_prev, shares = 0, [0.9, 0.6, 0.3, 0.15, 0.08, 0.04, 0.02, 0.01]
     for b in shares:
-        sub = lod_subset(g, cam, budget_cost=b)
+        sub = lod_subset(g, cam, budget=Budget(cost=b))
         depth = 0 if sub.indices.numel() else 1 + [i for i, t in enumerate(sub.tier_indices) if t is not None][0]
         assert depth >= depth_prev, (b, depth, depth_prev)
         depth_prev = depth
-        r = render_lod(g, cam, budget_cost=b)
+        r = render_lod(g, cam, budget=Budget(cost=b))
         assert r.n_rendered == sub.means.shape[0]
         if depth:
             tier = tier_chain(g)[depth]
             v = view_lod(tier, cam)
             idx = sub.tier_indices[depth - 1]
             # the tier's own cost-budget solution for the same absolute budget (its fit: test_budget.py)
-            sel = v.select(budget_cost=max(b * full, 1 + 1e-6), min_s_v=tier_chain(g)[depth - 1].lod.tier_start)
+            sel = v.select(budget=Budget(cost=max(b * full, 1 + 1e-6), min_s_v=tier_chain(g)[depth - 1].lod.tier_start))
             assert torch.equal(sel.indices, idx)
     assert depth_prev == 2
 
@@ -215,13 +216,13 @@ def test_count_budgets_hand_over_in_every_consumer(chain):
     g, cams = chain
     cam = cams[0]
     every = view_lod(replace(g, parents=None), cam).n_in_view
-    big = render_lod(g, cam, budget=every)
-    assert big.n_parents == 0 and torch.equal(big.image, render_lod(replace(g, parents=None), cam, budget=every).image)
+    big = render_lod(g, cam, budget=Budget(count=every))
+    assert big.n_parents == 0 and torch.equal(big.image, render_lod(replace(g, parents=None), cam, budget=Budget(count=every)).image)
     depths = []
     for b in (0.8, 0.5, 0.2, 0.05, 0.01):
-        own = view_lod(replace(g, parents=None), cam).select(budget=b)
-        r = render_lod(g, cam, budget=b)
-        sub = lod_subset(g, cam, budget=b)
+        own = view_lod(replace(g, parents=None), cam).select(budget=Budget(share=b))
+        r = render_lod(g, cam, budget=Budget(share=b))
+        sub = lod_subset(g, cam, budget=Budget(share=b))
         drawn = [0] * bool(sub.indices.numel()) + [1 + i for i, t in enumerate(sub.tier_indices) if t is not None]
         depths.append(drawn[-1])
         assert len(drawn) == 1, drawn  # one tier
@@ -231,12 +232,19 @@ def test_count_budgets_hand_over_in_every_consumer(chain):
                                           **clod_kwargs(g), budget=b, backend="cpu")
         torch.testing.assert_close(col[0], r.image, rtol=0, atol=1e-6)
         assert meta["lod_n_parents"] == [r.n_parents] and meta["lod_s_v"][0] == pytest.approx(r.s_v)
-        baked, info = bake(g, [cam], budget=b, opacity="mean", return_info=True)
+        baked, info = bake(g, [cam], budget=Budget(share=b), opacity="mean", return_info=True)
         assert info.n_parents == r.n_parents and len(baked) == r.n_rendered
     assert depths == sorted(depths) and depths[-1] >= 1
 
 
-def _walk_solving_every_tier(g, cam, **budget):
+def _budget(kind: str, v) -> Budget:
+    """One parametrised budget: ``"count"`` an int count or a float share of the model."""
+    if kind == "count":
+        return Budget(count=v) if isinstance(v, int) else Budget(share=v)
+    return Budget(**{kind: v})
+
+
+def _walk_solving_every_tier(g, cam, budget: Budget):
     """docs/lod_rule.md's budget hand-over, literally: solve the budget in each tier, and pass it to
     the next tier while that tier, as the s_v rule first draws it alone, holds it (count: draws at
     least COUNT_TAKE_SHARE of the count tier 0 draws, and is asked for that count; cost: costs at
@@ -252,8 +260,8 @@ def _walk_solving_every_tier(g, cam, **budget):
     def estimate(k):  # tier k's full detail as the walk costs it (its accuracy: test_tiers.py)
         return views[k].full_detail_estimate()
 
-    b = budget.get("budget_cost")
-    sel, depth = views[0].select(**budget), 0
+    b = budget.cost
+    sel, depth = views[0].select(budget=budget), 0
     if b is not None and b <= 1.0:
         b = max(b * estimate(0)[0], 1.0 + 1e-6)  # absolute from the first tier below on
     k0 = int(sel.indices.numel())  # a count budget: tier 0's count, asked of every tier below
@@ -266,18 +274,18 @@ def _walk_solving_every_tier(g, cam, **budget):
             cost = float(splat_cost(views[depth + 1], start.indices, level=start.level,
                                     opacities=start.opacities).sum())
             drawn = int(start.indices.numel())
-        kw = dict(budget_cost=b) if b is not None else budget
-        if "budget" in budget:  # taken over where the tier draws at least COUNT_TAKE_SHARE of it
+        kw = dict(cost=b) if b is not None else dict(ms=budget.ms)
+        if budget.counts:  # taken over where the tier draws at least COUNT_TAKE_SHARE of it
             fits = start.indices.numel() >= min(k0, max(1, math.ceil(COUNT_TAKE_SHARE * k0 - 1e-9)))
-            kw = dict(budget=k0)
+            kw = dict(count=k0)
         elif b is not None:
             fits = b <= cost
         else:
-            fits = budget["budget_ms"] <= DEFAULT_FRAME_TIME_MODEL.ms(cost, drawn)
+            fits = budget.ms <= DEFAULT_FRAME_TIME_MODEL.ms(cost, drawn)
         if not fits:
             break
         depth += 1
-        sel = views[depth].select(**kw, min_s_v=start_s)
+        sel = views[depth].select(budget=Budget(**kw, min_s_v=start_s))
     return [(depth, sel)]
 
 
@@ -286,9 +294,9 @@ def _rows(sub, depth):
     return sub.indices if depth == 0 else sub.tier_indices[depth - 1]
 
 
-@pytest.mark.parametrize("kind,values", [("budget", [900, 400, 150, 60, 20, 3, 0.3, 0.02]),
-                                         ("budget_cost", [0.9, 0.5, 0.2, 0.08, 0.03, 0.01]),
-                                         ("budget_ms", [40.0, 5.0, 2.5, 2.0, 1.0, 0.1])])
+@pytest.mark.parametrize("kind,values", [("count", [900, 400, 150, 60, 20, 3, 0.3, 0.02]),
+                                         ("cost", [0.9, 0.5, 0.2, 0.08, 0.03, 0.01]),
+                                         ("ms", [40.0, 5.0, 2.5, 2.0, 1.0, 0.1])])
 @pytest.mark.parametrize("starts", ["chain", (1.0, 1.0), "sampled"])
 def test_budgets_solve_only_the_tier_they_end_in_as_the_rule_walks(chain, kind, values, starts, monkeypatch):
     """render_lod's budget walk solves only the tier it ends in (and passes a count on without
@@ -312,10 +320,10 @@ def test_budgets_solve_only_the_tier_they_end_in_as_the_rule_walks(chain, kind, 
     depths = set()
     for cam in cams:
         for v in values:
-            ref = _walk_solving_every_tier(g, cam, **{kind: v})
-            r = render_lod(g, cam, **{kind: v}, backend="cpu")
+            ref = _walk_solving_every_tier(g, cam, _budget(kind, v))
+            r = render_lod(g, cam, budget=_budget(kind, v), backend="cpu")
             depths |= {d for d, _ in ref}
-            sub = lod_subset(g, cam, **{kind: v})
+            sub = lod_subset(g, cam, budget=_budget(kind, v))
             for depth, sel in ref:
                 got = r.selection.indices if (depth == 0 and len(ref) == 1) else _rows(sub, depth)
                 assert got is not None and torch.equal(got, sel.indices), (kind, v, depth)
@@ -323,7 +331,7 @@ def test_budgets_solve_only_the_tier_they_end_in_as_the_rule_walks(chain, kind, 
             assert r.n_rendered == n and r.n_parents == sum(int(s.indices.numel()) for d, s in ref if d), (kind, v)
             if ref[-1][0]:  # the tiers' rows drawn with the tiers' own opacities
                 torch.testing.assert_close(sub.opacities, torch.cat([s.opacities for _, s in ref]), rtol=0, atol=0)
-            if kind == "budget":  # the renderer hook walks the same way (count budgets are its only budgets)
+            if kind == "count":  # the renderer hook walks the same way (count budgets are its only budgets)
                 from clod_adapter import clod_kwargs, clod_rasterization
 
                 _, _, meta = clod_rasterization(g.means, g.quats, g.scales, g.opacities, g.colors, cam.viewmat[None],
@@ -407,8 +415,8 @@ def test_a_count_budget_passes_through_a_tier_without_its_critical_order(chain):
                 views.setdefault(k, view_lod(models[k], cam))
                 return views[k]
 
-            sel, par = count_budget_walk([m.lod for m in models], view_of, view_of(0), v)
-            ref = _walk_solving_every_tier(g, cam, budget=v)
+            sel, par = count_budget_walk([m.lod for m in models], view_of, view_of(0), Budget(count=v))
+            ref = _walk_solving_every_tier(g, cam, Budget(count=v))
             got = [(0, sel)] if par is None else [(d, s) for d, _, s in par.parts()]
             assert [d for d, _ in got] == [d for d, _ in ref], v
             assert all(torch.equal(a.indices, b.indices) for (_, a), (_, b) in zip(got, ref)), v
@@ -428,7 +436,7 @@ def test_a_file_with_count_mix_from_an_earlier_version_still_reads(chain, tmp_pa
     old = tmp_path / "with_mix.ply"
     old.write_bytes(path.read_bytes().replace(b"comment clod_lod ", b"comment clod_lod count_mix=True ", 1))
     assert b"count_mix=True" in old.read_bytes()[:4000]
-    a, b = render_lod(read_ply(old), cams[0], budget=0.3), render_lod(g, cams[0], budget=0.3)
+    a, b = render_lod(read_ply(old), cams[0], budget=Budget(share=0.3)), render_lod(g, cams[0], budget=Budget(share=0.3))
     assert torch.equal(a.image, b.image)
     bad = tmp_path / "bad.ply"
     bad.write_bytes(old.read_bytes().replace(b"count_mix=True", b"count_mix=yes!"))

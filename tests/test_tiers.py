@@ -9,6 +9,7 @@ from clod_adapter.train import tiers
 from clod_adapter.lod.draw import render_lod
 from clod_adapter.io.ply import PlyFormatError, lod_comment, read_ply, write_ply
 from clod_adapter.io.synthetic import make_cameras, make_ground_truth
+from clod_adapter.lod.budget import Budget
 
 
 def _adapted(n, seed):
@@ -537,24 +538,24 @@ def test_budgets_draw_the_parents_once_they_can_fill_them(tiered):
     start_cost = float(splat_cost(vp, start.indices, level=start.level, opacities=start.opacities).sum())
     assert 0 < start_cost < full
     for b in (0.9, 0.6, 1.01 * start_cost / full, 0.99 * start_cost / full, 0.05, 0.02):
-        r = render_lod(g, cam, budget_cost=b)
+        r = render_lod(g, cam, budget=Budget(cost=b))
         if b * full > start_cost:
-            assert r.n_parents == 0 and torch.equal(r.image, render_lod(children, cam, budget_cost=b).image)
+            assert r.n_parents == 0 and torch.equal(r.image, render_lod(children, cam, budget=Budget(cost=b)).image)
         else:
-            ref = render_lod(g.parents, cam, budget_cost=b * full, min_s_v=g.lod.tier_start)
+            ref = render_lod(g.parents, cam, budget=Budget(cost=b * full, min_s_v=g.lod.tier_start))
             assert r.n_parents == r.n_rendered > 0 and r.indices.numel() == 0 and torch.equal(r.image, ref.image)
             assert r.s_v == pytest.approx(ref.s_v * 1.25 * 3.0 / 1.5)  # the s_v the rule draws that tier level at
-            sub = lod_subset(g, cam, budget_cost=b)
+            sub = lod_subset(g, cam, budget=Budget(cost=b))
             assert sub.parent_indices.numel() == r.n_parents and sub.indices.numel() == 0
     start_ms = float(DEFAULT_FRAME_TIME_MODEL.ms(start_cost, int(start.indices.numel())))
-    above, below = render_lod(g, cam, budget_ms=start_ms * 1.05), render_lod(g, cam, budget_ms=start_ms * 0.95)
+    above, below = render_lod(g, cam, budget=Budget(ms=start_ms * 1.05)), render_lod(g, cam, budget=Budget(ms=start_ms * 0.95))
     assert above.n_parents == 0 and below.n_parents == below.n_rendered > 0
     # a count budget of k: the parents take it where they draw at least COUNT_TAKE_SHARE of it
     # (drawing fewer than k, up to k); above, the model's own k
     n_start, n_own = int(start.indices.numel()), view_lod(children, cam).n_in_view
     k_hi = int(n_start / COUNT_TAKE_SHARE + 1e-9)  # the largest budget the parents take
     assert n_own > k_hi + 1 > n_start  # the fixture shows both sides
-    own = [render_lod(g, cam, budget=k) for k in (k_hi + 1, k_hi, n_start, max(n_start // 2, 1))]
+    own = [render_lod(g, cam, budget=Budget(count=k)) for k in (k_hi + 1, k_hi, n_start, max(n_start // 2, 1))]
     assert own[0].n_parents == 0 and own[0].n_rendered == k_hi + 1
     assert own[1].n_parents == own[1].n_rendered == n_start == own[2].n_parents == own[2].n_rendered
     assert own[3].n_parents == own[3].n_rendered == max(n_start // 2, 1)
@@ -583,10 +584,10 @@ def test_cost_budgets_pass_on_by_the_sampled_full_detail(tiered, monkeypatch):
     by_est, by_exact = est[1] / est[0], exact[1] / exact[0]  # the share where the parents take over
     lo, hi = sorted((by_est, by_exact))
     b = 0.5 * (lo + hi)  # between the two: only the estimate decides it
-    r = render_lod(g1, cam, budget_cost=b)
+    r = render_lod(g1, cam, budget=Budget(cost=b))
     assert (r.n_parents > 0) == (b <= by_est) and (r.n_parents > 0) != (b <= by_exact)
     if r.n_parents:  # the parents within the share of the model's estimated full cost
-        ref = render_lod(g1.parents, cam, budget_cost=b * est[0], min_s_v=1.0)
+        ref = render_lod(g1.parents, cam, budget=Budget(cost=b * est[0], min_s_v=1.0))
         assert torch.equal(r.image, ref.image)
 
 

@@ -134,11 +134,11 @@ def test_pipeline_outputs(tmp_path):
 
 def test_dlod_finetune_trains_inside_no_grad(tiny):
     """clod-eval's report is a no_grad function; its per-budget ceiling must still train."""
-    from clod_adapter.train.finetune import finetune_subset
+    from clod_adapter.train.finetune import FinetuneOptions, finetune_subset
 
     model, cams, imgs = tiny
     with torch.no_grad():
-        out = finetune_subset(model, cams, imgs, iterations=3)
+        out = finetune_subset(model, cams, imgs, FinetuneOptions(iterations=3))
     assert not torch.equal(out.sh0, model.sh0)
 
 

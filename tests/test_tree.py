@@ -14,6 +14,7 @@ from clod_adapter.lod.cut import tree_node_costs, tree_select
 from clod_adapter.io.ply import PlyFormatError, read_ply, write_ply
 from clod_adapter.render import native
 from clod_adapter.render.dispatch import rasterization
+from clod_adapter.lod.budget import Budget, as_budget
 from clod_adapter.io.synthetic import make_cameras
 
 from test_tiers import _adapted
@@ -132,7 +133,7 @@ def test_render_lod_draws_the_cut_and_lod_subset_matches(model):
         img = rasterization(sub.means, sub.quats, sub.scales, sub.opacities, sub.colors, cam.viewmat[None],
                             cam.K[None], cam.width, cam.height, sh_degree=g.sh_degree)[0][0]
         assert torch.allclose(img, r.image, atol=1e-5)
-    rb = render_lod(g, cam, budget=200)
+    rb = render_lod(g, cam, budget=Budget(count=200))
     tt = tree.terms(tree.tiers_of(g), cam)
     c = tree.cut(tree.tiers_of(g), cam, rb.s_v, tt=tt)
     assert rb.s_v > 1.0 and sum(int(f[i].sum()) for f, i in zip(tt.frustum, c.ids)) <= 200
@@ -170,7 +171,7 @@ def test_the_reference_draws_what_the_library_draws(model, tmp_path):
         for kw in [dict(s_v=float(s)) for s in (1.0, 1.3, 2.2, 3.0, 4.7, 7.5, 12.0, 30.0)] + [dict(budget=k) for k in
                                                                                               (1000, 300, 50)]:
             r = ref.draw(rt, cam.viewmat.numpy(), cam.K.numpy(), cam.width, cam.height, **kw)
-            sub = lod_subset(back, cam, kw.get("s_v"), budget=kw.get("budget"))
+            sub = lod_subset(back, cam, kw.get("s_v"), budget=Budget(count=kw["budget"]) if "budget" in kw else None)
             assert sub.s_v == pytest.approx(r["s_v"], rel=1e-6)
             ours = [sub.indices] + list(sub.tier_indices)
             assert all(np.array_equal(a.numpy(), b) for a, b in zip(ours, r["ids"])), kw
@@ -190,12 +191,12 @@ def test_cost_and_time_budgets_are_cuts_of_the_tree(model):
     full = float(costs[0].sum())
     levels = []
     for share in (1.0, 0.6, 0.3, 0.1, 0.02):
-        c, _ = tree_select(g, cam, budget_cost=share)
+        c, _ = tree_select(g, cam, budget=Budget(cost=share))
         drawn = sum(float(x[i].sum()) for x, i in zip(costs, c.ids))
         assert drawn <= share * full + 1e-9
         levels.append(c.s_v)
     assert all(b >= a for a, b in zip(levels, levels[1:])) and levels[-1] > levels[0]
-    ms = [render_lod(g, cam, budget_ms=b).s_v for b in (50.0, 3.0, 2.6)]
+    ms = [render_lod(g, cam, budget=Budget(ms=b)).s_v for b in (50.0, 3.0, 2.6)]
     assert all(b >= a for a, b in zip(ms, ms[1:]))
 
 
@@ -211,12 +212,12 @@ def test_a_count_budget_that_holds_tier_0_draws_it_without_a_sweep(model, monkey
     calls = []
     real = tree.budget_s_v
     monkeypatch.setattr(tree, "budget_s_v", lambda *a, **k: calls.append(1) or real(*a, **k))
-    for b in (1.0, n0, n0 + 5):
-        r = render_lod(g, cam, budget=b, budget_in_view=isinstance(b, float))
+    for b in (Budget(in_view=1.0), Budget(count=n0), Budget(count=n0 + 5)):
+        r = render_lod(g, cam, budget=b)
         assert r.s_v == 1.0 and torch.equal(r.image, want.image) and r.n_rendered == want.n_rendered
-        assert tree_select(g, cam, budget=b, budget_in_view=isinstance(b, float))[0].s_v == 1.0
+        assert tree_select(g, cam, budget=b)[0].s_v == 1.0
     assert not calls
-    fewer = render_lod(g, cam, budget=n0 - 1)
+    fewer = render_lod(g, cam, budget=Budget(count=n0 - 1))
     assert calls and fewer.s_v > 1.0 and fewer.n_rendered < want.n_rendered
 
 
@@ -226,11 +227,12 @@ def test_the_renderer_hook_draws_the_cut(model):
     g, cams = model
     vm = torch.stack([c.viewmat for c in cams])
     Ks = torch.stack([c.K for c in cams])
-    for kw in (dict(s_v=1.0), dict(s_v=3.3), dict(s_v=11.0), dict(budget=250)):
+    for kw in (dict(s_v=1.0), dict(s_v=3.3), dict(s_v=11.0), dict(budget=250), dict(budget=Budget(in_view=0.2))):
         col, _, meta = clod_rasterization(g.means, g.quats, g.scales, g.opacities, g.colors, vm, Ks, cams[0].width,
                                           cams[0].height, sh_degree=g.sh_degree, **clod_kwargs(g), **kw)
+        ours = {k: as_budget(v) if k == "budget" else v for k, v in kw.items()}  # the hook's edge: 250 a count
         for c, cam in enumerate(cams):
-            r = render_lod(g, cam, **kw)
+            r = render_lod(g, cam, **ours)
             assert torch.allclose(col[c], r.image, atol=1e-5) and meta["lod_s_v"][c] == pytest.approx(r.s_v)
             assert bool(torch.isin(r.indices, meta["lod_indices"][c]).all())
             assert torch.equal(meta["lod_indices"][c], r.indices) or kw.get("s_v") == 1.0

@@ -26,6 +26,7 @@ from clod_adapter.io.synthetic import make_cameras, make_ground_truth
 from clod_adapter.viewer import (BYTES_PER_GAUSSIAN, DEFAULT_MAX_SV, camera_from_pose, covariances,
                                  default_start_view, model_max_sv, pose_from_camera, view_payload)
 from clod_adapter.viewer.cameras import robust_bounds, scene_start_view
+from clod_adapter.lod.budget import Budget
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -106,8 +107,8 @@ def test_payload_is_lod_subset_with_view_colours():
         assert p.message_bytes == BYTES_PER_GAUSSIAN * p.n_drawn
     counts = [view_payload(g, cam, s_v=sv).n_drawn for sv in (1.0, 2.0, 5.0, 10.0)]
     assert counts == sorted(counts, reverse=True) and counts[-1] < 0.5 * counts[0]
-    b = view_payload(g, cam, budget=0.1)
-    assert b.n_drawn == lod_subset(g, cam, budget=0.1).indices.numel() == round(0.1 * len(g))
+    b = view_payload(g, cam, budget=Budget(share=0.1))
+    assert b.n_drawn == lod_subset(g, cam, budget=Budget(share=0.1)).indices.numel() == round(0.1 * len(g))
 
 
 def test_a_parent_tier_is_sent_past_its_switch():
@@ -162,7 +163,7 @@ def test_cap_uses_the_budget_solver():
     cap = full.n_drawn // 3
     p = view_payload(g, cam, s_v=1.0, max_drawn=cap)
     assert p.capped and p.n_drawn == cap and p.n_level == full.n_drawn and p.s_v > 1.0
-    assert torch.equal(p.indices, lod_subset(g, cam, budget=cap).indices)
+    assert torch.equal(p.indices, lod_subset(g, cam, budget=Budget(count=cap)).indices)
     assert not view_payload(g, cam, s_v=1.0, max_drawn=full.n_drawn).capped
 
 

@@ -20,6 +20,7 @@ from clod_adapter.lod import tree
 from clod_adapter.io.ply import write_ply
 from clod_adapter.io.synthetic import make_cameras
 from clod_adapter.viewer.web import TREE_STREAMS, find_playcanvas
+from clod_adapter.lod.budget import Budget
 from test_tiers import _adapted
 
 ENGINE = find_playcanvas()
@@ -183,8 +184,9 @@ def test_tree_page_in_headless_chromium(tree_model, tmp_path):
     for key in (*svs, "budget"):
         frame, st = got[key]
         kw = dict(budget=budget) if key == "budget" else dict(s_v=key)
-        r = render_lod(g, cam, **kw)
-        c, _ = tree_select(g, cam, **kw)
+        ours = dict(budget=Budget(count=budget)) if key == "budget" else kw
+        r = render_lod(g, cam, **ours)
+        c, _ = tree_select(g, cam, **ours)
         tt = tree.terms(tree.tiers_of(g), cam)
         cut_in_view = sum(int(f[i].sum()) for f, i in zip(tt.frustum, c.ids))
         d = ref.draw(rt, *args, **kw)

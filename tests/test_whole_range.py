@@ -18,6 +18,7 @@ from clod_adapter.lod.draw import lod_subset, render_lod
 from clod_adapter.lod.view import in_view
 from clod_adapter.metrics import psnr
 from clod_adapter.io.synthetic import make_cameras, make_ground_truth, perturb
+from clod_adapter.lod.budget import Budget
 from conftest import render_views
 
 #: full-detail tolerance of the calibrated schedule (docs/method.md: the base attributes are frozen and
@@ -170,7 +171,7 @@ def test_quarter_budget_beats_the_opacity_cut(adapted):
     model, ad, cams, imgs = adapted
     ours, cut = [], []
     for c in cams:
-        r = render_lod(ad, c, budget=0.25)
+        r = render_lod(ad, c, budget=Budget(share=0.25))
         ours.append(r.image)
         sel = ranking_selection(model, c, model.opacities, r.n_rendered)
         assert sel.indices.numel() == r.n_rendered

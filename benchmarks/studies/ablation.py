@@ -26,6 +26,7 @@ from clod_adapter.train.config import AdaptConfig  # noqa: E402
 from clod_adapter.io.ply import read_ply  # noqa: E402
 from clod_adapter.lod.draw import render_lod  # noqa: E402
 from clod_adapter.metrics import psnr  # noqa: E402
+from clod_adapter.lod.budget import Budget
 
 #: (tag, description, AdaptConfig overrides); "default" first.
 VARIANTS = (
@@ -79,8 +80,8 @@ def main() -> None:
                                else f"calibrated_M{args.max_sv:g}_it{it}", split=args.split)
             model = read_ply(ply)
             p1, f1 = score(model, cams, gts, s_v=1.0)
-            p25, _ = score(model, cams, gts, budget=0.25)
-            p10, _ = score(model, cams, gts, budget=0.10)
+            p25, _ = score(model, cams, gts, budget=Budget(share=0.25))
+            p10, _ = score(model, cams, gts, budget=Budget(share=0.10))
             met = metrics_of(ply)
             r = {"input": name, "variant": tag, "description": desc, "psnr_s1": p1, "fraction_s1": f1,
                  "psnr_25": p25, "psnr_10": p10, "train_seconds": met["train_seconds"]}

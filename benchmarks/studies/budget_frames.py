@@ -7,7 +7,7 @@ the centres in the frustum, cut further on while it holds too few in view:
 ``LodView._visible_prefix``); before, every budget frame projected the whole model, and on a model
 with merged tiers every tier down to the one that took the budget. Both forms draw the same
 Gaussians at the same ``s_v``; this study holds them to the same image and times both, as
-``clod-eval``'s equal-count comparison asks them (``render_lod(budget=k, min_s_v=0)``, ``k`` a
+``clod-eval``'s equal-count comparison asks them (``render_lod(budget=Budget(count=k, min_s_v=0))``, ``k`` a
 share of the input's Gaussians in each test view), in interleaved shuffled rounds in one run
 (:func:`clod_adapter.evaluate.timing.time_interleaved`, wall time of the whole ``render_lod`` call), on
 each input's default adaptation (cached: ``benchmarks/common.adapt_cached``).
@@ -39,6 +39,7 @@ from clod_adapter.lod.view import view_lod  # noqa: E402
 from clod_adapter.io.load import load_model  # noqa: E402
 from clod_adapter.evaluate.timing import time_interleaved  # noqa: E402
 from clod_adapter.train.config import AdaptConfig  # noqa: E402
+from clod_adapter.lod.budget import Budget
 
 #: budgets as shares of the input's Gaussians in each view (the decimators' points of clod-eval)
 SHARES = (0.5, 0.3, 0.15, 0.08, 0.04)
@@ -56,7 +57,7 @@ def _render(model, cam, k: int, prefix: bool):
     lod_view.PREFIX_TRIES = tries if prefix else 0  # 0: the whole model projected, as before
     try:
         t0 = time.perf_counter()
-        out = render_lod(model, cam, budget=k, min_s_v=0.0)
+        out = render_lod(model, cam, budget=Budget(count=k, min_s_v=0.0))
         return _Timed((time.perf_counter() - t0) * 1e3, out)
     finally:
         lod_view.PREFIX_TRIES = tries

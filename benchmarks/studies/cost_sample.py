@@ -2,7 +2,7 @@
 
 A cost or time budget on a model with merged tiers (:func:`clod_adapter.lod.draw.budget_walk`)
 compares each tier's full detail (its cost and count in view) with the budget, and a
-``budget_cost`` share is a share of the model's full cost. Costed exactly, each tier is projected
+``Budget(cost=...)`` share is a share of the model's full cost. Costed exactly, each tier is projected
 whole for a test, most of a cheap frame's selection time. Costed from every n-th Gaussian by
 index, with the widest share (``max(scales) / d'``) costed exactly
 (:meth:`clod_adapter.lod.view.LodView.full_detail_estimate`, n =
@@ -46,6 +46,7 @@ from clod_adapter.io.load import load_model  # noqa: E402
 from clod_adapter.evaluate.comparison import COST_SHARES  # noqa: E402
 from clod_adapter.evaluate.timing import time_interleaved  # noqa: E402
 from clod_adapter.train.config import AdaptConfig  # noqa: E402
+from clod_adapter.lod.budget import Budget
 
 
 def _timed(f, repeats: int):
@@ -116,7 +117,7 @@ def frames(name: str, split: str, repeats: int) -> list[str]:
     jobs = {("input", None): [_frame(base, c, False) for c in cams]}
     for b in COST_SHARES:
         for exact in (True, False):
-            jobs[(b, exact)] = [_frame(g, c, exact, budget_cost=b) for c in cams]
+            jobs[(b, exact)] = [_frame(g, c, exact, budget=Budget(cost=b)) for c in cams]
     t = time_interleaved(jobs, repeats=repeats)
     ms0 = t[("input", None)]["ms_total"]
     out = []

@@ -33,6 +33,7 @@ from clod_adapter.lod.draw import render_lod
 from clod_adapter.lod.view import view_lod  # noqa: E402
 from clod_adapter.metrics import psnr  # noqa: E402
 from clod_adapter.train.config import AdaptConfig  # noqa: E402
+from clod_adapter.lod.budget import Budget
 
 #: the decimators' shares of the input whose counts per view are the budgets
 POINTS = (0.5, 0.3, 0.15, 0.08)
@@ -59,7 +60,7 @@ def study(name: str, split: str, shares) -> list[str]:
                 cells = []
                 for rho in shares:
                     camera_lod.COUNT_TAKE_SHARE = rho
-                    got = [render_lod(model, c, budget=k) for c, k in zip(cams, ks)]
+                    got = [render_lod(model, c, budget=Budget(count=k)) for c, k in zip(cams, ks)]
                     drawn = statistics.mean(r.n_rendered / k for r, k in zip(got, ks))
                     cells.append(f"{mean_psnr([r.image for r in got], gts):.2f} ({drawn:.2f})")
                 in_view = 100 * statistics.mean(k / n for k, n in zip(ks, n_in))

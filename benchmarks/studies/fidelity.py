@@ -43,8 +43,9 @@ def run_input(name: str) -> None:
     fit, cams = scene_views(scene, "val")
     everything = torch.arange(len(g0))
     refs = [render_subset(g0, c, everything).image.clamp(0, 1) for c in cams]
-    comp = qvt.compare(load_model(ply), g0, fit, cams, refs, max_sv=cfg.max_sv, merge_tool=tool, repeats=ROUNDS,
-                       full_rounds=0, log=lambda s: print(f"[{name}] {s}", flush=True))
+    comp = qvt.compare(load_model(ply), g0, fit, cams, refs, max_sv=cfg.max_sv,
+                       options=qvt.CompareOptions(merge_tool=tool, repeats=ROUNDS, full_rounds=0),
+                       log=lambda s: print(f"[{name}] {s}", flush=True))
     base = next(s for s in comp.settings if s.method == "input").ms
     # the equal-time table: equal-count settings ("match:...") left out; Point.ms holds the share of the input's frame
     points = [Point(s.method, s.setting, s.ms / base, s.psnr, sum(s.drawn) / max(len(s.drawn), 1))

@@ -38,6 +38,7 @@ from clod_adapter.io.ply import read_ply
 from clod_adapter.lod.draw import render_lod
 from clod_adapter.metrics import psnr, ssim
 from clod_adapter.jobs.eval import resolve_lpips
+from clod_adapter.lod.budget import Budget
 
 #: budgets evaluated (fractions of the model): the table's, each max_sv^-1.5, and a dense grid.
 BUDGETS = (1.0, 0.5, 0.35, 0.25, 0.192, 0.15, 0.1, 0.0894, 0.07, 0.0544, 0.05, 0.035)
@@ -79,7 +80,7 @@ def sweep(name: str, max_svs, iterations: int, lp, tool, log=print, split: str =
             outs = [render_lod(model, c, s) for c in cams]
             add("clod", m, f"s_v={s:g}", s, None, [o.image for o in outs], [o.n_rendered for o in outs])
         for b in BUDGETS:
-            outs = [render_lod(model, c, budget=b) for c in cams]
+            outs = [render_lod(model, c, budget=Budget(share=b)) for c in cams]
             add("clod_budget", m, f"budget={b:g}", sum(o.s_v for o in outs) / len(outs), b,
                 [o.image for o in outs], [o.n_rendered for o in outs])
         log(f"[{name}/M{m:g}] {met['train_seconds']:.0f} s training; evaluated in {time.perf_counter() - t:.0f} s")

@@ -33,7 +33,7 @@ from clod_adapter.lod.rankings import lightgaussian_significance
 from clod_adapter.lod.draw import render_lod
 from clod_adapter.lod.view import view_lod
 from clod_adapter.lod.cost import splat_cost
-from clod_adapter.train.finetune import finetune_subset, global_cut
+from clod_adapter.train.finetune import FinetuneOptions, finetune_subset, global_cut
 from clod_adapter.metrics import psnr
 from clod_adapter.train.pruning import blend_weights
 from clod_adapter.evaluate.timing import time_interleaved
@@ -74,7 +74,7 @@ def run_input(name: str, split: str, keeps: list, recover: int, coverages=()) ->
     if recover:
         imgs = [scene.load_image(c) for c in fit]
         models[f"weight keep {keeps[0]:g} + {recover} recovery steps"] = finetune_subset(
-            models[f"weight keep {keeps[0]:g}"], fit, imgs, iterations=recover)
+            models[f"weight keep {keeps[0]:g}"], fit, imgs, FinetuneOptions(iterations=recover))
     with torch.no_grad():
         ps = {k: statistics.mean(psnr(render_lod(m, c).image.clamp(0, 1), t) for c, t in zip(cams, gts))
               for k, m in models.items()}

@@ -27,7 +27,7 @@ from benchmarks.common import (add_inputs_args, load_input, scene_views, selecte
 
 from clod_adapter.train import tiers  # noqa: E402
 from clod_adapter.lod.draw import render_lod  # noqa: E402
-from clod_adapter.train.finetune import finetune_subset  # noqa: E402
+from clod_adapter.train.finetune import FinetuneOptions, finetune_subset  # noqa: E402
 from clod_adapter.metrics import psnr  # noqa: E402
 from clod_adapter.train.config import AdaptConfig  # noqa: E402
 
@@ -47,8 +47,8 @@ def study(name: str, shares, steps: int, every: int, chain_steps: int) -> list[s
     for share in shares:
         t = time.perf_counter()
         merged = tiers.decimated(src, share / prev)
-        _, info = finetune_subset(merged, fit, fit_imgs, iterations=steps, return_info=True, val_cameras=val,
-                                  val_images=val_imgs, val_every=every)
+        _, info = finetune_subset(merged, fit, fit_imgs, FinetuneOptions(iterations=steps, val_every=every),
+                                  val=(val, val_imgs), return_info=True)
         curve = dict((int(s), p) for s, p in info.val_psnr)
         print(f"[{name}] {100 * share:g} % merge ({len(merged):,}): " + ", ".join(
             f"{s}: {p:.2f}" for s, p in curve.items()) + f" dB (input {base:.2f}) in {time.perf_counter() - t:.0f} s",

@@ -46,6 +46,7 @@ from clod_adapter.lod.rankings import lightgaussian_significance  # noqa: E402
 from clod_adapter.lod.draw import tier_reach  # noqa: E402
 from clod_adapter.evaluate.popping import popping_ratio  # noqa: E402
 from clod_adapter.train.config import AdaptConfig  # noqa: E402
+from clod_adapter.lod.budget import Budget
 
 SHARES = (1.0, 0.75, 0.5, 0.3, 0.2, 0.1, 0.05, 0.02, 0.01)
 WITHIN = (0.75, 0.5, 0.25, 0.1)
@@ -77,7 +78,7 @@ def run_input(name: str, args) -> list[str]:
         for s in s_vs:
             settings.append(qvt.Setting(label, f"s_v={s:.4g}", [qvt.lod_render(g, c, s_v=s) for c in cams], 0))
         for b in SHARES:
-            settings.append(qvt.Setting(label, f"budget={b:g}", [qvt.lod_render(g, c, budget=b, budget_in_view=True)
+            settings.append(qvt.Setting(label, f"budget={b:g}", [qvt.lod_render(g, c, budget=Budget(in_view=b))
                                                                  for c in cams], 0))
     from clod_adapter.lod.rankings import merge_decimate
     from clod_adapter.io.splat_transform import find_splat_transform

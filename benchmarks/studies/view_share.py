@@ -36,6 +36,7 @@ from clod_adapter.metrics import psnr
 from clod_adapter.evaluate.timing import time_interleaved
 from clod_adapter.train.config import AdaptConfig
 from clod_adapter.train.loop import weighted_count
+from clod_adapter.lod.budget import Budget
 
 S_VS = (1.5, 1.75, 2.0, 2.5, 3.0, 4.0, 5.0, 6.0, 7.5, 10.0, 15.0, 20.0, 30.0, 50.0)
 SHARES = (0.9, 0.75, 0.6, 0.5, 0.4, 0.3, 0.25, 0.2, 0.15, 0.1)
@@ -51,7 +52,7 @@ def view_scale(g, cam, s_v: float, mode: str, cost_exponent: float) -> float:
         k = int(round(lod.target_fraction(s_v) * v.n_frustum))
     else:
         k = weighted_count(v, lod.target_fraction(s_v), cost_exponent)
-    return max(float(v.select(budget=max(k, 1), min_s_v=0.0).s_v), 1.0)
+    return max(float(v.select(budget=Budget(count=max(k, 1), min_s_v=0.0)).s_v), 1.0)
 
 
 def run_input(name: str, split: str, repeats: int) -> None:

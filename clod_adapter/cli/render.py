@@ -60,14 +60,16 @@ def main(argv: list[str] | None = None) -> int:
 
 
 def _check_flags(args):
-    """The flags' values; returns the budget (None, a count or a fraction)."""
+    """The flags' values; returns the budget (None, or a ``Budget`` of a count or a share)."""
     if not args.ply or not args.images:
         raise InputError("give ADAPTED and --images SCENE")
     if args.s_v is not None:
         check_flag(math.isfinite(args.s_v) and args.s_v >= 1, "--s-v", "a number >= 1", args.s_v)
     budget = None
     if args.budget is not None:
-        budget = jobs.parse_budget(args.budget, "--budget")
+        from clod_adapter.lod.budget import as_budget
+
+        budget = as_budget(jobs.parse_budget(args.budget, "--budget"))
     check_flag(args.frames >= 2, "--frames", ">= 2", args.frames)
     check_flag(args.fps >= 1, "--fps", ">= 1", args.fps)
     if args.max_sv is not None:
@@ -187,7 +189,7 @@ def _main(args) -> int:
     with atomic_write(out / JSON_NAME, "w") as f:
         json.dump(rep, f, indent=1)
     mean = sum(v["psnr"] for v in views) / len(views)
-    what = f"s_v = {level['s_v']:g}" if level["s_v"] is not None else f"budget {budget}"
+    what = f"s_v = {level['s_v']:g}" if level["s_v"] is not None else f"budget {budget.amount:g}"
     print(f"clod-render: {len(views)} {args.views} views at {what}: mean PSNR {mean:.2f} dB, "
           f"{sum(v['gaussians'] for v in views) / len(views):,.0f} Gaussians per view")
     print(f"clod-render: wrote views/ ({len(views)} PNG)" + (f", {video_name} ({n_frames} frames)" if video else "")

@@ -6,7 +6,7 @@ One implementation for ``clod-eval`` (its verdict, ``quality_vs_time.csv`` and
 
 * ``input``: the pretrained model, every Gaussian in view;
 * ``clod``: the adapted model along ``s_v`` (:func:`clod_s_vs`) and at cost budgets
-  (:data:`COST_SHARES`: shares of the view's frame cost, ``render_lod(budget_cost=)``);
+  (:data:`COST_SHARES`: shares of the view's frame cost, ``render_lod(budget=Budget(cost=...))``);
 * static cuts of the input over several counts (:data:`STATIC_SHARES` of the Gaussians *in
   view*): ``lightgaussian`` (LightGaussian significance on the fit views) and ``opacity``;
 * when splat-transform is given: its untrained merging decimators ``decimate`` and
@@ -44,6 +44,7 @@ from typing import Callable, Optional, Sequence
 import torch
 
 from ..lod.rankings import lightgaussian_significance, merge_decimate, topk_in_view
+from ..lod.budget import Budget
 from ..lod.draw import render_lod, tier_chain, tier_reach
 from ..lod.view import view_lod
 from .frontier import Point, frontier, time_margins
@@ -224,9 +225,9 @@ def build_settings(adapted: Gaussians, base: Gaussians, fit_cams: Sequence, cams
     for s in clod_s_vs(adapted):
         settings.append(Setting("clod", f"s_v={s:g}", [lod_render(adapted, c, s_v=s, **kw) for c in cams], sa))
     for b in COST_SHARES:
-        settings.append(Setting("clod", f"cost={b:g}", [lod_render(adapted, c, budget_cost=b, **kw) for c in cams], sa))
+        settings.append(Setting("clod", f"cost={b:g}", [lod_render(adapted, c, budget=Budget(cost=b), **kw) for c in cams], sa))
     for b in COUNT_SHARES:
-        settings.append(Setting("clod", f"in_view={b:g}", [lod_render(adapted, c, budget=b, budget_in_view=True, **kw)
+        settings.append(Setting("clod", f"in_view={b:g}", [lod_render(adapted, c, budget=Budget(in_view=b), **kw)
                                                            for c in cams], sa))
     if significance is None:
         t = time.perf_counter()
@@ -277,7 +278,7 @@ def matched_settings(settings: Sequence[Setting], ctx: _Context, max_sv: float) 
             continue
         key = f"match:{st.method}:{st.setting}"
         ks = list(st.drawn)
-        out.append(Setting("clod", key, [lod_render(ctx.adapted, c, budget=max(k, 2), min_s_v=0.0, **ctx.render_kw)
+        out.append(Setting("clod", key, [lod_render(ctx.adapted, c, budget=Budget(count=k, min_s_v=0.0), **ctx.render_kw)
                                          for c, k in zip(ctx.cams, ks)], ply_bytes(ctx.adapted)))
         for method in ("lightgaussian", "opacity"):
             fns, size = ctx.ranking_cut(method, ks)
@@ -313,7 +314,7 @@ def ceiling_settings(settings: Sequence[Setting], ctx: _Context, max_sv: float, 
     Returns:
         one :class:`Setting` per model share, method ``ceiling``, setting ``model=<share>``.
     """
-    from ..train.finetune import best_start, finetune_subset, global_cut
+    from ..train.finetune import FinetuneOptions, best_start, finetune_subset, global_cut
 
     fit_cams, fit_imgs, val_cams, val_imgs = ceiling_views
     bg = ctx.render_kw.get("background", (0.0, 0.0, 0.0))
@@ -327,8 +328,9 @@ def ceiling_settings(settings: Sequence[Setting], ctx: _Context, max_sv: float, 
         cands["lightgaussian"] = ctx.base.subset(global_cut(ctx.scores["lightgaussian"], n / len(ctx.base)))
         t = time.perf_counter()
         name, start = best_start(cands, val_cams, val_imgs, background=bg)
-        tuned, info = finetune_subset(start, fit_cams, fit_imgs, iterations=steps, background=bg, return_info=True,
-                                      val_cameras=val_cams, val_images=val_imgs, val_every=CEILING_VAL_EVERY)
+        tuned, info = finetune_subset(start, fit_cams, fit_imgs,
+                                      FinetuneOptions(iterations=steps, background=bg, val_every=CEILING_VAL_EVERY),
+                                      val=(val_cams, val_imgs), return_info=True)
         log(f"ceiling at model={share:g}: {name} fine-tuned, step {info.best_step} of {steps} chosen on "
             f"{len(val_cams)} validation views, in {time.perf_counter() - t:.0f} s")
         out.append(Setting("ceiling", f"model={share:g}", [lod_render(tuned, c, **ctx.render_kw) for c in ctx.cams],
@@ -426,10 +428,32 @@ def cells(comp: Comparison, shares: Sequence[float] = TIME_SHARES) -> list[Cell]
     return out
 
 
+@dataclass(frozen=True)
+class CompareOptions:
+    """How :func:`compare` runs.
+
+    Attributes:
+        merge_tool: a splat-transform executable (None: the decimators are not run).
+        lpips_fn: ``f(img, gt) -> scalar`` or None.
+        repeats: interleaved timing rounds.
+        full_rounds: paired rounds of :func:`full_detail_ratio` (0: not measured).
+        background: [3] colour behind the scene (default black).
+        ceiling_views: ``(fit_cams, fit_imgs, val_cams, val_imgs)`` for the per-budget ceiling
+            (:func:`ceiling_settings`; needs the decimators), or None (not built).
+        ceiling_steps: its fine-tune's length.
+    """
+
+    merge_tool: Optional[str] = None
+    lpips_fn: Optional[Callable] = None
+    repeats: int = 5
+    full_rounds: int = FULL_ROUNDS
+    background: Optional[Sequence[float]] = None
+    ceiling_views: Optional[tuple] = None
+    ceiling_steps: int = CEILING_STEPS
+
+
 def compare(adapted: Gaussians, base: Gaussians, fit_cams: Sequence, cams: Sequence, gts: Sequence, *,
-            max_sv: float, merge_tool: Optional[str] = None, lpips_fn=None, repeats: int = 5,
-            full_rounds: int = FULL_ROUNDS, background=None, significance: Optional[torch.Tensor] = None,
-            ceiling_views: Optional[tuple] = None, ceiling_steps: int = CEILING_STEPS,
+            max_sv: float, options: CompareOptions = CompareOptions(), significance: Optional[torch.Tensor] = None,
             log: Callable[[str], None] = lambda s: None, tick=lambda: None) -> Comparison:
     """The whole comparison of an adapted model with the input it was adapted from.
 
@@ -439,33 +463,28 @@ def compare(adapted: Gaussians, base: Gaussians, fit_cams: Sequence, cams: Seque
         cams, gts: the evaluation views and their images ([H, W, 3] float in [0, 1]).
         max_sv: the adapted model's trained maximum (the equal-count range's low end is
             ``max_sv^-1.5``).
-        merge_tool: a splat-transform executable (None: the decimators are not run).
-        lpips_fn: ``f(img, gt) -> scalar`` or None. repeats: interleaved timing rounds.
-        full_rounds: paired rounds of :func:`full_detail_ratio` (0: not measured).
-        background: [3] colour behind the scene (default black). log: progress lines.
+        options: :class:`CompareOptions` (decimators, LPIPS, timing rounds, background, ceiling).
         significance: [N] LightGaussian significance of ``base`` on ``fit_cams``, when the caller
             has it (default: computed).
-        ceiling_views: ``(fit_cams, fit_imgs, val_cams, val_imgs)`` for the per-budget ceiling
-            (:func:`ceiling_settings`; needs the decimators), or None (not built).
-        ceiling_steps: its fine-tune's length.
-        tick: called after each render.
+        log: progress lines. tick: called after each render.
 
     Raises:
         RuntimeError: a decimator failed.
     """
-    settings, ctx = build_settings(adapted, base, fit_cams, cams, merge_tool=merge_tool, background=background,
+    o = options
+    settings, ctx = build_settings(adapted, base, fit_cams, cams, merge_tool=o.merge_tool, background=o.background,
                                    significance=significance, log=log)
-    score(settings, gts, lpips_fn, tick)
+    score(settings, gts, o.lpips_fn, tick)
     extra = matched_settings(settings, ctx, max_sv)
-    if ceiling_views is not None and merge_tool is not None and ceiling_steps > 0:
-        extra += ceiling_settings(settings, ctx, max_sv, ceiling_views, steps=ceiling_steps, log=log)
-    score(extra, gts, lpips_fn, tick)
+    if o.ceiling_views is not None and o.merge_tool is not None and o.ceiling_steps > 0:
+        extra += ceiling_settings(settings, ctx, max_sv, o.ceiling_views, steps=o.ceiling_steps, log=log)
+    score(extra, gts, o.lpips_fn, tick)
     settings += extra
-    log(f"{len(settings)} settings x {len(cams)} views scored; timing x{repeats} ...")
-    retime(settings, repeats, tick)
-    comp = Comparison(settings, [v.n_in_view for v in ctx.views], max_sv, merge_run=merge_tool is not None)
-    if full_rounds > 0:
-        comp.full_ratio = full_detail_ratio(comp, full_rounds, tick)
+    log(f"{len(settings)} settings x {len(cams)} views scored; timing x{o.repeats} ...")
+    retime(settings, o.repeats, tick)
+    comp = Comparison(settings, [v.n_in_view for v in ctx.views], max_sv, merge_run=o.merge_tool is not None)
+    if o.full_rounds > 0:
+        comp.full_ratio = full_detail_ratio(comp, o.full_rounds, tick)
     return comp
 
 

@@ -16,7 +16,8 @@ from torch import Tensor
 
 
 from ..gaussians import Gaussians
-from ..lod.draw import render_lod
+from ..lod.budget import Budget
+from ..lod.draw import PAPER, render_lod
 from ..metrics import psnr, ssim
 
 
@@ -25,7 +26,7 @@ class LevelMetrics:
     """Metrics of one level of detail averaged over views.
 
     ``s_v`` is None for the plain (non-LoD) model (in budget mode: the mean solved ``s_v``).
-    ``budget`` is the requested budget (None in s_v mode). ``gaussians`` is the mean number of
+    ``budget`` is the requested budget's amount (:attr:`Budget.amount`; None in s_v mode). ``gaussians`` is the mean number of
     Gaussians rendered per view, ``fraction`` that over the model size; times are medians in ms.
     """
 
@@ -54,15 +55,16 @@ def evaluate_level(
     tau: Optional[float] = None,
     background=None,
     backend: str = "auto",
-    budget: Optional[float | int] = None,
+    budget: Optional[Budget] = None,
 ) -> LevelMetrics:
-    """Render every camera at ``s_v`` (None: no LoD) or within ``budget`` (a count, or a fraction
-    of the Gaussians in view; ``s_v`` solved per view, at least 1) and score against ``images``
+    """Render every camera at ``s_v`` (None: no LoD) or within ``budget`` (a
+    :class:`clod_adapter.lod.budget.Budget`; ``s_v`` solved per view, at least its ``min_s_v``)
+    and score against ``images``
     ([H, W, 3])."""
     ps, ss, counts, tms, sel, ras, svs = [], [], [], [], [], [], []
     for cam, gt in zip(cameras, images):
         out = render_lod(gaussians, cam, s_v, tau=tau, background=background, backend=backend,
-                         estimator="paper", budget=budget, budget_in_view=isinstance(budget, float))
+                         eta_grad=PAPER, budget=budget)
         svs.append(out.s_v)
         img = out.image.clamp(0, 1)
         gt = gt.to(img.device)
@@ -77,7 +79,7 @@ def evaluate_level(
     if budget is not None and svs and all(v is not None for v in svs):
         s_v = sum(svs) / len(svs)
     return LevelMetrics(
-        budget=budget, s_v=s_v, psnr=sum(ps) / len(ps), ssim=sum(ss) / len(ss), gaussians=mean_count,
+        budget=None if budget is None else budget.amount, s_v=s_v, psnr=sum(ps) / len(ps), ssim=sum(ss) / len(ss), gaussians=mean_count,
         fraction=mean_count / n, ms_per_frame=statistics.median(tms),
         select_ms=statistics.median(sel), raster_ms=statistics.median(ras), per_view_psnr=ps,
     )

@@ -17,7 +17,8 @@ import torch
 from torch import Tensor
 
 from ..lod.rankings import ranking_selection, render_subset
-from ..lod.draw import render_lod, tier_reach
+from ..lod.budget import Budget
+from ..lod.draw import PAPER, render_lod, tier_reach
 from ..gaussians import Gaussians
 
 #: the sweep's end past the trained maximum (``clod-eval``'s ``s_v`` grid ends at 1.2 ``max_sv``)
@@ -72,7 +73,7 @@ def popping_curve(gaussians: Gaussians, camera, s_vs: Sequence[float], *,
     ``discrete_scores`` [N] (default: opacity), at the Gaussian counts the continuous sweep
     renders at its first and last ``s_v``, switched once at ``switch_s_v`` (default: the middle
     of the range); its step change is 0 except at the switch. With ``budgets``, ``s_vs`` are count
-    budgets instead, shares of the Gaussians in view (``render_lod``'s ``budget_in_view``), in the
+    budgets instead, shares of the Gaussians in view (``Budget(in_view=...)``), in the
     order swept (e.g. 1 down to 0.01).
 
     Returns:
@@ -88,11 +89,11 @@ def popping_curve(gaussians: Gaussians, camera, s_vs: Sequence[float], *,
     frames, counts = [], []
     for s in s_vs:
         if budgets:  # a count-budget sweep: s is a share of the Gaussians in view
-            out = render_lod(gaussians, camera, budget=s, budget_in_view=True, tau=tau, background=background,
-                             backend=backend, estimator="paper")
+            out = render_lod(gaussians, camera, budget=Budget(in_view=s), tau=tau, background=background,
+                             backend=backend, eta_grad=PAPER)
         else:
             out = render_lod(gaussians, camera, s, tau=tau, background=background, backend=backend,
-                             estimator="paper")
+                             eta_grad=PAPER)
         frames.append(out.image.clamp(0, 1))
         counts.append(out.n_rendered)
         if on_render:
@@ -144,7 +145,7 @@ def popping_budget_ratio(model: Gaussians, base: Gaussians, camera, scores: Opti
                          steps: int = SWEEP_STEPS, lowest: float = BUDGET_LOWEST, background=None) -> dict:
     """Popping along a count budget from ``camera``: :func:`popping_curve` of ``model`` at
     ``steps`` budgets log-spaced from all the Gaussians in view down to ``lowest`` of them
-    (shares, ``render_lod``'s ``budget_in_view``), the discrete levels cut from ``base`` by
+    (``Budget(in_view=...)``), the discrete levels cut from ``base`` by
     ``scores`` as :func:`popping_ratio` does. Returns :func:`popping_curve`'s dict (``s_v``: the
     budgets).
 

@@ -28,7 +28,8 @@ from torch import Tensor
 from ..lod import rule as lod
 from ..gaussians import Gaussians, concat
 from ..metrics import psnr
-from ..lod.draw import chain_parts, chain_weights, count_budget_walk, render_lod, tier_chain, tiered
+from ..lod.budget import Budget
+from ..lod.draw import PAPER, chain_parts, chain_weights, count_budget_walk, render_lod, tier_chain, tiered
 from ..lod.view import view_lod
 from ..lod.cut import tree_select
 from ..lod.tree import is_tree
@@ -93,13 +94,14 @@ def _logit(a: Tensor) -> Tensor:
 
 
 @torch.no_grad()
-def bake(gaussians: Gaussians, cameras: Sequence, s_v: Optional[float] = None, budget=None, *,
+def bake(gaussians: Gaussians, cameras: Sequence, s_v: Optional[float] = None, budget: Optional[Budget] = None, *,
          opacity: str = "auto", tau: Optional[float] = None, eps: Optional[float] = None,
          background=None, backend: str = "auto", return_info: bool = False):
     """A standard model (``sigma_d = None``) of the Gaussians one setting renders.
 
     The kept set is the union over ``cameras`` of what :func:`render_lod` draws at ``s_v`` (or,
-    with ``budget``, at each view's solved ``s_v``, never below 1): a superset of each view's
+    with ``budget``, a count :class:`clod_adapter.lod.budget.Budget`, at each view's solved ``s_v``,
+    never below 1): a superset of each view's
     selection, so its count can exceed a budget. Scales and colours are the model's at the mean
     level the views draw (level gains, :meth:`Gaussians.at_level`). A standard file has no decay,
     so opacities are:
@@ -145,7 +147,7 @@ def bake(gaussians: Gaussians, cameras: Sequence, s_v: Optional[float] = None, b
         else:  # an s_v before the first hand-over, or a budget (which may walk down the tiers)
             v0 = view_of(0)
             sel0, par = count_budget_walk(lods, view_of, v0, budget) if budget is not None else \
-                (v0.select(s_v, estimator="paper"), None)
+                (v0.select(s_v, eta_grad=PAPER), None)
             sels = [None] * len(members)
             if par is not None:  # a tier alone, or two mixed (camera_lod.TierBudget)
                 for d, _, sel in par.parts():
@@ -170,7 +172,7 @@ def bake(gaussians: Gaussians, cameras: Sequence, s_v: Optional[float] = None, b
     scores = {}
     if opacity == "auto" or return_info:
         refs = [render_lod(gaussians, cam, s, tau=tau, eps=eps, background=background, backend=backend,
-                           estimator="paper").image for cam, s in zip(cameras, settings)]
+                           eta_grad=PAPER).image for cam, s in zip(cameras, settings)]
         for name, g in cands.items():
             if opacity != "auto" and name != opacity:
                 continue
@@ -340,7 +342,7 @@ def reduce_sh(gaussians: Gaussians, cameras: Sequence, images: Sequence[Tensor],
 
     def score(g: Gaussians) -> float:
         ps = [psnr(render_lod(g, cam, s_v, background=background, backend=backend,
-                              estimator="paper").image, gt, cap=True) for cam, gt in zip(cameras, images)]
+                              eta_grad=PAPER).image, gt, cap=True) for cam, gt in zip(cameras, images)]
         return sum(ps) / max(len(ps), 1)
 
     d0 = gaussians.sh_degree
@@ -382,8 +384,8 @@ def prefix_vs_selection(gaussians: Gaussians, perm: Tensor, cameras: Sequence, i
             r = render_lod(sub, cam, background=background, backend=backend)
             pp.append(psnr(r.image, gt, cap=True))
             cnt.append(r.n_rendered)
-            s = render_lod(gaussians, cam, budget=int(r.n_rendered), min_s_v=0.0, background=background,
-                           backend=backend, estimator="paper")
+            s = render_lod(gaussians, cam, budget=Budget(count=int(r.n_rendered), min_s_v=0.0),
+                           background=background, backend=backend, eta_grad=PAPER)
             ps.append(psnr(s.image, gt, cap=True))
         m = max(len(pp), 1)
         rows.append({"fraction": f, "count": k, "rendered_per_view": sum(cnt) / m,

@@ -37,7 +37,8 @@ from ..io.ply import write_ply
 from ..io.load import load_scene
 from ..render.composite import deterministic_enabled
 from ..gaussians import Gaussians
-from ..lod.draw import render_lod
+from ..lod.budget import Budget
+from ..lod.draw import PAPER, render_lod
 from .adapt_inputs import (METRICS_NAME, PLY_NAME, STRIP_NAME, TENSORBOARD_DIR, TRAINING_PLOT_NAME, Inputs,
                            input_iteration, read_inputs, read_model)
 
@@ -83,9 +84,9 @@ def retime_levels(input_model, model, cameras, levels, *, tau, background, repea
     from ..evaluate.timing import time_interleaved
 
     jobs_ = {"input": [lambda c=c: render_lod(input_model, c, None, tau=tau, background=background,
-                                              estimator="paper") for c in cameras]}
+                                              eta_grad=PAPER) for c in cameras]}
     for s in levels:
-        jobs_[s] = [lambda c=c, s=s: render_lod(model, c, s, tau=tau, background=background, estimator="paper")
+        jobs_[s] = [lambda c=c, s=s: render_lod(model, c, s, tau=tau, background=background, eta_grad=PAPER)
                     for c in cameras]
     return time_interleaved(jobs_, repeats=repeats, warmup=1)
 
@@ -647,7 +648,7 @@ def _evaluate(inp: Inputs, model, cfg: AdaptConfig, o: AdaptOptions, input_eval)
     levels = sv_levels(cfg.max_sv)
     evals = evaluate_levels(model, inp.test_cams, inp.test_imgs, levels, tau=cfg.tau, background=bg)
     budget_evals = [evaluate_level(model, inp.test_cams, inp.test_imgs, None, tau=cfg.tau, background=bg,
-                                   budget=float(b)) for b in budget_levels(cfg.max_sv)]
+                                   budget=Budget(in_view=float(b))) for b in budget_levels(cfg.max_sv)]
     timing = None
     if o.timing_repeats > 0:  # ms/frame of the input and every level, interleaved (load hits all alike)
         timing = retime_levels(inp.input_model, model, inp.test_cams, levels, tau=cfg.tau, background=bg,

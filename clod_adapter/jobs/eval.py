@@ -81,12 +81,12 @@ from ..evaluate import comparison as qvt
 from ..train.state import max_sv_from_state
 from ..lod.rankings import (SIGMA_C_CANDIDATES, Selection, lightgaussian_significance, random_scores, render_subset,
                             tune_sigma_c)
-from ..lod.budget import normalize_budget
+from ..lod.budget import Budget, normalize_budget
 from ..gaussians import Gaussians
 from ..io.atomic import atomic_write
 from ..io.ply import read_ply
 from ..evaluate.storage import ply_bytes, ply_row_bytes
-from ..lod.draw import render_lod, tier_reach
+from ..lod.draw import PAPER, render_lod, tier_reach
 from ..evaluate.popping import SWEEP_OVERSHOOT, SWEEP_STEPS, image_change, popping_curve, popping_sweep  # noqa: F401 (clod-eval's popping)
 from ..metrics import psnr, ssim
 from .eval_methods import BASELINES, DECIMATORS, METHOD_REGISTRY, RankingContext
@@ -191,9 +191,10 @@ def _render_selection(g: Gaussians, cam, sel: Selection, bg) -> Sample:
 
 
 def _render_lod(g: Gaussians, cam, bg, tau, s_v=None, budget=None) -> Sample:
-    # fractional budgets are shares of the Gaussians in view (counts are counts)
-    out = render_lod(g, cam, s_v, budget=budget, tau=tau, background=bg, estimator="paper",
-                     budget_in_view=isinstance(budget, float))
+    # clod-eval's --budgets: fractions are shares of the Gaussians in view, integers counts
+    if budget is not None:
+        budget = Budget(in_view=budget) if isinstance(budget, float) else Budget(count=int(budget))
+    out = render_lod(g, cam, s_v, budget=budget, tau=tau, background=bg, eta_grad=PAPER)
     return Sample(out.image, out.n_rendered, out.s_v, out.select_ms, out.raster_ms)
 
 
@@ -449,10 +450,10 @@ def _compare_time(ev: _Eval, significance: Tensor) -> None:
     (:func:`clod_adapter.evaluate.comparison.compare`, the one ``benchmarks/quality_vs_time.py`` runs),
     with the LightGaussian significance the ranking baselines already computed on the same views."""
     ev.bar.set_postfix_str("quality against time")
-    ev.comparison = qvt.compare(ev.adapted, ev.base, ev.train_cams, ev.cams, ev.gts, max_sv=ev.max_sv,
-                                merge_tool=ev.o.merge_tool, lpips_fn=ev.lpips_fn, repeats=max(ev.o.timing_repeats, 1),
-                                full_rounds=ev.o.full_rounds, background=ev.bg, significance=significance,
-                                tick=ev.tick)
+    opts = qvt.CompareOptions(merge_tool=ev.o.merge_tool, lpips_fn=ev.lpips_fn, repeats=max(ev.o.timing_repeats, 1),
+                              full_rounds=ev.o.full_rounds, background=ev.bg)
+    ev.comparison = qvt.compare(ev.adapted, ev.base, ev.train_cams, ev.cams, ev.gts, max_sv=ev.max_sv, options=opts,
+                                significance=significance, tick=ev.tick)
 
 
 def _eval_inputs(adapted, scene, o: EvalOptions) -> _Eval:
@@ -555,7 +556,7 @@ def _score_dlod(ev: _Eval, b, lab: str, share: float, global_scores: dict) -> No
     views; the test views only score the result), fine-tuned with the recovery schedule on the
     other training views, keeping the checkpoint (every 500 steps, the start included) with the
     best validation PSNR."""
-    from ..train.finetune import best_start, finetune_subset, global_cut
+    from ..train.finetune import FinetuneOptions, best_start, finetune_subset, global_cut
     from ..io.scene import validation_split
 
     fit_cams, val_cams = validation_split(ev.train_cams)
@@ -568,10 +569,10 @@ def _score_dlod(ev: _Eval, b, lab: str, share: float, global_scores: dict) -> No
     best, start, val_scores = best_start(cands, val_cams, val_gts, background=ev.bg,
                                          return_scores=True)
     ev.bar.set_postfix_str(f"{lab} dlod ({best}, {ev.o.dlod_iterations} steps)")
-    level, info = finetune_subset(start, fit_cams, fit_gts, iterations=ev.o.dlod_iterations,
-                                  seed=ev.o.seed, background=ev.bg, return_info=True, progress=ev.o.progress,
-                                  desc=f"clod-eval dlod_finetuned {lab} (from {best})",
-                                  val_cameras=val_cams, val_images=val_gts)
+    level, info = finetune_subset(start, fit_cams, fit_gts,
+                                  FinetuneOptions(iterations=ev.o.dlod_iterations, seed=ev.o.seed, background=ev.bg),
+                                  val=(val_cams, val_gts), return_info=True,
+                                  progress=f"clod-eval dlod_finetuned {lab} (from {best})" if ev.o.progress else None)
     ev.dlod["levels"][lab], ev.dlod["choice"][lab] = len(level), best
     ev.dlod["info"][lab] = {"start": best, "val_psnr": val_scores, "convergence": info.convergence,
                             "loss_every_100": info.loss[::100], "val_psnr_during": info.val_psnr,

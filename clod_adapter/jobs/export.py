@@ -145,12 +145,14 @@ def _reduce(model, scene, train_imgs, test_cams, test_imgs, o: ExportOptions, re
 def _derive(model, scene, test_cams, test_imgs, o: ExportOptions, rep: dict, step):
     """The baked level and the importance-ordered model as asked: (baked or None, ordered or None)."""
     from ..export import bake as ex
+    from ..lod.budget import as_budget
+    from ..lod.draw import PAPER
     from ..metrics import psnr
 
     baked = None
     if o.baked_name is not None:
-        baked, binfo = ex.bake(model, scene.train, s_v=o.s_v, budget=o.budget, return_info=True)
-        lod_ps = [psnr(ex.render_lod(model, c, o.s_v, budget=o.budget, estimator="paper").image, gt, cap=True)
+        baked, binfo = ex.bake(model, scene.train, s_v=o.s_v, budget=as_budget(o.budget), return_info=True)
+        lod_ps = [psnr(ex.render_lod(model, c, o.s_v, budget=as_budget(o.budget), eta_grad=PAPER).image, gt, cap=True)
                   for c, gt in zip(test_cams, test_imgs)]
         bk_ps = [psnr(ex.render_lod(baked, c).image, gt, cap=True) for c, gt in zip(test_cams, test_imgs)]
         rep["baked"] = {"file": o.baked_name, "s_v": o.s_v, "budget": o.budget, "cameras": "train",
@@ -348,7 +350,7 @@ def _bytes(path: Path) -> int:
 def _mean_psnr(ex, model, cams, imgs) -> float:
     from ..metrics import psnr
 
-    ps = [psnr(ex.render_lod(model, c, 1.0, estimator="paper").image, gt, cap=True) for c, gt in zip(cams, imgs)]
+    ps = [psnr(ex.render_lod(model, c, 1.0).image, gt, cap=True) for c, gt in zip(cams, imgs)]
     return sum(ps) / len(ps)
 
 

@@ -13,7 +13,8 @@ means keeping the ``k`` largest ``s*`` (ties broken by index) at any ``s_v`` in
 from __future__ import annotations
 
 import math
-from typing import Optional
+from dataclasses import dataclass, fields
+from typing import TYPE_CHECKING, Optional
 
 import torch
 from torch import Tensor
@@ -21,7 +22,117 @@ from torch import Tensor
 from . import rule as lod
 from ..render.native import load as load_kernels, wanted as kernels_wanted
 
+if TYPE_CHECKING:
+    from .cost import FrameTimeModel
+
 _NEWTON_STEPS = 80
+
+#: the amounts a :class:`Budget` may name (exactly one of them)
+BUDGET_KINDS = ("count", "share", "in_view", "cost", "ms")
+
+
+@dataclass(frozen=True)
+class Budget:
+    """What one frame may draw, instead of a level ``s_v``: exactly one amount.
+
+    Attributes:
+        count: at most this many Gaussians (an int >= 0; on a merge tree, nodes whose centre is in
+            the frustum).
+        share: at most this share (in [0, 1]) of the model's Gaussians.
+        in_view: at most this share (in [0, 1]) of the Gaussians in view (the frustum's; the knob
+            web engines expose as a splat budget).
+        cost: rasterisation cost (:func:`clod_adapter.lod.cost.splat_cost`, clipped ellipse
+            pixels): a float in (0, 1] is that share of the cost of every Gaussian in view, > 1 an
+            absolute cost.
+        ms: predicted rasterisation milliseconds of ``time_model`` (default
+            ``clod_adapter.lod.cost.DEFAULT_FRAME_TIME_MODEL``).
+        time_model: the :class:`clod_adapter.lod.cost.FrameTimeModel` of an ``ms`` budget.
+        min_s_v: the floor of the solved level (default 1, full detail: a budget that holds every
+            Gaussian in view draws full detail); 0 draws exactly the budget whatever ``s_v``
+            (single models; a merge tree's floor is 1).
+
+    Raises:
+        ValueError: not exactly one amount; a negative, non-finite or (for ``count``) non-integral
+            amount; a share above 1; ``time_model`` without ``ms``.
+
+    ``Budget(in_view=0.3)`` is 30 % of the Gaussians in view; ``Budget(count=5000)`` 5,000 of them.
+    """
+
+    count: Optional[int] = None
+    share: Optional[float] = None
+    in_view: Optional[float] = None
+    cost: Optional[float] = None
+    ms: Optional[float] = None
+    time_model: Optional["FrameTimeModel"] = None
+    min_s_v: float = 1.0
+
+    def __post_init__(self) -> None:
+        given = [k for k in BUDGET_KINDS if getattr(self, k) is not None]
+        if len(given) != 1:
+            raise ValueError(f"a Budget names exactly one of {', '.join(BUDGET_KINDS)}; got "
+                             f"{' and '.join(given) or 'none'}")
+        v = float(getattr(self, given[0]))
+        if not math.isfinite(v) or v < 0:
+            raise ValueError(f"Budget {given[0]}={v!r} must be finite and >= 0")
+        if self.count is not None and v != int(v):
+            raise ValueError(f"Budget count={self.count!r} must be an integer")
+        if given[0] in ("share", "in_view") and v > 1.0:
+            raise ValueError(f"Budget {given[0]}={v!r} must be in [0, 1]")
+        if self.time_model is not None and self.ms is None:
+            raise ValueError("Budget: time_model is only read by an ms budget")
+        if not math.isfinite(float(self.min_s_v)):
+            raise ValueError(f"Budget min_s_v={self.min_s_v!r} must be finite")
+
+    @property
+    def kind(self) -> str:
+        """Which amount it names: one of :data:`BUDGET_KINDS`."""
+        return next(k for k in BUDGET_KINDS if getattr(self, k) is not None)
+
+    @property
+    def counts(self) -> bool:
+        """Whether it bounds a number of Gaussians (``count``, ``share`` or ``in_view``)."""
+        return self.kind in ("count", "share", "in_view")
+
+    @property
+    def amount(self) -> float | int:
+        """A count budget's amount as :func:`budget_count` reads it: an int count, or a float
+        share; a cost or time budget's value."""
+        v = getattr(self, self.kind)
+        return int(v) if self.kind == "count" else float(v)
+
+    def floored(self, min_s_v: float) -> "Budget":
+        """This budget with the floor ``min_s_v``."""
+        return Budget(**{f.name: getattr(self, f.name) for f in fields(self) if f.name != "min_s_v"},
+                      min_s_v=float(min_s_v))
+
+    def of(self, n: int, n_in_view: Optional[int] = None) -> int:
+        """A count budget as a number of Gaussians of a model of ``n`` with ``n_in_view`` in view
+        (``in_view`` needs it). Raises ValueError for a cost or time budget."""
+        if not self.counts:
+            raise ValueError(f"a {self.kind} budget is not a count")
+        if self.kind == "in_view":
+            if n_in_view is None:
+                raise ValueError("an in_view budget needs the count in view")
+            return int(round(self.in_view * n_in_view))
+        return budget_count(self.amount, n)
+
+
+def as_budget(budget, min_s_v: float = 1.0) -> Optional[Budget]:
+    """``budget`` as a :class:`Budget`, for the edges that take plain numbers (the renderer
+    hook's gsplat-style keyword, the command line's ``--budget`` after :func:`normalize_budget`):
+    a Budget or None as it is; an int a ``count``, a float a ``share`` of the model (in [0, 1]),
+    with the floor ``min_s_v``.
+
+    Raises:
+        TypeError: not a Budget, an int or a float.
+        ValueError: as :class:`Budget` (negative; a float above 1)."""
+    if budget is None or isinstance(budget, Budget):
+        return budget
+    if isinstance(budget, bool) or not isinstance(budget, (int, float)):
+        raise TypeError(f"a budget is a clod_adapter.Budget, an int count or a float share, got {budget!r}")
+    if isinstance(budget, int):
+        return Budget(count=budget, min_s_v=min_s_v)
+    return Budget(share=float(budget), min_s_v=min_s_v)
 
 
 def critical_s_v(opacities: Tensor, d_norm: Tensor, sigma_d: Tensor, tau: float = lod.DEFAULT_TAU,

@@ -17,7 +17,7 @@ count, cost, time").
 * :func:`splat_cost`: [k] per-Gaussian cost of a :class:`clod_adapter.lod.view.LodView`'s rows,
   from the projection the view already has (no second projection);
 * :func:`cost_prefix`: the top-scored Gaussians in view whose cumulative cost fits a budget
-  (the static cut behind ``LodView.select(budget_cost=...)``, usable by baselines);
+  (the static cut behind ``LodView.select(budget=Budget(cost=...))``, usable by baselines);
 * :class:`FrameTimeModel`: ``ms = c0 + per_cost * cost_sum + per_gaussian * count``.
 """
 from __future__ import annotations
@@ -269,7 +269,7 @@ class FrameTimeModel:
     11 % (skull). Runs while other jobs held one of the cores (wall = CPU time) gave
     ``per_cost_ms`` 7.9e-6 to 1.2e-5: the slope is the machine's and its load's.
     Refit on another machine (or thread count) with that command and pass the printed
-    coefficients (``render_lod(..., budget_ms=..., time_model=FrameTimeModel(...))``).
+    coefficients (``render_lod(..., budget=Budget(ms=..., time_model=FrameTimeModel(...)))``).
     """
 
     c0_ms: float = 0.0
@@ -309,9 +309,7 @@ COST_SAMPLE_TOP = 0.03
 COST_SAMPLE_MIN = 4096
 
 
-def view_cost_count(view, budget_cost: Optional[float] = None, budget_ms: Optional[float] = None, *,
-                    level: Optional[float] = None, time_model: Optional[FrameTimeModel] = None,
-                    min_s_v: float = 1.0) -> int:
+def view_cost_count(view, budget, *, level: Optional[float] = None) -> int:
     """How many Gaussians a cost budget draws: the longest prefix of the count budgets' order
     (the Gaussians in view by :attr:`LodView.critical` descending, ties by index) whose cost fits.
 
@@ -334,24 +332,25 @@ def view_cost_count(view, budget_cost: Optional[float] = None, budget_ms: Option
       hundred huge splats.)
 
     Args:
-        budget_cost: a float in (0, 1]: that share of the cost of drawing every Gaussian in
-            view at full detail (base opacities, level 0); > 1: an absolute cost (pixels,
-            :data:`clod_adapter.lod.cost.COST_UNIT`).
-        budget_ms: predicted rasterisation ms (:class:`clod_adapter.lod.cost.FrameTimeModel`,
-            ``time_model`` or the defaults): the longest prefix whose predicted ms fits.
+        budget: a :class:`clod_adapter.lod.budget.Budget` of ``cost`` (a float in (0, 1]: that
+            share of the cost of drawing every Gaussian in view at full detail, base opacities,
+            level 0; > 1: an absolute cost, pixels, :data:`clod_adapter.lod.cost.COST_UNIT`) or of
+            ``ms`` (predicted rasterisation ms of its ``time_model`` or the defaults: the longest
+            prefix whose predicted ms fits); its ``min_s_v`` is the budget rule of
+            :meth:`LodView.select` (Eq. 2: the ``s_v`` floor of the drawing).
         level: the level of the gains to draw at (window fade; None: from the share).
-        min_s_v: the budget rule of :meth:`LodView.select` (Eq. 2: the ``s_v`` floor of the drawing).
 
     Returns:
         the count k (0 <= k <= :attr:`LodView.n_in_view`), non-decreasing in the budget.
-    """
 
-    if (budget_cost is None) == (budget_ms is None):
-        raise ValueError("cost_count: give budget_cost or budget_ms")
-    b = float(budget_cost if budget_cost is not None else budget_ms)
-    if not b >= 0:
-        raise ValueError(f"render_lod: cost budgets must be >= 0, got {b}")
-    tm = time_model or DEFAULT_FRAME_TIME_MODEL
+    Raises:
+        ValueError: a count budget.
+    """
+    if budget.kind not in ("cost", "ms"):
+        raise ValueError(f"cost_count: a cost or ms budget, not {budget.kind}")
+    budget_ms, min_s_v = budget.ms, budget.min_s_v
+    b = float(budget.amount)
+    tm = budget.time_model or DEFAULT_FRAME_TIME_MODEL
     order, fp, weights = _view_cost_weights(view, level)
     n_vis = order.numel()
     if n_vis == 0:
@@ -390,7 +389,7 @@ def _view_cost_weights(view, level: Optional[float] = None):
 
 def view_full_cost(view) -> float:
     """The cost (:func:`clod_adapter.lod.cost.splat_cost`, pixels) of every Gaussian in view at full
-    detail: what a ``budget_cost`` share is a share of."""
+    detail: what a ``Budget(cost=...)`` share is a share of."""
     if not view.n_in_view:
         return 0.0
     if view._costs is not None and view._costs[0] == 0.0:  # a cost budget's weights: the same cost

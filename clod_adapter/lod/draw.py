@@ -20,13 +20,16 @@ from torch import Tensor
 
 from . import rule as lod
 from . import tree
-from ..lod_settings import Estimator
+from ..lod_settings import EtaGradient
 from ..render.dispatch import Backend
-from .budget import budget_count
-from .cost import FrameTimeModel
+from .budget import Budget
 from .cut import tree_cut, tree_select
 from ..gaussians import Gaussians
 from .view import EPS2D, LodSelection, LodView, composite_parts, view_lod
+
+#: ``eta`` without a gradient (selections for drawing only)
+PAPER = EtaGradient("paper")
+
 
 # --- the one-call forms ---------------------------------------------------------------------------
 @dataclass
@@ -83,21 +86,14 @@ def render_lod(
     camera,
     s_v: Optional[float] = None,
     *,
-    budget: Optional[float | int] = None,
+    budget: Optional[Budget] = None,
     tau: Optional[float] = None,
     eps: Optional[float] = None,
-    estimator: Estimator = "ste",
-    temperature: float = 1.0,
+    eta_grad: EtaGradient = EtaGradient(),
     background: Optional[Sequence[float] | Tensor] = None,
     sh_degree: Optional[int] = None,
     backend: Backend = "auto",
-    eta_grad_sigma_only: bool = True,
-    min_s_v: float = 1.0,
-    budget_in_view: bool = False,
     level: Optional[float] = None,
-    budget_cost: Optional[float] = None,
-    budget_ms: Optional[float] = None,
-    time_model: Optional[FrameTimeModel] = None,
     view: Optional[LodView] = None,
 ) -> LodRender:
     """Render ``gaussians`` from ``camera`` at virtual distance scale ``s_v`` (or a budget).
@@ -119,39 +115,34 @@ def render_lod(
         camera: any object with ``viewmat`` [4, 4] (world-to-camera), ``K`` [3, 3] (pixels),
             ``width``, ``height`` (e.g. :class:`clod_adapter.io.scene.Camera`).
         s_v: virtual distance scale >= 1, or None for the plain model (no LoD, every Gaussian).
-        budget: render exactly this many Gaussians (int) or this fraction of the model (float
-            in [0, 1]) instead of a given ``s_v``: the ``s_v`` is solved exactly per view
-            (:mod:`clod_adapter.lod.budget`), capped by the Gaussians in view.
+        budget: a :class:`clod_adapter.lod.budget.Budget` instead of a given ``s_v``: the ``s_v``
+            solved exactly per view (:mod:`clod_adapter.lod.budget`), capped by the Gaussians in
+            view, and raised to at least its ``min_s_v`` (default 1, the full-detail level, so a
+            budget acts as a cap: a budget that holds every Gaussian in view renders full detail)
+            where the level raised to draws no more than the budget (with the window fade, full
+            detail draws every Gaussian in view, so a smaller budget draws its ``k`` at the solved
+            ``s_v`` below 1); ``min_s_v = 0`` draws exactly the budget whatever ``s_v``. A count
+            budget (``count``, ``share`` of the model, ``in_view`` share of the Gaussians in view)
+            never draws more than its count. A ``cost`` budget (rasterisation cost instead of a
+            count) draws the Gaussians in view with the largest critical ``s_v`` (the count
+            budgets' order, so a prefix of it) while their summed
+            :func:`clod_adapter.lod.cost.splat_cost` (clipped ellipse pixels) fits; a float in
+            (0, 1] is that share of the cost of every Gaussian in view, > 1 an absolute cost
+            (:meth:`LodView.cost_count`). An ``ms`` budget (predicted rasterisation ms,
+            ``raster_ms``; the projection is not in it): the longest such prefix whose
+            :class:`clod_adapter.lod.cost.FrameTimeModel` prediction (its ``time_model``, default
+            the fitted one) fits. On a model with a parent tier, a cost budget whose prefix lands
+            where the ``s_v`` rule draws the parents alone draws the parents alone within it
+            (:func:`cost_budget_parents`); on a merge tree every budget is a cut of the tree
+            (:func:`clod_adapter.lod.cut.tree_cut`).
         tau: LoD threshold (mask ``alpha'' > tau s_v``); default the model's (0.005).
         eps: Eq. 2's epsilon; default the model's (1e-8).
-        estimator, temperature: gradient of ``eta`` (see :func:`clod_adapter.lod.rule.rendered_fraction`).
+        eta_grad: how ``eta`` carries a gradient (training; :class:`clod_adapter.lod_settings.EtaGradient`).
         background: [3] colour behind the scene (default black, as 3DGS on LLFF).
         sh_degree: SH degree to evaluate (default: the model's).
         backend: rasteriser backend (``"auto"``, ``"cpu"``, ``"gsplat"``).
-        eta_grad_sigma_only: ``eta``'s gradient reaches ``sigma_d`` only (opacities and positions
-            detached in its margin), so the count regulariser cuts Gaussians through their decay
-            instead of eroding their opacity at every level of detail.
-        min_s_v: budget mode only: the solved ``s_v`` is raised to at least this (default 1,
-            the full-detail level, so a budget acts as a cap: a budget that holds every
-            Gaussian in view renders full detail), where the level raised to draws no more than
-            the budget: with the window fade, full detail (``min_s_v <= 1``) draws every Gaussian
-            in view, so a smaller budget draws its ``k`` at the solved ``s_v`` below 1. A budget
-            never draws more than ``budget`` Gaussians. 0 renders exactly ``budget`` Gaussians
-            whatever ``s_v``.
-        budget_in_view: a fractional ``budget`` is a share of the Gaussians in view, not of the
-            model (the calibrated schedule's training).
         level: window fade only: draw the level gains at this level in [0, 1] instead of
             :func:`clod_adapter.lod.rule.level_of_fraction` of the share of the Gaussians in view drawn.
-        budget_cost: a budget in rasterisation cost instead of a count: the Gaussians in view
-            with the largest critical ``s_v`` (the count budgets' order, so a prefix of it)
-            while their summed :func:`clod_adapter.lod.cost.splat_cost` (clipped ellipse pixels)
-            fits; a float in (0, 1] is that share of the cost of every Gaussian in view, > 1 an
-            absolute cost (:meth:`LodView.cost_count`). ``min_s_v`` applies as to ``budget``.
-        budget_ms: a budget in predicted rasterisation ms (``raster_ms``; the projection is not
-            in it): the longest such prefix whose :class:`clod_adapter.lod.cost.FrameTimeModel`
-            prediction (``time_model``, default the fitted one) fits. On a model with a parent
-            tier, a cost budget whose prefix lands where the ``s_v`` rule draws the parents alone
-            draws the parents alone within it (:func:`cost_budget_parents`).
         view: this model's :class:`LodView` for ``camera`` when the caller has built it (its
             projection and critical ``s_v`` are reused); default: built here.
 
@@ -160,28 +151,24 @@ def render_lod(
 
     Raises:
         ValueError: ``s_v`` or a budget given but the model has no ``sigma_d``; ``s_v < 1``;
-            more than one of ``s_v``, ``budget``, ``budget_cost``, ``budget_ms`` given.
+            both ``s_v`` and ``budget`` given.
+        TypeError: a ``budget`` that is not a :class:`clod_adapter.lod.budget.Budget`.
     """
-    if _tree_frame(gaussians, s_v, budget, level, budget_cost, budget_ms):
-        return _render_tree(gaussians, camera, s_v, budget=budget, budget_cost=budget_cost, budget_ms=budget_ms,
-                           time_model=time_model, budget_in_view=budget_in_view, background=background,
-                           sh_degree=sh_degree, backend=backend)
+    _check_budget(budget)
+    if _tree_frame(gaussians, s_v, budget, level):
+        return _render_tree(gaussians, camera, s_v, budget=budget, background=background,
+                            sh_degree=sh_degree, backend=backend)
     if tiered(gaussians, s_v, level):
         return _render_tiered(gaussians, camera, float(s_v), tau, eps, background,
                               gaussians.sh_degree if sh_degree is None else sh_degree, backend, view)
     if view is None:
         view = view_lod(gaussians, camera, tau=tau, eps=eps)
     p0, t1 = view.project_ms, time.perf_counter()
-    walked, par = _budget_parents_first(gaussians, camera, view, level=level, budget=budget, min_s_v=min_s_v,
-                                        budget_in_view=budget_in_view, budget_cost=budget_cost, budget_ms=budget_ms,
-                                        time_model=time_model, tau=tau, eps=eps)
+    walked, par = _budget_parents_first(gaussians, camera, view, level=level, budget=budget, tau=tau, eps=eps)
     if par is None:
-        sel = view.select(s_v, budget=budget, min_s_v=min_s_v, budget_in_view=budget_in_view, level=level,
-                          estimator=estimator, temperature=temperature, eta_grad_sigma_only=eta_grad_sigma_only,
-                          budget_cost=budget_cost, budget_ms=budget_ms, time_model=time_model)
+        sel = view.select(s_v, budget=budget, level=level, eta_grad=eta_grad)
         if not walked and level is None:
-            par = cost_budget_parents(gaussians, camera, view, sel, budget=budget, budget_cost=budget_cost,
-                                      budget_ms=budget_ms, time_model=time_model, tau=tau, eps=eps)
+            par = cost_budget_parents(gaussians, camera, view, sel, budget=budget, tau=tau, eps=eps)
     if par is not None:  # past a hand-over: a tier alone, or two mixed (count budgets), within the budget
         return _render_budget_parts(gaussians, par, t1, background,
                                     gaussians.sh_degree if sh_degree is None else sh_degree, backend)
@@ -199,11 +186,16 @@ def render_lod(
                      raster_ms=(t3 - t2) * 1e3, meta=meta)
 
 
-def _tree_frame(gaussians: Gaussians, s_v, budget, level, budget_cost, budget_ms) -> bool:
+def _check_budget(budget) -> None:
+    if budget is not None and not isinstance(budget, Budget):
+        raise TypeError(f"render_lod: budget must be a clod_adapter.Budget (e.g. Budget(in_view=0.3), "
+                        f"Budget(count=5000)), got {budget!r}")
+
+
+def _tree_frame(gaussians: Gaussians, s_v, budget, level) -> bool:
     """Whether a frame of a merge-tree model (:func:`clod_adapter.lod.tree.is_tree`) is one cut of the
-    tree: at an ``s_v`` or any budget, no ``level`` given."""
-    return (tree.is_tree(gaussians) and level is None
-            and any(x is not None for x in (s_v, budget, budget_cost, budget_ms)))
+    tree: at an ``s_v`` or a budget, no ``level`` given."""
+    return tree.is_tree(gaussians) and level is None and (s_v is not None or budget is not None)
 
 
 def tiered(gaussians: Gaussians, s_v: Optional[float], level: Optional[float] = None) -> bool:
@@ -291,9 +283,8 @@ class TierBudget(NamedTuple):
         return by_depth.get(0, empty), [by_depth.get(k + 1, empty) for k in range(n_tiers)]
 
 
-def cost_budget_parents(gaussians: Gaussians, camera, view: LodView, sel: Optional[LodSelection], *, budget=None,
-                        budget_cost=None, budget_ms=None, time_model=None, tau=None, eps=None,
-                        count: Optional[int] = None):
+def cost_budget_parents(gaussians: Gaussians, camera, view: LodView, sel: Optional[LodSelection], *,
+                        budget: Optional[Budget] = None, tau=None, eps=None, count: Optional[int] = None):
     """A budget on a model with tiers (:func:`budget_walk` with the model's :func:`tier_chain`):
     a :class:`TierBudget` (the tier drawn, its selection, the model's ``s_v`` it stands for, its
     depth >= 1), else None (the model's own
@@ -303,34 +294,32 @@ def cost_budget_parents(gaussians: Gaussians, camera, view: LodView, sel: Option
     if len(models) < 2:
         return None
     return budget_walk([m.lod for m in models], lambda k: view_lod(models[k], camera, tau=tau, eps=eps), view, sel,
-                       budget=budget, budget_cost=budget_cost, budget_ms=budget_ms, time_model=time_model,
-                       count=count)
+                       budget=budget, count=count)
 
 
-def _budget_parents_first(gaussians: Gaussians, camera, view: LodView, *, level, budget, min_s_v, budget_in_view,
-                          budget_cost, budget_ms, time_model, tau, eps) -> tuple[bool, Optional[tuple]]:
+def _budget_parents_first(gaussians: Gaussians, camera, view: LodView, *, level, budget: Optional[Budget], tau,
+                          eps) -> tuple[bool, Optional[tuple]]:
     """A budget on a tiered model walked before the model's own selection is solved (which it
     then never needs where a tier takes the budget over): ``(walked, cost_budget_parents' answer)``;
     ``walked`` False where the walk needs that selection first (a count budget whose count the
     rule does not give, :meth:`LodView.budget_drawn`; a share of the Gaussians in view)."""
     models = tier_chain(gaussians)
-    if level is not None or (budget is None and budget_cost is None and budget_ms is None) or len(models) < 2:
+    if level is not None or budget is None or len(models) < 2:
         return False, None
     count = None
-    if budget is not None:
-        if budget_in_view:
+    if budget.counts:
+        if budget.kind == "in_view":
             return False, None
         # tier 1 cannot take a count over its size: the budget is then solved in this view
-        count = view.budget_drawn(budget, min_s_v, solving=_taken_at(budget_count(budget, view.n)) > len(models[1]))
+        count = view.budget_drawn(budget, solving=_taken_at(view.count_of(budget)) > len(models[1]))
         if count is None:
             return False, None
-    return True, cost_budget_parents(gaussians, camera, view, None, budget=budget, budget_cost=budget_cost,
-                                     budget_ms=budget_ms, time_model=time_model, tau=tau, eps=eps, count=count)
+    return True, cost_budget_parents(gaussians, camera, view, None, budget=budget, tau=tau, eps=eps, count=count)
 
 
 def budget_walk(settings: Sequence[lod.LodSettings], view_of: Callable[[int], LodView], view: LodView,
-                sel: Optional[LodSelection] = None, *, budget=None, budget_cost=None, budget_ms=None, time_model=None,
-                depth: int = 0, count: Optional[int] = None):
+                sel: Optional[LodSelection] = None, *, budget: Optional[Budget] = None, depth: int = 0,
+                count: Optional[int] = None):
     """A budget down a chain of tiers (docs/lod_rule.md "The tiers"; ``settings[k]`` tier ``k``'s,
     ``view_of(k)`` its :class:`LodView` of the camera, ``sel`` tier ``depth``'s own solution of the
     budget in ``view``). The next tier takes the budget when it can fill it from where the
@@ -359,13 +348,14 @@ def budget_walk(settings: Sequence[lod.LodSettings], view_of: Callable[[int], Lo
         ValueError: a count budget with neither ``sel`` nor ``count``."""
     from .cost import DEFAULT_FRAME_TIME_MODEL, splat_cost
 
-    if budget is None and budget_cost is None and budget_ms is None:
+    if budget is None:
         return None
     if sel is not None and sel.s_v is None:
         return None
     view_of = _memo(view_of)
+    budget_cost, budget_ms, time_model = budget.cost, budget.ms, budget.time_model
     k = None
-    if budget_ms is None and budget_cost is None:
+    if budget.counts:
         if sel is None and count is None:
             raise ValueError("budget_walk: a count budget needs the tier's selection or its count")
         k = int(sel.indices.numel()) if count is None else int(count)
@@ -395,9 +385,9 @@ def budget_walk(settings: Sequence[lod.LodSettings], view_of: Callable[[int], Lo
             solving = not _may_take(settings, view_of, d + 1, k0)  # the budget ends here if it fits
             fits = vn.draws_at_least(st.tier_start, _taken_at(k0), solving=solving)
             if fits:
-                drawn = vn.budget_drawn(k0, st.tier_start, solving=solving)
+                drawn = vn.budget_drawn(Budget(count=k0, min_s_v=st.tier_start), solving=solving)
                 if drawn is None:  # not given by the rule: solve it
-                    sel_n = vn.select(budget=k0, min_s_v=st.tier_start)
+                    sel_n = vn.select(budget=Budget(count=k0, min_s_v=st.tier_start))
                     drawn = int(sel_n.indices.numel())
                 k = drawn
         if not fits:
@@ -409,11 +399,11 @@ def budget_walk(settings: Sequence[lod.LodSettings], view_of: Callable[[int], Lo
     start = settings[d - 1].tier_start
     if sel_p is None:
         if budget_ms is not None:
-            sel_p = vp.select(budget_ms=budget_ms, time_model=time_model, min_s_v=start)
+            sel_p = vp.select(budget=budget.floored(start))
         elif b is not None:
-            sel_p = vp.select(budget_cost=b, min_s_v=start)
+            sel_p = vp.select(budget=Budget(cost=b, min_s_v=start))
         else:
-            sel_p = vp.select(budget=k, min_s_v=start)
+            sel_p = vp.select(budget=Budget(count=k, min_s_v=start))
     s_equiv = sel_p.s_v
     for f in reversed(scales):  # from the deepest tier up, as each hand-over maps it
         s_equiv = s_equiv * f
@@ -421,8 +411,8 @@ def budget_walk(settings: Sequence[lod.LodSettings], view_of: Callable[[int], Lo
 
 
 def count_budget_walk(settings: Sequence[lod.LodSettings], view_of: Callable[[int], LodView], view: LodView,
-                      budget: float | int, min_s_v: float = 1.0) -> tuple[Optional[LodSelection], Optional[TierBudget]]:
-    """A count ``budget`` (as :meth:`LodView.select`'s) on tier 0's ``view`` of a chain of tiers:
+                      budget: Budget) -> tuple[Optional[LodSelection], Optional[TierBudget]]:
+    """A count ``budget`` (``count`` or ``share``) on tier 0's ``view`` of a chain of tiers:
     ``(tier 0's own selection or None, budget_walk's answer or None)``, exactly one of them set.
     The walk goes first where the rule gives tier 0's count (:meth:`LodView.budget_drawn`), so
     tier 0's selection is solved only where the budget stays in it (the renderer hook's and
@@ -432,12 +422,12 @@ def count_budget_walk(settings: Sequence[lod.LodSettings], view_of: Callable[[in
         ValueError: as :meth:`LodView.select` (a negative budget; no ``sigma_d``).
     """
     view_of = _memo(view_of)
-    solving = len(settings) < 2 or not _may_take(settings, view_of, 0, budget_count(budget, view.n))
-    count = view.budget_drawn(budget, min_s_v, solving=solving) if len(settings) > 1 else None
-    sel = None if count is not None else view.select(budget=budget, min_s_v=min_s_v, estimator="paper")
+    solving = len(settings) < 2 or not _may_take(settings, view_of, 0, view.count_of(budget))
+    count = view.budget_drawn(budget, solving=solving) if len(settings) > 1 else None
+    sel = None if count is not None else view.select(budget=budget, eta_grad=PAPER)
     par = budget_walk(settings, view_of, view, sel, budget=budget, count=count) if len(settings) > 1 else None
     if par is None and sel is None:
-        sel = view.select(budget=budget, min_s_v=min_s_v, estimator="paper")
+        sel = view.select(budget=budget, eta_grad=PAPER)
     return sel, par
 
 
@@ -586,24 +576,21 @@ class LodSubset:
 
 
 @torch.no_grad()
-def lod_subset(gaussians: Gaussians, camera, s_v: Optional[float] = None, *,
-               budget: Optional[float | int] = None, tau: Optional[float] = None,
-               eps: Optional[float] = None, min_s_v: float = 1.0, budget_cost: Optional[float] = None,
-               budget_ms: Optional[float] = None, time_model: Optional[FrameTimeModel] = None) -> LodSubset:
+def lod_subset(gaussians: Gaussians, camera, s_v: Optional[float] = None, *, budget: Optional[Budget] = None,
+               tau: Optional[float] = None, eps: Optional[float] = None) -> LodSubset:
     """The Gaussians :func:`render_lod` hands to the rasteriser for ``camera`` and their drawn
     attributes (same arguments; no gradient). For viewers and exporters that rasterise
     elsewhere. A model with a parent tier, at an ``s_v`` past its ``tier_s_v``: the Gaussians
     and the parents it draws there, concatenated (:class:`LodSubset` ``parent_indices``); at a
     budget past it, the tier it ends in alone (:func:`cost_budget_parents`). No ``s_v`` and no
-    budget (``budget``, ``budget_cost``, ``budget_ms``): every Gaussian in view, unchanged.
+    budget: every Gaussian in view, unchanged.
 
     Raises:
-        ValueError: as :func:`render_lod`.
+        ValueError, TypeError: as :func:`render_lod`.
     """
-    if _tree_frame(gaussians, s_v, budget, None, budget_cost, budget_ms):
-        c, (means, quats, scales, opacities, colors) = tree_select(gaussians, camera, s_v, budget=budget,
-                                                                   budget_cost=budget_cost, budget_ms=budget_ms,
-                                                                   time_model=time_model)
+    _check_budget(budget)
+    if _tree_frame(gaussians, s_v, budget, None):
+        c, (means, quats, scales, opacities, colors) = tree_select(gaussians, camera, s_v, budget=budget)
         return LodSubset(indices=c.ids[0], means=means, quats=quats, scales=scales, opacities=opacities,
                          colors=colors, s_v=c.s_v, n_in_view=c.n_frustum, parent_indices=c.ids[1],
                          tier_indices=list(c.ids[1:]))
@@ -617,17 +604,13 @@ def lod_subset(gaussians: Gaussians, camera, s_v: Optional[float] = None, *,
                          opacities=torch.cat([sel.opacities for _, sel in parts]), colors=cat[3],
                          s_v=float(s_v), n_in_view=parts[0][0].n_in_view, parent_indices=ti[0], tier_indices=ti)
     view = view_lod(gaussians, camera, tau=tau, eps=eps)
-    walked, par = _budget_parents_first(gaussians, camera, view, level=None, budget=budget, min_s_v=min_s_v,
-                                        budget_in_view=False, budget_cost=budget_cost, budget_ms=budget_ms,
-                                        time_model=time_model, tau=tau, eps=eps)
+    walked, par = _budget_parents_first(gaussians, camera, view, level=None, budget=budget, tau=tau, eps=eps)
     n_tiers = len(tier_chain(gaussians)) - 1
     if par is not None:  # past a hand-over: a tier alone, or two mixed (count budgets)
         return _tier_subset(par, n_tiers)
-    sel = view.select(s_v, budget=budget, min_s_v=min_s_v, estimator="paper", budget_cost=budget_cost,
-                      budget_ms=budget_ms, time_model=time_model)
+    sel = view.select(s_v, budget=budget, eta_grad=PAPER)
     if not walked:
-        par = cost_budget_parents(gaussians, camera, view, sel, budget=budget, budget_cost=budget_cost,
-                                  budget_ms=budget_ms, time_model=time_model, tau=tau, eps=eps)
+        par = cost_budget_parents(gaussians, camera, view, sel, budget=budget, tau=tau, eps=eps)
         if par is not None:
             return _tier_subset(par, n_tiers)
     means, quats, scales, colors = view.drawn_attributes(sel)
@@ -647,9 +630,8 @@ def _tier_subset(par: TierBudget, n_tiers: int) -> LodSubset:
                      s_v=par.s_v, n_in_view=parts[0][0].n_in_view, parent_indices=ti[0], tier_indices=ti)
 
 
-def _render_tree(gaussians: Gaussians, camera, s_v: Optional[float] = None, *, budget=None, budget_cost=None,
-                 budget_ms=None, time_model=None, budget_in_view: bool = False, background=None,
-                 sh_degree: Optional[int] = None, backend: str = "auto"):
+def _render_tree(gaussians: Gaussians, camera, s_v: Optional[float] = None, *, budget: Optional[Budget] = None,
+                 background=None, sh_degree: Optional[int] = None, backend: str = "auto"):
     """:func:`render_lod` of a tree model at ``s_v`` or a budget: one cut (:func:`tree_select`)
     rasterised as one set. Returns its ``LodRender`` (``selection``: tier 0's drawn rows;
     ``n_rendered``: the cut's nodes in view, as the rasteriser culls them; ``n_parents``: the merged
@@ -666,8 +648,7 @@ def _render_tree(gaussians: Gaussians, camera, s_v: Optional[float] = None, *, b
     if s_v is not None and float(s_v) <= 1.0:
         return whole()
     t0 = time.perf_counter()
-    c = tree_cut(gaussians, camera, s_v, budget=budget, budget_cost=budget_cost, budget_ms=budget_ms,
-                  time_model=time_model, budget_in_view=budget_in_view, whole_as_none=True)
+    c = tree_cut(gaussians, camera, s_v, budget=budget, whole_as_none=True)
     if c is None or c.s_v <= 1.0:  # the budget holds tier 0: drawn whole, as s_v = 1 draws it
         return whole((time.perf_counter() - t0) * 1e3)
     means, quats, scales, opacities, colors = tree.cut_attributes(tree.tiers_of(gaussians), c)

@@ -18,6 +18,7 @@ Without ``sigma_d``, or with neither ``s_v`` nor ``budget``, it is exactly ``ras
 """
 from __future__ import annotations
 
+from types import SimpleNamespace
 from typing import Any, Dict, Optional, Tuple
 
 import torch
@@ -25,7 +26,8 @@ from torch import Tensor
 
 from . import rule as lod
 from ..render.dispatch import rasterization
-from .draw import chain_parts, count_budget_walk, rasterize_views
+from .budget import Budget, as_budget
+from .draw import PAPER, chain_parts, count_budget_walk, rasterize_views
 from .view import view_lod_tensors
 from .cut import tree_select
 
@@ -193,7 +195,7 @@ def clod_rasterization(
     *,
     sigma_d: Optional[Tensor] = None,
     s_v: Optional[float] = None,
-    budget: Optional[float | int] = None,
+    budget: Optional[float | int | Budget] = None,
     lod_settings: Optional[lod.LodSettings] = None,
     opacity_logit_gain: Optional[Tensor] = None,
     log_scale_gain: Optional[Tensor] = None,
@@ -221,7 +223,9 @@ def clod_rasterization(
         s_v: virtual distance scale (>= 1); render the Gaussians with ``alpha'' > tau s_v``.
         budget: instead of ``s_v``: render exactly this many Gaussians (int) or this fraction
             of N (float in [0, 1]) per camera, ``s_v`` solved per camera (capped by the
-            Gaussians in view; never more; raised to at least ``min_s_v``, see ``render_lod``).
+            Gaussians in view; never more; raised to at least ``min_s_v``, see ``render_lod``),
+            or a :class:`clod_adapter.lod.budget.Budget` (its own ``min_s_v``; a merge tree takes
+            every kind, other models count budgets: ``count``, ``share``, ``in_view``).
         lod_settings: how the model is drawn (:class:`clod_adapter.lod.rule.LodSettings`; the
             adapted .ply's ``Gaussians.lod``); None: the paper's Eq. 2 drawing.
         opacity_logit_gain, log_scale_gain: [N] level gains, sh0_gain: [N, 1, 3] (SH colours
@@ -262,13 +266,16 @@ def clod_rasterization(
 
     Raises:
         ValueError: ``s_v`` and ``budget`` both given, ``s_v < 1``, ``sigma_d`` of the wrong
-            shape, ``parents`` missing a tensor, an unsupported mode or keyword value.
+            shape, ``parents`` missing a tensor, an unsupported mode or keyword value, a cost or
+            time budget on a model that is not a merge tree.
+        TypeError: a ``budget`` that is not a number or a ``Budget``.
     """
     _refuse_unsupported(packed, render_mode, rasterize_mode, kwargs)
     common = dict(near_plane=near_plane, far_plane=far_plane, radius_clip=radius_clip, eps2d=eps2d,
                   sh_degree=sh_degree, tile_size=tile_size, backend=backend)
     if s_v is not None and budget is not None:
         raise ValueError("clod_rasterization: give s_v or budget, not both")
+    budget = as_budget(budget, min_s_v)  # gsplat-style numbers become one Budget here
     if sigma_d is None or (s_v is None and budget is None):
         return rasterization(means, quats, scales, opacities, colors, viewmats, Ks, width, height,
                              backgrounds=backgrounds, **common)
@@ -279,8 +286,14 @@ def clod_rasterization(
     gains = {"opacity_logit_gain": opacity_logit_gain, "log_scale_gain": log_scale_gain, "sh0_gain": sh0_gain}
     logits = _logits(opacities, opacity_logits)
     if parents is not None and lod_settings is not None and lod_settings.tree and lod_settings.tier_s_v > 0:
-        return _tree_frames(means, quats, scales, logits, colors, sigma_d, lod_settings, (parent, lod_exit), parents,
-                            viewmats, Ks, w, h, s_v, budget, backgrounds, sh_degree, backend, per_cam_colors)
+        if parent is None or lod_exit is None:
+            raise ValueError("clod_rasterization: lod_settings.tree needs parent= and lod_exit= (clod_kwargs gives them)")
+        return _tree_frames(lambda c: _tree_model(means, quats, scales, logits, colors, sigma_d, lod_settings,
+                                                  (parent, lod_exit), parents, c),
+                            per_cam_colors, colors.ndim == 3 and not per_cam_colors, viewmats, Ks, w, h, s_v, budget,
+                            backgrounds, sh_degree, backend)
+    if budget is not None and not budget.counts:
+        raise ValueError(f"clod_rasterization: a {budget.kind} budget needs a merge tree (count budgets otherwise)")
     tier = (s_v is not None and parents is not None and lod_settings is not None and lod_settings.tier_s_v > 0
             and lod.tier_weight(float(s_v), lod_settings)[0] > 0)
     has_tiers = parents is not None and lod_settings is not None and lod_settings.tier_s_v > 0
@@ -289,14 +302,15 @@ def clod_rasterization(
     imgs, alphas, metas, svs, counts, indices, n_par, par_idx, tier_idx = [], [], [], [], [], [], [], [], []
     for c in range(C):
         col = colors[c] if per_cam_colors else colors
+        cam = SimpleNamespace(viewmat=viewmats[c], K=Ks[c], width=w, height=h)
 
-        def view_of(k, col=col, c=c):
+        def view_of(k, col=col, c=c, cam=cam):
             if k == 0:
-                return view_lod_tensors(means, quats, scales, logits, col, viewmats[c], Ks[c], w, h, sigma_d=sigma_d,
+                return view_lod_tensors(means, quats, scales, logits, col, cam, sigma_d=sigma_d,
                                         gains=gains, settings=lod_settings, tau=tau, eps=eps)
             p, p_logits, p_gains = chain[k - 1]
             return view_lod_tensors(p["means"], p["quats"], p["scales"], p_logits,
-                                    p["colors"][c] if per_cam_colors else p["colors"], viewmats[c], Ks[c], w, h,
+                                    p["colors"][c] if per_cam_colors else p["colors"], cam,
                                     sigma_d=p["sigma_d"], gains=p_gains, settings=p.get("lod_settings"), tau=tau, eps=eps)
 
         bg = None if backgrounds is None else backgrounds[c]
@@ -310,9 +324,9 @@ def clod_rasterization(
         else:
             view = view_of(0)
             if budget is not None:
-                sel, par = count_budget_walk(lods, view_of, view, budget, min_s_v)
+                sel, par = count_budget_walk(lods, view_of, view, budget)
             else:
-                sel, par = view.select(s_v, estimator="paper"), None
+                sel, par = view.select(s_v, eta_grad=PAPER), None
             empty = view.means.new_zeros(0, dtype=torch.long)
             t_idx = [empty] * len(chain)
             if par is not None:  # a budget past a hand-over: a tier alone or two mixed (camera_lod.budget_walk)
@@ -337,23 +351,20 @@ def clod_rasterization(
     return torch.cat(imgs, 0), torch.cat(alphas, 0), out_meta
 
 
-def _tree_frames(means, quats, scales, logits, colors, sigma_d, settings, parent, parents, viewmats, Ks, w, h,
-                 s_v, budget, backgrounds, sh_degree, backend, per_cam_colors):
+def _tree_frames(model_of, per_cam_colors: bool, sh_colors: bool, viewmats, Ks, w, h, s_v,
+                 budget: Optional[Budget], backgrounds, sh_degree, backend):
     """:func:`clod_rasterization` of a merge tree: per camera the cut of :func:`clod_adapter.lod.cut.tree_select`
-    rasterised as one set (meta as documented there; ``lod_tier_indices`` the cut's rows per tier)."""
-    from types import SimpleNamespace
-
-    if parent[0] is None or parent[1] is None:
-        raise ValueError("clod_rasterization: lod_settings.tree needs parent= and lod_exit= (clod_kwargs gives them)")
+    rasterised as one set (meta as documented there; ``lod_tier_indices`` the cut's rows per tier).
+    ``model_of(c)``: the tree as :class:`Gaussians` with camera ``c``'s colours (None: shared
+    colours, built once); ``sh_colors``: the colours are SH [N, K, 3] (else [N, D])."""
     imgs, alphas, metas, svs, counts, indices, n_par, par_idx, tier_idx = [], [], [], [], [], [], [], [], []
     g = None
     for c in range(viewmats.shape[0]):
         if g is None or per_cam_colors:
-            g = _tree_model(means, quats, scales, logits, colors, sigma_d, settings, parent, parents,
-                            c if per_cam_colors else None)
+            g = model_of(c if per_cam_colors else None)
         cam = SimpleNamespace(viewmat=viewmats[c], K=Ks[c], width=w, height=h)
         cut, (m, q, sc, op, col) = tree_select(g, cam, s_v, budget=budget)
-        col = col if (colors.ndim == 3 and not per_cam_colors) else col[:, 0]  # [k, 1, D] back to [k, D]
+        col = col if sh_colors else col[:, 0]  # [k, 1, D] back to [k, D]
         bg = None if backgrounds is None else backgrounds[c][None]
         rc, ra, meta = rasterization(m, q, sc, op, col, viewmats[c][None], Ks[c][None], w, h, sh_degree=sh_degree,
                                      backgrounds=bg, backend=backend)

@@ -40,10 +40,10 @@ import torch
 from torch import Tensor
 
 from . import rule as lod
-from ..lod_settings import Estimator
+from ..lod_settings import EtaGradient
 from ..render.dispatch import Backend
-from .budget import budget_count, critical_s_v, select_budget
-from .cost import FrameTimeModel, view_cost_count, view_full_cost, view_full_detail_estimate
+from .budget import Budget, critical_s_v, select_budget
+from .cost import view_cost_count, view_full_cost, view_full_detail_estimate
 from ..gaussians import Gaussians
 from ..render.projection import VisibleProjection, finish_projection, project_geometry
 
@@ -340,44 +340,42 @@ class LodView:
         self._held = max(self._held, n_vis)
         return n_vis >= k
 
-    def budget_drawn(self, budget: float | int, min_s_v: float = 1.0, *, solving: bool = False) -> Optional[int]:
-        """How many Gaussians ``select(budget=budget, min_s_v=min_s_v)`` draws, without solving it,
-        where the rule gives the count: window fade and ``min_s_v <= 1`` (full detail is the
-        floor), ``min(k, n_in_view)`` for ``k`` = :func:`clod_adapter.lod.budget.budget_count` of the
-        budget, found by :meth:`draws_at_least` (``solving`` as there); None otherwise (solve it).
-
-        Raises:
-            ValueError: a negative budget.
+    def budget_drawn(self, budget: Budget, *, solving: bool = False) -> Optional[int]:
+        """How many Gaussians ``select(budget=budget)`` draws (a count budget), without solving it,
+        where the rule gives the count: window fade and ``budget.min_s_v <= 1`` (full detail is the
+        floor), ``min(k, n_in_view)`` for ``k`` = :meth:`Budget.of` this view, found by
+        :meth:`draws_at_least` (``solving`` as there); None otherwise (solve it).
         """
-        if self.settings.fade != "window" or min_s_v > 1.0:
+        if self.settings.fade != "window" or budget.min_s_v > 1.0:
             return None
-        k = budget_count(budget, self.n)
+        k = self.count_of(budget)
         return k if self.draws_at_least(1.0, k, solving=solving) else self.n_in_view
 
+    def count_of(self, budget: Budget) -> int:
+        """A count ``budget`` as a number of this model's Gaussians (:meth:`Budget.of`; an
+        ``in_view`` share of :attr:`n_in_view`)."""
+        return budget.of(self.n, self.n_in_view if budget.kind == "in_view" else None)
+
     # --- selection -----------------------------------------------------------------------------
-    def select(self, s_v: Optional[float] = None, *, budget: Optional[float | int] = None,
-               min_s_v: float = 1.0, budget_in_view: bool = False, level: Optional[float] = None,
-               estimator: Estimator = "ste", temperature: float = 1.0,
-               eta_grad_sigma_only: bool = True, budget_cost: Optional[float] = None,
-               budget_ms: Optional[float] = None, time_model: Optional[FrameTimeModel] = None) -> LodSelection:
-        """What this camera draws at ``s_v`` or within ``budget``, ``budget_cost`` or
-        ``budget_ms`` (arguments as :func:`render_lod`). A cost budget draws the count
-        :meth:`cost_count` gives, as a count budget of that size would (same Gaussians, same
-        ``s_v``, the ``min_s_v`` rule).
+    def select(self, s_v: Optional[float] = None, *, budget: Optional[Budget] = None,
+               level: Optional[float] = None, eta_grad: EtaGradient = EtaGradient()) -> LodSelection:
+        """What this camera draws at ``s_v`` or within ``budget`` (arguments as :func:`render_lod`).
+        A cost or time budget draws the count :meth:`cost_count` gives, as a count budget of that
+        size would (same Gaussians, same ``s_v``, the ``min_s_v`` rule).
 
         Raises:
-            ValueError: more than one of ``s_v``, ``budget``, ``budget_cost``, ``budget_ms``;
-                ``s_v < 1``; a negative cost budget; LoD without ``sigma_d``.
+            ValueError: both ``s_v`` and ``budget``; ``s_v < 1``; LoD without ``sigma_d``.
         """
-        given = [k for k, v in (("s_v", s_v), ("budget", budget), ("budget_cost", budget_cost),
-                                ("budget_ms", budget_ms)) if v is not None]
-        if len(given) > 1:
-            raise ValueError(f"render_lod: give one of s_v, budget, budget_cost, budget_ms, not {' and '.join(given)}")
-        if budget_cost is not None or budget_ms is not None:
-            budget = self.cost_count(budget_cost, budget_ms, level=level, time_model=time_model, min_s_v=min_s_v)
-            budget_in_view = False
+        if s_v is not None and budget is not None:
+            raise ValueError("render_lod: give one of s_v and budget, not both")
+        min_s_v = 1.0 if budget is None else budget.min_s_v
+        k = None
+        if budget is not None and not budget.counts:
+            k = self.cost_count(budget, level=level)
+        elif budget is not None:
+            k = self.count_of(budget)
         dev = self.means.device
-        if s_v is None and budget is None:
+        if s_v is None and k is None:
             idx = self._projection()[1]
             return LodSelection(idx, self.opacities.index_select(0, idx), self.visible, None, 0.0,
                                 torch.ones((), dtype=self.means.dtype, device=dev))
@@ -386,11 +384,8 @@ class LodView:
             raise ValueError(f"render_lod: s_v must be >= 1, got {s_v}")
         st = self.settings
         opac, sd = self.opacities, self.sigma_d
-        if budget is not None:
-            if budget_in_view and isinstance(budget, float) and budget <= 1.0:
-                budget = int(round(budget * self.n_in_view))
+        if k is not None:
             crit = self.critical
-            k = budget_count(budget, self.n)
             prefix = self._visible_prefix(k + 1)  # the visible among a prefix of the order, or None
             pool = self.visible if prefix is None else prefix
             idx, s_used = select_budget(crit, k, pool)
@@ -423,10 +418,10 @@ class LodView:
             if self._proj[2] is None:  # a projection of the whole model served: the kept among its visible
                 idx = keep[self.visible.index_select(0, keep)]
             mask = None  # built on use (LodSelection.mask): an s_v frame does not need the [N] mask
-            if estimator != "paper" and torch.is_grad_enabled() and sd.requires_grad:
-                m_eta = (lod.lod_margin(opac.detach(), d, sd, s_used, st.tau, st.eps) if eta_grad_sigma_only
+            if eta_grad.estimator != "paper" and torch.is_grad_enabled() and sd.requires_grad:
+                m_eta = (lod.lod_margin(opac.detach(), d, sd, s_used, st.tau, st.eps) if eta_grad.sigma_only
                          else lod.lod_margin(opac, self.d_norm, sd, s_used, st.tau, st.eps))
-                eta = lod.rendered_fraction(m_eta, self.frustum, estimator, temperature)
+                eta = lod.rendered_fraction(m_eta, self.frustum, eta_grad.estimator, eta_grad.temperature)
             else:
                 eta = (self.frustum.index_select(0, idx).sum() / max(self.n_frustum, 1)).to(self.means.dtype)
         if st.fade == "eq2":
@@ -466,11 +461,9 @@ class LodView:
         eta = self._share_in_frustum(mask)
         return LodSelection(all_idx, torch.sigmoid(logits) * w, self.visible, s_v, float(level), eta)
 
-    def cost_count(self, budget_cost: Optional[float] = None, budget_ms: Optional[float] = None, *,
-                   level: Optional[float] = None, time_model: Optional[FrameTimeModel] = None,
-                   min_s_v: float = 1.0) -> int:
-        """:func:`clod_adapter.lod.cost.view_cost_count` of this view."""
-        return view_cost_count(self, budget_cost, budget_ms, level=level, time_model=time_model, min_s_v=min_s_v)
+    def cost_count(self, budget: Budget, *, level: Optional[float] = None) -> int:
+        """:func:`clod_adapter.lod.cost.view_cost_count` of this view (a cost or time ``budget``)."""
+        return view_cost_count(self, budget, level=level)
 
     def full_cost(self) -> float:
         """:func:`clod_adapter.lod.cost.view_full_cost` of this view."""
@@ -590,20 +583,20 @@ class LodView:
 
 
 def view_lod_tensors(means: Tensor, quats: Tensor, scales: Tensor, opacity_logits: Tensor, colors: Tensor,
-                     viewmat: Tensor, K: Tensor, width: int, height: int, *, sigma_d: Optional[Tensor] = None,
-                     gains: Optional[dict] = None, settings: Optional[lod.LodSettings] = None,
-                     tau: Optional[float] = None, eps: Optional[float] = None) -> LodView:
+                     camera, *, sigma_d: Optional[Tensor] = None, gains: Optional[dict] = None,
+                     settings: Optional[lod.LodSettings] = None, tau: Optional[float] = None,
+                     eps: Optional[float] = None) -> LodView:
     """:class:`LodView` of raw tensors: ``means`` [N, 3], ``quats`` [N, 4] (wxyz), ``scales``
     [N, 3] (activated), ``opacity_logits`` [N] (raw), ``colors`` [N, K, 3] SH (a tensor, or
-    :class:`ShParts` to gather only the drawn rows) or [N, D] features,
-    ``viewmat`` [4, 4] world-to-camera, ``K`` [3, 3] (pixels), ``width``/``height`` (pixels),
-    ``sigma_d`` [N], ``gains`` {Gaussians gain field: tensor}, ``settings`` (default: the paper's
-    Eq. 2 drawing), ``tau``/``eps`` overrides."""
+    :class:`ShParts` to gather only the drawn rows) or [N, D] features, seen by ``camera`` (as
+    :func:`view_lod`'s: ``viewmat`` [4, 4] world-to-camera, ``K`` [3, 3] pixels, ``width`` /
+    ``height`` pixels); ``sigma_d`` [N], ``gains`` {Gaussians gain field: tensor}, ``settings``
+    (default: the paper's Eq. 2 drawing), ``tau``/``eps`` overrides."""
     t0 = time.perf_counter()
     dt = means.dtype
-    viewmat = viewmat.to(means.device, dt)
-    K = K.to(means.device, dt)
-    w, h = int(width), int(height)
+    viewmat = camera.viewmat.to(means.device, dt)
+    K = camera.K.to(means.device, dt)
+    w, h = int(camera.width), int(camera.height)
     d_norm = None
     if means.requires_grad and torch.is_grad_enabled():  # d' keeps its gradient (on first use)
         frustum = lod.in_frustum(means, viewmat, K, w, h, NEAR_PLANE)
@@ -621,8 +614,8 @@ def view_lod(gaussians: Gaussians, camera, *, tau: Optional[float] = None,
     ``camera``: any object with ``viewmat`` [4, 4] (world-to-camera, OpenCV axes), ``K`` [3, 3]
     (pixels), ``width``, ``height`` (e.g. :class:`clod_adapter.io.scene.Camera`)."""
     g = gaussians
-    return view_lod_tensors(g.means, g.quats, lod.activated(g.log_scales, "exp"), g.opacity_logits, ShParts(g.sh0, g.shN), camera.viewmat, camera.K,
-                            camera.width, camera.height, sigma_d=g.sigma_d,
+    return view_lod_tensors(g.means, g.quats, lod.activated(g.log_scales, "exp"), g.opacity_logits,
+                            ShParts(g.sh0, g.shN), camera, sigma_d=g.sigma_d,
                             gains={k: getattr(g, k) for k in ("opacity_logit_gain", "log_scale_gain", "sh0_gain")},
                             settings=g.lod, tau=tau, eps=eps)
 

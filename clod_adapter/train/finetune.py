@@ -133,43 +133,67 @@ def _plain(g: Gaussians) -> Gaussians:
     return Gaussians(**{k: getattr(g, k) for k in _FIELDS})
 
 
-def finetune_subset(gaussians: Gaussians, train_cameras: Sequence, train_images: Sequence[Tensor], *,
-                    iterations: int = RECOVERY_ITERATIONS, lr_scale: float = 1.0, seed: int = 0,
-                    background=(0.0, 0.0, 0.0), backend: str = "auto", progress: bool = False,
-                    desc: str = "dlod", schedule: str = "recovery", decay: float = RECOVERY_DECAY,
-                    return_info: bool = False, val_cameras: Optional[Sequence] = None,
-                    val_images: Optional[Sequence[Tensor]] = None, val_every: int = 500):
-    """Fine-tune every attribute of ``gaussians`` (a fixed subset, no LoD, no densification).
+@dataclass(frozen=True)
+class FinetuneOptions:
+    """How :func:`finetune_subset` trains.
 
-    Each step renders one training view (shuffled, without replacement per epoch) with the whole
-    model and takes an Adam step on ``0.8 L1 + 0.2 D-SSIM``; learning rates by ``schedule``
-    (module docstring, :func:`means_lr`), times ``lr_scale``.
-
-    Args:
-        gaussians: the level's model (N Gaussians; ``sigma_d`` and gains are dropped).
-        train_cameras, train_images: training views and [H, W, 3] float32 images in [0, 1].
+    Attributes:
         iterations: optimisation steps (default 5000, LightGaussian's recovery).
         lr_scale: factor on every learning rate.
         seed: seed of the view order.
         background: RGB behind the scene.
         backend: rasteriser backend.
-        progress: show progress (:func:`clod_adapter.progress.progress_bar`: a tqdm bar on a
-            terminal, a line every 10 % of the steps in a log).
         schedule: ``"recovery"`` (default) or ``"official"`` (the first version's behaviour).
         decay: ``"recovery"``: the position rate at the end over the one at the start.
-        return_info: also return a :class:`FinetuneInfo` (loss per step, convergence).
-        val_cameras, val_images: validation views (not among the training views) and their
+        val_every: with validation views, score them every this many steps (0: only at the start
+            and after the last).
+    """
+
+    iterations: int = RECOVERY_ITERATIONS
+    lr_scale: float = 1.0
+    seed: int = 0
+    background: Sequence[float] = (0.0, 0.0, 0.0)
+    backend: str = "auto"
+    schedule: str = "recovery"
+    decay: float = RECOVERY_DECAY
+    val_every: int = 500
+
+
+def finetune_subset(gaussians: Gaussians, train_cameras: Sequence, train_images: Sequence[Tensor],
+                    options: FinetuneOptions = FinetuneOptions(), *, val: Optional[tuple] = None,
+                    progress: Optional[str] = None, return_info: bool = False):
+    """Fine-tune every attribute of ``gaussians`` (a fixed subset, no LoD, no densification).
+
+    Each step renders one training view (shuffled, without replacement per epoch) with the whole
+    model and takes an Adam step on ``0.8 L1 + 0.2 D-SSIM``; learning rates by ``options.schedule``
+    (module docstring, :func:`means_lr`), times ``options.lr_scale``.
+
+    Args:
+        gaussians: the level's model (N Gaussians; ``sigma_d`` and gains are dropped).
+        train_cameras, train_images: training views and [H, W, 3] float32 images in [0, 1].
+        options: :class:`FinetuneOptions` (steps, rates, seed, background, schedule).
+        val: ``(cameras, images)``, validation views (not among the training views) and their
             [H, W, 3] images: the model is scored on them at the start, every ``val_every`` steps
             and after the last, and the best of those checkpoints is returned (the start when no
             step beats it: a fine-tune that fits the training views at the cost of held-out ones,
             as on skull, does not end below where it began).
+        progress: the label of a progress display (:func:`clod_adapter.progress.progress_bar`: a
+            tqdm bar on a terminal, a line every 10 % of the steps in a log); None: none.
+        return_info: also return a :class:`FinetuneInfo` (loss per step, convergence).
 
     Returns:
         the fine-tuned model (detached copy), or ``(model, FinetuneInfo)`` with ``return_info``.
+
+    Raises:
+        ValueError: an unknown schedule.
     """
     from ..metrics import psnr
     from ..progress import progress_bar
 
+    o = options
+    iterations, lr_scale, schedule, decay = o.iterations, o.lr_scale, o.schedule, o.decay
+    background, backend, val_every = o.background, o.backend, o.val_every
+    val_cameras, val_images = val if val is not None else (None, None)
     if schedule not in FINETUNE_SCHEDULES:
         raise ValueError(f"schedule must be one of {FINETUNE_SCHEDULES}, got {schedule!r}")
     g = _plain(gaussians).clone()
@@ -183,7 +207,7 @@ def finetune_subset(gaussians: Gaussians, train_cameras: Sequence, train_images:
         lr = lr_of(0) if k == "means" else OFFICIAL_LR[k] * lr_scale
         groups.append({"params": [params[k]], "lr": lr, "name": k})
     opt = torch.optim.Adam(groups, eps=1e-15)
-    gen = torch.Generator().manual_seed(seed)
+    gen = torch.Generator().manual_seed(o.seed)
     order: list = []
     losses: list = []
     val_history: list = []
@@ -202,7 +226,7 @@ def finetune_subset(gaussians: Gaussians, train_cameras: Sequence, train_images:
             best = (p, step, {k: v.detach().clone() for k, v in params.items()})
 
     validate(0)
-    bar = progress_bar(iterations, desc, unit="step", disable=not progress, leave=False)
+    bar = progress_bar(iterations, progress or "", unit="step", disable=progress is None, leave=False)
     for it in range(iterations):
         for grp in opt.param_groups:
             if grp["name"] == "means":

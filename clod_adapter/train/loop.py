@@ -31,7 +31,8 @@ import torch
 from torch import Tensor
 
 from ..lod import rule as lod
-from ..lod.budget import critical_s_v
+from ..lod.budget import Budget, critical_s_v
+from ..lod_settings import EtaGradient
 from ..gaussians import Gaussians
 from .losses import clod_loss, render_loss
 from ..lod.draw import render_lod
@@ -315,16 +316,16 @@ def view_loss(g: Gaussians, camera, gt: Tensor, s_v: float, cfg: AdaptConfig, ba
         # the level's exact share of the view's weighted cost, drawn with the level's gains
         view = view_lod(g, camera, tau=cfg.tau, eps=cfg.eps)
         k = weighted_count(view, lod.target_fraction(s_v), cfg.cost_exponent)
-        out = render_lod(g, camera, budget=max(k, 1), min_s_v=0.0, tau=cfg.tau, eps=cfg.eps,
+        out = render_lod(g, camera, budget=Budget(count=max(k, 1), min_s_v=0.0), tau=cfg.tau, eps=cfg.eps,
                          background=cfg.background, backend=backend, view=view)
     elif cfg.schedule == "calibrated":
         # the level's exact share of the Gaussians in view, drawn with the level's gains
-        out = render_lod(g, camera, budget=lod.target_fraction(s_v), budget_in_view=True,
-                         min_s_v=0.0, tau=cfg.tau, eps=cfg.eps, background=cfg.background,
+        out = render_lod(g, camera, budget=Budget(in_view=lod.target_fraction(s_v), min_s_v=0.0),
+                         tau=cfg.tau, eps=cfg.eps, background=cfg.background,
                          backend=backend)
     else:
         out = render_lod(g, camera, s_v, tau=cfg.tau, eps=cfg.eps,
-                         estimator=cfg.eta_estimator, temperature=cfg.temperature,
+                         eta_grad=EtaGradient(cfg.eta_estimator, cfg.temperature),
                          background=cfg.background, backend=backend)
     l_render = render_loss(out.image, gt)
     loss, _ = clod_loss(l_render, out.eta, s_v, cfg.max_sv, cfg.lambda_reg)

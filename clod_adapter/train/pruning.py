@@ -25,7 +25,7 @@ from typing import Callable, Optional, Sequence
 import torch
 from torch import Tensor
 
-from .finetune import finetune_subset, global_cut
+from .finetune import FinetuneOptions, finetune_subset, global_cut
 from ..gaussians import Gaussians
 
 #: ``AdaptConfig.faint_share``'s calibrated default: a Gaussian whose blending weight summed over
@@ -175,10 +175,11 @@ def leave_out(gaussians: Gaussians, cameras: Sequence, images, *,
     fit, val = validation_split(list(cameras))
     info = LeaveOutInfo(float(keep_share), n, len(kept), int(recovery_steps), len(fit), len(val))
     if recovery_steps > 0:
-        kept, ft = finetune_subset(kept, fit, [images[index[id(c)]] for c in fit], iterations=recovery_steps,
-                                   background=background, seed=seed, backend=backend, progress=progress,
-                                   desc="recovery", return_info=True, val_cameras=val,
-                                   val_images=[images[index[id(c)]] for c in val], val_every=0)
+        kept, ft = finetune_subset(kept, fit, [images[index[id(c)]] for c in fit],
+                                   FinetuneOptions(iterations=recovery_steps, background=background, seed=seed,
+                                                   backend=backend, val_every=0),
+                                   val=(val, [images[index[id(c)]] for c in val]), return_info=True,
+                                   progress="recovery" if progress else None)
         info.held_out_psnr = [[int(s), round(float(p), 3)] for s, p in ft.val_psnr]
         info.chosen_step = int(ft.best_step or 0)
         if log is not None:

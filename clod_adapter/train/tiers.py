@@ -160,13 +160,13 @@ def finetuned(merged: Gaussians, cameras: Sequence, images: Sequence, steps: int
     moment matching keeps each cluster's mass and covariance, not its look; a few hundred steps
     recover most of what it lost (docs/studies.md "Merged tiers"). ``steps = 0`` returns
     ``merged``. Images are [H, W, 3] float32 in [0, 1]; the count and SH degree are unchanged."""
-    from .finetune import finetune_subset
+    from .finetune import FinetuneOptions, finetune_subset
 
     if steps <= 0:
         return merged
     bg = (0.0, 0.0, 0.0) if background is None else background
-    return finetune_subset(merged, list(cameras), list(images), iterations=int(steps), background=bg, seed=seed,
-                           val_every=0)
+    return finetune_subset(merged, list(cameras), list(images),
+                           FinetuneOptions(iterations=int(steps), background=bg, seed=seed, val_every=0))
 
 
 def attach(gaussians: Gaussians, parents: Gaussians, tier_s_v: float, tier_start: float = 1.0,

@@ -31,6 +31,7 @@ from clod_adapter.io.scene import Camera
 
 from .cameras import ViewPose, camera_from_pose, default_start_view, scene_start_view
 from .model import DEFAULT_MAX_SV
+from ..lod.budget import Budget
 from .selection import (DEFAULT_MAX_DRAWN, METHOD_ALL, METHOD_STATIC, ViewPayload, view_payload)
 from .raster_time import RasterTimeModel, calibrate_raster_time
 
@@ -134,7 +135,7 @@ class _Session:
         if self.mode.value == MODE_SV:
             s["s_v"] = float(self.sv.value)
         else:
-            s["budget"] = float(self.budget.value) / 100.0
+            s["budget"] = Budget(share=min(float(self.budget.value) / 100.0, 1.0))
         return s
 
     def _run(self) -> None:

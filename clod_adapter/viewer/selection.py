@@ -22,6 +22,7 @@ from torch import Tensor
 
 from clod_adapter.lod.rankings import ranking_selection
 from clod_adapter.gaussians import Gaussians
+from clod_adapter.lod.budget import Budget
 from clod_adapter.lod.draw import lod_subset
 from clod_adapter.render.projection import quat_to_rotmat_rows
 from clod_adapter.render.sh import spherical_harmonics
@@ -108,7 +109,7 @@ def view_colors(means: Tensor, sh: Tensor, sh_degree: int, campos: Tensor) -> Te
 
 @torch.no_grad()
 def view_payload(gaussians: Gaussians, camera, *, s_v: Optional[float] = None,
-                 budget: Optional[float | int] = None, compare: bool = False,
+                 budget: Optional[Budget] = None, compare: bool = False,
                  max_drawn: int = DEFAULT_MAX_DRAWN) -> ViewPayload:
     """The Gaussians a viewer sends for ``camera`` at one level, ready for viser.
 
@@ -118,12 +119,12 @@ def view_payload(gaussians: Gaussians, camera, *, s_v: Optional[float] = None,
         camera: ``viewmat`` [4, 4] world-to-camera, ``K`` [3, 3], ``width``, ``height``
             (e.g. :func:`clod_adapter.viewer.cameras.camera_from_pose`).
         s_v: virtual distance scale >= 1, or
-        budget: a count (int) or fraction of the model (float in [0, 1]); as
-            :func:`clod_adapter.lod.draw.lod_subset` (a budget is a cap at the s_v = 1 level).
+        budget: a :class:`clod_adapter.lod.budget.Budget`, as :func:`clod_adapter.lod.draw.lod_subset`
+            (a budget is a cap at the s_v = 1 level).
             Neither: s_v = 1.
         compare: send the static opacity cut at the count the level draws instead.
         max_drawn: cap on what is sent (>= 1): a larger level is replaced by
-            ``lod_subset(..., budget=max_drawn)``.
+            ``lod_subset(..., budget=Budget(count=max_drawn))``.
 
     Raises:
         ValueError: ``s_v < 1``, both ``s_v`` and ``budget``, ``max_drawn < 1``.
@@ -148,7 +149,7 @@ def view_payload(gaussians: Gaussians, camera, *, s_v: Optional[float] = None,
         sub = lod_subset(g, camera, s_v=s_v, budget=budget)
         n_level, capped = int(sub.means.shape[0]), False  # a parent tier's rows included
         if n_level > max_drawn:
-            sub, capped = lod_subset(g, camera, budget=int(max_drawn)), True
+            sub, capped = lod_subset(g, camera, budget=Budget(count=int(max_drawn))), True
         used_sv = sub.s_v
         if compare:
             sel = ranking_selection(g.with_sigma_d(None), camera, g.opacities, int(sub.means.shape[0]))

@@ -495,7 +495,8 @@ def test_an_internal_error_is_not_reported_as_bad_input(tiny_model, tmp_path, mo
     from clod_adapter.errors import InputError
     from clod_adapter.io.ply import PlyFormatError
     from clod_adapter.io.scene import SceneError
-    from clod_adapter.jobs import adapt_inputs, run_cli
+    from clod_adapter.cli.common import run_cli
+    from clod_adapter.jobs import adapt_inputs
 
     def broken(*a, **k):
         raise ValueError("internal: an index went wrong")

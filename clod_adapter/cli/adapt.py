@@ -21,8 +21,9 @@ import os
 import sys
 from pathlib import Path
 
-from clod_adapter import jobs
-from clod_adapter.jobs import InputError, check_flag
+from clod_adapter.cli import common
+from clod_adapter.cli.common import check_flag
+from clod_adapter.errors import InputError
 
 EXAMPLE = ("clod-adapt ../shared/data/fern/pretrained -s ../shared/data/fern --resolution 2 --max-sv 5 "
            "-o runs/fern")
@@ -37,7 +38,7 @@ def _shares(text: str) -> tuple:
 
 
 def build_parser():
-    p = jobs.make_parser(
+    p = common.make_parser(
         "clod-adapt",
         "Fine-tune a per-Gaussian distance decay sigma_d (CLoD-GS, Cheng et al. ICLR 2026) on a "
         "pretrained 3DGS model so one model renders from full detail down to a small fraction of its "
@@ -50,7 +51,7 @@ def build_parser():
                    help="the same as MODEL (the official 3DGS flag)")
     p.add_argument("--iteration", type=int, default=None, metavar="N",
                    help="with a model folder: use point_cloud/iteration_N (default: the largest N)")
-    jobs.add_scene_flags(p, resolution_note="; use the resolution the checkpoint was trained at")
+    common.add_scene_flags(p, resolution_note="; use the resolution the checkpoint was trained at")
     p.add_argument("--max-sv", type=float, default=5.0, help="largest virtual distance scale trained (default 5)")
     p.add_argument("-o", "--output", metavar="OUT",
                    help="output folder, new or empty (default: ./clod_out; demo ./clod_demo)")
@@ -178,7 +179,7 @@ def _run_flags(p) -> None:
                    help=argparse.SUPPRESS)  # benchmarks' --split val: fit without the validation views, score on them
     p.add_argument("--demo", action="store_true",
                    help="build the embedded synthetic scene and pretrained model in OUT/demo and adapt it")
-    jobs.add_common_flags(p)
+    common.add_common_flags(p)
 
 
 def _config(args, world: int):
@@ -211,7 +212,7 @@ EXIT_PEER_LOST = 1
 
 
 def main(argv: list[str] | None = None) -> int:
-    jobs.thread_defaults()  # before torch is imported (OpenMP reads it when it loads)
+    common.thread_defaults()  # before torch is imported (OpenMP reads it when it loads)
     args = build_parser().parse_args(argv)
 
     def body() -> int:
@@ -222,9 +223,9 @@ def main(argv: list[str] | None = None) -> int:
 
             if not isinstance(e, PeerLost):
                 raise
-            print(f"clod-adapt: error: {jobs.one_line(e)}", file=sys.stderr, flush=True)
+            print(f"clod-adapt: error: {common.one_line(e)}", file=sys.stderr, flush=True)
             return EXIT_PEER_LOST
-    code = jobs.run_cli("clod-adapt", body)
+    code = common.run_cli("clod-adapt", body)
     if "clod_adapter.train.distributed" in sys.modules:  # a data-parallel process: end it without the
         from clod_adapter.train.distributed import exit_process  # interpreter's shutdown (see there)
 
@@ -258,7 +259,7 @@ def _main(args) -> int:
         raise InputError("--demo runs in one process; build the demo first (clod-adapt --demo -o OUT), then "
                          "torchrun ... -m clod_adapter.cli.adapt OUT/demo/pretrained/point_cloud.ply --images OUT/demo/scene")
     world = int(os.environ.get("WORLD_SIZE", "1")) if distributed else 1
-    jobs.set_threads(args.threads)
+    common.set_threads(args.threads)
     # Imports after parsing so --help is instant.
     from clod_adapter.jobs.adapt import AdaptOptions, run
 

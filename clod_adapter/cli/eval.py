@@ -19,20 +19,22 @@ import sys
 from pathlib import Path
 
 from clod_adapter import jobs
-from clod_adapter.jobs import InputError, check_flag
+from clod_adapter.cli import common
+from clod_adapter.cli.common import check_flag
+from clod_adapter.errors import InputError
 
 EXAMPLE = ("clod-eval runs/skull --images ../shared/data/skull --pretrained ../shared/data/skull/pretrained "
            "-o runs/skull_report")
 
 
 def build_parser():
-    p = jobs.make_parser(
+    p = common.make_parser(
         "clod-eval",
         "Quality against frame time of an adapted CLoD-GS model: compare it with the peers a user already "
         "has (LightGaussian and opacity cuts, splat-transform's decimators) at equal frame time and within "
         "equal count budgets, sweep it over s_v and budgets, measure popping, and write a report with a verdict "
         "(Markdown, CSV, JSON, plots).", EXAMPLE)
-    jobs.add_adapted_inputs(p)
+    common.add_adapted_inputs(p)
     p.add_argument("--pretrained", metavar="PRE",
                    help="pretrained model the baselines cut: .ply (INRIA, compressed), gsplat ckpt .pt, an "
                         "official model folder or a folder holding one .ply (default: the adapted model "
@@ -71,14 +73,14 @@ def build_parser():
     p.add_argument("--background", default="black", choices=("black", "white"),
                    help="colour behind the scene (NeRF-synthetic RGBA images are composited over it)")
     p.add_argument("-o", "--output", metavar="REPORT", help="report folder, new or empty (default: ./clod_report)")
-    jobs.add_common_flags(p)
+    common.add_common_flags(p)
     return p
 
 
 def main(argv: list[str] | None = None) -> int:
-    jobs.thread_defaults()  # before torch is imported
+    common.thread_defaults()  # before torch is imported
     args = build_parser().parse_args(argv)
-    return jobs.run_cli("clod-eval", lambda: _main(args))
+    return common.run_cli("clod-eval", lambda: _main(args))
 
 
 def _check_flags(args) -> None:
@@ -155,12 +157,12 @@ def _main(args) -> int:
     _check_flags(args)
     ply, scene_root = Path(args.ply), Path(args.images)
     out = Path(args.output or "clod_report")
-    budgets = jobs.parse_budgets(args.budgets, "--budgets") if args.budgets is not None else None
+    budgets = common.parse_budgets(args.budgets, "--budgets") if args.budgets is not None else None
     if not ply.exists():
         raise InputError(f"{ply}: no such file")
     if not scene_root.is_dir():
         raise InputError(f"{scene_root}: no such scene folder")
-    jobs.set_threads(args.threads)
+    common.set_threads(args.threads)
 
     from clod_adapter.train.state import max_sv_from_state
     from clod_adapter.io.splat_transform import PeerError
@@ -197,7 +199,7 @@ def _main(args) -> int:
     try:
         report = evaluate_report(ply, scene, out, options)
     except PeerError as e:  # a peer that fails stops the report: it never silently drops out
-        print(f"clod-eval: error: {jobs.one_line(e)} (--no-merge runs without the decimators)", file=sys.stderr)
+        print(f"clod-eval: error: {common.one_line(e)} (--no-merge runs without the decimators)", file=sys.stderr)
         return 1
     print(f"clod-eval: wrote the report to {out} in {report['wall_seconds']:.0f} s (verdict: {out / 'report.md'})")
     return 0

@@ -28,21 +28,23 @@ import sys
 from pathlib import Path
 
 from clod_adapter import jobs
-from clod_adapter.jobs import InputError, check_flag
+from clod_adapter.cli import common
+from clod_adapter.cli.common import check_flag
+from clod_adapter.errors import InputError
 
 EXAMPLE = ("clod-export runs/fern -s ../shared/data/fern --resolution 2 -o runs/fern_export --s-v 2 "
            "--ordered --prune")
 
 
 def build_parser():
-    p = jobs.make_parser(
+    p = common.make_parser(
         "clod-export",
         "Export an adapted CLoD-GS model: the extended .ply, a baked standard .ply for one setting, an "
         "importance-ordered .ply for prefix renderers; optionally prune never-rendered Gaussians and "
         "unneeded SH bands.", EXAMPLE)
-    jobs.add_adapted_inputs(p)
+    common.add_adapted_inputs(p)
     p.add_argument("-o", "--output", metavar="OUTDIR", help="output folder, new or empty")
-    jobs.add_level_flags(p, "bake the Gaussians rendered at s_v = X (>= 1) from the training views",
+    common.add_level_flags(p, "bake the Gaussians rendered at s_v = X (>= 1) from the training views",
                          "bake the Gaussians of a per-view budget: a count (integer > 1) or a fraction (<= 1)")
     p.add_argument("--ordered", action="store_true", help="write ordered.ply and score its prefixes")
     p.add_argument("--lod-meta", nargs="?", const="", default=None, metavar="DIR",
@@ -66,7 +68,7 @@ def build_parser():
                    help="also write each exported model as .spz (Niantic's compressed format, read by Spark, "
                         "SuperSplat, Scaniverse; no sigma_d: a plain model) through gsply "
                         "(pip install -e \".[spz]\")")
-    jobs.add_common_flags(p, device_default="cpu")
+    common.add_common_flags(p, device_default="cpu")
     return p
 
 
@@ -75,9 +77,9 @@ def _fmt(x: float) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
-    jobs.thread_defaults()  # before torch is imported
+    common.thread_defaults()  # before torch is imported
     args = build_parser().parse_args(argv)
-    return jobs.run_cli("clod-export", lambda: _main(args, argv))
+    return common.run_cli("clod-export", lambda: _main(args, argv))
 
 
 def _check_tools(spz: bool, lod_dir, web_dir) -> None:
@@ -126,7 +128,7 @@ def _main(args, argv) -> int:
         check_flag(math.isfinite(args.s_v) and args.s_v >= 1, "--s-v", "a number >= 1", args.s_v)
     budget = None
     if args.budget is not None:
-        budget = jobs.parse_budget(args.budget, "--budget")
+        budget = common.parse_budget(args.budget, "--budget")
         if budget == 0:
             raise InputError(f"--budget must be > 0 (a count or a fraction <= 1), got {args.budget}")
     if args.sog_sh_iterations is not None:
@@ -141,7 +143,7 @@ def _main(args, argv) -> int:
     if not scene_root.is_dir():
         raise InputError(f"{scene_root}: no such scene folder")
     _check_tools(args.spz, lod_dir, web_dir)
-    jobs.set_threads(args.threads)
+    common.set_threads(args.threads)
 
     from clod_adapter.io.load import resolve_model_path
     from clod_adapter.jobs.export import EXTENDED_NAME, JSON_NAME, ORDERED_NAME, ExportOptions, export, summary

@@ -20,20 +20,22 @@ import time
 from pathlib import Path
 
 from clod_adapter import jobs
-from clod_adapter.jobs import InputError, check_flag
+from clod_adapter.cli import common
+from clod_adapter.cli.common import check_flag
+from clod_adapter.errors import InputError
 
 EXAMPLE = "clod-render runs/fern -s ../shared/data/fern --resolution 2 --path orbit -o runs/fern_render"
 JSON_NAME = "render.json"
 
 
 def build_parser():
-    p = jobs.make_parser(
+    p = common.make_parser(
         "clod-render",
         "Render an adapted CLoD-GS model: the test views at one level of detail (PNG) and a short MP4 "
         "along the scene's cameras or an orbit while s_v sweeps.", EXAMPLE)
-    jobs.add_adapted_inputs(p)
+    common.add_adapted_inputs(p)
     p.add_argument("-o", "--output", metavar="OUTDIR", help="output folder, new or empty (default ./clod_render)")
-    jobs.add_level_flags(p, "level of detail (>= 1) of the images, and of the video instead of a sweep (default 1)",
+    common.add_level_flags(p, "level of detail (>= 1) of the images, and of the video instead of a sweep (default 1)",
                          "render at most K Gaussians per view (an integer count > 1 or a fraction <= 1) instead")
     p.add_argument("--views", default="test", choices=("test", "train", "all"),
                    help="which views to render as images (default test: every 8th image)")
@@ -49,14 +51,14 @@ def build_parser():
     p.add_argument("--no-video", action="store_true", help="only the images")
     p.add_argument("--background", default="black", choices=("black", "white"),
                    help="colour behind the scene (NeRF-synthetic RGBA images are composited over it)")
-    jobs.add_common_flags(p)
+    common.add_common_flags(p)
     return p
 
 
 def main(argv: list[str] | None = None) -> int:
-    jobs.thread_defaults()  # before torch is imported
+    common.thread_defaults()  # before torch is imported
     args = build_parser().parse_args(argv)
-    return jobs.run_cli("clod-render", lambda: _main(args))
+    return common.run_cli("clod-render", lambda: _main(args))
 
 
 def _check_flags(args):
@@ -69,7 +71,7 @@ def _check_flags(args):
     if args.budget is not None:
         from clod_adapter.lod.budget import as_budget
 
-        budget = as_budget(jobs.parse_budget(args.budget, "--budget"))
+        budget = as_budget(common.parse_budget(args.budget, "--budget"))
     check_flag(args.frames >= 2, "--frames", ">= 2", args.frames)
     check_flag(args.fps >= 1, "--fps", ">= 1", args.fps)
     if args.max_sv is not None:
@@ -148,7 +150,7 @@ def _main(args) -> int:
         why = video_available()
         if why:
             raise InputError(f"the MP4 {why} (or pass --no-video)")
-    jobs.set_threads(args.threads)
+    common.set_threads(args.threads)
 
     import torch
 

@@ -16,8 +16,8 @@ import sys
 import threading
 from pathlib import Path
 
-from clod_adapter import jobs
-from clod_adapter.jobs import EXIT_BAD_INPUT
+from clod_adapter.cli import common
+from clod_adapter.cli.common import EXIT_BAD_INPUT
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -28,7 +28,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument("ply", help="model: the .ply from clod-adapt (with sigma_d), or a plain 3DGS .ply / "
                                "compressed .ply / gsplat ckpt_*.pt (shown without LoD)")
-    jobs.add_scene_flags(p)  # the scene's first test camera starts the view; its views are offered
+    common.add_scene_flags(p)  # the scene's first test camera starts the view; its views are offered
     p.add_argument("--port", type=int, default=8080,
                    help="port (default 8080; the next free one if taken; 0 = any free port)")
     p.add_argument("--host", default="127.0.0.1",

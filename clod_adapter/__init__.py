@@ -11,7 +11,7 @@ clod_adapter`` stays light and does not import torch: the CLIs set OpenMP defaul
   :class:`LodView`, :func:`clod_rasterization` (gsplat ``rasterization`` + LoD; its LoD
   arguments for a model: :func:`clod_kwargs`),
   :func:`rasterization` (gsplat-compatible, no LoD);
-* adapting: :class:`AdaptConfig`, :func:`prepare`, :func:`adapt`;
+* adapting: :class:`AdaptConfig`, :func:`prepare`, :func:`fit` (the fine-tune);
 * the three jobs behind the CLIs: :func:`run_adapt_job` (``clod-adapt``, options
   :class:`AdaptOptions`), :func:`evaluate_report` (``clod-eval``, options :class:`EvalOptions`),
   :func:`export_model` (``clod-export``, options :class:`ExportOptions`).
@@ -30,7 +30,7 @@ _EXPORTS = {
     "clod_rasterization": ("lod.hook", "clod_rasterization"),
     "clod_kwargs": ("lod.hook", "clod_kwargs"),
     "rasterization": ("render", "rasterization"),
-    "AdaptConfig": ("train.config", "AdaptConfig"), "prepare": ("train.loop", "prepare"), "adapt": ("train.loop", "adapt"),
+    "AdaptConfig": ("train.config", "AdaptConfig"), "prepare": ("train.loop", "prepare"), "fit": ("train.loop", "fit"),
     "run_adapt_job": ("jobs.adapt", "run"), "AdaptOptions": ("jobs.adapt", "AdaptOptions"),
     "evaluate_report": ("jobs.eval", "evaluate_report"), "EvalOptions": ("jobs.eval", "EvalOptions"),
     "export_model": ("jobs.export", "export"), "ExportOptions": ("jobs.export", "ExportOptions"),

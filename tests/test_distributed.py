@@ -205,7 +205,7 @@ def test_views_per_step_is_the_mean_of_the_views():
 
 
 def _check_views_per_step():
-    from clod_adapter.train.loop import adapt, prepare, view_loss
+    from clod_adapter.train.loop import fit, prepare, view_loss
     from clod_adapter.lod import rule as lod
     from clod_adapter.io.synthetic import make_cameras, make_ground_truth, perturb
     from conftest import render_views
@@ -216,7 +216,7 @@ def _check_views_per_step():
     cfg = AdaptConfig(max_sv=3.0, iterations=3, seed=1, views_per_step=2)
     st = prepare(perturb(gt, 3), cams, cfg)
     ref = prepare(perturb(gt, 3), cams, cfg)
-    assert adapt(st, cams, imgs, cfg, progress=False, max_steps=1) is False
+    assert fit(st, cams, imgs, cfg, progress=False, max_steps=1) is False
     # by hand: the same draws, the mean gradient, one step
     gen = torch.Generator().manual_seed(1)
     order = torch.randperm(len(cams), generator=gen).tolist()
@@ -273,7 +273,7 @@ def test_a_stop_request_from_another_rank_stops_after_the_same_step():
     step 3, this rank finishes step 3 and stops before step 4 (saving through on_interrupt),
     although it never saw a signal itself. The other rank is simulated: it adds nothing to the
     gradients and the records of its views, and its stop flag at the third reduction."""
-    from clod_adapter.train.loop import adapt, prepare
+    from clod_adapter.train.loop import fit, prepare
     from clod_adapter.train.distributed import Group
     from clod_adapter.io.synthetic import make_cameras, make_ground_truth, perturb
     from conftest import render_views
@@ -296,6 +296,6 @@ def test_a_stop_request_from_another_rank_stops_after_the_same_step():
     group = OtherRankSignals(rank=0, world_size=2, local_rank=0, backend="gloo", device=torch.device("cpu"),
                              timeout=60.0)
     saved = []
-    assert adapt(st, cams, imgs, cfg, progress=False, group=group, on_interrupt=lambda s: saved.append(s.iteration)) is False
+    assert fit(st, cams, imgs, cfg, progress=False, group=group, on_interrupt=lambda s: saved.append(s.iteration)) is False
     assert saved == [3] and st.iteration == 3
     assert len(st.history["loss"]) == 6  # two records per step, the other rank's included

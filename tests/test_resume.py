@@ -168,15 +168,15 @@ def test_second_signal_during_state_save(scene, tmp_path, monkeypatch):
 
     import clod_adapter.jobs.adapt as pl
 
-    real_adapt, real_save = pl.adapt, safetensors.torch.save_file
+    real_fit, real_save = pl.fit, safetensors.torch.save_file
     saves = []
 
-    def adapt_with_signal(*a, **k):
+    def fit_with_signal(*a, **k):
         def on_step(st):
             if st.iteration == 3:
                 os.kill(os.getpid(), signal.SIGINT)
         k["on_step"] = on_step
-        return real_adapt(*a, **k)
+        return real_fit(*a, **k)
 
     def save_with_signals(*a, **k):
         os.kill(os.getpid(), signal.SIGTERM)  # a second (and third) signal while saving
@@ -186,7 +186,7 @@ def test_second_signal_during_state_save(scene, tmp_path, monkeypatch):
 
     out = tmp_path / "out"
     with monkeypatch.context() as m:
-        m.setattr(pl, "adapt", adapt_with_signal)
+        m.setattr(pl, "fit", fit_with_signal)
         m.setattr(safetensors.torch, "save_file", save_with_signals)
         with pytest.raises(KeyboardInterrupt):
             _inprocess_run(scene, out)

@@ -6,7 +6,7 @@ import pytest
 import torch
 
 from clod_adapter.train.config import AdaptConfig
-from clod_adapter.train.loop import adapt, prepare
+from clod_adapter.train.loop import fit, prepare
 from clod_adapter.train.state import load_state, save_state
 from clod_adapter.io.ply import read_ply
 from clod_adapter.lod.draw import render_lod
@@ -35,7 +35,7 @@ def test_lreg_acts_with_ste_and_not_with_paper(tiny):
                           init_attenuation=0.9, seed=0)
         st = prepare(model, cams, cfg)
         f0 = _fraction(st.gaussians().detach(), cams, 5.0)
-        assert adapt(st, cams, imgs, cfg, progress=False)
+        assert fit(st, cams, imgs, cfg, progress=False)
         fractions[est] = (f0, _fraction(st.gaussians().detach(), cams, 5.0))
     f0, f_ste = fractions["ste"]
     _, f_paper = fractions["paper"]
@@ -47,7 +47,7 @@ def test_frozen_attributes_do_not_move(tiny):
     model, cams, imgs = tiny
     cfg = AdaptConfig(iterations=5, other_lr_scale=0.0, init_attenuation=0.9)
     st = prepare(model, cams, cfg)
-    adapt(st, cams, imgs, cfg, progress=False)
+    fit(st, cams, imgs, cfg, progress=False)
     g = st.gaussians()
     assert torch.equal(g.means, model.means) and torch.equal(g.sh0, model.sh0)
     assert not torch.equal(g.sigma_d, prepare(model, cams, cfg).params["sigma_d"])
@@ -62,7 +62,7 @@ def test_state_carries_the_inputs_extra_properties(tiny):
     scores = torch.arange(len(model), dtype=torch.float32)
     cfg = AdaptConfig(iterations=2)
     st = prepare(replace(model, extra={"masks_0": scores}), cams, cfg)
-    adapt(st, cams, imgs, cfg, progress=False)
+    fit(st, cams, imgs, cfg, progress=False)
     g = st.gaussians().detach()
     assert list(g.extra) == ["masks_0"] and torch.equal(g.extra["masks_0"], scores)
 
@@ -76,7 +76,7 @@ def test_adapt_trains_inside_no_grad(tiny):
     st = prepare(model, cams, cfg)
     sd0 = st.params["sigma_d"].detach().clone()
     with torch.no_grad():
-        assert adapt(st, cams, imgs, cfg, progress=False)
+        assert fit(st, cams, imgs, cfg, progress=False)
     assert not torch.equal(st.params["sigma_d"].detach(), sd0)
     assert float(st.params["opacity_logit_gain"].detach().abs().max()) > 0
 
@@ -86,17 +86,17 @@ def test_state_round_trip_and_resume(tiny, tmp_path):
     model, cams, imgs = tiny
     cfg = AdaptConfig(iterations=12, init_attenuation=0.9, seed=7)
     full = prepare(model, cams, cfg)
-    adapt(full, cams, imgs, cfg, progress=False)
+    fit(full, cams, imgs, cfg, progress=False)
 
     part = prepare(model, cams, cfg)
-    assert not adapt(part, cams, imgs, cfg, progress=False, max_steps=6)
+    assert not fit(part, cams, imgs, cfg, progress=False, max_steps=6)
     save_state(tmp_path / "s.safetensors", part, cfg)
     st, cfg_l, meta = load_state(tmp_path / "s.safetensors")
     assert st.iteration == 6 and meta["format"] == "clod-adapter-state/1"
     assert cfg_l.seed == 7
     for k, v in part.params.items():
         assert torch.equal(st.params[k].detach(), v.detach())
-    assert adapt(st, cams, imgs, cfg_l, progress=False)
+    assert fit(st, cams, imgs, cfg_l, progress=False)
     for k in full.params:
         torch.testing.assert_close(st.params[k].detach(), full.params[k].detach(), rtol=0, atol=1e-6)
 
@@ -174,7 +174,7 @@ def test_trained_order_share_zero_restores_the_starting_order(tiny):
         cfg = AdaptConfig(iterations=20, trained_order_share=share)
         st = prepare(model, cams, cfg)
         start = st.params["sigma_d"].detach().clone()
-        adapt(st, cams, imgs, cfg, progress=False)
+        fit(st, cams, imgs, cfg, progress=False)
         g = st.gaussians().detach()
         d_ref = reference_distances(g, cams)
         s_ref = critical_s_v(g.opacities, d_ref, g.sigma_d, cfg.tau, cfg.eps)

@@ -10,7 +10,7 @@ import torch
 
 from clod_adapter.lod import rule as lod
 from clod_adapter.train.config import AdaptConfig
-from clod_adapter.train.loop import adapt, prepare, reference_distances, view_statistics
+from clod_adapter.train.loop import fit, prepare, reference_distances, view_statistics
 from clod_adapter.lod.rankings import ranking_selection, render_subset
 from clod_adapter.lod.budget import critical_s_v
 from clod_adapter.gaussians import Gaussians
@@ -149,7 +149,7 @@ def adapted():
     model = perturb(gt, 12, strength=0.5)
     cfg = AdaptConfig(max_sv=5.0, iterations=120, seed=0)
     st = prepare(model, cams, cfg)
-    adapt(st, cams, imgs, cfg, progress=False)
+    fit(st, cams, imgs, cfg, progress=False)
     return model, st.gaussians().detach(), cams, imgs
 
 

@@ -26,7 +26,7 @@ import torch  # noqa: E402
 from benchmarks.common import add_inputs_args, add_split_arg, resolve_input, scene_views, selected_inputs  # noqa: E402
 
 from clod_adapter.train.config import AdaptConfig
-from clod_adapter.train.loop import adapt, prepare  # noqa: E402
+from clod_adapter.train.loop import fit, prepare  # noqa: E402
 from clod_adapter.evaluate.level_metrics import evaluate_level  # noqa: E402
 from clod_adapter.io.load import load_model, load_scene  # noqa: E402
 
@@ -57,7 +57,7 @@ def sweep(name: str, runs: list, split: str) -> None:
         cfg = AdaptConfig(schedule="paper", lambda_reg=float(lam), iterations=int(steps))
         t = time.perf_counter()
         st = prepare(g, fit, cfg, tr)
-        adapt(st, fit, tr, cfg, progress=False)
+        fit(st, fit, tr, cfg, progress=False)
         m = st.gaussians().detach()
         lv = [evaluate_level(m, ev, te, float(s)) for s in (1, 2, 3, 5)]
         cells = " ".join(f"{r.psnr:6.2f}dB {100 * r.fraction:4.0f}%" for r in lv)

@@ -21,7 +21,7 @@ import torch  # noqa: E402
 from benchmarks.common import add_inputs_args, resolve_input, selected_inputs  # noqa: E402
 
 from clod_adapter.train.config import AdaptConfig
-from clod_adapter.train.loop import adapt, prepare  # noqa: E402
+from clod_adapter.train.loop import fit, prepare  # noqa: E402
 from clod_adapter.evaluate.level_metrics import evaluate_level  # noqa: E402
 from clod_adapter.io.load import load_model, load_scene  # noqa: E402
 
@@ -55,7 +55,7 @@ def run_input(name: str, args) -> None:
         rows = {}
         rows["before"] = [evaluate_level(st.gaussians().detach(), sc.test, te, s) for s in levels]
         t = time.perf_counter()
-        adapt(st, sc.train, tr, cfg, progress=False)
+        fit(st, sc.train, tr, cfg, progress=False)
         dt = time.perf_counter() - t
         rows["after"] = [evaluate_level(st.gaussians().detach(), sc.test, te, s) for s in levels]
         for when, lv in rows.items():

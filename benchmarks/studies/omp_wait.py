@@ -5,7 +5,7 @@
 Each configuration runs in a fresh Python process (OpenMP reads ``OMP_WAIT_POLICY`` when torch
 loads it): the demo scene (6,000 Gaussians, 160x120, as ``clod-adapt --demo``) is built in memory,
 ``sigma_d`` attached (fixed attenuation 0.99, no calibration), 5 untimed steps, then
-``--iterations`` timed steps of :func:`clod_adapter.train.loop.adapt`. ``--loads``: how many competing
+``--iterations`` timed steps of :func:`clod_adapter.train.loop.fit`. ``--loads``: how many competing
 busy processes (pure-Python spin loops, one core each) run meanwhile. Configurations:
 
 * ``default``: ``OMP_WAIT_POLICY`` unset (libgomp's default: idle threads spin before sleeping),
@@ -41,7 +41,7 @@ import json, sys, time
 sys.path.insert(0, sys.argv[1])
 import torch
 from clod_adapter.train.config import AdaptConfig
-from clod_adapter.train.loop import adapt, prepare
+from clod_adapter.train.loop import fit, prepare
 from clod_adapter.io.synthetic import make_cameras, make_ground_truth, perturb
 from clod_adapter.render import rasterization
 iters = int(sys.argv[2])
@@ -55,9 +55,9 @@ with torch.no_grad():
         imgs.append(col[0].clamp(0, 1))
 cfg = AdaptConfig(max_sv=5.0, iterations=iters + 5, init_attenuation=0.99)
 state = prepare(perturb(gt, 1), cams, cfg, backend="cpu")
-adapt(state, cams, imgs, cfg, backend="cpu", progress=False, max_steps=5)
+fit(state, cams, imgs, cfg, backend="cpu", progress=False, max_steps=5)
 t0 = time.perf_counter()
-adapt(state, cams, imgs, cfg, backend="cpu", progress=False, max_steps=iters)
+fit(state, cams, imgs, cfg, backend="cpu", progress=False, max_steps=iters)
 dt = time.perf_counter() - t0
 print(json.dumps({"s_per_it": dt / iters, "threads": torch.get_num_threads()}))
 """

@@ -12,7 +12,7 @@ Each size runs in a fresh subprocess (``--one N``), so sizes do not share caches
   ground truth rendered by our rasteriser; the "pretrained" model is a perturbed copy;
 * ``prepare`` (the calibrated schedule's initialisation: LightGaussian ranking, reference
   distances, ``sigma_d``);
-* ``--steps`` steps of :func:`clod_adapter.train.loop.adapt` (the default calibrated schedule: a
+* ``--steps`` steps of :func:`clod_adapter.train.loop.fit` (the default calibrated schedule: a
   per-view exact budget of ``s_v^-1.5`` of the Gaussians in view, level gains, base attributes
   frozen), the first one discarded as warm-up; per step the wall time split into
   selection (frustum, in-view test, critical s_v, budget), projection, raster forward (SH,
@@ -181,7 +181,7 @@ def one(n: int, args) -> dict:
 
     torch.set_num_threads(args.threads)
     from clod_adapter.train.config import AdaptConfig
-    from clod_adapter.train.loop import adapt, prepare, recalibrate
+    from clod_adapter.train.loop import fit, prepare, recalibrate
     from clod_adapter.io.load import load_model
     from clod_adapter.io.load import load_scene
     from clod_adapter.io.view_images import ViewImages
@@ -219,7 +219,7 @@ def one(n: int, args) -> dict:
     for i in range(args.steps):
         timers.reset()
         t0 = time.perf_counter()
-        adapt(state, train, train_imgs, cfg, progress=False, max_steps=1)
+        fit(state, train, train_imgs, cfg, progress=False, max_steps=1)
         total = time.perf_counter() - t0
         d = dict(timers.t)
         d["other"] = total - sum(v for k, v in d.items() if k != "other")

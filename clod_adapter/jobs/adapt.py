@@ -27,7 +27,7 @@ import torch
 from .. import __version__
 from ..train.state import STATE_NAME, save_state
 from ..train.config import AdaptConfig
-from ..train.loop import StopFlag, adapt, prepare
+from ..train.loop import StopFlag, fit, prepare
 from ..export.figures import write_strip, write_training_plot
 from ..evaluate.level_metrics import budget_levels, evaluate_level, evaluate_levels, sv_levels
 from ..io.atomic import atomic_write
@@ -598,7 +598,7 @@ def _step_hooks(inp: Inputs, cfg: AdaptConfig, o: AdaptOptions, stop: StopFlag, 
 
 
 def _train(inp: Inputs, state, cfg: AdaptConfig, o: AdaptOptions, stop: StopFlag, group, meta: dict) -> float:
-    """Phase 3: the fine-tuning (:func:`clod_adapter.train.loop.adapt`) with its saves; returns its
+    """Phase 3: the fine-tuning (:func:`clod_adapter.train.loop.fit`) with its saves; returns its
     seconds. Raises KeyboardInterrupt when a signal stopped it (the state saved first)."""
     saved = {"iteration": state.iteration if o.resume else None}  # the state on disk
 
@@ -613,7 +613,7 @@ def _train(inp: Inputs, state, cfg: AdaptConfig, o: AdaptOptions, stop: StopFlag
     on_step, writer = _step_hooks(inp, cfg, o, stop, group, meta, saved)
     t_train = time.perf_counter()
     try:
-        finished = adapt(state, inp.scene.train, inp.train_imgs, cfg, progress=o.progress,
+        finished = fit(state, inp.scene.train, inp.train_imgs, cfg, progress=o.progress,
                          on_interrupt=on_interrupt, stop=stop, on_step=on_step, group=group)
         if group is not None and finished:
             from ..train.distributed import check_in_sync

@@ -18,7 +18,7 @@ A per-Gaussian distance decay ``sigma_d`` is attached and trained with virtual d
 
 No densification.
 
-Public entry points: :class:`AdaptConfig`, :func:`prepare`, :func:`adapt`, :func:`save_state`,
+Public entry points: :class:`AdaptConfig`, :func:`prepare`, :func:`fit`, :func:`save_state`,
 :func:`load_state`.
 """
 from __future__ import annotations
@@ -196,7 +196,7 @@ def calibrate_init(gaussians: Gaussians, d_norm_max: Tensor, cameras, images, cf
 
 def prepare(gaussians: Gaussians, train_cameras, cfg: AdaptConfig, train_images=None,
             backend: str = "auto") -> AdaptState:
-    """Attach ``sigma_d`` (and zero level gains) and build the optimiser state for :func:`adapt`.
+    """Attach ``sigma_d`` (and zero level gains) and build the optimiser state for :func:`fit`.
 
     Calibrated schedule: ``sigma_d`` from :func:`ranking_scores` through
     :func:`lod.calibrate_sigma_d` at :func:`reference_distances`. Paper schedule:
@@ -307,7 +307,7 @@ def weighted_count(view, share: float, cost_exponent: float) -> int:
 
 
 def view_loss(g: Gaussians, camera, gt: Tensor, s_v: float, cfg: AdaptConfig, backend: str = "auto"):
-    """One training view's render and loss at ``s_v`` (the body of a step of :func:`adapt`).
+    """One training view's render and loss at ``s_v`` (the body of a step of :func:`fit`).
 
     Returns:
         (:class:`clod_adapter.lod.draw.LodRender`, scalar loss tensor).
@@ -360,7 +360,7 @@ def _record(h: dict, picks: list, rows: dict, ema: dict) -> None:
             ema[k] = v if ema[k] is None else 0.9 * ema[k] + 0.1 * v
 
 
-def adapt(
+def fit(
     state: AdaptState,
     train_cameras,
     train_images,

@@ -211,3 +211,35 @@ def test_eq2_cost_budget_is_exact(scene):
         assert _drawn_cost(view, sel) <= b + 1e-6
         nxt = view.select(budget=Budget(count=k + 1, min_s_v=0.0))
         assert _drawn_cost(view, nxt) > b
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_the_cost_kernel_equals_its_twin(dtype):
+    """render/csrc/splat_cost.cpp (the merge tree's node costs) against splat_cost at level 0, on
+    a model with Gaussians behind the camera, past the image's edge, under 1/255 opacity, needles,
+    flats and huge ones: the same culls and the same pixels (rounding aside: a radius on an integer
+    boundary may round to the other side in the twin's dtype)."""
+    from types import SimpleNamespace
+
+    from clod_adapter.lod.cut import node_costs_native
+    from clod_adapter.render.native import load
+
+    if load() is None:
+        pytest.skip("the C++ kernels do not build here")
+    g = _model(n=3000, seed=5)
+    gen = torch.Generator().manual_seed(11)
+    n = len(g)
+    log_scales = g.log_scales + torch.randn(n, 3, generator=gen) * 1.5  # needles, flats, huge
+    logits = torch.randn(n, generator=gen) * 4.0  # some below 1/255
+    means = g.means + torch.randn(n, 3, generator=gen) * 2.0  # some behind, some off-image
+    quats = torch.randn(n, 4, generator=gen)
+    g = replace(g, means=means, log_scales=log_scales, opacity_logits=logits, quats=quats).to(dtype)
+    for cam in make_cameras(1, 2):
+        cam = SimpleNamespace(viewmat=cam.viewmat.to(dtype), K=cam.K.to(dtype), width=cam.width, height=cam.height)
+        ours = node_costs_native(g, cam)
+        twin = splat_cost(view_lod(g.with_sigma_d(None), cam), torch.arange(n))
+        assert ours.dtype == twin.dtype == torch.float64 and ours.shape == (n,)
+        assert 0 < int((twin > 0).sum()) < n and int((ours > 0).sum()) > 0  # culls on both sides
+        same = torch.isclose(ours, twin, rtol=1e-5 if dtype == torch.float64 else 2e-3, atol=1e-9)
+        assert int((~same).sum()) <= max(1, n // 500), (ours[~same][:5], twin[~same][:5])
+        assert float(ours.sum()) == pytest.approx(float(twin.sum()), rel=1e-3)

@@ -12,23 +12,51 @@ from torch import Tensor
 from . import tree
 from .budget import Budget
 from ..gaussians import Gaussians
-from .view import view_lod
+from . import rule as lod
+from .view import FAR_PLANE, NEAR_PLANE, view_lod
 
 
 def tree_node_costs(tiers: Sequence[Gaussians], camera, tt) -> list[Tensor]:
     """Per tier [N_k] float64: each node's clipped ellipse pixels at its own attributes
     (``clod_adapter.lod.cost.splat_cost``, the unit of cost budgets; 0 for a node never drawn at
-    ``s_v >= 1`` or culled)."""
+    ``s_v >= 1`` or culled): one C++ pass per tier (``render/csrc/splat_cost.cpp``) where the
+    kernels run, else :func:`splat_cost` (its twin; ``tests/test_cost.py`` holds them together)."""
     from .cost import splat_cost
+    from ..render.native import wanted
 
     out = []
     for t, n, u in zip(tiers, tt.entry, tt.upper):
+        drawn = u > n.clamp_min(1.0)
+        if wanted(t.means.device.type == "cpu"):
+            c = node_costs_native(t, camera)
+            out.append(torch.where(drawn, c, torch.zeros_like(c)))
+            continue
         c = torch.zeros(len(t), dtype=torch.float64, device=t.means.device)
-        idx = torch.nonzero(u > n.clamp_min(1.0)).flatten()
+        idx = torch.nonzero(drawn).flatten()
         if idx.numel():
             c[idx] = splat_cost(view_lod(t, camera), idx)
         out.append(c)
     return out
+
+
+def node_costs_native(t: Gaussians, camera) -> Tensor:
+    """[N] float64 ``"ellipse_px"`` cost of every Gaussian of ``t`` (activated scales, opacities
+    ``sigmoid(opacity_logits)``, no gains) from ``camera``, by the C++ kernel: what
+    :func:`clod_adapter.lod.cost.splat_cost` gives at level 0 (to rounding; gsplat 1.5.3's
+    projection, ``eps2d`` 0.3, near plane 0.01)."""
+    from .cost import EPS2D
+    from ..render.native import load
+
+    dt = t.means.dtype
+    vm = camera.viewmat.detach().to(torch.float64).cpu()
+    K = camera.K.detach().to(torch.float64).cpu()
+    R, tr = vm[:3, :3].reshape(-1).tolist(), vm[:3, 3].tolist()
+    with torch.no_grad():
+        scales, opacities = lod.activated(t.log_scales, "exp"), lod.activated(t.opacity_logits, "sigmoid")
+    return load().splat_cost(t.means.detach().contiguous(), t.quats.detach().to(dt).contiguous(),
+                             scales.detach().to(dt).contiguous(), opacities.detach().to(dt).contiguous(), R, tr,
+                             float(K[0, 0]), float(K[0, 2]), float(K[1, 1]), float(K[1, 2]), int(camera.width),
+                             int(camera.height), NEAR_PLANE, FAR_PLANE, EPS2D)
 
 
 def tree_select(gaussians: Gaussians, camera, s_v: Optional[float] = None, *, budget: Optional[Budget] = None,

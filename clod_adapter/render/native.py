@@ -4,7 +4,9 @@
 * the per-frame LoD terms (``csrc/lod_terms.cpp``; :func:`clod_adapter.lod.rule.frame_terms`,
   :func:`clod_adapter.lod.rule.lod_mask`, :func:`clod_adapter.lod.budget.critical_s_v`);
 * the merge tree's cut and drawn attributes (``csrc/tree_cut.cpp``; :func:`clod_adapter.lod.tree.cut`,
-  :func:`clod_adapter.lod.tree.cut_attributes`).
+  :func:`clod_adapter.lod.tree.cut_attributes`);
+* every Gaussian's rasterisation cost (``csrc/splat_cost.cpp``; :func:`clod_adapter.lod.cost.splat_cost`
+  at level 0, behind :func:`clod_adapter.lod.cut.tree_node_costs`).
 
 Built with ``torch.utils.cpp_extension.load`` and cached (honours ``TORCH_EXTENSIONS_DIR``).
 Where it cannot be built every kernel falls back to its pure-PyTorch twin. :func:`use_impl`
@@ -24,7 +26,7 @@ from typing import Optional
 __all__ = ["load", "available", "error", "impl", "use_impl", "wanted"]
 
 _CSRC = Path(__file__).resolve().parent / "csrc"
-SOURCES = (_CSRC / "composite.cpp", _CSRC / "lod_terms.cpp", _CSRC / "tree_cut.cpp")
+SOURCES = (_CSRC / "composite.cpp", _CSRC / "lod_terms.cpp", _CSRC / "tree_cut.cpp", _CSRC / "splat_cost.cpp")
 _EXT = None
 _EXT_ERROR: Optional[BaseException] = None
 _LOCK = threading.Lock()

@@ -657,6 +657,11 @@ std::vector<torch::Tensor> tree_attributes_cpu(std::vector<torch::Tensor> attrs,
                                                std::vector<torch::Tensor> parents, std::vector<torch::Tensor> leads,
                                                double shrink_floor);
 
+// splat_cost.cpp (the "ellipse_px" cost of every Gaussian, lod.cost.splat_cost)
+torch::Tensor splat_cost_cpu(torch::Tensor means, torch::Tensor quats, torch::Tensor scales, torch::Tensor opacities,
+                             std::vector<double> R, std::vector<double> t, double fx, double cx, double fy, double cy,
+                             int64_t width, int64_t height, double near_plane, double far_plane, double eps2d);
+
 PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
     m.def("forward", &composite_forward, "CPU Gaussian compositor forward");
     m.def("backward", &composite_backward, "CPU Gaussian compositor backward");
@@ -670,4 +675,5 @@ PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
     m.def("tree_budget", &tree_budget_cpu, "the level a budget draws (tree.budget_s_v)");
     m.def("tree_frame", &tree_frame_cpu, "every node's frustum test and d' (tree.frame)");
     m.def("tree_attributes", &tree_attributes_cpu, "a cut's drawn attributes (tree.cut_attributes)");
+    m.def("splat_cost", &splat_cost_cpu, "every Gaussian's ellipse_px cost (lod.cost.splat_cost at level 0)");
 }

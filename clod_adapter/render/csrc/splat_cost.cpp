@@ -1,0 +1,122 @@
+// Per-Gaussian rasterisation cost in one pass: the "ellipse_px" unit of
+// clod_adapter.lod.cost.splat_cost (the alpha >= 1/255 ellipse's area in pixels, times the share of
+// its box inside the image; 0 for a Gaussian the projection culls), from the means, quaternions,
+// activated scales and opacities, with gsplat 1.5.3's projection (clod_adapter.render.projection:
+// depth culling, the Jacobian at x/z, y/z clamped to 1.3x the field of view, eps2d, the
+// opacity-aware extent, radius and box culling).
+//
+// Twin: clod_adapter.lod.cost.splat_cost at level 0 (clod_adapter.lod.cost.Footprints); the
+// merge tree's cost and time budgets cost every node with it (clod_adapter.lod.cut.tree_node_costs).
+// tests/test_cost.py holds the two together. Arithmetic in double (the twin projects in the
+// model's dtype, so a radius on an integer boundary may round to the other side).
+#include <torch/extension.h>
+
+#include <ATen/Parallel.h>
+
+#include <algorithm>
+#include <cmath>
+#include <cstdint>
+#include <vector>
+
+namespace {
+
+constexpr int64_t kGrain = 8192;           // ~30 ns an element
+constexpr double kAlphaThreshold = 1.0 / 255.0;  // projection.ALPHA_THRESHOLD
+constexpr double kExtend = 3.33;            // projection.GAUSSIAN_EXTEND
+constexpr double kMaxRadius = 1073741824.0;  // projection.MAX_RADIUS (2^30)
+constexpr double kPi = 3.14159265358979323846;
+
+template <typename S>
+void splat_cost_impl(int64_t n, const S* __restrict__ means, const S* __restrict__ quats,
+                     const S* __restrict__ scales, const S* __restrict__ opac, const double* R_, const double* t_,
+                     double fx, double cx, double fy, double cy, double width, double height, double near_plane,
+                     double far_plane, double eps2d, double* __restrict__ out) {
+    const double R[9] = {R_[0], R_[1], R_[2], R_[3], R_[4], R_[5], R_[6], R_[7], R_[8]};
+    const double t[3] = {t_[0], t_[1], t_[2]};
+    const double tan_fovx = 0.5 * width / fx, tan_fovy = 0.5 * height / fy;
+    const double lim_x_pos = (width - cx) / fx + 0.3 * tan_fovx, lim_x_neg = cx / fx + 0.3 * tan_fovx;
+    const double lim_y_pos = (height - cy) / fy + 0.3 * tan_fovy, lim_y_neg = cy / fy + 0.3 * tan_fovy;
+    at::parallel_for(0, n, kGrain, [&](int64_t begin, int64_t end) {
+        for (int64_t i = begin; i < end; ++i) {
+            out[i] = 0.0;
+            const double mx = means[3 * i], my = means[3 * i + 1], mz = means[3 * i + 2];
+            const double tz = R[6] * mx + R[7] * my + R[8] * mz + t[2];
+            if (!(tz >= near_plane && tz <= far_plane)) continue;
+            const double tx = R[0] * mx + R[1] * my + R[2] * mz + t[0];
+            const double ty = R[3] * mx + R[4] * my + R[5] * mz + t[1];
+            const double rz = 1.0 / tz;
+            const double px = fx * tx * rz + cx, py = fy * ty * rz + cy;
+            const double u = std::min(std::max(tx * rz, -lim_x_neg), lim_x_pos);
+            const double v = std::min(std::max(ty * rz, -lim_y_neg), lim_y_pos);
+            const double a0 = fx * rz, a2 = -fx * u * rz, b1 = fy * rz, b2 = -fy * v * rz;
+            const double J0[3] = {a0 * R[0] + a2 * R[6], a0 * R[1] + a2 * R[7], a0 * R[2] + a2 * R[8]};
+            const double J1[3] = {b1 * R[3] + b2 * R[6], b1 * R[4] + b2 * R[7], b1 * R[5] + b2 * R[8]};
+            // the rotation of the normalised wxyz quaternion (projection.quat_to_rotmat_rows)
+            double qw = quats[4 * i], qx = quats[4 * i + 1], qy = quats[4 * i + 2], qz = quats[4 * i + 3];
+            const double qn = std::max(std::sqrt(qw * qw + qx * qx + qy * qy + qz * qz), 1e-12);
+            qw /= qn; qx /= qn; qy /= qn; qz /= qn;
+            const double Q[9] = {1 - 2 * (qy * qy + qz * qz), 2 * (qx * qy - qw * qz), 2 * (qx * qz + qw * qy),
+                                 2 * (qx * qy + qw * qz), 1 - 2 * (qx * qx + qz * qz), 2 * (qy * qz - qw * qx),
+                                 2 * (qx * qz - qw * qy), 2 * (qy * qz + qw * qx), 1 - 2 * (qx * qx + qy * qy)};
+            double A[3], B[3];
+            for (int c = 0; c < 3; ++c) {
+                const double s = scales[3 * i + c];
+                A[c] = (J0[0] * Q[c] + J0[1] * Q[3 + c] + J0[2] * Q[6 + c]) * s;
+                B[c] = (J1[0] * Q[c] + J1[1] * Q[3 + c] + J1[2] * Q[6 + c]) * s;
+            }
+            const double aa = A[0] * A[0] + A[1] * A[1] + A[2] * A[2];
+            const double bb = B[0] * B[0] + B[1] * B[1] + B[2] * B[2];
+            const double ab = A[0] * B[0] + A[1] * B[1] + A[2] * B[2];
+            const double x0 = A[1] * B[2] - A[2] * B[1], x1 = A[2] * B[0] - A[0] * B[2], x2 = A[0] * B[1] - A[1] * B[0];
+            const double axb2 = x0 * x0 + x1 * x1 + x2 * x2;
+            const double c00 = aa + eps2d, c11 = bb + eps2d, c01 = ab;
+            const double det = axb2 + eps2d * (aa + bb) + eps2d * eps2d;
+            const double op = static_cast<double>(opac[i]);
+            if (!(det > 0.0) || !std::isfinite(det) || !(op >= kAlphaThreshold)) continue;
+            const double e2 = std::min(std::max(2.0 * std::log(std::max(op, kAlphaThreshold) / kAlphaThreshold), 0.0),
+                                       kExtend * kExtend);
+            const double extend = std::min(std::sqrt(2.0 * std::log(std::max(op, kAlphaThreshold) / kAlphaThreshold)),
+                                           kExtend);
+            const double rad_x = std::ceil(extend * std::sqrt(c00)), rad_y = std::ceil(extend * std::sqrt(c11));
+            if (rad_x <= 0.0 && rad_y <= 0.0) continue;
+            if (px + rad_x <= 0 || px - rad_x >= width || py + rad_y <= 0 || py - rad_y >= height) continue;
+            const double rx = static_cast<double>(static_cast<int32_t>(std::min(rad_x, kMaxRadius)));
+            const double ry = static_cast<double>(static_cast<int32_t>(std::min(rad_y, kMaxRadius)));
+            const double bw = std::max(std::min(std::max(px + rx, 0.0), width) - std::min(std::max(px - rx, 0.0), width), 0.0);
+            const double bh = std::max(std::min(std::max(py + ry, 0.0), height) - std::min(std::max(py - ry, 0.0), height), 0.0);
+            const double inv_det = 1.0 / det;
+            const double ca = c11 * inv_det, cb = -c01 * inv_det, cc = c00 * inv_det;
+            const double sqrt_det_conic = std::sqrt(std::max(ca * cc - cb * cb, 1e-30));
+            const double ell = kPi * e2 / sqrt_det_conic;
+            const double full = std::max(4.0 * rx * ry, 1.0);
+            out[i] = std::min(ell, full) * (bw * bh / full);
+        }
+    });
+}
+
+}  // namespace
+
+// means [N, 3], quats [N, 4] (wxyz), scales [N, 3] (activated), opacities [N]: contiguous CPU, one
+// float dtype; R [9] row-major and t [3] of the world-to-camera matrix; intrinsics and image size in
+// pixels. Returns [N] float64 "ellipse_px" costs.
+torch::Tensor splat_cost_cpu(torch::Tensor means, torch::Tensor quats, torch::Tensor scales, torch::Tensor opacities,
+                             std::vector<double> R, std::vector<double> t, double fx, double cx, double fy, double cy,
+                             int64_t width, int64_t height, double near_plane, double far_plane, double eps2d) {
+    const int64_t n = means.size(0);
+    TORCH_CHECK(means.dim() == 2 && means.size(1) == 3 && quats.dim() == 2 && quats.size(0) == n && quats.size(1) == 4 &&
+                scales.dim() == 2 && scales.size(0) == n && scales.size(1) == 3 && opacities.dim() == 1 &&
+                opacities.size(0) == n, "means [N, 3], quats [N, 4], scales [N, 3], opacities [N]");
+    for (const auto& x : {means, quats, scales, opacities}) {
+        TORCH_CHECK(x.is_contiguous() && x.device().is_cpu() && x.scalar_type() == means.scalar_type(),
+                    "contiguous CPU tensors of one dtype");
+    }
+    TORCH_CHECK(R.size() == 9 && t.size() == 3, "R [9], t [3]");
+    auto out = torch::empty({n}, means.options().dtype(torch::kFloat64));
+    AT_DISPATCH_FLOATING_TYPES(means.scalar_type(), "splat_cost", [&] {
+        splat_cost_impl<scalar_t>(n, means.data_ptr<scalar_t>(), quats.data_ptr<scalar_t>(), scales.data_ptr<scalar_t>(),
+                                  opacities.data_ptr<scalar_t>(), R.data(), t.data(), fx, cx, fy, cy,
+                                  static_cast<double>(width), static_cast<double>(height), near_plane, far_plane, eps2d,
+                                  out.data_ptr<double>());
+    });
+    return out;
+}

@@ -210,8 +210,8 @@ def test_a_count_budget_that_holds_tier_0_draws_it_without_a_sweep(model, monkey
     assert 1 < n0 < len(g)
     want = render_lod(g, cam, 1.0)
     calls = []
-    real = tree.budget_s_v
-    monkeypatch.setattr(tree, "budget_s_v", lambda *a, **k: calls.append(1) or real(*a, **k))
+    real = tree.budget_cut
+    monkeypatch.setattr(tree, "budget_cut", lambda *a, **k: calls.append(1) or real(*a, **k))
     for b in (Budget(in_view=1.0), Budget(count=n0), Budget(count=n0 + 5)):
         r = render_lod(g, cam, budget=b)
         assert r.s_v == 1.0 and torch.equal(r.image, want.image) and r.n_rendered == want.n_rendered
@@ -362,6 +362,30 @@ def test_the_cpp_cut_and_attributes_equal_their_torch_twins(model):
                 assert x.shape == y.shape and torch.allclose(x, y, rtol=1e-5, atol=1e-6)
             handing += sum(int(((w < 1) & ~f).sum()) for w, f in zip(a.t[:-1], a.fade[:-1]))
     assert handing > 100  # the interpolation was compared, not only whole nodes
+
+
+@pytest.mark.skipif(not native.available(), reason="the C++ kernels do not build here")
+def test_the_one_call_budget_cut_equals_its_three_step_twin(model):
+    """tree.budget_cut's C++ call (terms, level and cut at once) against terms + budget_s_v + cut:
+    the same level, nodes, hand-over positions and fades, from every count to none."""
+    g, cams = model
+    ts = tree.tiers_of(g)
+    levels = set()
+    for cam in cams:
+        n0 = int(tree.in_frustum(ts[0], cam).sum())
+        for k in (0, 1, 3, 17, 60, 200, n0 // 2, n0 - 1):
+            with torch.no_grad():
+                with native.use_impl("cpp"):
+                    a = tree.budget_cut(ts, cam, k)
+                with native.use_impl("torch"):
+                    b = tree.budget_cut(ts, cam, k)
+            assert a.s_v == b.s_v and a.n_frustum == b.n_frustum, k
+            assert all(torch.equal(x, y) for x, y in zip(a.ids, b.ids)), k
+            assert all(torch.equal(x, y) for x, y in zip(a.fade, b.fade)), k
+            assert all(torch.allclose(x, y, atol=1e-6) for x, y in zip(a.t, b.t)), k
+            assert sum(int(f[i].sum()) for f, i in zip(tree.frame(ts, cam)[1], a.ids)) <= k
+            levels.add(round(a.s_v, 6))
+    assert len(levels) > 8  # many levels, not one answer
 
 
 @pytest.mark.skipif(not native.available(), reason="the C++ kernels do not build here")

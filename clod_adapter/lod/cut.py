@@ -97,9 +97,7 @@ def tree_cut(gaussians: Gaussians, camera, s_v: Optional[float] = None, *, budge
         k = budget.of(len(gaussians), n0)
         if k >= n0:  # every tier-0 node in the frustum: the level is 1, no sweep
             return None if whole_as_none else tree.cut(tiers, camera, 1.0, hand_over=hand_over)
-        tt = tree.terms(tiers, camera, hand_over=hand_over, at=at)
-        s_v = tree.budget_s_v(tt, k)
-        return tree.cut(tiers, camera, float(s_v), hand_over=hand_over, tt=tt)
+        return tree.budget_cut(tiers, camera, k, hand_over=hand_over, at=at)
     from .cost import DEFAULT_FRAME_TIME_MODEL
 
     tt = tree.terms(tiers, camera, hand_over=hand_over)

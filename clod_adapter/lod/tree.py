@@ -57,7 +57,7 @@ from .budget import critical_s_v
 from ..gaussians import Gaussians
 
 __all__ = ["HAND_OVER", "PARENT_KEY", "is_tree", "tiers_of", "tier_scales", "assign_parents", "build", "cut", "walk",
-           "budget_s_v", "TreeCut", "TreeTerms", "terms", "cut_attributes", "leads", "in_frustum"]
+           "budget_s_v", "budget_cut", "TreeCut", "TreeTerms", "terms", "cut_attributes", "leads", "in_frustum"]
 
 #: ``F``: a hand-over or an exit lasts from ``U / F`` to ``U`` in ``s_v``; a node is drawn over at
 #: least this factor of ``s_v``
@@ -399,6 +399,24 @@ def cut(tiers: Sequence[Gaussians], camera, s_v: float, *, hand_over: float = HA
         ts.append(torch.clamp(torch.log(u[i] / s) / lnF, 0.0, 1.0))
         fades.append(f[i])
     return TreeCut(ids, ts, s, int(tt.frustum[0].sum()), fades)
+
+
+@torch.no_grad()
+def budget_cut(tiers: Sequence[Gaussians], camera, k: float, *, hand_over: float = HAND_OVER,
+               at: Optional[tuple] = None) -> TreeCut:
+    """The cut a count budget of ``k`` nodes with their centre in the frustum draws (module
+    docstring, step 6): :func:`terms`, :func:`budget_s_v` and :func:`cut` at that level, in one
+    C++ call where the kernels run (``render/csrc/tree_cut.cpp``; the three functions are its twin,
+    ``tests/test_tree.py`` holds them equal). ``at``: :func:`frame` of this camera, when the caller
+    has it."""
+    ds, frs = frame(tiers, camera) if at is None else at
+    if _native(tiers):
+        out = _native_call("tree_budget_cut", tiers, ds, [f.double().contiguous() for f in frs], float(k),
+                           float(hand_over))
+        level = max(float(out[-1]), 1.0)
+        return TreeCut(out[0:-1:3], out[1:-1:3], level, int(frs[0].sum()), out[2:-1:3])
+    tt = terms(tiers, camera, hand_over=hand_over, at=(ds, frs))
+    return cut(tiers, camera, budget_s_v(tt, k), hand_over=hand_over, tt=tt)
 
 
 def _native(tiers: Sequence[Gaussians]) -> bool:

@@ -657,6 +657,11 @@ std::vector<torch::Tensor> tree_attributes_cpu(std::vector<torch::Tensor> attrs,
                                                std::vector<torch::Tensor> parents, std::vector<torch::Tensor> leads,
                                                double shrink_floor);
 
+std::vector<torch::Tensor> tree_budget_cut_cpu(std::vector<torch::Tensor> d_norm, std::vector<torch::Tensor> sigma_d,
+                                               std::vector<torch::Tensor> exits, std::vector<torch::Tensor> parents,
+                                               std::vector<torch::Tensor> leads, std::vector<torch::Tensor> weights,
+                                               double k, double F);
+
 // splat_cost.cpp (the "ellipse_px" cost of every Gaussian, lod.cost.splat_cost)
 torch::Tensor splat_cost_cpu(torch::Tensor means, torch::Tensor quats, torch::Tensor scales, torch::Tensor opacities,
                              std::vector<double> R, std::vector<double> t, double fx, double cx, double fy, double cy,
@@ -673,6 +678,7 @@ PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
     m.def("tree_cut", &tree_cut_cpu, "the merge tree's cut at one s_v (tree.terms + tree.cut)");
     m.def("tree_terms", &tree_terms_cpu, "every node's entry, end and fade (tree.terms)");
     m.def("tree_budget", &tree_budget_cpu, "the level a budget draws (tree.budget_s_v)");
+    m.def("tree_budget_cut", &tree_budget_cut_cpu, "a budget's cut in one call (tree.budget_cut)");
     m.def("tree_frame", &tree_frame_cpu, "every node's frustum test and d' (tree.frame)");
     m.def("tree_attributes", &tree_attributes_cpu, "a cut's drawn attributes (tree.cut_attributes)");
     m.def("splat_cost", &splat_cost_cpu, "every Gaussian's ellipse_px cost (lod.cost.splat_cost at level 0)");

@@ -74,16 +74,11 @@ void terms_impl(const std::vector<torch::Tensor>& d_norm, const std::vector<torc
 }
 
 template <typename S>
-std::vector<torch::Tensor> cut_impl(const std::vector<torch::Tensor>& d_norm, const std::vector<torch::Tensor>& sigma_d,
-                                    const std::vector<torch::Tensor>& exits, const std::vector<torch::Tensor>& parents,
-                                    const std::vector<torch::Tensor>& leads, double s, double F) {
-    const int64_t T = static_cast<int64_t>(d_norm.size()) - 1;
+void emit_cut(const std::vector<torch::Tensor>& E, const std::vector<torch::Tensor>& U,
+              const std::vector<torch::Tensor>& fade, double s, double F, std::vector<torch::Tensor>& out) {
     const S lnF = std::log(static_cast<S>(F)), sv = static_cast<S>(s);
-    std::vector<torch::Tensor> E, U, fade;
-    terms_impl<S>(d_norm, sigma_d, exits, parents, leads, F, E, U, fade);
-    std::vector<torch::Tensor> out;
-    for (int64_t k = 0; k <= T; ++k) {  // drawn iff E <= s < U; ids ascending (sequential: they are few or cheap)
-        const int64_t n = d_norm[k].size(0);
+    for (size_t k = 0; k < E.size(); ++k) {  // drawn iff E <= s < U; ids ascending (sequential: they are few or cheap)
+        const int64_t n = E[k].size(0);
         const S* Ek = E[k].data_ptr<S>();
         const S* Uk = U[k].data_ptr<S>();
         const bool* fk = fade[k].data_ptr<bool>();
@@ -92,7 +87,7 @@ std::vector<torch::Tensor> cut_impl(const std::vector<torch::Tensor>& d_norm, co
             if (Ek[i] <= sv && sv < Uk[i]) ids.push_back(i);
         const int64_t m = static_cast<int64_t>(ids.size());
         auto id_t = torch::empty({m}, torch::TensorOptions().dtype(torch::kInt64));
-        auto w_t = torch::empty({m}, d_norm[k].options());
+        auto w_t = torch::empty({m}, E[k].options());
         auto f_t = torch::empty({m}, torch::TensorOptions().dtype(torch::kBool));
         int64_t* ip = id_t.data_ptr<int64_t>();
         S* wp = w_t.data_ptr<S>();
@@ -107,6 +102,15 @@ std::vector<torch::Tensor> cut_impl(const std::vector<torch::Tensor>& d_norm, co
         out.push_back(w_t);
         out.push_back(f_t);
     }
+}
+
+template <typename S>
+std::vector<torch::Tensor> cut_impl(const std::vector<torch::Tensor>& d_norm, const std::vector<torch::Tensor>& sigma_d,
+                                    const std::vector<torch::Tensor>& exits, const std::vector<torch::Tensor>& parents,
+                                    const std::vector<torch::Tensor>& leads, double s, double F) {
+    std::vector<torch::Tensor> E, U, fade, out;
+    terms_impl<S>(d_norm, sigma_d, exits, parents, leads, F, E, U, fade);
+    emit_cut<S>(E, U, fade, s, F, out);
     return out;
 }
 
@@ -422,5 +426,27 @@ std::vector<torch::Tensor> tree_attributes_cpu(std::vector<torch::Tensor> attrs,
     AT_DISPATCH_FLOATING_TYPES(attrs[0].scalar_type(), "tree_attributes", [&] {
         out = attributes_impl<scalar_t>(attrs, ids, ws, fades, parents, leads, shrink_floor);
     });
+    return out;
+}
+
+// clod_adapter.lod.tree.budget_cut: a count (or weighted) budget's cut in one call: every node's
+// terms (tree.terms), the level (tree.budget_s_v with ``weights``, per tier [N_k] float64) and the
+// cut at it (tree.cut). Returns per tier [ids, w, fade], then a 0-dim float64 tensor of the level.
+std::vector<torch::Tensor> tree_budget_cut_cpu(std::vector<torch::Tensor> d_norm, std::vector<torch::Tensor> sigma_d,
+                                               std::vector<torch::Tensor> exits, std::vector<torch::Tensor> parents,
+                                               std::vector<torch::Tensor> leads, std::vector<torch::Tensor> weights,
+                                               double k, double F) {
+    TORCH_CHECK(!d_norm.empty() && sigma_d.size() == d_norm.size() && exits.size() == d_norm.size() &&
+                parents.size() + 1 == d_norm.size() && leads.size() + 1 == d_norm.size() &&
+                weights.size() == d_norm.size(), "tree_budget_cut: one entry per tier");
+    std::vector<torch::Tensor> out;
+    double level = 1.0;
+    AT_DISPATCH_FLOATING_TYPES(d_norm[0].scalar_type(), "tree_budget_cut", [&] {
+        std::vector<torch::Tensor> E, U, fade;
+        terms_impl<scalar_t>(d_norm, sigma_d, exits, parents, leads, F, E, U, fade);
+        level = budget_impl<scalar_t>(E, U, weights, k);
+        emit_cut<scalar_t>(E, U, fade, std::max(level, 1.0), F, out);
+    });
+    out.push_back(torch::full({}, level, torch::TensorOptions().dtype(torch::kFloat64)));
     return out;
 }

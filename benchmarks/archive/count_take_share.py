@@ -13,8 +13,8 @@ For each input (default: skull, fern and MaskGaussian fern) the default adaptati
 ``--shares``. Printed per point: the decimator's PSNR, and per share the adapted model's PSNR and
 drawn count over the budget. No goal is enforced (a study: exit 0)::
 
-    python -m benchmarks.studies.count_take_share --split val          # skull, fern, MaskGaussian fern
-    python -m benchmarks.studies.count_take_share --split val --inputs skull --shares 1 0.6 0.4
+    python -m benchmarks.archive.count_take_share --split val          # skull, fern, MaskGaussian fern
+    python -m benchmarks.archive.count_take_share --split val --inputs skull --shares 1 0.6 0.4
 
 Written: ``runs/bench/count_take_share/summary.md``. About 2 minutes per scene on 2 cores.
 """

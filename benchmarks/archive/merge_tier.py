@@ -23,8 +23,8 @@ Printed per input: the best PSNR within 75 / 50 / 25 / 15 / 10 % of the input's 
 and the goal margins of ``quality_vs_time.py`` at 50 / 25 / 10 % (ours >= best static + 1 dB)
 for each. No goal is enforced (a study: exit 0)::
 
-    python -m benchmarks.studies.merge_tier                        # skull, fern; validation views
-    python -m benchmarks.studies.merge_tier --inputs skull --parents 0.04 0.08 0.15 --split test
+    python -m benchmarks.archive.merge_tier                        # skull, fern; validation views
+    python -m benchmarks.archive.merge_tier --inputs skull --parents 0.04 0.08 0.15 --split test
 
 Written: ``runs/bench/merge_tier<_val>/{<input>.csv, summary.md}``.
 """

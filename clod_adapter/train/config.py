@@ -117,9 +117,10 @@ class AdaptConfig:
             merged tier hands over to the next (:func:`clod_adapter.train.tiers.link`; the input's own
             hand-over to the first tier stays where the time rule puts it). Default
             :data:`clod_adapter.train.tiers.TIER_HAND_OVER` (1.6) with the calibrated schedule; 0:
-            where the time rule puts it (docs/studies.md "The coarsest tier's window": on the
-            validation views popping median fern 15.6 -> 17.9, MaskGaussian fern 15.2 -> 16.6,
-            skull 9.3 -> 11.9, no quality cell down by more than 0.01 dB).
+            where the time rule puts it (docs/studies.md "Hand-overs out of the merged tiers",
+            measured on the chain: on the validation views popping median fern 15.6 -> 17.9,
+            MaskGaussian fern 15.2 -> 16.6, skull 9.3 -> 11.9, no quality cell down by more than
+            0.01 dB).
         tier_draw: how a model with merged tiers is drawn: ``"tree"`` (default), the tiers linked
             into a merge tree (each Gaussian names its parent in the next tier), fitted on its cuts
             and drawn as one cut per frame (:mod:`clod_adapter.lod.tree`; docs/method.md "The merge

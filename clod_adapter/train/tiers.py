@@ -235,8 +235,8 @@ CHOOSE_MARGIN_DB = 1.5
 #: the latest ``s_v`` at which a merged tier hands over to the next (``AdaptConfig.tier_hand_over``):
 #: past it a merged tier's survivors thin out and each leaves a visible step; the input's own
 #: hand-over to the first tier stays the time rule's. Chosen on the validation views
-#: (docs/studies.md "The coarsest tier's window": popping up on every shared scene, no quality
-#: cell down by more than 0.01 dB)
+#: (docs/studies.md "Hand-overs out of the merged tiers", measured on the chain: popping up on
+#: every shared scene, no quality cell down by more than 0.01 dB)
 TIER_HAND_OVER = 1.6
 
 

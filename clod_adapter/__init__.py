@@ -8,10 +8,10 @@ clod_adapter`` stays light and does not import torch: the CLIs set OpenMP defaul
   :class:`LodSettings`;
 * scenes: :func:`load_scene`, :class:`Camera`, :class:`Scene`;
 * rendering at a level of detail: :func:`render_lod`, :func:`lod_subset`, :func:`view_lod`,
-  :class:`LodView`, :func:`clod_rasterization` (gsplat ``rasterization`` + LoD; its LoD
-  arguments for a model: :func:`clod_kwargs`),
-  :func:`rasterization` (gsplat-compatible, no LoD);
-* adapting: :class:`AdaptConfig`, :func:`prepare`, :func:`fit` (the fine-tune);
+  :class:`LodView`, :class:`Budget` (a count, a share, a cost or milliseconds instead of a
+  level), :func:`clod_rasterization` (gsplat ``rasterization`` + LoD; its LoD arguments for a
+  model: :func:`clod_kwargs`), :func:`rasterization` (gsplat-compatible, no LoD);
+* adapting: :class:`AdaptConfig`, :func:`prepare`, :func:`fit` (the fine-tune), :class:`EtaGradient`;
 * the three jobs behind the CLIs: :func:`run_adapt_job` (``clod-adapt``, options
   :class:`AdaptOptions`), :func:`evaluate_report` (``clod-eval``, options :class:`EvalOptions`),
   :func:`export_model` (``clod-export``, options :class:`ExportOptions`).

@@ -300,7 +300,7 @@ DEFAULT_FRAME_TIME_MODEL = FrameTimeModel(c0_ms=2.42, per_cost_ms=5.53e-6, per_g
 # --- a view's cost budgets (LodView.cost_count, full_cost, full_detail_estimate) ----------------
 #: a budget walking down a chain of tiers compares each tier's full detail estimated from the
 #: widest :data:`COST_SAMPLE_TOP` share and every this many-th of the rest
-#: (:meth:`LodView.full_detail_estimate`; ``benchmarks/studies/cost_sample.py``, docs/studies.md
+#: (:meth:`LodView.full_detail_estimate`; ``benchmarks/archive/cost_sample.py``, docs/archive/studies_chain.md
 #: "Costing the tiers from a sample")
 COST_SAMPLE_STEP = 8
 #: the share of a model's Gaussians, the widest on screen, that the estimate costs exactly
@@ -412,7 +412,7 @@ def view_full_detail_estimate(view, step: Optional[int] = None) -> tuple[float, 
     Returns:
         (cost in :data:`clod_adapter.lod.cost.COST_UNIT`, clipped ellipse pixels; the count of
         Gaussians in view), both float; within 5.1 % of the exact cost on the validation views
-        of the shared checkpoints (docs/studies.md "Costing the tiers from a sample")."""
+        of the shared checkpoints (docs/archive/studies_chain.md "Costing the tiers from a sample")."""
 
     step = COST_SAMPLE_STEP if step is None else int(step)
     n = view.n

@@ -14,9 +14,9 @@ each view of ``--split`` (default: the validation views), each step n in ``--ste
 estimate's time (median of ``--repeats``, 2 threads) and its error against the exact full cost and
 count in view (mean and worst over the views). No goal is enforced (a study: exit 0)::
 
-    python -m benchmarks.studies.cost_sample                      # validation views
-    python -m benchmarks.studies.cost_sample --steps 1 8 --tops 0 0.03 --inputs skull
-    python -m benchmarks.studies.cost_sample --frames --split test
+    python -m benchmarks.archive.cost_sample                      # validation views
+    python -m benchmarks.archive.cost_sample --steps 1 8 --tops 0 0.03 --inputs skull
+    python -m benchmarks.archive.cost_sample --frames --split test
 
 ``--frames``: instead, the default adaptation of each input (cached, benchmarks/common.py; adapted
 on the fit views first for ``--split val``) drawn at the cost budgets of ``quality_vs_time.py``

@@ -32,6 +32,7 @@ from benchmarks.common import (LABELS, adapt_cached, add_inputs_args, load_input
                     table, write_summary)
 
 import torch  # noqa: E402
+from dataclasses import replace  # noqa: E402
 
 from clod_adapter.lod import view as lod_view  # noqa: E402
 from clod_adapter.lod.draw import render_lod
@@ -66,7 +67,9 @@ def _render(model, cam, k: int, prefix: bool):
 def study(name: str, repeats: int) -> tuple[list[list], bool]:
     """One input's table rows and whether its goal is met."""
     ply = adapt_cached(name, AdaptConfig(), "default", split="test")
-    model = load_model(ply)
+    # tier 0 alone: a model without merged tiers (an input under PARENT_MIN_GAUSSIANS, or
+    # --parent-share 0) draws a count budget this way; a merge tree draws it as one cut instead
+    model = replace(load_model(ply), parents=None)
     base, scene, _ = load_input(name, split="test")
     cams = list(scene.test) or list(scene.train[:1])
     n_vis = [view_lod(base, c).n_in_view for c in cams]

@@ -520,7 +520,7 @@ def test_popping_sweep_runs_through_every_tier():
 
 
 def test_budgets_draw_the_parents_once_they_can_fill_them(tiered):
-    """budget_cost / budget_ms / count budgets on a tiered model (camera_lod.budget_walk): the
+    """Cost, time and count budgets on a tiered model (lod.draw.budget_walk): the
     model's own solution while the parents, as the s_v rule first draws them alone (their
     tier_start level), cost less than the budget (a count budget: draw less than
     COUNT_TAKE_SHARE of it); from there the parents alone within the same budget (a share of the

@@ -326,8 +326,8 @@ def budget_walk(settings: Sequence[lod.LodSettings], view_of: Callable[[int], Lo
     ``s_v`` rule first draws it alone (its ``tier_start`` level, selection ``start``): a count
     budget of ``k`` (the count ``sel`` drew) when ``start`` draws at least :data:`COUNT_TAKE_SHARE`
     of ``k`` (it is then asked for ``k`` and may draw fewer), a cost budget
-    when ``start`` costs at least the budget (a ``budget_cost`` share is taken of the first view's
-    full cost), a ``budget_ms`` when ``start`` is predicted to take at least that
+    when ``start`` costs at least the budget (a ``cost`` share is taken of the first view's
+    full cost), an ``ms`` budget when ``start`` is predicted to take at least that
     long (``time_model``, default the fitted one). A ``start`` at the tier's full detail
     (``tier_start <= 1``, as ``clod-adapt`` links tiers) and the first view's full cost are
     estimated from a sample, the widest Gaussians and every :data:`clod_adapter.lod.cost.COST_SAMPLE_STEP`-th of the rest

@@ -447,7 +447,7 @@ def _memo(view_of: Callable[[int], LodView]) -> Callable[[int], LodView]:
 
 #: a count budget of ``k`` passes to the next tier where that tier, as the ``s_v`` rule first draws
 #: it alone, draws at least this share of ``k`` (:func:`budget_walk`; 1: only where it fills the
-#: budget)
+#: budget); chosen on the validation views, docs/archive/studies_chain.md "Count budgets across tiers"
 COUNT_TAKE_SHARE = 0.6
 
 

@@ -225,7 +225,8 @@ def build_settings(adapted: Gaussians, base: Gaussians, fit_cams: Sequence, cams
     for s in clod_s_vs(adapted):
         settings.append(Setting("clod", f"s_v={s:g}", [lod_render(adapted, c, s_v=s, **kw) for c in cams], sa))
     for b in COST_SHARES:
-        settings.append(Setting("clod", f"cost={b:g}", [lod_render(adapted, c, budget=Budget(cost=b), **kw) for c in cams], sa))
+        settings.append(Setting("clod", f"cost={b:g}", [lod_render(adapted, c, budget=Budget(cost=b), **kw)
+                                                        for c in cams], sa))
     for b in COUNT_SHARES:
         settings.append(Setting("clod", f"in_view={b:g}", [lod_render(adapted, c, budget=Budget(in_view=b), **kw)
                                                            for c in cams], sa))
@@ -278,8 +279,9 @@ def matched_settings(settings: Sequence[Setting], ctx: _Context, max_sv: float) 
             continue
         key = f"match:{st.method}:{st.setting}"
         ks = list(st.drawn)
-        out.append(Setting("clod", key, [lod_render(ctx.adapted, c, budget=Budget(count=k, min_s_v=0.0), **ctx.render_kw)
-                                         for c, k in zip(ctx.cams, ks)], ply_bytes(ctx.adapted)))
+        out.append(Setting("clod", key, [lod_render(ctx.adapted, c, budget=Budget(count=k, min_s_v=0.0),
+                                                    **ctx.render_kw) for c, k in zip(ctx.cams, ks)],
+                           ply_bytes(ctx.adapted)))
         for method in ("lightgaussian", "opacity"):
             fns, size = ctx.ranking_cut(method, ks)
             out.append(Setting(method, key, fns, size))

@@ -59,8 +59,12 @@ def evaluate_level(
 ) -> LevelMetrics:
     """Render every camera at ``s_v`` (None: no LoD) or within ``budget`` (a
     :class:`clod_adapter.lod.budget.Budget`; ``s_v`` solved per view, at least its ``min_s_v``)
-    and score against ``images``
-    ([H, W, 3])."""
+    and score against ``images`` ([H, W, 3] float in [0, 1], one per camera): mean PSNR (dB) and
+    SSIM, the mean count drawn, and the median select / raster / total ms per frame.
+
+    Raises:
+        ValueError, TypeError: as :func:`clod_adapter.lod.draw.render_lod` (``s_v < 1``, both
+            ``s_v`` and ``budget``, a model without ``sigma_d``)."""
     ps, ss, counts, tms, sel, ras, svs = [], [], [], [], [], [], []
     for cam, gt in zip(cameras, images):
         out = render_lod(gaussians, cam, s_v, tau=tau, background=background, backend=backend,
@@ -79,7 +83,8 @@ def evaluate_level(
     if budget is not None and svs and all(v is not None for v in svs):
         s_v = sum(svs) / len(svs)
     return LevelMetrics(
-        budget=None if budget is None else budget.amount, s_v=s_v, psnr=sum(ps) / len(ps), ssim=sum(ss) / len(ss), gaussians=mean_count,
+        budget=None if budget is None else budget.amount, s_v=s_v, psnr=sum(ps) / len(ps),
+        ssim=sum(ss) / len(ss), gaussians=mean_count,
         fraction=mean_count / n, ms_per_frame=statistics.median(tms),
         select_ms=statistics.median(sel), raster_ms=statistics.median(ras), per_view_psnr=ps,
     )

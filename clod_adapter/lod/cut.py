@@ -43,9 +43,16 @@ def node_costs_native(t: Gaussians, camera) -> Tensor:
     """[N] float64 ``"ellipse_px"`` cost of every Gaussian of ``t`` (activated scales, opacities
     ``sigmoid(opacity_logits)``, no gains) from ``camera``, by the C++ kernel: what
     :func:`clod_adapter.lod.cost.splat_cost` gives at level 0 (to rounding; gsplat 1.5.3's
-    projection, ``eps2d`` 0.3, near plane 0.01)."""
+    projection, ``eps2d`` 0.3, near plane 0.01). ``camera``: ``viewmat`` [4, 4] world-to-camera,
+    ``K`` [3, 3] pixels, ``width``, ``height`` (pixels).
+
+    Raises:
+        RuntimeError: the C++ kernels do not build here (:func:`clod_adapter.render.native.error`)."""
     from .cost import EPS2D
     from ..render.native import load
+
+    if load() is None:
+        raise RuntimeError("node_costs_native: the C++ kernels do not build here")
 
     dt = t.means.dtype
     vm = camera.viewmat.detach().to(torch.float64).cpu()

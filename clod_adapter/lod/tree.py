@@ -407,8 +407,10 @@ def budget_cut(tiers: Sequence[Gaussians], camera, k: float, *, hand_over: float
     """The cut a count budget of ``k`` nodes with their centre in the frustum draws (module
     docstring, step 6): :func:`terms`, :func:`budget_s_v` and :func:`cut` at that level, in one
     C++ call where the kernels run (``render/csrc/tree_cut.cpp``; the three functions are its twin,
-    ``tests/test_tree.py`` holds them equal). ``at``: :func:`frame` of this camera, when the caller
-    has it."""
+    ``tests/test_tree.py`` holds them equal). ``camera``: ``viewmat`` [4, 4] world-to-camera, ``K``
+    [3, 3] pixels, ``width``, ``height``; ``k`` >= 0 nodes; ``at``: :func:`frame` of this camera,
+    when the caller has it. Returns the :class:`TreeCut` (its ``s_v`` the level, >= 1). Raises
+    KeyError where a tier lacks ``extra["parent"]`` or ``extra["exit"]``."""
     ds, frs = frame(tiers, camera) if at is None else at
     if _native(tiers):
         out = _native_call("tree_budget_cut", tiers, ds, [f.double().contiguous() for f in frs], float(k),

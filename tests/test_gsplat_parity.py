@@ -9,12 +9,21 @@ import pytest
 import torch
 
 from clod_adapter.render.gsplat_backend import gsplat_unavailable_reason
+from clod_adapter.lod.budget import Budget
 from clod_adapter.lod.draw import render_lod
 
 _reason = gsplat_unavailable_reason()
 pytestmark = pytest.mark.skipif(_reason is not None, reason=f"gsplat backend: {_reason}")
 
-LEVELS = [{"s_v": 1.0}, {"s_v": 3.0}, {"s_v": 5.0}, {"budget": 0.5}, {"budget": 0.1}]
+LEVELS = [{"s_v": 1.0}, {"s_v": 3.0}, {"s_v": 5.0}, {"budget": Budget(share=0.5)}, {"budget": Budget(share=0.1)},
+          {"budget": Budget(in_view=0.3)}]
+
+
+def _level_id(level: dict) -> str:
+    """A test id: ``s_v3.0`` or ``budget-share0.5``."""
+    if "budget" in level:
+        return f"budget-{level['budget'].kind}{level['budget'].amount}"
+    return f"s_v{level['s_v']}"
 
 
 @pytest.fixture(scope="module")
@@ -44,7 +53,7 @@ def _backends_agree(model, cams, level: dict) -> None:
         assert diff < 1e-3, f"max |CPU - gsplat| = {diff:.2e} at {level}"
 
 
-@pytest.mark.parametrize("level", LEVELS, ids=lambda kw: "-".join(f"{k}{v}" for k, v in kw.items()))
+@pytest.mark.parametrize("level", LEVELS, ids=_level_id)
 def test_images_and_counts_match(calibrated_model, level):
     model, cams = calibrated_model
     _backends_agree(model, cams[:3], level)
@@ -70,8 +79,9 @@ def test_gradients_match(calibrated_model):
         assert rel < 1e-2, f"gradient of {k}: relative difference {rel:.2e}"
 
 
-@pytest.mark.parametrize("level", [{"s_v": 1.0}, {"s_v": 2.2}, {"s_v": 4.0}, {"s_v": 9.0}, {"budget": 0.3}],
-                         ids=lambda kw: "-".join(f"{k}{v}" for k, v in kw.items()))
+@pytest.mark.parametrize("level", [{"s_v": 1.0}, {"s_v": 2.2}, {"s_v": 4.0}, {"s_v": 9.0}, {"budget": Budget(in_view=0.3)},
+                                   {"budget": Budget(count=500)}, {"budget": Budget(cost=0.3)}],
+                         ids=_level_id)
 def test_a_merge_tree_draws_the_same_cut(level):
     """A merge tree (the default way merged tiers are drawn) on CUDA tensors with gsplat: the cut
     (torch forms of clod_adapter.lod.tree; the C++ kernels are CPU-only) and the image equal the CPU's."""

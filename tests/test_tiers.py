@@ -316,7 +316,7 @@ def test_tier_downscale_sets_the_later_tiers_resolution():
 def test_adapt_job_builds_the_tier_or_says_why_not(tiny_model, tmp_path, monkeypatch):
     """clod-adapt: under PARENT_MIN_GAUSSIANS no tier (and metrics.json says why); over it, the
     merged input is adapted into OUT/parents and, when it pays, stored as the lod_parent element,
-    linked into a merge tree (the default ``--tier-draw tree``)."""
+    linked into a merge tree."""
     import json
 
     from clod_adapter.cli.adapt import main
@@ -366,14 +366,14 @@ def test_adapt_job_builds_the_tier_or_says_why_not(tiny_model, tmp_path, monkeyp
     assert len(tier["curves"]["gaussians"]) == len(tiers.SWITCH_S_V)
     g = read_ply(out / "point_cloud.ply")
     assert tier["used"], tier.get("why")  # the fixture's merges pay: the tier is attached
-    # --tier-draw tree (the default): the tiers linked into one merge tree, its sizes recorded
+    # the tiers linked into one merge tree, its sizes recorded
     assert g.lod.tier_s_v == tier["tier_s_v"] and len(g.parents) == n_parents and g.lod.tree
     assert tier["tree"][:2] == [len(g), n_parents] and tier["tree_fit"]["steps"] == 2  # at most --iterations
 
 
 @pytest.mark.slow
 def test_adapt_job_builds_a_tree(tiny_model, tmp_path, monkeypatch):
-    """clod-adapt --tier-draw tree: the tiers linked into a merge tree (written whole, every node's
+    """clod-adapt with merged tiers: the tiers linked into a merge tree (written whole, every node's
     parent in the next tier), fitted on its cuts for at most --iterations steps, and lod_strip.png
     drawn through it."""
     import json
@@ -389,7 +389,7 @@ def test_adapt_job_builds_a_tree(tiny_model, tmp_path, monkeypatch):
     monkeypatch.setattr(tiers, "choose", lambda g, p, *a, **k: tiers.TierChoice(1.5, 1.0, {}))  # every tier pays
     out = tmp_path / "tree"
     assert main([str(tiny_model["ply"]), "--images", str(tiny_model["scene"]), *FAST, "-o", str(out),
-                 "--parent-share", "0.5,0.2", "--tier-finetune-steps", "3", "--tier-draw", "tree"]) == 0
+                 "--parent-share", "0.5,0.2", "--tier-finetune-steps", "3"]) == 0
     tier = json.loads((out / "metrics.json").read_text())["tier"]
     g = read_ply(out / "point_cloud.ply")
     assert tier["used"] and g.lod.tree and tree.is_tree(g) and tier["tree"] == [len(t) for t in tree.tiers_of(g)]

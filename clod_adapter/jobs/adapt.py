@@ -449,22 +449,20 @@ def _add_parent_tier(ply_path: Path, scene_root: Path, out_dir: Path, cfg: Adapt
 
 
 def _drawing_rule(linked, scene_root: Path, out_dir: Path, scene, cfg: AdaptConfig, o: AdaptOptions, info: dict):
-    """How the linked model's tiers are drawn (``cfg.tier_draw``): ``"tree"``, linked into a merge
-    tree (:func:`clod_adapter.lod.tree.build`; ``info["tree"]`` its tiers' sizes), its merged tiers fitted
-    on its cuts (:func:`clod_adapter.train.tree_fit.finetune`, ``cfg.tree_steps`` at most
-    ``cfg.iterations``; ``info["tree_fit"]``) and ``lod_strip.png`` redrawn through it;
-    ``"chain"``, the linked tiers as they are."""
-    if cfg.tier_draw == "tree":
-        from ..lod import tree
-        from ..train.tree_fit import finetune
+    """The linked model's tiers as a merge tree (:func:`clod_adapter.lod.tree.build`;
+    ``info["tree"]`` its tiers' sizes), its merged tiers fitted on its cuts
+    (:func:`clod_adapter.train.tree_fit.finetune`, ``cfg.tree_steps`` at most ``cfg.iterations``;
+    ``info["tree_fit"]``) and ``lod_strip.png`` redrawn through it."""
+    from ..lod import tree
+    from ..train.tree_fit import finetune
 
-        linked = tree.build(linked, scene.train, log=lambda m: o.log("clod-adapt: " + m))
-        info["tree"] = [len(t) for t in tree.tiers_of(linked)]
-        steps, t0 = min(cfg.tree_steps, cfg.iterations), time.perf_counter()
-        linked = finetune(linked, scene.train, [scene.load_image(c) for c in scene.train], steps,
-                          background=cfg.background, seed=cfg.seed, log=lambda m: o.log("clod-adapt: " + m))
-        info["tree_fit"] = {"steps": steps, "seconds": round(time.perf_counter() - t0, 1)}
-        _final_strip(out_dir, linked, scene_root, cfg, o)
+    linked = tree.build(linked, scene.train, log=lambda m: o.log("clod-adapt: " + m))
+    info["tree"] = [len(t) for t in tree.tiers_of(linked)]
+    steps, t0 = min(cfg.tree_steps, cfg.iterations), time.perf_counter()
+    linked = finetune(linked, scene.train, [scene.load_image(c) for c in scene.train], steps,
+                      background=cfg.background, seed=cfg.seed, log=lambda m: o.log("clod-adapt: " + m))
+    info["tree_fit"] = {"steps": steps, "seconds": round(time.perf_counter() - t0, 1)}
+    _final_strip(out_dir, linked, scene_root, cfg, o)
     return linked
 
 

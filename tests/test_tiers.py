@@ -66,7 +66,7 @@ def test_tiers_not_linked_into_a_tree_are_not_drawn(tiered, kw):
 def test_ply_round_trip_keeps_the_tier(tiered, tmp_path):
     g, cams = tiered
     p = write_ply(tmp_path / "t.ply", g)
-    back = read_ply(p)
+    back = read_ply(p, unlinked_tiers=True)  # tiers not linked into a merge tree: read only when asked
     assert back.parents is not None and len(back.parents) == len(g.parents)
     assert back.lod.tier_s_v == 3.0 and back.lod.tier_start == 1.5 and back.parents.lod.tier_s_v == 0.0
     assert torch.equal(back.parents.sigma_d, g.parents.sigma_d) and torch.equal(back.parents.means, g.parents.means)
@@ -82,7 +82,37 @@ def test_ply_round_trip_keeps_the_tier(tiered, tmp_path):
     ply.comments = [c.replace("tier_s_v=3.0", "tier_s_v=0.0") for c in ply.comments]
     ply.write(str(tmp_path / "bad2.ply"))
     with pytest.raises(PlyFormatError, match="bad2.ply.*lod_parent"):
-        read_ply(tmp_path / "bad2.ply")
+        read_ply(tmp_path / "bad2.ply", unlinked_tiers=True)
+
+
+def test_a_file_whose_tiers_are_not_linked_into_a_tree_is_refused(tiny_adapted, tiny_model, tmp_path, capfd):
+    """A file written with ``--tier-draw chain`` (merged tiers attached, ``tree=True`` absent: the
+    cross-fade chain, no longer drawn) is refused where it is read for drawing, with one line naming
+    the file: read_ply, load_model, clod-render, clod-eval and clod-export exit 2 without a
+    traceback. ``read_ply(unlinked_tiers=True)`` reads it (clod-adapt, for a merged tier's own file)."""
+    from clod_adapter.cli.eval import main as eval_main
+    from clod_adapter.cli.export import main as export_main
+    from clod_adapter.cli.render import main as render_main
+    from clod_adapter.errors import InputError
+    from clod_adapter.io.load import load_model
+    from clod_adapter.io.ply import UNLINKED_TIERS
+    from conftest import err_line
+
+    g = read_ply(tiny_adapted / "point_cloud.ply")
+    old = write_ply(tmp_path / "chain.ply", tiers.attach(g, g.subset(torch.arange(0, len(g), 5)), 2.0, 1.0))
+    assert b"tree=True" not in old.read_bytes()[:4000]
+    for read in (read_ply, load_model):
+        with pytest.raises(InputError, match="chain.ply: its merged tiers are not linked into a merge tree") as e:
+            read(old)
+        assert str(e.value) == f"{old}: {UNLINKED_TIERS}" and "--tier-draw chain" in str(e.value)
+    assert len(read_ply(old, unlinked_tiers=True).parents) == len(g.subset(torch.arange(0, len(g), 5)))
+    scene = str(tiny_model["scene"])
+    for prog, main, extra in (("clod-render", render_main, ["--frames", "2"]), ("clod-eval", eval_main, ["--no-lpips"]),
+                              ("clod-export", export_main, [])):
+        out = tmp_path / prog
+        assert main([str(old), "--images", scene, "-o", str(out), "--quiet", *extra]) == 2, prog
+        line = err_line(capfd)
+        assert "chain.ply" in line and "not linked into a merge tree" in line, (prog, line)
 
 
 def test_model_operations_carry_or_drop_the_tier(tiered):

@@ -425,10 +425,12 @@ def _add_parent_tier(ply_path: Path, scene_root: Path, out_dir: Path, cfg: Adapt
     if pcfg.parent_share:  # the tier's own parent tiers, shares relative to it
         _add_parent_tier(out_dir / PARENT_INPUT_NAME, scene_root, pdir, pcfg, po, stop, None, pm, nested=True,
                          source=p_given)
-    model, parents = read_ply(out_dir / PLY_NAME), read_ply(pdir / PLY_NAME)
+    # a merged tier's own file holds the tiers below it attached, not linked into a tree (the top
+    # model's are, _drawing_rule): read as they are, as a resumed run's own file
+    model, parents = read_ply(out_dir / PLY_NAME, unlinked_tiers=True), read_ply(pdir / PLY_NAME, unlinked_tiers=True)
     imgs = [scene.load_image(c) for c in cams]
     dirs = _tier_dirs(pdir)
-    cands = [parents] + [read_ply(d / PLY_NAME) for d in dirs[1:]]
+    cands = [parents] + [read_ply(d / PLY_NAME, unlinked_tiers=True) for d in dirs[1:]]
     linked, tried = tiers.link(model, cands, cams, imgs, background=cfg.background,
                                max_tier_s_v=cfg.tier_hand_over if nested else 0.0,
                                log=lambda m: o.log("clod-adapt: " + m))

@@ -1,5 +1,6 @@
-"""``render_lod`` against the numpy implementation of ``docs/lod_rule_chain.md``
-(``examples/reference_lod_chain.py``, no ``clod_adapter`` import): the page says all the library does."""
+"""``render_lod`` against the numpy implementation of ``docs/lod_rule_plain.md``
+(``examples/reference_lod_plain.py``, no ``clod_adapter`` import): the page says all the library does
+for a model without merged tiers (a merge tree's: tests/test_tree.py)."""
 from __future__ import annotations
 
 import dataclasses
@@ -21,7 +22,7 @@ from clod_adapter.io.synthetic import make_cameras, make_ground_truth
 from clod_adapter.train.loop import reference_distances
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "examples"))
-import reference_lod_chain as ref  # noqa: E402
+import reference_lod_plain as ref  # noqa: E402
 
 S_VS = (1.0, 1.04, 1.08, 1.2, 1.5, 2.0, 3.7, 5.0, 12.0, 40.0)
 

@@ -33,7 +33,7 @@ from ..evaluate.level_metrics import budget_levels, evaluate_level, evaluate_lev
 from ..io.atomic import atomic_write
 from ..io.load import resolve_model_path
 from . import InputError, pick_device  # noqa: F401 (public here since the first release)
-from ..io.ply import write_ply
+from ..io.ply import read_ply, write_ply
 from ..io.load import load_scene
 from ..render.composite import deterministic_enabled
 from ..gaussians import Gaussians
@@ -367,7 +367,6 @@ def _add_parent_tier(ply_path: Path, scene_root: Path, out_dir: Path, cfg: Adapt
     Gaussians, a data-parallel run, or without splat-transform. ``source``: the input model as the
     adaptation read it (read again from ``ply_path`` when not given)."""
     from ..train import tiers
-    from ..io.ply import read_ply
 
     t0 = time.perf_counter()
     n = int(metrics["num_gaussians"])
@@ -425,12 +424,10 @@ def _add_parent_tier(ply_path: Path, scene_root: Path, out_dir: Path, cfg: Adapt
     if pcfg.parent_share:  # the tier's own parent tiers, shares relative to it
         _add_parent_tier(out_dir / PARENT_INPUT_NAME, scene_root, pdir, pcfg, po, stop, None, pm, nested=True,
                          source=p_given)
-    # a merged tier's own file holds the tiers below it attached, not linked into a tree (the top
-    # model's are, _drawing_rule): read as they are, as a resumed run's own file
-    model, parents = read_ply(out_dir / PLY_NAME, unlinked_tiers=True), read_ply(pdir / PLY_NAME, unlinked_tiers=True)
+    model, parents = _read_own(out_dir / PLY_NAME), _read_own(pdir / PLY_NAME)
     imgs = [scene.load_image(c) for c in cams]
     dirs = _tier_dirs(pdir)
-    cands = [parents] + [read_ply(d / PLY_NAME, unlinked_tiers=True) for d in dirs[1:]]
+    cands = [parents] + [_read_own(d / PLY_NAME) for d in dirs[1:]]
     linked, tried = tiers.link(model, cands, cams, imgs, background=cfg.background,
                                max_tier_s_v=cfg.tier_hand_over if nested else 0.0,
                                log=lambda m: o.log("clod-adapt: " + m))
@@ -448,6 +445,13 @@ def _add_parent_tier(ply_path: Path, scene_root: Path, out_dir: Path, cfg: Adapt
     o.log(f"clod-adapt: merged tier of {len(linked.parents):,} attached to {out_dir / PLY_NAME} (from s_v = "
           f"{st.tier_s_v:g}) in {time.perf_counter() - t0:.0f} s")
     return done()
+
+
+def _read_own(path: Path):
+    """A model ``clod-adapt`` wrote in this run's folders, as written: a merged tier's own file holds
+    the tiers below it attached, not linked into a merge tree (only the top model's are,
+    :func:`_drawing_rule`), so it is read with ``read_ply(unlinked_tiers=True)``."""
+    return read_ply(path, unlinked_tiers=True)
 
 
 def _drawing_rule(linked, scene_root: Path, out_dir: Path, scene, cfg: AdaptConfig, o: AdaptOptions, info: dict):

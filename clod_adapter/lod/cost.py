@@ -367,7 +367,7 @@ def _view_cost_weights(view, level: Optional[float] = None):
     measured in; Eq. 2 at the base opacities (:func:`view_cost_count` then searches exactly)."""
 
     lv = float(level) if (level is not None and view.settings.fade != "eq2") else 0.0
-    if view._costs is not None and view._costs[0] == lv:  # a cost budget, then the tier's full cost
+    if view._costs is not None and view._costs[0] == lv:  # a cost budget, then the view's full cost
         return view._costs[1:]
     order = order_in_view(view.critical, view.visible)
     if order.numel() == 0:

@@ -220,8 +220,10 @@ LEGACY_CONFIG = {"s_v_sampling": "uniform", "level_max": 1.0, "trained_order_sha
                  "faint_share": 0.0, "tier_merge": "decimate",
                  "tier_time_cap": 0.0, "tier_hand_over": 0.0, "tier_downscale": 1, "tier_draw": "chain", "tree_steps": 0}
 #: AdaptConfig keys removed since runs were cached: a cached run matches without them where they
-#: changed nothing it drew (the chain's coarsest window and count rule; a tree uses neither)
-RETIRED_CONFIG = ("popping_goal", "count_mix")
+#: changed nothing it drew (the chain's coarsest window and count rule, and ``tier_draw``: a run drawn
+#: as a tree, or without tiers, is the same run now); a run whose tiers were drawn as a chain
+#: (``tier_draw`` "chain", no longer drawn) never matches
+RETIRED_CONFIG = ("popping_goal", "count_mix", "tier_draw")
 
 
 def adapt_cached(name: str, cfg: AdaptConfig, tag: str, *, split: str = "test", log=print) -> Path:

@@ -63,11 +63,11 @@ class Gaussians:
         extra: [N] tensors by .ply property name (any dtype), carried along but not trained or
             rendered (e.g. ``masks_0``, ``masks_1``); empty by default.
         parents: the parent tier, or None: an adapted model of merged Gaussians (M of them, its
-            own ``sigma_d`` and gains) that the coarse levels cross-fade to from
-            ``lod.tier_s_v`` on (:func:`clod_adapter.lod.rule.tier_weight`; docs/method.md "Merged tiers"),
-            with its own ``parents`` for the next tier of a chain
-            (:func:`clod_adapter.lod.draw.tier_chain`). Moved and copied with the model; a
-            :meth:`subset` drops it.
+            own ``sigma_d`` and gains) that the coarse levels hand over to from ``lod.tier_s_v``
+            on (docs/method.md "Merged tiers"), with its own ``parents`` for the next tier
+            (:func:`clod_adapter.lod.draw.tier_chain`); drawn where the tiers are linked into a
+            merge tree (``lod.tree``, :mod:`clod_adapter.lod.tree`). Moved and copied with the
+            model; a :meth:`subset` drops it.
     """
 
     means: Tensor

@@ -64,15 +64,18 @@ class LodSettings:
         eps: Eq. 2's epsilon.
         fade: ``"window"`` or ``"eq2"`` (module docstring).
         fade_width: ``w`` of the window fade, log-opacity units (> 0).
-        tier_s_v: where the model's parent tier (``Gaussians.parents``: merged Gaussians, an
-            adapted model of their own) takes over: from this ``s_v`` the image cross-fades from
-            the Gaussians to their parents (0: no tier; :func:`tier_weight`).
-        tier_start: the parents' own ``s_v`` from ``tier_s_v`` to the cross-fade's end (>= 1);
-            beyond, they are drawn at ``tier_start * s_v / (tier_fade * tier_s_v)``.
-        tier_fade: the cross-fade lasts from ``tier_s_v`` to ``tier_fade * tier_s_v`` (> 1).
+        tier_s_v: the ``s_v`` (this model's own) at which its parent tier (``Gaussians.parents``:
+            merged Gaussians, an adapted model of their own) takes over, as
+            :func:`clod_adapter.train.tiers.link` chose it (0: no tier). With ``tier_start`` and
+            ``tier_fade`` it places the hand-over of a merge tree: the parent tier's nodes enter
+            around ``tier_fade * tier_s_v / tier_start`` times this tier's own scale
+            (:func:`clod_adapter.lod.tree.tier_scales`).
+        tier_start: the parent tier's own ``s_v`` at the hand-over (>= 1; 1: its full detail).
+        tier_fade: the hand-over's width, a factor of ``s_v`` (> 1).
         tree: the tiers form a merge tree (each Gaussian of a tier names its parent in the next,
-            ``Gaussians.extra["parent"]``) and an ``s_v`` or count budget draws one cut of it
-            (:mod:`clod_adapter.lod.tree`; docs/lod_rule.md) instead of cross-fading whole tiers.
+            ``Gaussians.extra["parent"]``) and an ``s_v`` or a budget draws one cut of it
+            (:mod:`clod_adapter.lod.tree`; docs/lod_rule.md). Merged tiers not linked so are not
+            drawn (a file holding them is refused, :func:`clod_adapter.io.ply.read_ply`).
     """
 
     max_sv: float = 5.0

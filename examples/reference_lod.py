@@ -1,6 +1,6 @@
 """The merge-tree drawing rule of a ``clod-adapt`` model, from ``docs/lod_rule.md`` alone: numpy and
 plyfile, no ``clod_adapter`` import. ``tests/test_tree.py`` holds the library to it, ``test_web_tree.py``
-the web page's port (``viewer/web_page/clod_tree.mjs``). Without ``tree=True``: ``reference_lod_chain.py``.
+the web page's port (``viewer/web_page/clod_tree.mjs``). A model without merged tiers: ``reference_lod_plain.py``.
 
     python examples/reference_lod.py MODEL.ply [--s-v 2] [--budget K]   # what one camera draws
 
@@ -23,7 +23,7 @@ def read_tree(path) -> list[dict]:
     on all but the last, ``exit`` [N] on the last; docs/lod_rule.md "The file")."""
     ply = PlyData.read(str(path))
     assert any(c.split()[:1] == ["clod_lod"] and "tree=True" in c.split() for c in ply.comments), \
-        "not a tree file: see reference_lod_chain.py"
+        "not a tree file: see reference_lod_plain.py"
     names, tiers, k = [e.name for e in ply.elements], [], 0
     while True:
         el = "vertex" if k == 0 else ("lod_parent" if k == 1 else f"lod_parent_{k}")

@@ -252,18 +252,22 @@ def test_clod_render_views_and_video(tiny_adapted, tiny_model, tmp_path, capsys)
     rep = json.loads((out / "render.json").read_text())
     assert max(rep["video"]["s_v"]) == pytest.approx(2.0, abs=0.05) and min(rep["video"]["s_v"]) == 1.0
     assert np.isfinite([v["psnr"] for v in rep["views"]]).all()
-    # a model with a parent tier: the sweep goes on (in ln s_v) to where its parents reach max_sv
+    # a model with a merge tree: the sweep goes on (in ln s_v) to where its last tier reaches max_sv
     import torch
 
-    from clod_adapter.train import tiers
+    from clod_adapter.io.load import load_scene
     from clod_adapter.io.ply import write_ply
+    from clod_adapter.lod import tree
+    from clod_adapter.train import tiers
 
     g = read_ply(tiny_adapted / "point_cloud.ply")
-    tiered = write_ply(tmp_path / "tiered.ply", tiers.attach(g, g.subset(torch.arange(0, len(g), 5)), 2.0, 1.0))
+    linked = tree.build(tiers.attach(g, g.subset(torch.arange(0, len(g), 5)), 2.0, 1.0),
+                        load_scene(tiny_model["scene"]).train)
+    tiered = write_ply(tmp_path / "tiered.ply", linked)
     out = tmp_path / "render_tier"
     assert render_main([str(tiered), "-s", str(tiny_model["scene"]), "-o", str(out), "--frames", "8", "--quiet"]) == 0
     vid = json.loads((out / "render.json").read_text())["video"]
-    top = g.lod.max_sv * 1.25 * 2.0 / 1.0  # the parents at max_sv: past the cross-fade (tier_fade 1.25)
+    top = g.lod.max_sv * 1.25 * 2.0 / 1.0  # the last tier at max_sv (tier_reach: tier_fade 1.25 x 2 / 1)
     assert max(vid["s_v"]) == pytest.approx(top) and min(vid["s_v"]) == 1.0
     assert vid["s_v"][2] == pytest.approx(top ** 0.5)  # a quarter of the way: sqrt of the top
 

@@ -1,5 +1,6 @@
-"""``render_lod`` against the numpy implementation of ``docs/lod_rule_chain.md``
-(``examples/reference_lod_chain.py``, no ``clod_adapter`` import): the page says all the library does."""
+"""``render_lod`` against the numpy implementation of ``docs/lod_rule_plain.md``
+(``examples/reference_lod_plain.py``, no ``clod_adapter`` import): the page says all the library does
+for a model without merged tiers (a merge tree's: tests/test_tree.py)."""
 from __future__ import annotations
 
 import dataclasses
@@ -21,7 +22,7 @@ from clod_adapter.io.synthetic import make_cameras, make_ground_truth
 from clod_adapter.train.loop import reference_distances
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "examples"))
-import reference_lod_chain as ref  # noqa: E402
+import reference_lod_plain as ref  # noqa: E402
 
 S_VS = (1.0, 1.04, 1.08, 1.2, 1.5, 2.0, 3.7, 5.0, 12.0, 40.0)
 
@@ -108,30 +109,3 @@ def test_images_agree_when_the_page_selection_is_rasterised(tmp_path):
                                       cam.width, cam.height, sh_degree=g.sh_degree)
             lib = render_lod(g, cam, s_v=s).image
             assert float((img[0] - lib).abs().max()) < 1e-4, f"{cam.name} s_v={s}"
-
-
-def test_parent_tier_as_the_page_says(tmp_path):
-    """A tiered file (docs/lod_rule_chain.md "The tiers"): the model and its parents drawn by the
-    numpy page are what lod_subset hands the rasteriser, below, across and beyond the switch."""
-    from clod_adapter.train import tiers
-    from clod_adapter.lod.draw import lod_subset
-
-    g, cams = _model("window", 1.0, seed=2)
-    parents, _ = _model("window", 1.0, seed=3, fast=0.0)
-    t = tiers.attach(g, parents.subset(torch.arange(0, len(parents), 4)), 2.0, 1.25)
-    m = ref.read_model(write_ply(tmp_path / "tiered.ply", t))
-    assert len(m["parents"]["means"]) == len(t.parents) and m["settings"]["tier_s_v"] == 2.0
-    seen = set()
-    for cam in (cams[0], _inside_camera()):
-        for s in (1.5, 2.0, 2.2, 2.4, 3.0, 12.0):
-            sub = lod_subset(t, cam, s)
-            out = ref.draw_tiered(m, cam.viewmat.double().numpy(), cam.K.double().numpy(), cam.width, cam.height, s)
-            ids_m = out["model"]["ids"] if out["model"] is not None else np.zeros(0, np.int64)
-            ids_p = out["parents"]["ids"] if out["parents"] is not None else np.zeros(0, np.int64)
-            assert np.array_equal(sub.indices.numpy(), ids_m), (cam.name, s)
-            got_p = sub.parent_indices.numpy() if sub.parent_indices is not None else np.zeros(0, np.int64)
-            assert np.array_equal(got_p, ids_p), (cam.name, s)
-            op = np.concatenate([o["opacities"] for o in (out["model"], out["parents"]) if o is not None])
-            np.testing.assert_allclose(sub.opacities.numpy(), op, rtol=1e-4, atol=2e-5, err_msg=f"{cam.name} {s}")
-            seen.add((ids_m.size > 0, ids_p.size > 0))
-    assert seen == {(True, False), (True, True), (False, True)}  # below, across and beyond the switch

@@ -247,3 +247,22 @@ def test_deterministic_backward_is_bit_reproducible(threads):
             assert torch.equal(r[k], runs[0][k]), k
     for k in dyn:
         torch.testing.assert_close(runs[0][k], dyn[k], rtol=1e-4, atol=1e-6)
+
+
+@pytest.mark.parametrize("drawn", ["tree", "chain"])
+def test_a_state_saved_with_tier_draw_still_loads(scene, tmp_path, drawn):
+    """States written while merged tiers could also be drawn as a chain carry ``tier_draw`` in their
+    config: they load (the model's own training does not depend on it) with the same settings."""
+    import json
+
+    from safetensors import safe_open
+    from safetensors.torch import save_file
+
+    with safe_open(str(scene / "ref" / STATE), framework="pt", device="cpu") as f:
+        meta, tensors = dict(f.metadata()), {k: f.get_tensor(k) for k in f.keys()}
+    cfg = json.loads(meta["config"])
+    assert "tier_draw" not in cfg
+    save_file(tensors, str(tmp_path / STATE), metadata={**meta, "config": json.dumps({**cfg, "tier_draw": drawn})})
+    old, old_cfg, _ = load_state(tmp_path / STATE)
+    new, new_cfg, _ = load_state(scene / "ref" / STATE)
+    assert old_cfg == new_cfg and old.iteration == new.iteration > 0

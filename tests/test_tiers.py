@@ -1,4 +1,6 @@
-"""The parent tier (clod_adapter.train.tiers): the cross-fade rule, drawing, the .ply element, the choice."""
+"""The merged tiers (clod_adapter.train.tiers): their settings, the .ply elements, the choice and the
+link, the job that builds them; tiers not linked into a merge tree are not drawn (the tree:
+tests/test_tree.py)."""
 from dataclasses import replace
 
 import pytest
@@ -27,50 +29,47 @@ def tiered():
     return tiers.attach(children, parents, 3.0, 1.5), make_cameras(1, 2)
 
 
-def test_tier_weight_rule():
+def test_tier_settings_are_checked():
     st = lod.LodSettings(fade="window", tier_s_v=4.0, tier_start=1.5, tier_fade=1.25)
-    assert lod.tier_weight(1.0, st) == (0.0, 1.0) and lod.tier_weight(4.0, st)[0] == 0.0
-    u, sp = lod.tier_weight(4.4, st)
-    assert 0.0 < u < 1.0 and sp == 1.5  # held at tier_start through the cross-fade (4 to 5)
-    assert lod.tier_weight(5.0, st) == pytest.approx((1.0, 1.5)) and lod.tier_weight(9.0, st) == (1.0, 1.5 * 9.0 / 5.0)
-    us = [lod.tier_weight(s, st)[0] for s in torch.linspace(4.0, 5.2, 25).tolist()]
-    assert all(b >= a for a, b in zip(us, us[1:]))
-    assert lod.tier_weight(30.0, lod.LodSettings())[0] == 0.0  # no tier
+    assert (st.tier_s_v, st.tier_start, st.tier_fade) == (4.0, 1.5, 1.25) and lod.LodSettings().tier_s_v == 0.0
     for bad in (dict(tier_s_v=0.5), dict(tier_s_v=2.0, tier_start=0.9), dict(tier_s_v=2.0, tier_fade=1.0)):
         with pytest.raises(ValueError):
             lod.LodSettings(**bad)
 
 
-def test_drawing_below_beyond_and_across_the_switch(tiered):
+@pytest.mark.parametrize("kw", [dict(s_v=1.0), dict(s_v=2.9), dict(s_v=4.0), dict(s_v=9.0),
+                                dict(budget=Budget(share=0.3)), dict(budget=Budget(count=40))])
+def test_tiers_not_linked_into_a_tree_are_not_drawn(tiered, kw):
+    """A model whose merged tiers are attached but not linked into a merge tree (tiers.attach
+    before lod.tree.build) is drawn as its own Gaussians by render_lod, lod_subset, the renderer
+    hook and bake, at every s_v (also past its tier_s_v) and within budgets."""
+    from clod_adapter import clod_kwargs, clod_rasterization
+    from clod_adapter.export.bake import bake
+    from clod_adapter.lod.draw import lod_subset
+
     g, cams = tiered
     children = replace(g, parents=None)
-    for cam in cams:
-        below = render_lod(g, cam, 2.9)
-        assert torch.equal(below.image, render_lod(children, cam, 2.9).image) and below.n_parents == 0
-        beyond = render_lod(g, cam, 4.0)  # u = 1 from 3 * 1.25 on: the parents alone at 1.5 * 4 / 3.75
-        assert torch.equal(beyond.image, render_lod(g.parents, cam, 1.6).image)
-        # through the cross-fade the parents are held at their tier_start level
-        assert torch.equal(render_lod(g, cam, 3.75).image, render_lod(g.parents, cam, 1.5).image)
-        assert beyond.n_parents == beyond.n_rendered > 0 and beyond.indices.numel() == 0
-        mid = render_lod(g, cam, 3.3)
-        kids = render_lod(children, cam, 3.3).n_rendered
-        assert mid.n_rendered == kids + mid.n_parents and mid.n_parents > 0 and kids > 0
-        # the cross-fade starts from the model's image and ends at the parents'
-        a = render_lod(g, cam, 3.0 * 1.0001).image
-        assert float((a - below.image).abs().mean()) < float((beyond.image - below.image).abs().mean())
-        assert float((render_lod(g, cam, 3.0).image - render_lod(children, cam, 3.0).image).abs().max()) == 0.0
-        # a given level of the gains draws the model's own Gaussians, as budgets do
-        assert torch.equal(render_lod(g, cam, 4.0, level=0.5).image, render_lod(children, cam, 4.0, level=0.5).image)
+    cam = cams[0]
+    r, own = render_lod(g, cam, **kw), render_lod(children, cam, **kw)
+    assert torch.equal(r.image, own.image) and r.n_parents == 0 and r.n_rendered == own.n_rendered > 0
+    sub = lod_subset(g, cam, **kw)
+    assert torch.equal(sub.indices, own.indices) and sub.parent_indices is None and len(sub.means) == own.n_rendered
+    col, _, meta = clod_rasterization(g.means, g.quats, g.scales, g.opacities, g.colors, cam.viewmat[None],
+                                      cam.K[None], cam.width, cam.height, sh_degree=g.sh_degree,
+                                      **clod_kwargs(g), **kw, backend="cpu")
+    torch.testing.assert_close(col[0], own.image, rtol=0, atol=1e-6)
+    assert meta["lod_n_parents"] == [0] and meta["lod_tier_indices"] == [[]]
+    baked, info = bake(g, [cam], opacity="mean", return_info=True, **kw)
+    assert info.n_parents == 0 and len(baked) == own.n_rendered
 
 
 def test_ply_round_trip_keeps_the_tier(tiered, tmp_path):
     g, cams = tiered
     p = write_ply(tmp_path / "t.ply", g)
-    back = read_ply(p)
+    back = read_ply(p, unlinked_tiers=True)  # tiers not linked into a merge tree: read only when asked
     assert back.parents is not None and len(back.parents) == len(g.parents)
     assert back.lod.tier_s_v == 3.0 and back.lod.tier_start == 1.5 and back.parents.lod.tier_s_v == 0.0
     assert torch.equal(back.parents.sigma_d, g.parents.sigma_d) and torch.equal(back.parents.means, g.parents.means)
-    assert torch.equal(render_lod(back, cams[0], 3.4).image, render_lod(g, cams[0], 3.4).image)
     # a model without a tier writes the header it always did
     assert "tier" not in lod_comment(lod.LodSettings(fade="window"))
     # the element alone, without a tier in the header: refused, naming the file
@@ -83,7 +82,37 @@ def test_ply_round_trip_keeps_the_tier(tiered, tmp_path):
     ply.comments = [c.replace("tier_s_v=3.0", "tier_s_v=0.0") for c in ply.comments]
     ply.write(str(tmp_path / "bad2.ply"))
     with pytest.raises(PlyFormatError, match="bad2.ply.*lod_parent"):
-        read_ply(tmp_path / "bad2.ply")
+        read_ply(tmp_path / "bad2.ply", unlinked_tiers=True)
+
+
+def test_a_file_whose_tiers_are_not_linked_into_a_tree_is_refused(tiny_adapted, tiny_model, tmp_path, capfd):
+    """A file written with ``--tier-draw chain`` (merged tiers attached, ``tree=True`` absent: the
+    cross-fade chain, no longer drawn) is refused where it is read for drawing, with one line naming
+    the file: read_ply, load_model, clod-render, clod-eval and clod-export exit 2 without a
+    traceback. ``read_ply(unlinked_tiers=True)`` reads it (clod-adapt, for a merged tier's own file)."""
+    from clod_adapter.cli.eval import main as eval_main
+    from clod_adapter.cli.export import main as export_main
+    from clod_adapter.cli.render import main as render_main
+    from clod_adapter.errors import InputError
+    from clod_adapter.io.load import load_model
+    from clod_adapter.io.ply import UNLINKED_TIERS
+    from conftest import err_line
+
+    g = read_ply(tiny_adapted / "point_cloud.ply")
+    old = write_ply(tmp_path / "chain.ply", tiers.attach(g, g.subset(torch.arange(0, len(g), 5)), 2.0, 1.0))
+    assert b"tree=True" not in old.read_bytes()[:4000]
+    for read in (read_ply, load_model):
+        with pytest.raises(InputError, match="chain.ply: its merged tiers are not linked into a merge tree") as e:
+            read(old)
+        assert str(e.value) == f"{old}: {UNLINKED_TIERS}" and "--tier-draw chain" in str(e.value)
+    assert len(read_ply(old, unlinked_tiers=True).parents) == len(g.subset(torch.arange(0, len(g), 5)))
+    scene = str(tiny_model["scene"])
+    for prog, main, extra in (("clod-render", render_main, ["--frames", "2"]), ("clod-eval", eval_main, ["--no-lpips"]),
+                              ("clod-export", export_main, [])):
+        out = tmp_path / prog
+        assert main([str(old), "--images", scene, "-o", str(out), "--quiet", *extra]) == 2, prog
+        line = err_line(capfd)
+        assert "chain.ply" in line and "not linked into a merge tree" in line, (prog, line)
 
 
 def test_model_operations_carry_or_drop_the_tier(tiered):
@@ -317,7 +346,7 @@ def test_tier_downscale_sets_the_later_tiers_resolution():
 def test_adapt_job_builds_the_tier_or_says_why_not(tiny_model, tmp_path, monkeypatch):
     """clod-adapt: under PARENT_MIN_GAUSSIANS no tier (and metrics.json says why); over it, the
     merged input is adapted into OUT/parents and, when it pays, stored as the lod_parent element,
-    linked into a merge tree (the default ``--tier-draw tree``)."""
+    linked into a merge tree."""
     import json
 
     from clod_adapter.cli.adapt import main
@@ -367,14 +396,14 @@ def test_adapt_job_builds_the_tier_or_says_why_not(tiny_model, tmp_path, monkeyp
     assert len(tier["curves"]["gaussians"]) == len(tiers.SWITCH_S_V)
     g = read_ply(out / "point_cloud.ply")
     assert tier["used"], tier.get("why")  # the fixture's merges pay: the tier is attached
-    # --tier-draw tree (the default): the tiers linked into one merge tree, its sizes recorded
+    # the tiers linked into one merge tree, its sizes recorded
     assert g.lod.tier_s_v == tier["tier_s_v"] and len(g.parents) == n_parents and g.lod.tree
     assert tier["tree"][:2] == [len(g), n_parents] and tier["tree_fit"]["steps"] == 2  # at most --iterations
 
 
 @pytest.mark.slow
 def test_adapt_job_builds_a_tree(tiny_model, tmp_path, monkeypatch):
-    """clod-adapt --tier-draw tree: the tiers linked into a merge tree (written whole, every node's
+    """clod-adapt with merged tiers: the tiers linked into a merge tree (written whole, every node's
     parent in the next tier), fitted on its cuts for at most --iterations steps, and lod_strip.png
     drawn through it."""
     import json
@@ -390,7 +419,7 @@ def test_adapt_job_builds_a_tree(tiny_model, tmp_path, monkeypatch):
     monkeypatch.setattr(tiers, "choose", lambda g, p, *a, **k: tiers.TierChoice(1.5, 1.0, {}))  # every tier pays
     out = tmp_path / "tree"
     assert main([str(tiny_model["ply"]), "--images", str(tiny_model["scene"]), *FAST, "-o", str(out),
-                 "--parent-share", "0.5,0.2", "--tier-finetune-steps", "3", "--tier-draw", "tree"]) == 0
+                 "--parent-share", "0.5,0.2", "--tier-finetune-steps", "3"]) == 0
     tier = json.loads((out / "metrics.json").read_text())["tier"]
     g = read_ply(out / "point_cloud.ply")
     assert tier["used"] and g.lod.tree and tree.is_tree(g) and tier["tree"] == [len(t) for t in tree.tiers_of(g)]
@@ -406,90 +435,69 @@ def test_adapt_job_builds_a_tree(tiny_model, tmp_path, monkeypatch):
         assert im.width > own.width
 
 
-def test_export_carries_the_tier(tiny_adapted, tiny_model, tmp_path):
-    """clod-export of a tiered model: the extended .ply keeps the parents (pruned and SH-reduced
-    with the model), a level baked past the switch holds the parents it draws and renders as
-    render_lod does, the ordered .ply is the model's own; export.json says which is which."""
+def test_export_carries_the_tree(tiny_adapted, tiny_model, tmp_path):
+    """clod-export of a model whose merged tier is linked into a merge tree: the extended .ply keeps
+    the tree (SH-reduced with the model), a level baked past the hand-over holds the merged nodes
+    it draws and renders close to render_lod; export.json says which is which."""
     import json
 
     from clod_adapter.cli.export import main as export_main
     from clod_adapter.io.load import load_scene
+    from clod_adapter.lod import tree
     from clod_adapter.metrics import psnr
-
-    g = read_ply(tiny_adapted / "point_cloud.ply")
-    tiered = tiers.attach(g, g.subset(torch.arange(0, len(g), 5)), 2.0, 1.0)
-    src = write_ply(tmp_path / "tiered.ply", tiered)
     from clod_adapter.viewer.web import find_playcanvas
 
+    g = read_ply(tiny_adapted / "point_cloud.ply")
+    scene = load_scene(tiny_model["scene"])
+    linked = tree.build(tiers.attach(g, g.subset(torch.arange(0, len(g), 5)), 2.0, 1.0), scene.train)
+    src = write_ply(tmp_path / "tree.ply", linked)
     out = tmp_path / "exp"
     web = ["--web", str(out / "web")] if find_playcanvas() is not None else []
-    assert export_main([str(src), "-s", str(tiny_model["scene"]), "-o", str(out), "--quiet", "--s-v", "2.2",
-                        "--ordered", "--prune", "--sh-max-drop-db", "0.5", *web]) == 0
+    assert export_main([str(src), "-s", str(tiny_model["scene"]), "-o", str(out), "--quiet", "--s-v", "3.0",
+                        "--sh-max-drop-db", "0.5", *web]) == 0
     rep = json.loads((out / "export.json").read_text())
-    if web:  # the page gets the tier too (its drawing: tests/test_web_viewer.py)
-        cfg = json.loads((out / "web" / "clod.json").read_text())
-        assert cfg["tier"]["count"] == rep["tier"]["parents_out"] and (out / "web" / "parents.ply").is_file()
-    assert rep["tier"]["parents_in"] == len(tiered.parents) and rep["tier"]["tier_s_v"] == 2.0
+    assert rep["tier"]["parents_in"] == len(linked.parents) and rep["tier"]["tier_s_v"] == 2.0
     ext = read_ply(out / "point_cloud_clod.ply")
-    assert ext.parents is not None and len(ext.parents) == rep["tier"]["parents_out"] > 0
-    assert ext.parents.sh_degree == ext.sh_degree == rep["sh_degree_out"] and ext.lod.tier_s_v == 2.0
-    assert read_ply(out / "ordered.ply").parents is None
+    assert tree.is_tree(ext) and len(ext.parents) == rep["tier"]["parents_out"] == len(linked.parents) > 0
+    assert ext.parents.sh_degree == ext.sh_degree == rep["sh_degree_out"]
+    if web:  # the page draws the tree as one set (its drawing: tests/test_web_tree.py)
+        cfg = json.loads((out / "web" / "clod.json").read_text())
+        assert cfg["tree"]["counts"] == [len(t) for t in tree.tiers_of(ext)] and "tier" not in cfg
     baked = read_ply(out / rep["baked"]["file"])
     n_par = rep["baked"]["of_them_parents"]
-    assert 0 < n_par < len(baked) and baked.sigma_d is None  # s_v = 2.2 is in the cross-fade (2 to 2.5): both
-    cam = load_scene(tiny_model["scene"]).train[0]
-    ref = render_lod(ext, cam, 2.2).image
-    # measured 45.9 dB for the baked file; 26.1 dB for the model drawn without its tier
-    assert psnr(render_lod(baked, cam).image, ref.clamp(0, 1)) > 35.0
-    assert psnr(render_lod(replace(ext, parents=None), cam, 2.2).image, ref.clamp(0, 1)) < 35.0
-
-
-@pytest.mark.parametrize("s_v", [2.5, 3.3, 4.0])
-def test_renderer_hook_and_lod_subset_draw_the_tier(tiered, s_v):
-    """clod_rasterization (with clod_kwargs' parents) and lod_subset draw what render_lod draws,
-    below the switch, in the cross-fade and beyond it."""
-    from clod_adapter import clod_kwargs, clod_rasterization
-    from clod_adapter.lod.draw import lod_subset
-
-    g, cams = tiered
-    cam = cams[0]
-    ref = render_lod(g, cam, s_v, backend="cpu")
-    col, alp, meta = clod_rasterization(g.means, g.quats, g.scales, g.opacities, g.colors, cam.viewmat[None],
-                                        cam.K[None], cam.width, cam.height, sh_degree=g.sh_degree,
-                                        **clod_kwargs(g), s_v=s_v, backend="cpu")
-    torch.testing.assert_close(col[0], ref.image, rtol=0, atol=1e-6)
-    torch.testing.assert_close(alp[0], ref.alpha, rtol=0, atol=1e-6)
-    assert meta["lod_n_rendered"] == [ref.n_rendered] and meta["lod_n_parents"] == [ref.n_parents]
-    assert torch.equal(meta["lod_indices"][0], ref.indices)
-    assert (ref.n_parents > 0) == (s_v > 3.0)
-    sub = lod_subset(g, cam, s_v)
-    assert sub.means.shape[0] == sub.opacities.shape[0] == ref.n_rendered
-    assert torch.equal(sub.indices, ref.indices)
-    assert (sub.parent_indices is not None and sub.parent_indices.numel() == ref.n_parents) == (s_v > 3.0)
-    # the cross-fade's weights: the parents' rows at u times their own drawn opacity
-    if ref.n_parents and ref.indices.numel():
-        u, s_p = lod.tier_weight(s_v, g.lod)
-        alone = lod_subset(g.parents, cam, s_p)
-        torch.testing.assert_close(sub.opacities[-ref.n_parents:], u * alone.opacities)
+    assert 0 < n_par < len(baked) and baked.sigma_d is None  # past the hand-over: tier 0 and merged nodes
+    cam = scene.train[0]
+    ref = render_lod(ext, cam, 3.0).image
+    # measured 26.5 dB for the baked file (the union over the training views, a node in a hand-over
+    # baked as itself); 20.8 dB for tier 0 drawn alone at the same s_v
+    baked_db = psnr(render_lod(baked, cam).image, ref.clamp(0, 1))
+    assert baked_db > 24.0 and psnr(render_lod(replace(ext, parents=None), cam, 3.0).image, ref.clamp(0, 1)) < baked_db - 3.0
 
 
 def test_renderer_hook_refuses_incomplete_parents(tiered):
+    """A merge tree's tier passed to the renderer hook without one of its tensors: a ValueError
+    naming it, at an s_v and within a budget."""
     from clod_adapter import clod_kwargs, clod_rasterization
+    from clod_adapter.lod import tree
 
     g, cams = tiered
+    g = tree.build(g, make_cameras(2, 3))
     cam = cams[0]
     kw = clod_kwargs(g)
     del kw["parents"]["sigma_d"]
     with pytest.raises(ValueError, match="parents needs sigma_d"):
         clod_rasterization(g.means, g.quats, g.scales, g.opacities, g.colors, cam.viewmat[None], cam.K[None],
                            cam.width, cam.height, sh_degree=g.sh_degree, **kw, s_v=4.0, backend="cpu")
+    with pytest.raises(ValueError, match="parents needs sigma_d"):
+        clod_rasterization(g.means, g.quats, g.scales, g.opacities, g.colors, cam.viewmat[None], cam.K[None],
+                           cam.width, cam.height, sh_degree=g.sh_degree, **kw, budget=Budget(count=50), backend="cpu")
     with pytest.raises(ValueError, match="no sigma_d"):
         clod_kwargs(make_ground_truth(10, seed=2))
 
 
 def test_eval_sweep_reaches_the_parents_range():
     """clod-eval's default s_v sweep: the even part to 1.2 max_sv, then a tiered model's levels
-    from the middle of its cross-fade to where the parents are drawn at 1.2 x their max_sv."""
+    from the middle of its first hand-over to where the last tier is at 1.2 x its max_sv."""
     from clod_adapter.jobs.eval import sv_grid
 
     plain = sv_grid(5.0, 25)
@@ -502,7 +510,7 @@ def test_eval_sweep_reaches_the_parents_range():
 
 
 def test_popping_sweep_runs_through_every_tier():
-    """clod-eval's popping sweep: even to 1.2 max_sv without tiers; with a chain (reach > 1)
+    """clod-eval's popping sweep: even to 1.2 max_sv without tiers; with merged tiers (reach > 1)
     evenly in ln s_v from 1 to 1.2 max_sv x reach."""
     import math
 
@@ -511,98 +519,20 @@ def test_popping_sweep_runs_through_every_tier():
     plain = popping_sweep(5.0, 1.0, 31)
     assert len(plain) == 31 and plain[0] == 1.0 and plain[-1] == pytest.approx(6.0)
     assert plain[1] - plain[0] == pytest.approx(plain[-1] - plain[-2])
-    chain = popping_sweep(5.0, 17.0, 31)
-    assert chain[0] == pytest.approx(1.0) and chain[-1] == pytest.approx(6.0 * 17.0)
-    ratios = [b / a for a, b in zip(chain, chain[1:])]
+    tiered = popping_sweep(5.0, 17.0, 31)
+    assert tiered[0] == pytest.approx(1.0) and tiered[-1] == pytest.approx(6.0 * 17.0)
+    ratios = [b / a for a, b in zip(tiered, tiered[1:])]
     assert max(ratios) == pytest.approx(min(ratios)) and ratios[0] == pytest.approx(math.exp(math.log(102.0) / 30))
     with pytest.raises(ValueError, match="steps"):
         popping_sweep(5.0, 1.0, 1)
 
 
-def test_budgets_draw_the_parents_once_they_can_fill_them(tiered):
-    """Cost, time and count budgets on a tiered model (lod.draw.budget_walk): the
-    model's own solution while the parents, as the s_v rule first draws them alone (their
-    tier_start level), cost less than the budget (a count budget: draw less than
-    COUNT_TAKE_SHARE of it); from there the parents alone within the same budget (a share of the
-    model's full cost), from their tier_start level on; lod_subset hands over the same rows."""
-    from clod_adapter.lod.draw import COUNT_TAKE_SHARE, lod_subset
-    from clod_adapter.lod.view import view_lod
-    from clod_adapter.lod.cost import DEFAULT_FRAME_TIME_MODEL, splat_cost
+def test_adapt_config_takes_descending_shares():
+    from clod_adapter.train.config import AdaptConfig
 
-    g, cams = tiered
-    children = replace(g, parents=None)
-    cam = cams[0]
-    full = view_lod(children, cam).full_cost()
-    vp = view_lod(g.parents, cam)
-    start = vp.select(g.lod.tier_start)
-    start_cost = float(splat_cost(vp, start.indices, level=start.level, opacities=start.opacities).sum())
-    assert 0 < start_cost < full
-    for b in (0.9, 0.6, 1.01 * start_cost / full, 0.99 * start_cost / full, 0.05, 0.02):
-        r = render_lod(g, cam, budget=Budget(cost=b))
-        if b * full > start_cost:
-            assert r.n_parents == 0 and torch.equal(r.image, render_lod(children, cam, budget=Budget(cost=b)).image)
-        else:
-            ref = render_lod(g.parents, cam, budget=Budget(cost=b * full, min_s_v=g.lod.tier_start))
-            assert r.n_parents == r.n_rendered > 0 and r.indices.numel() == 0 and torch.equal(r.image, ref.image)
-            assert r.s_v == pytest.approx(ref.s_v * 1.25 * 3.0 / 1.5)  # the s_v the rule draws that tier level at
-            sub = lod_subset(g, cam, budget=Budget(cost=b))
-            assert sub.parent_indices.numel() == r.n_parents and sub.indices.numel() == 0
-    start_ms = float(DEFAULT_FRAME_TIME_MODEL.ms(start_cost, int(start.indices.numel())))
-    above, below = render_lod(g, cam, budget=Budget(ms=start_ms * 1.05)), render_lod(g, cam, budget=Budget(ms=start_ms * 0.95))
-    assert above.n_parents == 0 and below.n_parents == below.n_rendered > 0
-    # a count budget of k: the parents take it where they draw at least COUNT_TAKE_SHARE of it
-    # (drawing fewer than k, up to k); above, the model's own k
-    n_start, n_own = int(start.indices.numel()), view_lod(children, cam).n_in_view
-    k_hi = int(n_start / COUNT_TAKE_SHARE + 1e-9)  # the largest budget the parents take
-    assert n_own > k_hi + 1 > n_start  # the fixture shows both sides
-    own = [render_lod(g, cam, budget=Budget(count=k)) for k in (k_hi + 1, k_hi, n_start, max(n_start // 2, 1))]
-    assert own[0].n_parents == 0 and own[0].n_rendered == k_hi + 1
-    assert own[1].n_parents == own[1].n_rendered == n_start == own[2].n_parents == own[2].n_rendered
-    assert own[3].n_parents == own[3].n_rendered == max(n_start // 2, 1)
-
-
-def test_cost_budgets_pass_on_by_the_sampled_full_detail(tiered, monkeypatch):
-    """With the tiers costed from every n-th Gaussian (lod_cost.COST_SAMPLE_STEP, models of at
-    least COST_SAMPLE_MIN; lowered here to the fixture's size), a cost budget passes to the parents
-    by the estimates (LodView.full_detail_estimate: the model's full cost for the share, the
-    parents' full detail for the test), not by the exact costs; below the minimum the estimate
-    is the exact cost."""
-    from clod_adapter.lod import cost as lod_cost
-    from clod_adapter.lod.view import view_lod
-
-    g, cams = tiered
-    children = replace(g, parents=None)
-    cam = cams[0]
-    exact = (view_lod(children, cam).full_cost(), view_lod(g.parents, cam).full_cost())
-    assert view_lod(children, cam).full_detail_estimate() == (exact[0], float(view_lod(children, cam).n_in_view))
-    monkeypatch.setattr(lod_cost, "COST_SAMPLE_MIN", 100)
-    monkeypatch.setattr(lod_cost, "COST_SAMPLE_STEP", 3)
-    est = (view_lod(children, cam).full_detail_estimate()[0], view_lod(g.parents, cam).full_detail_estimate()[0])
-    assert est[0] != exact[0] and est[1] != exact[1]
-    assert abs(est[0] / exact[0] - 1) < 0.25 and abs(est[1] / exact[1] - 1) < 0.25
-    g1 = replace(g, lod=replace(g.lod, tier_start=1.0))  # the parents first drawn at their full detail
-    by_est, by_exact = est[1] / est[0], exact[1] / exact[0]  # the share where the parents take over
-    lo, hi = sorted((by_est, by_exact))
-    b = 0.5 * (lo + hi)  # between the two: only the estimate decides it
-    r = render_lod(g1, cam, budget=Budget(cost=b))
-    assert (r.n_parents > 0) == (b <= by_est) and (r.n_parents > 0) != (b <= by_exact)
-    if r.n_parents:  # the parents within the share of the model's estimated full cost
-        ref = render_lod(g1.parents, cam, budget=Budget(cost=b * est[0], min_s_v=1.0))
-        assert torch.equal(r.image, ref.image)
-
-
-def test_sampled_full_detail_is_close_on_a_larger_model():
-    """LodView.full_detail_estimate on a model above COST_SAMPLE_MIN: the widest 3 % and every 8th
-    of the rest give the full cost and the count in view within 10 % (the synthetic scene's
-    cameras), without projecting the model itself."""
-    from clod_adapter.lod.view import view_lod
-    from clod_adapter.lod.cost import COST_SAMPLE_MIN, COST_SAMPLE_STEP, COST_SAMPLE_TOP
-
-    g = _adapted(2 * COST_SAMPLE_MIN, 0)
-    for cam in make_cameras(3, 2):
-        v = view_lod(g, cam)
-        cost, count = v.full_detail_estimate()
-        assert v._proj is None  # the model itself was not projected
-        assert abs(cost / v.full_cost() - 1) < 0.1 and abs(count / v.n_in_view - 1) < 0.1
-        assert v.full_detail_estimate(1) == (v.full_cost(), float(v.n_in_view))
-    assert (COST_SAMPLE_STEP, COST_SAMPLE_TOP) == (8, 0.03)
+    assert AdaptConfig().parent_share == tiers.DEFAULT_SHARES
+    assert AdaptConfig(parent_share=0.1).parent_share == (0.1,)
+    assert AdaptConfig(parent_share=0).parent_share == () and AdaptConfig(schedule="paper").parent_share == ()
+    for bad in ((0.1, 0.3), (1.2,), (0.5, 0.5)):
+        with pytest.raises(ValueError, match="parent_share"):
+            AdaptConfig(parent_share=bad)

@@ -153,6 +153,55 @@ def test_tree_file_round_trips_and_bad_parents_are_refused(model, tmp_path):
         read_ply(write_ply(tmp_path / "bad.ply", bad))
 
 
+def test_every_tiers_settings_round_trip_through_the_file(tmp_path):
+    """A tree of three tiers written and read back: each tier's rows and hand-over settings
+    (``clod_lod_tier`` comments), a tier's own window width, the same cuts; ``ply_bytes`` is the
+    file's size; a second tier's element without the first is refused, naming the file."""
+    import plyfile
+
+    from clod_adapter.evaluate.storage import ply_bytes
+
+    t2 = _adapted(60, 3)
+    t2 = replace(t2, lod=replace(t2.lod, fade_width=4.0))  # a tier may have a window of its own
+    t1 = tiers.attach(_adapted(300, 2), t2, 2.5, 1.5)
+    g = tree.build(tiers.attach(_adapted(1200, 0), t1, 2.0, 1.25), make_cameras(2, 3))
+    path = write_ply(tmp_path / "tiers.ply", g)
+    back = read_ply(path)
+    got, want = tree.tiers_of(back), tree.tiers_of(g)
+    assert [len(t) for t in got] == [len(t) for t in want] and len(got) == 3
+    assert back.parents.lod.tier_s_v == 2.5 and back.parents.lod.tier_start == 1.5
+    assert back.parents.parents.lod.tier_s_v == 0.0
+    assert [t.lod.fade_width for t in got] == [g.lod.fade_width, g.lod.fade_width, 4.0] != [g.lod.fade_width] * 3
+    for a, b in zip(got, want):
+        assert torch.equal(a.sigma_d, b.sigma_d) and torch.equal(a.means, b.means)
+    cam = make_cameras(1, 2)[0]
+    for s in (1.5, 2.6, 4.6, 12.0):
+        assert torch.equal(render_lod(back, cam, s).image, render_lod(g, cam, s).image)
+    assert ply_bytes(g) == path.stat().st_size
+    ply = plyfile.PlyData.read(str(path))
+    bad = plyfile.PlyData([ply["vertex"], ply["lod_parent_2"]], text=False, comments=ply.comments)
+    bad.write(str(tmp_path / "bad.ply"))
+    with pytest.raises(PlyFormatError, match="bad.ply.*lod_parent_2.*without .lod_parent. before"):
+        read_ply(tmp_path / "bad.ply")
+
+
+def test_a_file_with_count_mix_from_an_earlier_version_still_reads(model, tmp_path):
+    """Earlier versions wrote ``count_mix=True`` into the ``clod_lod`` comment (count budgets
+    between two tiers mixed by distance, no longer drawn): such a file reads, and draws as the
+    same tree without it; a malformed value is still refused with the file named."""
+    g, cams = model
+    path = write_ply(tmp_path / "old.ply", g)
+    old = tmp_path / "with_mix.ply"
+    old.write_bytes(path.read_bytes().replace(b"comment clod_lod ", b"comment clod_lod count_mix=True ", 1))
+    assert b"count_mix=True" in old.read_bytes()[:4000]
+    for kw in (dict(budget=Budget(share=0.3)), dict(s_v=4.0)):
+        assert torch.equal(render_lod(read_ply(old), cams[0], **kw).image, render_lod(read_ply(path), cams[0], **kw).image)
+    bad = tmp_path / "bad.ply"
+    bad.write_bytes(old.read_bytes().replace(b"count_mix=True", b"count_mix=yes!"))
+    with pytest.raises(PlyFormatError, match="bad.ply.*count_mix"):
+        read_ply(bad)
+
+
 def test_the_reference_draws_what_the_library_draws(model, tmp_path):
     """examples/reference_lod.py (docs/lod_rule.md in numpy, no clod_adapter import) against
     lod_subset on the same file: the same nodes per tier, the same attributes to float32 rounding."""

@@ -111,24 +111,26 @@ def test_payload_is_lod_subset_with_view_colours():
     assert b.n_drawn == lod_subset(g, cam, budget=Budget(share=0.1)).indices.numel() == round(0.1 * len(g))
 
 
-def test_a_parent_tier_is_sent_past_its_switch():
-    """clod-view draws the tier as render_lod does (lod_subset's rows: the model's, then the
-    parents'), and its slider reaches where the parents are drawn at 2 max_sv."""
+def test_a_merge_tree_is_sent_as_its_cut():
+    """clod-view draws a merge tree as render_lod does (lod_subset's rows: tier 0's, then the
+    merged nodes of the cut), and its slider reaches where the last tier is at 2 max_sv."""
     from dataclasses import replace
 
-    from clod_adapter.lod import rule as lod
+    from clod_adapter.lod import rule as lod, tree
     from clod_adapter.train import tiers
     from clod_adapter.viewer.app import LodViewer
 
     g = replace(lod_model(), lod=lod.LodSettings(fade="window"))
-    t = tiers.attach(g, replace(lod_model(300, seed=1), lod=g.lod), 3.0, 1.5)
+    t = tree.build(tiers.attach(g, replace(lod_model(300, seed=1), lod=g.lod), 3.0, 1.5), [start_camera(g)])
     cam = start_camera(t)
-    for sv in (2.0, 3.3, 6.0):
+    merged = []
+    for sv in (1.0, 3.3, 12.0):
         p, sub = view_payload(t, cam, s_v=sv), lod_subset(t, cam, s_v=sv)
         assert p.n_level == p.n_drawn == sub.means.shape[0] and np.array_equal(p.means, sub.means.numpy())
-        assert (sub.parent_indices is not None) == (sv > 3.0) and torch.equal(p.indices, sub.indices)
-    assert view_payload(t, cam, s_v=6.0).indices.numel() == 0 < view_payload(t, cam, s_v=6.0).n_drawn
-    assert LodViewer(t, calibrate=False).sv_max == pytest.approx(2 * 5.0 * 1.25 * 3.0 / 1.5)  # past the cross-fade
+        assert torch.equal(p.indices, sub.indices)
+        merged.append(sub.parent_indices.numel())
+    assert merged[0] == 0 < merged[-1]  # full detail is tier 0; far down the range merged nodes are drawn
+    assert LodViewer(t, calibrate=False).sv_max == pytest.approx(2 * 5.0 * 1.25 * 3.0 / 1.5)  # the last tier's reach
     assert LodViewer(g, calibrate=False).sv_max == 10.0
 
 

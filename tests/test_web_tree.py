@@ -1,4 +1,4 @@
-"""``clod-export --web`` of a merge tree (``clod-adapt --tier-draw tree``, docs/lod_rule.md): the
+"""``clod-export --web`` of a merge tree (``clod-adapt``'s merged tiers, docs/lod_rule.md): the
 page's port of the rule (``web_page/clod_tree.mjs``) against ``examples/reference_lod.py`` in node,
 node for node, and the page in headless chromium against ``render_lod`` at levels in and between
 hand-overs and at a count budget."""

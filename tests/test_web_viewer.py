@@ -225,191 +225,27 @@ def test_page_draws_splats_larger_than_the_screen(tiny_adapted, tiny_model, tmp_
     assert got["psnr"] >= 33, got  # ... and the page draws it as render_lod does
 
 
-# --- the parent tier (clod_adapter.train.tiers) on the page ----------------------------------------------------
+# --- merged tiers not linked into a merge tree (the tree's page: tests/test_web_tree.py) -------------------
 @needs_engine
-def test_web_files_of_a_tiered_model(tmp_path):
-    from dataclasses import replace
-
+def test_web_files_of_a_model_whose_tiers_are_not_linked(tmp_path):
+    """A model whose merged tiers are attached but not linked into a merge tree: its page is the
+    model's own (its tiers are not drawn, so not written), byte for byte the page of the model
+    without them but for the settings' hand-over."""
     from test_tiers import _adapted
 
     from clod_adapter.train import tiers
-    from clod_adapter.io.ply import read_ply
     from clod_adapter.io.synthetic import make_cameras
     from clod_adapter.viewer.web import write_web_viewer
 
-    children, parents = _adapted(400, 0), replace(_adapted(60, 1), lod=None)
-    parents = replace(parents, lod=replace(children.lod, max_sv=3.0, level_max=1.5))
-    g = tiers.attach(children, parents, 2.0, 1.5)
+    children = _adapted(400, 0)
+    g = tiers.attach(children, _adapted(60, 1), 2.0, 1.5)
     cams = make_cameras(1, 2)
     names = write_web_viewer(g, tmp_path / "tier", cams, g.opacity_logits)
-    assert {"parents.ply", "parents.bin"} <= set(names) and {p.name for p in (tmp_path / "tier").iterdir()} == set(names)
-    cfg = json.loads((tmp_path / "tier" / "clod.json").read_text())
-    assert cfg["settings"]["tier_s_v"] == 2.0 and cfg["settings"]["tier_start"] == 1.5 and cfg["count"] == 400
-    tier = cfg["tier"]
-    assert tier["model"] == "parents.ply" and tier["data"] == "parents.bin" and tier["count"] == 60
-    assert tier["settings"]["max_sv"] == 3.0 and tier["settings"]["level_max"] == 1.5 and "fade_ramp_s_v" in tier["settings"]
-    col = dict(zip(WEB_STREAMS, np.fromfile(tmp_path / "tier" / "parents.bin", dtype=np.float32).reshape(len(WEB_STREAMS), 60)))
-    assert np.array_equal(col["sigma_d"], g.parents.sigma_d.numpy()) and np.array_equal(col["z"], g.parents.means[:, 2].numpy())
-    assert np.array_equal(col["opacity_gain"], g.parents.opacity_logit_gain.numpy())
-    back = read_ply(tmp_path / "tier" / "parents.ply")  # a plain 3DGS model, as model.ply
-    assert back.sigma_d is None and back.parents is None and torch.equal(back.means, g.parents.means)
-    assert read_ply(tmp_path / "tier" / "model.ply").parents is None
-    # without a tier (none, or parents whose settings say none): no tier written, as before
-    for k, plain in enumerate((children, replace(g, lod=replace(g.lod, tier_s_v=0.0)))):
-        out = tmp_path / f"plain{k}"
-        names = write_web_viewer(plain, out, cams, plain.opacity_logits)
-        assert "tier" not in json.loads((out / "clod.json").read_text()) and not (out / "parents.ply").exists()
-        assert not (out / "parents.bin").exists() and "parents.ply" not in names
-
-
-#: the tiered page (tiered_web) against render_lod on its two test views (96 x 72): measured 47.7-47.9 dB
-#: below the switch (s_v = 1.3), 52.0-52.5 in the cross-fade (1.7, u = 0.56), 54.5-58.8 beyond it (2.2, 3).
-#: render_lod of the model without its tier is 16.3-17.7 dB from the tiered one beyond the switch
-#: (TIER_APART_DB). The parents' drawn count: 6-7 % under render_lod's n_parents inside their ramp
-#: (1.7), 0-3 % beyond (the page counts centres in the frame, render_lod footprints reaching it)
-TIER_MIN_PSNR_DB = 40.0
-TIER_APART_DB = 30.0
-
-
-@pytest.fixture(scope="module")
-def tiered_web(tmp_path_factory) -> dict:
-    """A tiered model of two quick adaptations on a tiny synthetic scene (1,000 Gaussians, 96 x 72
-    views): the model (max_sv 2) and, as its parents, every third of its Gaussians (a stand-in for
-    merged ones) adapted with max_sv 3, their sigma_d then scaled by 0.7 so that the mask at s_v = 1
-    keeps ~60 % of them and their ramp from full detail (lod.ramp_s_v) reaches ~1.6: the cross-fade's
-    first frames draw them inside it, as skull's parents are. Switch at s_v = 1.5, the parents
-    starting at their s_v = 1.2. Its page is written by write_web_viewer."""
-    from conftest import FAST, write_tiny_scene
-
-    from clod_adapter.train import tiers
-    from clod_adapter.cli.adapt import main as adapt_main
-    from clod_adapter.io.load import load_model, load_scene
-    from clod_adapter.io.ply import write_ply
-    from clod_adapter.viewer.web import write_web_viewer
-
-    root = tmp_path_factory.mktemp("tierweb")
-    scene, ply = write_tiny_scene(root, n=1000, width=96, height=72)
-    g = load_model(ply)
-    sub = g.subset(torch.arange(0, len(g), 3))
-    write_ply(root / "merged.ply", sub)
-    for name, src, more in (("model", ply, []), ("parents", root / "merged.ply", ["--max-sv", "3", "--allow-mismatch"])):
-        assert adapt_main([str(src), "-s", str(scene), "-o", str(root / name), *FAST, *more]) == 0
-    parents = load_model(root / "parents" / "point_cloud.ply")
-    model = tiers.attach(load_model(root / "model" / "point_cloud.ply"), parents.with_sigma_d(0.7 * parents.sigma_d), 1.5, 1.2)
-    cams = load_scene(scene).test
-    write_web_viewer(model, root / "web", cams, model.opacity_logits)
-    return {"model": model, "cameras": cams, "web": root / "web"}
-
-
-@pytest.mark.slow
-@needs_engine
-def test_tiered_page_in_headless_chromium(tiered_web, tmp_path):
-    from dataclasses import replace
-
-    from browser import browser_missing, chromium_driver, compare_frames, open_web_viewer, serve_folder, web_viewer_frame
-
-    from clod_adapter.lod import rule as lod
-    from clod_adapter.lod.draw import render_lod
-
-    why = browser_missing(("selenium",))
-    if why:
-        pytest.skip(f"no headless browser: {why}")
-    g, cams = tiered_web["model"], tiered_web["cameras"]
-    assert g.lod.max_sv == 2.0 and g.parents.lod.max_sv == 3.0
-    svs = (1.3, 1.7, 2.2, 3.0)  # below the switch (1.5), in the cross-fade (to 1.875), beyond
-    w, h = cams[0].width, cams[0].height
-    driver = chromium_driver(tmp_path / "profile", window=(w + 60, h + 240))
-    got = {}
-    try:
-        with serve_folder(tiered_web["web"]) as base:
-            open_web_viewer(driver, f"{base}/index.html?{urlencode({'w': w, 'h': h, 'cam': 0})}")
-            sv_max = driver.execute_script("return window.clod.svMax")
-            budget_row = driver.execute_script("return getComputedStyle(document.getElementById('budgetrow')).display")
-            for i in range(len(cams)):
-                driver.execute_script(f"window.clod.setCamera({i})")
-                for s in svs:
-                    got[i, s] = web_viewer_frame(driver, s_v=s)
-                got[i, "static"] = web_viewer_frame(driver, s_v=2.2, static=True)
-                got[i, "back"] = web_viewer_frame(driver, s_v=1.3, static=False)  # the model drawn again
-    finally:
-        driver.quit()
-    # the slider reaches 1.2 x the parents' max_sv at their s_v: 1.25 x 1.5 x 1.2 x 3 / 1.2
-    assert sv_max == pytest.approx(5.625) and budget_row == "none"  # the budget field: merge trees only
-    children = replace(g, parents=None)
-    for i, cam in enumerate(cams):
-        for s in svs:
-            frame, st = got[i, s]
-            ref = render_lod(g, cam, s)
-            u, s_p = lod.tier_weight(s, g.lod)
-            c = compare_frames(ref.image.clamp(0, 1).numpy(), frame)
-            print(f"view {i} s_v = {s}: u {u:.3f}, page vs render_lod {c['psnr']:.2f} dB; parents drawn "
-                  f"{st['drawnParents']} (render_lod {ref.n_parents}), own {st['drawn']} ({ref.n_rendered - ref.n_parents})")
-            assert c["psnr"] >= TIER_MIN_PSNR_DB, (i, s, c)
-            assert st["tierU"] == pytest.approx(u, abs=1e-9) and st["parentSv"] == pytest.approx(s_p, rel=1e-9)
-            assert abs(st["drawnParents"] - ref.n_parents) <= 0.1 * ref.n_parents, (i, s, st, ref.n_parents)
-            own = ref.n_rendered - ref.n_parents
-            if u < 1:
-                assert own > 0 and abs(st["drawn"] - own) <= 0.1 * own, (i, s, st, own)
-            else:
-                assert st["drawn"] == 0 and ref.n_parents > 0, (i, s, st)
-                alone = render_lod(children, cam, s).image.clamp(0, 1).numpy()
-                assert compare_frames(alone, frame)["psnr"] < TIER_APART_DB  # the parents are what is drawn
-            if u > 0:  # the parents' ramp: at s_v = 1.7 (theirs 1.36) every parent in view is drawn
-                assert (st["parents"]["ramp"] > s_p) == (s < 2.5), (i, s, st["parents"])
-        # the static cut: the model's own Gaussians, the parents hidden
-        frame, st = got[i, "static"]
-        assert st["drawnParents"] == 0 and st["drawn"] > 0 and st["tierU"] == 1.0
-        assert compare_frames(got[i, 2.2][0], frame)["psnr"] < TIER_APART_DB
-        # below the switch again after the parents alone: the same frame as before
-        assert st["static"] is True and got[i, "back"][1]["drawnParents"] == 0
-        assert compare_frames(got[i, 1.3][0], got[i, "back"][0])["psnr"] > 60
-
-
-@pytest.mark.slow
-@needs_engine
-def test_chain_of_tiers_page_in_headless_chromium(tiered_web, tmp_path):
-    """A chain of three tiers (the tiered model's parents with a tier of their own: every second
-    parent): the page writes parents_2.ply and draws what render_lod draws in the second
-    hand-over and past it, every tier's drawn count summed as render_lod's n_parents."""
-    from dataclasses import replace
-
-    from browser import browser_missing, chromium_driver, compare_frames, open_web_viewer, serve_folder, web_viewer_frame
-
-    from clod_adapter.train import tiers
-    from clod_adapter.lod.draw import chain_weights, render_lod, tier_chain
-    from clod_adapter.viewer.web import write_web_viewer
-
-    why = browser_missing(("selenium",))
-    if why:
-        pytest.skip(f"no headless browser: {why}")
-    g, cams = tiered_web["model"], tiered_web["cameras"]
-    p = g.parents
-    chain = replace(g, parents=tiers.attach(p, p.subset(torch.arange(0, len(p), 2)), 1.6, 1.2))
-    out = tmp_path / "web"
-    names = write_web_viewer(chain, out, cams, chain.opacity_logits)
-    cfg = json.loads((out / "clod.json").read_text())
-    assert "parents_2.ply" in names and cfg["tier"]["tier"]["count"] == len(chain.parents.parents)
-    # tier 1 at its own 1.79 (hand-over to tier 2 from 1.6 to 2.0, tier 2 held at 1.2), 2.18, 2.56
-    svs = (2.8, 3.4, 4.0)
-    w, h = cams[0].width, cams[0].height
-    driver = chromium_driver(tmp_path / "profile", window=(w + 60, h + 240))
-    got = {}
-    try:
-        with serve_folder(out) as base:
-            open_web_viewer(driver, f"{base}/index.html?{urlencode({'w': w, 'h': h, 'cam': 0})}")
-            for s in svs:
-                got[s] = web_viewer_frame(driver, s_v=s)
-    finally:
-        driver.quit()
-    settings = [m.lod for m in tier_chain(chain)]
-    for s in svs:
-        frame, st = got[s]
-        ref = render_lod(chain, cams[0], s)
-        c = compare_frames(ref.image.clamp(0, 1).numpy(), frame)
-        ws = chain_weights(s, settings)
-        print(f"chain s_v = {s}: weights {[round(x, 3) for x, _ in ws]}, page vs render_lod {c['psnr']:.2f} dB, "
-              f"tiers drawn {st['drawnParents']} (render_lod {ref.n_parents})")
-        assert c["psnr"] >= TIER_MIN_PSNR_DB, (s, c)
-        assert [t["weight"] for t in st["tiers"]] == pytest.approx([x for x, _ in ws], abs=1e-9)
-        assert abs(st["drawnParents"] - ref.n_parents) <= 0.1 * ref.n_parents, (s, st, ref.n_parents)
-    assert got[2.8][1]["tiers"][2]["weight"] > 0 and got[4.0][1]["tiers"][2]["weight"] == pytest.approx(1.0)
+    plain = write_web_viewer(children, tmp_path / "plain", cams, children.opacity_logits)
+    assert names == plain and {p.name for p in (tmp_path / "tier").iterdir()} == set(names)
+    assert not [n for n in names if n.startswith("parents")]
+    cfg, ref = (json.loads((tmp_path / d / "clod.json").read_text()) for d in ("tier", "plain"))
+    assert "tier" not in cfg and "tree" not in cfg and cfg["count"] == 400 and cfg["settings"]["tier_s_v"] == 2.0
+    assert {**cfg, "settings": None} == {**ref, "settings": None}
+    for name in ("model.ply", DATA_NAME):
+        assert (tmp_path / "tier" / name).read_bytes() == (tmp_path / "plain" / name).read_bytes()

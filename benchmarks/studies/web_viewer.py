@@ -16,11 +16,6 @@ intrinsics, and measures against our CPU renderer (``render_lod``) of the same c
   and max_sv with it and without (the default: straight to the 8-bit canvas), interleaved rounds,
   each one's frame at ``s_v = 1`` against ``render_lod``, and its popping ratio on the first view.
 
-``--tier`` measures a model's parent tier instead (inputs whose default adaptation has one): the
-frames at ``s_v`` = 0.8 / 1.1 / 1.4 / 2 x its ``tier_s_v`` (below the switch, in the cross-fade,
-the parents alone) on every evaluation view against ``render_lod`` (goal >= 25 dB), the page's
-drawn counts against ``render_lod``'s, and the page's frame time on the first view at those
-levels for the model with its tier and without it (interleaved rounds).
 ``--full-detail-only`` measures only the frames at ``s_v = 1`` (every view; a few minutes), and
 ``--config KEY=VALUE`` draws the adaptation with those ``AdaptConfig`` settings (cached as
 ``quality_vs_time.py --config`` caches it; at ``s_v = 1`` every adaptation is the input).
@@ -31,7 +26,6 @@ first input at s_v = 1, 2, 5 and the static cut at s_v = 5's count) and ``docs/w
 
     python -m benchmarks.studies.web_viewer                 # fern and skull, test views
     python -m benchmarks.studies.web_viewer --full-detail-only --config level_max=2
-    python -m benchmarks.studies.web_viewer --tier --inputs skull fern
 """
 from __future__ import annotations
 
@@ -39,7 +33,6 @@ import statistics
 import sys
 import tempfile
 from pathlib import Path
-from typing import Optional
 from urllib.parse import urlencode
 
 from benchmarks.common import REPO, RUNS, adapt_cached, load_input, parse_config, parse_inputs_args, scene_views, split_suffix  # noqa: E402
@@ -120,74 +113,6 @@ def run_input(name: str, split: str, log, shots: list, config: dict, tag: str = 
     return res
 
 
-TIER_AT = (0.8, 1.1, 1.4, 2.0)
-
-
-def run_tier(name: str, split: str, log, config: dict, tag: str = "default", rounds: int = 3) -> Optional[dict]:
-    """The page of a tiered model against ``render_lod`` at :data:`TIER_AT` x its ``tier_s_v``
-    (every evaluation view), and its frame time with and without the tier (the first view,
-    ``rounds`` interleaved rounds, the page's median frame after 30 frames). None: no tier."""
-    from dataclasses import replace
-
-    ply = adapt_cached(name, AdaptConfig(**config), tag, split=split, log=log)
-    _, scene, _ = load_input(name, split)
-    fit, cams = scene_views(scene, split)
-    g = load_model(ply)
-    if g.parents is None:
-        log(f"[{name}] no parent tier: nothing to measure")
-        return None
-    svs = [round(f * g.lod.tier_s_v, 4) for f in TIER_AT]
-    res = {"name": name, "tier_s_v": g.lod.tier_s_v, "s_v": svs, "views": [], "ms": {}}
-    scores = lightgaussian_significance(g.with_sigma_d(None), fit)
-    with tempfile.TemporaryDirectory(prefix="clod-web-") as d, torch.no_grad():
-        site = Path(d)
-        write_web_viewer(g, site / "tier", cams, scores)
-        write_web_viewer(replace(g, parents=None), site / "plain", cams, scores)
-        driver = chromium_driver(site / "profile", window=(cams[0].width + 60, cams[0].height + 240))
-        try:
-            with serve_folder(site) as base:
-                for i, cam in enumerate(cams):
-                    open_web_viewer(driver, f"{base}/tier/index.html?{urlencode({'w': cam.width, 'h': cam.height, 'cam': i})}")
-                    row = {"view": cam.name}
-                    for sv in svs:
-                        img, st = web_viewer_frame(driver, s_v=sv)
-                        cpu = render_lod(g, cam, sv)
-                        row[sv] = {"psnr": compare_frames(cpu.image.clamp(0, 1).numpy(), img)["psnr"],
-                                   "drawn": st["drawn"], "parents": st["drawnParents"],
-                                   "cpu_drawn": cpu.n_rendered - cpu.n_parents, "cpu_parents": cpu.n_parents}
-                    res["views"].append(row)
-                    log(f"[{name}] {cam.name}: " + ", ".join(f"s_v={sv:g} {row[sv]['psnr']:.2f} dB" for sv in svs))
-                cam = cams[0]
-                ms = {k: {sv: [] for sv in svs} for k in ("tier", "plain")}
-                for _ in range(rounds):
-                    for k in ("tier", "plain"):
-                        open_web_viewer(driver, f"{base}/{k}/index.html?{urlencode({'w': cam.width, 'h': cam.height, 'cam': 0})}")
-                        for sv in svs:
-                            ms[k][sv].append(web_viewer_frame(driver, s_v=sv, settle=30)[1]["frameMs"])
-                res["ms"] = {k: {sv: statistics.median(v) for sv, v in m.items()} for k, m in ms.items()}
-        finally:
-            driver.quit()
-    return res
-
-
-def tier_table(results: list) -> tuple[list, int]:
-    """The ``--tier`` summary lines and the number of inputs that missed the PSNR goal."""
-    lines = ["| input | switch | s_v | page vs render_lod PSNR, mean (min - max) over views | drawn per view, page / "
-             "render_lod: the model's, parents | frame ms (first view), with the tier / without |",
-             "|---|---:|---:|---|---|---|"]
-    missed = 0
-    for r in results:
-        worst = min(v[sv]["psnr"] for v in r["views"] for sv in r["s_v"])
-        missed += worst < MIN_PSNR_DB
-        for sv in r["s_v"]:
-            ps = [v[sv]["psnr"] for v in r["views"]]
-            mean = lambda k: statistics.mean(v[sv][k] for v in r["views"])  # noqa: E731
-            lines.append(f"| {r['name']} | {r['tier_s_v']:g} | {sv:g} | {statistics.mean(ps):.2f} ({min(ps):.2f} - "
-                         f"{max(ps):.2f}) | {mean('drawn'):,.0f} / {mean('cpu_drawn'):,.0f}, {mean('parents'):,.0f} / "
-                         f"{mean('cpu_parents'):,.0f} | {r['ms']['tier'][sv]:.0f} / {r['ms']['plain'][sv]:.0f} |")
-    return lines, missed
-
-
 def blend_cost(driver, url: str, ref: np.ndarray, max_sv: float, rounds: int = 3, settle: int = 30) -> dict:
     """The page's frame time drawn straight to its 8-bit canvas (the default) and with ``?blend=16``
     (blending in a half-float target): median over ``rounds`` interleaved rounds of the page's own median frame
@@ -229,23 +154,12 @@ def figure(shots: list, path: Path) -> None:
 def main(argv=None) -> int:
     a = parse_inputs_args(__doc__, argv, extra=(
         ("--full-detail-only", {"action": "store_true", "help": "only the frames at s_v = 1, every view"}),
-        ("--config", {"nargs": "*", "default": [], "metavar": "KEY=VALUE", "help": "AdaptConfig settings"}),
-        ("--tier", {"action": "store_true", "help": "measure the parent tier on the page (see above)"})))
+        ("--config", {"nargs": "*", "default": [], "metavar": "KEY=VALUE", "help": "AdaptConfig settings"})))
     config, tag = parse_config(a.config)
     why = browser_missing(("selenium",))
     if why or find_playcanvas() is None:
         sys.exit(f"web_viewer: {why or 'PlayCanvas engine not found (`npm ci`)'}")
     log = lambda *x: print(*x, flush=True)  # noqa: E731
-    if a.tier:
-        results = [r for r in (run_tier(n, a.split, log, config, tag) for n in a.inputs) if r is not None]
-        lines, missed = tier_table(results)
-        out = RUNS / f"web_viewer{split_suffix(a.split)}"
-        out.mkdir(parents=True, exist_ok=True)
-        (out / "tier.md").write_text("\n".join(lines) + "\n")
-        print("\n".join(lines))
-        print(f"goal (the page vs render_lod >= {MIN_PSNR_DB} dB on every view and level): "
-              f"{len(results) - missed} of {len(results)} tiered inputs met")
-        return 1 if missed or not results else 0
     shots: list = []
     results = [run_input(n, a.split, log, shots, config, tag, a.full_detail_only) for n in a.inputs]
     if a.full_detail_only:

@@ -128,13 +128,10 @@ def _tier_flags(p) -> None:
                    help="with merged tiers, each merged tier hands over to the next at its own S_V at the latest "
                         "(default 1.6 with the calibrated schedule; 0: where the time rule puts it; the input's own "
                         "hand-over stays the rule's; docs/studies.md)")
-    p.add_argument("--tier-draw", choices=("tree", "chain"), default="tree",
-                   help="with merged tiers: 'tree' (default) links them into a merge tree, fits it on its cuts and "
-                        "draws one cut of it per frame, one set; 'chain' cross-fades whole tiers at each hand-over, "
-                        "two sets drawn there (docs/method.md)")
     p.add_argument("--tree-steps", type=int, default=1000, metavar="N",
-                   help="with --tier-draw tree, fit the merged tiers on the tree's own cuts for N steps, at most "
-                        "--iterations (default 1000; 0: not fitted)")
+                   help="with merged tiers (linked into a merge tree, one cut of it drawn per frame; docs/method.md), "
+                        "fit the merged tiers on the tree's own cuts for N steps, at most --iterations (default 1000; "
+                        "0: not fitted)")
 
 
 def _run_flags(p) -> None:
@@ -199,8 +196,7 @@ def _config(args, world: int):
                            tier_finetune_steps=args.tier_finetune_steps,
                            tier_iteration_share=args.tier_iteration_share, tier_downscale=args.tier_downscale,
                            tier_merge=args.tier_merge, tier_time_cap=args.tier_time_cap,
-                           tier_hand_over=args.tier_hand_over, tier_draw=args.tier_draw,
-                           tree_steps=args.tree_steps,
+                           tier_hand_over=args.tier_hand_over, tree_steps=args.tree_steps,
                            faint_share=args.faint_share, keep_share=args.keep_share, recovery_steps=args.recovery_steps, **kw)
     except ValueError as e:  # "<field> must be ...": the field is the flag
         field, _, rest = str(e).partition(" ")

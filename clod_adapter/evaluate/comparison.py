@@ -45,7 +45,7 @@ import torch
 
 from ..lod.rankings import lightgaussian_significance, merge_decimate, topk_in_view
 from ..lod.budget import Budget
-from ..lod.draw import render_lod, tier_chain, tier_reach
+from ..lod.draw import render_lod, tier_reach
 from ..lod.view import view_lod
 from .frontier import Point, frontier, time_margins
 from ..gaussians import Gaussians
@@ -181,24 +181,13 @@ TREE_LEVELS = 40
 
 
 def clod_s_vs(adapted: Gaussians) -> list[float]:
-    """The adapted model's levels compared: :data:`S_VS`, and for a model with merged tiers more
-    levels spaced by 1.25 in ``s_v`` up to ``S_VS[-1] x`` :func:`clod_adapter.lod.draw.tier_reach`,
-    so the last tier is taken as far down as a model without tiers, and each tier's entry: the
-    ``s_v`` where it is first drawn alone, at its ``tier_start`` level (the end of the cross-fade
-    into it, :func:`clod_adapter.lod.rule.tier_weight`). A merge tree (:func:`clod_adapter.lod.tree.is_tree`):
-    :data:`TREE_LEVELS` log-spaced levels from 1 to ``S_VS[-1] x`` its reach."""
-    reach = tier_reach(adapted)
+    """The adapted model's levels compared: :data:`S_VS`; for a merge tree
+    (:func:`clod_adapter.lod.tree.is_tree`), :data:`TREE_LEVELS` log-spaced levels from 1 to
+    ``S_VS[-1] x`` its reach (:func:`clod_adapter.lod.draw.tier_reach`) instead."""
     if is_tree(adapted):  # one sweep through the whole tree, log-spaced (its cost must fall along it)
-        top = S_VS[-1] * reach
+        top = S_VS[-1] * tier_reach(adapted)
         return [round(math.exp(math.log(top) * i / (TREE_LEVELS - 1)), 4) for i in range(TREE_LEVELS)]
-    n = min(12, math.ceil(math.log(reach) / math.log(1.25))) if reach > 1.0 else 0
-    top = S_VS[-1]
-    entries, r = [], 1.0
-    for m in tier_chain(adapted)[:-1]:
-        entries.append(round(r * m.lod.tier_fade * m.lod.tier_s_v, 4))
-        r *= m.lod.tier_fade * m.lod.tier_s_v / m.lod.tier_start
-    extra = [round(top * reach ** (i / n), 4) for i in range(1, n + 1)]
-    return sorted(set(S_VS) | set(entries) | set(extra))
+    return sorted(set(S_VS))
 
 
 def build_settings(adapted: Gaussians, base: Gaussians, fit_cams: Sequence, cams: Sequence, *,

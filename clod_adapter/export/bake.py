@@ -29,10 +29,10 @@ from ..lod import rule as lod
 from ..gaussians import Gaussians, concat
 from ..metrics import psnr
 from ..lod.budget import Budget
-from ..lod.draw import PAPER, chain_parts, chain_weights, count_budget_walk, render_lod, tier_chain, tiered
+from ..lod.draw import PAPER, render_lod
 from ..lod.view import view_lod
 from ..lod.cut import tree_select
-from ..lod.tree import is_tree
+from ..lod.tree import is_tree, tiers_of
 
 __all__ = ["persistence", "importance_order", "bake", "lod_set_s_vs", "lod_level", "prune_never_rendered",
            "reduce_sh", "truncate_sh", "BakeInfo"]
@@ -112,13 +112,10 @@ def bake(gaussians: Gaussians, cameras: Sequence, s_v: Optional[float] = None, b
     * ``"auto"`` (default): both are rendered from ``cameras`` and the one closer (PSNR) to
       ``render_lod`` at the setting is kept (:class:`BakeInfo` records the choice and both PSNRs).
 
-    A model with parent tiers, at an ``s_v`` past its ``tier_s_v``: the kept Gaussians of each
-    tier drawn there, finest first, each at its own mean level, their opacities weighted by the
-    tier's share of the image (``1 - u`` and ``u`` across a hand-over,
-    :func:`clod_adapter.lod.draw.chain_weights`; ``BakeInfo.n_parents`` counts the tiers' rows).
-    A merge tree: each tier's nodes of the cut a view draws, at their own attributes ("original")
-    or their mean drawn opacity ("mean"; a node in a hand-over is baked as itself, not on its way
-    to its parent).
+    A merge tree: each tier's nodes of the cut a view draws, finest tier first, at their own
+    attributes ("original") or their mean drawn opacity ("mean"; a node in a hand-over is baked as
+    itself, not on its way to its parent; ``BakeInfo.n_parents`` counts the merged tiers' rows).
+    Merged tiers not linked into a tree are not drawn, so not baked.
 
     Returns:
         The baked ``Gaussians``, or ``(Gaussians, BakeInfo)`` with ``return_info``.
@@ -128,42 +125,24 @@ def bake(gaussians: Gaussians, cameras: Sequence, s_v: Optional[float] = None, b
         raise ValueError(f"bake: opacity must be auto, original or mean, got {opacity!r}")
     if (s_v is None) == (budget is None):
         raise ValueError("bake: give exactly one of s_v and budget")
-    tier = budget is None and tiered(gaussians, s_v) and not is_tree(gaussians)
-    members = tier_chain(gaussians)
-    lods = [m.lod for m in members]
-    weights = [w for w, _ in chain_weights(float(s_v), lods)] if tier else [1.0] * len(members)
+    tree = is_tree(gaussians)
+    members = tiers_of(gaussians) if tree else [gaussians]
     acc = [_Drawn.of(m) for m in members]
     settings, rendered = [], []
     for cam in cameras:
-        def view_of(k, cam=cam):
-            return view_lod(members[k], cam, tau=tau, eps=eps)
-
-        if is_tree(gaussians):  # one cut of the merge tree: each tier's drawn rows
+        if tree:  # one cut of the merge tree: each tier's drawn rows
             sels, s_used = _tree_sels(gaussians, cam, s_v, budget)
-            settings.append(s_used)
-        elif tier:
-            _, sels = chain_parts(float(s_v), lods, view_of)
-            settings.append(float(s_v))
-        else:  # an s_v before the first hand-over, or a budget (which may walk down the tiers)
-            v0 = view_of(0)
-            sel0, par = count_budget_walk(lods, view_of, v0, budget) if budget is not None else \
-                (v0.select(s_v, eta_grad=PAPER), None)
-            sels = [None] * len(members)
-            if par is not None:  # a tier alone, or two mixed (camera_lod.TierBudget)
-                for d, _, sel in par.parts():
-                    sels[d] = sel
-                settings.append(par.s_v)
-            else:
-                sels[0] = sel0
-                settings.append(sel0.s_v)
+        else:
+            sel = view_lod(gaussians, cam, tau=tau, eps=eps).select(s_v, budget=budget, eta_grad=PAPER)
+            sels, s_used = [sel], sel.s_v
+        settings.append(s_used)
         for a, sel in zip(acc, sels):
-            if sel is not None:
-                a.add(sel)
-        rendered.append(sum(int(sel.indices.numel()) for sel in sels if sel is not None))
+            a.add(sel)
+        rendered.append(sum(int(sel.indices.numel()) for sel in sels))
     cands = {"original": [], "mean": []}
-    for m, a, w in zip(members, acc, weights):
+    for m, a in zip(members, acc):
         at = m.at_level(sum(a.levels) / max(len(a.levels), 1))
-        orig = at.opacity_logits.detach().clone() if w >= 1.0 else _logit(torch.sigmoid(at.opacity_logits) * w)
+        orig = at.opacity_logits.detach().clone()
         mean_drawn = (a.drawn_sum / a.cnt.clamp_min(1)).to(at.opacity_logits.dtype)
         for name, logits in (("original", orig), ("mean", _logit(mean_drawn))):
             cands[name].append(replace(at, opacity_logits=logits).with_sigma_d(None).subset(a.indices))

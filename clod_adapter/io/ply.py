@@ -39,7 +39,7 @@ from clod_adapter.io.atomic import atomic_write
 from clod_adapter.lod_settings import LodSettings
 
 __all__ = ["PlyFormatError", "read_ply", "write_ply", "ply_property_names", "ply_vertex_dtype", "ply_comments",
-           "tier_element", "tier_chain_of", "TIER_COMMENT", "TIER_KEYS"]
+           "tier_element", "tier_chain_of", "TIER_COMMENT", "TIER_KEYS", "UNLINKED_TIERS"]
 
 PathLike = Union[str, "os.PathLike[str]"]
 
@@ -59,6 +59,12 @@ TIER_COMMENT = "clod_lod_tier"
 HAND_OVER_KEYS = ("tier_s_v", "tier_start", "tier_fade")
 #: the settings a ``clod_lod_tier`` comment may hold
 TIER_KEYS = HAND_OVER_KEYS + ("fade_width",)
+
+
+#: why a file whose merged tiers are not linked into a merge tree is not read for drawing
+#: (:func:`read_ply`)
+UNLINKED_TIERS = ("its merged tiers are not linked into a merge tree (written with --tier-draw chain, which is "
+                  "no longer drawn, or a merged tier's own file in a clod-adapt parents/ folder); re-run clod-adapt")
 
 
 def tier_element(k: int) -> str:
@@ -234,7 +240,7 @@ def _columns(src: np.ndarray, where: dict, wanted: list, n: int, n_rest: int, wi
     return means, sh0, shN, opacity, log_scales, quats, sigma_d, gains
 
 
-def read_ply(path: PathLike, *, allow_nonfinite: bool = False) -> Gaussians:
+def read_ply(path: PathLike, *, allow_nonfinite: bool = False, unlinked_tiers: bool = False) -> Gaussians:
     """Read a 3DGS checkpoint .ply (INRIA layout, optionally with ``sigma_d``) into ``Gaussians``.
 
     Required vertex properties: x y z, f_dc_0..2, f_rest_0..M-1 with M in {0, 9, 24, 45}
@@ -244,7 +250,10 @@ def read_ply(path: PathLike, *, allow_nonfinite: bool = False) -> Gaussians:
     (:data:`PARENT_ELEMENT`, the same layout) is the model's parent tier, read into
     ``Gaussians.parents`` (docs/method.md "Merged tiers"); ``lod_parent_2``, ... are the next
     tiers (:func:`tier_element`), each a ``parents`` of the one before, their hand-over settings
-    in ``clod_lod_tier k`` comments.
+    in ``clod_lod_tier k`` comments. Such tiers are drawn only linked into a merge tree
+    (``tree=True`` in the ``clod_lod`` comment, docs/lod_rule.md "The file"); a file whose tiers
+    are not (written with ``clod-adapt --tier-draw chain``, which is no longer drawn, or a merged
+    tier's own file in a ``parents/`` folder) is refused unless ``unlinked_tiers``.
     Any numeric property type is accepted and converted to float32 (float32 input is copied
     bit-exactly). The file is memory-mapped (plyfile's default) and converted in one vectorised
     pass; the input is never modified.
@@ -252,6 +261,8 @@ def read_ply(path: PathLike, *, allow_nonfinite: bool = False) -> Gaussians:
     Args:
         path: the .ply file.
         allow_nonfinite: keep NaN/Inf values instead of raising.
+        unlinked_tiers: read merged tiers that are not linked into a merge tree (the tiers
+            ``clod-adapt`` links, :func:`clod_adapter.lod.tree.build`; not drawn as they are).
 
     Returns:
         ``Gaussians`` with contiguous float32 CPU tensors: means [N,3], quats [N,4] (wxyz, raw),
@@ -262,8 +273,9 @@ def read_ply(path: PathLike, *, allow_nonfinite: bool = False) -> Gaussians:
         FileNotFoundError: ``path`` does not exist.
         PlyFormatError: not a parseable .ply (empty, bad header, truncated data), no ``vertex``
             element, a required property missing, an f_rest count that is no SH degree, a NaN/Inf
-            value (unless ``allow_nonfinite``), or a ``lod_parent`` element without ``sigma_d``,
-            the vertex element's SH degree or a ``tier_s_v`` in the header.
+            value (unless ``allow_nonfinite``), a ``lod_parent`` element without ``sigma_d``,
+            the vertex element's SH degree or a ``tier_s_v`` in the header, or merged tiers not
+            linked into a merge tree (unless ``unlinked_tiers``; :data:`UNLINKED_TIERS`).
     """
     path = Path(path)
     ply = open_ply(path)
@@ -272,35 +284,37 @@ def read_ply(path: PathLike, *, allow_nonfinite: bool = False) -> Gaussians:
     if "vertex" not in names:
         raise PlyFormatError(path, f"no 'vertex' element (elements: {', '.join(names) or 'none'})")
     lod_settings = parse_lod_comment(getattr(ply, "comments", []), path)
-    chain = [_read_element(path, ply["vertex"], lod_settings, allow_nonfinite)]
+    tiers = [_read_element(path, ply["vertex"], lod_settings, allow_nonfinite)]
     hand = _tier_comments(getattr(ply, "comments", []), path)
     k = 1
     while tier_element(k) in names:
-        above = chain[-1]
+        above = tiers[-1]
         if above.sigma_d is None or above.lod is None or above.lod.tier_s_v <= 0:
             raise PlyFormatError(path, f"a '{tier_element(k)}' element without an adapted tier above it and a "
                                        f"'tier_s_v' for that tier in the '{LOD_COMMENT}' comments")
         tier = _read_element(path, ply[tier_element(k)], _parent_settings(lod_settings, hand.get(k), path),
                              allow_nonfinite)
-        if tier.sigma_d is None or tier.sh_degree != chain[0].sh_degree:
+        if tier.sigma_d is None or tier.sh_degree != tiers[0].sh_degree:
             raise PlyFormatError(path, f"the '{tier_element(k)}' element needs sigma_d and the vertex "
                                        f"element's SH degree")
-        chain.append(tier)
+        tiers.append(tier)
         k += 1
     stray = [n for n in names if n.startswith(PARENT_ELEMENT) and n not in [tier_element(i) for i in range(1, k)]]
     if stray:
         raise PlyFormatError(path, f"element '{stray[0]}' without '{tier_element(k)}' before it")
-    if chain[-1].lod is not None and chain[-1].lod.tier_s_v > 0 and len(chain) > 1:
+    if tiers[-1].lod is not None and tiers[-1].lod.tier_s_v > 0 and len(tiers) > 1:
         raise PlyFormatError(path, f"a '{TIER_COMMENT} {k - 1}' comment without a '{tier_element(k)}' element")
     if lod_settings is not None and lod_settings.tree:
-        _check_tree(path, chain)
-    g = chain[-1]
-    for above in reversed(chain[:-1]):
+        _check_tree(path, tiers)
+    elif len(tiers) > 1 and not unlinked_tiers:
+        raise PlyFormatError(path, UNLINKED_TIERS)
+    g = tiers[-1]
+    for above in reversed(tiers[:-1]):
         g = replace(above, parents=g)
     return g
 
 
-def _check_tree(path: Path, chain: list) -> None:
+def _check_tree(path: Path, tiers: list) -> None:
     """A ``tree=True`` file's tree (docs/lod_rule.md "The file"): every element but the last has an
     integer ``parent`` property naming a row of the next element, every row of the next element is
     some row's parent, and every element has a finite float ``exit``.
@@ -308,9 +322,9 @@ def _check_tree(path: Path, chain: list) -> None:
     Raises:
         PlyFormatError: the file says ``tree=True`` and one of these does not hold.
     """
-    if len(chain) < 2:
+    if len(tiers) < 2:
         raise PlyFormatError(path, "'tree=True' in the 'clod_lod' comment but no 'lod_parent' element")
-    for k, (tier, above) in enumerate(zip(chain, chain[1:])):
+    for k, (tier, above) in enumerate(zip(tiers, tiers[1:])):
         name = "vertex" if k == 0 else tier_element(k)
         p = tier.extra.get("parent")
         if p is None or p.dtype.is_floating_point:
@@ -321,7 +335,7 @@ def _check_tree(path: Path, chain: list) -> None:
                                        f"(the rows of '{tier_element(k + 1)}')")
         if bool((torch.bincount(p, minlength=len(above)) == 0).any()):
             raise PlyFormatError(path, f"element '{tier_element(k + 1)}': a row that is no row's parent")
-    for k, tier in enumerate(chain):
+    for k, tier in enumerate(tiers):
         x = tier.extra.get("exit")
         if x is None or not x.dtype.is_floating_point or not bool(torch.isfinite(x).all()):
             raise PlyFormatError(path, f"'tree=True' but element '{'vertex' if k == 0 else tier_element(k)}' has no "
@@ -551,8 +565,8 @@ def write_ply(path: PathLike, gaussians: Gaussians, *, with_normals: bool = True
     path = Path(path)
     g = gaussians
     elements = [plyfile.PlyElement.describe(_vertex_rows(g, with_normals), "vertex")]
-    chain = tier_chain_of(g)
-    for k, (above, tier) in enumerate(zip(chain, chain[1:]), start=1):
+    tiers = tier_chain_of(g)
+    for k, (above, tier) in enumerate(zip(tiers, tiers[1:]), start=1):
         if above.lod is None or above.lod.tier_s_v <= 0 or above.sigma_d is None or tier.sigma_d is None:
             raise ValueError("write_ply: a parent tier needs an adapted model and parents, and lod.tier_s_v > 0")
         elements.append(plyfile.PlyElement.describe(_vertex_rows(tier, with_normals), tier_element(k)))

@@ -33,7 +33,7 @@ from ..evaluate.level_metrics import budget_levels, evaluate_level, evaluate_lev
 from ..io.atomic import atomic_write
 from ..io.load import resolve_model_path
 from . import InputError, pick_device  # noqa: F401 (public here since the first release)
-from ..io.ply import write_ply
+from ..io.ply import read_ply, write_ply
 from ..io.load import load_scene
 from ..render.composite import deterministic_enabled
 from ..gaussians import Gaussians
@@ -367,7 +367,6 @@ def _add_parent_tier(ply_path: Path, scene_root: Path, out_dir: Path, cfg: Adapt
     Gaussians, a data-parallel run, or without splat-transform. ``source``: the input model as the
     adaptation read it (read again from ``ply_path`` when not given)."""
     from ..train import tiers
-    from ..io.ply import read_ply
 
     t0 = time.perf_counter()
     n = int(metrics["num_gaussians"])
@@ -425,10 +424,10 @@ def _add_parent_tier(ply_path: Path, scene_root: Path, out_dir: Path, cfg: Adapt
     if pcfg.parent_share:  # the tier's own parent tiers, shares relative to it
         _add_parent_tier(out_dir / PARENT_INPUT_NAME, scene_root, pdir, pcfg, po, stop, None, pm, nested=True,
                          source=p_given)
-    model, parents = read_ply(out_dir / PLY_NAME), read_ply(pdir / PLY_NAME)
+    model, parents = _read_own(out_dir / PLY_NAME), _read_own(pdir / PLY_NAME)
     imgs = [scene.load_image(c) for c in cams]
     dirs = _tier_dirs(pdir)
-    cands = [parents] + [read_ply(d / PLY_NAME) for d in dirs[1:]]
+    cands = [parents] + [_read_own(d / PLY_NAME) for d in dirs[1:]]
     linked, tried = tiers.link(model, cands, cams, imgs, background=cfg.background,
                                max_tier_s_v=cfg.tier_hand_over if nested else 0.0,
                                log=lambda m: o.log("clod-adapt: " + m))
@@ -448,23 +447,28 @@ def _add_parent_tier(ply_path: Path, scene_root: Path, out_dir: Path, cfg: Adapt
     return done()
 
 
-def _drawing_rule(linked, scene_root: Path, out_dir: Path, scene, cfg: AdaptConfig, o: AdaptOptions, info: dict):
-    """How the linked model's tiers are drawn (``cfg.tier_draw``): ``"tree"``, linked into a merge
-    tree (:func:`clod_adapter.lod.tree.build`; ``info["tree"]`` its tiers' sizes), its merged tiers fitted
-    on its cuts (:func:`clod_adapter.train.tree_fit.finetune`, ``cfg.tree_steps`` at most
-    ``cfg.iterations``; ``info["tree_fit"]``) and ``lod_strip.png`` redrawn through it;
-    ``"chain"``, the linked tiers as they are."""
-    if cfg.tier_draw == "tree":
-        from ..lod import tree
-        from ..train.tree_fit import finetune
+def _read_own(path: Path):
+    """A model ``clod-adapt`` wrote in this run's folders, as written: a merged tier's own file holds
+    the tiers below it attached, not linked into a merge tree (only the top model's are,
+    :func:`_drawing_rule`), so it is read with ``read_ply(unlinked_tiers=True)``."""
+    return read_ply(path, unlinked_tiers=True)
 
-        linked = tree.build(linked, scene.train, log=lambda m: o.log("clod-adapt: " + m))
-        info["tree"] = [len(t) for t in tree.tiers_of(linked)]
-        steps, t0 = min(cfg.tree_steps, cfg.iterations), time.perf_counter()
-        linked = finetune(linked, scene.train, [scene.load_image(c) for c in scene.train], steps,
-                          background=cfg.background, seed=cfg.seed, log=lambda m: o.log("clod-adapt: " + m))
-        info["tree_fit"] = {"steps": steps, "seconds": round(time.perf_counter() - t0, 1)}
-        _final_strip(out_dir, linked, scene_root, cfg, o)
+
+def _drawing_rule(linked, scene_root: Path, out_dir: Path, scene, cfg: AdaptConfig, o: AdaptOptions, info: dict):
+    """The linked model's tiers as a merge tree (:func:`clod_adapter.lod.tree.build`;
+    ``info["tree"]`` its tiers' sizes), its merged tiers fitted on its cuts
+    (:func:`clod_adapter.train.tree_fit.finetune`, ``cfg.tree_steps`` at most ``cfg.iterations``;
+    ``info["tree_fit"]``) and ``lod_strip.png`` redrawn through it."""
+    from ..lod import tree
+    from ..train.tree_fit import finetune
+
+    linked = tree.build(linked, scene.train, log=lambda m: o.log("clod-adapt: " + m))
+    info["tree"] = [len(t) for t in tree.tiers_of(linked)]
+    steps, t0 = min(cfg.tree_steps, cfg.iterations), time.perf_counter()
+    linked = finetune(linked, scene.train, [scene.load_image(c) for c in scene.train], steps,
+                      background=cfg.background, seed=cfg.seed, log=lambda m: o.log("clod-adapt: " + m))
+    info["tree_fit"] = {"steps": steps, "seconds": round(time.perf_counter() - t0, 1)}
+    _final_strip(out_dir, linked, scene_root, cfg, o)
     return linked
 
 

@@ -114,12 +114,11 @@ LpipsSpec = Union[str, os.PathLike, Callable, None]
 def sv_grid(max_sv: float, steps: int = 25, overshoot: float = SWEEP_OVERSHOOT, lod_settings=None,
             tier_steps: int = 6, reach: Optional[float] = None) -> list[float]:
     """``steps`` values of ``s_v`` evenly spaced from 1 to ``overshoot * max_sv`` (past the
-    trained maximum); for a model with a parent tier (``lod_settings.tier_s_v > 0``, docs/method.md
-    "the merged parent tier") then ``tier_steps`` values spaced evenly in ``ln s_v`` from the middle of
-    its cross-fade (``tier_s_v sqrt(tier_fade)``) to where the parents are drawn at
-    ``overshoot`` times their own ``max_sv`` (``overshoot max_sv tier_fade tier_s_v / tier_start``; with a
-    chain of tiers, ``overshoot max_sv reach``, :func:`clod_adapter.lod.draw.tier_reach`), those
-    beyond the even part."""
+    trained maximum); for a model with merged tiers (``lod_settings.tier_s_v > 0``, docs/method.md
+    "Merged tiers") then ``tier_steps`` values spaced evenly in ``ln s_v`` from the middle of its
+    first hand-over (``tier_s_v sqrt(tier_fade)``) to where the last tier is at ``overshoot`` times
+    its own ``max_sv`` (``overshoot max_sv reach``, ``reach`` :func:`clod_adapter.lod.draw.tier_reach`;
+    default ``tier_fade tier_s_v / tier_start``, one tier), those beyond the even part."""
     if steps < 2:
         raise ValueError(f"need at least 2 s_v steps, got {steps}")
     if not max_sv >= 1:

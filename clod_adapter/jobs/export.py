@@ -132,10 +132,10 @@ def _reduce(model, scene, train_imgs, test_cams, test_imgs, o: ExportOptions, re
         rep["sh"] = info
         step()
     if tiers:  # the tiers follow the model (same SH degree, docs/method.md "Merged tiers")
-        chain = None
+        above = None
         for t in reversed(tiers):
-            chain = replace(ex.truncate_sh(t, model.sh_degree), parents=chain)
-        model = replace(model, parents=chain)
+            above = replace(ex.truncate_sh(t, model.sh_degree), parents=above)
+        model = replace(model, parents=above)
         rep["tier"]["parents_out"] = sum(len(t) for t in tiers)
     rep["gaussians_out"] = len(model)
     rep["sh_degree_out"] = model.sh_degree
@@ -175,47 +175,41 @@ def _derive(model, scene, test_cams, test_imgs, o: ExportOptions, rep: dict, ste
 
 def _lod_levels(model, scene, test_cams, test_imgs, rep: dict, step) -> list:
     """The LoD set's levels, finest first, each scored on the test views as a plain model;
-    ``rep["lod_meta"]`` says how they were cut. A model without tiers: the model cut at each of
-    :func:`clod_adapter.export.bake.lod_set_s_vs` of its ``max_sv`` (:func:`clod_adapter.export.bake.lod_level`,
-    reference distances from the training views). A model with merged tiers
-    (:func:`clod_adapter.lod.draw.tier_chain`): the model at full detail, then each tier as the
-    ``s_v`` rule first draws it alone (at the level of the tier above's ``tier_start``), then the
-    last tier cut at the coarser ``lod_set_s_vs`` of its own ``max_sv``. Returns the levels."""
+    ``rep["lod_meta"]`` says how they were cut. A model without a merge tree: the model cut at
+    each of :func:`clod_adapter.export.bake.lod_set_s_vs` of its ``max_sv``
+    (:func:`clod_adapter.export.bake.lod_level`, reference distances from the training views). A
+    merge tree: its tiers (:func:`clod_adapter.lod.draw.tier_chain`), each whole
+    (:func:`_tree_levels`). Returns the levels."""
     from ..export import bake as ex
     from ..lod.draw import tier_chain
     from ..metrics import psnr
     from ..train.loop import reference_distances
 
-    chain = tier_chain(model)
-    max_sv = model.lod.max_sv if model.lod is not None else 5.0
     if model.lod is not None and model.lod.tree:  # a merge tree: its tiers whole are the levels
-        return _tree_levels(chain, test_cams, test_imgs, rep, step)
-    cuts = [(0, 1.0)] if len(chain) > 1 else [(0, s) for s in ex.lod_set_s_vs(max_sv)]
-    if len(chain) > 1:
-        cuts += [(k, chain[k - 1].lod.tier_start) for k in range(1, len(chain))]
-        cuts += [(len(chain) - 1, s) for s in ex.lod_set_s_vs(chain[-1].lod.max_sv)[1:] if s > cuts[-1][1]]
+        return _tree_levels(tier_chain(model), test_cams, test_imgs, rep, step)
+    max_sv = model.lod.max_sv if model.lod is not None else 5.0
+    own = replace(model, parents=None)
+    d_ref = reference_distances(own, scene.train)
     levels, rows = [], []
-    for k, (t, s) in enumerate(cuts):
-        m = chain[t]
-        g = ex.lod_level(replace(m, parents=None), scene.train, s, d_ref=reference_distances(m, scene.train))
+    for k, s in enumerate(ex.lod_set_s_vs(max_sv)):
+        g = ex.lod_level(own, scene.train, s, d_ref=d_ref)
         ps = [psnr(ex.render_lod(g, c).image, gt, cap=True) for c, gt in zip(test_cams, test_imgs)]
         levels.append(g)
-        rows.append({"level": k, "tier": t, "s_v": s, "gaussians": len(g),
+        rows.append({"level": k, "tier": 0, "s_v": s, "gaussians": len(g),
                      "psnr_test": sum(ps) / len(ps)})
     rep["lod_meta"] = {"levels": rows, "tool": "splat-transform",
-                       "cut": "critical s_v at the reference distance (training views)" + (
-                           "; the model, then its merged tiers" if len(chain) > 1 else "")}
+                       "cut": "critical s_v at the reference distance (training views)"}
     step()
     return levels
 
 
-def _tree_levels(chain, test_cams, test_imgs, rep: dict, step) -> list:
+def _tree_levels(tiers, test_cams, test_imgs, rep: dict, step) -> list:
     """:func:`_lod_levels` of a merge tree: each tier whole, finest first, as a plain model."""
     from ..export import bake as ex
     from ..metrics import psnr
 
     levels, rows = [], []
-    for k, t in enumerate(chain):
+    for k, t in enumerate(tiers):
         g = t.with_sigma_d(None)
         ps = [psnr(ex.render_lod(g, c).image, gt, cap=True) for c, gt in zip(test_cams, test_imgs)]
         levels.append(g)

@@ -297,17 +297,7 @@ class FrameTimeModel:
 DEFAULT_FRAME_TIME_MODEL = FrameTimeModel(c0_ms=2.42, per_cost_ms=5.53e-6, per_gaussian_ms=9.31e-4)
 
 
-# --- a view's cost budgets (LodView.cost_count, full_cost, full_detail_estimate) ----------------
-#: a budget walking down a chain of tiers compares each tier's full detail estimated from the
-#: widest :data:`COST_SAMPLE_TOP` share and every this many-th of the rest
-#: (:meth:`LodView.full_detail_estimate`; ``benchmarks/archive/cost_sample.py``, docs/archive/studies_chain.md
-#: "Costing the tiers from a sample")
-COST_SAMPLE_STEP = 8
-#: the share of a model's Gaussians, the widest on screen, that the estimate costs exactly
-COST_SAMPLE_TOP = 0.03
-#: models with fewer Gaussians than this are costed whole (:meth:`LodView.full_detail_estimate`)
-COST_SAMPLE_MIN = 4096
-
+# --- a view's cost budgets (LodView.cost_count, full_cost) ----------------------------------------
 
 def view_cost_count(view, budget, *, level: Optional[float] = None) -> int:
     """How many Gaussians a cost budget draws: the longest prefix of the count budgets' order
@@ -377,7 +367,7 @@ def _view_cost_weights(view, level: Optional[float] = None):
     measured in; Eq. 2 at the base opacities (:func:`view_cost_count` then searches exactly)."""
 
     lv = float(level) if (level is not None and view.settings.fade != "eq2") else 0.0
-    if view._costs is not None and view._costs[0] == lv:  # a cost budget, then the tier's full cost
+    if view._costs is not None and view._costs[0] == lv:  # a cost budget, then the view's full cost
         return view._costs[1:]
     order = order_in_view(view.critical, view.visible)
     if order.numel() == 0:
@@ -394,49 +384,10 @@ def view_full_cost(view) -> float:
         return 0.0
     if view._costs is not None and view._costs[0] == 0.0:  # a cost budget's weights: the same cost
         return float(torch.cumsum(view._costs[3].double(), 0)[-1])
-    # order-free: no critical s_v and no sort (a tier's budget walk reads only this of the model)
+    # order-free: no critical s_v and no sort
 
     ids = torch.nonzero(view.visible, as_tuple=False).squeeze(1)
     return float(Footprints(view, ids, 0.0).cost(level_opacities(view, ids, 0.0)).double().sum())
-
-
-def view_full_detail_estimate(view, step: Optional[int] = None) -> tuple[float, float]:
-    """``(cost, count)`` of every Gaussian in view at full detail (:func:`view_full_cost`,
-    :attr:`LodView.n_in_view`) estimated without projecting the model whole: the
-    :data:`COST_SAMPLE_TOP` share of the Gaussians with the largest ``max(scales) / d'`` (the
-    widest on screen, which carry most of the cost) costed exactly, and every ``step``-th of
-    the rest by index (default :data:`COST_SAMPLE_STEP`) weighted by the rest over the rows
-    taken. What a budget walking down a chain of tiers compares (:func:`budget_walk`). Exact
-    (the whole model) below :data:`COST_SAMPLE_MIN` Gaussians or with ``step`` 1.
-
-    Returns:
-        (cost in :data:`clod_adapter.lod.cost.COST_UNIT`, clipped ellipse pixels; the count of
-        Gaussians in view), both float; within 5.1 % of the exact cost on the validation views
-        of the shared checkpoints (docs/archive/studies_chain.md "Costing the tiers from a sample")."""
-
-    step = COST_SAMPLE_STEP if step is None else int(step)
-    n = view.n
-    if step <= 1 or n < COST_SAMPLE_MIN:
-        return view_full_cost(view), float(view.n_in_view)
-    size = view.scales.detach().amax(-1) / view.d_norm.detach().clamp_min(1e-12)
-    dev = view.means.device
-    top = torch.topk(size, int(COST_SAMPLE_TOP * n)).indices
-    rest = torch.ones(n, dtype=torch.bool, device=dev)
-    rest[top] = False
-    rest_ids = torch.nonzero(rest, as_tuple=False).squeeze(1)
-    taken = rest_ids[::step]
-    ids, _ = torch.sort(torch.cat([top, taken]))
-    weight = torch.zeros(n, dtype=torch.float64, device=dev)
-    weight[top] = 1.0
-    weight[taken] = rest_ids.numel() / max(taken.numel(), 1)
-    sub = type(view)(means=view.means[ids], quats=view.quats[ids], scales=view.scales[ids],
-                  opacity_logits=view.opacity_logits[ids], colors=None, sigma_d=None, gains={},
-                  settings=view.settings, viewmat=view.viewmat, K=view.K, width=view.width,
-                  height=view.height, frustum=view.frustum[ids])
-    vis = torch.nonzero(sub.visible, as_tuple=False).squeeze(1)
-    w = weight[ids].index_select(0, vis)
-    cost = Footprints(sub, vis, 0.0).cost(level_opacities(sub, vis, 0.0)).double()
-    return float((cost * w).sum()), float(w.sum())
 
 
 def _view_eq2_cost_count(view, order: Tensor, fp, k_lo: int, limit: float, unit, min_s_v: float) -> int:

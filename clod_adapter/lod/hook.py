@@ -9,9 +9,10 @@ the selected Gaussians to :func:`clod_adapter.render.rasterization` (gsplat on C
 otherwise). The selection is the one :func:`clod_adapter.lod.draw.render_lod` makes, so both
 give the same image.
 
-A model with parent tiers (docs/method.md "Merged tiers") passes them too (``parents=``, each
-tier's own ``parents`` nested in it), and at an ``s_v`` past ``lod_settings.tier_s_v`` the tiers are
-drawn as ``render_lod`` draws them (:func:`clod_adapter.lod.draw.chain_parts`). :func:`clod_kwargs` gives every LoD keyword of an
+A model with merged tiers linked into a merge tree (docs/method.md "The merge tree") passes them
+too (``parents=``, each tier's own ``parents`` nested in it, and ``parent=``/``lod_exit=``), and an
+``s_v`` or a budget draws one cut of the tree as ``render_lod`` draws it
+(:func:`clod_adapter.lod.cut.tree_select`). :func:`clod_kwargs` gives every LoD keyword of an
 adapted model.
 
 Without ``sigma_d``, or with neither ``s_v`` nor ``budget``, it is exactly ``rasterization``.
@@ -27,7 +28,7 @@ from torch import Tensor
 from . import rule as lod
 from ..render.dispatch import rasterization
 from .budget import Budget, as_budget
-from .draw import PAPER, chain_parts, count_budget_walk, rasterize_views
+from .draw import PAPER
 from .view import view_lod_tensors
 from .cut import tree_select
 
@@ -43,8 +44,10 @@ def clod_kwargs(model) -> Dict[str, Any]:
     (:class:`clod_adapter.gaussians.Gaussians`, e.g. ``load_model(".../point_cloud.ply")``):
     ``sigma_d`` [N], ``lod_settings``, ``opacity_logits`` [N], the level gains (``opacity_logit_gain`` [N],
     ``log_scale_gain`` [N], ``sh0_gain`` [N, 1, 3]; None where the model has none) and, for a
-    model with a parent tier, ``parents`` (a dict of the parents' :data:`PARENT_KEYS` tensors,
-    their gains, their own ``lod_settings`` and, for a chain of tiers, their own ``parents``). Add ``s_v=`` or ``budget=``.
+    model with merged tiers, ``parents`` (a dict of the first parent tier's :data:`PARENT_KEYS`
+    tensors, its gains, its own ``lod_settings`` and ``parent``/``exit``, and the next tier nested
+    in it as its own ``parents``) and, for a merge tree, ``parent`` and ``lod_exit``. Add ``s_v=``
+    or ``budget=``.
 
     Raises:
         ValueError: the model has no ``sigma_d`` (not adapted by ``clod-adapt``).
@@ -90,9 +93,14 @@ def _tree_tier(means, quats, scales, logits, colors, sigma_d, settings, parent, 
 
 
 def _tree_model(means, quats, scales, logits, colors, sigma_d, settings, node, parents, per_cam: Optional[int]):
-    """The model and its ``parents=`` chain as one tree (:mod:`clod_adapter.lod.tree`); ``per_cam``:
-    the camera whose colours to take from [C, N, D] colours."""
+    """The model and its nested ``parents=`` tiers as one tree (:mod:`clod_adapter.lod.tree`);
+    ``per_cam``: the camera whose colours to take from [C, N, D] colours.
+
+    Raises:
+        ValueError: a tier's dict misses one of :data:`PARENT_KEYS` or has a ``sigma_d`` of the
+            wrong shape."""
     def build(d, settings_above):
+        _check_parents(d)
         st = d.get("lod_settings") or settings_above
         col = d["colors"][per_cam] if per_cam is not None else d["colors"]
         above = build(d["parents"], st) if (d.get("parents") is not None and st.tier_s_v > 0) else None
@@ -110,18 +118,6 @@ def _logits(opacities: Tensor, logits: Optional[Tensor] = None) -> Tensor:
         return logits
     a = opacities.clamp(1e-30, 1.0)
     return torch.log(a) - torch.log1p(-a.clamp_max(1.0 - 1e-7))  # the view works on raw logits
-
-
-def _chain(parents: Dict[str, Any], settings) -> list:
-    """``[(tier dict, its logits, its gains)]`` of the parent tiers drawn after the model:
-    ``parents``, then its own ``parents`` while its ``lod_settings.tier_s_v > 0``."""
-    out, p = [], parents
-    while p is not None:
-        _check_parents(p)
-        out.append((p, _logits(p["opacities"], p.get("opacity_logits")), {k: p.get(k) for k in _GAINS}))
-        st = p.get("lod_settings")
-        p = p.get("parents") if st is not None and st.tier_s_v > 0 else None
-    return out
 
 
 def _check_parents(parents: Dict[str, Any]) -> None:
@@ -230,14 +226,11 @@ def clod_rasterization(
             adapted .ply's ``Gaussians.lod``); None: the paper's Eq. 2 drawing.
         opacity_logit_gain, log_scale_gain: [N] level gains, sh0_gain: [N, 1, 3] (SH colours
             only): the adapted model's (None: none).
-        parents: the model's parent tier (:func:`clod_kwargs`): ``means`` [M, 3], ``quats``
-            [M, 4], ``scales`` [M, 3], ``opacities`` [M] (activated), ``colors`` (as ``colors``,
-            M rows), ``sigma_d`` [M], optional gains, ``opacity_logits`` and ``lod_settings``
-            (the parents' own).
-            Drawn at an ``s_v`` past ``lod_settings.tier_s_v`` (cross-fade, then alone, at the
-            parents' ``s_v``, :func:`clod_adapter.lod.rule.tier_weight`; their own ``parents`` likewise down the
-            chain, :func:`clod_adapter.lod.draw.chain_parts`); a budget whose solution passes a
-            hand-over draws that tier alone (:func:`clod_adapter.lod.draw.budget_walk`).
+        parents: a merge tree's first parent tier (:func:`clod_kwargs`): ``means`` [M, 3],
+            ``quats`` [M, 4], ``scales`` [M, 3], ``opacities`` [M] (activated), ``colors`` (as
+            ``colors``, M rows), ``sigma_d`` [M], optional gains, ``opacity_logits`` and
+            ``lod_settings`` (the tier's own), its ``parent``/``exit`` and the next tier as its
+            own ``parents``. Drawn only with ``lod_settings.tree`` (below); otherwise not read.
         parent: [N] int, a merge tree's parent of each Gaussian in ``parents`` (each tier's own
             under ``"parent"`` in its dict; :func:`clod_kwargs`): with ``lod_settings.tree`` an
             ``s_v`` or a budget draws one cut of the tree (:func:`clod_adapter.lod.cut.tree_select`).
@@ -259,10 +252,10 @@ def clod_rasterization(
         ``lod_s_v`` (list of C floats), ``lod_n_rendered`` (list of C ints: parents included),
         ``lod_indices`` (list of C [k_c] int64 tensors into the N input Gaussians),
         ``lod_n_parents`` (list of C ints: every parent tier's), ``lod_parent_indices`` (list of
-        C [p_c] int64 tensors into the M parents; empty where the tier is not drawn) and
+        C [p_c] int64 tensors into the M parents; empty without a tree) and
         ``lod_tier_indices`` (per camera, a list with one such tensor per parent tier of the
-        chain). Where a tier is drawn, the camera's meta numbers its rows after the N Gaussians
-        and the tiers before it (``visible_ids``).
+        tree; empty without a tree). A tree's cut is rasterised as one set: the camera's meta
+        numbers its rows after the N Gaussians and the tiers before it (``visible_ids``).
 
     Raises:
         ValueError: ``s_v`` and ``budget`` both given, ``s_v < 1``, ``sigma_d`` of the wrong
@@ -294,57 +287,26 @@ def clod_rasterization(
                             backgrounds, sh_degree, backend)
     if budget is not None and not budget.counts:
         raise ValueError(f"clod_rasterization: a {budget.kind} budget needs a merge tree (count budgets otherwise)")
-    tier = (s_v is not None and parents is not None and lod_settings is not None and lod_settings.tier_s_v > 0
-            and lod.tier_weight(float(s_v), lod_settings)[0] > 0)
-    has_tiers = parents is not None and lod_settings is not None and lod_settings.tier_s_v > 0
-    chain = _chain(parents, lod_settings) if has_tiers else []
-    lods = [lod_settings] + [p.get("lod_settings") or lod_settings for p, _, _ in chain]
     imgs, alphas, metas, svs, counts, indices, n_par, par_idx, tier_idx = [], [], [], [], [], [], [], [], []
     for c in range(C):
         col = colors[c] if per_cam_colors else colors
         cam = SimpleNamespace(viewmat=viewmats[c], K=Ks[c], width=w, height=h)
-
-        def view_of(k, col=col, c=c, cam=cam):
-            if k == 0:
-                return view_lod_tensors(means, quats, scales, logits, col, cam, sigma_d=sigma_d,
-                                        gains=gains, settings=lod_settings, tau=tau, eps=eps)
-            p, p_logits, p_gains = chain[k - 1]
-            return view_lod_tensors(p["means"], p["quats"], p["scales"], p_logits,
-                                    p["colors"][c] if per_cam_colors else p["colors"], cam,
-                                    sigma_d=p["sigma_d"], gains=p_gains, settings=p.get("lod_settings"), tau=tau, eps=eps)
-
+        view = view_lod_tensors(means, quats, scales, logits, col, cam, sigma_d=sigma_d, gains=gains,
+                                settings=lod_settings, tau=tau, eps=eps)
+        sel = view.select(s_v, budget=budget, eta_grad=PAPER)
         bg = None if backgrounds is None else backgrounds[c]
-        if tier:
-            parts, sels = chain_parts(float(s_v), lods, view_of)
-            rc, ra, meta = rasterize_views(parts, background=bg, sh_degree=sh_degree, backend=backend)
-            empty = parts[0][1].indices.new_zeros(0)
-            idx = sels[0].indices if sels[0] is not None else empty
-            t_idx = [x.indices if x is not None else empty for x in sels[1:]]
-            s_used = float(s_v)
-        else:
-            view = view_of(0)
-            if budget is not None:
-                sel, par = count_budget_walk(lods, view_of, view, budget)
-            else:
-                sel, par = view.select(s_v, eta_grad=PAPER), None
-            empty = view.means.new_zeros(0, dtype=torch.long)
-            t_idx = [empty] * len(chain)
-            if par is not None:  # a budget past a hand-over: a tier alone or two mixed (camera_lod.budget_walk)
-                rc, ra, meta = rasterize_views(par.views(), background=bg, sh_degree=sh_degree, backend=backend)
-                (idx, t_idx), s_used = par.tier_indices(len(chain), empty), par.s_v
-            else:
-                rc, ra, meta = view.rasterize(sel, background=bg, sh_degree=sh_degree, backend=backend,
-                                              colors=None if sh_degree is not None else col)
-                idx, s_used = sel.indices, sel.s_v
+        rc, ra, meta = view.rasterize(sel, background=bg, sh_degree=sh_degree, backend=backend,
+                                      colors=None if sh_degree is not None else col)
+        idx = sel.indices
         imgs.append(rc[None])
         alphas.append(ra[None])
         metas.append(meta)
-        svs.append(s_used)
-        n_par.append(sum(int(x.numel()) for x in t_idx))
-        counts.append(int(idx.numel()) + n_par[-1])
+        svs.append(sel.s_v)
+        n_par.append(0)
+        counts.append(int(idx.numel()))
         indices.append(idx)
-        par_idx.append(t_idx[0] if t_idx else idx.new_zeros(0))
-        tier_idx.append(t_idx)
+        par_idx.append(idx.new_zeros(0))
+        tier_idx.append([])
     out_meta: Dict[str, Any] = dict(metas[0]) if C == 1 else {"cameras": metas, "n_cameras": C}
     out_meta.update(lod_s_v=svs, lod_n_rendered=counts, lod_indices=indices, lod_n_parents=n_par,
                     lod_parent_indices=par_idx, lod_tier_indices=tier_idx)

@@ -411,23 +411,6 @@ def window_opacities(ids: Tensor, opacities: Tensor, opacity_logits: Tensor, d_n
     return torch.sigmoid(logits) * fade_weight(margin, width)
 
 
-def tier_weight(s_v: float, settings: LodSettings) -> tuple[float, float]:
-    """The parent tier's share of the image at ``s_v`` and the parents' own ``s_v``:
-    ``(u, s_parents)``. ``u`` is 0 up to ``tier_s_v`` (the Gaussians alone), grows with
-    ``ln s_v`` to 1 at ``tier_fade * tier_s_v`` (the parents alone); between, the Gaussians are
-    drawn with their opacities times ``1 - u`` and the parents with theirs times ``u``, so the
-    image is continuous in ``s_v``. The parents are held at ``s_parents = tier_start`` through the
-    cross-fade (so where they are first drawn alone they are at ``tier_start``, their full detail
-    for ``tier_start = 1``), then ``s_parents = tier_start * s_v / (tier_fade * tier_s_v)``. A
-    model without a tier (``tier_s_v = 0``): ``(0, 1)``."""
-    st = settings
-    if st.tier_s_v <= 0.0 or s_v <= st.tier_s_v:
-        return 0.0, 1.0
-    end = st.tier_fade * st.tier_s_v
-    u = min(1.0, math.log(float(s_v) / st.tier_s_v) / math.log(st.tier_fade))
-    return u, st.tier_start * max(float(s_v) / end, 1.0)
-
-
 def ramp_cap(max_sv: float) -> float:
     """The longest ramp :func:`ramp_s_v` gives: ``sqrt(max_sv)`` (half the trained range in
     ``ln s_v``), at least :data:`FADE_RAMP_S_V`."""

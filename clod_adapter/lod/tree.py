@@ -1,7 +1,7 @@
 """The merge tree: a model's tiers drawn as one cut, one set of Gaussians per frame.
 
-A model with merged tiers (``Gaussians.parents``, a chain: tier 0 the model, tier ``k + 1``
-merged Gaussians standing in for tier ``k``) becomes a tree (:func:`build`) when each Gaussian of
+A model with merged tiers (``Gaussians.parents``, each tier's own ``parents`` the next: tier 0 the
+model, tier ``k + 1`` merged Gaussians standing in for tier ``k``) becomes a tree (:func:`build`) when each Gaussian of
 tier ``k < T`` names one parent in tier ``k + 1`` (``Gaussians.extra["parent"]``, the ``parent``
 property of each element of the .ply) and its settings say ``tree=True``. It is then drawn as
 Hierarchical 3DGS draws its hierarchy (Kerbl et al. 2024, ``runtime_switching.cu``): every frame
@@ -33,9 +33,9 @@ Per camera (:func:`terms`, :func:`cut`), with ``F`` = :data:`HAND_OVER`:
    (Hierarchical 3DGS gives each of ``K`` children ``1 - (1 - a_p)^(1/K)``, which composites to
    the parent at its centre only and draws the parent's size ``K`` times.)
 
-The node constants are set by :func:`build` from the chain the job linked: at their mean ``d'``
+The node constants are set by :func:`build` from the tiers the job linked: at their mean ``d'``
 over the training views a tier's nodes enter around ``s_v = G_k`` (:func:`tier_scales`, where the
-chain hands over to the tier), spread over a factor :data:`SPREAD` by the order the tier below
+tiers' hand-overs put the tier), spread over a factor :data:`SPREAD` by the order the tier below
 learned, and every node leaves where its tier's own level of detail (its trained Eq. 2
 ``sigma_d``) drops it at its usual distance; ``clod_adapter.train.tree_fit`` then fits the merged
 tiers on the cuts. Between hand-overs nothing is dimmed or grown: every
@@ -239,7 +239,7 @@ def _group_rank(child_level: Tensor, parent: Tensor, n_parents: int) -> Tensor:
 
 
 def build(gaussians: Gaussians, cameras, log=None, *, spread: float = None) -> Gaussians:
-    """``gaussians`` (a model with a chain of merged tiers, linked by ``clod-adapt``) as a merge
+    """``gaussians`` (a model with merged tiers, linked by ``clod-adapt``) as a merge
     tree, the node constants set on ``cameras`` (training views):
 
     * each tier's Gaussians get their parent in the next tier (:func:`assign_parents`,
@@ -247,7 +247,7 @@ def build(gaussians: Gaussians, cameras, log=None, *, spread: float = None) -> G
       out of its tier;
     * a merged node's ``sigma_d`` becomes ``G_k R^(q - 1/2) d_ref`` (:func:`tier_scales`,
       :func:`reference_distances`; ``R`` = ``spread``, default :data:`SPREAD`): at its usual
-      distance it enters around where the chain handed over to its tier, earlier or later by its
+      distance it enters around where the tiers' hand-overs put its tier, earlier or later by its
       rank ``q`` among the tier's nodes by their most important child (the largest of the
       children's own Eq. 2 levels at their ``d_ref``: the order the tier below learned), so the
       hand-overs of a tier spread over a factor ``R`` of ``s_v``;

@@ -14,11 +14,8 @@
   at a given ``s_v`` needs no population: its LoD mask is evaluated first (it needs only the
   centres) and only what the mask keeps is projected, so a coarse level does not pay for
   projecting the whole model; a count budget projects a prefix of its order that holds enough
-  Gaussians in view (:meth:`LodView._visible_prefix`), and a tier it only passes through on a
-  model with tiers projects just that many of its centres in the frustum
-  (:meth:`LodView._frustum_holds`), and a cost or time budget tests the tiers it passes through
-  on a sample of each (:meth:`LodView.full_detail_estimate`); the tier a cost or time budget ends
-  in, and full detail, project everything in front;
+  Gaussians in view (:meth:`LodView._visible_prefix`); a cost or time budget, and full detail,
+  project everything in front;
 * ``d_norm`` [N]: ``d' = |mu - c| / max_frustum |mu - c|``;
 * ``critical`` [N] (on first use): each Gaussian's critical ``s_v`` (:mod:`clod_adapter.lod.budget`).
 
@@ -43,7 +40,7 @@ from . import rule as lod
 from ..lod_settings import EtaGradient
 from ..render.dispatch import Backend
 from .budget import Budget, critical_s_v, select_budget
-from .cost import view_cost_count, view_full_cost, view_full_detail_estimate
+from .cost import view_cost_count, view_full_cost
 from ..gaussians import Gaussians
 from ..render.projection import VisibleProjection, finish_projection, project_geometry
 
@@ -156,7 +153,6 @@ class LodView:
     _n_frustum: Optional[int] = field(default=None, repr=False)
     _costs: Optional[tuple] = field(default=None, repr=False)  # (level, order, footprints, costs): _cost_weights
     _prefix: Optional[tuple] = field(default=None, repr=False)  # (k, pool): _visible_prefix's last answer
-    _held: int = field(default=0, repr=False)  # a count of Gaussians in view _frustum_holds has shown
 
     # --- per-camera terms ----------------------------------------------------------------------
     @property
@@ -296,61 +292,6 @@ class LodView:
             cut += 2 * (k - ids.numel())  # centres in the frustum but out of view: cut further on
         return None
 
-    def draws_at_least(self, s_v: float, k: int, *, solving: bool = False) -> bool:
-        """Whether :meth:`select` at ``s_v`` (>= 1) draws at least ``k`` (a count) Gaussians:
-        ``select(s_v)``'s count ``>= k``, without projecting the whole model where the window
-        fade's full detail draws every Gaussian in view: ``k`` centres in the frustum shown in
-        view (:meth:`_frustum_holds`), or, with ``solving`` (a budget of ``k`` is solved in this
-        view next) or where that does not show it, the prefix of the budget's order holding
-        ``k`` in view that the budget then reads. The hand-over test of count budgets
-        (:func:`budget_walk`).
-
-        Raises:
-            ValueError: as :meth:`select` (``s_v < 1``; no ``sigma_d``).
-        """
-        if s_v <= 1.0 and self.settings.fade == "window":
-            if k <= 0:
-                return True
-            if k > self.n:
-                return False
-            if not solving and self._frustum_holds(k):
-                return True
-            # k + 1: the prefix a budget of k solved next in this view reads (projected once)
-            return self._visible_prefix(k + 1) is not None or self.n_in_view >= k
-        return int(self.select(s_v).indices.numel()) >= k
-
-    def _frustum_holds(self, k: int) -> bool:
-        """Whether ``k`` Gaussians whose centres lie in the frustum are in view, found by projecting
-        only ``k`` (plus a sixteenth) of them: a sufficient test of ``n_in_view >= k`` that needs
-        neither the critical ``s_v`` nor the whole projection (a tier a count budget passes on
-        through is never solved, :func:`budget_walk`). False where it is not shown so."""
-        if self._proj is not None and self._proj[2] is None:
-            return self.n_in_view >= k
-        if k <= self._held:
-            return True
-        ids = torch.nonzero(self.frustum, as_tuple=False).squeeze(1)
-        if ids.numel() < k:
-            return False
-        t0 = time.perf_counter()
-        geom = project_geometry(self.means, self.quats, self.scales, self.viewmat, self.K, self.width, self.height,
-                                NEAR_PLANE, FAR_PLANE, ids[:k + k // 16])
-        with torch.no_grad():
-            n_vis = int(finish_projection(geom, None, self.width, self.height, EPS2D).ids.numel())
-        self.project_ms += (time.perf_counter() - t0) * 1e3
-        self._held = max(self._held, n_vis)
-        return n_vis >= k
-
-    def budget_drawn(self, budget: Budget, *, solving: bool = False) -> Optional[int]:
-        """How many Gaussians ``select(budget=budget)`` draws (a count budget), without solving it,
-        where the rule gives the count: window fade and ``budget.min_s_v <= 1`` (full detail is the
-        floor), ``min(k, n_in_view)`` for ``k`` = :meth:`Budget.of` this view, found by
-        :meth:`draws_at_least` (``solving`` as there); None otherwise (solve it).
-        """
-        if self.settings.fade != "window" or budget.min_s_v > 1.0:
-            return None
-        k = self.count_of(budget)
-        return k if self.draws_at_least(1.0, k, solving=solving) else self.n_in_view
-
     def count_of(self, budget: Budget) -> int:
         """A count ``budget`` as a number of this model's Gaussians (:meth:`Budget.of`; an
         ``in_view`` share of :attr:`n_in_view`)."""
@@ -468,10 +409,6 @@ class LodView:
     def full_cost(self) -> float:
         """:func:`clod_adapter.lod.cost.view_full_cost` of this view."""
         return view_full_cost(self)
-
-    def full_detail_estimate(self, step: Optional[int] = None) -> tuple[float, float]:
-        """:func:`clod_adapter.lod.cost.view_full_detail_estimate` of this view."""
-        return view_full_detail_estimate(self, step)
 
     def subset(self, indices: Tensor, opacities: Optional[Tensor] = None) -> LodSelection:
         """A selection of given ``indices`` [k] (ascending, in view) drawn with ``opacities``

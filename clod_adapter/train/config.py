@@ -1,6 +1,5 @@
 """The options of one adaptation (:class:`AdaptConfig`), each with its default and its check, and
-the names they take (:data:`SCHEDULES`, :data:`RANKINGS`, :data:`TIER_DRAWS`, the level gains'
-letters). docs/method.md says what each default rests on."""
+the names they take (:data:`SCHEDULES`, :data:`RANKINGS`, the level gains' letters). docs/method.md says what each default rests on."""
 from __future__ import annotations
 
 import math
@@ -23,8 +22,6 @@ GAIN_LETTERS = {"o": "opacity_logit_gain", "s": "log_scale_gain", "c": "sh0_gain
 GAIN_LR = {"opacity_logit_gain": OFFICIAL_LR["opacity_logits"], "log_scale_gain": OFFICIAL_LR["log_scales"],
            "sh0_gain": OFFICIAL_LR["sh0"]}
 RANKINGS = ("lightgaussian", "opacity")
-#: AdaptConfig.tier_draw's values
-TIER_DRAWS = ("tree", "chain")
 
 
 @dataclass
@@ -118,18 +115,14 @@ class AdaptConfig:
             hand-over to the first tier stays where the time rule puts it). Default
             :data:`clod_adapter.train.tiers.TIER_HAND_OVER` (1.6) with the calibrated schedule; 0:
             where the time rule puts it (docs/studies.md "Hand-overs out of the merged tiers",
-            measured on the chain: on the validation views popping median fern 15.6 -> 17.9,
-            MaskGaussian fern 15.2 -> 16.6, skull 9.3 -> 11.9, no quality cell down by more than
-            0.01 dB).
-        tier_draw: how a model with merged tiers is drawn: ``"tree"`` (default), the tiers linked
-            into a merge tree (each Gaussian names its parent in the next tier), fitted on its cuts
-            and drawn as one cut per frame (:mod:`clod_adapter.lod.tree`; docs/method.md "The merge
-            tree"; docs/studies.md "The merge tree": on the validation views no frame along
-            ``s_v`` or count budgets over 1.05x a more detailed one); ``"chain"``, whole tiers
-            cross-faded at each hand-over (two sets drawn there).
-        tree_steps: with ``tier_draw="tree"``, the merged tiers are fitted on the tree's own cuts
-            for this many steps, at most ``iterations`` (:func:`clod_adapter.train.tree_fit.finetune`;
-            0: not fitted).
+            measured on the cross-fade chain that drew the tiers then: on the validation views
+            popping median fern 15.6 -> 17.9, MaskGaussian fern 15.2 -> 16.6, skull 9.3 -> 11.9, no
+            quality cell down by more than 0.01 dB). The linked tiers become a merge tree (each
+            Gaussian names its parent in the next tier) drawn as one cut per frame
+            (:mod:`clod_adapter.lod.tree`; docs/method.md "The merge tree").
+        tree_steps: the merge tree's merged tiers are fitted on the tree's own cuts for this many
+            steps, at most ``iterations`` (:func:`clod_adapter.train.tree_fit.finetune`; 0: not
+            fitted).
         tier_iteration_share: each merged tier learns its level of detail for this share of
             ``iterations`` (rounded, at least 1 when ``iterations`` > 0). Default 1: a finer ladder of
             five tiers at half the steps each was not better on the validation views
@@ -195,7 +188,6 @@ class AdaptConfig:
     tier_merge: str = "decimate"
     tier_time_cap: Optional[float] = None
     tier_hand_over: Optional[float] = None
-    tier_draw: str = "tree"
     tree_steps: int = 1000
     faint_share: Optional[float] = None
     keep_share: float = 1.0
@@ -299,8 +291,6 @@ class AdaptConfig:
         if int(self.tree_steps) != self.tree_steps or self.tree_steps < 0:
             raise ValueError(f"tree_steps must be a count >= 0, got {self.tree_steps}")
         self.tree_steps = int(self.tree_steps)
-        if self.tier_draw not in TIER_DRAWS:
-            raise ValueError(f"tier_draw must be one of {', '.join(TIER_DRAWS)}, got {self.tier_draw!r}")
         self.tier_iteration_share = float(self.tier_iteration_share)
         if not 0.0 < self.tier_iteration_share <= 1.0:
             raise ValueError(f"tier_iteration_share must be in (0, 1], got {self.tier_iteration_share}")

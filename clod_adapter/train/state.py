@@ -140,6 +140,9 @@ def load_state(path: os.PathLike, device: str | torch.device = "cpu") -> tuple[A
     cfg_d["background"] = tuple(cfg_d.get("background", (0, 0, 0)))
     cfg_d.setdefault("schedule", "paper")  # states written before the calibrated schedule
     cfg_d.setdefault("level_max", 1.0)  # states written before level_max: trained with the level held at 1
+    # states written while tiers could also be drawn as a chain (tier_draw): the model's own training
+    # does not depend on it, and its tiers are now always linked into a merge tree
+    cfg_d.pop("tier_draw", None)
 
     try:
         cfg = AdaptConfig(**cfg_d)

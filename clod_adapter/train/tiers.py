@@ -1,4 +1,4 @@
-"""Merged tiers: a chain of merged models that the coarser levels hand over to.
+"""Merged tiers: a ladder of merged models that the coarser levels hand over to.
 
 A selection keeps survivors; down the range survivors are few and, grown by the level gains,
 large, and a merging decimator covers the same image with fewer, better-placed splats. So a model
@@ -7,10 +7,11 @@ input merged by PlayCanvas splat-transform's ``--decimate`` (mass-preserving mom
 nearest pairs, :func:`decimated`) to each of a few shares of it (:data:`DEFAULT_SHARES`, chosen on
 validation views: docs/studies.md "Merged tiers"; the first lowered by :func:`first_share` where
 its merge would save little time), each adapted like any input (its own
-``sigma_d`` and level gains) and drawn instead of the tier above from that tier's
-``LodSettings.tier_s_v`` on, after a cross-fade in ``s_v`` (:func:`clod_adapter.lod.rule.tier_weight`,
-:func:`clod_adapter.lod.draw.chain_parts`). They are stored in the same .ply as more elements
-(``lod_parent``, ``lod_parent_2``, ...) that viewers reading only ``vertex`` leave out.
+``sigma_d`` and level gains) and handing over from the tier above at that tier's
+``LodSettings.tier_s_v`` (:func:`link`); ``clod-adapt`` then links the tiers into a merge tree
+(:func:`clod_adapter.lod.tree.build`) that draws one cut of them per frame. They are stored in the
+same .ply as more elements (``lod_parent``, ``lod_parent_2``, ...) that viewers reading only
+``vertex`` leave out.
 
 :func:`choose` picks where a tier takes over from the one above, on the views it is given
 (training views, never validation or test views), by the fitted frame-time model
@@ -172,8 +173,10 @@ def finetuned(merged: Gaussians, cameras: Sequence, images: Sequence, steps: int
 def attach(gaussians: Gaussians, parents: Gaussians, tier_s_v: float, tier_start: float = 1.0,
            tier_fade: float = 1.25) -> Gaussians:
     """``gaussians`` (adapted) with the adapted ``parents`` as its parent tier, taking over from
-    ``tier_s_v`` (the parents then drawn at their own ``s_v = tier_start``). ``parents`` keep
-    their own parent tiers (a chain: :func:`clod_adapter.lod.draw.tier_chain`).
+    ``tier_s_v`` (the parents then at their own ``s_v = tier_start``). ``parents`` keep their own
+    parent tiers (:func:`clod_adapter.lod.draw.tier_chain`). The tiers are data until
+    :func:`clod_adapter.lod.tree.build` links them into a merge tree: until then the model draws
+    as its own Gaussians.
 
     Raises:
         ValueError: a model without ``sigma_d`` or settings, SH degrees that differ, or
@@ -235,8 +238,8 @@ CHOOSE_MARGIN_DB = 1.5
 #: the latest ``s_v`` at which a merged tier hands over to the next (``AdaptConfig.tier_hand_over``):
 #: past it a merged tier's survivors thin out and each leaves a visible step; the input's own
 #: hand-over to the first tier stays the time rule's. Chosen on the validation views
-#: (docs/studies.md "Hand-overs out of the merged tiers", measured on the chain: popping up on
-#: every shared scene, no quality cell down by more than 0.01 dB)
+#: (docs/studies.md "Hand-overs out of the merged tiers", measured on the cross-fade chain that drew
+#: the tiers then: popping up on every shared scene, no quality cell down by more than 0.01 dB)
 TIER_HAND_OVER = 1.6
 
 
@@ -301,7 +304,7 @@ def link(model: Gaussians, candidates: Sequence[Gaussians], cameras: Sequence, i
     by the ``"time"`` rule (:func:`choose`) each candidate in order (the next tier down first, a
     tier that does not pay skipped), then by the ``"psnr"`` rule the last (coarsest) one alone,
     for the cheap end of a scene whose merges lose at equal time. ``candidates``: the tiers below,
-    finest first, each with its own chain attached. ``max_tier_s_v`` > 0: the hand-over is at
+    finest first, each with its own tiers attached. ``max_tier_s_v`` > 0: the hand-over is at
     most there (``clod-adapt`` passes :data:`TIER_HAND_OVER` when ``model`` is itself a merged
     tier); 0: where the rule put it. Returns ``(model or the tiered model, one record per try:
     rule, count, curves, tier_s_v (applied), rule_s_v (the rule's), tier_start)``.

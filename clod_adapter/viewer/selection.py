@@ -45,9 +45,9 @@ class ViewPayload:
     """The Gaussians sent to one client camera (k of them) and how they were chosen.
 
     Attributes:
-        indices: [k] int64 indices into the model, ascending (where a parent tier is drawn,
-            :func:`clod_adapter.lod.draw.lod_subset`, only the model's own rows: the arrays
-            below hold them followed by the parents drawn).
+        indices: [k] int64 indices into the model, ascending (a merge tree's cut,
+            :func:`clod_adapter.lod.draw.lod_subset`: only tier 0's rows; the arrays below hold
+            them followed by the merged nodes drawn).
         means: [k, 3] float32 centres; covariances: [k, 3, 3] float32 world-space covariances;
         rgbs: [k, 3] float32 colours at the camera (>= 0, not clipped above);
         opacities: [k, 1] float32 drawn opacities (after the LoD rule for ``method="clod"``).

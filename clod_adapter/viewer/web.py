@@ -66,8 +66,6 @@ TREE_STREAMS = ("x", "y", "z", "sigma_d", "exit", "parent", "opacity_logit", "sc
 #: the page's files (``web_page/`` in this package) and what ``clod-export --web`` adds beside them.
 PAGE_FILES = ("index.html", "clod.mjs", "clod_tree.mjs")
 MODEL_NAME, DATA_NAME, CONFIG_NAME = "model.ply", "clod.bin", "clod.json"
-#: a parent tier's files (the same layout as the model's)
-PARENTS_MODEL_NAME, PARENTS_DATA_NAME = "parents.ply", "parents.bin"
 
 
 def web_streams(model, static_scores) -> dict:
@@ -121,33 +119,22 @@ def tree_streams(model) -> tuple[dict, list[int]]:
     return {k: np.ascontiguousarray(np.concatenate(v)) for k, v in cols.items()}, counts
 
 
-def _tier_names(k: int) -> tuple[str, str]:
-    """The .ply and .bin of tier ``k >= 1``: ``parents.ply``/``parents.bin``, then ``parents_k``."""
-    return (PARENTS_MODEL_NAME, PARENTS_DATA_NAME) if k == 1 else \
-        tuple(n.replace("parents", f"parents_{k}") for n in (PARENTS_MODEL_NAME, PARENTS_DATA_NAME))
-
-
 def write_web_viewer(model, out_dir: Path, cameras, static_scores, *, engine: Optional[Path] = None) -> list[str]:
     """A self-contained static page that draws ``model``'s continuous LoD on the GPU with the
     PlayCanvas engine: the page (:data:`PAGE_FILES`), the engine (copied from npm's
     ``node_modules``), the model's base attributes as a standard ``model.ply``, the per-splat
     LoD data ``clod.bin`` (:func:`web_streams`) and ``clod.json`` (counts, the LoD settings,
-    ``cameras`` as PlayCanvas poses). A model with a parent tier (``model.parents``,
-    ``lod.tier_s_v > 0``) also gets ``parents.ply`` and ``parents.bin`` (the same for its M
-    parents; their static rank by opacity, unused: the page's static cut draws the model's own
-    Gaussians) and a ``"tier"`` entry in ``clod.json`` (``model``, ``data``, ``count`` = M,
-    the parents' own ``settings``, and their own ``"tier"`` for a chain of tiers: ``parents_2.ply``,
-    ...); the page cross-fades from each tier to the next as
-    :func:`clod_adapter.lod.draw.render_lod` does. A merge tree (:func:`clod_adapter.lod.tree.is_tree`)
-    is written as one set instead: ``model.ply`` holds every tier's nodes (tier 0's first),
+    ``cameras`` as PlayCanvas poses). A merge tree (:func:`clod_adapter.lod.tree.is_tree`)
+    is written as one set: ``model.ply`` holds every tier's nodes (tier 0's first),
     ``clod.bin`` their :func:`tree_streams` and ``clod.json`` a ``"tree"`` entry (the tiers'
     ``counts`` and the slider's top ``sv_max``, 1.2 times the last tier's ``max_sv`` at the model's
     ``s_v``); the page draws the cut of ``docs/lod_rule.md`` at its ``s_v`` or within a count
-    budget, as :func:`clod_adapter.lod.draw.render_lod` does. Each file is written atomically.
+    budget, as :func:`clod_adapter.lod.draw.render_lod` does. Merged tiers not linked into a tree
+    are not drawn, so not written. Each file is written atomically.
 
     Args:
         model: an adapted :class:`clod_adapter.gaussians.Gaussians` (``sigma_d`` required),
-            with or without a parent tier.
+            with or without a merge tree.
         out_dir: the folder (created when missing).
         cameras: the poses the page offers (e.g. the scene's test and training cameras).
         static_scores: [N] the ranking of the page's static cut (higher = kept first); not read
@@ -159,7 +146,7 @@ def write_web_viewer(model, out_dir: Path, cameras, static_scores, *, engine: Op
 
     Raises:
         FileNotFoundError: no engine (``npm ci`` installs it).
-        ValueError: the model (or its parent tier) has no ``sigma_d``.
+        ValueError: the model (or a tier of its tree) has no ``sigma_d``.
     """
     import json
     import shutil
@@ -183,21 +170,6 @@ def write_web_viewer(model, out_dir: Path, cameras, static_scores, *, engine: Op
     is_tree = tree_mod.is_tree(m)
     if is_tree and any(t.sigma_d is None for t in tree_mod.tiers_of(m)):
         raise ValueError("write_web_viewer: a tier of the tree has no sigma_d")
-    tier = m.parents if not is_tree and m.parents is not None and m.lod is not None and m.lod.tier_s_v > 0 else None
-    t = tier
-    while t is not None:
-        if t.sigma_d is None:
-            raise ValueError("write_web_viewer: a parent tier has no sigma_d")
-        t = t.parents if t.lod is not None and t.lod.tier_s_v > 0 else None
-
-    def write_model(g, scores, ply_name, data_name):
-        write_ply(out_dir / ply_name, g.with_sigma_d(None))
-        streams = web_streams(g, scores)
-        with atomic_write(out_dir / data_name, "wb") as f:
-            for k in WEB_STREAMS:
-                f.write(streams[k].tobytes())
-        return {**(g.lod or LodSettings()).to_dict(), "fade_ramp_s_v": FADE_RAMP_S_V}
-
     cams = [{"name": getattr(c, "name", f"view{i}"), "width": int(c.width), "height": int(c.height),
              **playcanvas_pose(c), "viewmat": [float(v) for v in c.viewmat.reshape(-1)]} for i, c in enumerate(cameras)]
     if is_tree:  # every tier's nodes as one set: the rows of model.ply and clod.bin
@@ -210,19 +182,16 @@ def write_web_viewer(model, out_dir: Path, cameras, static_scores, *, engine: Op
         sv_max = 1.2 * max(m.lod.max_sv, tree_mod.tier_scales(ts)[-1] * ts[-1].lod.max_sv)
         cfg = {"model": MODEL_NAME, "data": DATA_NAME, "count": sum(counts), "streams": list(TREE_STREAMS),
                "settings": m.lod.to_dict(), "tree": {"counts": counts, "sv_max": sv_max}}
-    else:
+    else:  # one model: model.ply, its per-splat streams in clod.bin
+        write_ply(out_dir / MODEL_NAME, m.with_sigma_d(None))
+        streams = web_streams(m, static_scores)
+        with atomic_write(out_dir / DATA_NAME, "wb") as f:
+            for k in WEB_STREAMS:
+                f.write(streams[k].tobytes())
         cfg = {"model": MODEL_NAME, "data": DATA_NAME, "count": len(m), "streams": list(WEB_STREAMS),
-               "settings": write_model(m, static_scores, MODEL_NAME, DATA_NAME)}
+               "settings": {**(m.lod or LodSettings()).to_dict(), "fade_ramp_s_v": FADE_RAMP_S_V}}
     cfg.update({"engine": {"name": "playcanvas", "version": PLAYCANVAS_VERSION}, "cameras": cams})
     names = [MODEL_NAME, DATA_NAME]
-    spec, k = cfg, 1
-    while tier is not None:  # the chain: cfg["tier"], its own "tier", ...
-        pm, pd = _tier_names(k)
-        spec["tier"] = {"model": pm, "data": pd, "count": len(tier),
-                        "settings": write_model(tier, tier.opacity_logits, pm, pd)}
-        names += [pm, pd]
-        spec, k = spec["tier"], k + 1
-        tier = tier.parents if tier.parents is not None and tier.lod is not None and tier.lod.tier_s_v > 0 else None
     with atomic_write(out_dir / CONFIG_NAME, "w") as f:
         json.dump(cfg, f, indent=1)
     page = resources.files("clod_adapter.viewer") / "web_page"

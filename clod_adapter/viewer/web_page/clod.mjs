@@ -3,13 +3,10 @@
 // window fade, the fade ramp near s_v = 1 and the learned level gains) runs per splat and per frame
 // in a work-buffer modifier (PlayCanvas's per-splat shader hook); s_v, the camera, the distance
 // normaliser and the level are uniforms. Per-splat data (sigma_d, opacity logit, the gains, a
-// static importance rank) are two RGBA32F extra streams filled from clod.bin. A model with parent
-// tiers (clod.json's "tier", its own "tier", ...: merged Gaussians, each an adapted model of its own)
-// cross-fades from each tier to the next as render_lod does: each tier is an entity running the same
-// modifier with its own settings at its own s_v, its drawn weights scaled by its share of the image.
+// static importance rank) are two RGBA32F extra streams filled from clod.bin.
 //
-// A merge tree (clod.json's "tree": `clod-adapt --tier-draw tree`, docs/lod_rule.md) is drawn as one
-// set instead: every tier's nodes are rows of one splat entity (one depth sort), and on each change
+// A model with merged tiers is a merge tree (clod.json's "tree", docs/lod_rule.md), drawn as one
+// set: every tier's nodes are rows of one splat entity (one depth sort), and on each change
 // of the level, the budget or the camera the rule of clod_tree.mjs (examples/reference_lod.py,
 // ported) picks on the CPU the nodes drawn, their weight w and how each is drawn; a per-splat
 // RGBA32F stream carries (w, how, the parent's row) to TREE_GLSL, which draws a lead in a hand-over
@@ -20,8 +17,7 @@
 // Approximations against render_lod (docs/guide.md "In the browser"): the normaliser max d over the
 // frustum and the drawn share (hence the level of the gains) are computed here on the CPU from the
 // splat centres inside the frustum (every centre up to 200,000 splats, an even stride beyond),
-// where render_lod counts the Gaussians whose projected footprint reaches the image; the parents'
-// from their own centres likewise (so their drawn count runs a few % under render_lod's n_parents).
+// where render_lod counts the Gaussians whose projected footprint reaches the image.
 // A tree's cut is the rule's exactly (every node, float64, for the view's exact pose); the page hands
 // the engine's sort a lead's drawn centre during a hand-over (resource.centers).
 import * as pc from './playcanvas.min.mjs';
@@ -48,25 +44,6 @@ function rule(st) {
     };
 }
 const logSigmoid = (x) => -Math.max(-x, 0) - Math.log1p(Math.exp(-Math.abs(x)));
-// a tier's hand-over to the next at its own s (lod.tier_weight): the next tier's share u, 0 up to
-// tier_s_v, growing with ln s to 1 at tier_fade tier_s_v, and the next tier's own s_v: tier_start
-// through the cross-fade, then growing with s
-const tierWeight = (t, s) => (!(t.tier_s_v > 0) || s <= t.tier_s_v ? [0, 1]
-    : [Math.min(1, Math.log(s / t.tier_s_v) / Math.log(t.tier_fade)),
-        t.tier_start * Math.max(s / (t.tier_fade * t.tier_s_v), 1)]);
-// [weight, s] of each tier of the chain at the model's s (camera_lod.chain_weights): tier k keeps
-// 1 - u of its weight and passes u to tier k + 1 at its own s
-function chainWeights(s, sts) {
-    const out = [];
-    let w = 1;
-    for (let k = 0; k < sts.length; k++) {
-        const [u, sn] = k + 1 < sts.length ? tierWeight(sts[k], s) : [0, s];
-        out.push([w * (1 - u), s]);
-        w *= u;
-        s = sn;
-    }
-    return out;
-}
 
 const GLSL = /* glsl */ `
 uniform vec3 uClodCam;
@@ -80,12 +57,10 @@ uniform float uClodLevel;
 uniform float uClodStatic;
 uniform float uClodStaticRank;
 uniform float uClodEq2;
-uniform float uClodTierMul;
 
 // the drawn weight of a splat: lod.lod_margin and lod.fade_weight, blended over the ramp
 // ((1 - t) + t fade, t = 1 - full_detail_share); "eq2" models: Eq. 2's attenuation where the mask
-// keeps them; the static cut keeps ranks below a threshold. The shader multiplies it by
-// uClodTierMul: 1 - u for the model, u for its parent tier during the cross-fade
+// keeps them; the static cut keeps ranks below a threshold
 float clodWeight(vec3 center, vec4 a, vec4 b) {
     if (uClodStatic > 0.5) return b.w < uClodStaticRank ? 1.0 : 0.0;
     if (uClodT <= 0.0) return 1.0;
@@ -106,7 +81,7 @@ void modifySplatRotationScale(vec3 originalCenter, vec3 modifiedCenter, inout ve
     vec4 a = texelFetch(clodA, splat.uv, 0);
     vec4 b = texelFetch(clodB, splat.uv, 0);
     float lv = uClodStatic > 0.5 ? 0.0 : uClodLevel;
-    float w = clodWeight(originalCenter, a, b) * uClodTierMul;
+    float w = clodWeight(originalCenter, a, b);
     scale *= w > 0.0 ? exp(lv * a.w) : 0.0;                                 // a splat left out has no footprint
 }
 
@@ -115,7 +90,7 @@ void modifySplatColor(vec3 center, inout vec4 color) {
     vec4 b = texelFetch(clodB, splat.uv, 0);
     float lv = uClodStatic > 0.5 ? 0.0 : uClodLevel;
     color.rgb += lv * ${SH_C0} * b.xyz;                                     // sh0 gain
-    color.a = clodWeight(center, a, b) * uClodTierMul / (1.0 + exp(-(a.y + lv * a.z)));  // opacity gain, fade, tier
+    color.a = clodWeight(center, a, b) / (1.0 + exp(-(a.y + lv * a.z)));  // opacity gain, fade
 }
 `;
 
@@ -285,10 +260,9 @@ if (fixed) {
     window.addEventListener('resize', () => app.resizeCanvas());
 }
 
-// --- the models: the adapted model and its parent tier (cfg.tier), or a merge tree (cfg.tree) --------
+// --- the model: the adapted model, or a merge tree (cfg.tree) ---------------------------------------
 // reorder: false keeps the file's order (the engine sorts a .ply along a Morton curve by default),
-// so splat i of the resource is row i of its .bin. All are unified gsplat entities, so the engine
-// sorts their splats together by depth, as render_lod composites a model and its parents.
+// so splat i of the resource is row i of its .bin; a unified gsplat entity.
 async function loadAsset(name, url) {
     const asset = new pc.Asset(name, 'gsplat', { url }, { reorder: false });
     app.assets.add(asset);
@@ -346,10 +320,6 @@ async function loadTree() {
 }
 const tree = cfg.tree ? await loadTree() : null;
 const model = tree ? null : await loadModel('model', cfg, st);
-// the chain of tiers (camera_lod.tier_chain): the model, then cfg.tier, its own .tier, ...
-const tiers = tree ? [] : [model];
-for (let spec = tree ? null : cfg.tier, k = 1; spec; spec = spec.tier, k++) tiers.push(await loadModel(`tier${k}`, spec, spec.settings));
-const parents = tiers.length > 1 ? tiers[1] : null;
 const N = tree ? cfg.tree.counts[0] : model.N;
 
 const camera = new pc.Entity('camera');
@@ -396,17 +366,13 @@ app.on('postrender', () => {
 });
 
 // --- state: s_v, the static toggle, the camera ----------------------------------------------------
-// drawn, inFrustum, level, dmax, ramp: the model's own Gaussians (drawn = 0 where the tiers alone
-// are drawn; the others then keep their last frame's values); tierU: the parent tiers' share of the
-// image (1 - the model's weight), parentSv: the first parent tier's own s_v, drawnParents: every
-// parent tier's drawn count (0 without a tier or below its switch), parents: the first parent tier's
-// other values as the model's; tiers: [{weight, sv, drawn}] per tier of the chain. A merge tree:
+// drawn, inFrustum, level, dmax, ramp: the model's Gaussians. A merge tree:
 // sv the level drawn (the budget's), budget the count budget or null, drawn the drawn nodes with
 // their centre in the frustum (what a budget counts), inFrustum tier 0's centres there, and tree:
 // {drawn, inView} per tier (every drawn node; those in the frustum) and handOver (the leads and
 // siblings drawn with 0 < w < 1)
 const state = { sv: 1, static: false, cam: 0, drawn: 0, inFrustum: 0, level: 0, dmax: 0, ramp: 1.1, frameMs: NaN, updates: 0,
-                tierU: 0, parentSv: 1, drawnParents: 0, parents: null, budget: null, tree: null };
+                budget: null, tree: null };
 const inv = new pc.Mat4();
 const p = new pc.Vec3();
 
@@ -438,16 +404,10 @@ function setCamera(i) {
     update();
 }
 
-// one model at s: the frustum (lod.in_frustum), the normaliser, the drawn count, the level and the
-// uniforms of its modifier; mul: its share of the image (the tier's cross-fade). An entity with mul 0
-// is disabled (the engine leaves it out of its work buffer and sort) and nothing is computed for it.
-function updateModel(m, s, mul, isStatic) {
+// the model at s: the frustum (lod.in_frustum), the normaliser, the drawn count, the level and the
+// uniforms of its modifier
+function updateModel(m, s, isStatic) {
     const { N, col, st, r, stride, ranks } = m;
-    m.entity.enabled = mul > 0;
-    if (!(mul > 0)) {
-        m.drawn = 0;
-        return;
-    }
     const W = canvas.width, H = canvas.height;
     const [fx, fy, cx, cy] = intrinsics();
     const cp = camera.getPosition();
@@ -510,23 +470,13 @@ function updateModel(m, s, mul, isStatic) {
     g.setParameter('uClodLevel', m.level);
     g.setParameter('uClodStatic', isStatic ? 1 : 0);
     g.setParameter('uClodStaticRank', Math.min(staticRank, 3.0e38));
-    g.setParameter('uClodTierMul', mul);
 }
 
-// the frame's levels: each tier at its own s_v with its share of the image (camera_lod.chain_parts;
-// render_lod's cross-fades); the static cut: the model's own Gaussians alone
-function updateChain() {
-    const s = state.sv;
-    const ws = chainWeights(s, tiers.map((t) => t.st));
-    tiers.forEach((t, k) => updateModel(t, ws[k][1], state.static ? (k ? 0 : 1) : ws[k][0], state.static && !k));
-    const drawnParents = tiers.slice(1).reduce((a, t) => a + t.drawn, 0);
+// the frame's level (or the static cut of the same count)
+function updatePlain() {
+    updateModel(model, state.sv, state.static);
     Object.assign(state, { drawn: model.drawn, inFrustum: model.inFrustum, level: model.level, dmax: model.dmax,
-                           ramp: model.ramp, tierU: 1 - ws[0][0], parentSv: parents ? ws[1][1] : 1, drawnParents,
-                           tiers: ws.map(([w, sk], k) => ({ weight: w, sv: sk, drawn: tiers[k].drawn })) });
-    if (parents) {
-        const { drawn, inFrustum, level, dmax, ramp } = parents;
-        state.parents = { drawn, inFrustum, level, dmax, ramp };
-    }
+                           ramp: model.ramp });
 }
 
 // the merge tree's cut for the view (its exact pose, the projection's K) at s_v or within the
@@ -570,7 +520,7 @@ function updateTree() {
 function update() {
     inv.copy(camera.getWorldTransform()).invert();
     if (tree) updateTree();
-    else updateChain();
+    else updatePlain();
     const s = state.sv;
     state.updates++;
     document.getElementById('svv').textContent = s.toFixed(2) + (state.budget !== null ? ' (the budget\'s)' : '');
@@ -578,23 +528,15 @@ function update() {
     document.getElementById('drawn').textContent = state.drawn.toLocaleString();
     document.getElementById('infrustum').textContent = state.inFrustum.toLocaleString();
     document.getElementById('total').textContent = N.toLocaleString();
-    if (parents) {
-        document.getElementById('tierw').textContent = state.tierU.toFixed(2);
-        document.getElementById('psv').textContent = state.parentSv.toFixed(2);
-        document.getElementById('pdrawn').textContent = state.drawnParents.toLocaleString();
-        document.getElementById('ptotal').textContent = tiers.slice(1).reduce((a, t) => a + t.N, 0).toLocaleString();
-    }
 }
 
 // --- the page: slider, toggle, cameras, frame time -------------------------------------------------
 const slider = document.getElementById('sv');
-// log scale from 1 to 1.2 max_sv, or with tiers on until the last reaches 1.2 times its own max_sv
-// (camera_lod.tier_reach); a merge tree's to clod.json's tree.sv_max, as far
-const reach = tiers.slice(0, -1).reduce((a, t) => a * t.st.tier_fade * t.st.tier_s_v / t.st.tier_start, 1);
-const svMax = tree ? cfg.tree.sv_max : Math.max(st.max_sv * 1.2, parents ? 1.2 * tiers[tiers.length - 1].st.max_sv * reach : 0);
+// log scale from 1 to 1.2 max_sv; a merge tree's to clod.json's tree.sv_max (1.2 times the last
+// tier's max_sv at the model's s_v)
+const svMax = tree ? cfg.tree.sv_max : st.max_sv * 1.2;
 const svOfSlider = (v) => Math.exp(Math.log(svMax) * v / 1000);
 const sliderOf = (s) => Math.round(1000 * Math.log(s) / Math.log(svMax));
-if (parents) document.getElementById('tier').hidden = false;
 // a merge tree: the budget field instead of the static cut (a count of drawn nodes in view; empty: off)
 const budgetField = document.getElementById('budget');
 const budgetOf = (k) => (tree && k !== null && k !== '' && Number.isFinite(+k) ? Math.max(0, Math.floor(+k)) : null);

@@ -1,4 +1,4 @@
-// The merge tree's drawing rule (docs/lod_rule.md) for the page of a `clod-adapt --tier-draw tree`
+// The merge tree's drawing rule (docs/lod_rule.md) for the page of a `clod-adapt`
 // model: examples/reference_lod.py ported step by step (frustum, terms, budgetSv, leads, draw keep
 // its names, steps and order, so a change to the rule is mirrored here line by line). Float64
 // arithmetic over typed arrays; the nodes of all tiers are one array, tier 0's rows first (tier k

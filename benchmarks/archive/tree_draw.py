@@ -1,5 +1,8 @@
 """The merge tree against the chain of cross-faded tiers: cost along the level and quality at equal time.
 
+Archived 2026-11-26: it needs the ``tier_draw = chain`` adaptation and the chain's drawing, both
+removed; it runs at commit 207ff0d. Its study: docs/archive/studies_chain.md "The merge tree".
+
 For each input (default: fern, skull and MaskGaussian fern) the ``tier_draw = chain`` adaptation
 (cached, benchmarks/common.py: the tiers cross-faded whole at each hand-over) is drawn as it is
 (``chain``) and with the same tiers linked into a merge tree and fitted on its cuts on the fit views,
@@ -21,8 +24,8 @@ budgets from 100 % to 1 % of the Gaussians in view, and timed in ``--rounds`` in
 
 No goal is enforced (a study: exit 0)::
 
-    python -m benchmarks.studies.tree_draw --split val
-    python -m benchmarks.studies.tree_draw --split val --inputs fern --rounds 3
+    python -m benchmarks.archive.tree_draw --split val
+    python -m benchmarks.archive.tree_draw --split val --inputs fern --rounds 3
 
 Written: ``runs/bench/tree_draw/summary.md``. The adaptation takes 12-15 minutes per scene when not
 cached; the fit about 3 minutes and the sweep about 5 per scene on 2 cores.

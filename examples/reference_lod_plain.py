@@ -1,11 +1,9 @@
-"""The drawing rule of a ``clod-adapt`` model, from ``docs/lod_rule_chain.md`` alone: numpy and plyfile,
-no ``clod_adapter`` import. For renderers that want the rule without the library (copy this file),
-and as the library's check that the page says all it does (``tests/test_reference_lod.py``).
+"""The drawing rule of a ``clod-adapt`` model without merged tiers, from ``docs/lod_rule_plain.md``
+alone: numpy and plyfile, no ``clod_adapter`` import. For renderers that want the rule without the
+library (copy this file), and as the library's check that the page says all it does
+(``tests/test_reference_lod.py``). A model with merged tiers is a merge tree: ``reference_lod.py``.
 
-    python examples/reference_lod_chain.py MODEL.ply [--s-v 2]        # prints what one camera draws
-
-:func:`draw` is one model's rule; :func:`draw_tiered` adds a file's parent tiers (``lod_parent``,
-``lod_parent_2``, ...).
+    python examples/reference_lod_plain.py MODEL.ply [--s-v 2]        # prints what one camera draws
 
 Everything is float64. Cameras: ``viewmat`` [4, 4] world-to-camera (OpenCV axes, z forward),
 ``K`` [3, 3] pixels, ``width``/``height`` pixels (gsplat 1.5.3 conventions).
@@ -20,38 +18,26 @@ from plyfile import PlyData
 
 NEAR, FAR, EPS2D, EXTEND = 0.01, 1e10, 0.3, 3.33
 RAMP_MIN = 1.1  # the window opens and the ramp ends no earlier than here
-DEFAULTS = {"max_sv": 5.0, "tau": 0.005, "eps": 1e-8, "fade": "eq2", "fade_width": 0.5, "level_max": 1.0,
-            "tier_s_v": 0.0, "tier_start": 1.0, "tier_fade": 1.25}
-TIER_KEYS = ("tier_s_v", "tier_start", "tier_fade")
+DEFAULTS = {"max_sv": 5.0, "tau": 0.005, "eps": 1e-8, "fade": "eq2", "fade_width": 0.5, "level_max": 1.0}
+#: the ``clod_lod`` keys that are not numbers
+WORDS = ("fade", "count_mix", "tree")
 
 
 def read_model(path) -> dict:
-    """The arrays and settings of an extended .ply (docs/lod_rule_chain.md, "The file"): ``means``
+    """The arrays and settings of an extended .ply (docs/lod_rule_plain.md, "The file"): ``means``
     [N, 3], ``quats`` [N, 4] wxyz, ``log_scales`` [N, 3], ``opacity_logits`` [N], ``sh0`` [N, 3],
-    ``sigma_d`` [N], gains ``g_o`` [N], ``g_s`` [N], ``g_c`` [N, 3] (0 when absent), ``settings``;
-    and ``parents``, the same for the ``lod_parent`` element (docs/lod_rule_chain.md "The tiers"; its
-    settings the model's with its own hand-over from the ``clod_lod_tier 1`` comment, or none),
-    itself with ``parents`` for ``lod_parent_2`` and so on, when the file has them."""
+    ``sigma_d`` [N], gains ``g_o`` [N], ``g_s`` [N], ``g_c`` [N, 3] (0 when absent), ``settings``.
+    A file with merged tiers (a ``lod_parent`` element) is a merge tree: ``reference_lod.py``."""
     ply = PlyData.read(str(path))
+    assert "lod_parent" not in [e.name for e in ply.elements], "a file with merged tiers: see reference_lod.py"
     settings = dict(DEFAULTS)
     for c in ply.comments:
         parts = c.split()
         if parts and parts[0] == "clod_lod":
             for kv in parts[1:]:
                 k, _, val = kv.partition("=")
-                settings[k] = val if k in ("fade", "count_mix") else float(val)  # count_mix: no longer drawn
-    m = _element(ply["vertex"].data, settings)
-    own = {}  # "clod_lod_tier k tier_s_v=.. tier_start=.. tier_fade=..": tier k's hand-over to tier k + 1
-    for c in ply.comments:
-        parts = c.split()
-        if len(parts) > 1 and parts[0] == "clod_lod_tier":
-            own[int(parts[1])] = {k: float(v) for k, _, v in (kv.partition("=") for kv in parts[2:])}
-    names, above, k = [e.name for e in ply.elements], m, 1
-    while above["settings"]["tier_s_v"] > 0 and ("lod_parent" if k == 1 else f"lod_parent_{k}") in names:
-        el = "lod_parent" if k == 1 else f"lod_parent_{k}"
-        above["parents"] = _element(ply[el].data, {**settings, **{t: DEFAULTS[t] for t in TIER_KEYS}, **own.get(k, {})})
-        above, k = above["parents"], k + 1
-    return m
+                settings[k] = val if k in WORDS else float(val)  # count_mix: written by earlier versions, not drawn
+    return _element(ply["vertex"].data, settings)
 
 
 def _element(v, settings) -> dict:
@@ -145,7 +131,7 @@ def level_of_share(p, st):
 
 
 def draw(m, viewmat, K, width, height, s_v: float) -> dict:
-    """What one camera draws at ``s_v >= 1`` (docs/lod_rule_chain.md): ``ids`` [k] ascending,
+    """What one camera draws at ``s_v >= 1`` (docs/lod_rule_plain.md): ``ids`` [k] ascending,
     ``opacities`` [k] (activated), ``log_scales`` [k, 3], ``sh0`` [k, 3] at the level, ``level``."""
     st = m["settings"]
     viewmat, K = np.asarray(viewmat, np.float64), np.asarray(K, np.float64)
@@ -181,42 +167,6 @@ def draw(m, viewmat, K, width, height, s_v: float) -> dict:
             "sh0": m["sh0"][ids] + level * m["g_c"][ids]}
 
 
-def draw_tiered(m, viewmat, K, width, height, s_v: float) -> dict:
-    """The model and its chain of parent tiers at ``s_v`` (docs/lod_rule_chain.md "The tiers"):
-    ``{"model": draw(m, ..., s_v) or None, "parents": the first parent tier's draw or None, "u": the
-    parent tiers' share of the image, "tiers": [draw or None per parent tier]}``. Tier 0 is the model
-    at ``s_v`` with weight 1; a tier with weight ``w`` at its own ``s`` past its ``tier_s_v`` keeps
-    ``w (1 - u)`` and passes ``w u`` to the next tier at ``tier_start max(1, s / (tier_fade tier_s_v))``
-    (held at ``tier_start`` through the cross-fade), ``u`` growing with ``ln s`` from 0 at
-    ``tier_s_v`` to 1 at ``tier_fade tier_s_v``; each drawn tier's
-    opacities are times its weight (None: weight 0, not drawn). A model without a tier: its own
-    ``draw`` and no parents."""
-    chain = [m]
-    while "parents" in chain[-1] and chain[-1]["settings"]["tier_s_v"] > 0:
-        chain.append(chain[-1]["parents"])
-    draws, w, s = [], 1.0, float(s_v)
-    for k, t in enumerate(chain):
-        st, u, s_next = t["settings"], 0.0, s
-        if k + 1 < len(chain) and s > st["tier_s_v"]:
-            u = min(1.0, math.log(s / st["tier_s_v"]) / math.log(st["tier_fade"]))
-            s_next = st["tier_start"] * max(s / (st["tier_fade"] * st["tier_s_v"]), 1.0)
-        out = None
-        if w * (1.0 - u) > 0.0:
-            out = draw(t, viewmat, K, width, height, s)
-            out["opacities"] = out["opacities"] * (w * (1.0 - u))
-        draws.append(out)
-        w, s = w * u, s_next
-    return {"model": draws[0], "parents": draws[1] if len(draws) > 1 else None,
-            "u": _parent_share(chain, s_v) if len(chain) > 1 else 0.0,
-            "tiers": draws[1:]}
-
-
-def _parent_share(chain, s_v: float) -> float:
-    """The parent tiers' share of the image at ``s_v``: the first hand-over's ``u``."""
-    st = chain[0]["settings"]
-    return 0.0 if s_v <= st["tier_s_v"] else min(1.0, math.log(s_v / st["tier_s_v"]) / math.log(st["tier_fade"]))
-
-
 def main(argv=None) -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("ply")
@@ -229,12 +179,10 @@ def main(argv=None) -> None:
     viewmat = np.eye(4)
     viewmat[:3, 3] = -(centre - np.array([0.0, 0.0, 2.5 * radius]))
     K = np.array([[500.0, 0, 320], [0, 500.0, 240], [0, 0, 1]])
-    both = draw_tiered(m, viewmat, K, 640, 480, a.s_v)
+    out = draw(m, viewmat, K, 640, 480, a.s_v)
     print(f"{a.ply}: {len(m['means'])} Gaussians, {m['settings']}")
-    for name, out in [("model", both["model"])] + [(f"tier {k}", d) for k, d in enumerate(both["tiers"], 1)]:
-        if out is not None:
-            print(f"  s_v = {a.s_v:g}, {name}: draws {out['ids'].size} at level {out['level']:.3f}, "
-                  f"mean opacity {out['opacities'].mean() if out['ids'].size else 0:.3f}")
+    print(f"  s_v = {a.s_v:g}: draws {out['ids'].size} at level {out['level']:.3f}, "
+          f"mean opacity {out['opacities'].mean() if out['ids'].size else 0:.3f}")
 
 
 if __name__ == "__main__":

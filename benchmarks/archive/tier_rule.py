@@ -1,6 +1,10 @@
 """Where should each merged tier take over? The hand-over rules of the chain of merged tiers, on one
 adaptation, at equal frame time and at equal count.
 
+Archived 2026-11-26: it links the tiers again by each rule and draws them as the cross-fade chain
+(``--tier-draw chain``), which is no longer drawn (tiers not linked into a merge tree draw as the model
+alone); it runs at commit 207ff0d. Its study: docs/archive/studies_chain.md.
+
 For each input (default: skull and fern; validation views by default, a design question; ``--split
 test`` reports what the tiers buy on the test views) it takes the default adaptation (``clod-adapt``'s
 defaults, tiers of ``--parent-share 0.5,0.15,0.04``, cached under ``runs/bench/<input>/default<_val>``
@@ -23,8 +27,8 @@ variant: the chain (Gaussians per tier, each hand-over's ``tier_s_v`` / ``tier_s
 PSNR within 75 / 50 / 25 / 10 % of the input's frame time with its margin over the best peer, and
 the margins at equal count. No goal is enforced (a study: exit 0)::
 
-    python -m benchmarks.studies.tier_rule                     # skull, fern; validation views
-    python -m benchmarks.studies.tier_rule --inputs fern maskgaussian skull --split test
+    python -m benchmarks.archive.tier_rule                     # skull, fern; validation views
+    python -m benchmarks.archive.tier_rule --inputs fern maskgaussian skull --split test
 
 Written: ``runs/bench/tier_rule<_val>/summary.md``.
 """

@@ -5,7 +5,12 @@ parent tier) and by the page's numpy implementation (``examples/reference_lod.py
 ``draw_tiered``, which reads the .ply itself). Prints the Gaussians (and parents) drawn by one and
 not the other and the largest opacity difference; exits 1 when a single one differs::
 
-    python -m benchmarks.studies.reference_rule                 # fern, skull
+    python -m benchmarks.archive.reference_rule                 # fern, skull
+
+Archived 2026-11-26: it draws the file with ``examples/reference_lod_chain.py``'s ``draw_tiered``
+(the cross-fade chain), removed; the merge tree is held to ``examples/reference_lod.py`` by
+``tests/test_tree.py``, a model without tiers to ``examples/reference_lod_plain.py`` by
+``tests/test_reference_lod.py``. It runs at commit 207ff0d.
 """
 from __future__ import annotations
 

@@ -343,6 +343,39 @@ def test_export_of_a_tree(model, tmp_path, tiny_model):
     assert read_info(out / "lod" / "lod-meta.json")["lodCounts"] == [r["gaussians"] for r in rows]
 
 
+def test_export_prune_and_ordered_of_a_tree(model, tmp_path):
+    """clod-export --prune --ordered of a tree: the pruned file is still a tree (only tier-0 rows
+    out of every training view go, the merged tiers and their links stay) and draws every level and
+    budget of those views as before; ordered.ply is tier 0 alone, a model without tiers, read back."""
+    from clod_adapter.cli.export import main as export_main
+    from clod_adapter.io.colmap import write_colmap_scene
+    from clod_adapter.io.load import load_scene
+    from clod_adapter.io.synthetic import make_ground_truth
+    from conftest import uint8_views
+
+    g, _ = model
+    zoom = torch.tensor([[3.0, 1.0, 1.0], [1.0, 3.0, 1.0], [1.0, 1.0, 1.0]])  # 3x the focal length
+    cams = [replace(c, K=c.K * zoom) for c in make_cameras(1, 2)]  # part of tier 0 out of every view
+    scene_dir = tmp_path / "scene"
+    write_colmap_scene(scene_dir, cams, uint8_views(make_ground_truth(50, seed=1), cams))
+    src = write_ply(tmp_path / "tree.ply", g)
+    out = tmp_path / "out"
+    assert export_main([str(src), "--images", str(scene_dir), "-o", str(out), "--quiet", "--prune",
+                        "--ordered"]) == 0
+    back = read_ply(out / "point_cloud_clod.ply")
+    a, b = tree.tiers_of(g), tree.tiers_of(back)
+    assert tree.is_tree(back) and len(b) == len(a) and 0 < len(b[0]) < len(a[0])
+    assert [len(t) for t in b[1:]] == [len(t) for t in a[1:]]
+    for cam in load_scene(scene_dir).train:
+        for kw in ({"s_v": 1.0}, {"s_v": 2.2}, {"s_v": 6.0}, {"budget": Budget(in_view=0.3)}):
+            x, y = render_lod(g, cam, **kw), render_lod(back, cam, **kw)
+            assert x.n_rendered == y.n_rendered, kw
+            torch.testing.assert_close(y.image, x.image, atol=1e-5, rtol=0, msg=str(kw))
+    ordered = read_ply(out / "ordered.ply")
+    assert ordered.parents is None and not tree.is_tree(ordered) and len(ordered) == len(b[0])
+    assert "parent" not in ordered.extra
+
+
 def test_the_web_page_of_a_tree(model, tmp_path, tiny_model):
     """clod-export --web of a tree: the page of one set (every tier's nodes in model.ply, the rule
     in clod_tree.mjs; its drawing against render_lod: tests/test_web_tree.py)."""

@@ -32,7 +32,7 @@ from ..lod.budget import Budget
 from ..lod.draw import PAPER, render_lod
 from ..lod.view import view_lod
 from ..lod.cut import tree_select
-from ..lod.tree import is_tree, tiers_of
+from ..lod.tree import in_frustum, is_tree, leads, tiers_of
 
 __all__ = ["persistence", "importance_order", "bake", "lod_set_s_vs", "lod_level", "prune_never_rendered",
            "reduce_sh", "truncate_sh", "BakeInfo"]
@@ -269,6 +269,12 @@ def prune_never_rendered(gaussians: Gaussians, cameras: Sequence, *,
                          eps: Optional[float] = None) -> tuple[Gaussians, int]:
     """Drop the Gaussians that no camera in ``cameras`` renders at any ``s_v >= 1``.
 
+    A merge tree (:func:`clod_adapter.lod.tree.is_tree`) loses only tier-0 rows that are outside
+    every camera's frustum (their centre) and not visible from any (gsplat 1.5.3 culling), and are
+    not their parent's lead child (:func:`clod_adapter.lod.tree.leads`, the one that grows into
+    the parent): every cut, count and hand-over on ``cameras`` is then the same; the merged tiers
+    and the parent links are kept.
+
     The rendered set shrinks as ``s_v`` grows, so "rendered at some s_v >= 1" is "rendered at
     s_v = 1": in view and ``s* > 1``. One exception keeps LoD unchanged: ``d'`` is normalised by
     the farthest Gaussian inside each view's frustum, so for every camera of ``anchor_cameras``
@@ -279,6 +285,8 @@ def prune_never_rendered(gaussians: Gaussians, cameras: Sequence, *,
         (pruned model, number dropped).
     """
     _require_sigma(gaussians, "prune_never_rendered")
+    if is_tree(gaussians):
+        return _prune_tree_leaves(gaussians, cameras, tau=tau, eps=eps)
     keep = torch.zeros(len(gaussians), dtype=torch.bool, device=gaussians.means.device)
     for cam in cameras:
         v = view_lod(gaussians, cam, tau=tau, eps=eps)
@@ -292,6 +300,16 @@ def prune_never_rendered(gaussians: Gaussians, cameras: Sequence, *,
             keep[int(torch.argmax(d))] = True
     n_drop = int((~keep).sum())
     return gaussians.subset(keep).clone(), n_drop
+
+
+def _prune_tree_leaves(gaussians: Gaussians, cameras: Sequence, *, tau, eps) -> tuple[Gaussians, int]:
+    """:func:`prune_never_rendered` of a merge tree: its tier 0's rows out of every view, not
+    leads, dropped; the tiers above kept with their links."""
+    keep = leads(gaussians).clone()
+    for cam in cameras:
+        keep |= view_lod(gaussians, cam, tau=tau, eps=eps).visible | in_frustum(gaussians, cam)
+    n_drop = int((~keep).sum())
+    return replace(gaussians.subset(keep).clone(), parents=gaussians.parents), n_drop
 
 
 def truncate_sh(gaussians: Gaussians, degree: int) -> Gaussians:

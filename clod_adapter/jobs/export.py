@@ -111,6 +111,7 @@ def _reduce(model, scene, train_imgs, test_cams, test_imgs, o: ExportOptions, re
     """The input's test PSNR, then pruning and SH bands as asked; returns the model to export."""
     from ..export import bake as ex
     from ..lod.draw import tier_chain
+    from ..lod.tree import is_tree
     from ..evaluate.storage import ply_row_bytes
 
     rep["psnr_test_sv1_in"] = _mean_psnr(ex, model, test_cams, test_imgs)
@@ -121,7 +122,7 @@ def _reduce(model, scene, train_imgs, test_cams, test_imgs, o: ExportOptions, re
         rep["prune"] = {"dropped": n_drop, "kept": len(model),
                         "bytes_saved": n_drop * ply_row_bytes(model),
                         "psnr_test_sv1_after": _mean_psnr(ex, model, test_cams, test_imgs)}
-        if tiers:  # each tier's own never-drawn rows (their d' anchors kept)
+        if tiers and not is_tree(model):  # each tier's own never-drawn rows (their d' anchors kept)
             pruned = [ex.prune_never_rendered(t, scene.train, anchor_cameras=scene.train) for t in tiers]
             tiers = [replace(t, lod=orig.lod) for (t, _), orig in zip(pruned, tiers)]
             rep["prune"]["parents_dropped"] = sum(n for _, n in pruned)
@@ -147,6 +148,7 @@ def _derive(model, scene, test_cams, test_imgs, o: ExportOptions, rep: dict, ste
     from ..export import bake as ex
     from ..lod.budget import as_budget
     from ..lod.draw import PAPER
+    from ..lod.tree import own_model
     from ..metrics import psnr
 
     baked = None
@@ -162,7 +164,8 @@ def _derive(model, scene, test_cams, test_imgs, o: ExportOptions, rep: dict, ste
                         "psnr_test_baked": sum(bk_ps) / len(bk_ps)}
         step()
     ordered_model = None
-    if o.ordered:
+    if o.ordered:  # a merge tree's own Gaussians (tier 0) as a model without tiers
+        model = own_model(model)
         persist = ex.persistence(model, scene.train)
         perm = ex.importance_order(model, scene.train, persist=persist)
         ordered_model = model.subset(perm)

@@ -56,7 +56,7 @@ from . import rule as lod
 from .budget import critical_s_v
 from ..gaussians import Gaussians
 
-__all__ = ["HAND_OVER", "PARENT_KEY", "is_tree", "tiers_of", "tier_scales", "assign_parents", "build", "cut", "walk",
+__all__ = ["HAND_OVER", "PARENT_KEY", "is_tree", "tiers_of", "own_model", "tier_scales", "assign_parents", "build", "cut", "walk",
            "budget_s_v", "budget_cut", "TreeCut", "TreeTerms", "terms", "cut_attributes", "leads", "in_frustum"]
 
 #: ``F``: a hand-over or an exit lasts from ``U / F`` to ``U`` in ``s_v``; a node is drawn over at
@@ -87,6 +87,16 @@ def tiers_of(gaussians: Gaussians) -> list[Gaussians]:
     while out[-1].parents is not None and out[-1].lod is not None and out[-1].lod.tier_s_v > 0:
         out.append(out[-1].parents)
     return out
+
+
+def own_model(gaussians: Gaussians) -> Gaussians:
+    """Tier 0 of a tree as a model of its own, drawn by the rule of a model without merged tiers
+    (docs/lod_rule_plain.md): no parents, no node data (``extra["parent"]``, ``extra["exit"]``),
+    settings without ``tree``. Any other model is returned as it is."""
+    if not is_tree(gaussians):
+        return gaussians
+    return replace(gaussians, parents=None, lod=replace(gaussians.lod, tree=False),
+                   extra={k: v for k, v in gaussians.extra.items() if k not in (PARENT_KEY, EXIT_KEY)})
 
 
 def tier_scales(tiers: Sequence[Gaussians]) -> list[float]:

@@ -319,6 +319,30 @@ def test_fitting_on_cuts_trains_the_merged_tiers_only(model):
     assert err(tuned) < err(g)
 
 
+def test_fitting_on_budget_cuts(model):
+    """tree_train.finetune with budget_steps=1: every step draws a count budget's cut; tier 0 is
+    untouched, the budget cuts' error falls, and a share outside [0, 1] is refused."""
+    from clod_adapter.train.losses import render_loss
+    from clod_adapter.train.tree_fit import finetune
+
+    g, _ = model
+    cams = make_cameras(2, 3)
+    imgs = [render_lod(g, c, 1.0).image.clamp(0, 1) for c in cams]
+
+    def err(m):
+        return sum(float(render_loss(render_lod(m, c, budget=Budget(in_view=s)).image.clamp(0, 1), im))
+                   for c, im in zip(cams, imgs) for s in (0.3, 0.1, 0.03))
+
+    tuned = finetune(g, cams, imgs, 30, budget_steps=1.0)
+    a, b = tree.tiers_of(g), tree.tiers_of(tuned)
+    assert torch.equal(a[0].means, b[0].means) and not torch.equal(a[1].means, b[1].means)
+    assert err(tuned) < err(g)
+    levels = finetune(g, cams, imgs, 30)
+    assert not torch.equal(tree.tiers_of(levels)[1].means, b[1].means)
+    with pytest.raises(ValueError, match="budget_steps"):
+        finetune(g, cams, imgs, 3, budget_steps=1.5)
+
+
 def test_export_of_a_tree(model, tmp_path, tiny_model):
     """clod-export of a tree: the extended .ply keeps the tree and splat-transform reads it (its
     vertex element, the model); the LoD set is the tiers whole."""

@@ -32,6 +32,9 @@ TREE_STEPS = 1000
 #: the official initial rate (a fine-tune of a finished model)
 FIELDS = ("means", "quats", "log_scales", "opacity_logits", "sh0", "shN")
 MEANS_LR_SCALE = 0.1
+#: the smallest count budget a budget step of :func:`finetune` draws, a share of tier 0's centres
+#: in view (issue 62's budget sweep: 100 % to 1 %)
+BUDGET_LOWEST = 0.01
 
 
 def level_range(model: Gaussians, cameras: Sequence) -> float:
@@ -51,20 +54,25 @@ def _tiers_with(tiers: list, params: list) -> list:
 
 
 def finetune(model: Gaussians, cameras: Sequence, images: Sequence, steps: int = TREE_STEPS, *,
-             background=None, seed: int = 0, log=None) -> Gaussians:
+             background=None, seed: int = 0, log=None, budget_steps: float = 0.0) -> Gaussians:
     """``model`` (a merge tree, :func:`clod_adapter.lod.tree.is_tree`) with its merged tiers fitted on
     its cuts (module docstring) for ``steps`` steps on ``cameras`` (training views) and their
     ``images`` ([H, W, 3] float32 in [0, 1]). ``s_v`` is sampled log-uniformly in ``[1, top]``,
-    ``top`` the coarsest level the views draw (:func:`level_range`, capped at 1e4). ``steps <= 0``
-    returns ``model``.
+    ``top`` the coarsest level the views draw (:func:`level_range`, capped at 1e4); with
+    ``budget_steps`` in (0, 1], that share of the steps draws instead the cut of a count budget
+    (:func:`clod_adapter.lod.tree.budget_cut`) of a share of tier 0's centres in view sampled
+    log-uniformly in ``[BUDGET_LOWEST, 1]``. ``steps <= 0`` returns ``model``.
 
     Raises:
-        ValueError: ``model`` is not a tree, or ``cameras`` and ``images`` differ in number.
+        ValueError: ``model`` is not a tree, ``cameras`` and ``images`` differ in number, or
+            ``budget_steps`` is outside [0, 1].
     """
     if not tree.is_tree(model):
         raise ValueError("tree_train.finetune: the model is not a merge tree")
     if len(cameras) != len(images):
         raise ValueError(f"tree_train.finetune: {len(cameras)} cameras and {len(images)} images")
+    if not 0.0 <= budget_steps <= 1.0:
+        raise ValueError(f"tree_train.finetune: budget_steps must be in [0, 1], got {budget_steps}")
     if steps <= 0 or not len(cameras):
         return model
     tiers = tree.tiers_of(model)
@@ -78,9 +86,15 @@ def finetune(model: Gaussians, cameras: Sequence, images: Sequence, steps: int =
     for it in range(int(steps)):
         i = int(torch.randint(len(cameras), (1,), generator=gen))
         s = math.exp(float(torch.rand(1, generator=gen)) * ln_top)
+        budget = budget_steps > 0 and float(torch.rand(1, generator=gen)) < budget_steps
+        share = math.exp(float(torch.rand(1, generator=gen)) * math.log(BUDGET_LOWEST)) if budget else 1.0
         cur = _tiers_with(tiers, params)
         with torch.no_grad():
-            c = tree.cut(cur, cameras[i], s)
+            if budget:
+                n = int(tree.in_frustum(cur[0], cameras[i]).sum())
+                c = tree.budget_cut(cur, cameras[i], share * n)
+            else:
+                c = tree.cut(cur, cameras[i], s)
         if all(ids.numel() == 0 for ids in c.ids[1:]):
             continue  # tier 0 alone: nothing trainable drawn
         with torch.enable_grad():

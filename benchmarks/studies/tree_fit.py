@@ -1,0 +1,130 @@
+"""How long, on which cuts and at which resolution should a merge tree be fitted?
+
+For each input (default: fern) the cached ``--holdout-val`` adaptation with ``clod-adapt``'s
+defaults (``benchmarks.common.adapt_cached``, trained on the fit views only) is taken apart: its
+tier 0 and its merged tiers as the job adapted them are linked again
+(:func:`clod_adapter.train.tiers.link`) and built into a tree (:func:`clod_adapter.lod.tree.build`),
+which reproduces the job's tree before its fit (the node constants are checked equal to the
+cached model's). That tree is then fitted on its cuts (:func:`clod_adapter.train.tree_fit.finetune`)
+for each of ``--steps`` on the fit views, drawing a count budget's cut at ``--budget-steps`` of the
+steps, at the model's resolution or at half of it (``--half``), and scored on the validation
+views: the popping ratio along ``s_v`` and along count budgets (``clod-eval``'s,
+:mod:`clod_adapter.evaluate.popping`, from the first ``--popping-views`` views) and the mean PSNR
+at count budgets of 75 / 50 / 30 / 15 / 8 / 3 % of the Gaussians in view. No wall clock is
+scored (the fit's seconds are printed for scale). No goal is enforced (a study: exit 0)::
+
+    python -m benchmarks.studies.tree_fit --steps 0 250 500 1000 2000
+    python -m benchmarks.studies.tree_fit --steps 1000 --budget-steps 0.5
+    python -m benchmarks.studies.tree_fit --steps 1000 2000 --budget-steps 0.5 --half
+
+Written: ``runs/bench/tree_fit[_budgetB][_half]/summary.md``. The adaptation (about 20 minutes per scene on 2
+cores) unless cached, then about 2 minutes per setting plus the fit.
+"""
+from __future__ import annotations
+
+import argparse
+import statistics
+import time
+
+import torch
+
+from benchmarks.common import (add_inputs_args, adapt_cached, load_input, resolve_input, scene_views,
+                               selected_inputs, setup_threads, table, write_summary)
+from clod_adapter.evaluate.popping import popping_budget_ratio, popping_ratio
+from clod_adapter.io.load import load_model, load_scene
+from clod_adapter.io.ply import read_ply
+from clod_adapter.lod import tree
+from clod_adapter.lod.budget import Budget
+from clod_adapter.lod.draw import render_lod
+from clod_adapter.lod.rankings import lightgaussian_significance
+from clod_adapter.metrics import psnr
+from clod_adapter.train import tiers
+from clod_adapter.train.config import AdaptConfig
+from clod_adapter.train.tree_fit import finetune
+
+#: count budgets scored, shares of the Gaussians in view
+SHARES = (0.75, 0.5, 0.3, 0.15, 0.08, 0.03)
+
+
+def unfitted_tree(ply, fit: list, scene, cfg: AdaptConfig):
+    """The job's tree before its fit, from the cached adaptation ``ply``: its tier 0 and the
+    merged tiers under ``parents/`` linked and built again on the fit views."""
+    final = load_model(ply)
+    t0 = tree.own_model(final)
+    dirs, p = [], ply.parent / "parents"
+    while (p / "point_cloud.ply").is_file():
+        dirs.append(p)
+        p = p / "parents"
+    cands = [read_ply(d / "point_cloud.ply", unlinked_tiers=True) for d in dirs]
+    ch = tiers.choice_views(fit)
+    linked, _ = tiers.link(t0, cands, ch, [scene.load_image(c) for c in ch], background=cfg.background)
+    built = tree.build(linked, fit)
+    a, b = tree.tiers_of(built), tree.tiers_of(final)
+    same = len(a) == len(b) and all(len(x) == len(y) and torch.equal(x.sigma_d, y.sigma_d) for x, y in zip(a, b))
+    return built, same
+
+
+def scores(g, base, cams, gts, sig, n_pop: int) -> dict:
+    """Popping ratios (per view) and mean PSNR at :data:`SHARES` of ``g`` on the views."""
+    with torch.no_grad():
+        out = {"budget_pop": [popping_budget_ratio(g, base, c, sig)["ratio"] for c in cams[:n_pop]],
+               "s_v_pop": [popping_ratio(g, base, c, sig)["ratio"] for c in cams[:n_pop]]}
+        for s in SHARES:
+            out[s] = statistics.mean(psnr(render_lod(g, c, budget=Budget(in_view=s)).image, gt, cap=True)
+                                     for c, gt in zip(cams, gts))
+    return out
+
+
+def study(name: str, args) -> list[list]:
+    """One input's rows: one per ``--steps`` value."""
+    cfg = AdaptConfig()
+    ply = adapt_cached(name, cfg, "default", split="val")
+    base, scene, gts = load_input(name, "val")
+    fit, val = scene_views(scene, "val")
+    built, same = unfitted_tree(ply, fit, scene, cfg)
+    print(f"[{name}] tree {[len(t) for t in tree.tiers_of(built)]}; node constants equal the cached "
+          f"model's: {same}", flush=True)
+    fit_cams, fit_scene = fit, scene
+    if args.half:
+        _, root, res = resolve_input(name)
+        fit_scene = load_scene(root, resolution=2 * res)
+        fit_cams = scene_views(fit_scene, "val")[0]
+    fit_imgs = [fit_scene.load_image(c) for c in fit_cams]
+    sig = lightgaussian_significance(base, fit)
+    rows = []
+    for n in args.steps:
+        t = time.perf_counter()
+        g = finetune(built, fit_cams, fit_imgs, n, background=cfg.background, seed=cfg.seed,
+                     budget_steps=args.budget_steps)
+        sec = time.perf_counter() - t
+        r = scores(g, base, val, gts, sig, args.popping_views)
+        row = [name, n, f"{args.budget_steps:g}", "half" if args.half else "full", f"{sec:.0f}",
+               " / ".join(f"{x:.1f}" for x in r["budget_pop"]), " / ".join(f"{x:.1f}" for x in r["s_v_pop"]),
+               *[f"{r[s]:.2f}" for s in SHARES]]
+        print(" | ".join(map(str, row)), flush=True)
+        rows.append(row)
+    return rows
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    add_inputs_args(ap, ["fern"])
+    ap.add_argument("--steps", type=int, nargs="+", default=[0, 500, 1000, 2000])
+    ap.add_argument("--budget-steps", type=float, default=0.0, help="share of steps on count-budget cuts")
+    ap.add_argument("--half", action="store_true", help="fit at half the model's resolution")
+    ap.add_argument("--popping-views", type=int, default=2)
+    ap.add_argument("--threads", type=int, default=2)
+    args = ap.parse_args(argv)
+    setup_threads(args.threads)
+    rows = [r for name in selected_inputs(args) for r in study(name, args)]
+    head = ["input", "steps", "budget steps", "resolution", "fit s", "popping along budgets",
+            "popping along s_v", *[f"PSNR {int(100 * s)} % in view" for s in SHARES]]
+    text = table(head, rows)
+    name = "tree_fit" + (f"_budget{args.budget_steps:g}" if args.budget_steps else "") + ("_half" if args.half else "")
+    print(text)
+    print(write_summary(name, text))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

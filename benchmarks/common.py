@@ -221,8 +221,9 @@ LEGACY_CONFIG = {"s_v_sampling": "uniform", "level_max": 1.0, "trained_order_sha
                  "tier_time_cap": 0.0, "tier_hand_over": 0.0, "tier_downscale": 1, "tier_draw": "chain", "tree_steps": 0}
 #: AdaptConfig keys removed since runs were cached: a cached run matches without them where they
 #: changed nothing it drew (the chain's coarsest window and count rule, and ``tier_draw``: a run drawn
-#: as a tree, or without tiers, is the same run now); a run whose tiers were drawn as a chain
-#: (``tier_draw`` "chain", no longer drawn) never matches
+#: as a tree, or without tiers, is the same run now; a run written with ``tree_steps`` and without
+#: ``tier_draw`` was drawn as a tree); a run whose tiers were drawn as a chain (``tier_draw``
+#: "chain", no longer drawn) never matches
 RETIRED_CONFIG = ("popping_goal", "count_mix", "tier_draw")
 
 
@@ -243,7 +244,10 @@ def adapt_cached(name: str, cfg: AdaptConfig, tag: str, *, split: str = "test", 
     if mj.is_file():
         try:
             have = json.loads(mj.read_text())
-            have_cfg = {**LEGACY_CONFIG, **(have.get("config") or {})}
+            written = have.get("config") or {}
+            have_cfg = {**LEGACY_CONFIG, **written}
+            if "tree_steps" in written and "tier_draw" not in written:  # written since tiers are only trees
+                have_cfg["tier_draw"] = "tree"
             if have_cfg["tier_draw"] == "tree" or not have_cfg["parent_share"]:
                 for k in RETIRED_CONFIG:
                     have_cfg.pop(k, None)

@@ -105,3 +105,35 @@ def test_behind_line_names_cells_the_adapted_model_cannot_reach(common):
     line = qvt_bench.behind_line([{"name": "a", "label": "A"}, {"name": "b", "label": "B"}], cells)
     assert "A: within 50 % -1.00 dB (decimate); within 10 % no adapted level (opacity 9.00 dB)" in line
     assert "B: nowhere" in line
+
+
+def test_a_cached_run_is_reused_when_its_settings_match(common, tmp_path, monkeypatch):
+    """adapt_cached reuses a run written with today's settings (no ``tier_draw``: merged tiers are
+    only drawn as a tree) and one written as a tree with ``tier_draw``, but never one whose tiers
+    were drawn as a chain (that one is adapted again)."""
+    import json
+    from dataclasses import asdict
+
+    from clod_adapter.jobs import adapt as job
+    from clod_adapter.train.config import AdaptConfig
+
+    ply, scene = tmp_path / "in.ply", tmp_path / "scene"
+    ply.write_bytes(b"ply\n")
+    scene.mkdir()
+    name = common.register_input(f"cached={ply}:{scene}")
+    monkeypatch.setattr(common, "RUNS", tmp_path / "runs")
+
+    def adapted_again(*a, **k):
+        raise RuntimeError("adapted again")
+
+    monkeypatch.setattr(job, "run", adapted_again)
+    cfg = AdaptConfig()
+    for extra, reused in (({}, True), ({"tier_draw": "tree"}, True), ({"tier_draw": "chain"}, False)):
+        out = tmp_path / "runs" / name / "default"
+        out.mkdir(parents=True, exist_ok=True)
+        (out / "metrics.json").write_text(json.dumps({"config": {**asdict(cfg), **extra}, "input_ply": str(ply)}))
+        if reused:
+            assert common.adapt_cached(name, cfg, "default", log=lambda *a: None) == out / "point_cloud.ply"
+        else:
+            with pytest.raises(RuntimeError, match="adapted again"):
+                common.adapt_cached(name, cfg, "default", log=lambda *a: None)

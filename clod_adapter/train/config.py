@@ -122,7 +122,8 @@ class AdaptConfig:
             (:mod:`clod_adapter.lod.tree`; docs/method.md "The merge tree").
         tree_steps: the merge tree's merged tiers are fitted on the tree's own cuts for this many
             steps, at most ``iterations`` (:func:`clod_adapter.train.tree_fit.finetune`; 0: not
-            fitted).
+            fitted; on fern's validation views popping and quality at equal count rise with the
+            steps: docs/studies.md "Fitting the tree on its cuts").
         tier_iteration_share: each merged tier learns its level of detail for this share of
             ``iterations`` (rounded, at least 1 when ``iterations`` > 0). Default 1: a finer ladder of
             five tiers at half the steps each was not better on the validation views

@@ -90,9 +90,9 @@ def finetune(model: Gaussians, cameras: Sequence, images: Sequence, steps: int =
         share = math.exp(float(torch.rand(1, generator=gen)) * math.log(BUDGET_LOWEST)) if budget else 1.0
         cur = _tiers_with(tiers, params)
         with torch.no_grad():
-            if budget:
-                n = int(tree.in_frustum(cur[0], cameras[i]).sum())
-                c = tree.budget_cut(cur, cameras[i], share * n)
+            if budget:  # one frame of terms: its frustum gives the count the share is of
+                at = tree.frame(cur, cameras[i])
+                c = tree.budget_cut(cur, cameras[i], share * int(at[1][0].sum()), at=at)
             else:
                 c = tree.cut(cur, cameras[i], s)
         if all(ids.numel() == 0 for ids in c.ids[1:]):

@@ -16,6 +16,11 @@ scored (the fit's seconds are printed for scale). No goal is enforced (a study: 
     python -m benchmarks.studies.tree_fit --steps 0 250 500 1000 2000
     python -m benchmarks.studies.tree_fit --steps 1000 --budget-steps 0.5
     python -m benchmarks.studies.tree_fit --steps 1000 2000 --budget-steps 0.5 --half
+    python -m benchmarks.studies.tree_fit --as-adapted --config tier_iteration_share=0.5
+
+``--config KEY=VALUE ...`` takes the adaptation with those ``AdaptConfig`` settings (cached under
+their tag) instead of the defaults; ``--as-adapted`` scores it as the job fitted its tree (one row,
+no fit here).
 
 Written: ``runs/bench/tree_fit[_budgetB][_half]/summary.md``. The adaptation (about 20 minutes per scene on 2
 cores) unless cached, then about 2 minutes per setting plus the fit.
@@ -28,8 +33,9 @@ import time
 
 import torch
 
-from benchmarks.common import (add_inputs_args, adapt_cached, load_input, resolve_input, scene_views,
-                               selected_inputs, setup_threads, table, write_summary)
+from benchmarks.common import (add_inputs_args, adapt_cached, load_input, metrics_of, parse_config,
+                               resolve_input, scene_views, selected_inputs, setup_threads, table,
+                               write_summary)
 from clod_adapter.evaluate.popping import popping_budget_ratio, popping_ratio
 from clod_adapter.io.load import load_model, load_scene
 from clod_adapter.io.ply import read_ply
@@ -77,10 +83,20 @@ def scores(g, base, cams, gts, sig, n_pop: int) -> dict:
 
 def study(name: str, args) -> list[list]:
     """One input's rows: one per ``--steps`` value."""
-    cfg = AdaptConfig()
-    ply = adapt_cached(name, cfg, "default", split="val")
+    kw, tag = parse_config(args.config) if args.config else ({}, "default")
+    cfg = AdaptConfig(**kw)
+    ply = adapt_cached(name, cfg, tag, split="val")
     base, scene, gts = load_input(name, "val")
     fit, val = scene_views(scene, "val")
+    if args.as_adapted:
+        sig = lightgaussian_significance(base, fit)
+        fitted = metrics_of(ply)["tier"].get("tree_fit", {})
+        r = scores(load_model(ply), base, val, gts, sig, args.popping_views)
+        row = [name, tag, fitted.get("steps", "-"), f"{cfg.tree_budget_steps:g}", "full (job)",
+               f"{fitted.get('seconds', 0):.0f}", " / ".join(f"{x:.1f}" for x in r["budget_pop"]),
+               " / ".join(f"{x:.1f}" for x in r["s_v_pop"]), *[f"{r[s]:.2f}" for s in SHARES]]
+        print(" | ".join(map(str, row)), flush=True)
+        return [row]
     built, same = unfitted_tree(ply, fit, scene, cfg)
     print(f"[{name}] tree {[len(t) for t in tree.tiers_of(built)]}; node constants equal the cached "
           f"model's: {same}", flush=True)
@@ -98,7 +114,7 @@ def study(name: str, args) -> list[list]:
                      budget_steps=args.budget_steps)
         sec = time.perf_counter() - t
         r = scores(g, base, val, gts, sig, args.popping_views)
-        row = [name, n, f"{args.budget_steps:g}", "half" if args.half else "full", f"{sec:.0f}",
+        row = [name, tag, n, f"{args.budget_steps:g}", "half" if args.half else "full", f"{sec:.0f}",
                " / ".join(f"{x:.1f}" for x in r["budget_pop"]), " / ".join(f"{x:.1f}" for x in r["s_v_pop"]),
                *[f"{r[s]:.2f}" for s in SHARES]]
         print(" | ".join(map(str, row)), flush=True)
@@ -114,13 +130,17 @@ def main(argv=None) -> int:
     ap.add_argument("--half", action="store_true", help="fit at half the model's resolution")
     ap.add_argument("--popping-views", type=int, default=2)
     ap.add_argument("--threads", type=int, default=2)
+    ap.add_argument("--config", nargs="+", metavar="KEY=VALUE", help="the adaptation's AdaptConfig settings")
+    ap.add_argument("--as-adapted", action="store_true", help="score the adaptation's own fit (no fit here)")
     args = ap.parse_args(argv)
     setup_threads(args.threads)
     rows = [r for name in selected_inputs(args) for r in study(name, args)]
-    head = ["input", "steps", "budget steps", "resolution", "fit s", "popping along budgets",
+    head = ["input", "adaptation", "steps", "budget steps", "resolution", "fit s", "popping along budgets",
             "popping along s_v", *[f"PSNR {int(100 * s)} % in view" for s in SHARES]]
     text = table(head, rows)
-    name = "tree_fit" + (f"_budget{args.budget_steps:g}" if args.budget_steps else "") + ("_half" if args.half else "")
+    name = ("tree_fit" + (f"_{parse_config(args.config)[1]}" if args.config else "")
+            + ("_adapted" if args.as_adapted else (f"_budget{args.budget_steps:g}" if args.budget_steps else "")
+               + ("_half" if args.half else "")))
     print(text)
     print(write_summary(name, text))
     return 0

@@ -132,6 +132,9 @@ def _tier_flags(p) -> None:
                    help="with merged tiers (linked into a merge tree, one cut of it drawn per frame; docs/method.md), "
                         "fit the merged tiers on the tree's own cuts for N steps, at most --iterations (default 1000; "
                         "0: not fitted)")
+    p.add_argument("--tree-budget-steps", type=float, default=0.5, metavar="SHARE",
+                   help="draw a count budget's cut (100 %% to 1 %% of the Gaussians in view) instead of a level's "
+                        "at SHARE of the --tree-steps (0-1; default 0.5; 0: levels only)")
 
 
 def _run_flags(p) -> None:
@@ -197,6 +200,7 @@ def _config(args, world: int):
                            tier_iteration_share=args.tier_iteration_share, tier_downscale=args.tier_downscale,
                            tier_merge=args.tier_merge, tier_time_cap=args.tier_time_cap,
                            tier_hand_over=args.tier_hand_over, tree_steps=args.tree_steps,
+                           tree_budget_steps=args.tree_budget_steps,
                            faint_share=args.faint_share, keep_share=args.keep_share, recovery_steps=args.recovery_steps, **kw)
     except ValueError as e:  # "<field> must be ...": the field is the flag
         field, _, rest = str(e).partition(" ")

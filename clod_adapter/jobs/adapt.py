@@ -457,7 +457,7 @@ def _read_own(path: Path):
 def _drawing_rule(linked, scene_root: Path, out_dir: Path, scene, cfg: AdaptConfig, o: AdaptOptions, info: dict):
     """The linked model's tiers as a merge tree (:func:`clod_adapter.lod.tree.build`;
     ``info["tree"]`` its tiers' sizes), its merged tiers fitted on its cuts
-    (:func:`clod_adapter.train.tree_fit.finetune`, ``cfg.tree_steps`` at most ``cfg.iterations``;
+    (:func:`clod_adapter.train.tree_fit.finetune`, ``cfg.tree_steps`` at most ``cfg.iterations``, ``cfg.tree_budget_steps`` of them on budget cuts;
     ``info["tree_fit"]``) and ``lod_strip.png`` redrawn through it."""
     from ..lod import tree
     from ..train.tree_fit import finetune
@@ -466,8 +466,9 @@ def _drawing_rule(linked, scene_root: Path, out_dir: Path, scene, cfg: AdaptConf
     info["tree"] = [len(t) for t in tree.tiers_of(linked)]
     steps, t0 = min(cfg.tree_steps, cfg.iterations), time.perf_counter()
     linked = finetune(linked, scene.train, [scene.load_image(c) for c in scene.train], steps,
-                      background=cfg.background, seed=cfg.seed, log=lambda m: o.log("clod-adapt: " + m))
-    info["tree_fit"] = {"steps": steps, "seconds": round(time.perf_counter() - t0, 1)}
+                      background=cfg.background, seed=cfg.seed, budget_steps=cfg.tree_budget_steps,
+                      log=lambda m: o.log("clod-adapt: " + m))
+    info["tree_fit"] = {"steps": steps, "budget_steps": cfg.tree_budget_steps, "seconds": round(time.perf_counter() - t0, 1)}
     _final_strip(out_dir, linked, scene_root, cfg, o)
     return linked
 

@@ -124,6 +124,11 @@ class AdaptConfig:
             steps, at most ``iterations`` (:func:`clod_adapter.train.tree_fit.finetune`; 0: not
             fitted; on fern's validation views popping and quality at equal count rise with the
             steps: docs/studies.md "Fitting the tree on its cuts").
+        tree_budget_steps: the share of those steps that draws a count budget's cut (shares of the
+            Gaussians in view from 100 % to 1 %, log-uniform) instead of a level's, in [0, 1]
+            (:func:`clod_adapter.train.tree_fit.finetune`'s ``budget_steps``). Default
+            :data:`clod_adapter.train.tree_fit.TREE_BUDGET_STEPS` (0.5): the tree is trained on the
+            cuts of both knobs (docs/studies.md "Fitting the tree on its cuts"); 0: levels only.
         tier_iteration_share: each merged tier learns its level of detail for this share of
             ``iterations`` (rounded, at least 1 when ``iterations`` > 0). Default 1: a finer ladder of
             five tiers at half the steps each was not better on the validation views
@@ -190,6 +195,7 @@ class AdaptConfig:
     tier_time_cap: Optional[float] = None
     tier_hand_over: Optional[float] = None
     tree_steps: int = 1000
+    tree_budget_steps: float = 0.5
     faint_share: Optional[float] = None
     keep_share: float = 1.0
     recovery_steps: int = 1000
@@ -292,6 +298,9 @@ class AdaptConfig:
         if int(self.tree_steps) != self.tree_steps or self.tree_steps < 0:
             raise ValueError(f"tree_steps must be a count >= 0, got {self.tree_steps}")
         self.tree_steps = int(self.tree_steps)
+        self.tree_budget_steps = float(self.tree_budget_steps)
+        if not 0.0 <= self.tree_budget_steps <= 1.0:
+            raise ValueError(f"tree_budget_steps must be in [0, 1], got {self.tree_budget_steps}")
         self.tier_iteration_share = float(self.tier_iteration_share)
         if not 0.0 < self.tier_iteration_share <= 1.0:
             raise ValueError(f"tier_iteration_share must be in (0, 1], got {self.tier_iteration_share}")

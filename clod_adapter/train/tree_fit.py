@@ -24,7 +24,7 @@ from .losses import render_loss
 from .official import OFFICIAL_LR
 from ..render.dispatch import rasterization
 
-__all__ = ["finetune", "TREE_STEPS", "level_range"]
+__all__ = ["finetune", "TREE_STEPS", "TREE_BUDGET_STEPS", "level_range"]
 
 #: steps of :func:`finetune` (``AdaptConfig.tree_steps``)
 TREE_STEPS = 1000
@@ -35,6 +35,8 @@ MEANS_LR_SCALE = 0.1
 #: the smallest count budget a budget step of :func:`finetune` draws, a share of tier 0's centres
 #: in view (issue 62's budget sweep: 100 % to 1 %)
 BUDGET_LOWEST = 0.01
+#: the share of the steps on count-budget cuts (``AdaptConfig.tree_budget_steps``)
+TREE_BUDGET_STEPS = 0.5
 
 
 def level_range(model: Gaussians, cameras: Sequence) -> float:

@@ -331,6 +331,17 @@ def test_tier_iteration_share_sets_each_tiers_steps():
             AdaptConfig(tier_iteration_share=bad)
 
 
+def test_tree_budget_steps_is_a_share():
+    from clod_adapter.train.config import AdaptConfig
+    from clod_adapter.train.tree_fit import TREE_BUDGET_STEPS
+
+    assert AdaptConfig().tree_budget_steps == TREE_BUDGET_STEPS == 0.5
+    assert AdaptConfig(tree_budget_steps=0).tree_budget_steps == 0.0
+    for bad in (-0.1, 1.5, float("nan")):
+        with pytest.raises(ValueError, match="tree_budget_steps"):
+            AdaptConfig(tree_budget_steps=bad)
+
+
 def test_tier_downscale_sets_the_later_tiers_resolution():
     """``tier_downscale``: the later tiers' scene resolution factor, the model's times it, at most 8."""
     from clod_adapter.train.config import AdaptConfig
@@ -399,6 +410,7 @@ def test_adapt_job_builds_the_tier_or_says_why_not(tiny_model, tmp_path, monkeyp
     # the tiers linked into one merge tree, its sizes recorded
     assert g.lod.tier_s_v == tier["tier_s_v"] and len(g.parents) == n_parents and g.lod.tree
     assert tier["tree"][:2] == [len(g), n_parents] and tier["tree_fit"]["steps"] == 2  # at most --iterations
+    assert tier["tree_fit"]["budget_steps"] == 0.5  # the default: half the fit's steps on budget cuts
 
 
 @pytest.mark.slow
@@ -419,8 +431,9 @@ def test_adapt_job_builds_a_tree(tiny_model, tmp_path, monkeypatch):
     monkeypatch.setattr(tiers, "choose", lambda g, p, *a, **k: tiers.TierChoice(1.5, 1.0, {}))  # every tier pays
     out = tmp_path / "tree"
     assert main([str(tiny_model["ply"]), "--images", str(tiny_model["scene"]), *FAST, "-o", str(out),
-                 "--parent-share", "0.5,0.2", "--tier-finetune-steps", "3"]) == 0
+                 "--parent-share", "0.5,0.2", "--tier-finetune-steps", "3", "--tree-budget-steps", "1"]) == 0
     tier = json.loads((out / "metrics.json").read_text())["tier"]
+    assert tier["tree_fit"]["budget_steps"] == 1.0  # --tree-budget-steps reaches the fit
     g = read_ply(out / "point_cloud.ply")
     assert tier["used"] and g.lod.tree and tree.is_tree(g) and tier["tree"] == [len(t) for t in tree.tiers_of(g)]
     assert len(tier["tree"]) == 3 and tier["tree_fit"]["steps"] == 2  # --tree-steps 1000, at most --iterations 2

@@ -322,7 +322,8 @@ def test_adapt_job_caps_only_the_merged_tiers_hand_overs(tiny_model, tmp_path, m
 def test_tier_iteration_share_sets_each_tiers_steps():
     from clod_adapter.train.config import AdaptConfig
 
-    assert AdaptConfig().tier_iterations() == AdaptConfig().iterations
+    assert AdaptConfig().tier_iterations() == AdaptConfig().iterations // 2  # the default: half
+    assert AdaptConfig(tier_iteration_share=1).tier_iterations() == AdaptConfig().iterations
     assert AdaptConfig(iterations=1000, tier_iteration_share=0.5).tier_iterations() == 500
     assert AdaptConfig(iterations=3, tier_iteration_share=0.01).tier_iterations() == 1
     assert AdaptConfig(iterations=0, tier_iteration_share=0.5).tier_iterations() == 0

@@ -111,8 +111,8 @@ def _tier_flags(p) -> None:
     p.add_argument("--tier-finetune-steps", type=int, default=400, metavar="N",
                    help="fine-tune each merged tier at full detail for N steps on the training views before its "
                         "LoD is learned (default 400; 0: the merge as splat-transform wrote it)")
-    p.add_argument("--tier-iteration-share", type=float, default=1.0, metavar="SHARE",
-                   help="each merged tier learns its level of detail for SHARE of --iterations (default 1; "
+    p.add_argument("--tier-iteration-share", type=float, default=0.5, metavar="SHARE",
+                   help="each merged tier learns its level of detail for SHARE of --iterations (default 0.5; "
                         "docs/studies.md)")
     p.add_argument("--tier-downscale", type=int, choices=(1, 2, 4, 8), default=2, metavar="F",
                    help="fine-tune and train the second and later merged tiers at 1/F of the model's resolution "

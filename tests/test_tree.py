@@ -299,7 +299,7 @@ def test_a_baked_level_holds_the_cut(model):
 
 
 def test_fitting_on_cuts_trains_the_merged_tiers_only(model):
-    """tree_train.finetune: tier 0 (full detail) untouched, the merged tiers moved, and the cuts'
+    """tree_fit.finetune: tier 0 (full detail) untouched, the merged tiers moved, and the cuts'
     error against the full-detail renders smaller after the fit than before."""
     from clod_adapter.train.losses import render_loss
     from clod_adapter.train.tree_fit import finetune
@@ -312,7 +312,7 @@ def test_fitting_on_cuts_trains_the_merged_tiers_only(model):
         return sum(float(render_loss(render_lod(m, c, s).image.clamp(0, 1), im)) for c, im in zip(cams, imgs)
                    for s in (3.0, 6.0, 12.0))
 
-    tuned = finetune(g, cams, imgs, 30)
+    tuned = finetune(g, cams, imgs, 30, budget_steps=0.0)  # level cuts only
     a, b = tree.tiers_of(g), tree.tiers_of(tuned)
     assert torch.equal(a[0].means, b[0].means) and torch.equal(a[0].opacity_logits, b[0].opacity_logits)
     assert not torch.equal(a[1].means, b[1].means) and torch.equal(a[1].sigma_d, b[1].sigma_d)
@@ -320,7 +320,7 @@ def test_fitting_on_cuts_trains_the_merged_tiers_only(model):
 
 
 def test_fitting_on_budget_cuts(model):
-    """tree_train.finetune with budget_steps=1: every step draws a count budget's cut; tier 0 is
+    """tree_fit.finetune with budget_steps=1: every step draws a count budget's cut; tier 0 is
     untouched, the budget cuts' error falls, and a share outside [0, 1] is refused."""
     from clod_adapter.train.losses import render_loss
     from clod_adapter.train.tree_fit import finetune
@@ -337,7 +337,7 @@ def test_fitting_on_budget_cuts(model):
     a, b = tree.tiers_of(g), tree.tiers_of(tuned)
     assert torch.equal(a[0].means, b[0].means) and not torch.equal(a[1].means, b[1].means)
     assert err(tuned) < err(g)
-    levels = finetune(g, cams, imgs, 30)
+    levels = finetune(g, cams, imgs, 30, budget_steps=0.0)
     assert not torch.equal(tree.tiers_of(levels)[1].means, b[1].means)
     with pytest.raises(ValueError, match="budget_steps"):
         finetune(g, cams, imgs, 3, budget_steps=1.5)

@@ -72,7 +72,7 @@ def run_input(name: str, args) -> list[str]:
     fit, cams = scene_views(scene, args.split)
     unfit = tree.build(chain, fit)  # the chain's tiers as a tree, not fitted on its cuts
     t0 = time.perf_counter()
-    model = finetune(unfit, fit, [scene.load_image(c) for c in fit], args.fit_steps)
+    model = finetune(unfit, fit, [scene.load_image(c) for c in fit], args.fit_steps, budget_steps=0.0)
     print(f"[{name}] tree fitted on its cuts: {args.fit_steps} steps in {time.perf_counter() - t0:.0f} s", flush=True)
     top = max(chain.lod.max_sv * tier_reach(chain) * 2.0, level_range(model, cams))
     s_vs = [float(s) for s in np.geomspace(1.0, top, args.steps)]

@@ -22,7 +22,8 @@ scored (the fit's seconds are printed for scale). No goal is enforced (a study: 
 their tag) instead of the defaults; ``--as-adapted`` scores it as the job fitted its tree (one row,
 no fit here).
 
-Written: ``runs/bench/tree_fit[_budgetB][_half]/summary.md``. The adaptation (about 20 minutes per scene on 2
+Written: ``runs/bench/tree_fit[_TAG](_adapted|[_budgetB][_half])/summary.md`` (``TAG``: the
+``--config`` settings' cache tag). The adaptation (about 20 minutes per scene on 2
 cores) unless cached, then about 2 minutes per setting plus the fit.
 """
 from __future__ import annotations

@@ -56,25 +56,28 @@ def _tiers_with(tiers: list, params: list) -> list:
 
 
 def finetune(model: Gaussians, cameras: Sequence, images: Sequence, steps: int = TREE_STEPS, *,
-             background=None, seed: int = 0, log=None, budget_steps: float = 0.0) -> Gaussians:
+             background=None, seed: int = 0, log=None,
+             budget_steps: float = TREE_BUDGET_STEPS) -> Gaussians:
     """``model`` (a merge tree, :func:`clod_adapter.lod.tree.is_tree`) with its merged tiers fitted on
     its cuts (module docstring) for ``steps`` steps on ``cameras`` (training views) and their
     ``images`` ([H, W, 3] float32 in [0, 1]). ``s_v`` is sampled log-uniformly in ``[1, top]``,
-    ``top`` the coarsest level the views draw (:func:`level_range`, capped at 1e4); with
-    ``budget_steps`` in (0, 1], that share of the steps draws instead the cut of a count budget
+    ``top`` the coarsest level the views draw (:func:`level_range`, capped at 1e4). A share
+    ``budget_steps`` of the steps (default :data:`TREE_BUDGET_STEPS`; 0: none, and no random
+    number drawn for it) draws instead the cut of a count budget
     (:func:`clod_adapter.lod.tree.budget_cut`) of a share of tier 0's centres in view sampled
-    log-uniformly in ``[BUDGET_LOWEST, 1]``. ``steps <= 0`` returns ``model``.
+    log-uniformly in ``[BUDGET_LOWEST, 1]``. ``steps <= 0`` returns ``model``. Returns a new
+    :class:`~clod_adapter.gaussians.Gaussians` (the same nodes, tree and dtype).
 
     Raises:
         ValueError: ``model`` is not a tree, ``cameras`` and ``images`` differ in number, or
             ``budget_steps`` is outside [0, 1].
     """
     if not tree.is_tree(model):
-        raise ValueError("tree_train.finetune: the model is not a merge tree")
+        raise ValueError("tree_fit.finetune: the model is not a merge tree")
     if len(cameras) != len(images):
-        raise ValueError(f"tree_train.finetune: {len(cameras)} cameras and {len(images)} images")
+        raise ValueError(f"tree_fit.finetune: {len(cameras)} cameras and {len(images)} images")
     if not 0.0 <= budget_steps <= 1.0:
-        raise ValueError(f"tree_train.finetune: budget_steps must be in [0, 1], got {budget_steps}")
+        raise ValueError(f"tree_fit.finetune: budget_steps must be in [0, 1], got {budget_steps}")
     if steps <= 0 or not len(cameras):
         return model
     tiers = tree.tiers_of(model)

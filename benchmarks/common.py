@@ -15,7 +15,7 @@ whose ``metrics.json`` holds the same settings is reused, so the benchmarks shar
 Splits (``--split``, :func:`scene_views`): ``test`` fits on the training views and scores on the
 test views (what the README reports); ``val`` fits on the training views minus the validation
 views (:func:`clod_adapter.io.scene.validation_split`) and scores on those, never touching a test
-view. Benchmarks that *choose* settings (ablation.py, max_sv_sweep.py, lambda_sweep.py) default
+view. Benchmarks that *choose* settings (compare_configs.py, max_sv_sweep.py, lambda_sweep.py) default
 to ``val``; their adaptations then run ``clod-adapt --holdout-val`` and are cached apart (tag
 suffix ``_val``).
 """

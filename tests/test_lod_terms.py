@@ -249,3 +249,23 @@ def test_critical_kernel_matches_its_twin(dtype):
         above = lod.lod_margin(opac[live].double(), d[live].double(), sigma[live].double(), a[live] * (1 + 1e-9),
                                0.005, eps)
         assert bool((below > 0).all()) and bool((above < 0).all())
+
+
+def test_a_stale_build_lock_is_removed_and_a_fresh_one_kept(tmp_path, capsys):
+    """An interrupted build leaves ``lock`` behind and torch's loader waits on it without end:
+    one older than STALE_LOCK_S goes (with a line on stderr), a build still running keeps its own."""
+    import os
+    import time
+
+    from clod_adapter.render import native
+
+    lock = tmp_path / "lock"
+    lock.write_text("")
+    assert not native.clear_stale_lock(tmp_path)  # just made: a build may hold it
+    assert lock.exists()
+    old = time.time() - native.STALE_LOCK_S - 60
+    os.utime(lock, (old, old))
+    assert native.clear_stale_lock(tmp_path)
+    assert not lock.exists()
+    assert "interrupted build" in capsys.readouterr().err
+    assert not native.clear_stale_lock(tmp_path)  # nothing left to remove

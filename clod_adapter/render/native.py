@@ -52,6 +52,30 @@ def impl() -> str:
     return _IMPL
 
 
+#: seconds after which a build lock is taken as left by an interrupted build (a build takes 1-3 min)
+STALE_LOCK_S = 900.0
+
+
+def clear_stale_lock(build_dir: Path, now: Optional[float] = None) -> bool:
+    """Remove ``build_dir/lock`` when it is older than :data:`STALE_LOCK_S` seconds: torch's
+    ``cpp_extension.load`` waits without end on a lock that an interrupted build (Ctrl-C, a killed
+    process) left behind. Says so on stderr; returns whether it removed one."""
+    lock = Path(build_dir) / "lock"
+    try:
+        age = (time.time() if now is None else now) - lock.stat().st_mtime
+    except OSError:
+        return False
+    if age < STALE_LOCK_S:
+        return False
+    try:
+        lock.unlink()
+    except OSError:
+        return False
+    print(f"clod-adapter: removed {lock}, left {age / 60:.0f} min ago by an interrupted build of the C++ kernels",
+          file=sys.stderr, flush=True)
+    return True
+
+
 def load():
     """The built extension module, building it on first use (or loading the cached build);
     None where it cannot be built (:func:`error` says why)."""
@@ -62,7 +86,9 @@ def load():
         if _EXT is not None or _EXT_ERROR is not None:
             return _EXT
         try:
-            from torch.utils.cpp_extension import load as cpp_load
+            from torch.utils.cpp_extension import _get_build_directory, load as cpp_load
+
+            clear_stale_lock(Path(_get_build_directory("clod_native", False)))
 
             # loading a cached build takes well under a second; anything longer is a (re)build,
             # which takes 1-3 min on 2 cores: say so instead of sitting silent

@@ -6,9 +6,9 @@ default, plus the paper's recipe; every variant is scored at s_v = 1 and at the 
 trained without them, ``clod-adapt --holdout-val``; the choice never sees a test view) or on
 the test views (``--split test``, to report):
 
-    python -m benchmarks.studies.ablation                  # fern, 1000 steps, validation views
-    python -m benchmarks.studies.ablation --inputs demo --iterations 400
-    python -m benchmarks.studies.ablation --split test     # the table in docs/studies.md (test views)
+    python -m benchmarks.archive.ablation                  # fern, 1000 steps, validation views
+    python -m benchmarks.archive.ablation --inputs demo --iterations 400
+    python -m benchmarks.archive.ablation --split test     # the table in docs/studies.md (test views)
 
 Writes ``runs/bench/ablation_val.md`` / ``.csv`` (``ablation.md`` / ``.csv`` with ``--split test``).
 """

@@ -12,7 +12,7 @@ scored with the input's own render of each view as the image (PSNR in dB; the in
 exact). Prints, per input, the best PSNR within each share of the input's frame time for the
 adapted model, the better decimator and the better cut, and every point by time::
 
-    python -m benchmarks.studies.fidelity --inputs skull fern
+    python -m benchmarks.archive.fidelity --inputs skull fern
 """
 from __future__ import annotations
 

@@ -8,7 +8,7 @@ the test views (``--split test``, to report):
 
     python -m benchmarks.archive.ablation                  # fern, 1000 steps, validation views
     python -m benchmarks.archive.ablation --inputs demo --iterations 400
-    python -m benchmarks.archive.ablation --split test     # the table in docs/studies.md (test views)
+    python -m benchmarks.archive.ablation --split test     # the table in docs/archive/studies_superseded.md
 
 Writes ``runs/bench/ablation_val.md`` / ``.csv`` (``ablation.md`` / ``.csv`` with ``--split test``).
 """

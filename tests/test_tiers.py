@@ -180,7 +180,8 @@ def test_tier_finetune_steps_must_be_a_count():
 def test_tier_merge_names_a_decimator():
     from clod_adapter.train.config import AdaptConfig
 
-    assert AdaptConfig().tier_merge == "decimate"
+    assert AdaptConfig().tier_merge == "prune"
+    assert AdaptConfig(tier_merge="decimate").tier_merge == "decimate"
     assert AdaptConfig(tier_merge="adaptive").tier_merge == "adaptive"
     with pytest.raises(ValueError, match="tier_merge"):
         AdaptConfig(tier_merge="voxel")
@@ -193,9 +194,42 @@ def test_decimated_asks_splat_transform_for_the_named_merge(monkeypatch):
     asked = []
     monkeypatch.setattr(tiers, "merge_decimate", lambda g, n, mode, tool=None: asked.append((n, mode)) or g)
     g = make_ground_truth(n=40, seed=0)
-    for merge in tiers.MERGES:
+    for merge in ("decimate", "adaptive"):
         tiers.decimated(g, 0.25, merge=merge)
     assert asked == [(10, "decimate"), (10, "adaptive")]
+
+
+def test_a_pruned_tier_keeps_the_largest_weights_without_splat_transform(monkeypatch):
+    monkeypatch.setattr(tiers, "merge_decimate", lambda *a, **k: pytest.fail("splat-transform asked"))
+    g = make_ground_truth(n=40, seed=0)
+    w = torch.arange(40, dtype=torch.float64).flip(0)  # Gaussian 0 weighs most
+    out = tiers.decimated(g, 0.25, merge="prune", weights=w)
+    assert len(out) == 10 and out.sigma_d is None
+    assert torch.equal(out.means, g.means[:10])
+    with pytest.raises(ValueError, match="blending weight"):
+        tiers.decimated(g, 0.25, merge="prune")
+    with pytest.raises(ValueError, match="blending weight"):
+        tiers.decimated(g, 0.25, merge="prune", weights=w[:5])
+
+
+def test_prune_scores_put_a_large_faint_splat_after_a_small_one_of_equal_weight(monkeypatch):
+    """Weight over the square root of cost: two Gaussians that paint the same weight, the one that
+    costs four times the pixels scores half."""
+    from clod_adapter.train import pruning
+
+    g = make_ground_truth(n=300, seed=0)
+    cams = make_cameras(3, 2)
+    monkeypatch.setattr(pruning, "blend_weights", lambda m, c: torch.ones(len(m), dtype=torch.float64))
+    s = tiers.prune_scores(g, cams)
+    cost = torch.zeros(300, dtype=torch.float64)
+    for c in cams:
+        v = tiers.view_lod(g.with_sigma_d(None), c)
+        idx = torch.nonzero(v.visible, as_tuple=False).squeeze(1)
+        cost[idx] += tiers.splat_cost(v, idx)
+    assert bool((cost > 0).any())
+    assert torch.allclose(s, 1.0 / torch.sqrt(1.0 + cost))
+    with pytest.raises(ValueError, match="no cameras"):
+        tiers.prune_scores(g, [])
 
 
 def test_choice_views_are_evenly_spaced_training_views():
@@ -222,7 +256,7 @@ def test_first_share_lowers_a_slow_first_merge(monkeypatch):
     never to the next share and at most TIER_SHARE_TRIES times; cap 0 predicts nothing."""
     g = make_ground_truth(n=1000, seed=0)
     merged = []
-    monkeypatch.setattr(tiers, "decimated", lambda src, share, merge="decimate", tool=None:
+    monkeypatch.setattr(tiers, "decimated", lambda src, share, merge="decimate", tool=None, weights=None:
                         merged.append(round(share, 6)) or src.subset(torch.arange(round(share * len(src)))))
     # predicted ms: 40 + count / 10 (the input 140 ms, its 50 % merge 90 ms: 64 %, 35 %: 54 %)
     monkeypatch.setattr(tiers, "predicted_ms", lambda m, cams, time_model=None: 40.0 + len(m) / 10)

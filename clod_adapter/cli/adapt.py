@@ -117,9 +117,11 @@ def _tier_flags(p) -> None:
     p.add_argument("--tier-downscale", type=int, choices=(1, 2, 4, 8), default=2, metavar="F",
                    help="fine-tune and train the second and later merged tiers at 1/F of the model's resolution "
                         "(1, 2, 4 or 8; default 2; docs/studies.md)")
-    p.add_argument("--tier-merge", choices=("decimate", "adaptive"), default="decimate",
-                   help="the merge each tier starts from: splat-transform's --decimate (default) or "
-                        "--decimate-adaptive (docs/studies.md)")
+    p.add_argument("--tier-merge", choices=("prune", "decimate", "adaptive"), default="prune",
+                   help="what each tier starts from: prune (default): the first tier keeps the input's "
+                        "Gaussians of the largest blending weight per square root of cost, the later ones "
+                        "are merged by splat-transform's --decimate; decimate / adaptive: every tier "
+                        "merged by --decimate / --decimate-adaptive (docs/studies.md)")
     p.add_argument("--tier-time-cap", type=float, default=None, metavar="SHARE",
                    help="lower the first tier's share (0.7x per try) while its merge is predicted to draw a frame "
                         "in more than SHARE of the input's (default 0.8 with the calibrated schedule; 0: the shares "

@@ -20,7 +20,7 @@ import os
 import time
 from dataclasses import asdict, dataclass, replace
 from pathlib import Path
-from typing import Callable, Optional
+from typing import Callable, Optional, Sequence
 
 import torch
 
@@ -393,14 +393,7 @@ def _add_parent_tier(ply_path: Path, scene_root: Path, out_dir: Path, cfg: Adapt
     try:
         if source is None:  # the input was not handed on (a leave-out adapted another file)
             source = read_model(resolve_model_path(ply_path, o.iteration), cfg, quiet)[0]
-        source = source.to("cpu")
-        if nested:  # a tier's own tiers: shares relative to it, as the first tier's share left them
-            parents_in = tiers.decimated(source, share, merge=cfg.tier_merge)
-        else:
-            share, parents_in, tried_shares = tiers.first_share(
-                source, share, cams, cap=cfg.tier_time_cap, floor=rest[0] if rest else 0.0, merge=cfg.tier_merge,
-                log=lambda m: o.log("clod-adapt: " + m))
-            info.update({"parent_share": share, "time_cap": {"cap": cfg.tier_time_cap, "tried": tried_shares}})
+        share, parents_in = _tier_start(source.to("cpu"), share, rest, scene.train, cams, cfg, o, nested, info)
         del source
     except RuntimeError as e:
         return done(f"splat-transform: {e}")
@@ -408,8 +401,7 @@ def _add_parent_tier(ply_path: Path, scene_root: Path, out_dir: Path, cfg: Adapt
                                  _tier_scene(scene_root, cfg, replace(o, resolution=tres)), cfg, info)
     write_ply(out_dir / PARENT_INPUT_NAME, parents_in)
     pdir = out_dir / PARENT_DIR
-    o.log(f"clod-adapt: parent tier: {len(parents_in):,} merged Gaussians (splat-transform "
-          f"{'--decimate' if cfg.tier_merge == 'decimate' else '--decimate-adaptive'}"
+    o.log(f"clod-adapt: parent tier: {len(parents_in):,} Gaussians ({_MERGE_NAMES[_merge(cfg, nested)]}"
           f"{f', fine-tuned {cfg.tier_finetune_steps} steps' if cfg.tier_finetune_steps else ''}), "
           f"adapting them into {pdir} ...")
     # the merged input derives from the checked one: no second scene check (a coarse merge may
@@ -445,6 +437,36 @@ def _add_parent_tier(ply_path: Path, scene_root: Path, out_dir: Path, cfg: Adapt
     o.log(f"clod-adapt: merged tier of {len(linked.parents):,} attached to {out_dir / PLY_NAME} (from s_v = "
           f"{st.tier_s_v:g}) in {time.perf_counter() - t0:.0f} s")
     return done()
+
+
+#: how each merge is named in the log
+_MERGE_NAMES = {"decimate": "splat-transform --decimate", "adaptive": "splat-transform --decimate-adaptive",
+                "prune": "the input less its least blending weight per cost"}
+
+
+def _merge(cfg: AdaptConfig, nested: bool) -> str:
+    """The merge a tier starts from: ``cfg.tier_merge``, but ``"decimate"`` below a pruned first tier."""
+    return "decimate" if nested and cfg.tier_merge == "prune" else cfg.tier_merge
+
+
+def _tier_start(source, share: float, rest: tuple, train: Sequence, cams: Sequence, cfg: AdaptConfig,
+                o: AdaptOptions, nested: bool, info: dict):
+    """``(share, the tier's starting Gaussians)``: a tier's own tiers merged at ``share`` of it; the
+    first tier cut or merged by ``cfg.tier_merge`` at the share :func:`clod_adapter.train.tiers.first_share`
+    settles on (``info`` records the tries), the cut scored on ``train`` (the training views).
+
+    Raises:
+        RuntimeError: splat-transform is missing or fails."""
+    from ..train import tiers
+
+    if nested:  # a tier's own tiers: shares relative to it, as the first tier's share left them
+        return share, tiers.decimated(source, share, merge=_merge(cfg, nested))
+    weights = tiers.prune_scores(source, train) if cfg.tier_merge == "prune" else None
+    share, parents_in, tried = tiers.first_share(
+        source, share, cams, cap=cfg.tier_time_cap, floor=rest[0] if rest else 0.0, merge=cfg.tier_merge,
+        weights=weights, log=lambda m: o.log("clod-adapt: " + m))
+    info.update({"parent_share": share, "time_cap": {"cap": cfg.tier_time_cap, "tried": tried}})
+    return share, parents_in
 
 
 def _read_own(path: Path):

@@ -101,8 +101,10 @@ class AdaptConfig:
             0.17-0.34 dB more than at 200; skull's +0.09 / +0.25 / +0.51 dB, 0.03-0.08 dB less;
             ``benchmarks/studies/tier_finetune.py``, docs/studies.md "Fitting each merge").
         tier_merge: the merge each tier starts from, one of :data:`clod_adapter.train.tiers.MERGES`:
-            splat-transform 3.7.0's ``"decimate"`` (``--decimate``, default) or ``"adaptive"``
-            (``--decimate-adaptive``) (docs/studies.md "Which merge a tier starts from").
+            ``"prune"`` (default): the first tier is the input's Gaussians of the largest blending
+            weight over the square root of their cost (:func:`clod_adapter.train.tiers.prune_scores`),
+            the later ones splat-transform 3.7.0's ``--decimate``; ``"decimate"`` or ``"adaptive"``
+            (``--decimate-adaptive``): every tier merged (docs/studies.md "The first tier pruned").
         tier_time_cap: the first tier's share is lowered (by 0.7x per try, not below the next
             share) while its merge is predicted to draw a frame in more than this share of the
             input's (:func:`clod_adapter.train.tiers.first_share`, the fitted frame-time model on the
@@ -192,7 +194,7 @@ class AdaptConfig:
     tier_finetune_steps: int = 400
     tier_iteration_share: float = 0.5
     tier_downscale: int = 2
-    tier_merge: str = "decimate"
+    tier_merge: str = "prune"
     tier_time_cap: Optional[float] = None
     tier_hand_over: Optional[float] = None
     tree_steps: int = 1000

@@ -232,6 +232,23 @@ def test_prune_scores_put_a_large_faint_splat_after_a_small_one_of_equal_weight(
         tiers.prune_scores(g, [])
 
 
+def test_a_pruned_first_tier_needs_splat_transform_when_tiers_follow(tmp_path, monkeypatch):
+    """Without splat-transform no tier is built (the job notes why), as with a merged first tier:
+    the later tiers are merges of the first; a ladder of one pruned tier needs no tool."""
+    from clod_adapter.io.splat_transform import SPLAT_TRANSFORM_ENV
+    from clod_adapter.jobs import adapt as job
+    from clod_adapter.train.config import AdaptConfig
+
+    monkeypatch.setenv(SPLAT_TRANSFORM_ENV, str(tmp_path / "no-such-splat-transform"))
+    g, cams = make_ground_truth(n=200, seed=0), make_cameras(3, 2)
+    info = {}
+    with pytest.raises(RuntimeError, match="npm ci"):
+        job._tier_start(g, 0.5, (0.15,), cams, cams, AdaptConfig(), job.AdaptOptions(), False, info)
+    share, first = job._tier_start(g, 0.5, (), cams, cams, AdaptConfig(tier_time_cap=0.0), job.AdaptOptions(),
+                                   False, info)
+    assert share == 0.5 and len(first) == 100 and info["time_cap"]["tried"] == []
+
+
 def test_choice_views_are_evenly_spaced_training_views():
     assert tiers.choice_views(range(20)) == [0, 2, 4, 6, 8, 10, 12, 14]
     assert tiers.choice_views(range(64)) == list(range(0, 64, 8))

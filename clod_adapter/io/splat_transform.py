@@ -20,7 +20,7 @@ from pathlib import Path
 from typing import Optional, Sequence
 
 __all__ = ["SPLAT_TRANSFORM_ENV", "SPLAT_TRANSFORM_VERSION", "NPM_INSTALL", "PeerError", "project_root",
-           "find_splat_transform", "run_splat_transform", "read_info", "write_lod_set", "LOD_META_NAME"]
+           "find_splat_transform", "require_splat_transform", "run_splat_transform", "read_info", "write_lod_set", "LOD_META_NAME"]
 
 #: environment variable naming the splat-transform executable (it wins over every other place).
 SPLAT_TRANSFORM_ENV = "CLOD_SPLAT_TRANSFORM"
@@ -76,6 +76,22 @@ def find_splat_transform() -> Optional[str]:
     return shutil.which("splat-transform")
 
 
+def require_splat_transform() -> str:
+    """:func:`find_splat_transform`'s path.
+
+    Raises:
+        PeerError: none is found (one line naming ``npm ci``).
+    """
+    exe = find_splat_transform()
+    if exe is None:
+        env = os.environ.get(SPLAT_TRANSFORM_ENV)
+        where = (f"${SPLAT_TRANSFORM_ENV}={env} is not an executable file" if env else
+                 "not in node_modules/.bin nor on PATH")
+        raise PeerError(f"splat-transform not found ({where}); install the pinned version with "
+                        f"`{NPM_INSTALL}` in the repository root")
+    return exe
+
+
 def _failure_line(text: str) -> str:
     """The line of splat-transform's output that says what failed: the last ``✗ ...`` line that
     is not its closing ``✗ failed in ...`` summary, else the last non-empty line."""
@@ -100,13 +116,7 @@ def run_splat_transform(args: Sequence[str], *, tool: Optional[str] = None, time
         PeerError: the tool is not found (the message names ``npm ci``), cannot be started,
             times out or exits non-zero (the message holds its error line).
     """
-    exe = tool or find_splat_transform()
-    if exe is None:
-        env = os.environ.get(SPLAT_TRANSFORM_ENV)
-        where = (f"${SPLAT_TRANSFORM_ENV}={env} is not an executable file" if env else
-                 "not in node_modules/.bin nor on PATH")
-        raise PeerError(f"splat-transform not found ({where}); install the pinned version with "
-                        f"`{NPM_INSTALL}` in the repository root")
+    exe = tool or require_splat_transform()
     label = f"splat-transform {what}".rstrip()
     try:
         res = subprocess.run([exe, "-g", "cpu", *map(str, args)], capture_output=True, text=True, errors="replace",

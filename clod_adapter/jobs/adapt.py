@@ -454,13 +454,17 @@ def _tier_start(source, share: float, rest: tuple, train: Sequence, cams: Sequen
     """``(share, the tier's starting Gaussians)``: a tier's own tiers merged at ``share`` of it; the
     first tier cut or merged by ``cfg.tier_merge`` at the share :func:`clod_adapter.train.tiers.first_share`
     settles on (``info`` records the tries), the cut scored on ``train`` (the training views).
+    With later tiers (``rest``) splat-transform must be found first, whatever the first tier is.
 
     Raises:
         RuntimeError: splat-transform is missing or fails."""
+    from ..io.splat_transform import require_splat_transform
     from ..train import tiers
 
     if nested:  # a tier's own tiers: shares relative to it, as the first tier's share left them
         return share, tiers.decimated(source, share, merge=_merge(cfg, nested))
+    if rest:  # the later tiers are merges: without splat-transform no tier is built, as with a merged first one
+        require_splat_transform()
     weights = tiers.prune_scores(source, train) if cfg.tier_merge == "prune" else None
     share, parents_in, tried = tiers.first_share(
         source, share, cams, cap=cfg.tier_time_cap, floor=rest[0] if rest else 0.0, merge=cfg.tier_merge,

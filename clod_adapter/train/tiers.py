@@ -93,6 +93,7 @@ def decimated(gaussians: Gaussians, share: float, *, merge: str = "decimate", to
 #: its drawing cost. Chosen on fern's validation views, static cuts of the input (no fit): at 60 %
 #: of the Gaussians the cut by weight alone draws 81 % of the predicted frame for 25.54 dB, by
 #: weight over the square root of cost 75 % for 25.76 dB, by weight over cost 48 % for 18.31 dB
+#: (``python -m benchmarks.studies.prune_cost``)
 PRUNE_COST_EXPONENT = 0.5
 
 

@@ -3,6 +3,7 @@ clod-eval and benchmarks/quality_vs_time.py giving the same cells, and README's 
 held to the generated docs/results.json and docs/results.md."""
 import json
 import math
+import statistics
 
 import pytest
 
@@ -43,6 +44,54 @@ def test_cells_pick_the_best_within_each_time_and_the_best_peer_at_each_count():
     comp = _comparison()
     comp.settings[7] = _setting("clod", "match:decimate:model=0.15", 25.5, 15.0, 90)
     assert qvt.cells(comp)[-1].share == 0.15 and comp.in_view_share(comp.settings[7]) == 0.09
+
+
+def test_cost_follows_reads_the_steps_of_both_sweeps():
+    comp = _comparison()
+    comp.settings += [_setting("clod", "in_view=1", 29.95, 102.0, 1000), _setting("clod", "in_view=0.5", 28.0, 60.0, 500),
+                      _setting("clod", "in_view=0.1", 24.0, 66.0, 100)]
+    c = qvt.cost_follows(comp)
+    assert c["level_step"] == pytest.approx(20.0 / 45.0)  # s_v 1 -> 2 -> 5: never rises
+    assert c["budget_step"] == pytest.approx(66.0 / 60.0)  # the 10 % frame over the 50 % one
+    assert c["over_input"] == pytest.approx(1.02)
+    assert c["count_ratio"] == pytest.approx(21.0 / 18.0)
+
+
+def test_cost_follows_pairs_the_rounds_when_the_sweeps_were_timed_alone():
+    """Round 2 ran slow for every setting: the medians of two frames read apart put a rise where
+    the per-round ratios, paired, have none."""
+    comp = _comparison()
+    comp.sweep_rounds = {"input": [100.0, 100.0, 130.0], "s_v=1": [99.0, 99.0, 129.0],
+                         "s_v=2": [45.0, 50.0, 58.0], "s_v=5": [40.0, 44.0, 52.0]}
+    c = qvt.cost_follows(comp)
+    assert c["level_step"] == pytest.approx(max(statistics.median([45 / 99, 50 / 99, 58 / 129]),
+                                                statistics.median([40 / 45, 44 / 50, 52 / 58]),
+                                                statistics.median([40 / 99, 44 / 99, 52 / 129])))
+    assert c["level_step"] < 1.0
+    assert c["over_input"] == pytest.approx(0.99)
+    assert qvt.paired_worst_step([[10.0, 10.0], [9.0, 12.0], [11.0, 11.0]]) == pytest.approx(1.1)
+
+
+def test_sweep_times_times_the_input_and_both_sweeps_alone():
+    calls = []
+
+    class _R:
+        select_ms, raster_ms = 0.0, 1.0
+
+    def render(name):
+        def f():
+            calls.append(name)
+            return None, 1, 2.0
+        return f
+
+    st = [qvt.Setting("input", "full", [render("input")], 1), qvt.Setting("clod", "s_v=1", [render("s_v=1")], 1),
+          qvt.Setting("clod", "in_view=0.5", [render("in_view=0.5")], 1),
+          qvt.Setting("decimate", "model=0.5", [render("decimate")], 1)]
+    comp = qvt.Comparison(st, [10], max_sv=5.0)
+    rr = qvt.sweep_times(comp, repeats=3)
+    assert set(rr) == {"input", "s_v=1", "in_view=0.5"}
+    assert all(len(v) == 3 and all(x == pytest.approx(2.0) for x in v) for v in rr.values())
+    assert "decimate" not in calls and calls.count("input") == 4  # a warm-up round, then 3
 
 
 def test_verdict_says_where_ours_is_ahead_and_by_how_much():

@@ -65,6 +65,10 @@ DECIMATE_SHARES = (0.75, 0.5, 0.3, 0.15, 0.08, 0.04)
 TIME_SHARES = (0.75, 0.5, 0.25, 0.1)
 #: paired rounds of the full-detail time ratio (input and ``s_v = 1`` alone).
 FULL_ROUNDS = 9
+#: interleaved rounds of the adapted model's two sweeps timed with the input alone (issue 62's
+#: cost goals, :func:`sweep_times`): a step of 5 % between two frames of a few ms is within the
+#: spread of the comparison's 5 rounds
+SWEEP_ROUNDS = 15
 #: margins smaller than this (dB) are said to be level.
 LEVEL_DB = 0.05
 OURS = ("clod",)
@@ -126,6 +130,9 @@ class Comparison:
         full_ratio: the full-detail time ratio (``s_v = 1`` / input), the median of
             :data:`FULL_ROUNDS` paired rounds (nan when not measured).
         merge_run: whether splat-transform's decimators were run.
+        sweep_rounds: the input's and the adapted model's sweep settings timed alone
+            (:func:`sweep_times`): setting (``"input"`` for the input) -> [R] per-round ms, or
+            empty when not measured.
     """
 
     settings: list
@@ -133,6 +140,7 @@ class Comparison:
     max_sv: float
     full_ratio: float = float("nan")
     merge_run: bool = False
+    sweep_rounds: dict = field(default_factory=dict)
 
     @property
     def input(self) -> Setting:
@@ -432,6 +440,8 @@ class CompareOptions:
         ceiling_views: ``(fit_cams, fit_imgs, val_cams, val_imgs)`` for the per-budget ceiling
             (:func:`ceiling_settings`; needs the decimators), or None (not built).
         ceiling_steps: its fine-tune's length.
+        sweep_rounds: rounds of :func:`sweep_times` (0: not measured; the cost goals read the
+            comparison's own timing then).
     """
 
     merge_tool: Optional[str] = None
@@ -441,6 +451,7 @@ class CompareOptions:
     background: Optional[Sequence[float]] = None
     ceiling_views: Optional[tuple] = None
     ceiling_steps: int = CEILING_STEPS
+    sweep_rounds: int = 0
 
 
 def compare(adapted: Gaussians, base: Gaussians, fit_cams: Sequence, cams: Sequence, gts: Sequence, *,
@@ -476,6 +487,9 @@ def compare(adapted: Gaussians, base: Gaussians, fit_cams: Sequence, cams: Seque
     comp = Comparison(settings, [v.n_in_view for v in ctx.views], max_sv, merge_run=o.merge_tool is not None)
     if o.full_rounds > 0:
         comp.full_ratio = full_detail_ratio(comp, o.full_rounds, tick)
+    if o.sweep_rounds > 0:
+        log(f"the sweeps timed alone x{o.sweep_rounds} ...")
+        comp.sweep_rounds = sweep_times(comp, o.sweep_rounds, tick)
     return comp
 
 
@@ -488,6 +502,37 @@ def n_renders(n_views: int, repeats: int, full_rounds: int = FULL_ROUNDS, merge:
     # the equal-count points: about three in range per decimator, three methods each
     n += 3 * len(DECIMATORS) * 3 if merge else 0
     return n_views * (n * (2 + repeats) + 2 * (1 + full_rounds))
+
+
+def _sweep(comp: Comparison) -> tuple[list, list]:
+    """The adapted model's ``s_v`` sweep (by ``s_v``) and count-budget sweep (100 % down), as
+    ``[(key, setting)]``."""
+    lev = sorted(((float(s.setting[4:]), s) for s in comp.settings
+                  if s.method == "clod" and s.setting.startswith("s_v=")), key=lambda p: p[0])
+    bud = sorted(((-float(s.setting[8:]), s) for s in comp.settings
+                  if s.method == "clod" and s.setting.startswith("in_view=")), key=lambda p: p[0])
+    return lev, bud
+
+
+def sweep_times(comp: Comparison, repeats: int = SWEEP_ROUNDS, tick=lambda: None) -> dict:
+    """The input and the adapted model's two sweeps (``s_v=...``, ``in_view=...``) timed alone in
+    ``repeats`` interleaved shuffled rounds: setting -> [repeats] per-round ms (median over views;
+    ``"input"`` for the input), for the paired steps of :func:`cost_follows`."""
+    lev, bud = _sweep(comp)
+    sel = [comp.input] + [s for _, s in lev + bud]
+    res = _time(sel, repeats, tick, seed=2)
+    return {("input" if st.method == "input" else st.setting): res[i]["per_round"] for i, st in enumerate(sel)}
+
+
+def paired_worst_step(rounds: Sequence[Sequence[float]]) -> float:
+    """:func:`worst_step` of a sweep timed in paired rounds (``rounds[i][r]``: frame ``i``'s ms in
+    round ``r``): the largest median over rounds of ``rounds[j][r] / rounds[i][r]`` over ``i < j``
+    (1 or below: the cost never rises along it)."""
+    worst = 0.0
+    for j in range(1, len(rounds)):
+        for i in range(j):
+            worst = max(worst, statistics.median(b / a for a, b in zip(rounds[i], rounds[j])))
+    return worst
 
 
 def worst_step(ms: Sequence[float]) -> float:
@@ -506,17 +551,23 @@ def cost_follows(comp: Comparison) -> dict:
     ``level_step`` / ``budget_step``, :func:`worst_step` along the ``s_v`` sweep and along the count
     budgets from 100 % to 1 % of the Gaussians in view; ``over_input``, the largest frame of both
     over the input's; ``count_ratio``, the largest time ratio of the adapted model at a decimator's
-    count per view to that decimator's own frame (nan without the equal-count points)."""
-    lev = sorted(((float(s.setting[4:]), s.ms) for s in comp.settings
-                  if s.method == "clod" and s.setting.startswith("s_v=")))
-    bud = sorted(((-float(s.setting[8:]), s.ms) for s in comp.settings
-                  if s.method == "clod" and s.setting.startswith("in_view=")))
+    count per view to that decimator's own frame (nan without the equal-count points). With
+    :attr:`Comparison.sweep_rounds` the sweeps' steps and ``over_input`` are paired
+    (:func:`paired_worst_step`, the median over rounds of a frame over the input's)."""
+    lev, bud = _sweep(comp)
     ratios = [comp.get("clod", s.setting).ms / comp.get(s.setting.split(":")[1], s.setting.split(":")[2]).ms
               for s in comp.settings if s.method == "clod" and s.setting.startswith("match:")]
-    frames = [m for _, m in lev + bud]
-    return {"level_step": worst_step([m for _, m in lev]), "budget_step": worst_step([m for _, m in bud]),
-            "over_input": max(frames) / comp.input.ms if frames else float("nan"),
-            "count_ratio": max(ratios) if ratios else float("nan")}
+    out = {"count_ratio": max(ratios) if ratios else float("nan")}
+    rr = comp.sweep_rounds
+    if rr:
+        inp = rr["input"]
+        over = [statistics.median(b / a for a, b in zip(inp, rr[s.setting])) for _, s in lev + bud]
+        return {**out, "level_step": paired_worst_step([rr[s.setting] for _, s in lev]),
+                "budget_step": paired_worst_step([rr[s.setting] for _, s in bud]),
+                "over_input": max(over) if over else float("nan")}
+    frames = [s.ms for _, s in lev + bud]
+    return {**out, "level_step": worst_step([s.ms for _, s in lev]), "budget_step": worst_step([s.ms for _, s in bud]),
+            "over_input": max(frames) / comp.input.ms if frames else float("nan")}
 
 
 # --- what is said ------------------------------------------------------------------------------
@@ -622,7 +673,8 @@ def plot(path, results: dict) -> None:
 def plot_cost(path, results: dict) -> None:
     """Frame time against the level, one row per ``{title: Comparison}``: the adapted model's
     ms along ``s_v`` (left) and along the count budgets (right, share of the Gaussians in view), as
-    shares of the input's frame, the decimators' points beside the budgets; written atomically."""
+    shares of the input's frame (paired, :attr:`Comparison.sweep_rounds`, when measured), the
+    decimators' points beside the budgets; written atomically."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -632,14 +684,18 @@ def plot_cost(path, results: dict) -> None:
 
     fig, axes = plt.subplots(len(results), 2, figsize=(10.4, 3.4 * len(results)), squeeze=False)
     for (ax_l, ax_b), (title, comp) in zip(axes, results.items()):
-        t0 = comp.input.ms
-        lev = sorted((float(s.setting[4:]), 100 * s.ms / t0) for s in comp.settings
-                     if s.method == "clod" and s.setting.startswith("s_v="))
-        ax_l.plot(*zip(*lev), "o-", ms=3, color=STYLE["clod"][0])
+        t0, rr = comp.input.ms, comp.sweep_rounds
+
+        def share(s: Setting) -> float:
+            if rr:
+                return 100 * statistics.median(b / a for a, b in zip(rr["input"], rr[s.setting]))
+            return 100 * s.ms / t0
+
+        lev, bud = _sweep(comp)
+        ax_l.plot([k for k, _ in lev], [share(s) for _, s in lev], "o-", ms=3, color=STYLE["clod"][0])
         ax_l.set_xscale("log")
         ax_l.set_xlabel("s_v")
-        bud = sorted((100 * float(s.setting[8:]), 100 * s.ms / t0) for s in comp.settings
-                     if s.method == "clod" and s.setting.startswith("in_view="))
+        bud = [(-100 * k, share(s)) for k, s in bud]
         ax_b.plot(*zip(*bud), "o-", ms=3, color=STYLE["clod"][0], label="adapted, count budget")
         for m in DECIMATORS:
             pts = [(100 * comp.in_view_share(s), 100 * s.ms / t0) for s in comp.settings if s.method == m]

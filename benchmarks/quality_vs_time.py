@@ -404,7 +404,8 @@ def main(argv=None) -> int:
             f.write(qvt.csv_text(rec["comparison"]))
         with atomic_write(out / f"{name}.json", "w") as f:
             json.dump({"cells": qvt.cells_json(rec["cells"]), "verdict": rec["verdict"], "goals": rec["goals"],
-                       "full_ratio": rec["comparison"].full_ratio}, f, indent=1, default=str)
+                       "full_ratio": rec["comparison"].full_ratio, "sweep_rounds": rec["comparison"].sweep_rounds},
+                      f, indent=1, default=str)
     qvt.plot(out / "quality_vs_time.png", {r["label"]: r["comparison"] for r in records})
     qvt.plot_cost(out / "frame_time.png", {r["label"]: r["comparison"] for r in records})
     (out / "summary.md").write_text("\n".join(summary_md(r) for r in records))

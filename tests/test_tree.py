@@ -266,6 +266,12 @@ def test_a_count_budget_that_holds_tier_0_draws_it_without_a_sweep(model, monkey
         assert r.s_v == 1.0 and torch.equal(r.image, want.image) and r.n_rendered == want.n_rendered
         assert tree_select(g, cam, budget=b)[0].s_v == 1.0
     assert not calls
+    frames = []
+    real_frame = tree.frame
+    monkeypatch.setattr(tree, "frame", lambda *a, **k: frames.append(1) or real_frame(*a, **k))
+    for b in (Budget(in_view=1.0), Budget(count=len(g)), Budget(share=1.0)):  # hold tier 0 whatever the view
+        assert torch.equal(render_lod(g, cam, budget=b).image, want.image)
+    assert not frames  # no per-node pass for them
     fewer = render_lod(g, cam, budget=Budget(count=n0 - 1))
     assert calls and fewer.s_v > 1.0 and fewer.n_rendered < want.n_rendered
 

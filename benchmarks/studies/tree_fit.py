@@ -17,6 +17,11 @@ scored (the fit's seconds are printed for scale). No goal is enforced (a study: 
     python -m benchmarks.studies.tree_fit --steps 1000 --budget-steps 0.5
     python -m benchmarks.studies.tree_fit --steps 1000 2000 --budget-steps 0.5 --half
     python -m benchmarks.studies.tree_fit --as-adapted --config tier_iteration_share=0.5
+    python -m benchmarks.studies.tree_fit --steps 1000 --budget-steps 0.5 --spread 2 4
+
+``--spread R ...`` builds the tree with each tier's hand-overs spread over a factor ``R`` of ``s_v``
+(:func:`clod_adapter.lod.tree.build`'s ``spread``; default its :data:`clod_adapter.lod.tree.SPREAD`),
+one set of rows per value.
 
 ``--config KEY=VALUE ...`` takes the adaptation with those ``AdaptConfig`` settings (cached under
 their tag) instead of the defaults; ``--as-adapted`` scores it as the job fitted its tree (one row,
@@ -53,9 +58,10 @@ from clod_adapter.train.tree_fit import finetune
 SHARES = (0.75, 0.5, 0.3, 0.15, 0.08, 0.03)
 
 
-def unfitted_tree(ply, fit: list, scene, cfg: AdaptConfig):
+def unfitted_tree(ply, fit: list, scene, cfg: AdaptConfig, spread=None):
     """The job's tree before its fit, from the cached adaptation ``ply``: its tier 0 and the
-    merged tiers under ``parents/`` linked and built again on the fit views."""
+    merged tiers under ``parents/`` linked and built again on the fit views (``spread``: as
+    :func:`clod_adapter.lod.tree.build`'s)."""
     final = load_model(ply)
     t0 = tree.own_model(final)
     dirs, p = [], ply.parent / "parents"
@@ -65,7 +71,7 @@ def unfitted_tree(ply, fit: list, scene, cfg: AdaptConfig):
     cands = [read_ply(d / "point_cloud.ply", unlinked_tiers=True) for d in dirs]
     ch = tiers.choice_views(fit)
     linked, _ = tiers.link(t0, cands, ch, [scene.load_image(c) for c in ch], background=cfg.background)
-    built = tree.build(linked, fit)
+    built = tree.build(linked, fit, spread=spread)
     a, b = tree.tiers_of(built), tree.tiers_of(final)
     same = len(a) == len(b) and all(len(x) == len(y) and torch.equal(x.sigma_d, y.sigma_d) for x, y in zip(a, b))
     return built, same
@@ -93,12 +99,13 @@ def study(name: str, args) -> list[list]:
         sig = lightgaussian_significance(base, fit)
         fitted = metrics_of(ply)["tier"].get("tree_fit", {})
         r = scores(load_model(ply), base, val, gts, sig, args.popping_views)
-        row = [name, tag, fitted.get("steps", "-"), f"{cfg.tree_budget_steps:g}", "full (job)",
+        row = [name, tag, f"{tree.SPREAD:g}", fitted.get("steps", "-"), f"{cfg.tree_budget_steps:g}", "full (job)",
                f"{fitted.get('seconds', 0):.0f}", " / ".join(f"{x:.1f}" for x in r["budget_pop"]),
                " / ".join(f"{x:.1f}" for x in r["s_v_pop"]), *[f"{r[s]:.2f}" for s in SHARES]]
         print(" | ".join(map(str, row)), flush=True)
         return [row]
-    built, same = unfitted_tree(ply, fit, scene, cfg)
+    spreads = args.spread or [None]
+    built, same = unfitted_tree(ply, fit, scene, cfg, spreads[0])
     print(f"[{name}] tree {[len(t) for t in tree.tiers_of(built)]}; node constants equal the cached "
           f"model's: {same}", flush=True)
     fit_cams, fit_scene = fit, scene
@@ -109,13 +116,26 @@ def study(name: str, args) -> list[list]:
     fit_imgs = [fit_scene.load_image(c) for c in fit_cams]
     sig = lightgaussian_significance(base, fit)
     rows = []
+    for spread in spreads:
+        if spread != spreads[0]:
+            built = unfitted_tree(ply, fit, scene, cfg, spread)[0]
+        rows += fit_rows(name, tag, built, base, (fit_cams, fit_imgs), (val, gts), sig, cfg, args, spread)
+    return rows
+
+
+def fit_rows(name, tag, built, base, fit_views, val_views, sig, cfg: AdaptConfig, args, spread) -> list[list]:
+    """One row per ``--steps`` value: ``built`` fitted that long on ``fit_views`` (cameras,
+    images) and scored on ``val_views``."""
+    (fit_cams, fit_imgs), (val, gts) = fit_views, val_views
+    rows = []
     for n in args.steps:
         t = time.perf_counter()
         g = finetune(built, fit_cams, fit_imgs, n, background=cfg.background, seed=cfg.seed,
                      budget_steps=args.budget_steps)
         sec = time.perf_counter() - t
         r = scores(g, base, val, gts, sig, args.popping_views)
-        row = [name, tag, n, f"{args.budget_steps:g}", "half" if args.half else "full", f"{sec:.0f}",
+        row = [name, tag, f"{tree.SPREAD if spread is None else spread:g}", n, f"{args.budget_steps:g}",
+               "half" if args.half else "full", f"{sec:.0f}",
                " / ".join(f"{x:.1f}" for x in r["budget_pop"]), " / ".join(f"{x:.1f}" for x in r["s_v_pop"]),
                *[f"{r[s]:.2f}" for s in SHARES]]
         print(" | ".join(map(str, row)), flush=True)
@@ -133,15 +153,17 @@ def main(argv=None) -> int:
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--config", nargs="+", metavar="KEY=VALUE", help="the adaptation's AdaptConfig settings")
     ap.add_argument("--as-adapted", action="store_true", help="score the adaptation's own fit (no fit here)")
+    ap.add_argument("--spread", type=float, nargs="+", help="the tree's hand-over spread R (default: tree.SPREAD)")
     args = ap.parse_args(argv)
     setup_threads(args.threads)
     rows = [r for name in selected_inputs(args) for r in study(name, args)]
-    head = ["input", "adaptation", "steps", "budget steps", "resolution", "fit s", "popping along budgets",
+    head = ["input", "adaptation", "spread", "steps", "budget steps", "resolution", "fit s", "popping along budgets",
             "popping along s_v", *[f"PSNR {int(100 * s)} % in view" for s in SHARES]]
     text = table(head, rows)
     name = ("tree_fit" + (f"_{parse_config(args.config)[1]}" if args.config else "")
             + ("_adapted" if args.as_adapted else (f"_budget{args.budget_steps:g}" if args.budget_steps else "")
-               + ("_half" if args.half else "")))
+               + ("_half" if args.half else "")
+               + ("_spread" + "-".join(f"{x:g}" for x in args.spread) if args.spread else "")))
     print(text)
     print(write_summary(name, text))
     return 0

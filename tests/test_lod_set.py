@@ -34,6 +34,28 @@ def test_level_settings_halve_the_share():
     assert all(abs(b / a - 0.5) < 1e-3 for a, b in zip(shares, shares[1:]))
 
 
+def test_lod_set_levels_are_a_trees_tiers_whole_or_the_models_cuts():
+    import torch
+
+    from clod_adapter.export.bake import lod_level, lod_set_levels
+    from clod_adapter.io.synthetic import make_cameras
+    from clod_adapter.lod import tree
+    from clod_adapter.train import tiers
+    from test_tiers import _adapted
+
+    cams = make_cameras(2, 3)
+    t1 = tiers.attach(_adapted(300, 2), _adapted(60, 3), 2.5, 1.5)
+    g = tree.build(tiers.attach(_adapted(1200, 0), t1, 2.0, 1.25), cams)
+    levels = lod_set_levels(g, cams)
+    assert [len(lv) for lv, _ in levels] == [len(t) for t in tree.tiers_of(g)] and len(levels) == 3
+    assert all(s is None and lv.sigma_d is None for lv, s in levels)
+    assert torch.equal(levels[1][0].means, tree.tiers_of(g)[1].means)  # a tier whole, as fitted
+    plain = _adapted(1200, 0)
+    levels = lod_set_levels(plain, cams)
+    assert [s for _, s in levels] == lod_set_s_vs(plain.lod.max_sv)
+    assert [len(lv) for lv, _ in levels] == [len(lod_level(plain, cams, s)) for s in lod_set_s_vs(plain.lod.max_sv)]
+
+
 @pytest.fixture(scope="module")
 def lod_set(tiny_adapted, tiny_model, tmp_path_factory) -> Path:
     """``clod-export ADAPTED -s SCENE --lod-meta DIR`` (DIR alone: the output folder too)."""

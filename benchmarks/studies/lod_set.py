@@ -4,8 +4,9 @@ For each input (default: fern and skull, a 360-degree capture) this takes the de
 (cached, common.py) and builds two PlayCanvas streamed-SOG LoD sets with splat-transform 3.7.0:
 
 * ``clod``: the adapted model's levels as ``clod-export --lod-meta`` cuts them
-  (:func:`clod_adapter.export.bake.lod_level` at each of :func:`clod_adapter.export.bake.lod_set_s_vs`,
-  reference distances from the fit views);
+  (:func:`clod_adapter.export.bake.lod_set_levels`: a merge tree's tiers, each whole; a model
+  without one cut at each of :func:`clod_adapter.export.bake.lod_set_s_vs`, reference distances
+  from the fit views);
 * ``decimate`` / ``decimate_adaptive``: splat-transform's own levels for the same counts, the
   chain a LoD builder runs: level 0 the input, level k + 1 the tool's ``--decimate`` (or
   ``--decimate-adaptive``) of level k down to our level k + 1's count;
@@ -37,7 +38,7 @@ from benchmarks.common import LABELS, RUNS, adapt_cached, load_input, parse_inpu
 
 import torch
 
-from clod_adapter.export.bake import importance_order, lod_level, lod_set_s_vs
+from clod_adapter.export.bake import importance_order, lod_set_levels
 from clod_adapter.lod.rankings import merge_decimate
 from clod_adapter.lod.draw import render_lod
 from clod_adapter.io.load import load_model
@@ -45,7 +46,6 @@ from clod_adapter.io.ply import write_ply
 from clod_adapter.metrics import psnr, ssim
 from clod_adapter.io.splat_transform import find_splat_transform, run_splat_transform, write_lod_set
 from clod_adapter.train.config import AdaptConfig
-from clod_adapter.train.loop import reference_distances
 
 PEERS = {"decimate": "decimate", "decimate_adaptive": "adaptive"}
 COLUMNS = ["input", "method", "level", "s_v", "gaussians", "psnr", "ssim", "set_bytes"]
@@ -84,11 +84,10 @@ def run_input(name: str, split: str, log, sh_iterations=None, sog: bool = True) 
     g0, scene, gts = load_input(name, split)
     fit, cams = scene_views(scene, split)
     ga = load_model(ply)
-    s_vs = lod_set_s_vs(ga.lod.max_sv if ga.lod is not None else 5.0)
     t0 = time.perf_counter()
     with torch.no_grad():
-        d_ref = reference_distances(ga, fit)
-        ours = [lod_level(ga, fit, s, d_ref=d_ref) for s in s_vs]
+        ours, s_vs = zip(*lod_set_levels(ga, fit))
+    ours, s_vs = list(ours), ["" if s is None else s for s in s_vs]
     counts = [len(g) for g in ours]
     log(f"[{name}] baked {len(s_vs)} levels {counts} in {time.perf_counter() - t0:.0f} s")
     sets = {"clod": ours}

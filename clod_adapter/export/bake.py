@@ -29,7 +29,7 @@ from ..lod import rule as lod
 from ..gaussians import Gaussians, concat
 from ..metrics import psnr
 from ..lod.budget import Budget
-from ..lod.draw import PAPER, render_lod
+from ..lod.draw import PAPER, render_lod, tier_chain
 from ..lod.view import view_lod
 from ..lod.cut import tree_select
 from ..lod.tree import in_frustum, is_tree, leads, tiers_of
@@ -223,6 +223,29 @@ def lod_set_s_vs(max_sv: float) -> list[float]:
 
 
 @torch.no_grad()
+def lod_set_levels(gaussians: Gaussians, cameras: Sequence) -> list[tuple[Gaussians, Optional[float]]]:
+    """The levels of ``clod-export --lod-meta``'s streamed LoD set, finest first: ``[(level, s_v)]``,
+    each level a plain model (``sigma_d`` dropped). A merge tree
+    (:func:`clod_adapter.lod.tree.is_tree`): its tiers (:func:`clod_adapter.lod.draw.tier_chain`),
+    each whole (``s_v`` None): an engine that streams a LoD set picks a level per chunk by distance
+    itself, and a tier is the tree's stand-in at that distance. Otherwise the model's own Gaussians
+    cut at each of :func:`lod_set_s_vs` of its ``max_sv`` by :func:`lod_level` (reference
+    distances over ``cameras``, the training views).
+
+    Raises:
+        ValueError: a model without a tree and without ``sigma_d``."""
+    from ..train.loop import reference_distances
+
+    if is_tree(gaussians):
+        return [(t.with_sigma_d(None), None) for t in tier_chain(gaussians)]
+    own = replace(gaussians, parents=None)
+    _require_sigma(own, "lod_set_levels")
+    d_ref = reference_distances(own, cameras)
+    s_vs = lod_set_s_vs(own.lod.max_sv if own.lod is not None else 5.0)
+    return [(lod_level(own, cameras, s, d_ref=d_ref), s) for s in s_vs]
+
+
+@torch.no_grad()
 def lod_level(gaussians: Gaussians, cameras: Sequence, s_v: float, *, d_ref: Optional[Tensor] = None) -> Gaussians:
     """One level of a discrete LoD set: a standard model (``sigma_d = None``) of the Gaussians
     whose critical ``s_v`` (:func:`clod_adapter.lod.budget.critical_s_v`) at their reference distance
@@ -234,9 +257,9 @@ def lod_level(gaussians: Gaussians, cameras: Sequence, s_v: float, *, d_ref: Opt
     View-independent, unlike :func:`bake` (the union of what each view draws): an engine that
     streams a LoD set picks a level per chunk by distance itself, and on a 360-degree capture the
     union over the training views keeps nearly everything (``benchmarks/studies/lod_set_cuts.py``, skull's
-    validation views: 91 / 84 / 45 % of the model at ``s_v`` = 1.59 / 2.52 / 4, 3.5-6.8 dB below
-    the decimator at equal count; this cut: 46 / 17 / 6 %, -2.0 / -1.7 / +0.3 dB; fern: both
-    +2.7 to +4.0 dB).
+    validation views: more rows than tier 0 at ``s_v`` = 1.59 / 2.52 / 4, 2.9-5.1 dB below the
+    decimator at equal count; this cut: 47 / 18 / 6 %, +0.07 / -0.28 / -0.11 dB; fern: the union
+    +0.8 to +2.8 dB, this cut +2.9 to +3.4).
 
     Args:
         gaussians: adapted model (``sigma_d`` required).

@@ -177,47 +177,23 @@ def _derive(model, scene, test_cams, test_imgs, o: ExportOptions, rep: dict, ste
 
 
 def _lod_levels(model, scene, test_cams, test_imgs, rep: dict, step) -> list:
-    """The LoD set's levels, finest first, each scored on the test views as a plain model;
-    ``rep["lod_meta"]`` says how they were cut. A model without a merge tree: the model cut at
-    each of :func:`clod_adapter.export.bake.lod_set_s_vs` of its ``max_sv``
-    (:func:`clod_adapter.export.bake.lod_level`, reference distances from the training views). A
-    merge tree: its tiers (:func:`clod_adapter.lod.draw.tier_chain`), each whole
-    (:func:`_tree_levels`). Returns the levels."""
+    """The LoD set's levels (:func:`clod_adapter.export.bake.lod_set_levels`: a merge tree's
+    tiers, each whole; else the model cut at each of :func:`clod_adapter.export.bake.lod_set_s_vs`,
+    reference distances from the training views), finest first, each scored on the test views as a
+    plain model; ``rep["lod_meta"]`` says how they were cut. Returns the levels."""
     from ..export import bake as ex
-    from ..lod.draw import tier_chain
     from ..metrics import psnr
-    from ..train.loop import reference_distances
 
-    if model.lod is not None and model.lod.tree:  # a merge tree: its tiers whole are the levels
-        return _tree_levels(tier_chain(model), test_cams, test_imgs, rep, step)
-    max_sv = model.lod.max_sv if model.lod is not None else 5.0
-    own = replace(model, parents=None)
-    d_ref = reference_distances(own, scene.train)
+    tree = model.lod is not None and model.lod.tree
     levels, rows = [], []
-    for k, s in enumerate(ex.lod_set_s_vs(max_sv)):
-        g = ex.lod_level(own, scene.train, s, d_ref=d_ref)
+    for k, (g, s) in enumerate(ex.lod_set_levels(model, scene.train)):
         ps = [psnr(ex.render_lod(g, c).image, gt, cap=True) for c, gt in zip(test_cams, test_imgs)]
         levels.append(g)
-        rows.append({"level": k, "tier": 0, "s_v": s, "gaussians": len(g),
+        rows.append({"level": k, "tier": k if tree else 0, "s_v": s, "gaussians": len(g),
                      "psnr_test": sum(ps) / len(ps)})
     rep["lod_meta"] = {"levels": rows, "tool": "splat-transform",
-                       "cut": "critical s_v at the reference distance (training views)"}
-    step()
-    return levels
-
-
-def _tree_levels(tiers, test_cams, test_imgs, rep: dict, step) -> list:
-    """:func:`_lod_levels` of a merge tree: each tier whole, finest first, as a plain model."""
-    from ..export import bake as ex
-    from ..metrics import psnr
-
-    levels, rows = [], []
-    for k, t in enumerate(tiers):
-        g = t.with_sigma_d(None)
-        ps = [psnr(ex.render_lod(g, c).image, gt, cap=True) for c, gt in zip(test_cams, test_imgs)]
-        levels.append(g)
-        rows.append({"level": k, "tier": k, "s_v": None, "gaussians": len(g), "psnr_test": sum(ps) / len(ps)})
-    rep["lod_meta"] = {"levels": rows, "tool": "splat-transform", "cut": "the merge tree's tiers, each whole"}
+                       "cut": "the merge tree's tiers, each whole" if tree
+                       else "critical s_v at the reference distance (training views)"}
     step()
     return levels
 

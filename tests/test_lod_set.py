@@ -46,10 +46,19 @@ def test_lod_set_levels_are_a_trees_tiers_whole_or_the_models_cuts():
     cams = make_cameras(2, 3)
     t1 = tiers.attach(_adapted(300, 2), _adapted(60, 3), 2.5, 1.5)
     g = tree.build(tiers.attach(_adapted(1200, 0), t1, 2.0, 1.25), cams)
-    levels = lod_set_levels(g, cams)
-    assert [len(lv) for lv, _ in levels] == [len(t) for t in tree.tiers_of(g)] and len(levels) == 3
+    ts = tree.tiers_of(g)
+    levels = lod_set_levels(g, cams, tree_levels="tiers")
+    assert [len(lv) for lv, _ in levels] == [len(t) for t in ts] and len(levels) == 3
     assert all(s is None and lv.sigma_d is None for lv, s in levels)
-    assert torch.equal(levels[1][0].means, tree.tiers_of(g)[1].means)  # a tier whole, as fitted
+    assert torch.equal(levels[1][0].means, ts[1].means)  # a tier whole, as fitted
+    cut = lod_set_levels(g, cams)  # the default: the tree's own cut at the reference distances
+    assert len(cut) == 3 and torch.equal(cut[0][0].means, ts[0].means) and cut[0][1] == 1.0
+    assert all(0 < len(lv) <= len(t) for (lv, _), t in zip(cut[1:], ts[1:]))  # at most a tier's count
+    assert cut[1][1] < cut[2][1] and all(lv.sigma_d is None for lv, _ in cut)
+    rows = torch.cat([t.means for t in ts])
+    assert all(bool((lv.means[:, None] == rows[None]).all(-1).any(-1).all()) for lv, _ in cut)  # nodes as they are
+    with pytest.raises(ValueError, match="tree_levels"):
+        lod_set_levels(g, cams, tree_levels="chain")
     plain = _adapted(1200, 0)
     levels = lod_set_levels(plain, cams)
     assert [s for _, s in levels] == lod_set_s_vs(plain.lod.max_sv)

@@ -4,9 +4,9 @@ For each input (default: fern and skull, a 360-degree capture) this takes the de
 (cached, common.py) and builds two PlayCanvas streamed-SOG LoD sets with splat-transform 3.7.0:
 
 * ``clod``: the adapted model's levels as ``clod-export --lod-meta`` cuts them
-  (:func:`clod_adapter.export.bake.lod_set_levels`: a merge tree's tiers, each whole; a model
-  without one cut at each of :func:`clod_adapter.export.bake.lod_set_s_vs`, reference distances
-  from the fit views);
+  (:func:`clod_adapter.export.bake.lod_set_levels`: a merge tree cut at each node's reference
+  distance, as many nodes per level as each merged tier; a model without one cut at each of
+  :func:`clod_adapter.export.bake.lod_set_s_vs`, reference distances from the fit views);
 * ``decimate`` / ``decimate_adaptive``: splat-transform's own levels for the same counts, the
   chain a LoD builder runs: level 0 the input, level k + 1 the tool's ``--decimate`` (or
   ``--decimate-adaptive``) of level k down to our level k + 1's count;
@@ -25,6 +25,11 @@ better decimator's, for the LoD set and for the prefixes; the script prints the 
 
     python -m benchmarks.studies.lod_set                 # fern and skull, test views
     python -m benchmarks.studies.lod_set --inputs skull --split val
+    python -m benchmarks.studies.lod_set --no-sog --split val --tree-levels tiers   # the tiers whole
+
+``--tree-levels tiers`` exports a merge tree's tiers whole instead of the tree's own cut at each
+node's reference distance (:func:`clod_adapter.export.bake.lod_set_levels`); written under
+``runs/bench/lod_set_tiers{_val}``.
 """
 from __future__ import annotations
 
@@ -79,14 +84,14 @@ def build_set(name: str, levels: list, root: Path, tmp: Path, sh_iterations=None
     return out / "lod-meta.json", sum(p.stat().st_size for p in out.rglob("*") if p.is_file())
 
 
-def run_input(name: str, split: str, log, sh_iterations=None, sog: bool = True) -> list[dict]:
+def run_input(name: str, split: str, log, sh_iterations=None, sog: bool = True, tree_levels: str = "cut") -> list[dict]:
     ply = adapt_cached(name, AdaptConfig(), "default", split=split, log=log)
     g0, scene, gts = load_input(name, split)
     fit, cams = scene_views(scene, split)
     ga = load_model(ply)
     t0 = time.perf_counter()
     with torch.no_grad():
-        ours, s_vs = zip(*lod_set_levels(ga, fit))
+        ours, s_vs = zip(*lod_set_levels(ga, fit, tree_levels=tree_levels))
     ours, s_vs = list(ours), ["" if s is None else s for s in s_vs]
     counts = [len(g) for g in ours]
     log(f"[{name}] baked {len(s_vs)} levels {counts} in {time.perf_counter() - t0:.0f} s")
@@ -142,17 +147,19 @@ def main(argv=None) -> int:
         ("--sog-sh-iterations", {"type": int, "default": None, "help": "splat-transform --sh-iterations"}),
         ("--summary-only", {"action": "store_true", "help": "rewrite summary.md from the .csv files there"}),
         ("--no-sog", {"action": "store_true", "help": "score the levels as plain .ply files, without building and "
-                                                      "reading back the SOG sets (their SH k-means is slow on the CPU)"})])
+                                                      "reading back the SOG sets (their SH k-means is slow on the CPU)"}),
+        ("--tree-levels", {"choices": ["cut", "tiers"], "default": "cut",
+                           "help": "a merge tree's levels (export.bake.lod_set_levels; default cut)"})])
     if find_splat_transform() is None:
         sys.exit("benchmark: splat-transform not found (`npm ci` in the repository root installs 3.7.0)")
     log = lambda *x: print(*x, flush=True)  # noqa: E731
-    out = RUNS / f"lod_set{split_suffix(a.split)}"
+    out = RUNS / f"lod_set{'' if a.tree_levels == 'cut' else '_' + a.tree_levels}{split_suffix(a.split)}"
     out.mkdir(parents=True, exist_ok=True)
     for name in [] if a.summary_only else a.inputs:
         with open(out / f"{name}.csv", "w", newline="") as f:
             w = csv.DictWriter(f, fieldnames=COLUMNS)
             w.writeheader()
-            w.writerows(run_input(name, a.split, log, a.sog_sh_iterations, sog=not a.no_sog))
+            w.writerows(run_input(name, a.split, log, a.sog_sh_iterations, sog=not a.no_sog, tree_levels=a.tree_levels))
     names = [n for n in LABELS if (out / f"{n}.csv").is_file()]
     rows = [r for n in names for r in csv.DictReader(open(out / f"{n}.csv"))]
     for r in rows:

@@ -49,9 +49,10 @@ def build_parser():
     p.add_argument("--ordered", action="store_true", help="write ordered.ply and score its prefixes")
     p.add_argument("--lod-meta", nargs="?", const="", default=None, metavar="DIR",
                    help="write a streamed-SOG LoD set (lod-meta.json + chunks; PlayCanvas, SuperSplat, Babylon.js) "
-                        "of the model's levels, each baked at s_v = 1, 1.59, 2.52, 4, ... (the share in view "
-                        "halving per level) up to max_sv, through splat-transform (`npm ci`); into DIR, "
-                        "default OUTDIR")
+                        "of the model's levels: with a merge tree, the model whole, then the tree's cut at each "
+                        "node's reference distance with as many Gaussians as each merged tier; without one, baked "
+                        "at s_v = 1, 1.59, 2.52, 4, ... (the share in view halving per level) up to max_sv; "
+                        "through splat-transform (`npm ci`); into DIR, default OUTDIR")
     p.add_argument("--sog-sh-iterations", type=int, default=None, metavar="N",
                    help="k-means iterations of the LoD set's SH palette (splat-transform --sh-iterations; default "
                         "its 10). On the CPU this dominates: fewer iterations for large SH-3 models")

@@ -222,22 +222,48 @@ def lod_set_s_vs(max_sv: float) -> list[float]:
     return out or [1.0]
 
 
+#: how a merge tree's LoD set is cut (:func:`lod_set_levels`)
+TREE_LEVELS = ("tiers", "cut")
+
+
 @torch.no_grad()
-def lod_set_levels(gaussians: Gaussians, cameras: Sequence) -> list[tuple[Gaussians, Optional[float]]]:
+def lod_set_levels(gaussians: Gaussians, cameras: Sequence, *,
+                   tree_levels: str = "cut") -> list[tuple[Gaussians, Optional[float]]]:
     """The levels of ``clod-export --lod-meta``'s streamed LoD set, finest first: ``[(level, s_v)]``,
     each level a plain model (``sigma_d`` dropped). A merge tree
-    (:func:`clod_adapter.lod.tree.is_tree`): its tiers (:func:`clod_adapter.lod.draw.tier_chain`),
-    each whole (``s_v`` None): an engine that streams a LoD set picks a level per chunk by distance
-    itself, and a tier is the tree's stand-in at that distance. Otherwise the model's own Gaussians
-    cut at each of :func:`lod_set_s_vs` of its ``max_sv`` by :func:`lod_level` (reference
-    distances over ``cameras``, the training views).
+    (:func:`clod_adapter.lod.tree.is_tree`), ``tree_levels``:
+
+    * ``"cut"`` (default): tier 0 whole, then per merged tier the tree's view-independent cut with
+      as many nodes: every node at its reference ``d'`` (:func:`clod_adapter.lod.tree.reference_distances`
+      over ``cameras``), the level :func:`clod_adapter.lod.tree.budget_s_v` solves for that
+      count, each drawn node at its own attributes (``s_v`` that level). An engine that streams
+      the set picks a level per chunk by distance itself; each level is the tree's own stand-in
+      for the scene at its usual distances (``benchmarks/studies/lod_set.py``, validation views:
+      ahead of its tiers whole at 5 of 6 levels of fern and skull);
+    * ``"tiers"``: its tiers (:func:`clod_adapter.lod.draw.tier_chain`), each whole (``s_v`` None).
+
+    Otherwise the model's own Gaussians cut at each of :func:`lod_set_s_vs` of its ``max_sv`` by
+    :func:`lod_level` (reference distances over ``cameras``, the training views).
 
     Raises:
-        ValueError: a model without a tree and without ``sigma_d``."""
+        ValueError: a model without a tree and without ``sigma_d``; ``tree_levels`` not one of
+        :data:`TREE_LEVELS`."""
+    from ..lod import tree as tr
     from ..train.loop import reference_distances
 
+    if tree_levels not in TREE_LEVELS:
+        raise ValueError(f"lod_set_levels: tree_levels must be one of {', '.join(TREE_LEVELS)}, got {tree_levels!r}")
     if is_tree(gaussians):
-        return [(t.with_sigma_d(None), None) for t in tier_chain(gaussians)]
+        ts = tier_chain(gaussians)
+        if tree_levels == "tiers":
+            return [(t.with_sigma_d(None), None) for t in ts]
+        ds = [d.to(t.means.dtype) for d, t in zip(tr.reference_distances(ts, cameras), ts)]
+        tt = tr.terms(ts, None, at=(ds, [torch.ones(len(t), dtype=torch.bool, device=t.means.device) for t in ts]))
+        out = [(ts[0].with_sigma_d(None), 1.0)]
+        for t in ts[1:]:
+            c = tr.cut(ts, None, tr.budget_s_v(tt, float(len(t))), tt=tt)
+            out.append((concat([m.with_sigma_d(None).subset(i) for m, i in zip(ts, c.ids) if i.numel()]), c.s_v))
+        return out
     own = replace(gaussians, parents=None)
     _require_sigma(own, "lod_set_levels")
     d_ref = reference_distances(own, cameras)

@@ -177,10 +177,11 @@ def _derive(model, scene, test_cams, test_imgs, o: ExportOptions, rep: dict, ste
 
 
 def _lod_levels(model, scene, test_cams, test_imgs, rep: dict, step) -> list:
-    """The LoD set's levels (:func:`clod_adapter.export.bake.lod_set_levels`: a merge tree's
-    tiers, each whole; else the model cut at each of :func:`clod_adapter.export.bake.lod_set_s_vs`,
-    reference distances from the training views), finest first, each scored on the test views as a
-    plain model; ``rep["lod_meta"]`` says how they were cut. Returns the levels."""
+    """The LoD set's levels (:func:`clod_adapter.export.bake.lod_set_levels`: a merge tree's own
+    cut at each node's reference distance, as many nodes per level as each merged tier; else the
+    model cut at each of :func:`clod_adapter.export.bake.lod_set_s_vs`; reference distances from
+    the training views), finest first, each scored on the test views as a plain model;
+    ``rep["lod_meta"]`` says how they were cut. Returns the levels."""
     from ..export import bake as ex
     from ..metrics import psnr
 
@@ -189,11 +190,10 @@ def _lod_levels(model, scene, test_cams, test_imgs, rep: dict, step) -> list:
     for k, (g, s) in enumerate(ex.lod_set_levels(model, scene.train)):
         ps = [psnr(ex.render_lod(g, c).image, gt, cap=True) for c, gt in zip(test_cams, test_imgs)]
         levels.append(g)
-        rows.append({"level": k, "tier": k if tree else 0, "s_v": s, "gaussians": len(g),
-                     "psnr_test": sum(ps) / len(ps)})
+        rows.append({"level": k, "s_v": s, "gaussians": len(g), "psnr_test": sum(ps) / len(ps)})
     rep["lod_meta"] = {"levels": rows, "tool": "splat-transform",
-                       "cut": "the merge tree's tiers, each whole" if tree
-                       else "critical s_v at the reference distance (training views)"}
+                       "cut": "the merge tree's cut at each node's reference distance, a merged tier's count per "
+                              "level" if tree else "critical s_v at the reference distance (training views)"}
     step()
     return levels
 
@@ -343,7 +343,7 @@ def summary(rep: dict) -> str:
                      f"(render_lod {b['psnr_test_render_lod']:.2f})")
     if "lod_meta" in rep:
         for r in rep["lod_meta"]["levels"]:
-            at = f"s_v = {r['s_v']:g}" if r["s_v"] is not None else f"tier {r['tier']} whole"
+            at = f"s_v = {r['s_v']:g}" if r["s_v"] is not None else f"tier {r['level']} whole"
             lines.append(f"LoD set level {r['level']} ({at}): {r['gaussians']:,} Gaussians, "
                          f"test PSNR {r['psnr_test']:.2f} dB")
         if "dir" in rep["lod_meta"]:

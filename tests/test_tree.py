@@ -351,7 +351,8 @@ def test_fitting_on_budget_cuts(model):
 
 def test_export_of_a_tree(model, tmp_path, tiny_model):
     """clod-export of a tree: the extended .ply keeps the tree and splat-transform reads it (its
-    vertex element, the model); the LoD set is the tiers whole."""
+    vertex element, the model); the LoD set is the tree's cut at the reference distances, one level
+    per tier."""
     import json
 
     from clod_adapter.cli.export import main as export_main
@@ -369,7 +370,9 @@ def test_export_of_a_tree(model, tmp_path, tiny_model):
     info = read_info(out / "point_cloud_clod.ply")
     assert info["numGaussians"] == len(g) and any(c["name"] == "parent" for c in info["extraColumns"])
     rows = json.loads((out / "export.json").read_text())["lod_meta"]["levels"]
-    assert [r["gaussians"] for r in rows] == [len(t) for t in tree.tiers_of(g)]
+    sizes = [len(t) for t in tree.tiers_of(g)]  # the tree's cut, at most a merged tier's count per level
+    assert len(rows) == len(sizes) and rows[0]["gaussians"] == sizes[0] and rows[0]["s_v"] == 1.0
+    assert all(0 < r["gaussians"] <= n for r, n in zip(rows[1:], sizes[1:])) and rows[1]["s_v"] < rows[2]["s_v"]
     assert read_info(out / "lod" / "lod-meta.json")["lodCounts"] == [r["gaussians"] for r in rows]
 
 

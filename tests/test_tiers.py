@@ -383,6 +383,16 @@ def test_tier_iteration_share_sets_each_tiers_steps():
             AdaptConfig(tier_iteration_share=bad)
 
 
+def test_tree_spread_is_a_factor_above_one():
+    from clod_adapter.lod.tree import SPREAD
+    from clod_adapter.train.config import AdaptConfig
+
+    assert AdaptConfig().tree_spread == SPREAD == 2.0 and AdaptConfig(tree_spread=3).tree_spread == 3.0
+    for bad in (1.0, 0.5, float("inf"), float("nan")):
+        with pytest.raises(ValueError, match="tree_spread"):
+            AdaptConfig(tree_spread=bad)
+
+
 def test_tree_budget_steps_is_a_share():
     from clod_adapter.train.config import AdaptConfig
     from clod_adapter.train.tree_fit import TREE_BUDGET_STEPS
@@ -414,6 +424,7 @@ def test_adapt_job_builds_the_tier_or_says_why_not(tiny_model, tmp_path, monkeyp
 
     from clod_adapter.cli.adapt import main
     from clod_adapter.io.splat_transform import find_splat_transform
+    from clod_adapter.train.config import AdaptConfig
     from conftest import FAST
 
     args = [str(tiny_model["ply"]), "--images", str(tiny_model["scene"]), *FAST]
@@ -430,6 +441,10 @@ def test_adapt_job_builds_the_tier_or_says_why_not(tiny_model, tmp_path, monkeyp
 
     reads, read = [], adapt_inputs.load_model  # every checkpoint the job reads, as it reads it
     monkeypatch.setattr(adapt_inputs, "load_model", lambda path, *a, **k: reads.append(str(path)) or read(path, *a, **k))
+    from clod_adapter.lod import tree as tree_mod
+
+    spreads, build = [], tree_mod.build  # the tree is built with the config's spread
+    monkeypatch.setattr(tree_mod, "build", lambda *a, **k: spreads.append(k.get("spread")) or build(*a, **k))
     out = tmp_path / "tier"
     assert main(args + ["-o", str(out), "--parent-share", "0.2,0.1", "--tier-finetune-steps", "7",
                         "--tier-iteration-share", "0.5", "--tier-downscale", "2"]) == 0
@@ -463,6 +478,7 @@ def test_adapt_job_builds_the_tier_or_says_why_not(tiny_model, tmp_path, monkeyp
     assert g.lod.tier_s_v == tier["tier_s_v"] and len(g.parents) == n_parents and g.lod.tree
     assert tier["tree"][:2] == [len(g), n_parents] and tier["tree_fit"]["steps"] == 2  # at most --iterations
     assert tier["tree_fit"]["budget_steps"] == 0.5  # the default: half the fit's steps on budget cuts
+    assert spreads == [AdaptConfig().tree_spread] == [tree_mod.SPREAD]
 
 
 @pytest.mark.slow

@@ -20,7 +20,7 @@ scored (the fit's seconds are printed for scale). No goal is enforced (a study: 
     python -m benchmarks.studies.tree_fit --steps 1000 --budget-steps 0.5 --spread 2 4
 
 ``--spread R ...`` builds the tree with each tier's hand-overs spread over a factor ``R`` of ``s_v``
-(:func:`clod_adapter.lod.tree.build`'s ``spread``; default its :data:`clod_adapter.lod.tree.SPREAD`),
+(:func:`clod_adapter.lod.tree.build`'s ``spread``; default the adaptation's ``tree_spread``),
 one set of rows per value.
 
 ``--config KEY=VALUE ...`` takes the adaptation with those ``AdaptConfig`` settings (cached under
@@ -71,7 +71,7 @@ def unfitted_tree(ply, fit: list, scene, cfg: AdaptConfig, spread=None):
     cands = [read_ply(d / "point_cloud.ply", unlinked_tiers=True) for d in dirs]
     ch = tiers.choice_views(fit)
     linked, _ = tiers.link(t0, cands, ch, [scene.load_image(c) for c in ch], background=cfg.background)
-    built = tree.build(linked, fit, spread=spread)
+    built = tree.build(linked, fit, spread=cfg.tree_spread if spread is None else spread)
     a, b = tree.tiers_of(built), tree.tiers_of(final)
     same = len(a) == len(b) and all(len(x) == len(y) and torch.equal(x.sigma_d, y.sigma_d) for x, y in zip(a, b))
     return built, same
@@ -99,7 +99,7 @@ def study(name: str, args) -> list[list]:
         sig = lightgaussian_significance(base, fit)
         fitted = metrics_of(ply)["tier"].get("tree_fit", {})
         r = scores(load_model(ply), base, val, gts, sig, args.popping_views)
-        row = [name, tag, f"{tree.SPREAD:g}", fitted.get("steps", "-"), f"{cfg.tree_budget_steps:g}", "full (job)",
+        row = [name, tag, f"{cfg.tree_spread:g}", fitted.get("steps", "-"), f"{cfg.tree_budget_steps:g}", "full (job)",
                f"{fitted.get('seconds', 0):.0f}", " / ".join(f"{x:.1f}" for x in r["budget_pop"]),
                " / ".join(f"{x:.1f}" for x in r["s_v_pop"]), *[f"{r[s]:.2f}" for s in SHARES]]
         print(" | ".join(map(str, row)), flush=True)
@@ -134,7 +134,7 @@ def fit_rows(name, tag, built, base, fit_views, val_views, sig, cfg: AdaptConfig
                      budget_steps=args.budget_steps)
         sec = time.perf_counter() - t
         r = scores(g, base, val, gts, sig, args.popping_views)
-        row = [name, tag, f"{tree.SPREAD if spread is None else spread:g}", n, f"{args.budget_steps:g}",
+        row = [name, tag, f"{cfg.tree_spread if spread is None else spread:g}", n, f"{args.budget_steps:g}",
                "half" if args.half else "full", f"{sec:.0f}",
                " / ".join(f"{x:.1f}" for x in r["budget_pop"]), " / ".join(f"{x:.1f}" for x in r["s_v_pop"]),
                *[f"{r[s]:.2f}" for s in SHARES]]

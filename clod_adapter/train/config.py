@@ -7,6 +7,7 @@ from dataclasses import dataclass
 from typing import Literal, Optional
 
 from ..lod import rule as lod
+from ..lod.tree import SPREAD
 from ..gaussians import GAIN_NAMES
 from ..io.scene import RESOLUTIONS
 from .official import OFFICIAL_LR
@@ -131,6 +132,11 @@ class AdaptConfig:
             (:func:`clod_adapter.train.tree_fit.finetune`'s ``budget_steps``). Default
             :data:`clod_adapter.train.tree_fit.TREE_BUDGET_STEPS` (0.5): the tree is trained on the
             cuts of both knobs (docs/studies.md "Fitting the tree on its cuts"); 0: levels only.
+        tree_spread: a tier's hand-overs spread over this factor of ``s_v`` by importance
+            (:func:`clod_adapter.lod.tree.build`'s ``spread``, > 1; default
+            :data:`clod_adapter.lod.tree.SPREAD`, 2). Set when the tree is built, so a model
+            adapted with another spread is another model (docs/studies.md "How far a tier's
+            hand-overs spread"); no command-line flag.
         tier_iteration_share: each merged tier learns its level of detail for this share of
             ``iterations`` (rounded, at least 1 when ``iterations`` > 0). Default 0.5: with the tree
             fitted on its cuts afterwards (``tree_steps``), half the steps score within 0.4 dB of
@@ -199,6 +205,7 @@ class AdaptConfig:
     tier_hand_over: Optional[float] = None
     tree_steps: int = 1000
     tree_budget_steps: float = 0.5
+    tree_spread: float = SPREAD
     faint_share: Optional[float] = None
     keep_share: float = 1.0
     recovery_steps: int = 1000
@@ -304,6 +311,9 @@ class AdaptConfig:
         self.tree_budget_steps = float(self.tree_budget_steps)
         if not 0.0 <= self.tree_budget_steps <= 1.0:
             raise ValueError(f"tree_budget_steps must be in [0, 1], got {self.tree_budget_steps}")
+        self.tree_spread = float(self.tree_spread)
+        if not (math.isfinite(self.tree_spread) and self.tree_spread > 1.0):
+            raise ValueError(f"tree_spread must be a factor > 1, got {self.tree_spread}")
         self.tier_iteration_share = float(self.tier_iteration_share)
         if not 0.0 < self.tier_iteration_share <= 1.0:
             raise ValueError(f"tier_iteration_share must be in (0, 1], got {self.tier_iteration_share}")

@@ -99,17 +99,16 @@ def tree_cut(gaussians: Gaussians, camera, s_v: Optional[float] = None, *, budge
     if s_v is not None:  # a level: no per-node terms kept
         return tree.cut(tiers, camera, float(s_v), hand_over=hand_over)
     if budget.counts:
-        n = len(tiers[0])
-        whole = budget.in_view >= 1.0 if budget.kind == "in_view" else budget.of(n) >= n
-        if whole:  # holds every tier-0 node whatever the view: no per-node pass
-            at = None
-        else:
-            at = tree.frame(tiers, camera)
-            n0 = int(at[1][0].sum())
-            k = budget.of(n, n0)
-        if at is None or k >= n0:  # every tier-0 node in the frustum: the level is 1, no sweep
+        def whole():  # every tier-0 node in the frustum: the level is 1, no sweep
             return None if whole_as_none else tree.cut(tiers, camera, 1.0, hand_over=hand_over)
-        return tree.budget_cut(tiers, camera, k, hand_over=hand_over, at=at)
+
+        n = len(tiers[0])
+        if (budget.in_view >= 1.0) if budget.kind == "in_view" else budget.of(n) >= n:
+            return whole()  # holds every tier-0 node whatever the view: no per-node pass
+        at = tree.frame(tiers, camera)
+        n0 = int(at[1][0].sum())
+        k = budget.of(n, n0)
+        return whole() if k >= n0 else tree.budget_cut(tiers, camera, k, hand_over=hand_over, at=at)
     from .cost import DEFAULT_FRAME_TIME_MODEL
 
     tt = tree.terms(tiers, camera, hand_over=hand_over)

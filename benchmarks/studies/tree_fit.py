@@ -18,10 +18,15 @@ scored (the fit's seconds are printed for scale). No goal is enforced (a study: 
     python -m benchmarks.studies.tree_fit --steps 1000 2000 --budget-steps 0.5 --half
     python -m benchmarks.studies.tree_fit --as-adapted --config tier_iteration_share=0.5
     python -m benchmarks.studies.tree_fit --steps 1000 --budget-steps 0.5 --spread 2 4
+    python -m benchmarks.studies.tree_fit --steps 1000 --budget-steps 0.5 --hand-over 1.25 1.5 1.75
 
 ``--spread R ...`` builds the tree with each tier's hand-overs spread over a factor ``R`` of ``s_v``
 (:func:`clod_adapter.lod.tree.build`'s ``spread``; default the adaptation's ``tree_spread``),
 one set of rows per value.
+
+``--hand-over F ...`` draws and fits the tree with a hand-over of width ``F`` in ``s_v``
+(:data:`clod_adapter.lod.tree.HAND_OVER`, set for the run; the node constants do not depend on
+it), one set of rows per value.
 
 ``--config KEY=VALUE ...`` takes the adaptation with those ``AdaptConfig`` settings (cached under
 their tag) instead of the defaults; ``--as-adapted`` scores it as the job fitted its tree (one row,
@@ -99,7 +104,7 @@ def study(name: str, args) -> list[list]:
         sig = lightgaussian_significance(base, fit)
         fitted = metrics_of(ply)["tier"].get("tree_fit", {})
         r = scores(load_model(ply), base, val, gts, sig, args.popping_views)
-        row = [name, tag, f"{cfg.tree_spread:g}", fitted.get("steps", "-"), f"{cfg.tree_budget_steps:g}", "full (job)",
+        row = [name, tag, f"{cfg.tree_spread:g}", f"{tree.HAND_OVER:g}", fitted.get("steps", "-"), f"{cfg.tree_budget_steps:g}", "full (job)",
                f"{fitted.get('seconds', 0):.0f}", " / ".join(f"{x:.1f}" for x in r["budget_pop"]),
                " / ".join(f"{x:.1f}" for x in r["s_v_pop"]), *[f"{r[s]:.2f}" for s in SHARES]]
         print(" | ".join(map(str, row)), flush=True)
@@ -119,7 +124,13 @@ def study(name: str, args) -> list[list]:
     for spread in spreads:
         if spread != spreads[0]:
             built = unfitted_tree(ply, fit, scene, cfg, spread)[0]
-        rows += fit_rows(name, tag, built, base, (fit_cams, fit_imgs), (val, gts), sig, cfg, args, spread)
+        default = tree.HAND_OVER
+        for F in args.hand_over or [default]:
+            tree.HAND_OVER = F  # read by every function of the rule at its call (tree._width)
+            try:
+                rows += fit_rows(name, tag, built, base, (fit_cams, fit_imgs), (val, gts), sig, cfg, args, spread)
+            finally:
+                tree.HAND_OVER = default
     return rows
 
 
@@ -134,7 +145,7 @@ def fit_rows(name, tag, built, base, fit_views, val_views, sig, cfg: AdaptConfig
                      budget_steps=args.budget_steps)
         sec = time.perf_counter() - t
         r = scores(g, base, val, gts, sig, args.popping_views)
-        row = [name, tag, f"{cfg.tree_spread if spread is None else spread:g}", n, f"{args.budget_steps:g}",
+        row = [name, tag, f"{cfg.tree_spread if spread is None else spread:g}", f"{tree.HAND_OVER:g}", n, f"{args.budget_steps:g}",
                "half" if args.half else "full", f"{sec:.0f}",
                " / ".join(f"{x:.1f}" for x in r["budget_pop"]), " / ".join(f"{x:.1f}" for x in r["s_v_pop"]),
                *[f"{r[s]:.2f}" for s in SHARES]]
@@ -154,16 +165,18 @@ def main(argv=None) -> int:
     ap.add_argument("--config", nargs="+", metavar="KEY=VALUE", help="the adaptation's AdaptConfig settings")
     ap.add_argument("--as-adapted", action="store_true", help="score the adaptation's own fit (no fit here)")
     ap.add_argument("--spread", type=float, nargs="+", help="the tree's hand-over spread R (default: tree.SPREAD)")
+    ap.add_argument("--hand-over", type=float, nargs="+", help="the hand-over's width F (default: tree.HAND_OVER)")
     args = ap.parse_args(argv)
     setup_threads(args.threads)
     rows = [r for name in selected_inputs(args) for r in study(name, args)]
-    head = ["input", "adaptation", "spread", "steps", "budget steps", "resolution", "fit s", "popping along budgets",
+    head = ["input", "adaptation", "spread", "F", "steps", "budget steps", "resolution", "fit s", "popping along budgets",
             "popping along s_v", *[f"PSNR {int(100 * s)} % in view" for s in SHARES]]
     text = table(head, rows)
     name = ("tree_fit" + (f"_{parse_config(args.config)[1]}" if args.config else "")
             + ("_adapted" if args.as_adapted else (f"_budget{args.budget_steps:g}" if args.budget_steps else "")
                + ("_half" if args.half else "")
-               + ("_spread" + "-".join(f"{x:g}" for x in args.spread) if args.spread else "")))
+               + ("_spread" + "-".join(f"{x:g}" for x in args.spread) if args.spread else "")
+               + ("_F" + "-".join(f"{x:g}" for x in args.hand_over) if args.hand_over else "")))
     print(text)
     print(write_summary(name, text))
     return 0

@@ -67,7 +67,7 @@ def node_costs_native(t: Gaussians, camera) -> Tensor:
 
 
 def tree_select(gaussians: Gaussians, camera, s_v: Optional[float] = None, *, budget: Optional[Budget] = None,
-                hand_over: float = tree.HAND_OVER) -> tuple["tree.TreeCut", tuple]:
+                hand_over: Optional[float] = None) -> tuple["tree.TreeCut", tuple]:
     """The cut a tree model draws for ``camera`` at ``s_v`` or within one ``budget``, and its drawn
     attributes (:func:`clod_adapter.lod.tree.cut_attributes`): ``(cut, (means, quats, scales, opacities, colors))``.
     A count budget counts nodes whose centre is in the frustum (``count``; ``share`` of the
@@ -87,7 +87,7 @@ def tree_select(gaussians: Gaussians, camera, s_v: Optional[float] = None, *, bu
 
 @torch.no_grad()
 def tree_cut(gaussians: Gaussians, camera, s_v: Optional[float] = None, *, budget: Optional[Budget] = None,
-             hand_over: float = tree.HAND_OVER, whole_as_none: bool = False) -> Optional["tree.TreeCut"]:
+             hand_over: Optional[float] = None, whole_as_none: bool = False) -> Optional["tree.TreeCut"]:
     """The cut of :func:`tree_select` (same arguments and errors), without its attributes; with
     ``whole_as_none``, None for a count budget that holds every tier-0 node in the frustum (its
     level is 1: the caller draws tier 0 whole, no cut gathered)."""

@@ -351,14 +351,14 @@ class TreeTerms:
 
 
 @torch.no_grad()
-def terms(tiers: Sequence[Gaussians], camera, *, hand_over: float = HAND_OVER,
+def terms(tiers: Sequence[Gaussians], camera, *, hand_over: Optional[float] = None,
           at: Optional[tuple] = None) -> TreeTerms:
     """Steps 1-3 of the module docstring for ``camera`` (``viewmat`` [4, 4] world-to-camera, ``K``
     [3, 3] pixels, ``width``, ``height`` pixels): every node's entry and end, in ``s_v`` (the
     centres' dtype), and whether it fades. Every node is visited; :func:`walk` visits only what a
     level needs. ``at``: :func:`frame` of this camera, when the caller has it. Raises KeyError where
     a tier lacks ``extra["parent"]`` or ``extra["exit"]``."""
-    F = float(hand_over)
+    F = _width(hand_over)
     ds, frs = frame(tiers, camera) if at is None else at
     if _native(tiers):
         out = _native_call("tree_terms", tiers, ds, F)
@@ -392,16 +392,16 @@ def _end(tiers: Sequence[Gaussians], k: int, rows: Optional[Tensor], E: Tensor, 
 
 
 @torch.no_grad()
-def cut(tiers: Sequence[Gaussians], camera, s_v: float, *, hand_over: float = HAND_OVER,
+def cut(tiers: Sequence[Gaussians], camera, s_v: float, *, hand_over: Optional[float] = None,
         tt: Optional[TreeTerms] = None) -> TreeCut:
     """The cut drawn at ``s_v`` (>= 1; below, 1) for ``camera`` (module docstring, steps 3-4): from
     every node's terms ``tt`` when given, else by :func:`walk`."""
-    s = max(float(s_v), 1.0)
+    s, F = max(float(s_v), 1.0), _width(hand_over)
     if tt is None:
         if _native(tiers):
-            return _native_cut(tiers, camera, s, float(hand_over))
-        return walk(tiers, camera, s, hand_over=hand_over)
-    lnF = math.log(hand_over)
+            return _native_cut(tiers, camera, s, F)
+        return walk(tiers, camera, s, hand_over=F)
+    lnF = math.log(F)
     ids, ts, fades = [], [], []
     for n, u, f in zip(tt.entry, tt.upper, tt.fade):
         i = torch.nonzero((n <= s) & (s < u)).flatten()
@@ -412,7 +412,7 @@ def cut(tiers: Sequence[Gaussians], camera, s_v: float, *, hand_over: float = HA
 
 
 @torch.no_grad()
-def budget_cut(tiers: Sequence[Gaussians], camera, k: float, *, hand_over: float = HAND_OVER,
+def budget_cut(tiers: Sequence[Gaussians], camera, k: float, *, hand_over: Optional[float] = None,
                at: Optional[tuple] = None) -> TreeCut:
     """The cut a count budget of ``k`` nodes with their centre in the frustum draws (module
     docstring, step 6): :func:`terms`, :func:`budget_s_v` and :func:`cut` at that level, in one
@@ -424,11 +424,17 @@ def budget_cut(tiers: Sequence[Gaussians], camera, k: float, *, hand_over: float
     ds, frs = frame(tiers, camera) if at is None else at
     if _native(tiers):
         out = _native_call("tree_budget_cut", tiers, ds, [f.double().contiguous() for f in frs], float(k),
-                           float(hand_over))
+                           _width(hand_over))
         level = max(float(out[-1]), 1.0)
         return TreeCut(out[0:-1:3], out[1:-1:3], level, int(frs[0].sum()), out[2:-1:3])
     tt = terms(tiers, camera, hand_over=hand_over, at=(ds, frs))
     return cut(tiers, camera, budget_s_v(tt, k), hand_over=hand_over, tt=tt)
+
+
+def _width(hand_over: Optional[float]) -> float:
+    """``F``: ``hand_over`` where given, else :data:`HAND_OVER` as it is at the call (a study may
+    set the module's value; every function of the rule reads it here)."""
+    return float(HAND_OVER if hand_over is None else hand_over)
 
 
 def _native(tiers: Sequence[Gaussians]) -> bool:
@@ -479,11 +485,12 @@ def _children(tier: Gaussians) -> tuple[Tensor, Tensor, Tensor]:
 
 
 @torch.no_grad()
-def walk(tiers: Sequence[Gaussians], camera, s_v: float, *, hand_over: float = HAND_OVER) -> TreeCut:
+def walk(tiers: Sequence[Gaussians], camera, s_v: float, *, hand_over: Optional[float] = None) -> TreeCut:
     """:func:`cut` computed from the roots down: only the children of nodes not yet entered at
     ``s_v`` (>= 1; below, 1) are visited, so a coarse frame touches few nodes. Returns the same
     :class:`TreeCut` as :func:`cut` from :func:`terms` (``tests/test_tree.py``)."""
-    F, s, lnF = float(hand_over), max(float(s_v), 1.0), math.log(hand_over)
+    F = _width(hand_over)
+    s, lnF = max(float(s_v), 1.0), math.log(F)
     T = len(tiers) - 1
     c, D, d_last = _camera(tiers, camera)
     last = tiers[T]

@@ -141,10 +141,10 @@ def open_web_viewer(driver, url: str, timeout: float = 180.0) -> None:
 
 
 def web_viewer_frame(driver, s_v: Optional[float] = None, static: Optional[bool] = None,
-                     settle: int = 3, timeout: float = 120.0) -> tuple[np.ndarray, dict]:
-    """Set the page's level and/or static toggle, let ``settle`` frames render, and return
-    ([H, W, 3] float32 canvas in [0, 1], the page's state: ``sv``, ``drawn``, ``inFrustum``,
-    ``level``, ``frameMs``, ...)."""
+                     settle: int = 3, timeout: float = 120.0, budget: Optional[int] = None) -> tuple[np.ndarray, dict]:
+    """Set the page's level and/or static toggle (or, a merge tree's page, a count ``budget`` of
+    drawn nodes in view), let ``settle`` frames render, and return ([H, W, 3] float32 canvas in
+    [0, 1], the page's state: ``sv``, ``drawn``, ``inFrustum``, ``level``, ``frameMs``, ...)."""
     import base64
     import io
     import json
@@ -156,6 +156,8 @@ def web_viewer_frame(driver, s_v: Optional[float] = None, static: Optional[bool]
         driver.execute_script(f"window.clod.setSv({float(s_v)})")
     if static is not None:
         driver.execute_script(f"window.clod.setStatic({'true' if static else 'false'})")
+    if budget is not None:
+        driver.execute_script(f"window.clod.setBudget({int(budget)})")
     f0 = driver.execute_script("return window.clod.frames()")
     t0 = time.monotonic()
     while driver.execute_script("return window.clod.frames()") < f0 + settle:
@@ -178,26 +180,36 @@ def frame_change(a: np.ndarray, b: np.ndarray) -> float:
     return image_change(torch.from_numpy(a), torch.from_numpy(b))
 
 
-def web_viewer_popping(driver, max_sv: float, steps: int = 31) -> dict:
+def web_viewer_popping(driver, max_sv: float, steps: int = 31, s_vs: Optional[list] = None,
+                       budgets: Optional[list] = None) -> dict:
     """The popping measure of ``clod-eval`` (:func:`clod_adapter.jobs.eval.popping_curve`) in a
     ``clod-export --web`` page, from its current camera: ``steps`` frames at ``s_v`` spaced
-    linearly from 1 to ``max_sv`` against one switch between the page's static cuts at the
-    first and the last frame's drawn counts.
+    linearly from 1 to ``max_sv`` (or at ``s_vs``, or within the count ``budgets`` of a merge
+    tree's page) against one switch between the page's static cuts at the first and the last
+    frame's drawn counts (a merge tree's page has no static cut: ``jump`` and ``ratio`` None).
 
     Returns:
         ``s_v`` [steps], ``drawn`` [steps], ``ms`` [steps] (the page's median frame time after
         each step), ``level`` [steps] (the page's level of the gains), ``frames`` [steps] images, ``step`` [steps - 1] mean |dI| between consecutive
         frames, ``jump`` (the static switch's mean |dI|) and ``ratio`` = jump / max(step).
     """
-    s_vs = [1.0 + (max_sv - 1.0) * i / (steps - 1) for i in range(steps)]
+    tree = budgets is not None or bool(driver.execute_script("return window.clod.state.tree !== null"))
+    if s_vs is None and budgets is None:
+        s_vs = [1.0 + (max_sv - 1.0) * i / (steps - 1) for i in range(steps)]
     frames, drawn, ms, levels = [], [], [], []
-    for s in s_vs:
-        img, st = web_viewer_frame(driver, s_v=s, static=False)
+    for x in budgets if budgets is not None else s_vs:
+        img, st = (web_viewer_frame(driver, budget=x) if budgets is not None
+                   else web_viewer_frame(driver, s_v=x, static=None if tree else False))
         frames.append(img)
         drawn.append(st["drawn"])
         ms.append(st["frameMs"])
-        levels.append(st["level"])
+        levels.append(st["sv"] if tree else st["level"])
     change = frame_change
+    if tree:
+        web_viewer_frame(driver, s_v=1.0)
+        step = [change(a, b) for a, b in zip(frames, frames[1:])]
+        return {"s_v": s_vs if budgets is None else budgets, "drawn": drawn, "ms": ms, "level": levels,
+                "frames": frames, "step": step, "jump": None, "ratio": None}
     first, _ = web_viewer_frame(driver, s_v=s_vs[0], static=True)
     last, _ = web_viewer_frame(driver, s_v=s_vs[-1], static=True)
     web_viewer_frame(driver, s_v=1.0, static=False)

@@ -532,3 +532,29 @@ def test_the_binned_budget_level_equals_a_full_sort(model, dtype):
             assert a == b, (k, weights is None, a, b)
             checked += a > 1.0
     assert checked > 10  # levels past 1 were compared, not only the trivial answer
+
+
+def test_the_hand_over_width_is_read_at_each_call(model, monkeypatch):
+    """Every function of the rule takes ``F`` from ``hand_over`` or, left out, from
+    ``tree.HAND_OVER`` as it is at the call (a study sets it): the same cut and positions both ways,
+    and a wider hand-over puts more drawn rows part-way (0 < t < 1)."""
+    g, cams = model
+    ts, cam = tree.tiers_of(g), cams[0]
+
+    def part_way(c):
+        return sum(int(((t > 0) & (t < 1)).sum()) for t in c.t)
+
+    for s in (2.2, 3.0, 4.7):
+        explicit = tree.cut(ts, cam, s, hand_over=1.6)
+        monkeypatch.setattr(tree, "HAND_OVER", 1.6)
+        read = [tree.cut(ts, cam, s), tree.walk(ts, cam, s), tree.cut(ts, cam, s, tt=tree.terms(ts, cam))]
+        monkeypatch.setattr(tree, "HAND_OVER", 1.25)
+        for c in read:
+            assert all(torch.equal(x, y) for x, y in zip(c.ids, explicit.ids))
+            assert all(torch.allclose(x, y) for x, y in zip(c.t, explicit.t))
+    assert sum(part_way(tree.cut(ts, cam, s, hand_over=1.6)) for s in S_VS) > \
+        sum(part_way(tree.cut(ts, cam, s)) for s in S_VS)
+    budget = tree.budget_cut(ts, cam, 300.0, hand_over=1.6)
+    monkeypatch.setattr(tree, "HAND_OVER", 1.6)
+    again = tree.budget_cut(ts, cam, 300.0)
+    assert again.s_v == budget.s_v and all(torch.equal(x, y) for x, y in zip(again.ids, budget.ids))

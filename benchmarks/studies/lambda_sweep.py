@@ -6,9 +6,9 @@ and prints PSNR and the rendered fraction at s_v = 1, 2, 3, 5 on the scored view
 ``--split val`` (the default: lambda_reg is a choice) trained on the training views minus the
 validation views and scored on those (:func:`clod_adapter.io.scene.validation_split`), with
 ``--split test`` trained on every training view and scored on the test views. The table of
-"Choosing lambda_reg" (docs/studies.md) was measured on the test views:
+"``lambda_reg = 0.05``" (docs/studies.md) was measured on the validation views:
 
-    python -m benchmarks.studies.lambda_sweep --split test 1:500 0.1:500 0.01:500 0.03:1000 0.05:1000
+    python -m benchmarks.studies.lambda_sweep 1:500 0.1:500 0.01:500 0.03:1000 0.05:1000
 
 (LAMBDA:STEPS per run; 2.5-5 min each on 2 cores).
 """
@@ -47,17 +47,17 @@ def sweep(name: str, runs: list, split: str) -> None:
     ply, root, res = resolve_input(name)
     g = load_model(ply)
     sc = load_scene(root, resolution=res)
-    fit, ev = scene_views(sc, split)
-    tr = [sc.load_image(c) for c in fit]
+    fit_cams, ev = scene_views(sc, split)
+    tr = [sc.load_image(c) for c in fit_cams]
     te = [sc.load_image(c) for c in ev]
-    print(f"{name}: {len(fit)} fit views, scored on {len(ev)} {'validation' if split == 'val' else 'test'} views")
+    print(f"{name}: {len(fit_cams)} fit views, scored on {len(ev)} {'validation' if split == 'val' else 'test'} views")
     print(f"{'lambda':>8} {'steps':>6} " + " ".join(f"{'s_v=' + str(s):>15}" for s in (1, 2, 3, 5)) + "  seconds")
     for spec in runs:
         lam, steps = spec.split(":")
         cfg = AdaptConfig(schedule="paper", lambda_reg=float(lam), iterations=int(steps))
         t = time.perf_counter()
-        st = prepare(g, fit, cfg, tr)
-        fit(st, fit, tr, cfg, progress=False)
+        st = prepare(g, fit_cams, cfg, tr)
+        fit(st, fit_cams, tr, cfg, progress=False)
         m = st.gaussians().detach()
         lv = [evaluate_level(m, ev, te, float(s)) for s in (1, 2, 3, 5)]
         cells = " ".join(f"{r.psnr:6.2f}dB {100 * r.fraction:4.0f}%" for r in lv)

@@ -12,11 +12,12 @@ file and scores the loading policies of ``clod_adapter.io.load.apply_masks`` on 
    on our CPU rasteriser with the mask multiplied into the opacity, saved with ``masks_0``,
    ``masks_1`` to ``runs/bench/maskgaussian_masks/point_cloud.ply`` (reused when its settings
    match; ``--retrain`` redoes it);
-2. test-view PSNR / SSIM and the kept count for ``argmax`` (p(keep) > 0.5), ``gumbel`` (one draw,
+2. PSNR / SSIM on the validation views (``--split val``, the default: post-trained on the fit
+   views; ``--split test``: on the training views, scored on the test views) and the kept count for ``argmax`` (p(keep) > 0.5), ``gumbel`` (one draw,
    ``--seeds`` seeds: mean, spread) and ``all``, next to the vanilla input; prints a table and
    writes it to ``runs/bench/maskgaussian_masks/table.md``.
 
-    python -m benchmarks.studies.maskgaussian_masks [--steps 300] [--mask-lr 0.03] [--seeds 8]
+    python -m benchmarks.studies.maskgaussian_masks [--steps 300] [--mask-lr 0.03] [--seeds 8] [--split val]
 
 Deviations from the official recipe (to finish in about 5 minutes on 2 CPU cores): ``--steps``
 (300) instead of 1,500-5,000 post-training iterations, with the mask learning rate scaled up
@@ -28,21 +29,7 @@ With the defaults the p(keep) histogram is close to that of the 1,500-iteration 
 ``shared/data/fern/maskgaussian`` (TRAINING.md): 18,852 / 3,421 / 2,807 / 14,897 Gaussians in
 [0, 0.05) / [0.05, 0.5) / [0.5, 0.95) / [0.95, 1] against 17,961 / 2,558 / 3,407 / 16,051.
 
-Measured (torch 2.13 CPU, 2 threads, a loaded shared machine, 0.93 s/step, 5 min wall), test
-PSNR (dB) / SSIM and Gaussians kept (vanilla input: 26.889 / 0.8717, 39,977):
-
-| mask lr | argmax | all | gumbel, 8 seeds: mean +- sd (min..max) |
-|---|---|---|---|
-| 0.02 | 26.749 / 0.8681, 26,889 | 26.770 / 0.8698, 39,977 | 26.671 +- 0.013 (26.650..26.685) / 0.8666, 27,248 +- 44 |
-| **0.03** | **26.503 / 0.8612, 17,704** | 26.407 / 0.8640, 39,977 | 26.403 +- 0.013 (26.386..26.419) / 0.8594, 17,930 +- 56 |
-| 0.05 | 26.178 / 0.8519, 12,676 | 26.023 / 0.8571, 39,977 | 26.070 +- 0.029 (26.044..26.123) / 0.8500, 12,798 +- 21 |
-
-``argmax`` beats one Gumbel draw at every setting, with fewer Gaussians and no variance: +0.08 to
-+0.11 dB, +0.0015 to +0.0019 SSIM (and +0.08 dB on the shared 1,500-iteration run: 26.93
-against 26.85 dB). Against ``all`` (2.3x the Gaussians at the default setting) it is +0.10 and
-+0.16 dB PSNR at the two longer-trained settings, -0.02 dB at the least trained, and 0.002 to
-0.005 lower SSIM at all three. It is the default: it keeps the pruning the checkpoint was
-trained for, deterministically; ``all`` is the opt-out.
+The table and the choice it made: docs/studies.md, "Inputs: MaskGaussian masks".
 """
 from __future__ import annotations
 
@@ -62,6 +49,8 @@ import torch  # noqa: E402
 import torch.nn.functional as F  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[2]
+
+from benchmarks.common import add_split_arg, scene_views  # noqa: E402
 
 from clod_adapter.train.official import OFFICIAL_LR, scene_extent  # noqa: E402
 from clod_adapter.evaluate.level_metrics import evaluate_level  # noqa: E402
@@ -97,13 +86,13 @@ def render(g: dict, opacities: torch.Tensor, cam, sh_degree: int) -> torch.Tenso
     return img[0]
 
 
-def train(ply: Path, scene, images, args, out_ply: Path) -> dict:
+def train(ply: Path, cams: list, images, args, out_ply: Path) -> dict:
     """MaskGaussian-style post-training of ``ply``; writes ``out_ply`` with masks_0/masks_1."""
     g0 = read_ply(ply)
     n = len(g0)
     params = {k: torch.nn.Parameter(getattr(g0, k).clone()) for k in ATTRS}
     scores = torch.nn.Parameter(torch.tensor(MASK_INIT).repeat(n, 1))
-    extent = scene_extent(scene.train)
+    extent = scene_extent(cams)
     # position lr: the log-linear decay continued from iteration 7000 of an 8,500-step schedule
     # (TRAINING.md); the rest at the official values
     lr0, lr1 = OFFICIAL_LR["means"]
@@ -123,11 +112,11 @@ def train(ply: Path, scene, images, args, out_ply: Path) -> dict:
         bar = range(args.steps)
     for it in bar:
         if not order:
-            order = torch.randperm(len(scene.train), generator=gen).tolist()
+            order = torch.randperm(len(cams), generator=gen).tolist()
         i = order.pop()
         mask = st_gumbel_mask(scores, gen)
         opac = torch.sigmoid(params["opacity_logits"]) * mask
-        img = render(params, opac, scene.train[i], g0.sh_degree)
+        img = render(params, opac, cams[i], g0.sh_degree)
         gt = images[i]
         l1 = (img - gt).abs().mean()
         loss = (1 - LAMBDA_DSSIM) * l1 + LAMBDA_DSSIM * (1 - ssim(img, gt) + args.lambda_mask * mask.mean() ** 2)
@@ -156,7 +145,7 @@ def train(ply: Path, scene, images, args, out_ply: Path) -> dict:
 
 def settings(args, ply: Path) -> dict:
     return {"input": str(ply), "steps": args.steps, "mask_lr": args.mask_lr, "lambda_mask": args.lambda_mask,
-            "seed": args.seed, "mask_init": list(MASK_INIT)}
+            "seed": args.seed, "mask_init": list(MASK_INIT), "split": args.split}
 
 
 def p_keep_histogram(g: Gaussians) -> list[int]:
@@ -174,20 +163,22 @@ def main() -> None:
     ap.add_argument("--seeds", type=int, default=8, help="Gumbel draws scored (seeds 0..K-1; default 8)")
     ap.add_argument("--retrain", action="store_true", help="train again even if a matching file exists")
     ap.add_argument("--threads", type=int, default=2)
+    add_split_arg(ap)
     args = ap.parse_args()
     torch.set_num_threads(args.threads)
     ply = FERN / "pretrained/point_cloud/iteration_7000/point_cloud.ply"
     if not ply.is_file():
         sys.exit(f"maskgaussian_masks: {ply} not found (needs ../shared/data beside the repository)")
     scene = load_scene(FERN, resolution=2)
-    test_imgs = [scene.load_image(c) for c in scene.test]
+    fit, evals = scene_views(scene, args.split)  # val: post-trained on the fit views, scored on the validation views
+    test_imgs = [scene.load_image(c) for c in evals]
     out_ply = OUT / "point_cloud.ply"
     tj = OUT / "train.json"
     info = json.loads(tj.read_text()) if tj.is_file() and out_ply.is_file() else None
     if args.retrain or info is None or info.get("settings") != settings(args, ply):
-        print(f"maskgaussian_masks: post-training {ply.name} for {args.steps} steps on {len(scene.train)} "
-              f"views at {scene.train[0].width}x{scene.train[0].height}, {torch.get_num_threads()} threads ...")
-        info = train(ply, scene, [scene.load_image(c) for c in scene.train], args, out_ply)
+        print(f"maskgaussian_masks: post-training {ply.name} for {args.steps} steps on {len(fit)} "
+              f"views at {fit[0].width}x{fit[0].height}, {torch.get_num_threads()} threads ...")
+        info = train(ply, fit, [scene.load_image(c) for c in fit], args, out_ply)
     else:
         print(f"maskgaussian_masks: reusing {out_ply} ({info['train_seconds']} s of training)")
     print(f"maskgaussian_masks: training {info['train_seconds']} s ({info['seconds_per_step']} s/step, "
@@ -201,7 +192,7 @@ def main() -> None:
           f"[0.5,0.95) {hist[2]:,}  [0.95,1] {hist[3]:,}")
 
     def score(g):
-        m = evaluate_level(g, scene.test, test_imgs, None, backend="cpu")
+        m = evaluate_level(g, evals, test_imgs, None, backend="cpu")
         return m.psnr, m.ssim
 
     rows = []
@@ -219,8 +210,8 @@ def main() -> None:
     sd = lambda x: statistics.stdev(x) if len(x) > 1 else 0.0  # noqa: E731
 
     lines = [f"MaskGaussian-style masks on fern ({n:,} Gaussians, {args.steps} steps, mask lr {args.mask_lr}, "
-             f"lambda_mask {args.lambda_mask}); test views {', '.join(c.name for c in scene.test)} at "
-             f"{scene.test[0].width}x{scene.test[0].height}",
+             f"lambda_mask {args.lambda_mask}); {'validation' if args.split == 'val' else 'test'} views "
+             f"{', '.join(c.name for c in evals)} at {evals[0].width}x{evals[0].height}",
              "", "| policy | kept | % | PSNR (dB) | SSIM |", "|---|---:|---:|---:|---:|"]
     for name, k, p, s in rows:
         lines.append(f"| {name} | {k:,} | {100 * k / n:.1f} | {p:.3f} | {s:.4f} |")

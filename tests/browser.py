@@ -190,7 +190,7 @@ def web_viewer_popping(driver, max_sv: float, steps: int = 31, s_vs: Optional[li
 
     Returns:
         ``s_v`` [steps], ``drawn`` [steps], ``ms`` [steps] (the page's median frame time after
-        each step), ``level`` [steps] (the page's level of the gains), ``frames`` [steps] images, ``step`` [steps - 1] mean |dI| between consecutive
+        each step), ``level`` [steps] (the page's level of the gains; a merge tree's page: the level drawn), ``frames`` [steps] images, ``step`` [steps - 1] mean |dI| between consecutive
         frames, ``jump`` (the static switch's mean |dI|) and ``ratio`` = jump / max(step).
     """
     tree = budgets is not None or bool(driver.execute_script("return window.clod.state.tree !== null"))
@@ -205,15 +205,14 @@ def web_viewer_popping(driver, max_sv: float, steps: int = 31, s_vs: Optional[li
         ms.append(st["frameMs"])
         levels.append(st["sv"] if tree else st["level"])
     change = frame_change
+    step = [change(a, b) for a, b in zip(frames, frames[1:])]
     if tree:
         web_viewer_frame(driver, s_v=1.0)
-        step = [change(a, b) for a, b in zip(frames, frames[1:])]
         return {"s_v": s_vs if budgets is None else budgets, "drawn": drawn, "ms": ms, "level": levels,
                 "frames": frames, "step": step, "jump": None, "ratio": None}
     first, _ = web_viewer_frame(driver, s_v=s_vs[0], static=True)
     last, _ = web_viewer_frame(driver, s_v=s_vs[-1], static=True)
     web_viewer_frame(driver, s_v=1.0, static=False)
-    step = [change(a, b) for a, b in zip(frames, frames[1:])]
     jump = change(first, last)
     return {"s_v": s_vs, "drawn": drawn, "ms": ms, "level": levels, "frames": frames, "step": step, "jump": jump,
             "ratio": jump / max(max(step), 1e-12)}

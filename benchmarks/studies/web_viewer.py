@@ -79,7 +79,12 @@ def tree_popping(driver, g, base, sig, cam) -> dict:
     along count budgets (31 log-spaced shares of tier 0's centres in view, 100 % to 1 %): the
     largest step of the page's frames and of ``render_lod``'s on the same sweep, each against the
     one static switch of :func:`clod_adapter.evaluate.popping.popping_curve` (``base`` cut by
-    LightGaussian significance ``sig`` at the sweep's first and last counts)."""
+    LightGaussian significance ``sig`` at the sweep's first and last counts).
+
+    Returns:
+        the ``s_v`` sweep's dict (``ratio``: the page's; ``cpu_ratio``, ``cpu_max_step``:
+        ``render_lod``'s; ``jump``, ``step`` [30], ``ms`` [31], ``drawn`` [31], ``s_vs`` [31]) with
+        the budget sweep's under ``"budget"`` (``s_vs``: the budgets, nodes in view)."""
     out = {}
     s_vs = popping_sweep(g.lod.max_sv, tier_reach(g), POP_STEPS)
     _, st = web_viewer_frame(driver, s_v=1.0)
@@ -91,9 +96,9 @@ def tree_popping(driver, g, base, sig, cam) -> dict:
         page = web_viewer_popping(driver, g.lod.max_sv, **page_kw)
         jump = cpu["discrete_max"]
         out[what] = {"ratio": jump / max(max(page["step"]), 1e-12), "cpu_ratio": cpu["ratio"], "jump": jump,
-                     "step": page["step"], "ms": page["ms"], "drawn": page["drawn"], "s_vs": page["s_v"]}
-    p = out["s_v"]
-    return {**p, "budget": out["budget"], "cpu_max_step": p["jump"] / max(p["cpu_ratio"], 1e-12)}
+                     "cpu_max_step": cpu["continuous_max"], "step": page["step"], "ms": page["ms"],
+                     "drawn": page["drawn"], "s_vs": page["s_v"]}
+    return {**out["s_v"], "budget": out["budget"]}
 
 
 def run_input(name: str, split: str, log, shots: list, config: dict, tag: str = "default",

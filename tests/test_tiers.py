@@ -393,6 +393,17 @@ def test_tree_spread_is_a_factor_above_one():
             AdaptConfig(tree_spread=bad)
 
 
+def test_tree_exit_toward_parent_is_a_share():
+    from clod_adapter.lod.tree import EXIT_TOWARD_PARENT
+    from clod_adapter.train.config import AdaptConfig
+
+    assert AdaptConfig().tree_exit_toward_parent == EXIT_TOWARD_PARENT == 0.25
+    assert AdaptConfig(tree_exit_toward_parent=0).tree_exit_toward_parent == 0.0
+    for bad in (-0.1, 1.5, float("nan")):
+        with pytest.raises(ValueError, match="tree_exit_toward_parent"):
+            AdaptConfig(tree_exit_toward_parent=bad)
+
+
 def test_tree_budget_steps_is_a_share():
     from clod_adapter.train.config import AdaptConfig
     from clod_adapter.train.tree_fit import TREE_BUDGET_STEPS
@@ -443,8 +454,9 @@ def test_adapt_job_builds_the_tier_or_says_why_not(tiny_model, tmp_path, monkeyp
     monkeypatch.setattr(adapt_inputs, "load_model", lambda path, *a, **k: reads.append(str(path)) or read(path, *a, **k))
     from clod_adapter.lod import tree as tree_mod
 
-    spreads, build = [], tree_mod.build  # the tree is built with the config's spread
-    monkeypatch.setattr(tree_mod, "build", lambda *a, **k: spreads.append(k.get("spread")) or build(*a, **k))
+    spreads, build = [], tree_mod.build  # the tree is built with the config's spread and exits
+    monkeypatch.setattr(tree_mod, "build", lambda *a, **k: spreads.append((k.get("spread"), k.get("exit_toward_parent")))
+                        or build(*a, **k))
     out = tmp_path / "tier"
     assert main(args + ["-o", str(out), "--parent-share", "0.2,0.1", "--tier-finetune-steps", "7",
                         "--tier-iteration-share", "0.5", "--tier-downscale", "2"]) == 0
@@ -478,7 +490,8 @@ def test_adapt_job_builds_the_tier_or_says_why_not(tiny_model, tmp_path, monkeyp
     assert g.lod.tier_s_v == tier["tier_s_v"] and len(g.parents) == n_parents and g.lod.tree
     assert tier["tree"][:2] == [len(g), n_parents] and tier["tree_fit"]["steps"] == 2  # at most --iterations
     assert tier["tree_fit"]["budget_steps"] == 0.5  # the default: half the fit's steps on budget cuts
-    assert spreads == [AdaptConfig().tree_spread] == [tree_mod.SPREAD]
+    assert spreads == [(AdaptConfig().tree_spread, AdaptConfig().tree_exit_toward_parent)] == [
+        (tree_mod.SPREAD, tree_mod.EXIT_TOWARD_PARENT)]
 
 
 @pytest.mark.slow

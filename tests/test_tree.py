@@ -558,3 +558,32 @@ def test_the_hand_over_width_is_read_at_each_call(model, monkeypatch):
     monkeypatch.setattr(tree, "HAND_OVER", 1.6)
     again = tree.budget_cut(ts, cam, 300.0)
     assert again.s_v == budget.s_v and all(torch.equal(x, y) for x, y in zip(again.ids, budget.ids))
+
+
+def test_a_child_leaves_between_its_own_exit_and_its_parents_entry():
+    """``tree.build``'s exits: at ``exit_toward_parent = 0`` every node's exit is its own (where its
+    tier's own level of detail drops it); at ``b`` a non-lead child's is ``own^(1 - b) sigma_p^b``,
+    between its own and its parent's ``sigma_d``, while leads and roots keep their own; the tree and
+    the entries do not change; ``b`` outside [0, 1] is refused."""
+    t2 = _adapted(60, 3)
+    linked = tiers.attach(_adapted(1200, 0), tiers.attach(_adapted(300, 2), t2, 2.5, 1.5), 2.0, 1.25)
+    cams = make_cameras(2, 3)
+    own, half = (tree.tiers_of(tree.build(linked, cams, exit_toward_parent=b)) for b in (0.0, 0.5))
+    moved = 0
+    for k, (a, h) in enumerate(zip(own, half)):
+        assert torch.equal(a.sigma_d, h.sigma_d)
+        x, y = a.extra[tree.EXIT_KEY].double(), h.extra[tree.EXIT_KEY].double()
+        if k + 1 == len(own):  # the roots leave where their own level of detail drops them
+            assert torch.equal(x, y)
+            continue
+        assert torch.equal(a.extra[tree.PARENT_KEY], h.extra[tree.PARENT_KEY])
+        lead = tree.leads(a)
+        assert torch.equal(x[lead], y[lead])
+        s_p = own[k + 1].sigma_d.double()[a.extra[tree.PARENT_KEY].long()][~lead]
+        assert torch.allclose(y[~lead], torch.sqrt(x[~lead] * s_p), rtol=1e-5)
+        lo, hi = torch.minimum(x[~lead], s_p), torch.maximum(x[~lead], s_p)
+        assert bool(((y[~lead] >= lo * (1 - 1e-5)) & (y[~lead] <= hi * (1 + 1e-5))).all())
+        moved += int((~torch.isclose(x[~lead], y[~lead])).sum())
+    assert moved > 100
+    with pytest.raises(ValueError, match="exit_toward_parent"):
+        tree.build(linked, cams, exit_toward_parent=1.5)

@@ -19,10 +19,15 @@ scored (the fit's seconds are printed for scale). No goal is enforced (a study: 
     python -m benchmarks.studies.tree_fit --as-adapted --config tier_iteration_share=0.5
     python -m benchmarks.studies.tree_fit --steps 1000 --budget-steps 0.5 --spread 2 4
     python -m benchmarks.studies.tree_fit --steps 1000 --budget-steps 0.5 --hand-over 1.25 1.5 1.75
+    python -m benchmarks.studies.tree_fit --steps 1000 --budget-steps 0.5 --exit-toward-parent 0 0.25 0.5 0.75 1
 
 ``--spread R ...`` builds the tree with each tier's hand-overs spread over a factor ``R`` of ``s_v``
 (:func:`clod_adapter.lod.tree.build`'s ``spread``; default the adaptation's ``tree_spread``),
 one set of rows per value.
+
+``--exit-toward-parent B ...`` builds the tree with each non-lead child's exit moved the share ``B``
+of the way toward its parent's entry (:func:`clod_adapter.lod.tree.build`'s ``exit_toward_parent``;
+default the adaptation's ``tree_exit_toward_parent``), one set of rows per value.
 
 ``--hand-over F ...`` draws and fits the tree with a hand-over of width ``F`` in ``s_v``
 (:data:`clod_adapter.lod.tree.HAND_OVER`, set for the run; the node constants do not depend on
@@ -63,10 +68,10 @@ from clod_adapter.train.tree_fit import finetune
 SHARES = (0.75, 0.5, 0.3, 0.15, 0.08, 0.03)
 
 
-def unfitted_tree(ply, fit: list, scene, cfg: AdaptConfig, spread=None):
+def unfitted_tree(ply, fit: list, scene, cfg: AdaptConfig, spread=None, exit_toward_parent=None):
     """The job's tree before its fit, from the cached adaptation ``ply``: its tier 0 and the
-    merged tiers under ``parents/`` linked and built again on the fit views (``spread``: as
-    :func:`clod_adapter.lod.tree.build`'s)."""
+    merged tiers under ``parents/`` linked and built again on the fit views (``spread``,
+    ``exit_toward_parent``: as :func:`clod_adapter.lod.tree.build`'s; None: ``cfg``'s)."""
     final = load_model(ply)
     t0 = tree.own_model(final)
     dirs, p = [], ply.parent / "parents"
@@ -76,9 +81,11 @@ def unfitted_tree(ply, fit: list, scene, cfg: AdaptConfig, spread=None):
     cands = [read_ply(d / "point_cloud.ply", unlinked_tiers=True) for d in dirs]
     ch = tiers.choice_views(fit)
     linked, _ = tiers.link(t0, cands, ch, [scene.load_image(c) for c in ch], background=cfg.background)
-    built = tree.build(linked, fit, spread=cfg.tree_spread if spread is None else spread)
+    built = tree.build(linked, fit, spread=cfg.tree_spread if spread is None else spread,
+                       exit_toward_parent=cfg.tree_exit_toward_parent if exit_toward_parent is None else exit_toward_parent)
     a, b = tree.tiers_of(built), tree.tiers_of(final)
-    same = len(a) == len(b) and all(len(x) == len(y) and torch.equal(x.sigma_d, y.sigma_d) for x, y in zip(a, b))
+    same = len(a) == len(b) and all(len(x) == len(y) and torch.equal(x.sigma_d, y.sigma_d)
+                                    and torch.equal(x.extra[tree.EXIT_KEY], y.extra[tree.EXIT_KEY]) for x, y in zip(a, b))
     return built, same
 
 
@@ -104,13 +111,13 @@ def study(name: str, args) -> list[list]:
         sig = lightgaussian_significance(base, fit)
         fitted = metrics_of(ply)["tier"].get("tree_fit", {})
         r = scores(load_model(ply), base, val, gts, sig, args.popping_views)
-        row = [name, tag, f"{cfg.tree_spread:g}", f"{tree.HAND_OVER:g}", fitted.get("steps", "-"), f"{cfg.tree_budget_steps:g}", "full (job)",
+        row = [name, tag, f"{cfg.tree_spread:g}", f"{cfg.tree_exit_toward_parent:g}", f"{tree.HAND_OVER:g}", fitted.get("steps", "-"), f"{cfg.tree_budget_steps:g}", "full (job)",
                f"{fitted.get('seconds', 0):.0f}", " / ".join(f"{x:.1f}" for x in r["budget_pop"]),
                " / ".join(f"{x:.1f}" for x in r["s_v_pop"]), *[f"{r[s]:.2f}" for s in SHARES]]
         print(" | ".join(map(str, row)), flush=True)
         return [row]
-    spreads = args.spread or [None]
-    built, same = unfitted_tree(ply, fit, scene, cfg, spreads[0])
+    builds = [(r, b) for r in args.spread or [None] for b in args.exit_toward_parent or [None]]
+    built, same = unfitted_tree(ply, fit, scene, cfg, *builds[0])
     print(f"[{name}] tree {[len(t) for t in tree.tiers_of(built)]}; node constants equal the cached "
           f"model's: {same}", flush=True)
     fit_cams, fit_scene = fit, scene
@@ -121,22 +128,24 @@ def study(name: str, args) -> list[list]:
     fit_imgs = [fit_scene.load_image(c) for c in fit_cams]
     sig = lightgaussian_significance(base, fit)
     rows = []
-    for spread in spreads:
-        if spread != spreads[0]:
-            built = unfitted_tree(ply, fit, scene, cfg, spread)[0]
+    for spread, b in builds:
+        if (spread, b) != builds[0]:
+            built = unfitted_tree(ply, fit, scene, cfg, spread, b)[0]
         default = tree.HAND_OVER
         for F in args.hand_over or [default]:
             tree.HAND_OVER = F  # read by every function of the rule at its call (tree._width)
             try:
-                rows += fit_rows(name, tag, built, base, (fit_cams, fit_imgs), (val, gts), sig, cfg, args, spread)
+                rows += fit_rows(name, tag, built, base, (fit_cams, fit_imgs), (val, gts), sig, cfg, args,
+                                 (cfg.tree_spread if spread is None else spread,
+                                  cfg.tree_exit_toward_parent if b is None else b))
             finally:
                 tree.HAND_OVER = default
     return rows
 
 
-def fit_rows(name, tag, built, base, fit_views, val_views, sig, cfg: AdaptConfig, args, spread) -> list[list]:
-    """One row per ``--steps`` value: ``built`` fitted that long on ``fit_views`` (cameras,
-    images) and scored on ``val_views``."""
+def fit_rows(name, tag, built, base, fit_views, val_views, sig, cfg: AdaptConfig, args, built_with) -> list[list]:
+    """One row per ``--steps`` value: ``built`` (with ``built_with``: its spread and exit share) fitted
+    that long on ``fit_views`` (cameras, images) and scored on ``val_views``."""
     (fit_cams, fit_imgs), (val, gts) = fit_views, val_views
     rows = []
     for n in args.steps:
@@ -145,7 +154,7 @@ def fit_rows(name, tag, built, base, fit_views, val_views, sig, cfg: AdaptConfig
                      budget_steps=args.budget_steps)
         sec = time.perf_counter() - t
         r = scores(g, base, val, gts, sig, args.popping_views)
-        row = [name, tag, f"{cfg.tree_spread if spread is None else spread:g}", f"{tree.HAND_OVER:g}", n, f"{args.budget_steps:g}",
+        row = [name, tag, *(f"{x:g}" for x in built_with), f"{tree.HAND_OVER:g}", n, f"{args.budget_steps:g}",
                "half" if args.half else "full", f"{sec:.0f}",
                " / ".join(f"{x:.1f}" for x in r["budget_pop"]), " / ".join(f"{x:.1f}" for x in r["s_v_pop"]),
                *[f"{r[s]:.2f}" for s in SHARES]]
@@ -166,17 +175,21 @@ def main(argv=None) -> int:
     ap.add_argument("--as-adapted", action="store_true", help="score the adaptation's own fit (no fit here)")
     ap.add_argument("--spread", type=float, nargs="+", help="the tree's hand-over spread R (default: tree.SPREAD)")
     ap.add_argument("--hand-over", type=float, nargs="+", help="the hand-over's width F (default: tree.HAND_OVER)")
+    ap.add_argument("--exit-toward-parent", type=float, nargs="+",
+                    help="share of the way a non-lead child's exit moves toward its parent's entry "
+                         "(default: the adaptation's tree_exit_toward_parent)")
     args = ap.parse_args(argv)
     setup_threads(args.threads)
     rows = [r for name in selected_inputs(args) for r in study(name, args)]
-    head = ["input", "adaptation", "spread", "F", "steps", "budget steps", "resolution", "fit s", "popping along budgets",
+    head = ["input", "adaptation", "spread", "exit b", "F", "steps", "budget steps", "resolution", "fit s", "popping along budgets",
             "popping along s_v", *[f"PSNR {int(100 * s)} % in view" for s in SHARES]]
     text = table(head, rows)
     name = ("tree_fit" + (f"_{parse_config(args.config)[1]}" if args.config else "")
             + ("_adapted" if args.as_adapted else (f"_budget{args.budget_steps:g}" if args.budget_steps else "")
                + ("_half" if args.half else "")
                + ("_spread" + "-".join(f"{x:g}" for x in args.spread) if args.spread else "")
-               + ("_F" + "-".join(f"{x:g}" for x in args.hand_over) if args.hand_over else "")))
+               + ("_F" + "-".join(f"{x:g}" for x in args.hand_over) if args.hand_over else "")
+               + ("_b" + "-".join(f"{x:g}" for x in args.exit_toward_parent) if args.exit_toward_parent else "")))
     print(text)
     print(write_summary(name, text))
     return 0

@@ -37,7 +37,8 @@ The node constants are set by :func:`build` from the tiers the job linked: at th
 over the training views a tier's nodes enter around ``s_v = G_k`` (:func:`tier_scales`, where the
 tiers' hand-overs put the tier), spread over a factor :data:`SPREAD` by the order the tier below
 learned, and every node leaves where its tier's own level of detail (its trained Eq. 2
-``sigma_d``) drops it at its usual distance; ``clod_adapter.train.tree_fit`` then fits the merged
+``sigma_d``) drops it at its usual distance, a child moved part of the way toward its parent's
+entry (:data:`EXIT_TOWARD_PARENT`); ``clod_adapter.train.tree_fit`` then fits the merged
 tiers on the cuts. Between hand-overs nothing is dimmed or grown: every
 drawn node is a Gaussian of one tier as trained; ``s_v = 1`` is the model at full detail. A
 budget draws the cut at the smallest ``s_v >= 1`` from which no cut holds more
@@ -70,6 +71,9 @@ EXIT_KEY = "exit"
 SHRINK_FLOOR = 1e-4
 #: ``R``: a tier's hand-overs spread over this factor of ``s_v`` by importance (:func:`build`)
 SPREAD = 2.0
+#: ``b``: a child that is not its parent's lead leaves this share of the way, in ``ln s_v``, from
+#: where its tier's own level of detail drops it toward where its parent takes over (:func:`build`)
+EXIT_TOWARD_PARENT = 0.25
 #: candidate parents scored per child (:func:`assign_parents`)
 CANDIDATES = 16
 
@@ -248,7 +252,8 @@ def _group_rank(child_level: Tensor, parent: Tensor, n_parents: int) -> Tensor:
     return rank
 
 
-def build(gaussians: Gaussians, cameras, log=None, *, spread: float = None) -> Gaussians:
+def build(gaussians: Gaussians, cameras, log=None, *, spread: float = None,
+          exit_toward_parent: float = None) -> Gaussians:
     """``gaussians`` (a model with merged tiers, linked by ``clod-adapt``) as a merge
     tree, the node constants set on ``cameras`` (training views):
 
@@ -261,15 +266,22 @@ def build(gaussians: Gaussians, cameras, log=None, *, spread: float = None) -> G
       rank ``q`` among the tier's nodes by their most important child (the largest of the
       children's own Eq. 2 levels at their ``d_ref``: the order the tier below learned), so the
       hand-overs of a tier spread over a factor ``R`` of ``s_v``;
-    * every node's exit (``extra["exit"]``) is ``G_k s* d_ref``, ``s*`` its Eq. 2 critical scale
-      at ``d_ref`` with its own (trained) ``sigma_d``: it leaves where its tier's own level of
-      detail would drop it (unless it is its parent's lead child);
+    * every node's own exit is ``G_k s* d_ref``, ``s*`` its Eq. 2 critical scale at ``d_ref``
+      with its own (trained) ``sigma_d``: where its tier's own level of detail would drop it. A
+      root's exit (``extra["exit"]``) is its own; a child that is not its parent's lead leaves the
+      share ``b`` = ``exit_toward_parent`` (default :data:`EXIT_TOWARD_PARENT`, in [0, 1]) of the
+      way from its own exit toward its parent's ``sigma_d``, in ``ln s_v`` (``own^(1 - b)
+      sigma_p^b``), so the count of a frame falls near the hand-overs that change its image (a
+      lead's exit is never reached: its parent takes over first);
     * the settings say ``tree=True``. Tier 0 is unchanged.
 
     Raises:
-        ValueError: a model without tiers, or no cameras.
+        ValueError: a model without tiers, no cameras, or ``exit_toward_parent`` outside [0, 1].
     """
     spread = SPREAD if spread is None else float(spread)
+    b = EXIT_TOWARD_PARENT if exit_toward_parent is None else float(exit_toward_parent)
+    if not 0.0 <= b <= 1.0:
+        raise ValueError(f"tree.build: exit_toward_parent must be in [0, 1], got {b}")
     tiers = tiers_of(gaussians)
     if len(tiers) < 2:
         raise ValueError("tree.build: the model has no merged tiers")
@@ -293,8 +305,12 @@ def build(gaussians: Gaussians, cameras, log=None, *, spread: float = None) -> G
         t = tiers[k]
         rank = _group_rank(own[k - 1], tiers[k - 1].extra[PARENT_KEY].long().cpu(), len(t))
         tiers[k] = replace(t, sigma_d=(scales[k] * spread ** (rank - 0.5) * d_ref[k]).to(t.means))
-    for k, t in enumerate(tiers):  # every node leaves where its tier's own level of detail drops it
-        tiers[k] = replace(t, extra={**t.extra, EXIT_KEY: (scales[k] * own[k] * d_ref[k]).float().to(t.means.device)})
+    for k, t in enumerate(tiers):  # where its tier's own level of detail drops it, moved toward the parent
+        x = scales[k] * own[k].double() * d_ref[k].double()
+        if k + 1 < len(tiers) and b > 0.0:
+            s_p = tiers[k + 1].sigma_d.detach().double().cpu()[t.extra[PARENT_KEY].long().cpu()]
+            x = torch.where(leads(t).cpu(), x, x.clamp_min(0.0) ** (1.0 - b) * s_p.clamp_min(0.0) ** b)
+        tiers[k] = replace(t, extra={**t.extra, EXIT_KEY: x.float().to(t.means.device)})
     out = tiers[-1]
     for t in reversed(tiers[:-1]):
         out = replace(t, parents=out)

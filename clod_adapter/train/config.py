@@ -7,7 +7,7 @@ from dataclasses import dataclass
 from typing import Literal, Optional
 
 from ..lod import rule as lod
-from ..lod.tree import SPREAD
+from ..lod.tree import EXIT_TOWARD_PARENT, SPREAD
 from ..gaussians import GAIN_NAMES
 from ..io.scene import RESOLUTIONS
 from .official import OFFICIAL_LR
@@ -137,6 +137,12 @@ class AdaptConfig:
             :data:`clod_adapter.lod.tree.SPREAD`, 2). Set when the tree is built, so a model
             adapted with another spread is another model (docs/studies.md "How far a tier's
             hand-overs spread"); no command-line flag.
+        tree_exit_toward_parent: a child that is not its parent's lead leaves this share of the way,
+            in ``ln s_v``, from where its tier's own level of detail drops it toward where its
+            parent takes over (:func:`clod_adapter.lod.tree.build`'s ``exit_toward_parent``, in
+            [0, 1]; default :data:`clod_adapter.lod.tree.EXIT_TOWARD_PARENT`, 0.25), so a frame's
+            count falls near the hand-overs that change its image. Set when the tree is built
+            (docs/studies.md "Where a child leaves"); no command-line flag.
         tier_iteration_share: each merged tier learns its level of detail for this share of
             ``iterations`` (rounded, at least 1 when ``iterations`` > 0). Default 0.5: with the tree
             fitted on its cuts afterwards (``tree_steps``), half the steps score within 0.4 dB of
@@ -206,6 +212,7 @@ class AdaptConfig:
     tree_steps: int = 1000
     tree_budget_steps: float = 0.5
     tree_spread: float = SPREAD
+    tree_exit_toward_parent: float = EXIT_TOWARD_PARENT
     faint_share: Optional[float] = None
     keep_share: float = 1.0
     recovery_steps: int = 1000
@@ -314,6 +321,9 @@ class AdaptConfig:
         self.tree_spread = float(self.tree_spread)
         if not (math.isfinite(self.tree_spread) and self.tree_spread > 1.0):
             raise ValueError(f"tree_spread must be a factor > 1, got {self.tree_spread}")
+        self.tree_exit_toward_parent = float(self.tree_exit_toward_parent)
+        if not 0.0 <= self.tree_exit_toward_parent <= 1.0:
+            raise ValueError(f"tree_exit_toward_parent must be in [0, 1], got {self.tree_exit_toward_parent}")
         self.tier_iteration_share = float(self.tier_iteration_share)
         if not 0.0 < self.tier_iteration_share <= 1.0:
             raise ValueError(f"tier_iteration_share must be in (0, 1], got {self.tier_iteration_share}")

@@ -393,26 +393,19 @@ def test_tree_spread_is_a_factor_above_one():
             AdaptConfig(tree_spread=bad)
 
 
-def test_tree_exit_toward_parent_is_a_share():
+@pytest.mark.parametrize("key", ["tree_budget_steps", "tree_exit_toward_parent"])
+def test_tree_shares_are_checked(key):
+    """The tree's shares default to their module constants and take values in [0, 1] only."""
     from clod_adapter.lod.tree import EXIT_TOWARD_PARENT
-    from clod_adapter.train.config import AdaptConfig
-
-    assert AdaptConfig().tree_exit_toward_parent == EXIT_TOWARD_PARENT == 0.25
-    assert AdaptConfig(tree_exit_toward_parent=0).tree_exit_toward_parent == 0.0
-    for bad in (-0.1, 1.5, float("nan")):
-        with pytest.raises(ValueError, match="tree_exit_toward_parent"):
-            AdaptConfig(tree_exit_toward_parent=bad)
-
-
-def test_tree_budget_steps_is_a_share():
     from clod_adapter.train.config import AdaptConfig
     from clod_adapter.train.tree_fit import TREE_BUDGET_STEPS
 
-    assert AdaptConfig().tree_budget_steps == TREE_BUDGET_STEPS == 0.5
-    assert AdaptConfig(tree_budget_steps=0).tree_budget_steps == 0.0
+    default = {"tree_budget_steps": TREE_BUDGET_STEPS, "tree_exit_toward_parent": EXIT_TOWARD_PARENT}[key]
+    assert getattr(AdaptConfig(), key) == default == {"tree_budget_steps": 0.5, "tree_exit_toward_parent": 0.25}[key]
+    assert getattr(AdaptConfig(**{key: 0}), key) == 0.0
     for bad in (-0.1, 1.5, float("nan")):
-        with pytest.raises(ValueError, match="tree_budget_steps"):
-            AdaptConfig(tree_budget_steps=bad)
+        with pytest.raises(ValueError, match=key):
+            AdaptConfig(**{key: bad})
 
 
 def test_tier_downscale_sets_the_later_tiers_resolution():

@@ -52,10 +52,7 @@ def _with_exits(ply, fit, scene, cfg: AdaptConfig, spec: str):
     ts = tree.tiers_of(built)
     for k in range(keep):
         ts[k] = replace(ts[k], extra={**ts[k].extra, tree.EXIT_KEY: own[k].extra[tree.EXIT_KEY]})
-    out = ts[-1]
-    for t in reversed(ts[:-1]):
-        out = replace(t, parents=out)
-    return replace(out, lod=built.lod)
+    return tree.linked(ts)
 
 
 def study(name: str, args) -> list[list]:

@@ -57,7 +57,7 @@ from . import rule as lod
 from .budget import critical_s_v
 from ..gaussians import Gaussians
 
-__all__ = ["HAND_OVER", "PARENT_KEY", "is_tree", "tiers_of", "own_model", "tier_scales", "assign_parents", "build", "cut", "walk",
+__all__ = ["HAND_OVER", "PARENT_KEY", "is_tree", "tiers_of", "linked", "own_model", "tier_scales", "assign_parents", "build", "cut", "walk",
            "budget_s_v", "budget_cut", "TreeCut", "TreeTerms", "terms", "cut_attributes", "leads", "in_frustum"]
 
 #: ``F``: a hand-over or an exit lasts from ``U / F`` to ``U`` in ``s_v``; a node is drawn over at
@@ -90,6 +90,15 @@ def tiers_of(gaussians: Gaussians) -> list[Gaussians]:
     out = [gaussians]
     while out[-1].parents is not None and out[-1].lod is not None and out[-1].lod.tier_s_v > 0:
         out.append(out[-1].parents)
+    return out
+
+
+def linked(tiers: Sequence[Gaussians]) -> Gaussians:
+    """The model whose tiers (finest first) are ``tiers``: each tier's ``parents`` the next, the
+    inverse of :func:`tiers_of` (each tier's own settings and node data kept)."""
+    out = tiers[-1]
+    for t in reversed(tiers[:-1]):
+        out = replace(t, parents=out)
     return out
 
 
@@ -306,14 +315,13 @@ def build(gaussians: Gaussians, cameras, log=None, *, spread: float = None,
         rank = _group_rank(own[k - 1], tiers[k - 1].extra[PARENT_KEY].long().cpu(), len(t))
         tiers[k] = replace(t, sigma_d=(scales[k] * spread ** (rank - 0.5) * d_ref[k]).to(t.means))
     for k, t in enumerate(tiers):  # where its tier's own level of detail drops it, moved toward the parent
-        x = scales[k] * own[k].double() * d_ref[k].double()
+        x = scales[k] * own[k] * d_ref[k]
         if k + 1 < len(tiers) and b > 0.0:
             s_p = tiers[k + 1].sigma_d.detach().double().cpu()[t.extra[PARENT_KEY].long().cpu()]
-            x = torch.where(leads(t).cpu(), x, x.clamp_min(0.0) ** (1.0 - b) * s_p.clamp_min(0.0) ** b)
+            moved = x.double().clamp_min(0.0) ** (1.0 - b) * s_p.clamp_min(0.0) ** b
+            x = torch.where(leads(t).cpu(), x, moved.to(x.dtype))
         tiers[k] = replace(t, extra={**t.extra, EXIT_KEY: x.float().to(t.means.device)})
-    out = tiers[-1]
-    for t in reversed(tiers[:-1]):
-        out = replace(t, parents=out)
+    out = linked(tiers)
     return replace(out, lod=replace(out.lod, tree=True))
 
 

@@ -113,8 +113,4 @@ def finetune(model: Gaussians, cameras: Sequence, images: Sequence, steps: int =
         opt.step()
         if log is not None and (it + 1) % 250 == 0:
             log(f"tree: fitted on its cuts, step {it + 1} of {steps} (loss {float(loss.detach()):.4f})")
-    done = _tiers_with(tiers, [{k: v.detach() for k, v in p.items()} for p in params])
-    out = done[-1]
-    for t in reversed(done[:-1]):
-        out = replace(t, parents=out)
-    return out
+    return tree.linked(_tiers_with(tiers, [{k: v.detach() for k, v in p.items()} for p in params]))

@@ -393,15 +393,17 @@ def test_tree_spread_is_a_factor_above_one():
             AdaptConfig(tree_spread=bad)
 
 
-@pytest.mark.parametrize("key", ["tree_budget_steps", "tree_exit_toward_parent"])
+@pytest.mark.parametrize("key", ["tree_budget_steps", "tree_exit_toward_parent", "tree_entry_toward_children"])
 def test_tree_shares_are_checked(key):
     """The tree's shares default to their module constants and take values in [0, 1] only."""
-    from clod_adapter.lod.tree import EXIT_TOWARD_PARENT
+    from clod_adapter.lod.tree import ENTRY_TOWARD_CHILDREN, EXIT_TOWARD_PARENT
     from clod_adapter.train.config import AdaptConfig
     from clod_adapter.train.tree_fit import TREE_BUDGET_STEPS
 
-    default = {"tree_budget_steps": TREE_BUDGET_STEPS, "tree_exit_toward_parent": EXIT_TOWARD_PARENT}[key]
-    assert getattr(AdaptConfig(), key) == default == {"tree_budget_steps": 0.5, "tree_exit_toward_parent": 0.25}[key]
+    default = {"tree_budget_steps": TREE_BUDGET_STEPS, "tree_exit_toward_parent": EXIT_TOWARD_PARENT,
+               "tree_entry_toward_children": ENTRY_TOWARD_CHILDREN}[key]
+    assert getattr(AdaptConfig(), key) == default == {"tree_budget_steps": 0.5, "tree_exit_toward_parent": 0.25,
+                                                      "tree_entry_toward_children": 0.5}[key]
     assert getattr(AdaptConfig(**{key: 0}), key) == 0.0
     for bad in (-0.1, 1.5, float("nan")):
         with pytest.raises(ValueError, match=key):
@@ -448,8 +450,8 @@ def test_adapt_job_builds_the_tier_or_says_why_not(tiny_model, tmp_path, monkeyp
     from clod_adapter.lod import tree as tree_mod
 
     spreads, build = [], tree_mod.build  # the tree is built with the config's spread and exits
-    monkeypatch.setattr(tree_mod, "build", lambda *a, **k: spreads.append((k.get("spread"), k.get("exit_toward_parent")))
-                        or build(*a, **k))
+    monkeypatch.setattr(tree_mod, "build", lambda *a, **k: spreads.append(
+        (k.get("spread"), k.get("exit_toward_parent"), k.get("entry_toward_children"))) or build(*a, **k))
     out = tmp_path / "tier"
     assert main(args + ["-o", str(out), "--parent-share", "0.2,0.1", "--tier-finetune-steps", "7",
                         "--tier-iteration-share", "0.5", "--tier-downscale", "2"]) == 0
@@ -483,8 +485,9 @@ def test_adapt_job_builds_the_tier_or_says_why_not(tiny_model, tmp_path, monkeyp
     assert g.lod.tier_s_v == tier["tier_s_v"] and len(g.parents) == n_parents and g.lod.tree
     assert tier["tree"][:2] == [len(g), n_parents] and tier["tree_fit"]["steps"] == 2  # at most --iterations
     assert tier["tree_fit"]["budget_steps"] == 0.5  # the default: half the fit's steps on budget cuts
-    assert spreads == [(AdaptConfig().tree_spread, AdaptConfig().tree_exit_toward_parent)] == [
-        (tree_mod.SPREAD, tree_mod.EXIT_TOWARD_PARENT)]
+    c = AdaptConfig()
+    assert spreads == [(c.tree_spread, c.tree_exit_toward_parent, c.tree_entry_toward_children)] == [
+        (tree_mod.SPREAD, tree_mod.EXIT_TOWARD_PARENT, tree_mod.ENTRY_TOWARD_CHILDREN)]
 
 
 @pytest.mark.slow

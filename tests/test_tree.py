@@ -47,6 +47,8 @@ def test_the_tree_is_whole(model):
         assert p.min() >= 0 and p.max() < len(above)
         assert (torch.bincount(p, minlength=len(above)) > 0).all()  # every node is some node's parent
     assert "parent" not in ts[-1].extra
+    # the tree draws no level gains, so it holds none (the tiers it was built from had them)
+    assert _adapted(60, 3).has_gains and not any(t.has_gains for t in ts)
 
 
 def test_each_path_crosses_the_cut_once(model):
@@ -568,7 +570,8 @@ def test_a_child_leaves_between_its_own_exit_and_its_parents_entry():
     t2 = _adapted(60, 3)
     linked = tiers.attach(_adapted(1200, 0), tiers.attach(_adapted(300, 2), t2, 2.5, 1.5), 2.0, 1.25)
     cams = make_cameras(2, 3)
-    own, half = (tree.tiers_of(tree.build(linked, cams, exit_toward_parent=b)) for b in (0.0, 0.5))
+    own, half = (tree.tiers_of(tree.build(linked, cams, exit_toward_parent=b, entry_toward_children=0.0))
+                 for b in (0.0, 0.5))
     moved = 0
     for k, (a, h) in enumerate(zip(own, half)):
         assert torch.equal(a.sigma_d, h.sigma_d)
@@ -587,3 +590,34 @@ def test_a_child_leaves_between_its_own_exit_and_its_parents_entry():
     assert moved > 100
     with pytest.raises(ValueError, match="exit_toward_parent"):
         tree.build(linked, cams, exit_toward_parent=1.5)
+
+
+def test_a_parent_enters_toward_where_its_last_sibling_leaves():
+    """``tree.build``'s entries: at ``entry_toward_children = a`` a merged node with children other
+    than its lead has ``sigma_d = sigma^(1 - a) x_last^a``, ``x_last`` the largest own exit of
+    those children (their exits at ``exit_toward_parent = 0``), between the two; a node whose only
+    child is its lead keeps its entry, and so does every node at ``a = 0``; the tree and tier 0 do
+    not change; ``a`` outside [0, 1] is refused."""
+    t2 = _adapted(60, 3)
+    linked = tiers.attach(_adapted(1200, 0), tiers.attach(_adapted(300, 2), t2, 2.5, 1.5), 2.0, 1.25)
+    cams = make_cameras(2, 3)
+    own, half = (tree.tiers_of(tree.build(linked, cams, exit_toward_parent=0.0, entry_toward_children=a))
+                 for a in (0.0, 0.5))
+    assert torch.equal(own[0].sigma_d, half[0].sigma_d)
+    moved = 0
+    for k in range(1, len(own)):
+        child = own[k - 1]
+        p, lead = child.extra[tree.PARENT_KEY].long(), tree.leads(child)
+        assert torch.equal(p, half[k - 1].extra[tree.PARENT_KEY].long())
+        x = child.extra[tree.EXIT_KEY].double()
+        last = torch.zeros(len(own[k]), dtype=torch.float64).scatter_reduce(0, p[~lead], x[~lead], reduce="amax")
+        has = torch.bincount(p[~lead], minlength=len(own[k])) > 0
+        s0, s1 = own[k].sigma_d.double(), half[k].sigma_d.double()
+        assert torch.allclose(s1[~has], s0[~has]) and bool(has.any())
+        assert torch.allclose(s1[has], torch.sqrt(s0[has] * last[has]), rtol=1e-5)
+        lo, hi = torch.minimum(s0[has], last[has]), torch.maximum(s0[has], last[has])
+        assert bool(((s1[has] >= lo * (1 - 1e-5)) & (s1[has] <= hi * (1 + 1e-5))).all())
+        moved += int((~torch.isclose(s0[has], s1[has])).sum())
+    assert moved > 20
+    with pytest.raises(ValueError, match="entry_toward_children"):
+        tree.build(linked, cams, entry_toward_children=-0.5)

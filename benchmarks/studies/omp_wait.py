@@ -38,13 +38,12 @@ CONFIGS = {
 
 CHILD = r"""
 import json, sys, time
-sys.path.insert(0, sys.argv[1])
 import torch
 from clod_adapter.train.config import AdaptConfig
 from clod_adapter.train.loop import fit, prepare
 from clod_adapter.io.synthetic import make_cameras, make_ground_truth, perturb
 from clod_adapter.render import rasterization
-iters = int(sys.argv[2])
+iters = int(sys.argv[1])
 gt = make_ground_truth(6000, seed=0)
 cams = make_cameras()
 imgs = []
@@ -73,11 +72,12 @@ def run_config(name: str, iters: int, load: int) -> dict:
     env = {k: v for k, v in os.environ.items() if k not in ("OMP_WAIT_POLICY", "OMP_NUM_THREADS", "GOMP_SPINCOUNT")}
     env.update(CONFIGS[name])
     env.setdefault("TORCH_EXTENSIONS_DIR", str(REPO / ".torch_extensions"))
+    env["PYTHONPATH"] = os.pathsep.join([str(REPO)] + [p for p in env.get("PYTHONPATH", "").split(os.pathsep) if p])
     procs = [mp.Process(target=_spin, args=(time.time() + 3600,), daemon=True) for _ in range(load)]
     for p in procs:
         p.start()
     try:
-        r = subprocess.run([sys.executable, "-c", CHILD, str(REPO), str(iters)], env=env, capture_output=True,
+        r = subprocess.run([sys.executable, "-c", CHILD, str(iters)], env=env, capture_output=True,
                            text=True, timeout=3600)
     finally:
         for p in procs:

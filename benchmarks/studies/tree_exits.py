@@ -1,11 +1,14 @@
-"""Where a child leaves: a merge tree's exits moved toward the parents' entries, at equal frame time.
+"""Where a child leaves and when its parent takes over: a merge tree's exits moved toward the
+parents' entries, and the entries toward the children's exits, at equal frame time.
 
 For each input (default: fern, MaskGaussian fern, skull) the cached ``--holdout-val`` adaptation
-built with its children's exits where their own level of detail drops them
-(``tree_exit_toward_parent = 0``; ``benchmarks.common.adapt_cached``, trained on the fit views
-only) is taken apart as ``benchmarks.studies.tree_fit`` does, and its tree is built again once
-per ``--exits B`` (:func:`clod_adapter.lod.tree.build`'s ``exit_toward_parent``; ``B@K``: tiers
-below ``K`` keep their own exits) and fitted as the job fits it (``tree_steps`` steps, half of
+built with its children's exits where their own level of detail drops them and its entries where
+the tier's spread puts them (``tree_exit_toward_parent = 0``, ``tree_entry_toward_children = 0``;
+``benchmarks.common.adapt_cached``, trained on the fit views only) is taken apart as
+``benchmarks.studies.tree_fit`` does, and its tree is built again once per ``--exits B``
+(:func:`clod_adapter.lod.tree.build`'s ``exit_toward_parent``; ``B@K``: tiers below ``K`` keep
+their own exits; ``BeA``: and ``entry_toward_children = A``, else 0; ``BeA:K``: tiers below
+``K`` keep their entries) and fitted as the job fits it (``tree_steps`` steps, half of
 them on count-budget cuts, seed 0). Each fitted tree is scored on the validation views: the
 popping ratio along count budgets and along ``s_v`` (``clod-eval``'s, on the first
 ``--popping-views`` views; 0: none), the mean PSNR at count budgets of 75 / 50 / 30 / 15 / 8 / 3 %
@@ -16,6 +19,8 @@ enforced (a study: exit 0)::
 
     python -m benchmarks.studies.tree_exits --inputs skull --exits 0 0.5 --popping-views 7
     python -m benchmarks.studies.tree_exits --inputs fern maskgaussian --exits 0 0.5@1 0.25 --popping-views 2
+    python -m benchmarks.studies.tree_exits --inputs fern maskgaussian --exits 0.25 0.25e0.5 0.25e1 --popping-views 2
+    python -m benchmarks.studies.tree_exits --inputs skull --exits 0.25 0.25e0.5 --popping-views 3
 
 Written: ``runs/bench/tree_exits[_val]/summary.md``. About 2 minutes per tree for the fit, plus
 the popping sweeps (about 1 minute per view and tree) and the timing.
@@ -43,9 +48,19 @@ from clod_adapter.train.tree_fit import finetune
 
 
 def _with_exits(ply, fit, scene, cfg: AdaptConfig, spec: str):
-    """The unfitted tree with exits ``spec`` (``B`` or ``B@K``: tiers below ``K`` keep their own)."""
+    """The unfitted tree with exits ``spec`` (``B`` or ``B@K``: tiers below ``K`` keep their own;
+    a suffix ``eA``: entries ``A`` of the way toward the children's exits, else 0; ``eA:K``:
+    tiers below ``K`` keep their entries)."""
+    spec, a = (spec.split("e")[0], spec.split("e")[1]) if "e" in spec else (spec, "0")
+    a, first = (float(a.split(":")[0]), int(a.split(":")[1])) if ":" in a else (float(a), 1)
     b, keep = (float(spec.split("@")[0]), int(spec.split("@")[1])) if "@" in spec else (float(spec), 0)
-    built = unfitted_tree(ply, fit, scene, cfg, None, b)[0]
+    built = unfitted_tree(ply, fit, scene, cfg, None, b, a)[0]
+    if first > 1:  # tiers below ``first`` enter where their spread puts them (their children's exits with them)
+        ts, at0 = tree.tiers_of(built), tree.tiers_of(unfitted_tree(ply, fit, scene, cfg, None, b, 0.0)[0])
+        for k in range(1, first):
+            ts[k] = replace(ts[k], sigma_d=at0[k].sigma_d)
+            ts[k - 1] = replace(ts[k - 1], extra={**ts[k - 1].extra, tree.EXIT_KEY: at0[k - 1].extra[tree.EXIT_KEY]})
+        built = tree.linked(ts)
     if not keep:
         return built
     own = tree.tiers_of(unfitted_tree(ply, fit, scene, cfg, None, 0.0)[0])
@@ -57,7 +72,7 @@ def _with_exits(ply, fit, scene, cfg: AdaptConfig, spec: str):
 
 def study(name: str, args) -> list[list]:
     """One input's rows, one per ``--exits`` value."""
-    cfg = AdaptConfig(tree_exit_toward_parent=0.0)  # the cached adaptation: every exit its own
+    cfg = AdaptConfig(tree_exit_toward_parent=0.0, tree_entry_toward_children=0.0)  # the cached adaptation
     ply = adapt_cached(name, cfg, "exits0", split=args.split)
     g0, scene, gts = load_input(name, args.split)
     fit, val = scene_views(scene, args.split)
@@ -93,7 +108,8 @@ def study(name: str, args) -> list[list]:
 def main(argv=None) -> int:
     args = parse_inputs_args(__doc__, argv, inputs=("fern", "maskgaussian", "skull"), split="val", extra=[
         ("--exits", {"nargs": "+", "default": ["0", "0.25"], "metavar": "B[@K]",
-                     "help": "exit shares toward the parent (B@K: tiers below K keep their own exits)"}),
+                     "help": "exit shares toward the parent (B@K: tiers below K keep their own exits; "
+                             "BeA: entries A of the way toward the children's exits)"}),
         ("--popping-views", {"type": int, "default": 2})])
     head = ["input", "exits", "fit + score s", "popping along budgets", "popping along s_v",
             "PSNR at " + " / ".join(f"{100 * s:g}" for s in SHARES) + " % in view",

@@ -68,10 +68,12 @@ from clod_adapter.train.tree_fit import finetune
 SHARES = (0.75, 0.5, 0.3, 0.15, 0.08, 0.03)
 
 
-def unfitted_tree(ply, fit: list, scene, cfg: AdaptConfig, spread=None, exit_toward_parent=None):
+def unfitted_tree(ply, fit: list, scene, cfg: AdaptConfig, spread=None, exit_toward_parent=None,
+                  entry_toward_children=None):
     """The job's tree before its fit, from the cached adaptation ``ply``: its tier 0 and the
     merged tiers under ``parents/`` linked and built again on the fit views (``spread``,
-    ``exit_toward_parent``: as :func:`clod_adapter.lod.tree.build`'s; None: ``cfg``'s)."""
+    ``exit_toward_parent``, ``entry_toward_children``: as :func:`clod_adapter.lod.tree.build`'s;
+    None: ``cfg``'s)."""
     final = load_model(ply)
     t0 = tree.own_model(final)
     dirs, p = [], ply.parent / "parents"
@@ -82,7 +84,9 @@ def unfitted_tree(ply, fit: list, scene, cfg: AdaptConfig, spread=None, exit_tow
     ch = tiers.choice_views(fit)
     linked, _ = tiers.link(t0, cands, ch, [scene.load_image(c) for c in ch], background=cfg.background)
     built = tree.build(linked, fit, spread=cfg.tree_spread if spread is None else spread,
-                       exit_toward_parent=cfg.tree_exit_toward_parent if exit_toward_parent is None else exit_toward_parent)
+                       exit_toward_parent=cfg.tree_exit_toward_parent if exit_toward_parent is None else exit_toward_parent,
+                       entry_toward_children=cfg.tree_entry_toward_children if entry_toward_children is None
+                       else entry_toward_children)
     a, b = tree.tiers_of(built), tree.tiers_of(final)
     same = len(a) == len(b) and all(len(x) == len(y) and torch.equal(x.sigma_d, y.sigma_d)
                                     and torch.equal(x.extra[tree.EXIT_KEY], y.extra[tree.EXIT_KEY]) for x, y in zip(a, b))

@@ -489,7 +489,8 @@ def _drawing_rule(linked, scene_root: Path, out_dir: Path, scene, cfg: AdaptConf
     from ..train.tree_fit import finetune
 
     linked = tree.build(linked, scene.train, log=lambda m: o.log("clod-adapt: " + m), spread=cfg.tree_spread,
-                        exit_toward_parent=cfg.tree_exit_toward_parent)
+                        exit_toward_parent=cfg.tree_exit_toward_parent,
+                        entry_toward_children=cfg.tree_entry_toward_children)
     info["tree"] = [len(t) for t in tree.tiers_of(linked)]
     steps, t0 = min(cfg.tree_steps, cfg.iterations), time.perf_counter()
     linked = finetune(linked, scene.train, [scene.load_image(c) for c in scene.train], steps,

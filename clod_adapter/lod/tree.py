@@ -55,7 +55,7 @@ from torch import Tensor
 
 from . import rule as lod
 from .budget import critical_s_v
-from ..gaussians import Gaussians
+from ..gaussians import GAIN_NAMES, Gaussians
 
 __all__ = ["HAND_OVER", "PARENT_KEY", "is_tree", "tiers_of", "linked", "own_model", "tier_scales", "assign_parents", "build", "cut", "walk",
            "budget_s_v", "budget_cut", "TreeCut", "TreeTerms", "terms", "cut_attributes", "leads", "in_frustum"]
@@ -74,6 +74,10 @@ SPREAD = 2.0
 #: ``b``: a child that is not its parent's lead leaves this share of the way, in ``ln s_v``, from
 #: where its tier's own level of detail drops it toward where its parent takes over (:func:`build`)
 EXIT_TOWARD_PARENT = 0.25
+#: ``a``: a merged node with children other than its lead enters this share of the way, in ``ln
+#: s_v``, from where its tier's spread puts it toward where the last of those children leaves
+#: (:func:`build`)
+ENTRY_TOWARD_CHILDREN = 0.5
 #: candidate parents scored per child (:func:`assign_parents`)
 CANDIDATES = 16
 
@@ -262,7 +266,7 @@ def _group_rank(child_level: Tensor, parent: Tensor, n_parents: int) -> Tensor:
 
 
 def build(gaussians: Gaussians, cameras, log=None, *, spread: float = None,
-          exit_toward_parent: float = None) -> Gaussians:
+          exit_toward_parent: float = None, entry_toward_children: float = None) -> Gaussians:
     """``gaussians`` (a model with merged tiers, linked by ``clod-adapt``) as a merge
     tree, the node constants set on ``cameras`` (training views):
 
@@ -274,7 +278,11 @@ def build(gaussians: Gaussians, cameras, log=None, *, spread: float = None,
       distance it enters around where the tiers' hand-overs put its tier, earlier or later by its
       rank ``q`` among the tier's nodes by their most important child (the largest of the
       children's own Eq. 2 levels at their ``d_ref``: the order the tier below learned), so the
-      hand-overs of a tier spread over a factor ``R`` of ``s_v``;
+      hand-overs of a tier spread over a factor ``R`` of ``s_v``; a node with children other
+      than its lead then moves the share ``a`` = ``entry_toward_children`` (default
+      :data:`ENTRY_TOWARD_CHILDREN`, in [0, 1]) of the way, in ``ln s_v``, toward the last of
+      those children's own exits (``sigma^(1 - a) x_last^a``, below), so the lead turns into its
+      parent nearer where its siblings leave and the count falls nearer where the image changes;
     * every node's own exit is ``G_k s* d_ref``, ``s*`` its Eq. 2 critical scale at ``d_ref``
       with its own (trained) ``sigma_d``: where its tier's own level of detail would drop it. A
       root's exit (``extra["exit"]``) is its own; a child that is not its parent's lead leaves the
@@ -282,21 +290,26 @@ def build(gaussians: Gaussians, cameras, log=None, *, spread: float = None,
       way from its own exit toward its parent's ``sigma_d``, in ``ln s_v`` (``own^(1 - b)
       sigma_p^b``), so the count of a frame falls near the hand-overs that change its image (a
       lead's exit is never reached: its parent takes over first);
-    * the settings say ``tree=True``. Tier 0 is unchanged.
+    * no tier keeps level gains (the tree does not draw them: docs/lod_rule.md "The file"), and
+      the settings say ``tree=True``. Tier 0's Gaussians are otherwise unchanged.
 
     Raises:
-        ValueError: a model without tiers, no cameras, or ``exit_toward_parent`` outside [0, 1].
+        ValueError: a model without tiers, no cameras, or ``exit_toward_parent`` or
+            ``entry_toward_children`` outside [0, 1].
     """
     spread = SPREAD if spread is None else float(spread)
     b = EXIT_TOWARD_PARENT if exit_toward_parent is None else float(exit_toward_parent)
-    if not 0.0 <= b <= 1.0:
-        raise ValueError(f"tree.build: exit_toward_parent must be in [0, 1], got {b}")
+    a = ENTRY_TOWARD_CHILDREN if entry_toward_children is None else float(entry_toward_children)
+    for name, v in (("exit_toward_parent", b), ("entry_toward_children", a)):
+        if not 0.0 <= v <= 1.0:
+            raise ValueError(f"tree.build: {name} must be in [0, 1], got {v}")
     tiers = tiers_of(gaussians)
     if len(tiers) < 2:
         raise ValueError("tree.build: the model has no merged tiers")
     if not len(cameras):
         raise ValueError("tree.build: no cameras to set the node constants on")
-    tiers = [replace(t, extra={k: v for k, v in t.extra.items() if k not in (PARENT_KEY, EXIT_KEY)}) for t in tiers]
+    tiers = [replace(t, extra={k: v for k, v in t.extra.items() if k not in (PARENT_KEY, EXIT_KEY)},
+                     **dict.fromkeys(GAIN_NAMES)) for t in tiers]
     for k in range(len(tiers) - 1):
         parent = assign_parents(tiers[k], tiers[k + 1])
         keep = torch.bincount(parent, minlength=len(tiers[k + 1])) > 0
@@ -310,12 +323,20 @@ def build(gaussians: Gaussians, cameras, log=None, *, spread: float = None,
     scales, d_ref = tier_scales(tiers), reference_distances(tiers, cameras)
     own = [critical_s_v(torch.sigmoid(t.opacity_logits.detach()), d.to(t.means), t.sigma_d.detach(), t.lod.tau,
                         t.lod.eps).cpu() for t, d in zip(tiers, d_ref)]  # each tier's own Eq. 2 level at d_ref
+    exits = [scales[k] * own[k] * d_ref[k] for k in range(len(tiers))]  # where its tier's own LoD drops it
     for k in range(1, len(tiers)):
         t = tiers[k]
-        rank = _group_rank(own[k - 1], tiers[k - 1].extra[PARENT_KEY].long().cpu(), len(t))
-        tiers[k] = replace(t, sigma_d=(scales[k] * spread ** (rank - 0.5) * d_ref[k]).to(t.means))
+        p = tiers[k - 1].extra[PARENT_KEY].long().cpu()
+        rank = _group_rank(own[k - 1], p, len(t))
+        s = (scales[k] * spread ** (rank - 0.5) * d_ref[k]).double()
+        if a > 0.0:  # toward the last exit of its children that are not its lead
+            nl = ~leads(tiers[k - 1]).cpu()
+            last = torch.zeros(len(t), dtype=torch.float64).scatter_reduce(
+                0, p[nl], exits[k - 1].double()[nl].clamp_min(0.0), reduce="amax", include_self=True)
+            s = torch.where(last > 0, s.clamp_min(0.0) ** (1.0 - a) * last ** a, s)
+        tiers[k] = replace(t, sigma_d=s.to(t.means))
     for k, t in enumerate(tiers):  # where its tier's own level of detail drops it, moved toward the parent
-        x = scales[k] * own[k] * d_ref[k]
+        x = exits[k]
         if k + 1 < len(tiers) and b > 0.0:
             s_p = tiers[k + 1].sigma_d.detach().double().cpu()[t.extra[PARENT_KEY].long().cpu()]
             moved = x.double().clamp_min(0.0) ** (1.0 - b) * s_p.clamp_min(0.0) ** b

@@ -7,7 +7,7 @@ from dataclasses import dataclass
 from typing import Literal, Optional
 
 from ..lod import rule as lod
-from ..lod.tree import EXIT_TOWARD_PARENT, SPREAD
+from ..lod.tree import ENTRY_TOWARD_CHILDREN, EXIT_TOWARD_PARENT, SPREAD
 from ..gaussians import GAIN_NAMES
 from ..io.scene import RESOLUTIONS
 from .official import OFFICIAL_LR
@@ -143,6 +143,13 @@ class AdaptConfig:
             [0, 1]; default :data:`clod_adapter.lod.tree.EXIT_TOWARD_PARENT`, 0.25), so a frame's
             count falls near the hand-overs that change its image. Set when the tree is built
             (docs/studies.md "Where a child leaves"); no command-line flag.
+        tree_entry_toward_children: a merged node with children other than its lead enters this
+            share of the way, in ``ln s_v``, from where its tier's spread puts it toward where the
+            last of those children leaves (:func:`clod_adapter.lod.tree.build`'s
+            ``entry_toward_children``, in [0, 1]; default
+            :data:`clod_adapter.lod.tree.ENTRY_TOWARD_CHILDREN`, 0.5), so the lead turns into its
+            parent nearer where its siblings leave. Set when the tree is built (docs/studies.md
+            "When a parent takes over"); no command-line flag.
         tier_iteration_share: each merged tier learns its level of detail for this share of
             ``iterations`` (rounded, at least 1 when ``iterations`` > 0). Default 0.5: with the tree
             fitted on its cuts afterwards (``tree_steps``), half the steps score within 0.4 dB of
@@ -213,6 +220,7 @@ class AdaptConfig:
     tree_budget_steps: float = 0.5
     tree_spread: float = SPREAD
     tree_exit_toward_parent: float = EXIT_TOWARD_PARENT
+    tree_entry_toward_children: float = ENTRY_TOWARD_CHILDREN
     faint_share: Optional[float] = None
     keep_share: float = 1.0
     recovery_steps: int = 1000
@@ -321,9 +329,10 @@ class AdaptConfig:
         self.tree_spread = float(self.tree_spread)
         if not (math.isfinite(self.tree_spread) and self.tree_spread > 1.0):
             raise ValueError(f"tree_spread must be a factor > 1, got {self.tree_spread}")
-        self.tree_exit_toward_parent = float(self.tree_exit_toward_parent)
-        if not 0.0 <= self.tree_exit_toward_parent <= 1.0:
-            raise ValueError(f"tree_exit_toward_parent must be in [0, 1], got {self.tree_exit_toward_parent}")
+        for key in ("tree_exit_toward_parent", "tree_entry_toward_children"):
+            setattr(self, key, float(getattr(self, key)))
+            if not 0.0 <= getattr(self, key) <= 1.0:
+                raise ValueError(f"{key} must be in [0, 1], got {getattr(self, key)}")
         self.tier_iteration_share = float(self.tier_iteration_share)
         if not 0.0 < self.tier_iteration_share <= 1.0:
             raise ValueError(f"tier_iteration_share must be in (0, 1], got {self.tier_iteration_share}")

@@ -36,7 +36,8 @@ Per camera (:func:`terms`, :func:`cut`), with ``F`` = :data:`HAND_OVER`:
 The node constants are set by :func:`build` from the tiers the job linked: at their mean ``d'``
 over the training views a tier's nodes enter around ``s_v = G_k`` (:func:`tier_scales`, where the
 tiers' hand-overs put the tier), spread over a factor :data:`SPREAD` by the order the tier below
-learned, and every node leaves where its tier's own level of detail (its trained Eq. 2
+learned and moved toward where the last sibling of their lead leaves (:data:`ENTRY_TOWARD_CHILDREN`),
+and every node leaves where its tier's own level of detail (its trained Eq. 2
 ``sigma_d``) drops it at its usual distance, a child moved part of the way toward its parent's
 entry (:data:`EXIT_TOWARD_PARENT`); ``clod_adapter.train.tree_fit`` then fits the merged
 tiers on the cuts. Between hand-overs nothing is dimmed or grown: every

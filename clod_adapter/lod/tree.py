@@ -266,6 +266,12 @@ def _group_rank(child_level: Tensor, parent: Tensor, n_parents: int) -> Tensor:
     return rank
 
 
+def _toward(x: Tensor, y: Tensor, w: float) -> Tensor:
+    """``x^(1 - w) y^w`` in float64 (both clamped at 0): the share ``w`` of the way from ``x`` to
+    ``y`` in log space, how :func:`build` moves an entry or an exit constant."""
+    return x.double().clamp_min(0.0) ** (1.0 - w) * y.double().clamp_min(0.0) ** w
+
+
 def build(gaussians: Gaussians, cameras, log=None, *, spread: float = None,
           exit_toward_parent: float = None, entry_toward_children: float = None) -> Gaussians:
     """``gaussians`` (a model with merged tiers, linked by ``clod-adapt``) as a merge
@@ -334,14 +340,13 @@ def build(gaussians: Gaussians, cameras, log=None, *, spread: float = None,
             nl = ~leads(tiers[k - 1]).cpu()
             last = torch.zeros(len(t), dtype=torch.float64).scatter_reduce(
                 0, p[nl], exits[k - 1].double()[nl].clamp_min(0.0), reduce="amax", include_self=True)
-            s = torch.where(last > 0, s.clamp_min(0.0) ** (1.0 - a) * last ** a, s)
+            s = torch.where(last > 0, _toward(s, last, a), s)
         tiers[k] = replace(t, sigma_d=s.to(t.means))
     for k, t in enumerate(tiers):  # where its tier's own level of detail drops it, moved toward the parent
         x = exits[k]
         if k + 1 < len(tiers) and b > 0.0:
             s_p = tiers[k + 1].sigma_d.detach().double().cpu()[t.extra[PARENT_KEY].long().cpu()]
-            moved = x.double().clamp_min(0.0) ** (1.0 - b) * s_p.clamp_min(0.0) ** b
-            x = torch.where(leads(t).cpu(), x, moved.to(x.dtype))
+            x = torch.where(leads(t).cpu(), x, _toward(x, s_p, b).to(x.dtype))
         tiers[k] = replace(t, extra={**t.extra, EXIT_KEY: x.float().to(t.means.device)})
     out = linked(tiers)
     return replace(out, lod=replace(out.lod, tree=True))

@@ -10,12 +10,12 @@ pixels, ``width``/``height`` pixels (gsplat 1.5.3 conventions).
 from __future__ import annotations
 
 import argparse
-import math
 
 import numpy as np
 from plyfile import PlyData
 
 F = 1.25  # the hand-over's width in s_v
+M = 1.6  # a hand-over or an exit lasts over the last min(M, U / max(E, 1)) of a node's interval
 
 
 def read_tree(path) -> list[dict]:
@@ -109,22 +109,21 @@ def draw(tiers, viewmat, K, width, height, s_v=None, budget=None) -> dict:
     out = {"ids": [], "s_v": s, "means": [], "quats": [], "log_scales": [], "opacities": [], "sh": []}
     for k, (t, n, u, f) in enumerate(zip(tiers, ns, ups, fades)):
         i = np.flatnonzero((n <= s) & (s < u))
-        w, f = np.clip(np.log(u[i] / s) / math.log(F), 0, 1), f[i]
+        w, f = np.clip(np.log(u[i] / s) / np.log(np.minimum(M, u[i] / np.maximum(n[i], 1))), 0, 1), f[i]
         mu, q, ls, sh, a = t["means"][i], t["quats"][i], t["log_scales"][i], t["sh"][i], t["opacity"][i]
         if k + 1 < len(tiers):
-            w = np.where(f, 1.0, w)  # a row fading out keeps its attributes
+            wh = np.where(f, 1.0, w)  # a row fading out keeps its attributes
             par, p = tiers[k + 1], t["parent"][i]
             q = q / np.linalg.norm(q, axis=1, keepdims=True)
             qp = par["quats"][p] / np.linalg.norm(par["quats"][p], axis=1, keepdims=True)
             qp = np.where((q * qp).sum(1, keepdims=True) < 0, -qp, qp)
-            wc, lead = w[:, None], leads(t, len(par["means"]))[i]
+            wc, lead = wh[:, None], leads(t, len(par["means"]))[i]
             lc = lead[:, None]  # the lead grows into its parent; its siblings shrink and fade where they are
             mu = np.where(lc, wc * mu + (1 - wc) * par["means"][p], mu)
             ls = np.where(lc, wc * ls + (1 - wc) * par["log_scales"][p], ls + np.log(np.maximum(wc, 1e-4)))
             q = np.where(lc, wc * q + (1 - wc) * qp, q)
             sh = np.where(lc[:, :, None], wc[:, None] * sh + (1 - wc[:, None]) * par["sh"][p], sh)
-            a = w * a + (1 - w) * np.where(lead, par["opacity"][p], 0.0)
-            w = np.clip(np.log(u[i] / s) / math.log(F), 0, 1)
+            a = wh * a + (1 - wh) * np.where(lead, par["opacity"][p], 0.0)
         a = np.where(f, a * w, a)
         for key, val in (("ids", i), ("means", mu), ("quats", q), ("log_scales", ls), ("opacities", a), ("sh", sh)):
             out[key].append(val)

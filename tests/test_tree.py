@@ -2,6 +2,7 @@
 composite to their parent at the switch, the frame's cost falls with the level and the budget,
 the file round-trips, and every consumer draws what render_lod draws."""
 from dataclasses import replace
+import math
 
 import numpy as np
 import pytest
@@ -560,6 +561,46 @@ def test_the_hand_over_width_is_read_at_each_call(model, monkeypatch):
     monkeypatch.setattr(tree, "HAND_OVER", 1.6)
     again = tree.budget_cut(ts, cam, 300.0)
     assert again.s_v == budget.s_v and all(torch.equal(x, y) for x, y in zip(again.ids, budget.ids))
+
+
+def test_a_node_changes_over_at_most_the_morph_factor_of_its_interval(model, monkeypatch):
+    """Step 5's ``w``: 1 until the last ``min(M, U / max(E, 1))`` of a drawn node's interval
+    ``[E, U)``, then ``ln(U / s) / ln`` of that width, reaching 0 at ``U``; at ``M = F`` every change
+    lasts exactly ``F`` (the rule before ``M``); a wider ``M`` puts more drawn rows part-way and
+    leaves the cut's rows as they are, in the C++ kernels and their torch twin alike."""
+    g, cams = model
+    ts, cam = tree.tiers_of(g), cams[0]
+    tt = tree.terms(ts, cam)
+    checked = 0
+    for s in S_VS:
+        c = tree.cut(ts, cam, s, tt=tt)
+        for n, u, ids, w in zip(tt.entry, tt.upper, c.ids, c.t):
+            width = torch.clamp(u[ids] / n[ids].clamp_min(1.0), max=tree.MORPH)
+            assert bool((width >= tree.HAND_OVER * (1 - 1e-6)).all())  # never shorter than F
+            want = torch.clamp(torch.log(u[ids] / c.s_v) / torch.log(width), 0, 1)
+            assert torch.allclose(w, want, atol=1e-6)
+            checked += int(((width > tree.HAND_OVER * 1.01) & (w < 1)).sum())
+    assert checked > 5  # rows whose change lasts longer than F were drawn part-way
+
+    def part_way(m):
+        monkeypatch.setattr(tree, "MORPH", m)
+        out = []
+        for impl in ("cpp", "torch"):
+            with native.use_impl(impl):
+                out.append([tree.cut(ts, cam, s) for s in S_VS])
+        for a, b in zip(*out):  # the kernels and the twin agree at this M
+            assert all(torch.equal(x, y) for x, y in zip(a.ids, b.ids))
+            assert all(torch.allclose(x, y.to(x.dtype), atol=1e-5) for x, y in zip(a.t, b.t))
+        return out[0], sum(int(((t > 0) & (t < 1)).sum()) for c in out[0] for t in c.t)
+
+    (at_f, n_f), (at_m, n_m) = part_way(tree.HAND_OVER), part_way(1.6)
+    for a, b in zip(at_f, at_m):
+        assert all(torch.equal(x, y) for x, y in zip(a.ids, b.ids))  # the same rows drawn
+    for c in at_f:  # M = F: every change over exactly F
+        tt_c = tree.terms(ts, cam)
+        for u, ids, w in zip(tt_c.upper, c.ids, c.t):
+            assert torch.allclose(w, torch.clamp(torch.log(u[ids] / c.s_v) / math.log(tree.HAND_OVER), 0, 1), atol=1e-6)
+    assert n_m > n_f
 
 
 def test_a_child_leaves_between_its_own_exit_and_its_parents_entry():

@@ -6,7 +6,6 @@ from __future__ import annotations
 
 import importlib.util
 import json
-import math
 import shutil
 import subprocess
 from pathlib import Path
@@ -120,7 +119,8 @@ console.log(JSON.stringify(JSON.parse(cases).map((c) => {
         assert js["s_v"] == r["s_v"], c
         for k, ids in enumerate(r["ids"]):
             assert np.array_equal(np.flatnonzero(kind[off[k]:off[k + 1]]), ids), (c, k)
-            want = np.clip(np.log(U[k][ids] / r["s_v"]) / math.log(1.25), 0, 1)
+            width = np.minimum(ref.M, U[k][ids] / np.maximum(E[k][ids], 1.0))  # step 5: over min(M, U / max(E, 1))
+            want = np.clip(np.log(U[k][ids] / r["s_v"]) / np.log(width), 0, 1)
             np.testing.assert_allclose(w[off[k] + ids], want, atol=W_ATOL)
             lead = ref.leads(rt[k], len(rt[k + 1]["means"]))[ids] if k + 1 < len(rt) else np.zeros(len(ids), bool)
             assert np.array_equal(kind[off[k] + ids], np.where(fade[k][ids], 1, np.where(lead, 2, 3))), (c, k)

@@ -19,6 +19,8 @@ scored (the fit's seconds are printed for scale). No goal is enforced (a study: 
     python -m benchmarks.studies.tree_fit --as-adapted --config tier_iteration_share=0.5
     python -m benchmarks.studies.tree_fit --steps 1000 --budget-steps 0.5 --spread 2 4
     python -m benchmarks.studies.tree_fit --steps 1000 --budget-steps 0.5 --hand-over 1.25 1.5 1.75
+    python -m benchmarks.studies.tree_fit --inputs fern --steps 1000 --budget-steps 0.5 --morph 1.25 1.6
+    python -m benchmarks.studies.tree_fit --inputs skull --as-adapted --morph 1.25 1.4 1.6 2 --popping-views 7
     python -m benchmarks.studies.tree_fit --steps 1000 --budget-steps 0.5 --exit-toward-parent 0 0.25 0.5 0.75 1
 
 ``--spread R ...`` builds the tree with each tier's hand-overs spread over a factor ``R`` of ``s_v``
@@ -32,6 +34,10 @@ default the adaptation's ``tree_exit_toward_parent``), one set of rows per value
 ``--hand-over F ...`` draws and fits the tree with a hand-over of width ``F`` in ``s_v``
 (:data:`clod_adapter.lod.tree.HAND_OVER`, set for the run; the node constants do not depend on
 it), one set of rows per value.
+
+``--morph M ...`` draws and fits the tree with hand-overs and exits over at most a factor ``M``
+of ``s_v`` (:data:`clod_adapter.lod.tree.MORPH`, set for the run), one set of rows per value
+(with ``--as-adapted``: the job's fitted tree drawn at each ``M``).
 
 ``--config KEY=VALUE ...`` takes the adaptation with those ``AdaptConfig`` settings (cached under
 their tag) instead of the defaults; ``--as-adapted`` scores it as the job fitted its tree (one row,
@@ -111,15 +117,22 @@ def study(name: str, args) -> list[list]:
     ply = adapt_cached(name, cfg, tag, split="val")
     base, scene, gts = load_input(name, "val")
     fit, val = scene_views(scene, "val")
-    if args.as_adapted:
+    if args.as_adapted:  # the job's own fit, drawn at each --morph
         sig = lightgaussian_significance(base, fit)
-        fitted = metrics_of(ply)["tier"].get("tree_fit", {})
-        r = scores(load_model(ply), base, val, gts, sig, args.popping_views)
-        row = [name, tag, f"{cfg.tree_spread:g}", f"{cfg.tree_exit_toward_parent:g}", f"{tree.HAND_OVER:g}", fitted.get("steps", "-"), f"{cfg.tree_budget_steps:g}", "full (job)",
-               f"{fitted.get('seconds', 0):.0f}", " / ".join(f"{x:.1f}" for x in r["budget_pop"]),
-               " / ".join(f"{x:.1f}" for x in r["s_v_pop"]), *[f"{r[s]:.2f}" for s in SHARES]]
-        print(" | ".join(map(str, row)), flush=True)
-        return [row]
+        fitted, g, rows, default_m = metrics_of(ply)["tier"].get("tree_fit", {}), load_model(ply), [], tree.MORPH
+        for m in args.morph or [default_m]:
+            tree.MORPH = m
+            try:
+                r = scores(g, base, val, gts, sig, args.popping_views)
+            finally:
+                tree.MORPH = default_m
+            row = [name, tag, f"{cfg.tree_spread:g}", f"{cfg.tree_exit_toward_parent:g}", f"{tree.HAND_OVER:g}", f"{m:g}",
+                   fitted.get("steps", "-"), f"{cfg.tree_budget_steps:g}", "full (job)", f"{fitted.get('seconds', 0):.0f}",
+                   " / ".join(f"{x:.1f}" for x in r["budget_pop"]), " / ".join(f"{x:.1f}" for x in r["s_v_pop"]),
+                   *[f"{r[s]:.2f}" for s in SHARES]]
+            print(" | ".join(map(str, row)), flush=True)
+            rows.append(row)
+        return rows
     builds = [(r, b) for r in args.spread or [None] for b in args.exit_toward_parent or [None]]
     built, same = unfitted_tree(ply, fit, scene, cfg, *builds[0])
     print(f"[{name}] tree {[len(t) for t in tree.tiers_of(built)]}; node constants equal the cached "
@@ -135,15 +148,16 @@ def study(name: str, args) -> list[list]:
     for spread, b in builds:
         if (spread, b) != builds[0]:
             built = unfitted_tree(ply, fit, scene, cfg, spread, b)[0]
-        default = tree.HAND_OVER
+        default, default_m = tree.HAND_OVER, tree.MORPH
         for F in args.hand_over or [default]:
-            tree.HAND_OVER = F  # read by every function of the rule at its call (tree._width)
-            try:
-                rows += fit_rows(name, tag, built, base, (fit_cams, fit_imgs), (val, gts), sig, cfg, args,
-                                 (cfg.tree_spread if spread is None else spread,
-                                  cfg.tree_exit_toward_parent if b is None else b))
-            finally:
-                tree.HAND_OVER = default
+            for m in args.morph or [default_m]:
+                tree.HAND_OVER, tree.MORPH = F, m  # read by every function of the rule at its call
+                try:
+                    rows += fit_rows(name, tag, built, base, (fit_cams, fit_imgs), (val, gts), sig, cfg, args,
+                                     (cfg.tree_spread if spread is None else spread,
+                                      cfg.tree_exit_toward_parent if b is None else b))
+                finally:
+                    tree.HAND_OVER, tree.MORPH = default, default_m
     return rows
 
 
@@ -158,7 +172,7 @@ def fit_rows(name, tag, built, base, fit_views, val_views, sig, cfg: AdaptConfig
                      budget_steps=args.budget_steps)
         sec = time.perf_counter() - t
         r = scores(g, base, val, gts, sig, args.popping_views)
-        row = [name, tag, *(f"{x:g}" for x in built_with), f"{tree.HAND_OVER:g}", n, f"{args.budget_steps:g}",
+        row = [name, tag, *(f"{x:g}" for x in built_with), f"{tree.HAND_OVER:g}", f"{tree.MORPH:g}", n, f"{args.budget_steps:g}",
                "half" if args.half else "full", f"{sec:.0f}",
                " / ".join(f"{x:.1f}" for x in r["budget_pop"]), " / ".join(f"{x:.1f}" for x in r["s_v_pop"]),
                *[f"{r[s]:.2f}" for s in SHARES]]
@@ -179,13 +193,15 @@ def main(argv=None) -> int:
     ap.add_argument("--as-adapted", action="store_true", help="score the adaptation's own fit (no fit here)")
     ap.add_argument("--spread", type=float, nargs="+", help="the tree's hand-over spread R (default: tree.SPREAD)")
     ap.add_argument("--hand-over", type=float, nargs="+", help="the hand-over's width F (default: tree.HAND_OVER)")
+    ap.add_argument("--morph", type=float, nargs="+",
+                    help="the longest hand-over or exit M, a factor of s_v (default: tree.MORPH)")
     ap.add_argument("--exit-toward-parent", type=float, nargs="+",
                     help="share of the way a non-lead child's exit moves toward its parent's entry "
                          "(default: the adaptation's tree_exit_toward_parent)")
     args = ap.parse_args(argv)
     setup_threads(args.threads)
     rows = [r for name in selected_inputs(args) for r in study(name, args)]
-    head = ["input", "adaptation", "spread", "exit b", "F", "steps", "budget steps", "resolution", "fit s", "popping along budgets",
+    head = ["input", "adaptation", "spread", "exit b", "F", "M", "steps", "budget steps", "resolution", "fit s", "popping along budgets",
             "popping along s_v", *[f"PSNR {int(100 * s)} % in view" for s in SHARES]]
     text = table(head, rows)
     name = ("tree_fit" + (f"_{parse_config(args.config)[1]}" if args.config else "")
@@ -193,6 +209,7 @@ def main(argv=None) -> int:
                + ("_half" if args.half else "")
                + ("_spread" + "-".join(f"{x:g}" for x in args.spread) if args.spread else "")
                + ("_F" + "-".join(f"{x:g}" for x in args.hand_over) if args.hand_over else "")
+               + ("_M" + "-".join(f"{x:g}" for x in args.morph) if args.morph else "")
                + ("_b" + "-".join(f"{x:g}" for x in args.exit_toward_parent) if args.exit_toward_parent else "")))
     print(text)
     print(write_summary(name, text))

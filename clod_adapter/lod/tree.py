@@ -24,7 +24,9 @@ Per camera (:func:`terms`, :func:`cut`), with ``F`` = :data:`HAND_OVER`:
    for the parent's *lead* child (:func:`leads`, the most massive), the smaller of ``E_p`` and its
    own exit ``X_i = max(x_i / d'_i, F max(E_i, 1))`` for the others (``x_i``, ``extra["exit"]``),
    ``X_i`` in the last tier. No path crosses the cut twice.
-4. A drawn node at ``t = clamp(ln(U_i / s_v) / ln F, 0, 1)`` whose end is its own exit *leaves*:
+4. A drawn node at ``t = clamp(ln(U_i / s_v) / ln min(M, U_i / max(E_i, 1)), 0, 1)`` (``M`` =
+   :data:`MORPH`: it changes over the last factor ``M`` of its interval, or all of a shorter one)
+   whose end is its own exit *leaves*:
    its opacity is times ``t``. A lead that hands over is drawn with its attributes interpolated
    toward its parent's (``t = 1`` its own, ``t = 0`` the parent's; position, log-scales, rotation,
    SH linearly) and opacity ``t a_i + (1 - t) a_p``; its siblings shrink (log-scales plus ``ln
@@ -64,6 +66,10 @@ __all__ = ["HAND_OVER", "PARENT_KEY", "is_tree", "tiers_of", "linked", "own_mode
 #: ``F``: a hand-over or an exit lasts from ``U / F`` to ``U`` in ``s_v``; a node is drawn over at
 #: least this factor of ``s_v``
 HAND_OVER = 1.25
+#: ``M``: a hand-over or an exit lasts over the last ``min(M, U / max(E, 1))`` of a node's
+#: interval ``[E, U)`` in ``s_v`` (at least ``F``): a node drawn over a wider interval turns into
+#: its parent, or fades, more slowly
+MORPH = 1.6
 #: the ``Gaussians.extra`` key (and .ply property) of a node's parent index in the next tier
 PARENT_KEY = "parent"
 #: the ``Gaussians.extra`` key (and .ply property) of every node's exit constant
@@ -452,12 +458,12 @@ def cut(tiers: Sequence[Gaussians], camera, s_v: float, *, hand_over: Optional[f
         if _native(tiers):
             return _native_cut(tiers, camera, s, F)
         return walk(tiers, camera, s, hand_over=F)
-    lnF = math.log(F)
+    M = _morph(hand_over)
     ids, ts, fades = [], [], []
     for n, u, f in zip(tt.entry, tt.upper, tt.fade):
         i = torch.nonzero((n <= s) & (s < u)).flatten()
         ids.append(i)
-        ts.append(torch.clamp(torch.log(u[i] / s) / lnF, 0.0, 1.0))
+        ts.append(_weight(n[i], u[i], s, M))
         fades.append(f[i])
     return TreeCut(ids, ts, s, int(tt.frustum[0].sum()), fades)
 
@@ -475,11 +481,23 @@ def budget_cut(tiers: Sequence[Gaussians], camera, k: float, *, hand_over: Optio
     ds, frs = frame(tiers, camera) if at is None else at
     if _native(tiers):
         out = _native_call("tree_budget_cut", tiers, ds, [f.double().contiguous() for f in frs], float(k),
-                           _width(hand_over))
+                           _width(hand_over), _morph(hand_over))
         level = max(float(out[-1]), 1.0)
         return TreeCut(out[0:-1:3], out[1:-1:3], level, int(frs[0].sum()), out[2:-1:3])
     tt = terms(tiers, camera, hand_over=hand_over, at=(ds, frs))
     return cut(tiers, camera, budget_s_v(tt, k), hand_over=hand_over, tt=tt)
+
+
+def _weight(E: Tensor, U: Tensor, s: float, M: float) -> Tensor:
+    """Step 5's ``w`` of drawn nodes with entries ``E`` and ends ``U`` at ``s``: 1 until the last
+    ``min(M, U / max(E, 1))`` of their interval, falling to 0 at ``U`` linearly in ``ln s_v``."""
+    width = torch.clamp(U / E.clamp_min(1.0), max=M)
+    return torch.clamp(torch.log(U / s) / torch.log(width), 0.0, 1.0)
+
+
+def _morph(hand_over: Optional[float]) -> float:
+    """``M``: :data:`MORPH` as it is at the call, at least ``F`` (a study may set either)."""
+    return max(float(MORPH), _width(hand_over))
 
 
 def _width(hand_over: Optional[float]) -> float:
@@ -521,7 +539,7 @@ def _native_call(name: str, tiers: Sequence[Gaussians], ds: Sequence[Tensor], *a
 def _native_cut(tiers: Sequence[Gaussians], camera, s: float, F: float) -> TreeCut:
     """:func:`cut` by the C++ twin of :func:`terms` + :func:`cut` (every node, one pass per tier)."""
     ds, frs = frame(tiers, camera)
-    out = _native_call("tree_cut", tiers, ds, s, F)
+    out = _native_call("tree_cut", tiers, ds, s, F, _morph(F))
     return TreeCut(out[0::3], out[1::3], s, lambda: int(frs[0].sum()), out[2::3])
 
 
@@ -541,14 +559,14 @@ def walk(tiers: Sequence[Gaussians], camera, s_v: float, *, hand_over: Optional[
     ``s_v`` (>= 1; below, 1) are visited, so a coarse frame touches few nodes. Returns the same
     :class:`TreeCut` as :func:`cut` from :func:`terms` (``tests/test_tree.py``)."""
     F = _width(hand_over)
-    s, lnF = max(float(s_v), 1.0), math.log(F)
+    s, M = max(float(s_v), 1.0), _morph(hand_over)
     T = len(tiers) - 1
     c, D, d_last = _camera(tiers, camera)
     last = tiers[T]
     E = (last.sigma_d.detach() / d_last.clamp_min(1e-12)).clamp_min(F ** T)
     U, f = _end(tiers, T, None, E, None, d_last, F)
     i = torch.nonzero((E <= s) & (s < U)).flatten()
-    ids, ts, fades = [i], [torch.clamp(torch.log(U[i] / s) / lnF, 0.0, 1.0)], [f[i]]
+    ids, ts, fades = [i], [_weight(E[i], U[i], s, M)], [f[i]]
     open_rows = torch.nonzero(s < E).flatten()  # roots not yet entered: their subtrees are drawn
     E_open = E[open_rows]
     for k in range(T - 1, -1, -1):
@@ -567,7 +585,7 @@ def walk(tiers: Sequence[Gaussians], camera, s_v: float, *, hand_over: Optional[
         drawn = (E_c <= s) & (s < end)  # s < U_c holds for every child of an open node
         sel, srt = torch.sort(rows[drawn])
         ids.append(sel)
-        ts.append(torch.clamp(torch.log(end[drawn][srt] / s) / lnF, 0.0, 1.0))
+        ts.append(_weight(E_c[drawn][srt], end[drawn][srt], s, M))
         fades.append(f[drawn][srt])
         opened = s < E_c  # not entered yet: its subtree is drawn
         open_rows, E_open = rows[opened], E_c[opened]

@@ -643,7 +643,7 @@ torch::Tensor lod_critical_cpu(torch::Tensor opacities, torch::Tensor d_norm, to
 // tree_cut.cpp (the merge tree's cut and drawn attributes)
 std::vector<torch::Tensor> tree_cut_cpu(std::vector<torch::Tensor> d_norm, std::vector<torch::Tensor> sigma_d,
                                         std::vector<torch::Tensor> exits, std::vector<torch::Tensor> parents,
-                                        std::vector<torch::Tensor> leads, double s, double F);
+                                        std::vector<torch::Tensor> leads, double s, double F, double M);
 std::vector<torch::Tensor> tree_terms_cpu(std::vector<torch::Tensor> d_norm, std::vector<torch::Tensor> sigma_d,
                                           std::vector<torch::Tensor> exits, std::vector<torch::Tensor> parents,
                                           std::vector<torch::Tensor> leads, double F);
@@ -660,7 +660,7 @@ std::vector<torch::Tensor> tree_attributes_cpu(std::vector<torch::Tensor> attrs,
 std::vector<torch::Tensor> tree_budget_cut_cpu(std::vector<torch::Tensor> d_norm, std::vector<torch::Tensor> sigma_d,
                                                std::vector<torch::Tensor> exits, std::vector<torch::Tensor> parents,
                                                std::vector<torch::Tensor> leads, std::vector<torch::Tensor> weights,
-                                               double k, double F);
+                                               double k, double F, double M);
 
 // splat_cost.cpp (the "ellipse_px" cost of every Gaussian, lod.cost.splat_cost)
 torch::Tensor splat_cost_cpu(torch::Tensor means, torch::Tensor quats, torch::Tensor scales, torch::Tensor opacities,

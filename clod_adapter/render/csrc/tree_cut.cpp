@@ -75,8 +75,8 @@ void terms_impl(const std::vector<torch::Tensor>& d_norm, const std::vector<torc
 
 template <typename S>
 void emit_cut(const std::vector<torch::Tensor>& E, const std::vector<torch::Tensor>& U,
-              const std::vector<torch::Tensor>& fade, double s, double F, std::vector<torch::Tensor>& out) {
-    const S lnF = std::log(static_cast<S>(F)), sv = static_cast<S>(s);
+              const std::vector<torch::Tensor>& fade, double s, double M, std::vector<torch::Tensor>& out) {
+    const S Ms = static_cast<S>(M), sv = static_cast<S>(s);
     for (size_t k = 0; k < E.size(); ++k) {  // drawn iff E <= s < U; ids ascending (sequential: they are few or cheap)
         const int64_t n = E[k].size(0);
         const S* Ek = E[k].data_ptr<S>();
@@ -95,7 +95,9 @@ void emit_cut(const std::vector<torch::Tensor>& E, const std::vector<torch::Tens
         for (int64_t j = 0; j < m; ++j) {
             const int64_t i = ids[j];
             ip[j] = i;
-            wp[j] = std::min(std::max(std::log(Uk[i] / sv) / lnF, S(0)), S(1));
+            // w over the last min(M, U / max(E, 1)) of the node's interval (>= F: build keeps it so)
+            const S width = std::min(Ms, Uk[i] / std::max(Ek[i], S(1)));
+            wp[j] = std::min(std::max(std::log(Uk[i] / sv) / std::log(width), S(0)), S(1));
             fp[j] = fk[i];
         }
         out.push_back(id_t);
@@ -107,10 +109,10 @@ void emit_cut(const std::vector<torch::Tensor>& E, const std::vector<torch::Tens
 template <typename S>
 std::vector<torch::Tensor> cut_impl(const std::vector<torch::Tensor>& d_norm, const std::vector<torch::Tensor>& sigma_d,
                                     const std::vector<torch::Tensor>& exits, const std::vector<torch::Tensor>& parents,
-                                    const std::vector<torch::Tensor>& leads, double s, double F) {
+                                    const std::vector<torch::Tensor>& leads, double s, double F, double M) {
     std::vector<torch::Tensor> E, U, fade, out;
     terms_impl<S>(d_norm, sigma_d, exits, parents, leads, F, E, U, fade);
-    emit_cut<S>(E, U, fade, s, F, out);
+    emit_cut<S>(E, U, fade, s, M, out);
     return out;
 }
 
@@ -386,12 +388,12 @@ double tree_budget_cpu(std::vector<torch::Tensor> E, std::vector<torch::Tensor> 
 // tree._distances rounds it): per tier [ids (int64, ascending), w, fade]
 std::vector<torch::Tensor> tree_cut_cpu(std::vector<torch::Tensor> d_norm, std::vector<torch::Tensor> sigma_d,
                                         std::vector<torch::Tensor> exits, std::vector<torch::Tensor> parents,
-                                        std::vector<torch::Tensor> leads, double s, double F) {
+                                        std::vector<torch::Tensor> leads, double s, double F, double M) {
     TORCH_CHECK(!d_norm.empty() && sigma_d.size() == d_norm.size() && exits.size() == d_norm.size() &&
                 parents.size() + 1 == d_norm.size() && leads.size() + 1 == d_norm.size(), "tree_cut: one entry per tier");
     std::vector<torch::Tensor> out;
     AT_DISPATCH_FLOATING_TYPES(d_norm[0].scalar_type(), "tree_cut", [&] {
-        out = cut_impl<scalar_t>(d_norm, sigma_d, exits, parents, leads, s, F);
+        out = cut_impl<scalar_t>(d_norm, sigma_d, exits, parents, leads, s, F, M);
     });
     return out;
 }
@@ -435,7 +437,7 @@ std::vector<torch::Tensor> tree_attributes_cpu(std::vector<torch::Tensor> attrs,
 std::vector<torch::Tensor> tree_budget_cut_cpu(std::vector<torch::Tensor> d_norm, std::vector<torch::Tensor> sigma_d,
                                                std::vector<torch::Tensor> exits, std::vector<torch::Tensor> parents,
                                                std::vector<torch::Tensor> leads, std::vector<torch::Tensor> weights,
-                                               double k, double F) {
+                                               double k, double F, double M) {
     TORCH_CHECK(!d_norm.empty() && sigma_d.size() == d_norm.size() && exits.size() == d_norm.size() &&
                 parents.size() + 1 == d_norm.size() && leads.size() + 1 == d_norm.size() &&
                 weights.size() == d_norm.size(), "tree_budget_cut: one entry per tier");
@@ -445,7 +447,7 @@ std::vector<torch::Tensor> tree_budget_cut_cpu(std::vector<torch::Tensor> d_norm
         std::vector<torch::Tensor> E, U, fade;
         terms_impl<scalar_t>(d_norm, sigma_d, exits, parents, leads, F, E, U, fade);
         level = budget_impl<scalar_t>(E, U, weights, k);
-        emit_cut<scalar_t>(E, U, fade, std::max(level, 1.0), F, out);
+        emit_cut<scalar_t>(E, U, fade, std::max(level, 1.0), M, out);
     });
     out.push_back(torch::full({}, level, torch::TensorOptions().dtype(torch::kFloat64)));
     return out;

@@ -10,6 +10,7 @@
 // work-buffer modifier (TREE_GLSL), which reads the parent's row of the same splat data.
 
 export const F = 1.25;  // the hand-over's width in s_v
+export const M = 1.6;  // a hand-over or an exit lasts over the last min(M, U / max(E, 1)) of a node's interval
 // how a node is drawn (draw's out.kind): not at all, as it is with its opacity times w (it
 // leaves, or the last tier fades), the lead growing into its parent, a sibling shrinking and fading
 export const HIDDEN = 0, FADE = 1, LEAD = 2, SIBLING = 3;
@@ -142,7 +143,7 @@ export function draw(tr, cam, sv, budget = null, out = { w: new Float32Array(tr.
                      tt = terms(tr, cam)) {
     const { E: ns, U: ups, fade: fades, frustum: fr } = tt, { w: ws, kind: kinds } = out, lead = tr.lead;
     const s = budget !== null && budget !== undefined ? budgetSv(tr, tt, budget) : Math.max(+sv, 1.0);
-    const drawn = [], inView = [], lnF = Math.log(F);
+    const drawn = [], inView = [];
     let handOver = 0;
     for (let k = 0; k <= tr.T; k++) {
         let nd = 0, nv = 0;
@@ -152,7 +153,8 @@ export function draw(tr, cam, sv, budget = null, out = { w: new Float32Array(tr.
                 kinds[i] = HIDDEN;
                 continue;
             }
-            const w = Math.min(Math.max(Math.log(ups[i] / s) / lnF, 0), 1);
+            const width = Math.min(M, ups[i] / Math.max(ns[i], 1.0));
+            const w = Math.min(Math.max(Math.log(ups[i] / s) / Math.log(width), 0), 1);
             // a row fading out keeps its attributes; the lead grows into its parent; its siblings
             // shrink and fade where they are
             const kind = fades[i] ? FADE : lead[i] ? LEAD : SIBLING;

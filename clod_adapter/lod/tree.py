@@ -63,8 +63,8 @@ from ..gaussians import GAIN_NAMES, Gaussians
 __all__ = ["HAND_OVER", "PARENT_KEY", "is_tree", "tiers_of", "linked", "own_model", "tier_scales", "assign_parents", "build", "cut", "walk",
            "budget_s_v", "budget_cut", "TreeCut", "TreeTerms", "terms", "cut_attributes", "leads", "in_frustum"]
 
-#: ``F``: a hand-over or an exit lasts from ``U / F`` to ``U`` in ``s_v``; a node is drawn over at
-#: least this factor of ``s_v``
+#: ``F``: a node is drawn over at least this factor of ``s_v`` (and a hand-over or an exit lasts at
+#: least from ``U / F`` to ``U``: :data:`MORPH`)
 HAND_OVER = 1.25
 #: ``M``: a hand-over or an exit lasts over the last ``min(M, U / max(E, 1))`` of a node's
 #: interval ``[E, U)`` in ``s_v`` (at least ``F``): a node drawn over a wider interval turns into

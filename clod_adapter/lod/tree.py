@@ -60,7 +60,7 @@ from . import rule as lod
 from .budget import critical_s_v
 from ..gaussians import GAIN_NAMES, Gaussians
 
-__all__ = ["HAND_OVER", "PARENT_KEY", "is_tree", "tiers_of", "linked", "own_model", "tier_scales", "assign_parents", "build", "cut", "walk",
+__all__ = ["HAND_OVER", "MORPH", "PARENT_KEY", "is_tree", "tiers_of", "linked", "own_model", "tier_scales", "assign_parents", "build", "cut", "walk",
            "budget_s_v", "budget_cut", "TreeCut", "TreeTerms", "terms", "cut_attributes", "leads", "in_frustum"]
 
 #: ``F``: a node is drawn over at least this factor of ``s_v`` (and a hand-over or an exit lasts at

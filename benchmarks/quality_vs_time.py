@@ -22,7 +22,8 @@ asks for more than the input scores: each is capped at input - 0.1 dB):
   in view (both timed again with the input alone in ``SWEEP_ROUNDS`` interleaved rounds, each
   step the median over rounds of its per-round ratio): no frame over 1.05x a more detailed frame
   of the same sweep, none over the input's; at each equal-count point at most 1.1x the
-  decimator's frame (``frame_time.png``);
+  decimator's frame (the pair timed in those rounds too, the median per-round ratio;
+  ``frame_time.png``);
 * popping (``clod-eval``'s ratio: one static switch against the largest step of the sweep through
   every tier's hand-over, and of a count-budget sweep from 100 % to 1 % of the Gaussians in view),
   smallest and median over the scored views: >= 10;
@@ -324,9 +325,11 @@ def write_docs(records: list[dict], plot_src: Path, args) -> None:
           "budgets from 100 % to 1 % of the Gaussians in view, as shares of the input's frame (both sweeps "
           f"timed again with the input alone, {qvt.SWEEP_ROUNDS} interleaved rounds, each frame the median "
           "over rounds of its ratio to the input's in the same round), beside splat-transform's decimators at "
-          "their counts; the goal rows below check that no frame costs more than 1.05x a more detailed frame "
+          "their counts (timed in the same rounds, with the adapted model at their counts per view); the goal "
+          "rows below check that no frame costs more than 1.05x a more detailed frame "
           "of its sweep (the median over those rounds of the per-round ratio), none more than the input's, "
-          "and that at a decimator's count the adapted frame costs at most 1.1x the decimator's.", "",
+          "and that at a decimator's count the adapted frame costs at most 1.1x the decimator's (the median "
+          "over those rounds of the per-round ratio).", "",
           "![Frame time against the level](frame_time.png)", "", "## Per scene", ""]
     md += [summary_md(r) for r in records]
     with atomic_write(docs / "results.md", "w") as f:

@@ -69,10 +69,14 @@ def test_cost_follows_pairs_the_rounds_when_the_sweeps_were_timed_alone():
                                                 statistics.median([40 / 99, 44 / 99, 52 / 129])))
     assert c["level_step"] < 1.0
     assert c["over_input"] == pytest.approx(0.99)
+    assert c["count_ratio"] == pytest.approx(21.0 / 18.0)  # the pair not timed alone: the run's medians
+    comp.sweep_rounds.update({"match:decimate:model=0.15": [21.0, 17.0, 30.0], "decimate:model=0.15": [20.0, 18.0, 20.0]})
+    # paired: the median of 1.05, 0.94, 1.5, not 21 / 18
+    assert qvt.cost_follows(comp)["count_ratio"] == pytest.approx(1.05)
     assert qvt.paired_worst_step([[10.0, 10.0], [9.0, 12.0], [11.0, 11.0]]) == pytest.approx(1.1)
 
 
-def test_sweep_times_times_the_input_and_both_sweeps_alone():
+def test_sweep_times_times_the_input_both_sweeps_and_the_equal_count_pairs_alone():
     calls = []
 
     class _R:
@@ -86,12 +90,18 @@ def test_sweep_times_times_the_input_and_both_sweeps_alone():
 
     st = [qvt.Setting("input", "full", [render("input")], 1), qvt.Setting("clod", "s_v=1", [render("s_v=1")], 1),
           qvt.Setting("clod", "in_view=0.5", [render("in_view=0.5")], 1),
-          qvt.Setting("decimate", "model=0.5", [render("decimate")], 1)]
+          qvt.Setting("decimate", "model=0.5", [render("decimate")], 1),
+          qvt.Setting("decimate_adaptive", "model=0.5", [render("decimate_adaptive")], 1),
+          qvt.Setting("decimate", "model=0.3", [render("decimate 0.3")], 1),
+          qvt.Setting("clod", "match:decimate_adaptive:model=0.5", [render("match")], 1),
+          qvt.Setting("opacity", "match:decimate_adaptive:model=0.5", [render("opacity")], 1)]
     comp = qvt.Comparison(st, [10], max_sv=5.0)
     rr = qvt.sweep_times(comp, repeats=3)
-    assert set(rr) == {"input", "s_v=1", "in_view=0.5"}
+    assert set(rr) == {"input", "s_v=1", "in_view=0.5", "match:decimate_adaptive:model=0.5",
+                       "decimate_adaptive:model=0.5"}
     assert all(len(v) == 3 and all(x == pytest.approx(2.0) for x in v) for v in rr.values())
-    assert "decimate" not in calls and calls.count("input") == 4  # a warm-up round, then 3
+    assert calls.count("input") == 4 and calls.count("match") == 4  # a warm-up round, then 3
+    assert not {"decimate", "decimate 0.3", "opacity"} & set(calls)  # no equal-count pair of theirs
 
 
 def test_verdict_says_where_ours_is_ahead_and_by_how_much():

@@ -130,9 +130,9 @@ class Comparison:
         full_ratio: the full-detail time ratio (``s_v = 1`` / input), the median of
             :data:`FULL_ROUNDS` paired rounds (nan when not measured).
         merge_run: whether splat-transform's decimators were run.
-        sweep_rounds: the input's and the adapted model's sweep settings timed alone
-            (:func:`sweep_times`): setting (``"input"`` for the input) -> [R] per-round ms, or
-            empty when not measured.
+        sweep_rounds: the input, the adapted model's sweep settings and each equal-count pair
+            timed alone (:func:`sweep_times`): key (``"input"``, the adapted model's setting,
+            ``<method>:<setting>`` for a decimator) -> [R] per-round ms, or empty when not measured.
     """
 
     settings: list
@@ -514,14 +514,32 @@ def _sweep(comp: Comparison) -> tuple[list, list]:
     return lev, bud
 
 
+def _matched_pairs(comp: Comparison) -> list[tuple[Setting, Setting]]:
+    """Each equal-count point as ``(adapted at the decimator's counts, that decimator's setting)``."""
+    out = []
+    for s in comp.settings:
+        if s.method == "clod" and s.setting.startswith("match:"):
+            _, method, setting = s.setting.split(":", 2)
+            out.append((s, comp.get(method, setting)))
+    return out
+
+
+def _round_key(st: Setting) -> str:
+    """A setting's key in :attr:`Comparison.sweep_rounds`: ``"input"``, the adapted model's setting
+    (``s_v=2``, ``match:decimate:model=0.08``) or ``<method>:<setting>`` for a peer."""
+    return "input" if st.method == "input" else st.setting if st.method == "clod" else f"{st.method}:{st.setting}"
+
+
 def sweep_times(comp: Comparison, repeats: int = SWEEP_ROUNDS, tick=lambda: None) -> dict:
-    """The input and the adapted model's two sweeps (``s_v=...``, ``in_view=...``) timed alone in
-    ``repeats`` interleaved shuffled rounds: setting -> [repeats] per-round ms (median over views;
-    ``"input"`` for the input), for the paired steps of :func:`cost_follows`."""
+    """The input, the adapted model's two sweeps (``s_v=...``, ``in_view=...``) and each
+    equal-count pair (the adapted model at a decimator's counts and that decimator) timed alone in
+    ``repeats`` interleaved shuffled rounds: key (:func:`_round_key`) -> [repeats] per-round ms
+    (median over views), for the paired ratios of :func:`cost_follows`."""
     lev, bud = _sweep(comp)
-    sel = [comp.input] + [s for _, s in lev + bud]
+    sel = [comp.input] + [s for _, s in lev + bud] + [s for pair in _matched_pairs(comp) for s in pair]
+    sel = list({_round_key(s): s for s in sel}.values())
     res = _time(sel, repeats, tick, seed=2)
-    return {("input" if st.method == "input" else st.setting): res[i]["per_round"] for i, st in enumerate(sel)}
+    return {_round_key(st): res[i]["per_round"] for i, st in enumerate(sel)}
 
 
 def paired_worst_step(rounds: Sequence[Sequence[float]]) -> float:
@@ -552,13 +570,14 @@ def cost_follows(comp: Comparison) -> dict:
     budgets from 100 % to 1 % of the Gaussians in view; ``over_input``, the largest frame of both
     over the input's; ``count_ratio``, the largest time ratio of the adapted model at a decimator's
     count per view to that decimator's own frame (nan without the equal-count points). With
-    :attr:`Comparison.sweep_rounds` the sweeps' steps and ``over_input`` are paired
-    (:func:`paired_worst_step`, the median over rounds of a frame over the input's)."""
+    :attr:`Comparison.sweep_rounds` all three are paired: the sweeps' steps by
+    :func:`paired_worst_step`, ``over_input`` and ``count_ratio`` as the median over rounds of a
+    frame over the input's / over the decimator's in the same round."""
     lev, bud = _sweep(comp)
-    ratios = [comp.get("clod", s.setting).ms / comp.get(s.setting.split(":")[1], s.setting.split(":")[2]).ms
-              for s in comp.settings if s.method == "clod" and s.setting.startswith("match:")]
-    out = {"count_ratio": max(ratios) if ratios else float("nan")}
     rr = comp.sweep_rounds
+    ratios = [statistics.median(b / a for a, b in zip(rr[_round_key(d)], rr[_round_key(o)]))
+              if _round_key(o) in rr and _round_key(d) in rr else o.ms / d.ms for o, d in _matched_pairs(comp)]
+    out = {"count_ratio": max(ratios) if ratios else float("nan")}
     if rr:
         inp = rr["input"]
         over = [statistics.median(b / a for a, b in zip(inp, rr[s.setting])) for _, s in lev + bud]
@@ -687,8 +706,8 @@ def plot_cost(path, results: dict) -> None:
         t0, rr = comp.input.ms, comp.sweep_rounds
 
         def share(s: Setting) -> float:
-            if rr:
-                return 100 * statistics.median(b / a for a, b in zip(rr["input"], rr[s.setting]))
+            if rr and _round_key(s) in rr:
+                return 100 * statistics.median(b / a for a, b in zip(rr["input"], rr[_round_key(s)]))
             return 100 * s.ms / t0
 
         lev, bud = _sweep(comp)
@@ -698,7 +717,7 @@ def plot_cost(path, results: dict) -> None:
         bud = [(-100 * k, share(s)) for k, s in bud]
         ax_b.plot(*zip(*bud), "o-", ms=3, color=STYLE["clod"][0], label="adapted, count budget")
         for m in DECIMATORS:
-            pts = [(100 * comp.in_view_share(s), 100 * s.ms / t0) for s in comp.settings if s.method == m]
+            pts = [(100 * comp.in_view_share(s), share(s)) for s in comp.settings if s.method == m]
             if pts:
                 ax_b.scatter(*zip(*pts), color=STYLE[m][0], marker=STYLE[m][1], s=18, label=STYLE[m][2])
         ax_b.set_xscale("log")

@@ -537,7 +537,6 @@ def sweep_times(comp: Comparison, repeats: int = SWEEP_ROUNDS, tick=lambda: None
     (median over views), for the paired ratios of :func:`cost_follows`."""
     lev, bud = _sweep(comp)
     sel = [comp.input] + [s for _, s in lev + bud] + [s for pair in _matched_pairs(comp) for s in pair]
-    sel = list({_round_key(s): s for s in sel}.values())
     res = _time(sel, repeats, tick, seed=2)
     return {_round_key(st): res[i]["per_round"] for i, st in enumerate(sel)}
 

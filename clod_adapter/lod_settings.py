@@ -21,8 +21,9 @@ Estimator = Literal["ste", "sigmoid", "paper"]
 FADES = ("window", "eq2")
 Fade = Literal["window", "eq2"]
 #: width ``w`` of the fade window in log-opacity units (``m`` of :func:`lod_margin`): a Gaussian
-#: fades from full opacity to 0 as its ``alpha''`` falls from ``e^w tau s_v`` to ``tau s_v``.
-DEFAULT_FADE_WIDTH = 0.5
+#: fades from full opacity to 0 as its ``alpha''`` falls from ``e^w tau s_v`` to ``tau s_v``
+#: (0.75: docs/studies.md, "The knobs on the current checkpoints, with the merge tree").
+DEFAULT_FADE_WIDTH = 0.75
 #: the fade window opens from zero width at ``s_v = 1`` to its full width at this ``s_v``, so
 #: full detail draws every Gaussian that passes the mask at its own opacity (and the image stays
 #: continuous in ``s_v``: a Gaussian's weight ``m / width`` still reaches 0 where it leaves); the

@@ -18,7 +18,7 @@ from plyfile import PlyData
 
 NEAR, FAR, EPS2D, EXTEND = 0.01, 1e10, 0.3, 3.33
 RAMP_MIN = 1.1  # the window opens and the ramp ends no earlier than here
-DEFAULTS = {"max_sv": 5.0, "tau": 0.005, "eps": 1e-8, "fade": "eq2", "fade_width": 0.5, "level_max": 1.0}
+DEFAULTS = {"max_sv": 5.0, "tau": 0.005, "eps": 1e-8, "fade": "eq2", "fade_width": 0.75, "level_max": 1.0}
 #: the ``clod_lod`` keys that are not numbers
 WORDS = ("fade", "count_mix", "tree")
 

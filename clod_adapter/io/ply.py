@@ -12,7 +12,7 @@ the logit, ``scale_*`` the log of the standard deviations, ``rot_*`` the quatern
 (CLoD-GS distance decay, Cheng et al., ICLR 2026, Eq. 2), and, when the model has them, the
 level gains ``opacity_gain``, ``scale_gain``, ``f_dc_gain_0..2`` (only those present; see
 :class:`clod_adapter.gaussians.Gaussians`). The LoD settings travel as one header comment
-``clod_lod max_sv=5 tau=0.005 eps=1e-08 fade=window fade_width=0.5``; viewers that do not know
+``clod_lod max_sv=5 tau=0.005 eps=1e-08 fade=window fade_width=0.75``; viewers that do not know
 them ignore both.
 
 Reading selects the properties by name (order does not matter; ASCII and big-endian files are

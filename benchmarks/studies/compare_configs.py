@@ -7,7 +7,9 @@ rendered from the evaluation views along the same ``s_v`` grid as ``quality_vs_t
 :func:`clod_adapter.evaluate.comparison.clod_s_vs`: past every tier's hand-over), every
 setting of every model and the input timed in the same interleaved rounds.
 Printed per input: each model's best PSNR within 90 / 75 / 50 / 25 / 15 / 10 % of the input's
-frame time (the frontier line of ``quality_vs_time.py``) and the popping of ``clod-eval`` from
+frame time (the frontier line of ``quality_vs_time.py``), its mean PSNR at equal count per view
+(``Budget(in_view=...)`` at 50 / 30 / 15 / 8 / 4 / 2 % of the Gaussians in view; untimed) and the
+popping of ``clod-eval`` from
 the first view (the largest of 31 steps of its sweep, :func:`clod_adapter.jobs.eval.popping_sweep`,
 mean |dI|, and the
 switch between the opacity cuts at the first and last counts over it)::
@@ -29,6 +31,7 @@ from benchmarks.common import RUNS, adapt_cached, load_input, parse_config, pars
 
 import torch  # noqa: E402
 
+from clod_adapter.lod.budget import Budget  # noqa: E402
 from clod_adapter.lod.draw import render_lod  # noqa: E402
 from clod_adapter.evaluate.frontier import Point, best_within  # noqa: E402
 from clod_adapter.io.atomic import atomic_write  # noqa: E402
@@ -42,6 +45,8 @@ from clod_adapter.lod.draw import tier_reach  # noqa: E402
 from clod_adapter.evaluate.comparison import clod_s_vs  # noqa: E402  (the s_v grid of benchmarks/quality_vs_time.py)
 
 SHARES = (0.9, 0.75, 0.5, 0.25, 0.15, 0.1)
+#: shares of the Gaussians in view of the equal-count scores (the decimators' points span 8-50 %)
+COUNTS = (0.5, 0.3, 0.15, 0.08, 0.04, 0.02)
 
 
 class _Timed:
@@ -83,6 +88,8 @@ def run_input(name: str, split: str, configs: dict, repeats: int) -> tuple[list,
         md = [f"### {name}: input {p_in:.2f} dB in {ms_in:.1f} ms ({len(cams)} {split} views)", "",
               "| variant | best within " + " / ".join(f"{100 * sh:.0f}" for sh in SHARES) + " % of the input's time |",
               "|---|---|"]
+        md_count = ["| variant | PSNR at " + " / ".join(f"{100 * c:g}" for c in COUNTS) + " % of the Gaussians in view |",
+                    "|---|---|"]
         for tag, g in models.items():
             rows += [{"input": name, "variant": tag, "s_v": s, "psnr": round(scores[(tag, s)], 3),
                       "ms": round(res[(tag, s)]["ms_total"], 2),
@@ -96,7 +103,12 @@ def run_input(name: str, split: str, configs: dict, repeats: int) -> tuple[list,
             print(f"[{name}] {tag:>24}: " + " ".join(f"{s:g}:{scores[(tag, s)]:.2f}/{100 * res[(tag, s)]['ms_total'] / ms_in:.0f}%"
                                                 for s in grids[tag]))
             md.append(f"| {tag} | " + " / ".join("-" if b is None else f"{b.psnr:.2f}" for b in best) + " |")
-    return rows, md + [""]
+            at_count = [statistics.mean(psnr(render_lod(g, c, budget=Budget(in_view=k)).image.clamp(0, 1), t)
+                                        for c, t in zip(cams, gts)) for k in COUNTS]
+            print(f"[{name}] {tag:>24}: equal count " + " / ".join(f"{100 * k:g}" for k in COUNTS) + " % in view: "
+                  + " / ".join(f"{p:.2f}" for p in at_count) + " dB")
+            md_count.append(f"| {tag} | " + " / ".join(f"{p:.2f}" for p in at_count) + " |")
+    return rows, md + [""] + md_count + [""]
 
 
 def write_csv(path, rows: list) -> None:

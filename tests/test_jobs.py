@@ -207,6 +207,9 @@ def test_time_interleaved_rounds_and_order():
     # every round times the same 21 ms per frame: the spread over rounds is none
     assert res["a"]["ms_total_min"] == pytest.approx(21.0) and res["a"]["ms_total_max"] == pytest.approx(21.0)
     assert res["a"]["per_view"][1]["ms_raster"] == pytest.approx(30.0)
+    # a LodRender's lead_ms (a plain frame's projection and its selection) is read in place of select_ms
+    lead = time_interleaved({"p": [lambda: SimpleNamespace(select_ms=1.0, lead_ms=4.0, raster_ms=10.0)]}, repeats=2)
+    assert lead["p"]["ms_select"] == pytest.approx(4.0) and lead["p"]["ms_total"] == pytest.approx(14.0)
 
 
 def test_metrics_timing_spread(tiny_adapted):

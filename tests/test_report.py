@@ -229,3 +229,24 @@ def test_format_table_columns_never_run_into_each_other():
     head, line = format_table(rows).splitlines()
     assert line.split()[:3] == ["decimate_adaptive", "budget=0.0894427", "-"]
     assert head.split()[:2] == ["method", "setting"]
+
+
+def test_frame_times_count_a_plain_frames_projection(monkeypatch):
+    """A plain frame projects the whole model before selecting (``project_ms``); clod-eval's and
+    clod-adapt's level tables count it, as a merge-tree cut's projection is in its raster_ms."""
+    from clod_adapter.evaluate import level_metrics
+    from clod_adapter.jobs import eval as eval_job
+    from clod_adapter.lod.draw import LodRender
+    from clod_adapter.lod.view import LodSelection
+
+    def fake(*a, **k):
+        sel = LodSelection(torch.arange(3), torch.ones(3), None, None, 0.0, torch.tensor(1.0), n=3)
+        return LodRender(image=torch.zeros(4, 4, 3), alpha=torch.zeros(4, 4, 1), selection=sel, n_rendered=3,
+                         n_frustum=3, eta=torch.tensor(1.0), project_ms=5.0, select_ms=1.0, raster_ms=2.0)
+
+    monkeypatch.setattr(level_metrics, "render_lod", fake)
+    monkeypatch.setattr(eval_job, "render_lod", fake)
+    m = level_metrics.evaluate_level([0, 1, 2], [object()], [torch.zeros(4, 4, 3)], None)  # len() only
+    assert (m.ms_per_frame, m.select_ms, m.raster_ms) == (8.0, 6.0, 2.0)
+    s = eval_job._render_lod(None, object(), None, 0.005)
+    assert (s.select_ms, s.raster_ms) == (6.0, 2.0)

@@ -27,7 +27,9 @@ class LevelMetrics:
 
     ``s_v`` is None for the plain (non-LoD) model (in budget mode: the mean solved ``s_v``).
     ``budget`` is the requested budget's amount (:attr:`Budget.amount`; None in s_v mode). ``gaussians`` is the mean number of
-    Gaussians rendered per view, ``fraction`` that over the model size; times are medians in ms.
+    Gaussians rendered per view, ``fraction`` that over the model size; times are medians in ms
+    (``select_ms``: everything before the rasteriser, :attr:`clod_adapter.lod.draw.LodRender.lead_ms`;
+    ``ms_per_frame``: the whole frame).
     """
 
     s_v: Optional[float]
@@ -75,9 +77,9 @@ def evaluate_level(
         ps.append(psnr(img, gt))
         ss.append(float(ssim(img, gt)))
         counts.append(out.n_rendered)
-        sel.append(out.select_ms)
+        sel.append(out.lead_ms)  # a plain frame's projection included, as a tree cut's is in its raster_ms
         ras.append(out.raster_ms)
-        tms.append(out.select_ms + out.raster_ms)
+        tms.append(out.lead_ms + out.raster_ms)
     n = max(len(gaussians), 1)
     mean_count = sum(counts) / max(len(counts), 1)
     if budget is not None and svs and all(v is not None for v in svs):

@@ -5,7 +5,9 @@ warm-up rounds, ``repeats`` rounds each render every (setting, view) once in a s
 a burst of load from another process hits all settings alike instead of one; a setting's time is
 the median over rounds of the per-round median over views, and the spread is the smallest and
 largest per-round median. Times are wall-clock milliseconds of the selection (LoD or baseline)
-and of the rasterisation, as the render functions report them (``select_ms``, ``raster_ms``).
+and of the rasterisation, as the render functions report them (``select_ms``, ``raster_ms``; a
+:class:`clod_adapter.lod.draw.LodRender`'s ``lead_ms``, its selection with the projection before
+it, in place of ``select_ms``).
 """
 from __future__ import annotations
 
@@ -24,7 +26,8 @@ def time_interleaved(jobs: Mapping[Hashable, Sequence[Callable[[], object]]], *,
     Args:
         jobs: setting key -> one zero-argument callable per view; each call renders once and
             returns an object with ``select_ms`` and ``raster_ms`` (ms), e.g.
-            the result of :func:`clod_adapter.lod.draw.render_lod`.
+            the result of :func:`clod_adapter.lod.draw.render_lod` (whose ``lead_ms``, the
+            selection and a plain frame's projection, is read in place of ``select_ms``).
         repeats: timed rounds (>= 1).
         warmup: untimed rounds first (one-off costs: extension load, allocator, caches).
         seed: seed of the per-round shuffle.
@@ -53,7 +56,7 @@ def time_interleaved(jobs: Mapping[Hashable, Sequence[Callable[[], object]]], *,
             if on_render is not None:
                 on_render()
             if r >= 0:
-                times[k][v][r] = (float(out.select_ms), float(out.raster_ms))
+                times[k][v][r] = (float(getattr(out, "lead_ms", out.select_ms)), float(out.raster_ms))
     res = {}
     for k, views in times.items():
         if not views:

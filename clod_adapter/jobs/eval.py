@@ -167,7 +167,8 @@ def resolve_lpips(spec: LpipsSpec) -> tuple[Optional[Callable], str]:
 # --- one render, one score ------------------------------------------------------------------
 @dataclass
 class Sample:
-    """One rendered view: image [H, W, 3], Gaussians rendered, solved/used s_v, times (ms)."""
+    """One rendered view: image [H, W, 3], Gaussians rendered, solved/used s_v, times (ms:
+    ``select_ms`` everything before the rasteriser, the projection of a plain frame included)."""
 
     image: Tensor
     n: int
@@ -194,7 +195,7 @@ def _render_lod(g: Gaussians, cam, bg, tau, s_v=None, budget=None) -> Sample:
     if budget is not None:
         budget = Budget(in_view=budget) if isinstance(budget, float) else Budget(count=int(budget))
     out = render_lod(g, cam, s_v, budget=budget, tau=tau, background=bg, eta_grad=PAPER)
-    return Sample(out.image, out.n_rendered, out.s_v, out.select_ms, out.raster_ms)
+    return Sample(out.image, out.n_rendered, out.s_v, out.lead_ms, out.raster_ms)  # the projection too
 
 
 @dataclass

@@ -103,7 +103,7 @@ def plot_time_curve(rows: list[dict]):
     def draw(ax):
         rs = sorted((r for r in rows if r["method"] == "clod"), key=lambda r: r["s_v"])
         sv = [r["s_v"] for r in rs]
-        for k, lab in (("ms_total", "total"), ("ms_select", "LoD selection"), ("ms_raster", "rasterisation")):
+        for k, lab in (("ms_total", "total"), ("ms_select", "projection and LoD selection"), ("ms_raster", "rasterisation")):
             ax.plot(sv, [r[k] for r in rs], marker=".", label=lab)
         if rs and all(r.get("ms_min") is not None for r in rs):
             ax.fill_between(sv, [r["ms_min"] for r in rs], [r["ms_max"] for r in rs], color="C0", alpha=0.2,
@@ -181,7 +181,7 @@ def format_markdown(report: dict) -> str:
                 f"{fmt(ref['lpips'], '.3f')} ({ref['gaussians']:,.0f} Gaussians, {fmt(ref['ms_total'], '.0f')} ms, "
                 f"rounds {fmt(ref.get('ms_min'), '.0f')}-{fmt(ref.get('ms_max'), '.0f')} ms)."]
     t = report.get("timing", {})
-    out += ["", f"Adapted model over s_v (ms per frame = LoD selection + rasterisation; median of "
+    out += ["", f"Adapted model over s_v (ms per frame = projection and LoD selection + rasterisation; median of "
             f"{t.get('repeats', 1) or 1} interleaved round(s) of the median over views; range: fastest-slowest round):", "",
             "| s_v | Gaussians | % | PSNR | SSIM | LPIPS | ms | ms range | ms select | ms raster | MB rendered |",
             "|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]

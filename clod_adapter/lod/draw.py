@@ -74,6 +74,13 @@ class LodRender:
         return self.selection.mask
 
     @property
+    def lead_ms(self) -> float:
+        """Wall time before the rasteriser, ms: ``project_ms + select_ms`` (a plain frame projects
+        the whole model before selecting; a merge-tree cut projects its nodes inside the
+        rasterisation, its ``project_ms`` 0). ``lead_ms + raster_ms`` is the whole frame."""
+        return self.project_ms + self.select_ms
+
+    @property
     def indices(self) -> Tensor:
         return self.selection.indices
 

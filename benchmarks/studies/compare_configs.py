@@ -34,6 +34,7 @@ import torch  # noqa: E402
 from clod_adapter.lod.budget import Budget  # noqa: E402
 from clod_adapter.lod.draw import render_lod  # noqa: E402
 from clod_adapter.evaluate.frontier import Point, best_within  # noqa: E402
+from clod_adapter.evaluate.level_metrics import evaluate_level  # noqa: E402
 from clod_adapter.io.atomic import atomic_write  # noqa: E402
 from clod_adapter.io.load import load_model  # noqa: E402
 from clod_adapter.jobs.eval import popping_curve, popping_sweep  # noqa: E402
@@ -103,8 +104,7 @@ def run_input(name: str, split: str, configs: dict, repeats: int) -> tuple[list,
             print(f"[{name}] {tag:>24}: " + " ".join(f"{s:g}:{scores[(tag, s)]:.2f}/{100 * res[(tag, s)]['ms_total'] / ms_in:.0f}%"
                                                 for s in grids[tag]))
             md.append(f"| {tag} | " + " / ".join("-" if b is None else f"{b.psnr:.2f}" for b in best) + " |")
-            at_count = [statistics.mean(psnr(render_lod(g, c, budget=Budget(in_view=k)).image.clamp(0, 1), t)
-                                        for c, t in zip(cams, gts)) for k in COUNTS]
+            at_count = [evaluate_level(g, cams, gts, None, budget=Budget(in_view=k)).psnr for k in COUNTS]
             print(f"[{name}] {tag:>24}: equal count " + " / ".join(f"{100 * k:g}" for k in COUNTS) + " % in view: "
                   + " / ".join(f"{p:.2f}" for p in at_count) + " dB")
             md_count.append(f"| {tag} | " + " / ".join(f"{p:.2f}" for p in at_count) + " |")

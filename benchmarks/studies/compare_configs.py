@@ -55,12 +55,13 @@ class _Timed:
         self.select_ms, self.raster_ms = 0.0, ms
 
 
-def timed_render(g, cam, s_v):
+def timed_render(g, cam, s_v, budget=None):
     """A zero-argument job for :func:`clod_adapter.evaluate.timing.time_interleaved`: one whole
-    ``render_lod(g, cam, s_v)`` frame, timed as raster ms (``s_v`` None: the model as it is)."""
+    ``render_lod(g, cam, s_v, budget=budget)`` frame, its budget's solve included, timed as raster
+    ms (``s_v`` and ``budget`` None: the model as it is)."""
     def f():
         t0 = time.perf_counter()
-        render_lod(g, cam, s_v)
+        render_lod(g, cam, s_v, budget=budget)
         return _Timed((time.perf_counter() - t0) * 1e3)
     return f
 

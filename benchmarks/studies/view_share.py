@@ -8,8 +8,10 @@ view's weighted cost). This study evaluates the rule per view at the scale that 
 ``s_v^-1.5`` of the frustum's Gaussians (``share``: the paper's target ``eta``, by count) or that
 share of the view's weighted cost (``cost``: what training draws), against the rule at ``s_v``
 itself (``distance``), on the default adaptation, every setting and the input timed in the same
-interleaved rounds. The per-view scales are found before timing (a budget's exact solve), so the
-times leave out that search and favour ``share`` and ``cost``::
+interleaved rounds. On a single model the per-view scales are found before timing (a budget's exact
+solve), so the times leave out that search and favour ``share`` and ``cost``; a merge tree draws
+the two as its own budgets (``Budget(in_view=...)``, ``Budget(cost=...)``: that share of tier 0's
+cost in view), the solve timed with the frame::
 
     python -m benchmarks.studies.view_share                  # skull, validation views
     python -m benchmarks.studies.view_share --inputs fern skull --split test
@@ -27,7 +29,7 @@ from benchmarks.studies.compare_configs import timed_render
 
 import torch
 
-from clod_adapter.lod import rule as lod
+from clod_adapter.lod import rule as lod, tree
 from clod_adapter.lod.draw import render_lod
 from clod_adapter.lod.view import view_lod
 from clod_adapter.evaluate.frontier import Point, best_within
@@ -55,6 +57,15 @@ def view_scale(g, cam, s_v: float, mode: str, cost_exponent: float) -> float:
     return max(float(v.select(budget=Budget(count=max(k, 1), min_s_v=0.0)).s_v), 1.0)
 
 
+def frame_args(g, cam, s_v: float, mode: str, cost_exponent: float) -> dict:
+    """``render_lod``'s level or budget for ``s_v`` under ``mode`` in this view: a merge tree's own
+    budget for ``share`` / ``cost``, else the scale :func:`view_scale` finds."""
+    if mode != "distance" and tree.is_tree(g):
+        f = lod.target_fraction(s_v)
+        return {"budget": Budget(in_view=f) if mode == "share" else Budget(cost=f)}
+    return {"s_v": view_scale(g, cam, s_v, mode, cost_exponent)}
+
+
 def run_input(name: str, split: str, repeats: int) -> None:
     cfg = AdaptConfig()
     g = load_model(adapt_cached(name, cfg, "default", split=split))
@@ -65,11 +76,11 @@ def run_input(name: str, split: str, repeats: int) -> None:
     with torch.no_grad():
         for mode in MODES:
             for s in S_VS:
-                scales = [view_scale(g, c, s, mode, cfg.cost_exponent) for c in cams]
-                outs = [render_lod(g, c, e) for c, e in zip(cams, scales)]
+                args = [frame_args(g, c, s, mode, cfg.cost_exponent) for c in cams]
+                outs = [render_lod(g, c, **a) for c, a in zip(cams, args)]
                 scores[(mode, s)] = statistics.mean(psnr(o.image.clamp(0, 1), t) for o, t in zip(outs, gts))
                 drawn[(mode, s)] = [o.n_rendered for o in outs]
-                jobs[(mode, s)] = [timed_render(g, c, e) for c, e in zip(cams, scales)]
+                jobs[(mode, s)] = [timed_render(g, c, a.get("s_v"), a.get("budget")) for c, a in zip(cams, args)]
         res = time_interleaved(jobs, repeats=repeats, warmup=1)
     ms_in = res[("input", 1.0)]["ms_total"]
     print(f"[{name}] input {ms_in:.1f} ms ({len(cams)} {split} views)")

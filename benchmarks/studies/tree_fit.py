@@ -3,9 +3,9 @@
 For each input (default: fern) the cached ``--holdout-val`` adaptation with ``clod-adapt``'s
 defaults (``benchmarks.common.adapt_cached``, trained on the fit views only) is taken apart: its
 tier 0 and its merged tiers as the job adapted them are linked again
-(:func:`clod_adapter.train.tiers.link`) and built into a tree (:func:`clod_adapter.lod.tree.build`),
-which reproduces the job's tree before its fit (the node constants are checked equal to the
-cached model's). That tree is then fitted on its cuts (:func:`clod_adapter.train.tree_fit.finetune`)
+(:func:`clod_adapter.train.tiers.link`, each hand-over set where the job set it) and built into a
+tree (:func:`clod_adapter.lod.tree.build`), which reproduces the job's tree before its fit (the
+node constants are checked equal to the cached model's). That tree is then fitted on its cuts (:func:`clod_adapter.train.tree_fit.finetune`)
 for each of ``--steps`` on the fit views, drawing a count budget's cut at ``--budget-steps`` of the
 steps, at the model's resolution or at half of it (``--half``), and scored on the validation
 views: the popping ratio along ``s_v`` and along count budgets (``clod-eval``'s,
@@ -52,6 +52,7 @@ from __future__ import annotations
 import argparse
 import statistics
 import time
+from dataclasses import replace
 
 import torch
 
@@ -74,6 +75,19 @@ from clod_adapter.train.tree_fit import finetune
 SHARES = (0.75, 0.5, 0.3, 0.15, 0.08, 0.03)
 
 
+def job_hand_overs(linked, final):
+    """``linked`` with each tier's hand-over settings (``tier_s_v``, ``tier_start``, ``tier_fade``)
+    as the job chose them, from its model ``final``: the job chooses them on its tier scene (the
+    images at ``--tier-downscale``), which this study does not load. Raises ValueError where the
+    two do not have the same number of tiers."""
+    if (linked.parents is None) != (final.parents is None):
+        raise ValueError("the relinked model and the job's do not have the same tiers")
+    if linked.parents is None:
+        return linked
+    lod = replace(linked.lod, **{f: getattr(final.lod, f) for f in ("tier_s_v", "tier_start", "tier_fade")})
+    return replace(linked, lod=lod, parents=job_hand_overs(linked.parents, final.parents))
+
+
 def unfitted_tree(ply, fit: list, scene, cfg: AdaptConfig, spread=None, exit_toward_parent=None,
                   entry_toward_children=None):
     """The job's tree before its fit, from the cached adaptation ``ply``: its tier 0 and the
@@ -89,6 +103,7 @@ def unfitted_tree(ply, fit: list, scene, cfg: AdaptConfig, spread=None, exit_tow
     cands = [read_ply(d / "point_cloud.ply", unlinked_tiers=True) for d in dirs]
     ch = tiers.choice_views(fit)
     linked, _ = tiers.link(t0, cands, ch, [scene.load_image(c) for c in ch], background=cfg.background)
+    linked = job_hand_overs(linked, final)
     built = tree.build(linked, fit, spread=cfg.tree_spread if spread is None else spread,
                        exit_toward_parent=cfg.tree_exit_toward_parent if exit_toward_parent is None else exit_toward_parent,
                        entry_toward_children=cfg.tree_entry_toward_children if entry_toward_children is None

@@ -9,10 +9,9 @@ setting of every model and the input timed in the same interleaved rounds.
 Printed per input: each model's best PSNR within 90 / 75 / 50 / 25 / 15 / 10 % of the input's
 frame time (the frontier line of ``quality_vs_time.py``), its mean PSNR at equal count per view
 (``Budget(in_view=...)`` at 50 / 30 / 15 / 8 / 4 / 2 % of the Gaussians in view; untimed) and the
-popping of ``clod-eval`` from
-the first view (the largest of 31 steps of its sweep, :func:`clod_adapter.jobs.eval.popping_sweep`,
-mean |dI|, and the
-switch between the opacity cuts at the first and last counts over it)::
+popping of ``clod-eval`` from the first view (the largest of 31 steps of its sweep,
+:func:`clod_adapter.jobs.eval.popping_sweep`, mean |dI|, and the switch between the opacity cuts at
+the first and last counts over it)::
 
     python -m benchmarks.studies.compare_configs --config fade_width=0.75            # validation views
     python -m benchmarks.studies.compare_configs --config gains= --config fade=eq2   # two variants

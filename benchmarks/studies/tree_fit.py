@@ -7,8 +7,8 @@ tier 0 and its merged tiers as the job adapted them are linked again
 tree (:func:`clod_adapter.lod.tree.build`), which reproduces the job's tree before its fit (the
 node constants are checked equal to the cached model's). That tree is then fitted on its cuts
 (:func:`clod_adapter.train.tree_fit.finetune`) for each of ``--steps`` on the fit views, drawing a
-count budget's cut at ``--budget-steps`` of the steps, at the model's resolution or at half of it (``--half``), and scored on the validation
-views: the popping ratio along ``s_v`` and along count budgets (``clod-eval``'s,
+count budget's cut at ``--budget-steps`` of the steps, at the model's resolution or at half of it
+(``--half``), and scored on the validation views: the popping ratio along ``s_v`` and along count budgets (``clod-eval``'s,
 :mod:`clod_adapter.evaluate.popping`, from the first ``--popping-views`` views) and the mean PSNR
 at count budgets of 75 / 50 / 30 / 15 / 8 / 3 % of the Gaussians in view. No wall clock is
 scored (the fit's seconds are printed for scale). No goal is enforced (a study: exit 0)::

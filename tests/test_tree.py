@@ -352,6 +352,31 @@ def test_fitting_on_budget_cuts(model):
         finetune(g, cams, imgs, 3, budget_steps=1.5)
 
 
+
+def test_fitting_on_cuts_bounds_the_growth_of_merged_nodes(model):
+    """tree_fit.finetune with ``grow``: no merged node's scale ends above its start times
+    ``grow`` (unbounded, the same fit grows some), tier 0 is untouched, the merged nodes still
+    move, and a bound under 1 is refused."""
+    from clod_adapter.train.config import AdaptConfig
+    from clod_adapter.train.tree_fit import finetune
+
+    g, _ = model
+    cams = make_cameras(2, 3)
+    imgs = [render_lod(g, c, 1.0).image.clamp(0, 1) for c in cams]
+    free = finetune(g, cams, imgs, 30, budget_steps=0.5, grow=None)
+    a, b = tree.tiers_of(g), tree.tiers_of(free)
+    assert any(bool((y.log_scales > x.log_scales + 1e-6).any()) for x, y in zip(a[1:], b[1:]))
+    for grow in (1.0, 1.1):
+        held = tree.tiers_of(finetune(g, cams, imgs, 30, budget_steps=0.5, grow=grow))
+        for x, y in zip(a[1:], held[1:]):
+            assert bool((y.log_scales <= x.log_scales + math.log(grow) + 1e-6).all())
+            assert not torch.equal(x.means, y.means)
+        assert torch.equal(held[0].log_scales, a[0].log_scales)
+    with pytest.raises(ValueError, match="tree_grow"):
+        AdaptConfig(tree_grow=0.9)
+    with pytest.raises(ValueError, match="grow"):
+        finetune(g, cams, imgs, 3, grow=0.5)
+
 def test_export_of_a_tree(model, tmp_path, tiny_model):
     """clod-export of a tree: the extended .ply keeps the tree and splat-transform reads it (its
     vertex element, the model); the LoD set is the tree's cut at the reference distances, one level

@@ -22,6 +22,8 @@ scored (the fit's seconds are printed for scale). No goal is enforced (a study: 
     python -m benchmarks.studies.tree_fit --inputs fern --steps 1000 --budget-steps 0.5 --morph 1.25 1.6
     python -m benchmarks.studies.tree_fit --inputs skull --as-adapted --morph 1.25 1.4 1.6 2 --popping-views 7
     python -m benchmarks.studies.tree_fit --steps 1000 --budget-steps 0.5 --exit-toward-parent 0 0.25 0.5 0.75 1
+    python -m benchmarks.studies.tree_fit --inputs skull --steps 1000 --budget-steps 0.5 \\
+        --grow none 1.25 1.1 1 --time --popping-views 7
 
 ``--spread R ...`` builds the tree with each tier's hand-overs spread over a factor ``R`` of ``s_v``
 (:func:`clod_adapter.lod.tree.build`'s ``spread``; default the adaptation's ``tree_spread``),
@@ -39,6 +41,12 @@ it), one set of rows per value.
 of ``s_v`` (:data:`clod_adapter.lod.tree.MORPH`, set for the run), one set of rows per value
 (with ``--as-adapted``: the job's fitted tree drawn at each ``M``).
 
+``--grow G ...`` fits the tree with its merged nodes' scales grown by at most a factor ``G``
+(:func:`clod_adapter.train.tree_fit.finetune`'s ``grow``; ``none``: unbounded; default the
+adaptation's ``tree_grow``), one row per value. ``--time`` adds to each row its frame time at the
+counts splat-transform ``--decimate`` keeps at 30 / 15 / 8 % of the model, over the decimated
+model's (:func:`count_times`: 5 shuffled interleaved rounds on the validation views, 2 threads).
+
 ``--config KEY=VALUE ...`` takes the adaptation with those ``AdaptConfig`` settings (cached under
 their tag) instead of the defaults; ``--as-adapted`` scores it as the job fitted its tree (one row,
 no fit here).
@@ -50,6 +58,7 @@ cores) unless cached, then about 2 minutes per setting plus the fit.
 from __future__ import annotations
 
 import argparse
+import random
 import statistics
 import time
 from dataclasses import replace
@@ -73,6 +82,8 @@ from clod_adapter.train.tree_fit import finetune
 
 #: count budgets scored, shares of the Gaussians in view
 SHARES = (0.75, 0.5, 0.3, 0.15, 0.08, 0.03)
+#: ``--time``: the shares of the model ``--decimate`` keeps, whose counts the frames are timed at
+COUNT_SHARES = (0.3, 0.15, 0.08)
 
 
 def job_hand_overs(linked, final):
@@ -142,7 +153,9 @@ def study(name: str, args) -> list[list]:
             finally:
                 tree.MORPH = default_m
             row = [name, tag, f"{cfg.tree_spread:g}", f"{cfg.tree_exit_toward_parent:g}", f"{tree.HAND_OVER:g}", f"{m:g}",
-                   fitted.get("steps", "-"), f"{cfg.tree_budget_steps:g}", "full (job)", f"{fitted.get('seconds', 0):.0f}",
+                   fitted.get("steps", "-"), f"{cfg.tree_budget_steps:g}", "full (job)",
+                   "-" if cfg.tree_grow is None else f"{cfg.tree_grow:g}",
+                   f"{fitted.get('seconds', 0):.0f}",
                    " / ".join(f"{x:.1f}" for x in r["budget_pop"]), " / ".join(f"{x:.1f}" for x in r["s_v_pop"]),
                    *[f"{r[s]:.2f}" for s in SHARES]]
             print(" | ".join(map(str, row)), flush=True)
@@ -177,23 +190,54 @@ def study(name: str, args) -> list[list]:
 
 
 def fit_rows(name, tag, built, base, fit_views, val_views, sig, cfg: AdaptConfig, args, built_with) -> list[list]:
-    """One row per ``--steps`` value: ``built`` (with ``built_with``: its spread and exit share) fitted
-    that long on ``fit_views`` (cameras, images) and scored on ``val_views``."""
+    """One row per ``--steps`` and ``--grow`` value: ``built`` (with ``built_with``: its spread and
+    exit share) fitted that long on ``fit_views`` (cameras, images) and scored on ``val_views``;
+    with ``--time``, each row ends with its time at the decimator's counts (:func:`count_times`)."""
     (fit_cams, fit_imgs), (val, gts) = fit_views, val_views
-    rows = []
+    rows, fitted = [], []
     for n in args.steps:
-        t = time.perf_counter()
-        g = finetune(built, fit_cams, fit_imgs, n, background=cfg.background, seed=cfg.seed,
-                     budget_steps=args.budget_steps)
-        sec = time.perf_counter() - t
-        r = scores(g, base, val, gts, sig, args.popping_views)
-        row = [name, tag, *(f"{x:g}" for x in built_with), f"{tree.HAND_OVER:g}", f"{tree.MORPH:g}", n, f"{args.budget_steps:g}",
-               "half" if args.half else "full", f"{sec:.0f}",
-               " / ".join(f"{x:.1f}" for x in r["budget_pop"]), " / ".join(f"{x:.1f}" for x in r["s_v_pop"]),
-               *[f"{r[s]:.2f}" for s in SHARES]]
-        print(" | ".join(map(str, row)), flush=True)
-        rows.append(row)
+        for grow in args.grow or [cfg.tree_grow]:
+            t = time.perf_counter()
+            g = finetune(built, fit_cams, fit_imgs, n, background=cfg.background, seed=cfg.seed,
+                         budget_steps=args.budget_steps, grow=grow)
+            sec = time.perf_counter() - t
+            r = scores(g, base, val, gts, sig, args.popping_views)
+            row = [name, tag, *(f"{x:g}" for x in built_with), f"{tree.HAND_OVER:g}", f"{tree.MORPH:g}",
+                   n, f"{args.budget_steps:g}", "half" if args.half else "full",
+                   "-" if grow is None else f"{grow:g}",
+                   f"{sec:.0f}", " / ".join(f"{x:.1f}" for x in r["budget_pop"]),
+                   " / ".join(f"{x:.1f}" for x in r["s_v_pop"]), *[f"{r[s]:.2f}" for s in SHARES]]
+            print(" | ".join(map(str, row)), flush=True)
+            rows.append(row)
+            fitted.append(g)
+    if args.time:
+        for row, ratios in zip(rows, count_times(fitted, base, val)):
+            row.append(" / ".join(f"{x:.2f}" for x in ratios))
     return rows
+
+
+def count_times(models: list, base, cams, rounds: int = 5) -> list[list[float]]:
+    """Each model's frame time at splat-transform ``--decimate``'s counts (:data:`COUNT_SHARES` of
+    ``base``) over the decimated model's, per share: the cut of a count budget of the Gaussians the
+    decimated model draws in each view, every frame timed in ``rounds`` shuffled interleaved
+    rounds on the views, the ratio of the summed times."""
+    decimated = [tiers.decimated(base, s) for s in COUNT_SHARES]
+    rng, spent = random.Random(0), {}
+    with torch.no_grad():
+        for _ in range(rounds):
+            for c in cams:
+                counts = [render_lod(d, c).n_rendered for d in decimated]
+                frames = [((None, j), lambda d=d: render_lod(d, c))
+                          for j, d in enumerate(decimated)]
+                frames += [((i, j), lambda g=g, k=k: render_lod(g, c, budget=Budget(count=k)))
+                           for i, g in enumerate(models) for j, k in enumerate(counts)]
+                rng.shuffle(frames)
+                for key, draw in frames:
+                    t = time.perf_counter()
+                    draw()
+                    spent[key] = spent.get(key, 0.0) + time.perf_counter() - t
+    return [[spent[(i, j)] / spent[(None, j)] for j in range(len(COUNT_SHARES))]
+            for i in range(len(models))]
 
 
 def main(argv=None) -> int:
@@ -213,11 +257,20 @@ def main(argv=None) -> int:
     ap.add_argument("--exit-toward-parent", type=float, nargs="+",
                     help="share of the way a non-lead child's exit moves toward its parent's entry "
                          "(default: the adaptation's tree_exit_toward_parent)")
+    ap.add_argument("--grow", type=lambda v: None if v == "none" else float(v), nargs="+",
+                    help="the factor a merged node's scales may grow by in the fit, or none "
+                         "(default: the adaptation's tree_grow)")
+    ap.add_argument("--time", action="store_true",
+                    help="also time each fit at --decimate's counts against the decimated models")
     args = ap.parse_args(argv)
     setup_threads(args.threads)
     rows = [r for name in selected_inputs(args) for r in study(name, args)]
-    head = ["input", "adaptation", "spread", "exit b", "F", "M", "steps", "budget steps", "resolution", "fit s", "popping along budgets",
-            "popping along s_v", *[f"PSNR {int(100 * s)} % in view" for s in SHARES]]
+    head = ["input", "adaptation", "spread", "exit b", "F", "M", "steps", "budget steps", "resolution",
+            "grow", "fit s", "popping along budgets", "popping along s_v",
+            *[f"PSNR {int(100 * s)} % in view" for s in SHARES]]
+    if args.time and not args.as_adapted:
+        head.append("time at --decimate's count "
+                    + " / ".join(f"{100 * s:g} %" for s in COUNT_SHARES))
     text = table(head, rows)
     name = ("tree_fit" + (f"_{parse_config(args.config)[1]}" if args.config else "")
             + ("_adapted" if args.as_adapted else (f"_budget{args.budget_steps:g}" if args.budget_steps else "")
@@ -225,7 +278,8 @@ def main(argv=None) -> int:
                + ("_spread" + "-".join(f"{x:g}" for x in args.spread) if args.spread else "")
                + ("_F" + "-".join(f"{x:g}" for x in args.hand_over) if args.hand_over else "")
                + ("_M" + "-".join(f"{x:g}" for x in args.morph) if args.morph else "")
-               + ("_b" + "-".join(f"{x:g}" for x in args.exit_toward_parent) if args.exit_toward_parent else "")))
+               + ("_b" + "-".join(f"{x:g}" for x in args.exit_toward_parent) if args.exit_toward_parent else "")
+               + ("_grow" + "-".join("none" if x is None else f"{x:g}" for x in args.grow) if args.grow else "")))
     print(text)
     print(write_summary(name, text))
     return 0

@@ -483,8 +483,9 @@ def _read_own(path: Path):
 def _drawing_rule(linked, scene_root: Path, out_dir: Path, scene, cfg: AdaptConfig, o: AdaptOptions, info: dict):
     """The linked model's tiers as a merge tree (:func:`clod_adapter.lod.tree.build`;
     ``info["tree"]`` its tiers' sizes), its merged tiers fitted on its cuts
-    (:func:`clod_adapter.train.tree_fit.finetune`, ``cfg.tree_steps`` at most ``cfg.iterations``, ``cfg.tree_budget_steps`` of them on budget cuts;
-    ``info["tree_fit"]``) and ``lod_strip.png`` redrawn through it."""
+    (:func:`clod_adapter.train.tree_fit.finetune`, ``cfg.tree_steps`` at most ``cfg.iterations``,
+    ``cfg.tree_budget_steps`` of them on budget cuts, the merged nodes' scales grown by at most
+    ``cfg.tree_grow``; ``info["tree_fit"]``) and ``lod_strip.png`` redrawn through it."""
     from ..lod import tree
     from ..train.tree_fit import finetune
 
@@ -495,8 +496,9 @@ def _drawing_rule(linked, scene_root: Path, out_dir: Path, scene, cfg: AdaptConf
     steps, t0 = min(cfg.tree_steps, cfg.iterations), time.perf_counter()
     linked = finetune(linked, scene.train, [scene.load_image(c) for c in scene.train], steps,
                       background=cfg.background, seed=cfg.seed, budget_steps=cfg.tree_budget_steps,
-                      log=lambda m: o.log("clod-adapt: " + m))
-    info["tree_fit"] = {"steps": steps, "budget_steps": cfg.tree_budget_steps, "seconds": round(time.perf_counter() - t0, 1)}
+                      grow=cfg.tree_grow, log=lambda m: o.log("clod-adapt: " + m))
+    info["tree_fit"] = {"steps": steps, "budget_steps": cfg.tree_budget_steps, "grow": cfg.tree_grow,
+                        "seconds": round(time.perf_counter() - t0, 1)}
     _final_strip(out_dir, linked, scene_root, cfg, o)
     return linked
 

@@ -11,6 +11,7 @@ from ..lod.tree import ENTRY_TOWARD_CHILDREN, EXIT_TOWARD_PARENT, SPREAD
 from ..gaussians import GAIN_NAMES
 from ..io.scene import RESOLUTIONS
 from .official import OFFICIAL_LR
+from .tree_fit import TREE_GROW
 
 PARAM_NAMES = ("means", "quats", "log_scales", "opacity_logits", "sh0", "shN", "sigma_d")
 SCHEDULES = ("calibrated", "paper")
@@ -132,6 +133,13 @@ class AdaptConfig:
             (:func:`clod_adapter.train.tree_fit.finetune`'s ``budget_steps``). Default
             :data:`clod_adapter.train.tree_fit.TREE_BUDGET_STEPS` (0.5): the tree is trained on the
             cuts of both knobs (docs/studies.md "Fitting the tree on its cuts"); 0: levels only.
+        tree_grow: in that fit a merged node's scales grow by at most this factor over what they
+            were when the fit began (:func:`clod_adapter.train.tree_fit.finetune`'s ``grow``, >= 1;
+            None: no bound). Default :data:`clod_adapter.train.tree_fit.TREE_GROW`, None. Unbounded,
+            the fit grows the coarse nodes to fill what their exits leave, and a count budget's
+            frame costs more than a merge of that count; held at 1 the frame costs less, and the
+            coarsest levels lose up to 2.7 dB (docs/studies.md "Merged nodes held at their size in
+            the fit"); no command-line flag.
         tree_spread: a tier's hand-overs spread over this factor of ``s_v`` by importance
             (:func:`clod_adapter.lod.tree.build`'s ``spread``, > 1; default
             :data:`clod_adapter.lod.tree.SPREAD`, 2). Set when the tree is built, so a model
@@ -218,6 +226,7 @@ class AdaptConfig:
     tier_hand_over: Optional[float] = None
     tree_steps: int = 1000
     tree_budget_steps: float = 0.5
+    tree_grow: Optional[float] = TREE_GROW
     tree_spread: float = SPREAD
     tree_exit_toward_parent: float = EXIT_TOWARD_PARENT
     tree_entry_toward_children: float = ENTRY_TOWARD_CHILDREN
@@ -326,6 +335,10 @@ class AdaptConfig:
         self.tree_budget_steps = float(self.tree_budget_steps)
         if not 0.0 <= self.tree_budget_steps <= 1.0:
             raise ValueError(f"tree_budget_steps must be in [0, 1], got {self.tree_budget_steps}")
+        if self.tree_grow is not None:
+            self.tree_grow = float(self.tree_grow)
+            if not (math.isfinite(self.tree_grow) and self.tree_grow >= 1.0):
+                raise ValueError(f"tree_grow must be a factor >= 1 or None, got {self.tree_grow}")
         self.tree_spread = float(self.tree_spread)
         if not (math.isfinite(self.tree_spread) and self.tree_spread > 1.0):
             raise ValueError(f"tree_spread must be a factor > 1, got {self.tree_spread}")

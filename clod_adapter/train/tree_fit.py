@@ -8,7 +8,10 @@ log-uniformly over the tree's range, renders that view's cut (:func:`clod_adapte
 :func:`clod_adapter.lod.tree.cut_attributes`: the hand-overs interpolated as they are drawn) and takes
 an Adam step on ``0.8 L1 + 0.2 D-SSIM`` (``clod_adapter.train.losses.render_loss``) for the merged
 tiers' attributes only. Tier 0, the model at full detail, is never changed, and neither is where
-the cut falls (``sigma_d`` and the exits): the cut is chosen without gradient.
+the cut falls (``sigma_d`` and the exits): the cut is chosen without gradient. The merged nodes
+grow in the fit, filling what their tier's exits leave, so a count budget's frame costs more than
+a merge of that count; ``grow`` bounds it (not by default: docs/studies.md "Merged nodes held at
+their size in the fit").
 """
 from __future__ import annotations
 
@@ -37,6 +40,9 @@ MEANS_LR_SCALE = 0.1
 BUDGET_LOWEST = 0.01
 #: the share of the steps on count-budget cuts (``AdaptConfig.tree_budget_steps``)
 TREE_BUDGET_STEPS = 0.5
+#: the factor a merged node's scales may grow by in the fit (``AdaptConfig.tree_grow``): None, any
+#: (docs/studies.md "Merged nodes held at their size in the fit")
+TREE_GROW = None
 
 
 def level_range(model: Gaussians, cameras: Sequence) -> float:
@@ -57,7 +63,7 @@ def _tiers_with(tiers: list, params: list) -> list:
 
 def finetune(model: Gaussians, cameras: Sequence, images: Sequence, steps: int = TREE_STEPS, *,
              background=None, seed: int = 0, log=None,
-             budget_steps: float = TREE_BUDGET_STEPS) -> Gaussians:
+             budget_steps: float = TREE_BUDGET_STEPS, grow: Optional[float] = TREE_GROW) -> Gaussians:
     """``model`` (a merge tree, :func:`clod_adapter.lod.tree.is_tree`) with its merged tiers fitted on
     its cuts (module docstring) for ``steps`` steps on ``cameras`` (training views) and their
     ``images`` ([H, W, 3] float32 in [0, 1]). ``s_v`` is sampled log-uniformly in ``[1, top]``,
@@ -65,12 +71,15 @@ def finetune(model: Gaussians, cameras: Sequence, images: Sequence, steps: int =
     ``budget_steps`` of the steps (default :data:`TREE_BUDGET_STEPS`; 0: none, and no random
     number drawn for it) draws instead the cut of a count budget
     (:func:`clod_adapter.lod.tree.budget_cut`) of a share of tier 0's centres in view sampled
-    log-uniformly in ``[BUDGET_LOWEST, 1]``. ``steps <= 0`` returns ``model``. Returns a new
-    :class:`~clod_adapter.gaussians.Gaussians` (the same nodes, tree and dtype).
+    log-uniformly in ``[BUDGET_LOWEST, 1]``. With ``grow`` (default :data:`TREE_GROW`, None:
+    unbounded), after each step a merged node's log-scales are clamped to at most their value at
+    the start plus ``ln grow`` (1: no node ends larger than it entered the fit). ``steps <= 0``
+    returns ``model``. Returns a new :class:`~clod_adapter.gaussians.Gaussians` (the same nodes,
+    tree and dtype).
 
     Raises:
-        ValueError: ``model`` is not a tree, ``cameras`` and ``images`` differ in number, or
-            ``budget_steps`` is outside [0, 1].
+        ValueError: ``model`` is not a tree, ``cameras`` and ``images`` differ in number,
+            ``budget_steps`` is outside [0, 1], or ``grow`` is below 1.
     """
     if not tree.is_tree(model):
         raise ValueError("tree_fit.finetune: the model is not a merge tree")
@@ -78,6 +87,8 @@ def finetune(model: Gaussians, cameras: Sequence, images: Sequence, steps: int =
         raise ValueError(f"tree_fit.finetune: {len(cameras)} cameras and {len(images)} images")
     if not 0.0 <= budget_steps <= 1.0:
         raise ValueError(f"tree_fit.finetune: budget_steps must be in [0, 1], got {budget_steps}")
+    if grow is not None and not grow >= 1.0:
+        raise ValueError(f"tree_fit.finetune: grow must be a factor >= 1 or None, got {grow}")
     if steps <= 0 or not len(cameras):
         return model
     tiers = tree.tiers_of(model)
@@ -85,6 +96,7 @@ def finetune(model: Gaussians, cameras: Sequence, images: Sequence, steps: int =
     groups = [{"params": [v], "lr": OFFICIAL_LR[k][0] * MEANS_LR_SCALE if k == "means" else OFFICIAL_LR[k]}
               for p in params for k, v in p.items() if v.numel()]
     opt = torch.optim.Adam(groups, eps=1e-15)
+    caps = None if grow is None else [p["log_scales"].detach() + math.log(grow) for p in params]
     ln_top = math.log(min(level_range(model, cameras), 1e4))
     gen = torch.Generator().manual_seed(seed)
     bg = None if background is None else torch.as_tensor(background, dtype=model.means.dtype).reshape(1, -1)
@@ -111,6 +123,10 @@ def finetune(model: Gaussians, cameras: Sequence, images: Sequence, steps: int =
             opt.zero_grad(set_to_none=True)
             loss.backward()
         opt.step()
+        if caps is not None:
+            with torch.no_grad():
+                for p, cap in zip(params, caps):
+                    p["log_scales"].copy_(torch.minimum(p["log_scales"], cap))
         if log is not None and (it + 1) % 250 == 0:
             log(f"tree: fitted on its cuts, step {it + 1} of {steps} (loss {float(loss.detach()):.4f})")
     return tree.linked(_tiers_with(tiers, [{k: v.detach() for k, v in p.items()} for p in params]))

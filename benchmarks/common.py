@@ -221,7 +221,7 @@ LEGACY_CONFIG = {"s_v_sampling": "uniform", "level_max": 1.0, "trained_order_sha
                  "tier_time_cap": 0.0, "tier_hand_over": 0.0, "tier_downscale": 1, "tier_draw": "chain", "tree_steps": 0,
                  "tree_budget_steps": 0.0, "tree_spread": 2.0,
                  "tree_exit_toward_parent": 0.0, "tree_entry_toward_children": 0.0,
-                 "tree_grow": None}
+                 "tree_grow": None, "tree_free_roots": 0.0}
 #: AdaptConfig keys removed since runs were cached: a cached run matches without them where they
 #: changed nothing it drew (the chain's coarsest window and count rule, and ``tier_draw``: a run drawn
 #: as a tree, or without tiers, is the same run now; a run written with ``tree_steps`` and without

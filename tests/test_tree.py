@@ -356,7 +356,8 @@ def test_fitting_on_budget_cuts(model):
 def test_fitting_on_cuts_bounds_the_growth_of_merged_nodes(model):
     """tree_fit.finetune with ``grow``: no merged node's scale ends above its start times
     ``grow`` (unbounded, the same fit grows some), tier 0 is untouched, the merged nodes still
-    move, and a bound under 1 is refused."""
+    move; the roots left free (``free_roots``) grow while the tiers below stay bounded; a bound
+    under 1 and a share outside [0, 1] are refused."""
     from clod_adapter.train.config import AdaptConfig
     from clod_adapter.train.tree_fit import finetune
 
@@ -372,10 +373,19 @@ def test_fitting_on_cuts_bounds_the_growth_of_merged_nodes(model):
             assert bool((y.log_scales <= x.log_scales + math.log(grow) + 1e-6).all())
             assert not torch.equal(x.means, y.means)
         assert torch.equal(held[0].log_scales, a[0].log_scales)
+    # the roots that leave last (here all of them) left free: the tiers below stay bounded
+    free = tree.tiers_of(finetune(g, cams, imgs, 30, budget_steps=0.5, grow=1.0, free_roots=1.0))
+    assert bool((free[-1].log_scales > a[-1].log_scales + 1e-6).any())
+    for x, y in zip(a[1:-1], free[1:-1]):
+        assert bool((y.log_scales <= x.log_scales + 1e-6).all())
     with pytest.raises(ValueError, match="tree_grow"):
         AdaptConfig(tree_grow=0.9)
+    with pytest.raises(ValueError, match="tree_free_roots"):
+        AdaptConfig(tree_free_roots=1.5)
     with pytest.raises(ValueError, match="grow"):
         finetune(g, cams, imgs, 3, grow=0.5)
+    with pytest.raises(ValueError, match="free_roots"):
+        finetune(g, cams, imgs, 3, grow=1.0, free_roots=-0.1)
 
 def test_export_of_a_tree(model, tmp_path, tiny_model):
     """clod-export of a tree: the extended .ply keeps the tree and splat-transform reads it (its

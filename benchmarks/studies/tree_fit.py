@@ -10,8 +10,9 @@ node constants are checked equal to the cached model's). That tree is then fitte
 count budget's cut at ``--budget-steps`` of the steps, at the model's resolution or at half of it
 (``--half``), and scored on the validation views: the popping ratio along ``s_v`` and along count budgets (``clod-eval``'s,
 :mod:`clod_adapter.evaluate.popping`, from the first ``--popping-views`` views) and the mean PSNR
-at count budgets of 75 / 50 / 30 / 15 / 8 / 3 % of the Gaussians in view. No wall clock is
-scored (the fit's seconds are printed for scale). No goal is enforced (a study: exit 0)::
+at count budgets of 75 / 50 / 30 / 15 / 8 / 3 % of the Gaussians in view and at the coarse levels
+``s_v`` 30 / 55 / 110. No wall clock is scored but with ``--time`` (the fit's seconds are printed
+for scale). No goal is enforced (a study: exit 0)::
 
     python -m benchmarks.studies.tree_fit --steps 0 250 500 1000 2000
     python -m benchmarks.studies.tree_fit --steps 1000 --budget-steps 0.5
@@ -24,6 +25,8 @@ scored (the fit's seconds are printed for scale). No goal is enforced (a study: 
     python -m benchmarks.studies.tree_fit --steps 1000 --budget-steps 0.5 --exit-toward-parent 0 0.25 0.5 0.75 1
     python -m benchmarks.studies.tree_fit --inputs skull --steps 1000 --budget-steps 0.5 \\
         --grow none 1.25 1.1 1 --time --popping-views 7
+    python -m benchmarks.studies.tree_fit --inputs skull fern maskgaussian --steps 1000 \\
+        --budget-steps 0.5 --grow none 1 --free-roots 0 0.25 --time --popping-views 7
 
 ``--spread R ...`` builds the tree with each tier's hand-overs spread over a factor ``R`` of ``s_v``
 (:func:`clod_adapter.lod.tree.build`'s ``spread``; default the adaptation's ``tree_spread``),
@@ -43,7 +46,9 @@ of ``s_v`` (:data:`clod_adapter.lod.tree.MORPH`, set for the run), one set of ro
 
 ``--grow G ...`` fits the tree with its merged nodes' scales grown by at most a factor ``G``
 (:func:`clod_adapter.train.tree_fit.finetune`'s ``grow``; ``none``: unbounded; default the
-adaptation's ``tree_grow``), one row per value. ``--time`` adds to each row its frame time at the
+adaptation's ``tree_grow``), one row per value; ``--free-roots S ...`` leaves the share ``S`` of
+the roots, those that leave last, free to grow (``finetune``'s ``free_roots``), one row per value
+and bound. ``--time`` adds to each row its frame time at the
 counts splat-transform ``--decimate`` keeps at 30 / 15 / 8 % of the model, over the decimated
 model's (:func:`count_times`: 5 shuffled interleaved rounds on the validation views, 2 threads).
 
@@ -82,6 +87,8 @@ from clod_adapter.train.tree_fit import finetune
 
 #: count budgets scored, shares of the Gaussians in view
 SHARES = (0.75, 0.5, 0.3, 0.15, 0.08, 0.03)
+#: levels scored at the coarse end, where the last roots are drawn alone
+COARSE_S_V = (30.0, 55.0, 110.0)
 #: ``--time``: the shares of the model ``--decimate`` keeps, whose counts the frames are timed at
 COUNT_SHARES = (0.3, 0.15, 0.08)
 
@@ -133,6 +140,8 @@ def scores(g, base, cams, gts, sig, n_pop: int) -> dict:
         for s in SHARES:
             out[s] = statistics.mean(psnr(render_lod(g, c, budget=Budget(in_view=s)).image, gt, cap=True)
                                      for c, gt in zip(cams, gts))
+        out["coarse"] = [statistics.mean(psnr(render_lod(g, c, sv).image, gt, cap=True)
+                                         for c, gt in zip(cams, gts)) for sv in COARSE_S_V]
     return out
 
 
@@ -157,7 +166,7 @@ def study(name: str, args) -> list[list]:
                    "-" if cfg.tree_grow is None else f"{cfg.tree_grow:g}",
                    f"{fitted.get('seconds', 0):.0f}",
                    " / ".join(f"{x:.1f}" for x in r["budget_pop"]), " / ".join(f"{x:.1f}" for x in r["s_v_pop"]),
-                   *[f"{r[s]:.2f}" for s in SHARES]]
+                   *[f"{r[s]:.2f}" for s in SHARES], " / ".join(f"{x:.2f}" for x in r["coarse"])]
             print(" | ".join(map(str, row)), flush=True)
             rows.append(row)
         return rows
@@ -196,17 +205,19 @@ def fit_rows(name, tag, built, base, fit_views, val_views, sig, cfg: AdaptConfig
     (fit_cams, fit_imgs), (val, gts) = fit_views, val_views
     rows, fitted = [], []
     for n in args.steps:
-        for grow in args.grow or [cfg.tree_grow]:
+        for grow, free in [(g, f) for g in args.grow or [cfg.tree_grow]
+                           for f in args.free_roots or [cfg.tree_free_roots] if g is not None or not f]:
             t = time.perf_counter()
             g = finetune(built, fit_cams, fit_imgs, n, background=cfg.background, seed=cfg.seed,
-                         budget_steps=args.budget_steps, grow=grow)
+                         budget_steps=args.budget_steps, grow=grow, free_roots=free)
             sec = time.perf_counter() - t
             r = scores(g, base, val, gts, sig, args.popping_views)
             row = [name, tag, *(f"{x:g}" for x in built_with), f"{tree.HAND_OVER:g}", f"{tree.MORPH:g}",
                    n, f"{args.budget_steps:g}", "half" if args.half else "full",
-                   "-" if grow is None else f"{grow:g}",
+                   "-" if grow is None else f"{grow:g}" + (f", {free:g} of the roots free" if free else ""),
                    f"{sec:.0f}", " / ".join(f"{x:.1f}" for x in r["budget_pop"]),
-                   " / ".join(f"{x:.1f}" for x in r["s_v_pop"]), *[f"{r[s]:.2f}" for s in SHARES]]
+                   " / ".join(f"{x:.1f}" for x in r["s_v_pop"]), *[f"{r[s]:.2f}" for s in SHARES],
+                   " / ".join(f"{x:.2f}" for x in r["coarse"])]
             print(" | ".join(map(str, row)), flush=True)
             rows.append(row)
             fitted.append(g)
@@ -260,6 +271,9 @@ def main(argv=None) -> int:
     ap.add_argument("--grow", type=lambda v: None if v == "none" else float(v), nargs="+",
                     help="the factor a merged node's scales may grow by in the fit, or none "
                          "(default: the adaptation's tree_grow)")
+    ap.add_argument("--free-roots", type=float, nargs="+",
+                    help="with --grow, the share of the roots (by exit, the last to leave) left free to grow "
+                         "(default: the adaptation's tree_free_roots)")
     ap.add_argument("--time", action="store_true",
                     help="also time each fit at --decimate's counts against the decimated models")
     args = ap.parse_args(argv)
@@ -267,7 +281,8 @@ def main(argv=None) -> int:
     rows = [r for name in selected_inputs(args) for r in study(name, args)]
     head = ["input", "adaptation", "spread", "exit b", "F", "M", "steps", "budget steps", "resolution",
             "grow", "fit s", "popping along budgets", "popping along s_v",
-            *[f"PSNR {int(100 * s)} % in view" for s in SHARES]]
+            *[f"PSNR {int(100 * s)} % in view" for s in SHARES],
+            "PSNR at s_v " + " / ".join(f"{x:g}" for x in COARSE_S_V)]
     if args.time and not args.as_adapted:
         head.append("time at --decimate's count "
                     + " / ".join(f"{100 * s:g} %" for s in COUNT_SHARES))
@@ -279,7 +294,8 @@ def main(argv=None) -> int:
                + ("_F" + "-".join(f"{x:g}" for x in args.hand_over) if args.hand_over else "")
                + ("_M" + "-".join(f"{x:g}" for x in args.morph) if args.morph else "")
                + ("_b" + "-".join(f"{x:g}" for x in args.exit_toward_parent) if args.exit_toward_parent else "")
-               + ("_grow" + "-".join("none" if x is None else f"{x:g}" for x in args.grow) if args.grow else "")))
+               + ("_grow" + "-".join("none" if x is None else f"{x:g}" for x in args.grow) if args.grow else "")
+               + ("_free" + "-".join(f"{x:g}" for x in args.free_roots) if args.free_roots else "")))
     print(text)
     print(write_summary(name, text))
     return 0

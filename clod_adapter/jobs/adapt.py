@@ -485,7 +485,8 @@ def _drawing_rule(linked, scene_root: Path, out_dir: Path, scene, cfg: AdaptConf
     ``info["tree"]`` its tiers' sizes), its merged tiers fitted on its cuts
     (:func:`clod_adapter.train.tree_fit.finetune`, ``cfg.tree_steps`` at most ``cfg.iterations``,
     ``cfg.tree_budget_steps`` of them on budget cuts, the merged nodes' scales grown by at most
-    ``cfg.tree_grow``; ``info["tree_fit"]``) and ``lod_strip.png`` redrawn through it."""
+    ``cfg.tree_grow`` but for ``cfg.tree_free_roots`` of the roots; ``info["tree_fit"]``) and
+    ``lod_strip.png`` redrawn through it."""
     from ..lod import tree
     from ..train.tree_fit import finetune
 
@@ -496,9 +497,10 @@ def _drawing_rule(linked, scene_root: Path, out_dir: Path, scene, cfg: AdaptConf
     steps, t0 = min(cfg.tree_steps, cfg.iterations), time.perf_counter()
     linked = finetune(linked, scene.train, [scene.load_image(c) for c in scene.train], steps,
                       background=cfg.background, seed=cfg.seed, budget_steps=cfg.tree_budget_steps,
-                      grow=cfg.tree_grow, log=lambda m: o.log("clod-adapt: " + m))
+                      grow=cfg.tree_grow, free_roots=cfg.tree_free_roots,
+                      log=lambda m: o.log("clod-adapt: " + m))
     info["tree_fit"] = {"steps": steps, "budget_steps": cfg.tree_budget_steps, "grow": cfg.tree_grow,
-                        "seconds": round(time.perf_counter() - t0, 1)}
+                        "free_roots": cfg.tree_free_roots, "seconds": round(time.perf_counter() - t0, 1)}
     _final_strip(out_dir, linked, scene_root, cfg, o)
     return linked
 

@@ -11,7 +11,7 @@ from ..lod.tree import ENTRY_TOWARD_CHILDREN, EXIT_TOWARD_PARENT, SPREAD
 from ..gaussians import GAIN_NAMES
 from ..io.scene import RESOLUTIONS
 from .official import OFFICIAL_LR
-from .tree_fit import TREE_GROW
+from .tree_fit import TREE_FREE_ROOTS, TREE_GROW
 
 PARAM_NAMES = ("means", "quats", "log_scales", "opacity_logits", "sh0", "shN", "sigma_d")
 SCHEDULES = ("calibrated", "paper")
@@ -140,6 +140,10 @@ class AdaptConfig:
             frame costs more than a merge of that count; held at 1 the frame costs less, and the
             coarsest levels lose up to 2.7 dB (docs/studies.md "Merged nodes held at their size in
             the fit"); no command-line flag.
+        tree_free_roots: with ``tree_grow``, the share of the roots (the last tier's nodes) that
+            leave last, the ones the coarsest levels draw alone, left free to grow
+            (:func:`clod_adapter.train.tree_fit.finetune`'s ``free_roots``, in [0, 1]; default
+            :data:`clod_adapter.train.tree_fit.TREE_FREE_ROOTS`, 0); no command-line flag.
         tree_spread: a tier's hand-overs spread over this factor of ``s_v`` by importance
             (:func:`clod_adapter.lod.tree.build`'s ``spread``, > 1; default
             :data:`clod_adapter.lod.tree.SPREAD`, 2). Set when the tree is built, so a model
@@ -227,6 +231,7 @@ class AdaptConfig:
     tree_steps: int = 1000
     tree_budget_steps: float = 0.5
     tree_grow: Optional[float] = TREE_GROW
+    tree_free_roots: float = TREE_FREE_ROOTS
     tree_spread: float = SPREAD
     tree_exit_toward_parent: float = EXIT_TOWARD_PARENT
     tree_entry_toward_children: float = ENTRY_TOWARD_CHILDREN
@@ -342,7 +347,7 @@ class AdaptConfig:
         self.tree_spread = float(self.tree_spread)
         if not (math.isfinite(self.tree_spread) and self.tree_spread > 1.0):
             raise ValueError(f"tree_spread must be a factor > 1, got {self.tree_spread}")
-        for key in ("tree_exit_toward_parent", "tree_entry_toward_children"):
+        for key in ("tree_exit_toward_parent", "tree_entry_toward_children", "tree_free_roots"):
             setattr(self, key, float(getattr(self, key)))
             if not 0.0 <= getattr(self, key) <= 1.0:
                 raise ValueError(f"{key} must be in [0, 1], got {getattr(self, key)}")

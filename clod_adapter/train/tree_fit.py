@@ -43,6 +43,9 @@ TREE_BUDGET_STEPS = 0.5
 #: the factor a merged node's scales may grow by in the fit (``AdaptConfig.tree_grow``): None, any
 #: (docs/studies.md "Merged nodes held at their size in the fit")
 TREE_GROW = None
+#: the share of the roots (the last tier's nodes), those that leave last, that ``grow`` does not bound
+#: (``AdaptConfig.tree_free_roots``): 0, none
+TREE_FREE_ROOTS = 0.0
 
 
 def level_range(model: Gaussians, cameras: Sequence) -> float:
@@ -63,7 +66,8 @@ def _tiers_with(tiers: list, params: list) -> list:
 
 def finetune(model: Gaussians, cameras: Sequence, images: Sequence, steps: int = TREE_STEPS, *,
              background=None, seed: int = 0, log=None,
-             budget_steps: float = TREE_BUDGET_STEPS, grow: Optional[float] = TREE_GROW) -> Gaussians:
+             budget_steps: float = TREE_BUDGET_STEPS, grow: Optional[float] = TREE_GROW,
+             free_roots: float = TREE_FREE_ROOTS) -> Gaussians:
     """``model`` (a merge tree, :func:`clod_adapter.lod.tree.is_tree`) with its merged tiers fitted on
     its cuts (module docstring) for ``steps`` steps on ``cameras`` (training views) and their
     ``images`` ([H, W, 3] float32 in [0, 1]). ``s_v`` is sampled log-uniformly in ``[1, top]``,
@@ -73,13 +77,15 @@ def finetune(model: Gaussians, cameras: Sequence, images: Sequence, steps: int =
     (:func:`clod_adapter.lod.tree.budget_cut`) of a share of tier 0's centres in view sampled
     log-uniformly in ``[BUDGET_LOWEST, 1]``. With ``grow`` (default :data:`TREE_GROW`, None:
     unbounded), after each step a merged node's log-scales are clamped to at most their value at
-    the start plus ``ln grow`` (1: no node ends larger than it entered the fit). ``steps <= 0``
+    the start plus ``ln grow`` (1: no node ends larger than it entered the fit), but for the share
+    ``free_roots`` of the roots (the last tier's nodes) with the largest exits, the ones the
+    coarsest levels draw alone (default :data:`TREE_FREE_ROOTS`, 0). ``steps <= 0``
     returns ``model``. Returns a new :class:`~clod_adapter.gaussians.Gaussians` (the same nodes,
     tree and dtype).
 
     Raises:
         ValueError: ``model`` is not a tree, ``cameras`` and ``images`` differ in number,
-            ``budget_steps`` is outside [0, 1], or ``grow`` is below 1.
+            ``budget_steps`` or ``free_roots`` is outside [0, 1], or ``grow`` is below 1.
     """
     if not tree.is_tree(model):
         raise ValueError("tree_fit.finetune: the model is not a merge tree")
@@ -89,6 +95,8 @@ def finetune(model: Gaussians, cameras: Sequence, images: Sequence, steps: int =
         raise ValueError(f"tree_fit.finetune: budget_steps must be in [0, 1], got {budget_steps}")
     if grow is not None and not grow >= 1.0:
         raise ValueError(f"tree_fit.finetune: grow must be a factor >= 1 or None, got {grow}")
+    if not 0.0 <= free_roots <= 1.0:
+        raise ValueError(f"tree_fit.finetune: free_roots must be in [0, 1], got {free_roots}")
     if steps <= 0 or not len(cameras):
         return model
     tiers = tree.tiers_of(model)
@@ -97,6 +105,10 @@ def finetune(model: Gaussians, cameras: Sequence, images: Sequence, steps: int =
               for p in params for k, v in p.items() if v.numel()]
     opt = torch.optim.Adam(groups, eps=1e-15)
     caps = None if grow is None else [p["log_scales"].detach() + math.log(grow) for p in params]
+    if caps is not None and free_roots > 0.0 and len(tiers[-1]):
+        ex = tiers[-1].extra[tree.EXIT_KEY].double()
+        last = ex >= torch.quantile(ex, 1.0 - free_roots)  # the roots that leave last
+        caps[-1] = torch.where(last[:, None], torch.full_like(caps[-1], math.inf), caps[-1])
     ln_top = math.log(min(level_range(model, cameras), 1e4))
     gen = torch.Generator().manual_seed(seed)
     bg = None if background is None else torch.as_tensor(background, dtype=model.means.dtype).reshape(1, -1)

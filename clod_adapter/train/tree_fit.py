@@ -107,7 +107,7 @@ def finetune(model: Gaussians, cameras: Sequence, images: Sequence, steps: int =
     caps = None if grow is None else [p["log_scales"].detach() + math.log(grow) for p in params]
     if caps is not None and free_roots > 0.0 and len(tiers[-1]):
         ex = tiers[-1].extra[tree.EXIT_KEY].double()
-        last = ex >= torch.quantile(ex, 1.0 - free_roots)  # the roots that leave last
+        last = ex >= torch.quantile(ex, 1.0 - free_roots, interpolation="lower")  # those that leave last
         caps[-1] = torch.where(last[:, None], torch.full_like(caps[-1], math.inf), caps[-1])
     ln_top = math.log(min(level_range(model, cameras), 1e4))
     gen = torch.Generator().manual_seed(seed)

@@ -11,8 +11,8 @@ count budget's cut at ``--budget-steps`` of the steps, at the model's resolution
 (``--half``), and scored on the validation views: the popping ratio along ``s_v`` and along count budgets (``clod-eval``'s,
 :mod:`clod_adapter.evaluate.popping`, from the first ``--popping-views`` views) and the mean PSNR
 at count budgets of 75 / 50 / 30 / 15 / 8 / 3 % of the Gaussians in view and at the coarse levels
-``s_v`` 30 / 55 / 110. No wall clock is scored but with ``--time`` (the fit's seconds are printed
-for scale). No goal is enforced (a study: exit 0)::
+``s_v`` 30 / 55 / 110. No wall clock is scored except with ``--time`` (the fit's seconds are
+printed for scale). No goal is enforced (a study: exit 0)::
 
     python -m benchmarks.studies.tree_fit --steps 0 250 500 1000 2000
     python -m benchmarks.studies.tree_fit --steps 1000 --budget-steps 0.5
@@ -163,8 +163,7 @@ def study(name: str, args) -> list[list]:
                 tree.MORPH = default_m
             row = [name, tag, f"{cfg.tree_spread:g}", f"{cfg.tree_exit_toward_parent:g}", f"{tree.HAND_OVER:g}", f"{m:g}",
                    fitted.get("steps", "-"), f"{cfg.tree_budget_steps:g}", "full (job)",
-                   "-" if cfg.tree_grow is None else f"{cfg.tree_grow:g}",
-                   f"{fitted.get('seconds', 0):.0f}",
+                   bound(cfg.tree_grow, cfg.tree_free_roots), f"{fitted.get('seconds', 0):.0f}",
                    " / ".join(f"{x:.1f}" for x in r["budget_pop"]), " / ".join(f"{x:.1f}" for x in r["s_v_pop"]),
                    *[f"{r[s]:.2f}" for s in SHARES], " / ".join(f"{x:.2f}" for x in r["coarse"])]
             print(" | ".join(map(str, row)), flush=True)
@@ -205,8 +204,8 @@ def fit_rows(name, tag, built, base, fit_views, val_views, sig, cfg: AdaptConfig
     (fit_cams, fit_imgs), (val, gts) = fit_views, val_views
     rows, fitted = [], []
     for n in args.steps:
-        for grow, free in [(g, f) for g in args.grow or [cfg.tree_grow]
-                           for f in args.free_roots or [cfg.tree_free_roots] if g is not None or not f]:
+        for grow, free in [(gr, fr) for gr in args.grow or [cfg.tree_grow]
+                           for fr in args.free_roots or [cfg.tree_free_roots] if gr is not None or not fr]:
             t = time.perf_counter()
             g = finetune(built, fit_cams, fit_imgs, n, background=cfg.background, seed=cfg.seed,
                          budget_steps=args.budget_steps, grow=grow, free_roots=free)
@@ -214,7 +213,7 @@ def fit_rows(name, tag, built, base, fit_views, val_views, sig, cfg: AdaptConfig
             r = scores(g, base, val, gts, sig, args.popping_views)
             row = [name, tag, *(f"{x:g}" for x in built_with), f"{tree.HAND_OVER:g}", f"{tree.MORPH:g}",
                    n, f"{args.budget_steps:g}", "half" if args.half else "full",
-                   "-" if grow is None else f"{grow:g}" + (f", {free:g} of the roots free" if free else ""),
+                   bound(grow, free),
                    f"{sec:.0f}", " / ".join(f"{x:.1f}" for x in r["budget_pop"]),
                    " / ".join(f"{x:.1f}" for x in r["s_v_pop"]), *[f"{r[s]:.2f}" for s in SHARES],
                    " / ".join(f"{x:.2f}" for x in r["coarse"])]
@@ -225,6 +224,11 @@ def fit_rows(name, tag, built, base, fit_views, val_views, sig, cfg: AdaptConfig
         for row, ratios in zip(rows, count_times(fitted, base, val)):
             row.append(" / ".join(f"{x:.2f}" for x in ratios))
     return rows
+
+
+def bound(grow, free: float) -> str:
+    """The ``grow`` column: the fit's bound on the merged nodes' growth and the roots left free."""
+    return "-" if grow is None else f"{grow:g}" + (f", {free:g} of the roots free" if free else "")
 
 
 def count_times(models: list, base, cams, rounds: int = 5) -> list[list[float]]:

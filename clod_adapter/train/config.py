@@ -138,8 +138,8 @@ class AdaptConfig:
             None: no bound). Default :data:`clod_adapter.train.tree_fit.TREE_GROW`, None. Unbounded,
             the fit grows the coarse nodes to fill what their exits leave, and a count budget's
             frame costs more than a merge of that count; held at 1 the frame costs less, and the
-            coarsest levels lose up to 2.7 dB (docs/studies.md "Merged nodes held at their size in
-            the fit"); no command-line flag.
+            coarsest levels lose 2-4 dB unless ``tree_free_roots`` leaves their roots free
+            (docs/studies.md "Merged nodes held at their size in the fit"); no command-line flag.
         tree_free_roots: with ``tree_grow``, the share of the roots (the last tier's nodes) that
             leave last, the ones the coarsest levels draw alone, left free to grow
             (:func:`clod_adapter.train.tree_fit.finetune`'s ``free_roots``, in [0, 1]; default

@@ -138,7 +138,7 @@ def finetune(model: Gaussians, cameras: Sequence, images: Sequence, steps: int =
         if caps is not None:
             with torch.no_grad():
                 for p, cap in zip(params, caps):
-                    p["log_scales"].copy_(torch.minimum(p["log_scales"], cap))
+                    p["log_scales"].clamp_(max=cap)
         if log is not None and (it + 1) % 250 == 0:
             log(f"tree: fitted on its cuts, step {it + 1} of {steps} (loss {float(loss.detach()):.4f})")
     return tree.linked(_tiers_with(tiers, [{k: v.detach() for k, v in p.items()} for p in params]))

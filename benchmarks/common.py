@@ -195,7 +195,8 @@ def resolve_input(name: str) -> tuple[Path, Path, int]:
 
 def parse_config(items) -> tuple[dict, str]:
     """``KEY=VALUE`` strings (the benchmarks' ``--config``) as AdaptConfig settings, each value
-    converted to its default's type, and the cache tag naming them (``"default"`` for none).
+    converted to its default's type (``none`` is None), and the cache tag naming them
+    (``"default"`` for none).
 
     Raises:
         SystemExit: a key AdaptConfig does not have, or an item without ``=``.
@@ -208,8 +209,8 @@ def parse_config(items) -> tuple[dict, str]:
         if not eq or not hasattr(base, k):
             sys.exit(f"benchmark: --config {kv!r}: expected KEY=VALUE with an AdaptConfig key")
         d = getattr(base, k)
-        config[k] = (tuple(float(x) for x in v.split(",") if x) if isinstance(d, tuple)
-                     else type(d)(v) if d is not None else v)
+        config[k] = (None if v.lower() == "none" else tuple(float(x) for x in v.split(",") if x)
+                     if isinstance(d, tuple) else type(d)(v) if d is not None else v)
     tag = "_".join(f"{k}-{','.join(map(str, v)) if isinstance(v, tuple) else v}" for k, v in sorted(config.items()))
     return config, ("default" if not config else tag)
 

@@ -485,7 +485,7 @@ def test_adapt_job_builds_the_tier_or_says_why_not(tiny_model, tmp_path, monkeyp
     assert g.lod.tier_s_v == tier["tier_s_v"] and len(g.parents) == n_parents and g.lod.tree
     assert tier["tree"][:2] == [len(g), n_parents] and tier["tree_fit"]["steps"] == 2  # at most --iterations
     assert tier["tree_fit"]["budget_steps"] == 0.5  # the default: half the fit's steps on budget cuts
-    assert tier["tree_fit"]["grow"] is None and tier["tree_fit"]["free_roots"] == 0.0  # growth unbounded
+    assert tier["tree_fit"]["grow"] == 1.0 and tier["tree_fit"]["free_roots"] == 0.25  # bounded but the last roots
     c = AdaptConfig()
     assert spreads == [(c.tree_spread, c.tree_exit_toward_parent, c.tree_entry_toward_children)] == [
         (tree_mod.SPREAD, tree_mod.EXIT_TOWARD_PARENT, tree_mod.ENTRY_TOWARD_CHILDREN)]

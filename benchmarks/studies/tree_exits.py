@@ -82,7 +82,8 @@ def study(name: str, args) -> list[list]:
     for spec in args.exits:
         t = time.perf_counter()
         models[spec] = finetune(_with_exits(ply, fit, scene, cfg, spec), fit, fit_imgs, cfg.tree_steps,
-                                background=cfg.background, seed=cfg.seed, budget_steps=cfg.tree_budget_steps)
+                                background=cfg.background, seed=cfg.seed, budget_steps=cfg.tree_budget_steps,
+                                grow=cfg.tree_grow, free_roots=cfg.tree_free_roots)
         r = scores(models[spec], g0, val, gts, sig, args.popping_views)
         rows[spec] = [name, spec, f"{time.perf_counter() - t:.0f}", " / ".join(f"{x:.1f}" for x in r["budget_pop"]) or "-",
                       " / ".join(f"{x:.1f}" for x in r["s_v_pop"]) or "-", " / ".join(f"{r[s]:.2f}" for s in SHARES)]

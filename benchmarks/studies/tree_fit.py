@@ -204,8 +204,8 @@ def fit_rows(name, tag, built, base, fit_views, val_views, sig, cfg: AdaptConfig
     (fit_cams, fit_imgs), (val, gts) = fit_views, val_views
     rows, fitted = [], []
     for n in args.steps:
-        for grow, free in [(gr, fr) for gr in args.grow or [cfg.tree_grow]
-                           for fr in args.free_roots or [cfg.tree_free_roots] if gr is not None or not fr]:
+        for grow, free in dict.fromkeys((gr, fr if gr is not None else 0.0) for gr in args.grow or [cfg.tree_grow]
+                                        for fr in args.free_roots or [cfg.tree_free_roots]):  # unbounded: none free
             t = time.perf_counter()
             g = finetune(built, fit_cams, fit_imgs, n, background=cfg.background, seed=cfg.seed,
                          budget_steps=args.budget_steps, grow=grow, free_roots=free)

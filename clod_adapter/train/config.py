@@ -135,15 +135,15 @@ class AdaptConfig:
             cuts of both knobs (docs/studies.md "Fitting the tree on its cuts"); 0: levels only.
         tree_grow: in that fit a merged node's scales grow by at most this factor over what they
             were when the fit began (:func:`clod_adapter.train.tree_fit.finetune`'s ``grow``, >= 1;
-            None: no bound). Default :data:`clod_adapter.train.tree_fit.TREE_GROW`, None. Unbounded,
+            None: no bound). Default :data:`clod_adapter.train.tree_fit.TREE_GROW`, 1. Unbounded,
             the fit grows the coarse nodes to fill what their exits leave, and a count budget's
             frame costs more than a merge of that count; held at 1 the frame costs less, and the
-            coarsest levels lose 2-4 dB unless ``tree_free_roots`` leaves their roots free
+            coarsest levels would lose 2-4 dB but for ``tree_free_roots`` leaving their roots free
             (docs/studies.md "Merged nodes held at their size in the fit"); no command-line flag.
         tree_free_roots: with ``tree_grow``, the share of the roots (the last tier's nodes) that
             leave last, the ones the coarsest levels draw alone, left free to grow
             (:func:`clod_adapter.train.tree_fit.finetune`'s ``free_roots``, in [0, 1]; default
-            :data:`clod_adapter.train.tree_fit.TREE_FREE_ROOTS`, 0); no command-line flag.
+            :data:`clod_adapter.train.tree_fit.TREE_FREE_ROOTS`, 0.25); no command-line flag.
         tree_spread: a tier's hand-overs spread over this factor of ``s_v`` by importance
             (:func:`clod_adapter.lod.tree.build`'s ``spread``, > 1; default
             :data:`clod_adapter.lod.tree.SPREAD`, 2). Set when the tree is built, so a model

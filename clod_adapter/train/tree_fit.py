@@ -40,12 +40,12 @@ MEANS_LR_SCALE = 0.1
 BUDGET_LOWEST = 0.01
 #: the share of the steps on count-budget cuts (``AdaptConfig.tree_budget_steps``)
 TREE_BUDGET_STEPS = 0.5
-#: the factor a merged node's scales may grow by in the fit (``AdaptConfig.tree_grow``): None, any
-#: (docs/studies.md "Merged nodes held at their size in the fit")
-TREE_GROW = None
+#: the factor a merged node's scales may grow by in the fit (``AdaptConfig.tree_grow``): 1, none
+#: ends larger than it entered (docs/studies.md "Merged nodes held at their size in the fit")
+TREE_GROW = 1.0
 #: the share of the roots (the last tier's nodes), those that leave last, that ``grow`` does not bound
-#: (``AdaptConfig.tree_free_roots``): 0, none
-TREE_FREE_ROOTS = 0.0
+#: (``AdaptConfig.tree_free_roots``): a quarter
+TREE_FREE_ROOTS = 0.25
 
 
 def level_range(model: Gaussians, cameras: Sequence) -> float:
@@ -75,11 +75,11 @@ def finetune(model: Gaussians, cameras: Sequence, images: Sequence, steps: int =
     ``budget_steps`` of the steps (default :data:`TREE_BUDGET_STEPS`; 0: none, and no random
     number drawn for it) draws instead the cut of a count budget
     (:func:`clod_adapter.lod.tree.budget_cut`) of a share of tier 0's centres in view sampled
-    log-uniformly in ``[BUDGET_LOWEST, 1]``. With ``grow`` (default :data:`TREE_GROW`, None:
+    log-uniformly in ``[BUDGET_LOWEST, 1]``. With ``grow`` (default :data:`TREE_GROW`, 1; None:
     unbounded), after each step a merged node's log-scales are clamped to at most their value at
     the start plus ``ln grow`` (1: no node ends larger than it entered the fit), but for the share
     ``free_roots`` of the roots (the last tier's nodes) with the largest exits, the ones the
-    coarsest levels draw alone (default :data:`TREE_FREE_ROOTS`, 0). ``steps <= 0``
+    coarsest levels draw alone (default :data:`TREE_FREE_ROOTS`, 0.25). ``steps <= 0``
     returns ``model``. Returns a new :class:`~clod_adapter.gaussians.Gaussians` (the same nodes,
     tree and dtype).
 

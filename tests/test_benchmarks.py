@@ -89,6 +89,26 @@ def test_adapt_time_goal_reads_the_whole_jobs_seconds(common):
     assert qvt_bench.margin({"value": 3.0, "target": 1.0}) == 2.0  # at-least goals: value - target
 
 
+def test_ceiling_goal_counts_the_equal_count_points_near_the_ceiling(common):
+    """quality_vs_time.py's goal 5 ceiling row: the share of equal-count points with a ceiling
+    where the adapted model is within 0.5 dB of it, met at 80 % or more; time cells and points
+    without a ceiling do not count, and without any ceiling there is no row."""
+    import importlib
+
+    from clod_adapter.evaluate.comparison import Cell
+
+    qvt_bench = importlib.import_module("benchmarks.quality_vs_time")
+    pt = lambda db: ("clod", "x", db, 0.5)  # noqa: E731
+    cell = lambda kind, ours, ceil: Cell(kind, 0.3, pt(ours), pt(20.0), ours - 20.0,  # noqa: E731
+                                         None if ceil is None else ("ceiling", "model=0.3", ceil, 0.5))
+    cs = [cell("count", 24.0, 24.4), cell("count", 23.0, 24.0), cell("time", 10.0, 24.0), cell("count", 22.0, None)]
+    (row,) = qvt_bench.ceiling_goal("fern", cs)
+    assert row["value"] == 0.5 and row["target"] == 0.8 and not row["met"] and "2 points" in row["goal"]
+    (near,) = qvt_bench.ceiling_goal("fern", [cell("count", 24.0, 24.4), cell("count", 23.6, 24.0)])
+    assert near["met"] and near["value"] == 1.0
+    assert qvt_bench.ceiling_goal("fern", [cell("count", 24.0, None)]) == []
+
+
 def test_behind_line_names_cells_the_adapted_model_cannot_reach(common):
     """quality_vs_time.py's 'where behind' sentence: a cell behind the peer with its margin, a
     cell a peer fills where the adapted model has no level (not 'nowhere'), and 'nowhere' only

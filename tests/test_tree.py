@@ -352,7 +352,6 @@ def test_fitting_on_budget_cuts(model):
         finetune(g, cams, imgs, 3, budget_steps=1.5)
 
 
-
 def test_fitting_on_cuts_bounds_the_growth_of_merged_nodes(model):
     """tree_fit.finetune with ``grow``: no merged node's scale ends above its start times
     ``grow`` (unbounded, the same fit grows some), tier 0 is untouched, the merged nodes still
@@ -386,6 +385,7 @@ def test_fitting_on_cuts_bounds_the_growth_of_merged_nodes(model):
         finetune(g, cams, imgs, 3, grow=0.5)
     with pytest.raises(ValueError, match="free_roots"):
         finetune(g, cams, imgs, 3, grow=1.0, free_roots=-0.1)
+
 
 def test_export_of_a_tree(model, tmp_path, tiny_model):
     """clod-export of a tree: the extended .ply keeps the tree and splat-transform reads it (its

@@ -8,10 +8,10 @@ log-uniformly over the tree's range, renders that view's cut (:func:`clod_adapte
 :func:`clod_adapter.lod.tree.cut_attributes`: the hand-overs interpolated as they are drawn) and takes
 an Adam step on ``0.8 L1 + 0.2 D-SSIM`` (``clod_adapter.train.losses.render_loss``) for the merged
 tiers' attributes only. Tier 0, the model at full detail, is never changed, and neither is where
-the cut falls (``sigma_d`` and the exits): the cut is chosen without gradient. The merged nodes
-grow in the fit, filling what their tier's exits leave, so a count budget's frame costs more than
-a merge of that count; ``grow`` bounds it (not by default: docs/studies.md "Merged nodes held at
-their size in the fit").
+the cut falls (``sigma_d`` and the exits): the cut is chosen without gradient. Unbounded, the merged
+nodes grow in the fit, filling what their tier's exits leave, so a count budget's frame costs more
+than a merge of that count; by default ``grow`` holds them at their size but for the quarter of the
+roots that leave last (docs/studies.md "Merged nodes held at their size in the fit").
 """
 from __future__ import annotations
 

@@ -300,6 +300,15 @@ def write_summary(name: str, text: str) -> Path:
     return out / "summary.md"
 
 
+def print_summary(name: str, lines: list) -> int:
+    """A study's end: its Markdown ``lines`` printed and written by :func:`write_summary` (the path
+    printed after them); returns 0, the study's exit status."""
+    text = "\n".join(lines)
+    print(text)
+    print("wrote", write_summary(name, text))
+    return 0
+
+
 def fmt_pct(b: float) -> str:
     return f"{100 * b:.3g} %"
 

@@ -18,7 +18,7 @@ study: exit 0)::
 
     python -m benchmarks.studies.budget_distances --inputs skull fern
 
-Written: ``runs/bench/budget_distances_val.md``. About 3 minutes per fit and scene (2 threads),
+Written: ``runs/bench/budget_distances_val/summary.md``. About 3 minutes per fit and scene (2 threads),
 after the adaptation.
 """
 from __future__ import annotations
@@ -30,8 +30,8 @@ from contextlib import contextmanager
 
 import torch
 
-from benchmarks.common import RUNS, adapt_cached, load_input, parse_inputs_args, scene_views, split_suffix
-from benchmarks.studies.compare_configs import COUNTS, write_text
+from benchmarks.common import adapt_cached, load_input, parse_inputs_args, scene_views, split_suffix, print_summary
+from benchmarks.studies.compare_configs import COUNTS
 from benchmarks.studies.tree_fit import unfitted_tree
 from clod_adapter.evaluate.popping import popping_budget_ratio, popping_ratio
 from clod_adapter.lod import tree
@@ -105,11 +105,7 @@ def main() -> int:
           + " | popping along budgets, smallest / median | along s_v | fit |", "|---|---|---|---|---|---|---:|"]
     for name in a.inputs:
         md += run_input(name, a.split, a.distances)
-    out = RUNS / f"budget_distances{split_suffix(a.split)}.md"
-    write_text(out, "\n".join(md) + "\n")
-    print("\n".join(md))
-    print(f"wrote {out}")
-    return 0
+    return print_summary("budget_distances" + split_suffix(a.split), md)
 
 
 if __name__ == "__main__":

@@ -13,7 +13,7 @@ Gaussians in view. No goal is enforced (a study: exit 0)::
 
     python -m benchmarks.studies.popping_views --inputs skull fern --config tier_downscale=1
 
-Written: ``runs/bench/popping_views/<tags><_val>.md``. About 3 minutes per model on skull's 7
+Written: ``runs/bench/popping_views/<tags><_val>/summary.md``. About 3 minutes per model on skull's 7
 validation views (2 threads), after the adaptations.
 """
 from __future__ import annotations
@@ -23,8 +23,9 @@ import sys
 
 import torch
 
-from benchmarks.common import RUNS, adapt_cached, load_input, parse_config, parse_inputs_args, scene_views, split_suffix
-from benchmarks.studies.compare_configs import COUNTS, write_text
+from benchmarks.common import (adapt_cached, load_input, parse_config, parse_inputs_args, print_summary, scene_views,
+                               split_suffix)
+from benchmarks.studies.compare_configs import COUNTS
 from clod_adapter.evaluate.popping import popping_budget_ratio, popping_ratio
 from clod_adapter.io.load import load_model
 from clod_adapter.lod.budget import Budget
@@ -72,12 +73,8 @@ def main() -> int:
                + " % of the Gaussians in view | popping along s_v, smallest / median | along count budgets"
                " | each view along s_v | each view along budgets |", "|---|---:|---|---|---|---|---|"]
         md += run_input(name, a.split, configs) + [""]
-    out = RUNS / "popping_views" / (("+".join(t for t in configs if t != "default") or "default") + split_suffix(a.split) + ".md")
-    out.parent.mkdir(parents=True, exist_ok=True)
-    write_text(out, "\n".join(md))
-    print("\n".join(md))
-    print(f"wrote {out}")
-    return 0
+    tags = "+".join(t for t in configs if t != "default") or "default"
+    return print_summary("popping_views/" + tags + split_suffix(a.split), md)
 
 
 if __name__ == "__main__":

@@ -22,7 +22,7 @@ No goal is enforced (a study: exit 0)::
 
     python -m benchmarks.studies.tier_cuts
 
-Written: ``runs/bench/tier_cuts_val.md``. About a minute per input after the adaptation.
+Written: ``runs/bench/tier_cuts_val/summary.md``. About a minute per input after the adaptation.
 """
 from __future__ import annotations
 
@@ -32,8 +32,7 @@ from contextlib import contextmanager
 
 import torch
 
-from benchmarks.common import RUNS, adapt_cached, load_input, parse_inputs_args, scene_views, split_suffix
-from benchmarks.studies.compare_configs import write_text
+from benchmarks.common import adapt_cached, load_input, parse_inputs_args, scene_views, split_suffix, print_summary
 from benchmarks.studies.tree_fit import unfitted_tree
 from clod_adapter.io.load import load_model
 from clod_adapter.lod import tree
@@ -117,11 +116,7 @@ def main() -> int:
           "the fit views |", "|---|---|---:|---:|---:|---:|---:|---|---:|---:|"]
     for name in a.inputs:
         md += run_input(name, a.split)
-    out = RUNS / f"tier_cuts{split_suffix(a.split)}.md"
-    write_text(out, "\n".join(md) + "\n")
-    print("\n".join(md))
-    print(f"wrote {out}")
-    return 0
+    return print_summary("tier_cuts" + split_suffix(a.split), md)
 
 
 if __name__ == "__main__":

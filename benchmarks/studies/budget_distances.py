@@ -10,7 +10,7 @@ skull and fern) the cached ``--holdout-val`` adaptation with ``clod-adapt``'s de
 (:func:`clod_adapter.train.tree_fit.finetune` with the job's settings, half of its steps on
 count-budget cuts) once per ``--distances``: ``view`` (the rule as it is) and ``reference`` (the
 count-budget cuts, in the fit and in the scoring, on each node's mean ``d'`` over the fit views, by
-:func:`clod_adapter.lod.tree.frame` replaced; the cuts at a level keep the view's distances).
+:func:`benchmarks.studies.tier_cuts.rule_with`; the cuts at a level keep the view's distances).
 Scored on the validation views: the mean PSNR at count budgets of 50 / 30 / 15 / 8 / 4 / 2 % of
 the Gaussians in view and at the levels ``s_v`` 1.5 / 2.5 / 4 / 6.4 / 10 / 16, and ``clod-eval``'s
 popping along budgets and along ``s_v`` on every view (smallest / median). No goal is enforced (a
@@ -26,12 +26,12 @@ from __future__ import annotations
 import statistics
 import sys
 import time
-from contextlib import contextmanager
 
 import torch
 
 from benchmarks.common import adapt_cached, load_input, parse_inputs_args, scene_views, split_suffix, print_summary
 from benchmarks.studies.compare_configs import COUNTS
+from benchmarks.studies.tier_cuts import rule_with
 from benchmarks.studies.tree_fit import unfitted_tree
 from clod_adapter.evaluate.popping import popping_budget_ratio, popping_ratio
 from clod_adapter.lod import tree
@@ -46,23 +46,6 @@ from clod_adapter.train.tree_fit import finetune
 LEVELS = (1.5, 2.5, 4.0, 6.4, 10.0, 16.0)
 
 
-@contextmanager
-def _budget_distances(reference: list = None):
-    """Count-budget cuts (every caller of :func:`clod_adapter.lod.tree.frame`) drawn on
-    ``reference`` (per tier [N_k] ``d'``) where given; restored on exit."""
-    frame0 = tree.frame
-
-    def frame(tiers, camera):
-        ds, frs = frame0(tiers, camera)
-        return [r.to(d.dtype) for r, d in zip(reference, ds)], frs
-
-    tree.frame = frame0 if reference is None else frame
-    try:
-        yield
-    finally:
-        tree.frame = frame0
-
-
 def run_input(name: str, split: str, modes: list) -> list[str]:
     """The markdown rows of ``name``: one per ``modes`` entry (``view`` or ``reference``)."""
     cfg = AdaptConfig()
@@ -75,7 +58,7 @@ def run_input(name: str, split: str, modes: list) -> list[str]:
     sig = lightgaussian_significance(g0, fit)
     rows = []
     for mode in modes:
-        with _budget_distances(ref if mode == "reference" else None):
+        with rule_with(distances=ref if mode == "reference" else None, python=False):
             t = time.perf_counter()
             g = finetune(built, fit, imgs, cfg.tree_steps, background=cfg.background, seed=cfg.seed,
                          budget_steps=cfg.tree_budget_steps, grow=cfg.tree_grow, free_roots=cfg.tree_free_roots)

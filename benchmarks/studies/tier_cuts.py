@@ -61,16 +61,19 @@ def _composition(g, cam, share: float) -> str:
 
 
 @contextmanager
-def _python_rule(morph: float = None, distances: list = None):
-    """The rule drawn by its Python twin, with ``lod.tree.MORPH`` set to ``morph`` and every
-    node's ``d'`` replaced by ``distances`` (per tier [N_k]) where given; restored on exit."""
+def rule_with(morph: float = None, distances: list = None, python: bool = True):
+    """The rule with ``lod.tree.MORPH`` set to ``morph`` and every node's ``d'`` in the callers of
+    :func:`clod_adapter.lod.tree.frame` (the count-budget cuts; the cuts at a level keep the view's
+    distances) replaced by ``distances`` (per tier [N_k]) where given, drawn by its Python twin
+    when ``python`` (else where the C++ kernels run); restored on exit. For studies only."""
     native, morph0, frame0 = tree._native, tree.MORPH, tree.frame
 
     def frame(tiers, camera):
         ds, frs = frame0(tiers, camera)
         return [r.to(d.dtype) for r, d in zip(distances, ds)], frs
 
-    tree._native = lambda tiers: False
+    if python:
+        tree._native = lambda tiers: False
     tree.MORPH = morph0 if morph is None else morph
     tree.frame = frame0 if distances is None else frame
     try:
@@ -96,9 +99,9 @@ def run_input(name: str, split: str) -> list[str]:
             b = Budget(in_view=share)
             cells = [_mean_psnr(t_unfit[k], cams, gts), _mean_psnr(unfitted, cams, gts, b),
                      _mean_psnr(t_fit[k], cams, gts), _mean_psnr(fitted, cams, gts, b)]
-            with _python_rule(morph=tree.HAND_OVER):
+            with rule_with(morph=tree.HAND_OVER):
                 at_f = _mean_psnr(fitted, cams, gts, b)
-            with _python_rule(distances=ref):
+            with rule_with(distances=ref):
                 at_ref = _mean_psnr(fitted, cams, gts, b)
             row = (f"| {name} | {k} ({len(t_fit[k]):,} nodes, {100 * share:.1f} % in view) | "
                    + " | ".join(f"{x:.2f}" for x in cells) + f" | {cells[0] - cells[3]:+.2f} | "

@@ -187,12 +187,12 @@ class Gaussians:
 
     def with_sigma_d(self, sigma_d: Optional[Tensor]) -> "Gaussians":
         """The model with ``sigma_d`` replaced; ``None`` also drops the level gains, settings,
-        tiers and a merge tree's node data (``extra["parent"]``, ``extra["exit"]``): the plain 3DGS
+        tiers and a merge tree's node data (``extra["parent"]``, ``extra["exit"]``, ``extra["d_ref"]``): the plain 3DGS
         model."""
         if sigma_d is None:
             return replace(self, sigma_d=None, opacity_logit_gain=None, log_scale_gain=None,
                            sh0_gain=None, lod=None, parents=None,
-                           extra={k: v for k, v in self.extra.items() if k not in ("parent", "exit")})
+                           extra={k: v for k, v in self.extra.items() if k not in ("parent", "exit", "d_ref")})
         return replace(self, sigma_d=sigma_d)
 
 

@@ -20,7 +20,7 @@ M = 1.6  # a hand-over or an exit lasts over the last min(M, U / max(E, 1)) of a
 
 def read_tree(path) -> list[dict]:
     """The tiers of a ``tree=True`` file, finest first, each a dict of arrays (``parent`` [N] int
-    on all but the last, ``exit`` [N] on the last; docs/lod_rule.md "The file")."""
+    on all but the last, ``exit`` and ``d_ref`` [N] on all; docs/lod_rule.md "The file")."""
     ply = PlyData.read(str(path))
     assert any(c.split()[:1] == ["clod_lod"] and "tree=True" in c.split() for c in ply.comments), \
         "not a tree file: see reference_lod_plain.py"
@@ -39,8 +39,8 @@ def read_tree(path) -> list[dict]:
                       "log_scales": col("scale_0", "scale_1", "scale_2"),
                       "opacity": 1 / (1 + np.exp(-col("opacity")[:, 0])),
                       "sigma_d": col("sigma_d")[:, 0],
-                      **{p: np.asarray(v[p], np.float64 if p == "exit" else np.int64)
-                         for p in ("parent", "exit") if p in v.dtype.names}})
+                      **{p: np.asarray(v[p], np.int64 if p == "parent" else np.float64)
+                         for p in ("parent", "exit", "d_ref") if p in v.dtype.names}})
         k += 1
 
 
@@ -52,12 +52,13 @@ def frustum(means, viewmat, K, width, height):
     return (z > 0.01) & (ax >= 0) & (ax < width * z) & (ay >= 0) & (ay < height * z)
 
 
-def terms(tiers, viewmat, K, width, height):
-    """Steps 1-3 for one camera: per tier the entry ``E``, the end ``U`` and whether a node fades."""
+def terms(tiers, viewmat, K, width, height, ref=False):
+    """Steps 1-3 for one camera (with ``ref``, step 6's: ``d'`` the nodes' ``d_ref``): per tier the
+    entry ``E``, the end ``U`` and whether a node fades."""
     c = -viewmat[:3, :3].T @ viewmat[:3, 3]
-    d = [np.linalg.norm(t["means"] - c, axis=1) for t in tiers]
+    d = [t["d_ref"] if ref else np.linalg.norm(t["means"] - c, axis=1) for t in tiers]
     frT = frustum(tiers[-1]["means"], viewmat, K, width, height)
-    D = max((d[-1][frT] if frT.any() else d[-1]).max(initial=0.0), 1e-12)
+    D = 1.0 if ref else max((d[-1][frT] if frT.any() else d[-1]).max(initial=0.0), 1e-12)
     d = [np.maximum(x / D, 1e-12) for x in d]
     T = len(tiers) - 1
     E = [np.zeros(len(d[0]))] + [None] * T
@@ -80,7 +81,7 @@ def terms(tiers, viewmat, K, width, height):
 
 
 def budget_s_v(tiers, E, U, viewmat, K, width, height, k):
-    """Step 6: the smallest s_v >= 1 from which no cut holds more than ``k`` centres in frustums."""
+    """Step 6: the smallest s_v >= 1 from which no cut (``terms(..., ref=True)``) holds over ``k`` centres in view."""
     frs = [frustum(t["means"], viewmat, K, width, height) for t in tiers]
     lo = np.maximum(np.concatenate([n[f] for n, f in zip(E, frs)]), 1.0)
     hi = np.concatenate([u[f] for u, f in zip(U, frs)])
@@ -104,7 +105,7 @@ def draw(tiers, viewmat, K, width, height, s_v=None, budget=None) -> dict:
     """What one camera draws (steps 1-6), tier 0's rows first: ``ids`` (per tier), ``s_v``,
     ``means``, ``quats``, ``log_scales``, ``opacities``, ``sh`` [k, K, 3]."""
     viewmat, K = np.asarray(viewmat, np.float64), np.asarray(K, np.float64)
-    ns, ups, fades = terms(tiers, viewmat, K, width, height)
+    ns, ups, fades = terms(tiers, viewmat, K, width, height, ref=budget is not None)
     s = budget_s_v(tiers, ns, ups, viewmat, K, width, height, budget) if budget is not None else max(float(s_v), 1.0)
     out = {"ids": [], "s_v": s, "means": [], "quats": [], "log_scales": [], "opacities": [], "sh": []}
     for k, (t, n, u, f) in enumerate(zip(tiers, ns, ups, fades)):

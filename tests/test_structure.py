@@ -213,7 +213,7 @@ MAX_PARAMETERS = 12
 #: grow past
 OVER_PARAMETERS = {
     "clod_adapter.render.dispatch:rasterization": 17, "clod_adapter.render.cpu:rasterization_cpu": 16,
-    "clod_adapter.render.gsplat_backend:rasterization_gsplat": 16, "clod_adapter.lod.hook:clod_rasterization": 35,
+    "clod_adapter.render.gsplat_backend:rasterization_gsplat": 16, "clod_adapter.lod.hook:clod_rasterization": 34,
 }
 
 

@@ -154,6 +154,34 @@ def test_tree_file_round_trips_and_bad_parents_are_refused(model, tmp_path):
     bad = replace(g, extra={"parent": torch.full((len(g),), 10_000, dtype=torch.int32)})
     with pytest.raises(PlyFormatError, match="parent"):
         read_ply(write_ply(tmp_path / "bad.ply", bad))
+    for a, b in zip(tree.tiers_of(g), tree.tiers_of(back)):
+        assert torch.equal(a.extra["d_ref"], b.extra["d_ref"])  # a budget's distances, as written
+    no_ref = replace(g, extra={k: v for k, v in g.extra.items() if k != "d_ref"})
+    with pytest.raises(PlyFormatError, match="d_ref"):
+        read_ply(write_ply(tmp_path / "no_ref.ply", no_ref))
+
+
+def test_a_budget_cuts_every_node_at_its_reference_distance(model):
+    """build stores each node's mean d' over its cameras (``d_ref``); a count budget's cut is
+    steps 2-5 on those distances with the view's frustum, and not the cut the view's own
+    distances would give."""
+    g, cams = model
+    ts = tree.tiers_of(g)
+    for t, d in zip(ts, tree.reference_distances(ts, make_cameras(2, 3))):  # the fixture's build cameras
+        assert torch.allclose(t.extra["d_ref"].double(), d, rtol=1e-6)
+    differs = 0
+    for cam in cams:
+        ds, frs = tree.frame(ts, cam)
+        refs = [t.extra["d_ref"] for t in ts]
+        for k in (3, 17, 60, 200):
+            c = tree.budget_cut(ts, cam, k)
+            tt = tree.terms(ts, cam, at=(refs, frs))
+            want = tree.cut(ts, cam, tree.budget_s_v(tt, k), tt=tt)
+            assert c.s_v == pytest.approx(want.s_v) and all(torch.equal(x, y) for x, y in zip(c.ids, want.ids)), k
+            tv = tree.terms(ts, cam, at=(ds, frs))
+            view = tree.cut(ts, cam, tree.budget_s_v(tv, k), tt=tv)
+            differs += not all(torch.equal(x, y) for x, y in zip(c.ids, view.ids))
+    assert differs > 0
 
 
 def test_every_tiers_settings_round_trip_through_the_file(tmp_path):

@@ -114,7 +114,7 @@ console.log(JSON.stringify(JSON.parse(cases).map((c) => {
         cam = cams[c["cam"]]
         args = (cam.viewmat.double().numpy(), cam.K.double().numpy(), cam.width, cam.height)
         r = ref.draw(rt, *args, s_v=c.get("s_v"), budget=c.get("budget"))
-        E, U, fade = ref.terms(rt, *args)
+        E, U, fade = ref.terms(rt, *args, ref="budget" in c)  # a budget's terms: every node at its d_ref
         kind, w = np.array(js["kind"]), np.array(js["w"])
         assert js["s_v"] == r["s_v"], c
         for k, ids in enumerate(r["ids"]):

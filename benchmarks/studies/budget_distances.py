@@ -1,16 +1,17 @@
-"""Count budgets cut on each node's own distance in the view, or on its mean distance over the
-training views: refitted and scored.
+"""Count budgets cut on each node's mean distance over the training views (the rule), or on its
+own distance in the view: refitted and scored.
 
-``tier_cuts.py`` finds skull's count-budget cuts 0.7-1.1 dB better, with no refit, when every
-node's ``d'`` is its mean over the fit views (:func:`clod_adapter.lod.tree.reference_distances`)
-instead of its distance in the view. Here the tree is fitted with it. For each input (default:
+Every node's ``d'`` in a budget's cut is its mean over the fit views
+(:func:`clod_adapter.lod.tree.reference_distances`, stored as ``d_ref`` by the tree's build), not
+its distance in the view; here the tree is fitted and scored both ways. For each input (default:
 skull and fern) the cached ``--holdout-val`` adaptation with ``clod-adapt``'s defaults
 (``benchmarks.common.adapt_cached``) has its tree built again as the job built it
 (``benchmarks.studies.tree_fit.unfitted_tree``) and fitted as the job fits it
 (:func:`clod_adapter.train.tree_fit.finetune` with the job's settings, half of its steps on
-count-budget cuts) once per ``--distances``: ``view`` (the rule as it is) and ``reference`` (the
-count-budget cuts, in the fit and in the scoring, on each node's mean ``d'`` over the fit views, by
-:func:`benchmarks.studies.tier_cuts.rule_with`; the cuts at a level keep the view's distances).
+count-budget cuts) once per ``--distances``: ``reference`` (the rule as it is: the count-budget
+cuts, in the fit and in the scoring, on each node's stored mean ``d'`` over the fit views) and
+``view`` (on each node's distance in the view, by :func:`benchmarks.studies.tier_cuts.rule_with`;
+the cuts at a level keep the view's distances either way).
 Scored on the validation views: the mean PSNR at count budgets of 50 / 30 / 15 / 8 / 4 / 2 % of
 the Gaussians in view and at the levels ``s_v`` 1.5 / 2.5 / 4 / 6.4 / 10 / 16, and ``clod-eval``'s
 popping along budgets and along ``s_v`` on every view (smallest / median). No goal is enforced (a
@@ -34,7 +35,6 @@ from benchmarks.studies.compare_configs import COUNTS
 from benchmarks.studies.tier_cuts import rule_with
 from benchmarks.studies.tree_fit import unfitted_tree
 from clod_adapter.evaluate.popping import popping_budget_ratio, popping_ratio
-from clod_adapter.lod import tree
 from clod_adapter.lod.budget import Budget
 from clod_adapter.lod.draw import render_lod
 from clod_adapter.lod.rankings import lightgaussian_significance
@@ -54,11 +54,10 @@ def run_input(name: str, split: str, modes: list) -> list[str]:
     fit = list(fit)
     imgs = [scene.load_image(c) for c in fit]
     built = unfitted_tree(adapt_cached(name, cfg, "default", split=split), fit, scene, cfg)[0]
-    ref = tree.reference_distances(tree.tiers_of(built), fit)
     sig = lightgaussian_significance(g0, fit)
     rows = []
     for mode in modes:
-        with rule_with(distances=ref if mode == "reference" else None, python=False):
+        with rule_with(distances="view" if mode == "view" else None, python=False):
             t = time.perf_counter()
             g = finetune(built, fit, imgs, cfg.tree_steps, background=cfg.background, seed=cfg.seed,
                          budget_steps=cfg.tree_budget_steps, grow=cfg.tree_grow, free_roots=cfg.tree_free_roots)

@@ -15,8 +15,8 @@ trained on the fit views only) is scored on the validation views, per merged tie
   changing (``w < 1`` in docs/lod_rule.md step 5: turning into their parent, shrinking or fading);
 * the job's cut at that count drawn two other ways, by the rule's Python twin with a module
   constant set (no refit): every change over the floor ``F`` instead of ``M``
-  (``lod.tree.MORPH = F``), and every node's ``d'`` its mean over the fit views
-  (:func:`clod_adapter.lod.tree.reference_distances`: one cut for every view).
+  (``lod.tree.MORPH = F``), and every node's ``d'`` its distance in the view instead of its stored
+  reference distance (``lod.tree.budget_frame`` as :func:`clod_adapter.lod.tree.frame`).
 
 No goal is enforced (a study: exit 0)::
 
@@ -50,7 +50,7 @@ def _composition(g, cam, share: float) -> str:
     """What the cut at ``share`` of the Gaussians in view draws from ``cam``: per tier, the drawn
     nodes in the frustum and how many of them are changing."""
     ts = tree.tiers_of(g)
-    tt = tree.terms(ts, cam)
+    tt = tree.terms(ts, cam, at=tree.budget_frame(ts, cam))
     c = tree.cut(ts, cam, tree.budget_s_v(tt, share * int(tt.frustum[0].sum())), tt=tt)
     parts = []
     for k, (ids, w) in enumerate(zip(c.ids, c.t)):
@@ -61,25 +61,26 @@ def _composition(g, cam, share: float) -> str:
 
 
 @contextmanager
-def rule_with(morph: float = None, distances: list = None, python: bool = True):
-    """The rule with ``lod.tree.MORPH`` set to ``morph`` and every node's ``d'`` in the callers of
-    :func:`clod_adapter.lod.tree.frame` (the count-budget cuts; the cuts at a level keep the view's
-    distances) replaced by ``distances`` (per tier [N_k]) where given, drawn by its Python twin
-    when ``python`` (else where the C++ kernels run); restored on exit. For studies only."""
-    native, morph0, frame0 = tree._native, tree.MORPH, tree.frame
+def rule_with(morph: float = None, distances=None, python: bool = True):
+    """The rule with ``lod.tree.MORPH`` set to ``morph`` and every node's ``d'`` in the budgets'
+    cuts (:func:`clod_adapter.lod.tree.budget_frame`; the cuts at a level keep the view's
+    distances) replaced where given: ``"view"``, the view's own (:func:`clod_adapter.lod.tree.frame`);
+    a list, those (per tier [N_k]). Drawn by its Python twin when ``python`` (else where the C++
+    kernels run); restored on exit. For studies only."""
+    native, morph0, frame0 = tree._native, tree.MORPH, tree.budget_frame
 
     def frame(tiers, camera):
-        ds, frs = frame0(tiers, camera)
-        return [r.to(d.dtype) for r, d in zip(distances, ds)], frs
+        ds, frs = tree.frame(tiers, camera)
+        return (ds if isinstance(distances, str) else [r.to(d.dtype) for r, d in zip(distances, ds)]), frs
 
     if python:
         tree._native = lambda tiers: False
     tree.MORPH = morph0 if morph is None else morph
-    tree.frame = frame0 if distances is None else frame
+    tree.budget_frame = frame0 if distances is None else frame
     try:
         yield
     finally:
-        tree._native, tree.MORPH, tree.frame = native, morph0, frame0
+        tree._native, tree.MORPH, tree.budget_frame = native, morph0, frame0
 
 
 def run_input(name: str, split: str) -> list[str]:
@@ -93,7 +94,6 @@ def run_input(name: str, split: str) -> list[str]:
     with torch.no_grad():
         t_fit, t_unfit = tree.tiers_of(fitted), tree.tiers_of(unfitted)
         n_in = [int(tree.in_frustum(t_fit[0], c).sum()) for c in cams]
-        ref = tree.reference_distances(t_fit, list(fit))
         for k in range(1, len(t_fit)):
             share = statistics.mean(int(tree.in_frustum(t_fit[k], c).sum()) / n for c, n in zip(cams, n_in))
             b = Budget(in_view=share)
@@ -101,11 +101,11 @@ def run_input(name: str, split: str) -> list[str]:
                      _mean_psnr(t_fit[k], cams, gts), _mean_psnr(fitted, cams, gts, b)]
             with rule_with(morph=tree.HAND_OVER):
                 at_f = _mean_psnr(fitted, cams, gts, b)
-            with rule_with(distances=ref):
-                at_ref = _mean_psnr(fitted, cams, gts, b)
+            with rule_with(distances="view"):
+                at_view = _mean_psnr(fitted, cams, gts, b)
             row = (f"| {name} | {k} ({len(t_fit[k]):,} nodes, {100 * share:.1f} % in view) | "
                    + " | ".join(f"{x:.2f}" for x in cells) + f" | {cells[0] - cells[3]:+.2f} | "
-                   + _composition(fitted, cams[0], share) + f" | {at_f:.2f} | {at_ref:.2f} |")
+                   + _composition(fitted, cams[0], share) + f" | {at_f:.2f} | {at_view:.2f} |")
             print(row, flush=True)
             rows.append(row)
     return rows
@@ -116,7 +116,7 @@ def main() -> int:
     md = ["| input | tier | whole tier, unfitted (dB) | cut at its count, unfitted | whole tier, fitted | "
           "cut at its count, fitted (the job's) | whole unfitted tier over the job's cut | the job's cut in the "
           "first view: nodes in view per tier (changing) | the job's cut, changes over F | the job's cut, d' of "
-          "the fit views |", "|---|---|---:|---:|---:|---:|---:|---|---:|---:|"]
+          "the view |", "|---|---|---:|---:|---:|---:|---:|---|---:|---:|"]
     for name in a.inputs:
         md += run_input(name, a.split)
     return print_summary("tier_cuts" + split_suffix(a.split), md)

@@ -234,8 +234,8 @@ def lod_set_levels(gaussians: Gaussians, cameras: Sequence, *,
     (:func:`clod_adapter.lod.tree.is_tree`), ``tree_levels``:
 
     * ``"cut"`` (default): tier 0 whole, then per merged tier the tree's view-independent cut with
-      as many nodes: every node at its reference ``d'`` (:func:`clod_adapter.lod.tree.reference_distances`
-      over ``cameras``), the level :func:`clod_adapter.lod.tree.budget_s_v` solves for that
+      as many nodes: every node at its reference ``d'`` (``extra["d_ref"]``, as a count budget
+      draws it: :func:`clod_adapter.lod.tree.budget_frame`), the level :func:`clod_adapter.lod.tree.budget_s_v` solves for that
       count, each drawn node at its own attributes (``s_v`` that level). An engine that streams
       the set picks a level per chunk by distance itself; each level is the tree's own stand-in
       for the scene at its usual distances (``benchmarks/studies/lod_set.py``, validation views:
@@ -257,7 +257,7 @@ def lod_set_levels(gaussians: Gaussians, cameras: Sequence, *,
         ts = tier_chain(gaussians)
         if tree_levels == "tiers":
             return [(t.with_sigma_d(None), None) for t in ts]
-        ds = [d.to(t.means.dtype) for d, t in zip(tr.reference_distances(ts, cameras), ts)]
+        ds = [t.extra[tr.REFERENCE_KEY].to(t.means.dtype) for t in ts]
         tt = tr.terms(ts, None, at=(ds, [torch.ones(len(t), dtype=torch.bool, device=t.means.device) for t in ts]))
         out = [(ts[0].with_sigma_d(None), 1.0)]
         for t in ts[1:]:

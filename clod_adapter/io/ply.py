@@ -317,7 +317,7 @@ def read_ply(path: PathLike, *, allow_nonfinite: bool = False, unlinked_tiers: b
 def _check_tree(path: Path, tiers: list) -> None:
     """A ``tree=True`` file's tree (docs/lod_rule.md "The file"): every element but the last has an
     integer ``parent`` property naming a row of the next element, every row of the next element is
-    some row's parent, and every element has a finite float ``exit``.
+    some row's parent, and every element has finite float ``exit`` and ``d_ref`` properties.
 
     Raises:
         PlyFormatError: the file says ``tree=True`` and one of these does not hold.
@@ -336,10 +336,11 @@ def _check_tree(path: Path, tiers: list) -> None:
         if bool((torch.bincount(p, minlength=len(above)) == 0).any()):
             raise PlyFormatError(path, f"element '{tier_element(k + 1)}': a row that is no row's parent")
     for k, tier in enumerate(tiers):
-        x = tier.extra.get("exit")
-        if x is None or not x.dtype.is_floating_point or not bool(torch.isfinite(x).all()):
-            raise PlyFormatError(path, f"'tree=True' but element '{'vertex' if k == 0 else tier_element(k)}' has no "
-                                       f"finite float 'exit' property")
+        for key in ("exit", "d_ref"):
+            x = tier.extra.get(key)
+            if x is None or not x.dtype.is_floating_point or not bool(torch.isfinite(x).all()):
+                raise PlyFormatError(path, f"'tree=True' but element '{'vertex' if k == 0 else tier_element(k)}' has "
+                                           f"no finite float '{key}' property")
 
 
 def _tier_comments(comments, path: Path) -> dict:

@@ -1,7 +1,8 @@
 """The cut a merge-tree model draws for one camera at a level or within a budget
 (:func:`tree_select`, :func:`tree_cut`): a level is :func:`clod_adapter.lod.tree.cut`; a count,
 cost or time budget is the cut at the level :func:`clod_adapter.lod.tree.budget_s_v` solves for
-it, so every budget is a cut of the same tree, coarser for a smaller budget."""
+it, every node at its reference distance (:func:`clod_adapter.lod.tree.budget_frame`), so every
+budget is a cut of the same tree, coarser for a smaller budget."""
 from __future__ import annotations
 
 from typing import Optional, Sequence
@@ -75,7 +76,8 @@ def tree_select(gaussians: Gaussians, camera, s_v: Optional[float] = None, *, bu
     pixels of :func:`tree_node_costs` (a float in (0, 1]: that share of tier 0's whole cost);
     ``ms``: predicted ms of its ``time_model`` (default
     ``clod_adapter.lod.cost.DEFAULT_FRAME_TIME_MODEL``). Every budget is a cut of the same tree,
-    coarser for a smaller budget (:func:`clod_adapter.lod.tree.budget_s_v`); a tree's floor is
+    every node at its reference distance (:func:`clod_adapter.lod.tree.budget_frame`), coarser
+    for a smaller budget (:func:`clod_adapter.lod.tree.budget_s_v`); a tree's floor is
     ``s_v = 1`` (the budget's ``min_s_v`` is not read).
 
     Raises:
@@ -105,13 +107,13 @@ def tree_cut(gaussians: Gaussians, camera, s_v: Optional[float] = None, *, budge
         n = len(tiers[0])
         if (budget.in_view >= 1.0) if budget.kind == "in_view" else budget.of(n) >= n:
             return whole()  # holds every tier-0 node whatever the view: no per-node pass
-        at = tree.frame(tiers, camera)
+        at = tree.budget_frame(tiers, camera)
         n0 = int(at[1][0].sum())
         k = budget.of(n, n0)
         return whole() if k >= n0 else tree.budget_cut(tiers, camera, k, hand_over=hand_over, at=at)
     from .cost import DEFAULT_FRAME_TIME_MODEL
 
-    tt = tree.terms(tiers, camera, hand_over=hand_over)
+    tt = tree.terms(tiers, camera, hand_over=hand_over, at=tree.budget_frame(tiers, camera))
     costs = tree_node_costs(tiers, camera, tt)
     if budget.cost is not None:
         limit = float(budget.cost) * float(costs[0].sum()) if float(budget.cost) <= 1.0 else float(budget.cost)

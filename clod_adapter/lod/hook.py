@@ -10,7 +10,7 @@ otherwise). The selection is the one :func:`clod_adapter.lod.draw.render_lod` ma
 give the same image.
 
 A model with merged tiers linked into a merge tree (docs/method.md "The merge tree") passes them
-too (``parents=``, each tier's own ``parents`` nested in it, and ``parent=``/``lod_exit=``), and an
+too (``parents=``, each tier's own ``parents`` nested in it, and ``lod_nodes=``), and an
 ``s_v`` or a budget draws one cut of the tree as ``render_lod`` draws it
 (:func:`clod_adapter.lod.cut.tree_select`). :func:`clod_kwargs` gives every LoD keyword of an
 adapted model.
@@ -45,8 +45,8 @@ def clod_kwargs(model) -> Dict[str, Any]:
     ``sigma_d`` [N], ``lod_settings``, ``opacity_logits`` [N], the level gains (``opacity_logit_gain`` [N],
     ``log_scale_gain`` [N], ``sh0_gain`` [N, 1, 3]; None where the model has none) and, for a
     model with merged tiers, ``parents`` (a dict of the first parent tier's :data:`PARENT_KEYS`
-    tensors, its gains, its own ``lod_settings`` and ``parent``/``exit``, and the next tier nested
-    in it as its own ``parents``) and, for a merge tree, ``parent`` and ``lod_exit``. Add ``s_v=``
+    tensors, its gains, its own ``lod_settings`` and ``parent``/``exit``/``d_ref``, and the next tier nested
+    in it as its own ``parents``) and, for a merge tree, ``lod_nodes``. Add ``s_v=``
     or ``budget=``.
 
     Raises:
@@ -59,8 +59,8 @@ def clod_kwargs(model) -> Dict[str, Any]:
     p = model.parents
     if p is not None:
         kw["parents"] = _parent_dict(p)
-    if "parent" in model.extra:  # a merge tree: the model's parents in its first tier, its exits
-        kw["parent"], kw["lod_exit"] = model.extra["parent"], model.extra.get("exit")
+    if "parent" in model.extra:  # a merge tree: its own rows' node data
+        kw["lod_nodes"] = {k: model.extra[k] for k in ("parent", "exit", "d_ref") if k in model.extra}
     return kw
 
 
@@ -71,13 +71,13 @@ def _parent_dict(p) -> Dict[str, Any]:
          "opacity_logits": p.opacity_logits, "lod_settings": p.lod}
     if p.parents is not None:
         d["parents"] = _parent_dict(p.parents)
-    for key in ("parent", "exit"):  # a merge tree's parent indices, its last tier's exits
+    for key in ("parent", "exit", "d_ref"):  # a merge tree's node data
         if key in p.extra:
             d[key] = p.extra[key]
     return d
 
 
-def _tree_tier(means, quats, scales, logits, colors, sigma_d, settings, parent, above, exit_=None):
+def _tree_tier(means, quats, scales, logits, colors, sigma_d, settings, parent, above, exit_=None, d_ref=None):
     """One tier of a merge tree as :class:`clod_adapter.gaussians.Gaussians` (``colors`` [N, K, 3]
     SH, or [N, D] stored as a degree-0 block and drawn as given), its parents ``above``."""
     from dataclasses import replace as _replace
@@ -88,7 +88,7 @@ def _tree_tier(means, quats, scales, logits, colors, sigma_d, settings, parent, 
     g = Gaussians(means=means, quats=quats, log_scales=torch.log(scales), opacity_logits=logits,
                   sh0=col[:, :1], shN=col[:, 1:],
                   sigma_d=sigma_d, lod=settings,
-                  extra={k: v for k, v in (("parent", parent), ("exit", exit_)) if v is not None})
+                  extra={k: v for k, v in (("parent", parent), ("exit", exit_), ("d_ref", d_ref)) if v is not None})
     return _replace(g, parents=above)
 
 
@@ -105,10 +105,10 @@ def _tree_model(means, quats, scales, logits, colors, sigma_d, settings, node, p
         col = d["colors"][per_cam] if per_cam is not None else d["colors"]
         above = build(d["parents"], st) if (d.get("parents") is not None and st.tier_s_v > 0) else None
         return _tree_tier(d["means"], d["quats"], d["scales"], _logits(d["opacities"], d.get("opacity_logits")),
-                          col, d["sigma_d"], st, d.get("parent"), above, d.get("exit"))
+                          col, d["sigma_d"], st, d.get("parent"), above, d.get("exit"), d.get("d_ref"))
 
     col = colors[per_cam] if per_cam is not None else colors
-    return _tree_tier(means, quats, scales, logits, col, sigma_d, settings, node[0], build(parents, settings), node[1])
+    return _tree_tier(means, quats, scales, logits, col, sigma_d, settings, node[0], build(parents, settings), *node[1:])
 
 
 def _logits(opacities: Tensor, logits: Optional[Tensor] = None) -> Tensor:
@@ -197,8 +197,7 @@ def clod_rasterization(
     log_scale_gain: Optional[Tensor] = None,
     sh0_gain: Optional[Tensor] = None,
     parents: Optional[Dict[str, Any]] = None,
-    parent: Optional[Tensor] = None,
-    lod_exit: Optional[Tensor] = None,
+    lod_nodes: Optional[Dict[str, Tensor]] = None,
     opacity_logits: Optional[Tensor] = None,
     tau: Optional[float] = None,
     eps: Optional[float] = None,
@@ -229,12 +228,14 @@ def clod_rasterization(
         parents: a merge tree's first parent tier (:func:`clod_kwargs`): ``means`` [M, 3],
             ``quats`` [M, 4], ``scales`` [M, 3], ``opacities`` [M] (activated), ``colors`` (as
             ``colors``, M rows), ``sigma_d`` [M], optional gains, ``opacity_logits`` and
-            ``lod_settings`` (the tier's own), its ``parent``/``exit`` and the next tier as its
+            ``lod_settings`` (the tier's own), its ``parent``/``exit``/``d_ref`` and the next tier as its
             own ``parents``. Drawn only with ``lod_settings.tree`` (below); otherwise not read.
-        parent: [N] int, a merge tree's parent of each Gaussian in ``parents`` (each tier's own
-            under ``"parent"`` in its dict; :func:`clod_kwargs`): with ``lod_settings.tree`` an
-            ``s_v`` or a budget draws one cut of the tree (:func:`clod_adapter.lod.cut.tree_select`).
-        lod_exit: [N] a merge tree's exit constants (``"exit"`` in each tier's dict; :func:`clod_kwargs`).
+        lod_nodes: a merge tree's node data of the N Gaussians, as each tier's dict in ``parents``
+            holds its own (:func:`clod_kwargs`; docs/lod_rule.md "The file"): ``"parent"`` [N] int,
+            each one's parent in ``parents``; ``"exit"`` [N] float, the exit constants;
+            ``"d_ref"`` [N] float, the reference distances a budget's cut uses (needed for a
+            budget). With ``lod_settings.tree`` an ``s_v`` or a budget draws one cut of the tree
+            (:func:`clod_adapter.lod.cut.tree_select`).
         opacity_logits: [N] the raw opacities ``opacities`` came from: the rule works on logits
             (the gains shift them), and a float32 opacity near 1 keeps few digits of ``1 - o``
             (exactly 1 above a logit of ~16.6), so ``log(o / (1 - o))`` returns logits above ~14
@@ -279,10 +280,12 @@ def clod_rasterization(
     gains = {"opacity_logit_gain": opacity_logit_gain, "log_scale_gain": log_scale_gain, "sh0_gain": sh0_gain}
     logits = _logits(opacities, opacity_logits)
     if parents is not None and lod_settings is not None and lod_settings.tree and lod_settings.tier_s_v > 0:
-        if parent is None or lod_exit is None:
-            raise ValueError("clod_rasterization: lod_settings.tree needs parent= and lod_exit= (clod_kwargs gives them)")
+        nodes = lod_nodes or {}
+        if "parent" not in nodes or "exit" not in nodes:
+            raise ValueError("clod_rasterization: lod_settings.tree needs lod_nodes= with 'parent' and 'exit' "
+                             "(clod_kwargs gives them)")
         return _tree_frames(lambda c: _tree_model(means, quats, scales, logits, colors, sigma_d, lod_settings,
-                                                  (parent, lod_exit), parents, c),
+                                                  (nodes.get("parent"), nodes.get("exit"), nodes.get("d_ref")), parents, c),
                             per_cam_colors, colors.ndim == 3 and not per_cam_colors, viewmats, Ks, w, h, s_v, budget,
                             backgrounds, sh_degree, backend)
     if budget is not None and not budget.counts:

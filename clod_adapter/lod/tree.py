@@ -44,8 +44,10 @@ and every node leaves where its tier's own level of detail (its trained Eq. 2
 entry (:data:`EXIT_TOWARD_PARENT`); ``clod_adapter.train.tree_fit`` then fits the merged
 tiers on the cuts. Between hand-overs nothing is dimmed or grown: every
 drawn node is a Gaussian of one tier as trained; ``s_v = 1`` is the model at full detail. A
-budget draws the cut at the smallest ``s_v >= 1`` from which no cut holds more
-(:func:`budget_s_v`), so a larger budget never draws a coarser cut.
+budget draws, with every node's ``d'`` its reference distance (its mean over the training views,
+``extra["d_ref"]``: one cut of the tree per share, whatever the view's distances; :func:`budget_frame`),
+the cut at the smallest ``s_v >= 1`` from which no cut holds more (:func:`budget_s_v`), so a larger
+budget never draws a coarser cut.
 """
 from __future__ import annotations
 
@@ -60,7 +62,7 @@ from . import rule as lod
 from .budget import critical_s_v
 from ..gaussians import GAIN_NAMES, Gaussians
 
-__all__ = ["HAND_OVER", "MORPH", "PARENT_KEY", "is_tree", "tiers_of", "linked", "own_model", "tier_scales", "assign_parents", "build", "cut", "walk",
+__all__ = ["HAND_OVER", "MORPH", "PARENT_KEY", "EXIT_KEY", "REFERENCE_KEY", "NODE_KEYS", "budget_frame", "is_tree", "tiers_of", "linked", "own_model", "tier_scales", "assign_parents", "build", "cut", "walk",
            "budget_s_v", "budget_cut", "TreeCut", "TreeTerms", "terms", "cut_attributes", "leads", "in_frustum"]
 
 #: ``F``: a node is drawn over at least this factor of ``s_v`` (and a hand-over or an exit lasts at
@@ -74,6 +76,11 @@ MORPH = 1.6
 PARENT_KEY = "parent"
 #: the ``Gaussians.extra`` key (and .ply property) of every node's exit constant
 EXIT_KEY = "exit"
+#: the ``Gaussians.extra`` key (and .ply property) of every node's reference distance: its mean
+#: ``d'`` over the training views (:func:`reference_distances`), the ``d'`` of a budget's cut
+REFERENCE_KEY = "d_ref"
+#: the node data of a merge tree (``Gaussians.extra`` keys, .ply properties)
+NODE_KEYS = (PARENT_KEY, EXIT_KEY, REFERENCE_KEY)
 #: a shrinking sibling's scale factor ``w`` is floored here (its opacity reaches 0 with ``w``)
 SHRINK_FLOOR = 1e-4
 #: ``R``: a tier's hand-overs spread over this factor of ``s_v`` by importance (:func:`build`)
@@ -120,7 +127,7 @@ def own_model(gaussians: Gaussians) -> Gaussians:
     if not is_tree(gaussians):
         return gaussians
     return replace(gaussians, parents=None, lod=replace(gaussians.lod, tree=False),
-                   extra={k: v for k, v in gaussians.extra.items() if k not in (PARENT_KEY, EXIT_KEY)})
+                   extra={k: v for k, v in gaussians.extra.items() if k not in NODE_KEYS})
 
 
 def tier_scales(tiers: Sequence[Gaussians]) -> list[float]:
@@ -261,6 +268,16 @@ def reference_distances(tiers: Sequence[Gaussians], cameras) -> list[Tensor]:
     return [torch.where(c > 0, a / c.clamp_min(1), b / n) for a, b, c in zip(s_in, s_all, c_in)]
 
 
+def budget_frame(tiers: Sequence[Gaussians], camera) -> tuple[list, list]:
+    """Step 6's terms for ``camera``: per tier ``(d' [N_k], frustum [N_k] bool)`` as :func:`frame`
+    gives them, but every node's ``d'`` its stored reference distance (``extra["d_ref"]``, in the
+    centres' dtype), so a budget draws one cut of the tree for every view at that share, only the
+    frustum the view's. Raises KeyError where a tier lacks ``extra["d_ref"]``."""
+    refs = [t.extra[REFERENCE_KEY].detach() for t in tiers]
+    frs = frame(tiers, camera)[1] if _native(tiers) else [in_frustum(t, camera) for t in tiers]
+    return [r.to(t.means.dtype) for r, t in zip(refs, tiers)], frs
+
+
 def _group_rank(child_level: Tensor, parent: Tensor, n_parents: int) -> Tensor:
     """[n_parents] float64 in (0, 1): each parent's rank quantile by the largest ``child_level``
     among its children (ties by index)."""
@@ -303,6 +320,8 @@ def build(gaussians: Gaussians, cameras, log=None, *, spread: float = None,
       way from its own exit toward its parent's ``sigma_d``, in ``ln s_v`` (``own^(1 - b)
       sigma_p^b``), so the count of a frame falls near the hand-overs that change its image (a
       lead's exit is never reached: its parent takes over first);
+    * every node keeps its ``d_ref`` (``extra["d_ref"]``, float32), the ``d'`` its budgets' cuts
+      use (:func:`budget_frame`);
     * no tier keeps level gains (the tree does not draw them: docs/lod_rule.md "The file"), and
       the settings say ``tree=True``. Tier 0's Gaussians are otherwise unchanged.
 
@@ -321,7 +340,7 @@ def build(gaussians: Gaussians, cameras, log=None, *, spread: float = None,
         raise ValueError("tree.build: the model has no merged tiers")
     if not len(cameras):
         raise ValueError("tree.build: no cameras to set the node constants on")
-    tiers = [replace(t, extra={k: v for k, v in t.extra.items() if k not in (PARENT_KEY, EXIT_KEY)},
+    tiers = [replace(t, extra={k: v for k, v in t.extra.items() if k not in NODE_KEYS},
                      **dict.fromkeys(GAIN_NAMES)) for t in tiers]
     for k in range(len(tiers) - 1):
         parent = assign_parents(tiers[k], tiers[k + 1])
@@ -353,7 +372,8 @@ def build(gaussians: Gaussians, cameras, log=None, *, spread: float = None,
         if k + 1 < len(tiers) and b > 0.0:
             s_p = tiers[k + 1].sigma_d.detach().double().cpu()[t.extra[PARENT_KEY].long().cpu()]
             x = torch.where(leads(t).cpu(), x, _toward(x, s_p, b).to(x.dtype))
-        tiers[k] = replace(t, extra={**t.extra, EXIT_KEY: x.float().to(t.means.device)})
+        tiers[k] = replace(t, extra={**t.extra, EXIT_KEY: x.float().to(t.means.device),
+                                     REFERENCE_KEY: d_ref[k].float().to(t.means.device)})
     out = linked(tiers)
     return replace(out, lod=replace(out.lod, tree=True))
 
@@ -474,11 +494,12 @@ def budget_cut(tiers: Sequence[Gaussians], camera, k: float, *, hand_over: Optio
     """The cut a count budget of ``k`` nodes with their centre in the frustum draws (module
     docstring, step 6): :func:`terms`, :func:`budget_s_v` and :func:`cut` at that level, in one
     C++ call where the kernels run (``render/csrc/tree_cut.cpp``; the three functions are its twin,
-    ``tests/test_tree.py`` holds them equal). ``camera``: ``viewmat`` [4, 4] world-to-camera, ``K``
-    [3, 3] pixels, ``width``, ``height``; ``k`` >= 0 nodes; ``at``: :func:`frame` of this camera,
-    when the caller has it. Returns the :class:`TreeCut` (its ``s_v`` the level, >= 1). Raises
-    KeyError where a tier lacks ``extra["parent"]`` or ``extra["exit"]``."""
-    ds, frs = frame(tiers, camera) if at is None else at
+    ``tests/test_tree.py`` holds them equal), every node at its reference distance
+    (:func:`budget_frame`). ``camera``: ``viewmat`` [4, 4] world-to-camera, ``K`` [3, 3] pixels,
+    ``width``, ``height``; ``k`` >= 0 nodes; ``at``: :func:`budget_frame` of this camera, when the
+    caller has it. Returns the :class:`TreeCut` (its ``s_v`` the level, >= 1). Raises KeyError
+    where a tier lacks ``extra["parent"]``, ``extra["exit"]`` or ``extra["d_ref"]``."""
+    ds, frs = budget_frame(tiers, camera) if at is None else at
     if _native(tiers):
         out = _native_call("tree_budget_cut", tiers, ds, [f.double().contiguous() for f in frs], float(k),
                            _width(hand_over), _morph(hand_over))

@@ -120,7 +120,7 @@ def finetune(model: Gaussians, cameras: Sequence, images: Sequence, steps: int =
         cur = _tiers_with(tiers, params)
         with torch.no_grad():
             if budget:  # one frame of terms: its frustum gives the count the share is of
-                at = tree.frame(cur, cameras[i])
+                at = tree.budget_frame(cur, cameras[i])
                 c = tree.budget_cut(cur, cameras[i], share * int(at[1][0].sum()), at=at)
             else:
                 c = tree.cut(cur, cameras[i], s)

@@ -62,7 +62,7 @@ def playcanvas_pose(camera) -> dict:
 WEB_STREAMS = ("x", "y", "z", "sigma_d", "opacity_logit", "opacity_gain", "scale_gain", "f_dc_gain_0",
                "f_dc_gain_1", "f_dc_gain_2", "static_rank")
 #: the per-node streams of a merge tree's ``clod.bin`` (:func:`tree_streams`), in order.
-TREE_STREAMS = ("x", "y", "z", "sigma_d", "exit", "parent", "opacity_logit", "scale_0", "scale_1", "scale_2")
+TREE_STREAMS = ("x", "y", "z", "sigma_d", "exit", "d_ref", "parent", "opacity_logit", "scale_0", "scale_1", "scale_2")
 #: the page's files (``web_page/`` in this package) and what ``clod-export --web`` adds beside them.
 PAGE_FILES = ("index.html", "clod.mjs", "clod_tree.mjs")
 MODEL_NAME, DATA_NAME, CONFIG_NAME = "model.ply", "clod.bin", "clod.json"
@@ -92,7 +92,7 @@ def web_streams(model, static_scores) -> dict:
 def tree_streams(model) -> tuple[dict, list[int]]:
     """The per-node data a merge tree's page reads (:data:`TREE_STREAMS`, [N_0 + N_1 + ...]
     float32 numpy each, tier 0's rows first, each tier's rows in the file's order): the centres,
-    ``sigma_d``, the exit, the parent's row in that order (-1 in the last tier), the opacity logit
+    ``sigma_d``, the exit, the reference distance, the parent's row in that order (-1 in the last tier), the opacity logit
     and the log-scales; and the tiers' counts.
 
     Raises:
@@ -112,7 +112,8 @@ def tree_streams(model) -> tuple[dict, list[int]]:
     for k, t in enumerate(ts):
         parent = (t.extra[tree.PARENT_KEY].long() + int(off[k + 1])) if k + 1 < len(ts) else torch.full((len(t),), -1)
         for name, v in (("x", t.means[:, 0]), ("y", t.means[:, 1]), ("z", t.means[:, 2]), ("sigma_d", t.sigma_d),
-                        ("exit", t.extra[tree.EXIT_KEY]), ("parent", parent), ("opacity_logit", t.opacity_logits),
+                        ("exit", t.extra[tree.EXIT_KEY]), ("d_ref", t.extra[tree.REFERENCE_KEY]),
+                        ("parent", parent), ("opacity_logit", t.opacity_logits),
                         ("scale_0", t.log_scales[:, 0]), ("scale_1", t.log_scales[:, 1]),
                         ("scale_2", t.log_scales[:, 2])):
             cols[name].append(v.detach().float().cpu().numpy())

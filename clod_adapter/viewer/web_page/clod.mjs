@@ -484,7 +484,7 @@ function updatePlain() {
 function updateTree() {
     const { tr, tex, out, entity, resource, moved } = tree;
     const cam = { viewmat: cfg.cameras[state.cam].viewmat, K: intrinsics(), width: canvas.width, height: canvas.height };
-    const tt = treeRule.terms(tr, cam);
+    const tt = treeRule.terms(tr, cam, state.budget !== null);
     const r = treeRule.draw(tr, cam, state.sv, state.budget, out, tt);
     const data = tex.lock();
     for (let i = 0; i < tr.N; i++) {

@@ -24,7 +24,7 @@ export function readTree(spec, streams, raw) {
     const opacity = new Float64Array(N);
     for (let i = 0; i < N; i++) opacity[i] = 1 / (1 + Math.exp(-col.opacity_logit[i]));
     const tr = { N, T: spec.counts.length - 1, n: spec.counts, off, x: col.x, y: col.y, z: col.z,
-                 sigmaD: col.sigma_d, exit: col.exit, parent: Int32Array.from(col.parent), opacity,
+                 sigmaD: col.sigma_d, exit: col.exit, dRef: col.d_ref, parent: Int32Array.from(col.parent), opacity,
                  logScales: [col.scale_0, col.scale_1, col.scale_2] };
     tr.lead = leads(tr);
     return tr;
@@ -46,20 +46,21 @@ export function frustum(tr, cam) {
     return out;
 }
 
-// steps 1-3 for one camera: per node the entry E, the end U and whether it fades (and the frustum)
-export function terms(tr, cam) {
+// steps 1-3 for one camera: per node the entry E, the end U and whether it fades (and the frustum);
+// with ref, step 6's: every node's d' its d_ref
+export function terms(tr, cam, ref = false) {
     const { N, T, n, off, parent } = tr, v = cam.viewmat;
     const c = [0, 1, 2].map((j) => -(v[j] * v[3] + v[4 + j] * v[7] + v[8 + j] * v[11]));  // -R^T t
     const d = new Float64Array(N);
     for (let i = 0; i < N; i++) {
         const dx = tr.x[i] - c[0], dy = tr.y[i] - c[1], dz = tr.z[i] - c[2];
-        d[i] = Math.sqrt(dx * dx + dy * dy + dz * dz);
+        d[i] = ref ? tr.dRef[i] : Math.sqrt(dx * dx + dy * dy + dz * dz);
     }
     const fr = frustum(tr, cam);
     let D = 0, any = false;
     for (let i = off[T]; i < N; i++) if (fr[i]) { any = true; D = Math.max(D, d[i]); }
     if (!any) for (let i = off[T]; i < N; i++) D = Math.max(D, d[i]);
-    D = Math.max(D, 1e-12);
+    D = ref ? 1.0 : Math.max(D, 1e-12);
     for (let i = 0; i < N; i++) d[i] = Math.max(d[i] / D, 1e-12);
     const E = new Float64Array(N);  // tier 0 enters at 0
     for (let k = T; k > 0; k--) {
@@ -138,9 +139,10 @@ export function leads(tr) {
 // budget is a number: fills out.w [N] (the weight, 1 = the node's own attributes; 0 where not
 // drawn) and out.kind [N] (HIDDEN, FADE, LEAD, SIBLING) and returns { s_v, drawn, inView,
 // handOver } (drawn and inView per tier: the drawn nodes, those with their centre in the frustum;
-// handOver: the leads and siblings drawn with w < 1). tt: terms(tr, cam), when already at hand
+// handOver: the leads and siblings drawn with w < 1). tt: terms(tr, cam, budget is a number), when
+// already at hand
 export function draw(tr, cam, sv, budget = null, out = { w: new Float32Array(tr.N), kind: new Uint8Array(tr.N) },
-                     tt = terms(tr, cam)) {
+                     tt = terms(tr, cam, budget !== null && budget !== undefined)) {
     const { E: ns, U: ups, fade: fades, frustum: fr } = tt, { w: ws, kind: kinds } = out, lead = tr.lead;
     const s = budget !== null && budget !== undefined ? budgetSv(tr, tt, budget) : Math.max(+sv, 1.0);
     const drawn = [], inView = [];

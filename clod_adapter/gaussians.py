@@ -192,7 +192,7 @@ class Gaussians:
         if sigma_d is None:
             return replace(self, sigma_d=None, opacity_logit_gain=None, log_scale_gain=None,
                            sh0_gain=None, lod=None, parents=None,
-                           extra={k: v for k, v in self.extra.items() if k not in ("parent", "exit", "d_ref")})
+                           extra={k: v for k, v in self.extra.items() if k not in TREE_NODE_KEYS})
         return replace(self, sigma_d=sigma_d)
 
 
@@ -219,3 +219,6 @@ def concat(models: Sequence[Gaussians]) -> Gaussians:
 
 #: the level-gain fields of :class:`Gaussians`.
 GAIN_NAMES = ("opacity_logit_gain", "log_scale_gain", "sh0_gain")
+#: a merge tree's node data (``extra`` keys and .ply properties; :mod:`clod_adapter.lod.tree`): the
+#: parent index in the next tier, the exit constant, the reference distance
+TREE_NODE_KEYS = ("parent", "exit", "d_ref")

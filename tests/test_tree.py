@@ -167,6 +167,9 @@ def test_a_budget_cuts_every_node_at_its_reference_distance(model):
     distances would give."""
     g, cams = model
     ts = tree.tiers_of(g)
+    assert tree.NODE_KEYS == (tree.PARENT_KEY, tree.EXIT_KEY, tree.REFERENCE_KEY)
+    assert all(k in t.extra for t in ts[:-1] for k in tree.NODE_KEYS)
+    assert not any(k in g.with_sigma_d(None).extra for k in tree.NODE_KEYS)  # the plain model drops them
     for t, d in zip(ts, tree.reference_distances(ts, make_cameras(2, 3))):  # the fixture's build cameras
         assert torch.allclose(t.extra["d_ref"].double(), d, rtol=1e-6)
     differs = 0

@@ -26,6 +26,7 @@ import torch
 from torch import Tensor
 
 from . import rule as lod
+from . import tree
 from ..render.dispatch import rasterization
 from .budget import Budget, as_budget
 from .draw import PAPER
@@ -60,7 +61,7 @@ def clod_kwargs(model) -> Dict[str, Any]:
     if p is not None:
         kw["parents"] = _parent_dict(p)
     if "parent" in model.extra:  # a merge tree: its own rows' node data
-        kw["lod_nodes"] = {k: model.extra[k] for k in ("parent", "exit", "d_ref") if k in model.extra}
+        kw["lod_nodes"] = {k: model.extra[k] for k in tree.NODE_KEYS if k in model.extra}
     return kw
 
 
@@ -71,7 +72,7 @@ def _parent_dict(p) -> Dict[str, Any]:
          "opacity_logits": p.opacity_logits, "lod_settings": p.lod}
     if p.parents is not None:
         d["parents"] = _parent_dict(p.parents)
-    for key in ("parent", "exit", "d_ref"):  # a merge tree's node data
+    for key in tree.NODE_KEYS:  # a merge tree's node data
         if key in p.extra:
             d[key] = p.extra[key]
     return d

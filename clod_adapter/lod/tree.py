@@ -60,7 +60,7 @@ from torch import Tensor
 
 from . import rule as lod
 from .budget import critical_s_v
-from ..gaussians import GAIN_NAMES, Gaussians
+from ..gaussians import GAIN_NAMES, TREE_NODE_KEYS, Gaussians
 
 __all__ = ["HAND_OVER", "MORPH", "PARENT_KEY", "EXIT_KEY", "REFERENCE_KEY", "NODE_KEYS", "budget_frame", "is_tree", "tiers_of", "linked", "own_model", "tier_scales", "assign_parents", "build", "cut", "walk",
            "budget_s_v", "budget_cut", "TreeCut", "TreeTerms", "terms", "cut_attributes", "leads", "in_frustum"]
@@ -79,8 +79,9 @@ EXIT_KEY = "exit"
 #: the ``Gaussians.extra`` key (and .ply property) of every node's reference distance: its mean
 #: ``d'`` over the training views (:func:`reference_distances`), the ``d'`` of a budget's cut
 REFERENCE_KEY = "d_ref"
-#: the node data of a merge tree (``Gaussians.extra`` keys, .ply properties)
-NODE_KEYS = (PARENT_KEY, EXIT_KEY, REFERENCE_KEY)
+#: the node data of a merge tree (``Gaussians.extra`` keys, .ply properties): :data:`PARENT_KEY`,
+#: :data:`EXIT_KEY`, :data:`REFERENCE_KEY` (``clod_adapter.gaussians.TREE_NODE_KEYS``)
+NODE_KEYS = TREE_NODE_KEYS
 #: a shrinking sibling's scale factor ``w`` is floored here (its opacity reaches 0 with ``w``)
 SHRINK_FLOOR = 1e-4
 #: ``R``: a tier's hand-overs spread over this factor of ``s_v`` by importance (:func:`build`)

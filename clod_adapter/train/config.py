@@ -101,7 +101,8 @@ class AdaptConfig:
             not a fitted model. 0: the merge as splat-transform wrote it. Default 400, chosen on
             the validation views (at 400 steps fern's 50 / 15 / 4 % merges +3.3 / +3.3 / +3.4 dB,
             0.17-0.34 dB more than at 200; skull's +0.09 / +0.25 / +0.51 dB, 0.03-0.08 dB less;
-            ``benchmarks/studies/tier_finetune.py``, docs/studies.md "Fitting each merge").
+            ``benchmarks/archive/tier_finetune.py``, docs/archive/studies_superseded.md
+            "Fitting each merge", measured before the merge tree).
         tier_merge: the merge each tier starts from, one of :data:`clod_adapter.train.tiers.MERGES`:
             ``"prune"`` (default): the first tier is the input's Gaussians of the largest blending
             weight over the square root of their cost (:func:`clod_adapter.train.tiers.prune_scores`),
@@ -113,14 +114,15 @@ class AdaptConfig:
             training views: no wall clock). Default :data:`clod_adapter.train.tiers.TIER_TIME_CAP` (0.8):
             MaskGaussian fern's 50 % merge is predicted at 83 % and its first tier becomes 35 %;
             the vanilla checkpoints' 50 % merges (fern 77 %, skull 69 %) are kept. 0: the shares
-            as given (docs/studies.md "A first tier that saves time").
+            as given (docs/archive/studies_superseded.md "A first tier that saves time",
+            measured before the merge tree).
         tier_hand_over: with merged tiers, the latest ``s_v`` (of the tier's own) at which each
             merged tier hands over to the next (:func:`clod_adapter.train.tiers.link`; the input's own
             hand-over to the first tier stays where the time rule puts it). Default
             :data:`clod_adapter.train.tiers.TIER_HAND_OVER` (1.6) with the calibrated schedule; 0:
-            where the time rule puts it (docs/studies.md "Hand-overs out of the merged tiers",
-            measured on the cross-fade chain that drew the tiers then: on the validation views
-            popping median fern 15.6 -> 17.9, MaskGaussian fern 15.2 -> 16.6, skull 9.3 -> 11.9, no
+            where the time rule puts it (docs/archive/studies_superseded.md "Hand-overs out of the
+            merged tiers", measured on the cross-fade chain that drew the tiers then: on the
+            validation views popping median fern 15.6 -> 17.9, MaskGaussian fern 15.2 -> 16.6, skull 9.3 -> 11.9, no
             quality cell down by more than 0.01 dB). The linked tiers become a merge tree (each
             Gaussian names its parent in the next tier) drawn as one cut per frame
             (:mod:`clod_adapter.lod.tree`; docs/method.md "The merge tree").
@@ -177,8 +179,8 @@ class AdaptConfig:
             (:func:`clod_adapter.train.pruning.faint`; no recovery: together they paint under that
             much of the training images each). Default :data:`clod_adapter.train.pruning.FAINT_SHARE`
             (1e-5, calibrated), 0 (paper: every Gaussian). Chosen on the validation views
-            (docs/studies.md "Leaving out the faint"): the largest that costs no shared scene
-            0.02 dB at full detail.
+            (docs/studies.md "The faint are left out by default"): the largest that costs no
+            shared scene 0.02 dB at full detail.
         keep_share: leave out what the scene does not need first (:mod:`clod_adapter.train.pruning`):
             keep this share of the input's Gaussians, the top by blending weight over the training
             views, recovered for ``recovery_steps`` before the level of detail is learned; full

@@ -5,8 +5,8 @@ large, and a merging decimator covers the same image with fewer, better-placed s
 may carry *parent tiers* (``Gaussians.parents``, whose own ``parents`` is the next tier, ...): the
 input merged by PlayCanvas splat-transform's ``--decimate`` (mass-preserving moment matching of
 nearest pairs, :func:`decimated`) to each of a few shares of it (:data:`DEFAULT_SHARES`, chosen on
-validation views: docs/studies.md "Merged tiers"; the first lowered by :func:`first_share` where
-its merge would save little time), each adapted like any input (its own
+validation views: docs/archive/studies_chain.md "A chain of merged tiers"; the first lowered by
+:func:`first_share` where its merge would save little time), each adapted like any input (its own
 ``sigma_d`` and level gains) and handing over from the tier above at that tier's
 ``LodSettings.tier_s_v`` (:func:`link`); ``clod-adapt`` then links the tiers into a merge tree
 (:func:`clod_adapter.lod.tree.build`) that draws one cut of them per frame. They are stored in the
@@ -38,7 +38,7 @@ from ..metrics import psnr
 #: models with fewer Gaussians get no merged tiers (their coarsest frames already cost little)
 PARENT_MIN_GAUSSIANS = 10_000
 #: the default tiers' shares of the input (``AdaptConfig.parent_share``), chosen on the
-#: validation views (docs/studies.md "Merged tiers")
+#: validation views (docs/archive/studies_chain.md "A chain of merged tiers")
 DEFAULT_SHARES = (0.5, 0.15, 0.04)
 #: training views :func:`choose` scores on (evenly spaced)
 CHOOSE_VIEWS = 8
@@ -126,7 +126,7 @@ def prune_scores(gaussians: Gaussians, cameras: Sequence, *, exponent: float = P
 #: the first tier's merge must be predicted to draw a frame in at most this share of the input's
 #: (:func:`first_share`, ``AdaptConfig.tier_time_cap``): a first tier that saves less leaves the
 #: upper middle of the range (75-90 % of the frame) to the input's faded survivors. Chosen on the
-#: validation views (docs/studies.md "A first tier that saves time")
+#: validation views (docs/archive/studies_superseded.md "A first tier that saves time")
 TIER_TIME_CAP = 0.8
 #: :func:`first_share` lowers the share by this factor per try, at most this many times
 TIER_SHARE_STEP = 0.7
@@ -164,8 +164,8 @@ def first_share(gaussians: Gaussians, share: float, cameras: Sequence, *, cap: f
     long as that stays above ``floor`` (the next tier's share), at most :data:`TIER_SHARE_TRIES`
     times (the last merge is kept). A pruned input (MaskGaussian) has
     large Gaussians whose merge at half the count still draws ~83 % of the input's frame; a
-    vanilla 3DGS checkpoint's does not need lowering (docs/studies.md "A first tier that saves
-    time"). ``cap = 0``: ``share`` as given, nothing predicted.
+    vanilla 3DGS checkpoint's does not need lowering (docs/archive/studies_superseded.md "A first
+    tier that saves time"). ``cap = 0``: ``share`` as given, nothing predicted.
 
     Args:
         gaussians: the input (N Gaussians).
@@ -206,8 +206,8 @@ def finetuned(merged: Gaussians, cameras: Sequence, images: Sequence, steps: int
     on ``0.8 L1 + 0.2 D-SSIM``, with LightGaussian's post-pruning recovery rates
     (:func:`clod_adapter.train.finetune.finetune_subset`, ``schedule="recovery"``). A merge by
     moment matching keeps each cluster's mass and covariance, not its look; a few hundred steps
-    recover most of what it lost (docs/studies.md "Merged tiers"). ``steps = 0`` returns
-    ``merged``. Images are [H, W, 3] float32 in [0, 1]; the count and SH degree are unchanged."""
+    recover most of what it lost (docs/archive/studies_superseded.md "Fitting each merge").
+    ``steps = 0`` returns ``merged``. Images are [H, W, 3] float32 in [0, 1]; the count and SH degree are unchanged."""
     from .finetune import FinetuneOptions, finetune_subset
 
     if steps <= 0:
@@ -273,9 +273,10 @@ def level_curve(model: Gaussians, cameras: Sequence, images: Sequence, s_vs: Seq
     return out
 
 
-#: how :func:`choose` places a hand-over (docs/studies.md "Merged tiers"): ``"time"`` where the
-#: tier above is first predicted no slower than the tier at full detail, ``"psnr"`` where some level
-#: of the tier first scores at least the tier above's PSNR in no more predicted time
+#: how :func:`choose` places a hand-over (docs/archive/studies_chain.md "A chain of merged tiers"):
+#: ``"time"`` where the tier above is first predicted no slower than the tier at full detail,
+#: ``"psnr"`` where some level of the tier first scores at least the tier above's PSNR in no more
+#: predicted time
 CHOOSE_RULES = ("time", "psnr")
 CHOOSE_RULE = "time"
 #: ``"time"`` rule: the tier is left out when its full detail scores more than this below the
@@ -285,8 +286,9 @@ CHOOSE_MARGIN_DB = 1.5
 #: the latest ``s_v`` at which a merged tier hands over to the next (``AdaptConfig.tier_hand_over``):
 #: past it a merged tier's survivors thin out and each leaves a visible step; the input's own
 #: hand-over to the first tier stays the time rule's. Chosen on the validation views
-#: (docs/studies.md "Hand-overs out of the merged tiers", measured on the cross-fade chain that drew
-#: the tiers then: popping up on every shared scene, no quality cell down by more than 0.01 dB)
+#: (docs/archive/studies_superseded.md "Hand-overs out of the merged tiers", measured on the
+#: cross-fade chain that drew the tiers then: popping up on every shared scene, no quality cell
+#: down by more than 0.01 dB)
 TIER_HAND_OVER = 1.6
 
 

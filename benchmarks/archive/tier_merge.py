@@ -10,7 +10,7 @@ checkpoints' training), and the input and every merge are timed at full detail i
 interleaved rounds. Printed per merge: validation PSNR before and after the fit, frame time as a
 share of the input's, and bytes. No goal is enforced (a study: exit 0)::
 
-    python -m benchmarks.studies.tier_merge                    # skull, fern
+    python -m benchmarks.archive.tier_merge                    # skull, fern
 
 Written: ``runs/bench/tier_merge/summary.md``. About 3 minutes per scene on 2 cores.
 """

@@ -9,9 +9,9 @@ validation views (never in the fit, nor in the shared checkpoints' training) eve
 steps up to ``--steps``. Printed: each merge's PSNR at each step against the input's, and the step
 each merge scores best at. No goal is enforced (a study: exit 0)::
 
-    python -m benchmarks.studies.tier_finetune                 # skull, fern; 400 steps
-    python -m benchmarks.studies.tier_finetune --inputs skull --steps 600 --every 100
-    python -m benchmarks.studies.tier_finetune --chain-steps 200   # each next merge from a 200-step fit
+    python -m benchmarks.archive.tier_finetune                 # skull, fern; 400 steps
+    python -m benchmarks.archive.tier_finetune --inputs skull --steps 600 --every 100
+    python -m benchmarks.archive.tier_finetune --chain-steps 200   # each next merge from a 200-step fit
 
 Written: ``runs/bench/tier_finetune/summary.md``. About 4 minutes per scene on 2 cores.
 """

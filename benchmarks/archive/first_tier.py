@@ -9,11 +9,11 @@ frame time measured at full detail on the validation views (the input and every 
 same interleaved rounds), and the share the default cap (``tiers.TIER_TIME_CAP``) picks. The merges
 are not fitted here (the job fits the one it picks). No goal is enforced (a study: exit 0)::
 
-    python -m benchmarks.studies.first_tier                    # fern, maskgaussian, skull
+    python -m benchmarks.archive.first_tier                    # fern, maskgaussian, skull
 
 The quality each first share buys is measured by ``benchmarks/studies/compare_configs.py``
-(docs/studies.md "A first tier that saves time"). Written: ``runs/bench/first_tier/summary.md``.
-About 1 minute per scene on 2 cores.
+(docs/archive/studies_superseded.md "A first tier that saves time"). Written:
+``runs/bench/first_tier/summary.md``. About 1 minute per scene on 2 cores.
 """
 from __future__ import annotations
 

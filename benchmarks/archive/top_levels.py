@@ -1,4 +1,4 @@
-"""Why the levels near full detail lose to a static significance cut (docs/studies.md).
+"""Why the levels near full detail lose to a static significance cut (docs/archive/studies_superseded.md).
 
 On the validation views of each input's default validation adaptation (``--split val``,
 common.py) this renders, at ``s_v`` = 1.12 ... 3:
@@ -13,7 +13,7 @@ common.py) this renders, at ``s_v`` = 1.12 ... 3:
 
 Prints one line per ``s_v`` (PSNR, mean drawn share of the Gaussians in view)::
 
-    python -m benchmarks.studies.top_levels --inputs fern skull
+    python -m benchmarks.archive.top_levels --inputs fern skull
 """
 from __future__ import annotations
 

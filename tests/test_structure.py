@@ -111,6 +111,81 @@ def test_no_private_name_imported_across_modules():
     assert private_imports() == []
 
 
+def _is_private(name: str) -> bool:
+    return name.startswith("_") and not (name.startswith("__") and name.endswith("__"))
+
+
+def _self_attributes(tree: ast.AST) -> set[str]:
+    """The attributes a module assigns on ``self`` / ``cls``."""
+    return {n.attr for n in ast.walk(tree) if isinstance(n, ast.Attribute) and isinstance(n.ctx, ast.Store)
+            and isinstance(n.value, ast.Name) and n.value.id in ("self", "cls")}
+
+
+def attribute_names(tree: ast.AST) -> set[str]:
+    """The names a module gives its module, classes and objects: functions, classes and names
+    assigned outside any function (module globals, class attributes and fields), and what it
+    assigns on ``self`` / ``cls`` (a function's locals and an import's alias are nobody's
+    attribute)."""
+    out = _self_attributes(tree)
+
+    def visit(node):
+        for child in ast.iter_child_nodes(node):
+            if isinstance(child, (ast.FunctionDef, ast.AsyncFunctionDef, ast.ClassDef)):
+                out.add(child.name)
+            elif isinstance(child, ast.Name) and isinstance(child.ctx, ast.Store):
+                out.add(child.id)
+            if not isinstance(child, (ast.FunctionDef, ast.AsyncFunctionDef, ast.Lambda)):
+                visit(child)
+
+    visit(tree)
+    return out
+
+
+def own_names(tree: ast.AST) -> set[str]:
+    """Every name a module defines: :func:`attribute_names`, locals, parameters, import aliases."""
+    out = attribute_names(tree)
+    for n in ast.walk(tree):
+        if isinstance(n, ast.Name) and isinstance(n.ctx, ast.Store):
+            out.add(n.id)
+        elif isinstance(n, ast.arg):
+            out.add(n.arg)
+        elif isinstance(n, ast.alias):
+            out.add(n.asname or n.name.split(".")[0])
+    return out
+
+
+def private_attributes() -> list[str]:
+    """``X._name`` in a ``clod_adapter`` module where ``_name`` is a private attribute another
+    module of the package defines (:func:`attribute_names`) and this one does not
+    (:func:`own_names`): a private read (or written) across modules. Private names of other
+    libraries (``argparse._HelpAction``, ``Tensor._version``, a namedtuple's ``_replace``) are not
+    the package's to rename, so only the package's own private attributes count."""
+    trees = {_module_name(p): ast.parse(p.read_text(), str(p)) for p in PKG.rglob("*.py")}
+    package_private = {name for t in trees.values() for name in attribute_names(t) if _is_private(name)}
+    out = []
+    for mod, tree in trees.items():
+        own = own_names(tree)
+        for n in ast.walk(tree):
+            if isinstance(n, ast.Attribute) and _is_private(n.attr) and n.attr in package_private \
+                    and n.attr not in own:
+                out.append(f"{mod}:{n.lineno}: {ast.unparse(n)}")
+    return sorted(set(out))
+
+
+def test_no_private_attribute_used_across_modules():
+    """An object's or module's private attribute is read (or written) only by the module that
+    defines it: what another module needs is public."""
+    assert private_attributes() == []
+
+
+def test_private_attribute_check_finds_one():
+    a = ast.parse("import os as _os\nclass A:\n    _n = 0\n    def __init__(self):\n        self._x = 1\n"
+                  "    def _f(self):\n        _local = 2\n")
+    assert attribute_names(a) == {"A", "_n", "_x", "_f", "__init__"}
+    b = ast.parse("def f(a):\n    a._x = 2\n    return a._x, a.__class__\n")
+    assert "_x" not in own_names(b) and "_x" in own_names(a) and {"_os", "_local", "self"} <= own_names(a)
+
+
 #: the longest a function body may be (lines, its docstring not counted; issue 20).
 MAX_BODY_LINES = 80
 #: the functions allowed over the limit, each with the length it may not grow past: the CPU

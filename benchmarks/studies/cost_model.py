@@ -34,8 +34,8 @@ import torch  # noqa: E402
 from benchmarks.common import add_inputs_args, resolve_input, selected_inputs  # noqa: E402
 
 from clod_adapter.lod.cost import COST_UNIT, cost_units  # noqa: E402
-from clod_adapter.render.projection import finish_projection  # noqa: E402
-from clod_adapter.lod.view import EPS2D, view_lod  # noqa: E402
+from clod_adapter.render.projection import EPS2D, finish_projection  # noqa: E402
+from clod_adapter.lod.view import view_lod  # noqa: E402
 
 UNITS = ("tiles", "bbox_px", "ellipse_px")
 FRACTIONS = (1.0, 0.5, 0.25, 0.1, 0.04, 0.015)
@@ -70,8 +70,8 @@ def collect(name: str, n_cams: int, repeats: int, rng: torch.Generator) -> list[
                     else:
                         idx = topk_in_view(rankings[kind], view.visible, k)
                     sel = view.subset(idx)
-                    proj = finish_projection(view._geom.subset(view._row_of[idx]), sel.opacities, view.width,
-                                             view.height, EPS2D)
+                    proj = finish_projection(view.geometry.subset(view.geometry_rows[idx]), sel.opacities,
+                                             view.width, view.height, EPS2D)
                     op = sel.opacities[torch.searchsorted(idx, proj.ids)]
                     units = {u: float(v.sum()) for u, v in cost_units(proj, op, view.width, view.height).items()}
                     rows.append(dict(scene=name, cam=ci, kind=kind, frac=f, count=int(idx.numel()), ms=float("inf"),

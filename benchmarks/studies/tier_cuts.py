@@ -67,20 +67,20 @@ def rule_with(morph: float = None, distances=None, python: bool = True):
     distances) replaced where given: ``"view"``, the view's own (:func:`clod_adapter.lod.tree.frame`);
     a list, those (per tier [N_k]). Drawn by its Python twin when ``python`` (else where the C++
     kernels run); restored on exit. For studies only."""
-    native, morph0, frame0 = tree._native, tree.MORPH, tree.budget_frame
+    native, morph0, frame0 = tree.CPP_KERNELS, tree.MORPH, tree.budget_frame
 
     def frame(tiers, camera):
         ds, frs = tree.frame(tiers, camera)
         return (ds if isinstance(distances, str) else [r.to(d.dtype) for r, d in zip(distances, ds)]), frs
 
     if python:
-        tree._native = lambda tiers: False
+        tree.CPP_KERNELS = False
     tree.MORPH = morph0 if morph is None else morph
     tree.budget_frame = frame0 if distances is None else frame
     try:
         yield
     finally:
-        tree._native, tree.MORPH, tree.budget_frame = native, morph0, frame0
+        tree.CPP_KERNELS, tree.MORPH, tree.budget_frame = native, morph0, frame0
 
 
 def run_input(name: str, split: str) -> list[str]:

@@ -30,22 +30,21 @@ import torch
 from torch import Tensor
 
 from . import rule as lod
-from ..render.projection import ALPHA_THRESHOLD, GAUSSIAN_EXTEND, MAX_RADIUS, VisibleProjection, finish_projection
-from ..render.tiles import tile_rects
+from ..render.projection import (ALPHA_THRESHOLD, EPS2D, GAUSSIAN_EXTEND, MAX_RADIUS, VisibleProjection,
+                                 finish_projection)
+from ..render.tiles import TILE_SIZE, tile_rects
 
 __all__ = ["splat_cost", "cost_units", "cost_prefix", "order_in_view", "prefix_count", "level_opacities",
            "FrameTimeModel", "DEFAULT_FRAME_TIME_MODEL", "COST_UNIT"]
 
 #: the cost unit of :func:`splat_cost`
 COST_UNIT = "ellipse_px"
-#: gsplat 1.5.3's ``eps2d`` and tile size, as :mod:`clod_adapter.lod.draw` draws (``camera_lod.EPS2D``,
-#: ``view.TILE_SIZE``; this module does not import the view, which imports it)
-EPS2D, TILE_SIZE = 0.3, 16
 
 
 @torch.no_grad()
 def cost_units(proj: VisibleProjection, opacities: Optional[Tensor], width: int, height: int,
-               tile_size: int = 16, units: tuple[str, ...] = ("tiles", "bbox_px", "ellipse_px")) -> dict[str, Tensor]:
+               tile_size: int = TILE_SIZE,
+               units: tuple[str, ...] = ("tiles", "bbox_px", "ellipse_px")) -> dict[str, Tensor]:
     """Candidate per-Gaussian cost units of a finished projection (V rows, ``proj.ids``).
 
     Args:
@@ -140,9 +139,9 @@ class Footprints:
     def __init__(self, view, idx: Tensor, level: float = 0.0):
         dev = view.means.device
         self.k, self.width, self.height = idx.numel(), view.width, view.height
-        rows = view._row_of.index_select(0, idx)
+        rows = view.geometry_rows.index_select(0, idx)
         self.pos = torch.nonzero(rows >= 0, as_tuple=False).squeeze(1)  # in front of the camera
-        geom = view._geom.subset(rows.index_select(0, self.pos))
+        geom = view.geometry.subset(rows.index_select(0, self.pos))
         aa, ab, bb, axb2 = (t.detach() for t in (geom.aa, geom.ab, geom.bb, geom.axb2))
         g = view.gains.get("log_scale_gain")
         if g is not None and level > 0:  # as finish_projection's cov_scale, applied once
@@ -367,14 +366,14 @@ def _view_cost_weights(view, level: Optional[float] = None):
     measured in; Eq. 2 at the base opacities (:func:`view_cost_count` then searches exactly)."""
 
     lv = float(level) if (level is not None and view.settings.fade != "eq2") else 0.0
-    if view._costs is not None and view._costs[0] == lv:  # a cost budget, then the view's full cost
-        return view._costs[1:]
+    if view.cost_cache is not None and view.cost_cache[0] == lv:  # a cost budget, then the view's full cost
+        return view.cost_cache[1:]
     order = order_in_view(view.critical, view.visible)
     if order.numel() == 0:
         return order, None, view.means.new_zeros(0)
     fp = Footprints(view, order, lv)
-    view._costs = (lv, order, fp, fp.cost(level_opacities(view, order, lv)))
-    return view._costs[1:]
+    view.cost_cache = (lv, order, fp, fp.cost(level_opacities(view, order, lv)))
+    return view.cost_cache[1:]
 
 
 def view_full_cost(view) -> float:
@@ -382,8 +381,8 @@ def view_full_cost(view) -> float:
     detail: what a ``Budget(cost=...)`` share is a share of."""
     if not view.n_in_view:
         return 0.0
-    if view._costs is not None and view._costs[0] == 0.0:  # a cost budget's weights: the same cost
-        return float(torch.cumsum(view._costs[3].double(), 0)[-1])
+    if view.cost_cache is not None and view.cost_cache[0] == 0.0:  # a cost budget's weights: the same cost
+        return float(torch.cumsum(view.cost_cache[3].double(), 0)[-1])
     # order-free: no critical s_v and no sort
 
     ids = torch.nonzero(view.visible, as_tuple=False).squeeze(1)

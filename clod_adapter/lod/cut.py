@@ -14,6 +14,7 @@ from . import tree
 from .budget import Budget
 from ..gaussians import Gaussians
 from . import rule as lod
+from ..render.projection import EPS2D
 from .view import FAR_PLANE, NEAR_PLANE, view_lod
 
 
@@ -49,7 +50,6 @@ def node_costs_native(t: Gaussians, camera) -> Tensor:
 
     Raises:
         RuntimeError: the C++ kernels do not build here (:func:`clod_adapter.render.native.error`)."""
-    from .cost import EPS2D
     from ..render.native import load
 
     if load() is None:

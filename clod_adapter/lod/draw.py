@@ -23,7 +23,8 @@ from ..render.dispatch import Backend
 from .budget import Budget
 from .cut import tree_cut, tree_select
 from ..gaussians import Gaussians
-from .view import EPS2D, LodSelection, LodView, view_lod
+from ..render.projection import EPS2D
+from .view import LodSelection, LodView, view_lod
 
 #: ``eta`` without a gradient (selections for drawing only)
 PAPER = EtaGradient("paper")

@@ -89,7 +89,7 @@ def render_subset(gaussians: Gaussians, camera, indices: Tensor, opacities: Opti
     v = view if view is not None else view_lod(gaussians.with_sigma_d(None), camera)
     idx = indices.to(gaussians.means.device)
     op = None if opacities is None else opacities.to(gaussians.means)
-    keep = v._row_of.index_select(0, idx) >= 0  # in front of the camera (the rest is culled anyway)
+    keep = v.geometry_rows.index_select(0, idx) >= 0  # in front of the camera (the rest is culled anyway)
     if not bool(keep.all()):
         idx = idx[keep]
         op = None if op is None else op[keep]

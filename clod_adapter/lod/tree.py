@@ -62,9 +62,14 @@ from . import rule as lod
 from .budget import critical_s_v
 from ..gaussians import GAIN_NAMES, TREE_NODE_KEYS, Gaussians
 
-__all__ = ["HAND_OVER", "MORPH", "PARENT_KEY", "EXIT_KEY", "REFERENCE_KEY", "NODE_KEYS", "budget_frame", "is_tree", "tiers_of", "linked", "own_model", "tier_scales", "assign_parents", "build", "cut", "walk",
+__all__ = ["CPP_KERNELS", "HAND_OVER", "MORPH", "PARENT_KEY", "EXIT_KEY", "REFERENCE_KEY", "NODE_KEYS", "budget_frame",
+           "is_tree", "tiers_of", "linked", "own_model", "tier_scales", "assign_parents", "build", "cut", "walk",
            "budget_s_v", "budget_cut", "TreeCut", "TreeTerms", "terms", "cut_attributes", "leads", "in_frustum"]
 
+#: whether the rule's C++ kernels (``render/csrc/tree_cut.cpp``) draw where they can run (CPU, the
+#: kernels wanted by :mod:`clod_adapter.render.native`); False: its Python twin draws every cut
+#: (a study may set it; the package's other kernels are unaffected)
+CPP_KERNELS = True
 #: ``F``: a node is drawn over at least this factor of ``s_v`` (and a hand-over or an exit lasts at
 #: least from ``U / F`` to ``U``: :data:`MORPH`)
 HAND_OVER = 1.25
@@ -529,10 +534,13 @@ def _width(hand_over: Optional[float]) -> float:
 
 
 def _native(tiers: Sequence[Gaussians]) -> bool:
-    """Whether the C++ kernels (``render/csrc/tree_cut.cpp``) draw these tiers: CPU, one dtype, one
-    SH size, no autograd recording, and the kernels wanted (``clod_adapter.render.native``)."""
+    """Whether the C++ kernels (``render/csrc/tree_cut.cpp``) draw these tiers: :data:`CPP_KERNELS`,
+    CPU, one dtype, one SH size, no autograd recording, and the kernels wanted
+    (``clod_adapter.render.native``)."""
     from ..render.native import wanted
 
+    if not CPP_KERNELS:
+        return False
     t0 = tiers[0]
     records = torch.is_grad_enabled() and any(x.requires_grad for t in tiers for x in (
         t.means, t.quats, t.log_scales, t.opacity_logits, t.sh0, t.shN))

@@ -42,11 +42,13 @@ from ..render.dispatch import Backend
 from .budget import Budget, critical_s_v, select_budget
 from .cost import view_cost_count, view_full_cost
 from ..gaussians import Gaussians
-from ..render.projection import VisibleProjection, finish_projection, project_geometry
+from ..render.projection import EPS2D, ProjectedGeometry, VisibleProjection, finish_projection, project_geometry
+from ..render.tiles import TILE_SIZE
 
 
-#: gsplat 1.5.3 defaults used by every LoD render.
-EPS2D, NEAR_PLANE, FAR_PLANE, TILE_SIZE = 0.3, 0.01, 1e10, 16
+#: gsplat 1.5.3's near and far planes, used by every LoD render (with its ``eps2d`` and tile size,
+#: :data:`clod_adapter.render.projection.EPS2D` and :data:`clod_adapter.render.tiles.TILE_SIZE`)
+NEAR_PLANE, FAR_PLANE = 0.01, 1e10
 #: how often a budget's prefix is cut further on before the whole model is projected
 #: (:meth:`LodView._visible_prefix`)
 PREFIX_TRIES = 3
@@ -127,6 +129,9 @@ class LodView:
         viewmat [4, 4], K [3, 3], width, height: the camera.
         frustum [N] bool, visible [N] bool, n_in_view: see the module docstring.
         project_ms: wall time of the projection and the in-view test, ms.
+        cost_cache: the costs of the Gaussians in view that :mod:`clod_adapter.lod.cost` last
+        computed for a cost budget, kept for the next one: ``(level, order [m] int64,
+        footprints, costs [m] float64)`` (a :class:`clod_adapter.lod.cost.Footprints`), or None.
     """
 
     means: Tensor
@@ -151,7 +156,7 @@ class LodView:
     _ramp: Optional[float] = field(default=None, repr=False)
     _opacities: Optional[Tensor] = field(default=None, repr=False)
     _n_frustum: Optional[int] = field(default=None, repr=False)
-    _costs: Optional[tuple] = field(default=None, repr=False)  # (level, order, footprints, costs): _cost_weights
+    cost_cache: Optional[tuple] = field(default=None, repr=False)
     _prefix: Optional[tuple] = field(default=None, repr=False)  # (k, pool): _visible_prefix's last answer
 
     # --- per-camera terms ----------------------------------------------------------------------
@@ -202,12 +207,16 @@ class LodView:
         return self._visible
 
     @property
-    def _geom(self):
+    def geometry(self) -> ProjectedGeometry:
+        """The whole model's :class:`clod_adapter.render.projection.ProjectedGeometry` (stage 1 of
+        the projection, opacity-free): one row per Gaussian between the near and far planes,
+        ``geometry.ids`` [m] int64 ascending. Projects the whole model (once)."""
         return self._projection()[0]
 
     @property
-    def _row_of(self) -> Tensor:
-        """[N] int64: the row of each Gaussian in the whole model's projection (-1: behind)."""
+    def geometry_rows(self) -> Tensor:
+        """[N] int64: the row of each Gaussian in :attr:`geometry` (-1: culled by the near or far
+        plane). Projects the whole model (once)."""
         geom = self._projection()[0]
         if self._rows is None:
             self._rows = torch.full((self.n,), -1, dtype=torch.long, device=self.means.device)
@@ -494,13 +503,13 @@ class LodView:
         if idx is self._proj[1]:  # the projection's visible rows themselves (full detail, an ``s_v`` frame)
             rows = self._proj[3]
         elif self._proj[2] is None:  # the whole model's projection: its row map
-            rows = self._row_of.index_select(0, idx)
+            rows = self.geometry_rows.index_select(0, idx)
         else:  # a candidate projection (a few rows): ``idx`` lies in its ascending ids
             rows = torch.searchsorted(geom_all.ids, idx)
             m = geom_all.ids.numel()
             if idx.numel() and (m == 0 or not torch.equal(geom_all.ids.index_select(0, rows.clamp_max(m - 1)), idx)):
                 geom_all = self._projection()[0]  # another selection's candidates: project the whole model
-                rows = self._row_of.index_select(0, idx)
+                rows = self.geometry_rows.index_select(0, idx)
         geom = geom_all.subset(rows)
         cov_scale = None
         g = self.gains.get("log_scale_gain")

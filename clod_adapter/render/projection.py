@@ -25,8 +25,11 @@ from torch import Tensor
 from ._torch_impl import ALPHA_THRESHOLD  # gsplat 1.5.3's 1/255, one definition for both stages
 
 __all__ = ["fully_fused_projection", "project_visible", "project_geometry", "finish_projection",
-           "ProjectedGeometry", "VisibleProjection", "ALPHA_THRESHOLD", "quat_to_rotmat_rows"]
+           "ProjectedGeometry", "VisibleProjection", "ALPHA_THRESHOLD", "EPS2D", "quat_to_rotmat_rows"]
 
+#: gsplat 1.5.3's default ``eps2d`` (pixels squared, added to every 2D covariance's diagonal: step 4):
+#: what every level-of-detail render and cost projects with
+EPS2D = 0.3
 GAUSSIAN_EXTEND = 3.33
 #: cap of the int32 radii (pixels); larger footprints cover any image anyway
 MAX_RADIUS = float(2 ** 30)

@@ -14,7 +14,11 @@ from typing import Tuple
 import torch
 from torch import Tensor
 
-__all__ = ["isect_tiles", "isect_offset_encode", "tile_rects"]
+__all__ = ["isect_tiles", "isect_offset_encode", "tile_rects", "TILE_SIZE"]
+
+#: gsplat 1.5.3's default tile size (pixels per tile side): what every level-of-detail render and
+#: cost bins with
+TILE_SIZE = 16
 
 
 @torch.no_grad()

@@ -7,7 +7,7 @@ import pytest
 import torch
 
 from clod_adapter.lod import rule as lod
-from clod_adapter.train import tiers
+from clod_adapter.train import config, tiers
 from clod_adapter.lod.draw import render_lod
 from clod_adapter.io.ply import PlyFormatError, lod_comment, read_ply, write_ply
 from clod_adapter.io.synthetic import make_cameras, make_ground_truth
@@ -298,7 +298,7 @@ def test_tier_time_cap_is_a_share_of_the_frame(tiny_model, tmp_path, capfd):
     from clod_adapter.train.config import AdaptConfig
     from conftest import FAST, err_line
 
-    assert AdaptConfig().tier_time_cap == tiers.TIER_TIME_CAP
+    assert AdaptConfig().tier_time_cap == config.TIER_TIME_CAP == 0.8
     assert AdaptConfig(schedule="paper").tier_time_cap == 0.0
     assert AdaptConfig(tier_time_cap=0).tier_time_cap == 0.0
     for bad in (-0.1, 1.5, float("nan")):
@@ -335,7 +335,7 @@ def test_tier_hand_over_is_an_s_v_or_the_time_rule(tiny_model, tmp_path, capfd):
     from clod_adapter.train.config import AdaptConfig
     from conftest import FAST, err_line
 
-    assert AdaptConfig().tier_hand_over == tiers.TIER_HAND_OVER == 1.6
+    assert AdaptConfig().tier_hand_over == config.TIER_HAND_OVER == 1.6
     assert AdaptConfig(schedule="paper").tier_hand_over == 0.0
     assert AdaptConfig(tier_hand_over=0).tier_hand_over == 0.0 and AdaptConfig(tier_hand_over=3).tier_hand_over == 3.0
     for bad in (1.0, 0.5, -1.0, float("nan"), float("inf")):
@@ -398,7 +398,7 @@ def test_tree_shares_are_checked(key):
     """The tree's shares default to their module constants and take values in [0, 1] only."""
     from clod_adapter.lod.tree import ENTRY_TOWARD_CHILDREN, EXIT_TOWARD_PARENT
     from clod_adapter.train.config import AdaptConfig
-    from clod_adapter.train.tree_fit import TREE_BUDGET_STEPS
+    from clod_adapter.train.config import TREE_BUDGET_STEPS
 
     default = {"tree_budget_steps": TREE_BUDGET_STEPS, "tree_exit_toward_parent": EXIT_TOWARD_PARENT,
                "tree_entry_toward_children": ENTRY_TOWARD_CHILDREN}[key]
@@ -471,8 +471,8 @@ def test_adapt_job_builds_the_tier_or_says_why_not(tiny_model, tmp_path, monkeyp
     assert ppm["resolution"] == pm["tier"]["resolution"] == 2 * top["resolution"]
     assert all(abs(2 * a - b) <= 1 for a, b in zip(ppm["image_size"], top["image_size"]))
     tried = tier["time_cap"]["tried"]  # the first merge's share, lowered while predicted over the cap
-    assert tier["time_cap"]["cap"] == tiers.TIER_TIME_CAP and tried[0][0] == 0.2
-    assert tier["parent_share"] == tried[-1][0] and all(r > tiers.TIER_TIME_CAP for _, r in tried[:-1])
+    assert tier["time_cap"]["cap"] == config.TIER_TIME_CAP and tried[0][0] == 0.2
+    assert tier["parent_share"] == tried[-1][0] and all(r > config.TIER_TIME_CAP for _, r in tried[:-1])
     n_parents = round(tier["parent_share"] * 300)
     assert tier["finetune"]["steps"] == 2  # --tier-finetune-steps 7, at most --iterations 2
     steps = json.loads((out / "metrics.json").read_text())["config"]["iterations"]
@@ -621,7 +621,7 @@ def test_popping_sweep_runs_through_every_tier():
 def test_adapt_config_takes_descending_shares():
     from clod_adapter.train.config import AdaptConfig
 
-    assert AdaptConfig().parent_share == tiers.DEFAULT_SHARES
+    assert AdaptConfig().parent_share == config.DEFAULT_SHARES
     assert AdaptConfig(parent_share=0.1).parent_share == (0.1,)
     assert AdaptConfig(parent_share=0).parent_share == () and AdaptConfig(schedule="paper").parent_share == ()
     for bad in ((0.1, 0.3), (1.2,), (0.5, 0.5)):

@@ -6,7 +6,7 @@ For each input (default: fern, maskgaussian, skull) the input is merged by splat
 ``clod-adapt`` predicts for it at full detail (the fitted frame-time model on the 8 training views
 the job chooses on: the fit views, the validation views held out) as a share of the input's, the
 frame time measured at full detail on the validation views (the input and every merge timed in the
-same interleaved rounds), and the share the default cap (``tiers.TIER_TIME_CAP``) picks. The merges
+same interleaved rounds), and the share the default cap (``train.config.TIER_TIME_CAP``) picks. The merges
 are not fitted here (the job fits the one it picks). No goal is enforced (a study: exit 0)::
 
     python -m benchmarks.archive.first_tier                    # fern, maskgaussian, skull
@@ -23,7 +23,7 @@ import sys
 from benchmarks.common import add_inputs_args, load_input, scene_views, selected_inputs, setup_threads, write_summary  # noqa: E402
 
 from clod_adapter.evaluate import comparison as qvt  # noqa: E402
-from clod_adapter.train import tiers  # noqa: E402
+from clod_adapter.train import config, tiers  # noqa: E402
 
 
 def study(name: str, cap: float, repeats: int, log) -> list[str]:
@@ -32,8 +32,8 @@ def study(name: str, cap: float, repeats: int, log) -> list[str]:
     fit, val = scene_views(scene, "val")
     cams = tiers.choice_views(fit)  # as clod-adapt's job
     base = tiers.predicted_ms(g0, cams)
-    picked, _, _ = tiers.first_share(g0, tiers.DEFAULT_SHARES[0], cams, cap=cap, floor=tiers.DEFAULT_SHARES[1])
-    shares = [tiers.DEFAULT_SHARES[0] * tiers.TIER_SHARE_STEP ** k for k in range(3)]
+    picked, _, _ = tiers.first_share(g0, config.DEFAULT_SHARES[0], cams, cap=cap, floor=config.DEFAULT_SHARES[1])
+    shares = [config.DEFAULT_SHARES[0] * tiers.TIER_SHARE_STEP ** k for k in range(3)]
     every = [qvt.Setting("input", "s_v=1", [qvt.lod_render(g0, c, s_v=None) for c in val], 0)]
     predicted = {}
     for share in shares:
@@ -53,9 +53,9 @@ def study(name: str, cap: float, repeats: int, log) -> list[str]:
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     add_inputs_args(ap, ["fern", "maskgaussian", "skull"])
-    ap.add_argument("--cap", type=float, default=tiers.TIER_TIME_CAP,
+    ap.add_argument("--cap", type=float, default=config.TIER_TIME_CAP,
                     help=f"the predicted share of the input's frame a first merge may take "
-                         f"(default clod-adapt's --tier-time-cap, {tiers.TIER_TIME_CAP:g})")
+                         f"(default clod-adapt's --tier-time-cap, {config.TIER_TIME_CAP:g})")
     ap.add_argument("--repeats", type=int, default=5, help="interleaved timing rounds (default 5)")
     ap.add_argument("--threads", type=int, default=2)
     args = ap.parse_args(argv)

@@ -25,7 +25,7 @@ import time
 from benchmarks.common import (add_inputs_args, load_input, scene_views, selected_inputs, setup_threads,  # noqa: E402
                     write_summary)
 
-from clod_adapter.train import tiers  # noqa: E402
+from clod_adapter.train import config, tiers  # noqa: E402
 from clod_adapter.lod.draw import render_lod  # noqa: E402
 from clod_adapter.train.finetune import FinetuneOptions, finetune_subset  # noqa: E402
 from clod_adapter.metrics import psnr  # noqa: E402
@@ -64,7 +64,7 @@ def study(name: str, shares, steps: int, every: int, chain_steps: int) -> list[s
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     add_inputs_args(ap, ["skull", "fern"])
-    ap.add_argument("--shares", type=float, nargs="+", default=list(tiers.DEFAULT_SHARES))
+    ap.add_argument("--shares", type=float, nargs="+", default=list(config.DEFAULT_SHARES))
     ap.add_argument("--steps", type=int, default=400)
     ap.add_argument("--every", type=int, default=50)
     ap.add_argument("--chain-steps", type=int, default=AdaptConfig().tier_finetune_steps,

@@ -4,7 +4,7 @@
 For each input (default: skull and fern) the chain of merges ``clod-adapt`` builds for its tiers
 (``--parent-share 0.5,0.15,0.04``, each next tier merged from the fitted tier above it, each fitted
 for ``--tier-finetune-steps`` steps on the fit views, :func:`clod_adapter.train.tiers.finetuned`) is built
-once with each of splat-transform 3.7.0's merging decimators (:data:`clod_adapter.train.tiers.MERGES`).
+once with each of splat-transform 3.7.0's merging decimators (:data:`clod_adapter.train.config.MERGES`).
 Every merge is scored at full detail on the validation views (never in the fit, nor in the shared
 checkpoints' training), and the input and every merge are timed at full detail in the same
 interleaved rounds. Printed per merge: validation PSNR before and after the fit, frame time as a
@@ -23,7 +23,7 @@ from benchmarks.common import (add_inputs_args, load_input, scene_views, selecte
                     write_summary)
 
 from clod_adapter.evaluate import comparison as qvt  # noqa: E402
-from clod_adapter.train import tiers  # noqa: E402
+from clod_adapter.train import config, tiers  # noqa: E402
 from clod_adapter.evaluate.storage import ply_bytes  # noqa: E402
 from clod_adapter.train.config import AdaptConfig  # noqa: E402
 
@@ -38,7 +38,7 @@ def study(name: str, shares, steps: int, repeats: int, log) -> list[str]:
         return qvt.Setting(label, "s_v=1", [qvt.lod_render(model, c, s_v=None) for c in val], ply_bytes(model))
 
     every, raw = [setting("input", g0)], {}
-    for merge in tiers.MERGES:
+    for merge in config.MERGES:
         src, prev = g0, 1.0
         for share in shares:
             merged = tiers.decimated(src, share / prev, merge=merge)
@@ -61,7 +61,7 @@ def study(name: str, shares, steps: int, repeats: int, log) -> list[str]:
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     add_inputs_args(ap, ["skull", "fern"])
-    ap.add_argument("--shares", type=float, nargs="+", default=list(tiers.DEFAULT_SHARES),
+    ap.add_argument("--shares", type=float, nargs="+", default=list(config.DEFAULT_SHARES),
                     help="the chain's shares of the input, descending (default: clod-adapt's)")
     ap.add_argument("--steps", type=int, default=AdaptConfig().tier_finetune_steps,
                     help="fit steps per merge (default: clod-adapt's --tier-finetune-steps)")

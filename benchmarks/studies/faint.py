@@ -26,7 +26,8 @@ from benchmarks.common import (add_inputs_args, load_input, scene_views, selecte
 
 from clod_adapter.lod.draw import render_lod  # noqa: E402
 from clod_adapter.metrics import psnr  # noqa: E402
-from clod_adapter.train.pruning import FAINT_SHARE, faint  # noqa: E402
+from clod_adapter.train.config import FAINT_SHARE  # noqa: E402
+from clod_adapter.train.pruning import faint  # noqa: E402
 from clod_adapter.evaluate.timing import time_interleaved  # noqa: E402
 
 SHARES = (5e-6, FAINT_SHARE, 2e-5, 4e-5)

@@ -35,7 +35,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import math
 import os
 import statistics
 import sys
@@ -52,7 +51,7 @@ REPO = Path(__file__).resolve().parents[2]
 
 from benchmarks.common import add_split_arg, scene_views  # noqa: E402
 
-from clod_adapter.train.official import OFFICIAL_LR, scene_extent  # noqa: E402
+from clod_adapter.train.official import ADAM_EPS, means_lr, official_groups, scene_extent  # noqa: E402
 from clod_adapter.evaluate.level_metrics import evaluate_level  # noqa: E402
 from clod_adapter.gaussians import Gaussians  # noqa: E402
 from clod_adapter.io.load import apply_masks, load_model  # noqa: E402
@@ -95,12 +94,9 @@ def train(ply: Path, cams: list, images, args, out_ply: Path) -> dict:
     extent = scene_extent(cams)
     # position lr: the log-linear decay continued from iteration 7000 of an 8,500-step schedule
     # (TRAINING.md); the rest at the official values
-    lr0, lr1 = OFFICIAL_LR["means"]
-    pos = lambda it: extent * math.exp(math.log(lr0) * (1 - it / 8500) + math.log(lr1) * (it / 8500))  # noqa: E731
-    groups = [{"params": [params["means"]], "lr": pos(7000), "name": "means"}]
-    groups += [{"params": [params[k]], "lr": OFFICIAL_LR[k], "name": k} for k in ATTRS[1:]]
-    groups += [{"params": [scores], "lr": args.mask_lr, "name": "mask"}]
-    opt = torch.optim.Adam(groups, eps=1e-15)
+    pos = lambda it: means_lr(it, 8500, extent)  # noqa: E731
+    groups = official_groups(params, pos(7000)) + [{"params": [scores], "lr": args.mask_lr, "name": "mask"}]
+    opt = torch.optim.Adam(groups, eps=ADAM_EPS)
     gen = torch.Generator().manual_seed(args.seed)
     order: list[int] = []
     hist = []

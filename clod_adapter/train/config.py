@@ -1,5 +1,8 @@
-"""The options of one adaptation (:class:`AdaptConfig`), each with its default and its check, and
-the names they take (:data:`SCHEDULES`, :data:`RANKINGS`, the level gains' letters). docs/method.md says what each default rests on."""
+"""The options of one adaptation (:class:`AdaptConfig`), each with its default and its check, the
+names they take (:data:`SCHEDULES`, :data:`RANKINGS`, :data:`MERGES`, the level gains' letters), and
+the defaults that the stages running the job (:mod:`clod_adapter.train.tiers`,
+:mod:`clod_adapter.train.tree_fit`, :mod:`clod_adapter.train.pruning`) read from here.
+docs/method.md says what each default rests on."""
 from __future__ import annotations
 
 import math
@@ -7,11 +10,14 @@ from dataclasses import dataclass
 from typing import Literal, Optional
 
 from ..lod import rule as lod
+# the merge tree's drawing rule: how a tier's hand-overs spread (R), where a child leaves (b) and
+# where a parent enters (a) are constants of :func:`clod_adapter.lod.tree.build`, which places every
+# node's interval with them; the job passes its choice of each (tree_spread, tree_exit_toward_parent,
+# tree_entry_toward_children) and takes the rule's own as its default
 from ..lod.tree import ENTRY_TOWARD_CHILDREN, EXIT_TOWARD_PARENT, SPREAD
 from ..gaussians import GAIN_NAMES
 from ..io.scene import RESOLUTIONS
 from .official import OFFICIAL_LR
-from .tree_fit import TREE_FREE_ROOTS, TREE_GROW
 
 PARAM_NAMES = ("means", "quats", "log_scales", "opacity_logits", "sh0", "shN", "sigma_d")
 SCHEDULES = ("calibrated", "paper")
@@ -24,6 +30,48 @@ GAIN_LETTERS = {"o": "opacity_logit_gain", "s": "log_scale_gain", "c": "sh0_gain
 GAIN_LR = {"opacity_logit_gain": OFFICIAL_LR["opacity_logits"], "log_scale_gain": OFFICIAL_LR["log_scales"],
            "sh0_gain": OFFICIAL_LR["sh0"]}
 RANKINGS = ("lightgaussian", "opacity")
+#: the merges a tier may start from (:attr:`AdaptConfig.tier_merge`): splat-transform 3.7.0's
+#: ``--decimate`` and ``--decimate-adaptive`` (:func:`clod_adapter.lod.rankings.merge_decimate`'s
+#: modes), and ``"prune"``: the first tier is the input's Gaussians of the largest
+#: :func:`clod_adapter.train.tiers.prune_scores` (blending weight over the square root of cost) on the
+#: training views, the later tiers ``--decimate``
+MERGES = ("decimate", "adaptive", "prune")
+
+# --- the job's defaults, each that of an AdaptConfig field (calibrated schedule) ----------------
+#: the default tiers' shares of the input (:attr:`AdaptConfig.parent_share`), chosen on the
+#: validation views (docs/archive/studies_chain.md "A chain of merged tiers")
+DEFAULT_SHARES = (0.5, 0.15, 0.04)
+#: the first tier's merge must be predicted to draw a frame in at most this share of the input's
+#: (:func:`clod_adapter.train.tiers.first_share`, :attr:`AdaptConfig.tier_time_cap`): a first tier
+#: that saves less leaves the upper middle of the range (75-90 % of the frame) to the input's faded
+#: survivors. Chosen on the validation views (docs/archive/studies_superseded.md "A first tier that
+#: saves time", measured before the merge tree)
+TIER_TIME_CAP = 0.8
+#: the latest ``s_v`` at which a merged tier hands over to the next (:attr:`AdaptConfig.tier_hand_over`):
+#: past it a merged tier's survivors thin out and each leaves a visible step; the input's own
+#: hand-over to the first tier stays the time rule's. Chosen on the validation views
+#: (docs/archive/studies_superseded.md "Hand-overs out of the merged tiers", measured on the cross-fade chain that drew
+#: the tiers then: popping up on every shared scene, no quality cell down by more than 0.01 dB)
+TIER_HAND_OVER = 1.6
+#: steps of the merge tree's fit on its cuts (:func:`clod_adapter.train.tree_fit.finetune`,
+#: :attr:`AdaptConfig.tree_steps`)
+TREE_STEPS = 1000
+#: the share of those steps on count-budget cuts (:attr:`AdaptConfig.tree_budget_steps`)
+TREE_BUDGET_STEPS = 0.5
+#: the factor a merged node's scales may grow by in that fit (:attr:`AdaptConfig.tree_grow`): 1, none
+#: ends larger than it entered (docs/studies.md "Merged nodes held at their size in the fit")
+TREE_GROW = 1.0
+#: the share of the roots (the last tier's nodes), those that leave last, that ``tree_grow`` does not
+#: bound (:attr:`AdaptConfig.tree_free_roots`): a quarter
+TREE_FREE_ROOTS = 0.25
+#: :attr:`AdaptConfig.faint_share`: a Gaussian whose blending weight summed over every training view
+#: is under this share of one view's pixels is left out (:func:`clod_adapter.train.pruning.faint`;
+#: 1.7-1.8 px on the shared scenes' views). Chosen on the validation views (docs/studies.md "The faint
+#: are left out by default"): the largest of 5e-6 / 1e-5 / 2e-5 that costs no shared scene 0.02 dB at full detail.
+FAINT_SHARE = 1e-5
+#: recovery steps of a leave-out (:attr:`AdaptConfig.recovery_steps`; LightGaussian recovers 5,000
+#: on a GPU; 1,000 on fern's test views gave back all but 0.03 dB of a 40 % cut: docs/studies.md)
+RECOVERY_STEPS = 1000
 
 
 @dataclass
@@ -92,7 +140,7 @@ class AdaptConfig:
             frame time (left out when it does not, for models under
             :data:`clod_adapter.train.tiers.PARENT_MIN_GAUSSIANS` Gaussians, and when splat-transform
             is not installed). Stored as a tuple; ``()`` or 0: no tier. Default
-            :data:`clod_adapter.train.tiers.DEFAULT_SHARES` (calibrated), none (paper). Chosen on the
+            :data:`DEFAULT_SHARES` (calibrated), none (paper). Chosen on the
             validation views: ``python -m benchmarks.quality_vs_time --split val --config
             parent_share=...`` (docs/studies.md).
         tier_finetune_steps: each merged tier's base attributes are fine-tuned at full detail
@@ -103,7 +151,7 @@ class AdaptConfig:
             0.17-0.34 dB more than at 200; skull's +0.09 / +0.25 / +0.51 dB, 0.03-0.08 dB less;
             ``benchmarks/archive/tier_finetune.py``, docs/archive/studies_superseded.md
             "Fitting each merge", measured before the merge tree).
-        tier_merge: the merge each tier starts from, one of :data:`clod_adapter.train.tiers.MERGES`:
+        tier_merge: the merge each tier starts from, one of :data:`MERGES`:
             ``"prune"`` (default): the first tier is the input's Gaussians of the largest blending
             weight over the square root of their cost (:func:`clod_adapter.train.tiers.prune_scores`),
             the later ones splat-transform 3.7.0's ``--decimate``; ``"decimate"`` or ``"adaptive"``
@@ -111,7 +159,7 @@ class AdaptConfig:
         tier_time_cap: the first tier's share is lowered (by 0.7x per try, not below the next
             share) while its merge is predicted to draw a frame in more than this share of the
             input's (:func:`clod_adapter.train.tiers.first_share`, the fitted frame-time model on the
-            training views: no wall clock). Default :data:`clod_adapter.train.tiers.TIER_TIME_CAP` (0.8):
+            training views: no wall clock). Default :data:`TIER_TIME_CAP` (0.8):
             MaskGaussian fern's 50 % merge is predicted at 83 % and its first tier becomes 35 %;
             the vanilla checkpoints' 50 % merges (fern 77 %, skull 69 %) are kept. 0: the shares
             as given (docs/archive/studies_superseded.md "A first tier that saves time",
@@ -119,7 +167,7 @@ class AdaptConfig:
         tier_hand_over: with merged tiers, the latest ``s_v`` (of the tier's own) at which each
             merged tier hands over to the next (:func:`clod_adapter.train.tiers.link`; the input's own
             hand-over to the first tier stays where the time rule puts it). Default
-            :data:`clod_adapter.train.tiers.TIER_HAND_OVER` (1.6) with the calibrated schedule; 0:
+            :data:`TIER_HAND_OVER` (1.6) with the calibrated schedule; 0:
             where the time rule puts it (docs/archive/studies_superseded.md "Hand-overs out of the
             merged tiers", measured on the cross-fade chain that drew the tiers then: on the
             validation views popping median fern 15.6 -> 17.9, MaskGaussian fern 15.2 -> 16.6, skull 9.3 -> 11.9, no
@@ -133,11 +181,11 @@ class AdaptConfig:
         tree_budget_steps: the share of those steps that draws a count budget's cut (shares of the
             Gaussians in view from 100 % to 1 %, log-uniform) instead of a level's, in [0, 1]
             (:func:`clod_adapter.train.tree_fit.finetune`'s ``budget_steps``). Default
-            :data:`clod_adapter.train.tree_fit.TREE_BUDGET_STEPS` (0.5): the tree is trained on the
+            :data:`TREE_BUDGET_STEPS` (0.5): the tree is trained on the
             cuts of both knobs (docs/studies.md "Fitting the tree on its cuts"); 0: levels only.
         tree_grow: in that fit a merged node's scales grow by at most this factor over what they
             were when the fit began (:func:`clod_adapter.train.tree_fit.finetune`'s ``grow``, >= 1;
-            None: no bound). Default :data:`clod_adapter.train.tree_fit.TREE_GROW`, 1. Unbounded,
+            None: no bound). Default :data:`TREE_GROW`, 1. Unbounded,
             the fit grows the coarse nodes to fill what their exits leave, and a count budget's
             frame costs more than a merge of that count; held at 1 the frame costs less, and the
             coarsest levels would lose 2-4 dB but for ``tree_free_roots`` leaving their roots free
@@ -145,7 +193,7 @@ class AdaptConfig:
         tree_free_roots: with ``tree_grow``, the share of the roots (the last tier's nodes) that
             leave last, the ones the coarsest levels draw alone, left free to grow
             (:func:`clod_adapter.train.tree_fit.finetune`'s ``free_roots``, in [0, 1]; default
-            :data:`clod_adapter.train.tree_fit.TREE_FREE_ROOTS`, 0.25); no command-line flag.
+            :data:`TREE_FREE_ROOTS`, 0.25); no command-line flag.
         tree_spread: a tier's hand-overs spread over this factor of ``s_v`` by importance
             (:func:`clod_adapter.lod.tree.build`'s ``spread``, > 1; default
             :data:`clod_adapter.lod.tree.SPREAD`, 2). Set when the tree is built, so a model
@@ -177,7 +225,7 @@ class AdaptConfig:
         faint_share: leave out, before anything else, the Gaussians whose blending weight summed
             over every pixel of every training view is under this share of one view's pixels
             (:func:`clod_adapter.train.pruning.faint`; no recovery: together they paint under that
-            much of the training images each). Default :data:`clod_adapter.train.pruning.FAINT_SHARE`
+            much of the training images each). Default :data:`FAINT_SHARE`
             (1e-5, calibrated), 0 (paper: every Gaussian). Chosen on the validation views
             (docs/studies.md "The faint are left out by default"): the largest that costs no
             shared scene 0.02 dB at full detail.
@@ -230,8 +278,8 @@ class AdaptConfig:
     tier_merge: str = "prune"
     tier_time_cap: Optional[float] = None
     tier_hand_over: Optional[float] = None
-    tree_steps: int = 1000
-    tree_budget_steps: float = 0.5
+    tree_steps: int = TREE_STEPS
+    tree_budget_steps: float = TREE_BUDGET_STEPS
     tree_grow: Optional[float] = TREE_GROW
     tree_free_roots: float = TREE_FREE_ROOTS
     tree_spread: float = SPREAD
@@ -239,7 +287,7 @@ class AdaptConfig:
     tree_entry_toward_children: float = ENTRY_TOWARD_CHILDREN
     faint_share: Optional[float] = None
     keep_share: float = 1.0
-    recovery_steps: int = 1000
+    recovery_steps: int = RECOVERY_STEPS
 
     def __post_init__(self) -> None:
         if self.schedule not in SCHEDULES:
@@ -259,8 +307,6 @@ class AdaptConfig:
             self.s_v_sampling = "log" if cal else "uniform"
         self._settle_tiers(cal)
         if self.faint_share is None:
-            from .pruning import FAINT_SHARE
-
             self.faint_share = FAINT_SHARE if cal else 0.0
         self.faint_share = float(self.faint_share)
         if not (math.isfinite(self.faint_share) and self.faint_share >= 0.0):
@@ -307,8 +353,6 @@ class AdaptConfig:
             ValueError: a setting out of range, naming the field.
         """
         if self.parent_share is None:
-            from .tiers import DEFAULT_SHARES
-
             self.parent_share = DEFAULT_SHARES if cal else ()
         shares = self.parent_share if isinstance(self.parent_share, (tuple, list)) else (self.parent_share,)
         self.parent_share = tuple(float(x) for x in shares if float(x) != 0.0)
@@ -317,21 +361,15 @@ class AdaptConfig:
             raise ValueError(f"parent_share must be descending shares in (0, 1), got {shares}")
         if not (isinstance(self.tier_finetune_steps, int) and self.tier_finetune_steps >= 0):
             raise ValueError(f"tier_finetune_steps must be >= 0 (an integer), got {self.tier_finetune_steps!r}")
-        from .tiers import MERGES
-
         if self.tier_merge not in MERGES:
             raise ValueError(f"tier_merge must be one of {MERGES}, got {self.tier_merge!r}")
         if self.tier_time_cap is None:
-            from .tiers import TIER_TIME_CAP
-
             self.tier_time_cap = TIER_TIME_CAP if cal else 0.0
         self.tier_time_cap = float(self.tier_time_cap)
         if not (math.isfinite(self.tier_time_cap) and 0.0 <= self.tier_time_cap <= 1.0):
             raise ValueError(f"tier_time_cap must be in [0, 1] (a share of the input's frame time), "
                              f"got {self.tier_time_cap}")
         if self.tier_hand_over is None:
-            from .tiers import TIER_HAND_OVER
-
             self.tier_hand_over = TIER_HAND_OVER if cal else 0.0
         self.tier_hand_over = float(self.tier_hand_over)
         if not (self.tier_hand_over == 0.0 or (math.isfinite(self.tier_hand_over) and self.tier_hand_over > 1.0)):

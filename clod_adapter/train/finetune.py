@@ -29,19 +29,17 @@ merging decimator's output, the adapted model's own selection) by PSNR on valida
 """
 from __future__ import annotations
 
-import math
 from dataclasses import asdict, dataclass, field
 from typing import Mapping, Optional, Sequence
 
 import torch
 from torch import Tensor
 
-from .official import OFFICIAL_LR, scene_extent
+from . import official
+from .official import ADAM_EPS, BASE_FIELDS, OFFICIAL_LR, official_groups, scene_extent
 from ..gaussians import Gaussians
 from .losses import render_loss
 from ..lod.draw import render_lod
-
-_FIELDS = ("means", "quats", "log_scales", "opacity_logits", "sh0", "shN")
 
 #: LightGaussian's recovery length after pruning (steps).
 RECOVERY_ITERATIONS = 5000
@@ -65,7 +63,8 @@ def global_cut(scores: Tensor, fraction: float) -> Tensor:
 
 def means_lr(it: int, iterations: int, extent: float, *, schedule: str = "recovery",
              decay: float = RECOVERY_DECAY, lr_scale: float = 1.0) -> float:
-    """Position learning rate at step ``it`` (0-based) of a run of ``iterations`` steps.
+    """Position learning rate at step ``it`` (0-based) of a run of ``iterations`` steps
+    (:func:`clod_adapter.train.official.means_lr`'s log-linear schedule).
 
     With ``t = clamp(it / iterations, 0, 1)``: ``"recovery"``:
     ``1.6e-6 * extent * decay ** t`` (log-linear from the official final rate to ``decay`` times
@@ -79,8 +78,7 @@ def means_lr(it: int, iterations: int, extent: float, *, schedule: str = "recove
         start, end = init, final
     else:
         raise ValueError(f"schedule must be one of {FINETUNE_SCHEDULES}, got {schedule!r}")
-    t = min(max(it / max(iterations, 1), 0.0), 1.0)
-    return math.exp(math.log(start) * (1 - t) + math.log(end) * t) * extent * lr_scale
+    return official.means_lr(it, iterations, extent, start=start, end=end, scale=lr_scale)
 
 
 def convergence(losses: Sequence[float], window: float = CONVERGENCE_WINDOW,
@@ -130,7 +128,7 @@ class FinetuneInfo:
 
 def _plain(g: Gaussians) -> Gaussians:
     """The plain model a fine-tune starts from: the base attributes, no ``sigma_d``, no gains."""
-    return Gaussians(**{k: getattr(g, k) for k in _FIELDS})
+    return Gaussians(**{k: getattr(g, k) for k in BASE_FIELDS})
 
 
 @dataclass(frozen=True)
@@ -197,16 +195,10 @@ def finetune_subset(gaussians: Gaussians, train_cameras: Sequence, train_images:
     if schedule not in FINETUNE_SCHEDULES:
         raise ValueError(f"schedule must be one of {FINETUNE_SCHEDULES}, got {schedule!r}")
     g = _plain(gaussians).clone()
-    params = {k: torch.nn.Parameter(getattr(g, k).detach().clone().contiguous()) for k in _FIELDS}
+    params = {k: torch.nn.Parameter(getattr(g, k).detach().clone().contiguous()) for k in BASE_FIELDS}
     extent = scene_extent(train_cameras)
     lr_of = lambda it: means_lr(it, iterations, extent, schedule=schedule, decay=decay, lr_scale=lr_scale)  # noqa: E731
-    groups = []
-    for k in _FIELDS:
-        if params[k].numel() == 0:
-            continue
-        lr = lr_of(0) if k == "means" else OFFICIAL_LR[k] * lr_scale
-        groups.append({"params": [params[k]], "lr": lr, "name": k})
-    opt = torch.optim.Adam(groups, eps=1e-15)
+    opt = torch.optim.Adam(official_groups(params, lr_of(0), lr_scale), eps=ADAM_EPS)
     gen = torch.Generator().manual_seed(o.seed)
     order: list = []
     losses: list = []

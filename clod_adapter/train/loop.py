@@ -23,7 +23,6 @@ Public entry points: :class:`AdaptConfig`, :func:`prepare`, :func:`fit`, :func:`
 """
 from __future__ import annotations
 
-import math
 import signal
 from typing import Callable, Optional
 
@@ -39,7 +38,7 @@ from ..lod.draw import render_lod
 from ..lod.view import view_lod
 from ..metrics import psnr
 from .config import PARAM_NAMES, AdaptConfig
-from .official import OFFICIAL_LR, scene_extent
+from .official import ADAM_EPS, means_lr, scene_extent
 from .state import AdaptState, lr_groups
 
 
@@ -157,13 +156,6 @@ def recalibrate(state: "AdaptState", cameras, cfg: AdaptConfig) -> None:
     state.params["sigma_d"].data.copy_(new.to(state.params["sigma_d"]))
 
 
-def means_lr(cfg: AdaptConfig, extent: float, it: int) -> float:
-    """Official 3DGS position schedule (log-linear init -> final) times ``other_lr_scale``."""
-    init, final = OFFICIAL_LR["means"]
-    t = min(max(it / max(cfg.iterations, 1), 0.0), 1.0)
-    return math.exp(math.log(init) * (1 - t) + math.log(final) * t) * extent * cfg.other_lr_scale
-
-
 #: candidate init attenuations, most aggressive first (:func:`calibrate_init`).
 INIT_CANDIDATES = (0.8, 0.9, 0.95, 0.98, 0.99, 0.995, 0.999)
 
@@ -232,7 +224,7 @@ def prepare(gaussians: Gaussians, train_cameras, cfg: AdaptConfig, train_images=
         t = have.detach().clone() if have is not None else torch.zeros(shape, dtype=g.means.dtype, device=g.means.device)
         params[name] = torch.nn.Parameter(t.contiguous())
     extent = scene_extent(train_cameras)
-    opt = torch.optim.Adam(lr_groups(params, cfg, extent), eps=1e-15)
+    opt = torch.optim.Adam(lr_groups(params, cfg, extent), eps=ADAM_EPS)
     gen = torch.Generator().manual_seed(cfg.seed)
     return AdaptState(params=params, optimizer=opt, generator=gen, extent=extent, init=init,
                       lod=cfg.lod_settings(), extra=dict(g.extra))
@@ -438,7 +430,7 @@ def fit(
             picks = _draw_views(state, len(train_cameras), cfg)
             for grp in state.optimizer.param_groups:
                 if grp["name"] == "means":
-                    grp["lr"] = means_lr(cfg, state.extent, it)
+                    grp["lr"] = means_lr(it, cfg.iterations, state.extent, scale=cfg.other_lr_scale)
             with torch.enable_grad():
                 g = state.gaussians()
             state.optimizer.zero_grad(set_to_none=True)

@@ -25,17 +25,10 @@ from typing import Callable, Optional, Sequence
 import torch
 from torch import Tensor
 
+from .config import FAINT_SHARE, RECOVERY_STEPS
 from .finetune import FinetuneOptions, finetune_subset, global_cut
 from ..gaussians import Gaussians
 
-#: ``AdaptConfig.faint_share``'s calibrated default: a Gaussian whose blending weight summed over
-#: every training view is under this share of one view's pixels is left out (1.7-1.8 px on the
-#: shared scenes' views). Chosen on the validation views (docs/studies.md "The faint are left out by
-#: default"): the largest of 5e-6 / 1e-5 / 2e-5 that costs no shared scene 0.02 dB at full detail.
-FAINT_SHARE = 1e-5
-#: recovery steps by default (LightGaussian recovers 5,000 on a GPU; 1,000 on fern's test views
-#: gave back all but 0.03 dB of a 40 % cut: docs/studies.md)
-RECOVERY_STEPS = 1000
 
 
 @torch.no_grad()
@@ -190,4 +183,4 @@ def leave_out(gaussians: Gaussians, cameras: Sequence, images, *,
     return kept, info
 
 
-__all__ = ["blend_weights", "faint", "leave_out", "LeaveOutInfo", "FAINT_SHARE", "RECOVERY_STEPS"]
+__all__ = ["blend_weights", "faint", "leave_out", "LeaveOutInfo"]

@@ -15,7 +15,7 @@ from .. import __version__
 from ..gaussians import Gaussians
 from ..io.atomic import atomic_save
 from .config import GAIN_LR, PARAM_NAMES, AdaptConfig
-from .official import OFFICIAL_LR
+from .official import ADAM_EPS, OFFICIAL_LR, official_groups
 
 
 @dataclass
@@ -157,7 +157,7 @@ def load_state(path: os.PathLike, device: str | torch.device = "cpu") -> tuple[A
         t = tensors[key].to(device)
         params[name] = torch.nn.Parameter(t, requires_grad=(name == "sigma_d") or (name in cfg.gain_names) or train_others)
     extent = float(meta["extent"])
-    opt = torch.optim.Adam(lr_groups(params, cfg, extent), eps=1e-15)
+    opt = torch.optim.Adam(lr_groups(params, cfg, extent), eps=ADAM_EPS)
     for grp in opt.param_groups:
         p = grp["params"][0]
         key = f"adam/{grp['name']}/"
@@ -179,15 +179,11 @@ def lr_groups(params: dict, cfg: AdaptConfig, extent: float) -> list:
     """Adam's parameter groups of an adaptation: ``sigma_d`` at ``cfg.sigma_d_lr``, the level gains
     at the official learning rate of the attribute each offsets times ``cfg.gain_lr_scale``, and,
     with ``cfg.other_lr_scale > 0``, the base attributes at the official 3DGS rates times it
-    (``means`` times the scene extent; :data:`clod_adapter.train.official.OFFICIAL_LR`)."""
+    (:func:`clod_adapter.train.official.official_groups`; ``means`` at the official initial rate
+    times the scene extent)."""
     groups = [{"params": [params["sigma_d"]], "lr": cfg.sigma_d_lr, "name": "sigma_d"}]
     for name in cfg.gain_names:
         groups.append({"params": [params[name]], "lr": GAIN_LR[name] * cfg.gain_lr_scale, "name": name})
     if cfg.other_lr_scale > 0:
-        for name in ("means", "quats", "log_scales", "opacity_logits", "sh0", "shN"):
-            if params[name].numel() == 0:
-                continue
-            lr = OFFICIAL_LR[name]
-            lr = lr[0] * extent if name == "means" else lr
-            groups.append({"params": [params[name]], "lr": lr * cfg.other_lr_scale, "name": name})
+        groups += official_groups(params, OFFICIAL_LR["means"][0] * extent * cfg.other_lr_scale, cfg.other_lr_scale)
     return groups

@@ -4,10 +4,11 @@ A selection keeps survivors; down the range survivors are few and, grown by the 
 large, and a merging decimator covers the same image with fewer, better-placed splats. So a model
 may carry *parent tiers* (``Gaussians.parents``, whose own ``parents`` is the next tier, ...): the
 input merged by PlayCanvas splat-transform's ``--decimate`` (mass-preserving moment matching of
-nearest pairs, :func:`decimated`) to each of a few shares of it (:data:`DEFAULT_SHARES`, chosen on
-validation views: docs/archive/studies_chain.md "A chain of merged tiers"; the first lowered by
-:func:`first_share` where its merge would save little time), each adapted like any input (its own
-``sigma_d`` and level gains) and handing over from the tier above at that tier's
+nearest pairs, :func:`decimated`) to each of a few shares of it
+(:data:`clod_adapter.train.config.DEFAULT_SHARES`, chosen on validation views:
+docs/archive/studies_chain.md "A chain of merged tiers"; the first lowered by :func:`first_share`
+where its merge would save little time), each adapted like any input (its own ``sigma_d`` and level
+gains) and handing over from the tier above at that tier's
 ``LodSettings.tier_s_v`` (:func:`link`); ``clod-adapt`` then links the tiers into a merge tree
 (:func:`clod_adapter.lod.tree.build`) that draws one cut of them per frame. They are stored in the
 same .ply as more elements (``lod_parent``, ``lod_parent_2``, ...) that viewers reading only
@@ -28,6 +29,7 @@ from typing import Optional, Sequence
 import torch
 from torch import Tensor
 
+from .config import MERGES, TIER_TIME_CAP
 from .finetune import global_cut
 from ..lod.rankings import merge_decimate
 from ..lod.view import view_lod
@@ -37,9 +39,6 @@ from ..metrics import psnr
 
 #: models with fewer Gaussians get no merged tiers (their coarsest frames already cost little)
 PARENT_MIN_GAUSSIANS = 10_000
-#: the default tiers' shares of the input (``AdaptConfig.parent_share``), chosen on the
-#: validation views (docs/archive/studies_chain.md "A chain of merged tiers")
-DEFAULT_SHARES = (0.5, 0.15, 0.04)
 #: training views :func:`choose` scores on (evenly spaced)
 CHOOSE_VIEWS = 8
 
@@ -56,13 +55,6 @@ SWITCH_S_V = (1.1, 1.25, 1.5, 1.75, 2.0, 2.5, 3.0, 4.0, 5.0, 6.0, 7.5, 10.0)
 PARENT_S_V = (1.0, 1.1, 1.25, 1.5, 1.75, 2.0, 2.5, 3.0, 4.0, 5.0, 6.0, 7.5, 10.0)
 
 
-#: the merges a tier may start from: splat-transform 3.7.0's ``--decimate`` and
-#: ``--decimate-adaptive`` (:func:`clod_adapter.lod.rankings.merge_decimate`'s modes), and
-#: ``"prune"``: the first tier is the input's Gaussians of the largest :func:`prune_scores` (blending weight over the
-#: square root of cost) on the training views, the later tiers ``--decimate``
-MERGES = ("decimate", "adaptive", "prune")
-
-
 def decimated(gaussians: Gaussians, share: float, *, merge: str = "decimate", tool: Optional[str] = None,
               weights: Optional[Tensor] = None) -> Gaussians:
     """The parent tier's starting point: ``gaussians`` merged to ``share`` of its count by
@@ -72,7 +64,8 @@ def decimated(gaussians: Gaussians, share: float, *, merge: str = "decimate", to
     (no ``sigma_d``).
 
     Raises:
-        ValueError: ``share`` not in (0, 1), ``merge`` not one of :data:`MERGES`, or ``"prune"``
+        ValueError: ``share`` not in (0, 1), ``merge`` not one of
+            :data:`clod_adapter.train.config.MERGES`, or ``"prune"``
             without ``weights`` of one per Gaussian.
         RuntimeError: splat-transform is missing or fails (the message says which).
     """
@@ -123,11 +116,6 @@ def prune_scores(gaussians: Gaussians, cameras: Sequence, *, exponent: float = P
     return blend_weights(g, cameras).cpu() / (1.0 + cost) ** float(exponent)
 
 
-#: the first tier's merge must be predicted to draw a frame in at most this share of the input's
-#: (:func:`first_share`, ``AdaptConfig.tier_time_cap``): a first tier that saves less leaves the
-#: upper middle of the range (75-90 % of the frame) to the input's faded survivors. Chosen on the
-#: validation views (docs/archive/studies_superseded.md "A first tier that saves time")
-TIER_TIME_CAP = 0.8
 #: :func:`first_share` lowers the share by this factor per try, at most this many times
 TIER_SHARE_STEP = 0.7
 TIER_SHARE_TRIES = 3
@@ -283,13 +271,6 @@ CHOOSE_RULE = "time"
 #: tier above at the hand-over on the views given (training views, where the input, fitted to them,
 #: is favoured over any merge)
 CHOOSE_MARGIN_DB = 1.5
-#: the latest ``s_v`` at which a merged tier hands over to the next (``AdaptConfig.tier_hand_over``):
-#: past it a merged tier's survivors thin out and each leaves a visible step; the input's own
-#: hand-over to the first tier stays the time rule's. Chosen on the validation views
-#: (docs/archive/studies_superseded.md "Hand-overs out of the merged tiers", measured on the
-#: cross-fade chain that drew the tiers then: popping up on every shared scene, no quality cell
-#: down by more than 0.01 dB)
-TIER_HAND_OVER = 1.6
 
 
 def choose(gaussians: Gaussians, parents: Gaussians, cameras: Sequence, images: Sequence, *, background=None,
@@ -354,7 +335,7 @@ def link(model: Gaussians, candidates: Sequence[Gaussians], cameras: Sequence, i
     tier that does not pay skipped), then by the ``"psnr"`` rule the last (coarsest) one alone,
     for the cheap end of a scene whose merges lose at equal time. ``candidates``: the tiers below,
     finest first, each with its own tiers attached. ``max_tier_s_v`` > 0: the hand-over is at
-    most there (``clod-adapt`` passes :data:`TIER_HAND_OVER` when ``model`` is itself a merged
+    most there (``clod-adapt`` passes ``AdaptConfig.tier_hand_over`` when ``model`` is itself a merged
     tier); 0: where the rule put it. Returns ``(model or the tiered model, one record per try:
     rule, count, curves, tier_s_v (applied), rule_s_v (the rule's), tier_start)``.
 
@@ -376,6 +357,6 @@ def link(model: Gaussians, candidates: Sequence[Gaussians], cameras: Sequence, i
     return model, tried
 
 
-__all__ = ["decimated", "MERGES", "choice_views", "predicted_ms", "first_share", "TIER_TIME_CAP", "TIER_SHARE_STEP",
-           "TIER_SHARE_TRIES", "TIER_HAND_OVER", "attach", "choose", "link", "level_curve", "TierChoice", "SWITCH_S_V",
-           "PARENT_S_V", "PARENT_MIN_GAUSSIANS", "CHOOSE_VIEWS", "DEFAULT_SHARES", "CHOOSE_RULES", "CHOOSE_RULE", "CHOOSE_MARGIN_DB"]
+__all__ = ["decimated", "choice_views", "predicted_ms", "first_share", "TIER_SHARE_STEP",
+           "TIER_SHARE_TRIES", "attach", "choose", "link", "level_curve", "TierChoice", "SWITCH_S_V",
+           "PARENT_S_V", "PARENT_MIN_GAUSSIANS", "CHOOSE_VIEWS", "CHOOSE_RULES", "CHOOSE_RULE", "CHOOSE_MARGIN_DB"]

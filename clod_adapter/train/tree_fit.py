@@ -24,28 +24,18 @@ import torch
 from ..lod import tree
 from ..gaussians import Gaussians
 from .losses import render_loss
-from .official import OFFICIAL_LR
+from .config import TREE_BUDGET_STEPS, TREE_FREE_ROOTS, TREE_GROW, TREE_STEPS
+from .official import ADAM_EPS, BASE_FIELDS, OFFICIAL_LR, official_groups
 from ..render.dispatch import rasterization
 
-__all__ = ["finetune", "TREE_STEPS", "TREE_BUDGET_STEPS", "level_range"]
+__all__ = ["finetune", "level_range"]
 
-#: steps of :func:`finetune` (``AdaptConfig.tree_steps``)
-TREE_STEPS = 1000
-#: the attributes trained, and their learning rates: the official 3DGS rates, positions at 1/10 of
-#: the official initial rate (a fine-tune of a finished model)
-FIELDS = ("means", "quats", "log_scales", "opacity_logits", "sh0", "shN")
+#: the attributes trained (``clod_adapter.train.official.BASE_FIELDS``) take the official 3DGS
+#: rates, positions this factor of the official initial rate (a fine-tune of a finished model)
 MEANS_LR_SCALE = 0.1
 #: the smallest count budget a budget step of :func:`finetune` draws, a share of tier 0's centres
 #: in view (issue 62's budget sweep: 100 % to 1 %)
 BUDGET_LOWEST = 0.01
-#: the share of the steps on count-budget cuts (``AdaptConfig.tree_budget_steps``)
-TREE_BUDGET_STEPS = 0.5
-#: the factor a merged node's scales may grow by in the fit (``AdaptConfig.tree_grow``): 1, none
-#: ends larger than it entered (docs/studies.md "Merged nodes held at their size in the fit")
-TREE_GROW = 1.0
-#: the share of the roots (the last tier's nodes), those that leave last, that ``grow`` does not bound
-#: (``AdaptConfig.tree_free_roots``): a quarter
-TREE_FREE_ROOTS = 0.25
 
 
 def level_range(model: Gaussians, cameras: Sequence) -> float:
@@ -72,16 +62,16 @@ def finetune(model: Gaussians, cameras: Sequence, images: Sequence, steps: int =
     its cuts (module docstring) for ``steps`` steps on ``cameras`` (training views) and their
     ``images`` ([H, W, 3] float32 in [0, 1]). ``s_v`` is sampled log-uniformly in ``[1, top]``,
     ``top`` the coarsest level the views draw (:func:`level_range`, capped at 1e4). A share
-    ``budget_steps`` of the steps (default :data:`TREE_BUDGET_STEPS`; 0: none, and no random
-    number drawn for it) draws instead the cut of a count budget
+    ``budget_steps`` of the steps (default :data:`clod_adapter.train.config.TREE_BUDGET_STEPS`; 0:
+    none, and no random number drawn for it) draws instead the cut of a count budget
     (:func:`clod_adapter.lod.tree.budget_cut`) of a share of tier 0's centres in view sampled
-    log-uniformly in ``[BUDGET_LOWEST, 1]``. With ``grow`` (default :data:`TREE_GROW`, 1; None:
-    unbounded), after each step a merged node's log-scales are clamped to at most their value at
-    the start plus ``ln grow`` (1: no node ends larger than it entered the fit), but for the share
-    ``free_roots`` of the roots (the last tier's nodes) with the largest exits, the ones the
-    coarsest levels draw alone (default :data:`TREE_FREE_ROOTS`, 0.25). ``steps <= 0``
-    returns ``model``. Returns a new :class:`~clod_adapter.gaussians.Gaussians` (the same nodes,
-    tree and dtype).
+    log-uniformly in ``[BUDGET_LOWEST, 1]``. With ``grow`` (default
+    :data:`clod_adapter.train.config.TREE_GROW`, 1; None: unbounded), after each step a merged
+    node's log-scales are clamped to at most their value at the start plus ``ln grow`` (1: no node
+    ends larger than it entered the fit), but for the share ``free_roots`` of the roots (the last
+    tier's nodes) with the largest exits, the ones the coarsest levels draw alone (default
+    :data:`clod_adapter.train.config.TREE_FREE_ROOTS`, 0.25). ``steps <= 0`` returns ``model``.
+    Returns a new :class:`~clod_adapter.gaussians.Gaussians` (the same nodes, tree and dtype).
 
     Raises:
         ValueError: ``model`` is not a tree, ``cameras`` and ``images`` differ in number,
@@ -100,10 +90,9 @@ def finetune(model: Gaussians, cameras: Sequence, images: Sequence, steps: int =
     if steps <= 0 or not len(cameras):
         return model
     tiers = tree.tiers_of(model)
-    params = [{k: torch.nn.Parameter(getattr(t, k).detach().clone()) for k in FIELDS} for t in tiers[1:]]
-    groups = [{"params": [v], "lr": OFFICIAL_LR[k][0] * MEANS_LR_SCALE if k == "means" else OFFICIAL_LR[k]}
-              for p in params for k, v in p.items() if v.numel()]
-    opt = torch.optim.Adam(groups, eps=1e-15)
+    params = [{k: torch.nn.Parameter(getattr(t, k).detach().clone()) for k in BASE_FIELDS} for t in tiers[1:]]
+    means_lr = OFFICIAL_LR["means"][0] * MEANS_LR_SCALE
+    opt = torch.optim.Adam([grp for p in params for grp in official_groups(p, means_lr)], eps=ADAM_EPS)
     caps = None if grow is None else [p["log_scales"].detach() + math.log(grow) for p in params]
     if caps is not None and free_roots > 0.0 and len(tiers[-1]):
         ex = tiers[-1].extra[tree.EXIT_KEY].double()

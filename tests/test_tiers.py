@@ -491,6 +491,53 @@ def test_adapt_job_builds_the_tier_or_says_why_not(tiny_model, tmp_path, monkeyp
         (tree_mod.SPREAD, tree_mod.EXIT_TOWARD_PARENT, tree_mod.ENTRY_TOWARD_CHILDREN)]
 
 
+def test_adapt_job_builds_a_tree_from_a_pruned_tier(tiny_model, tmp_path, monkeypatch):
+    """clod-adapt with one pruned tier (``--parent-share X``, the default ``--tier-merge prune``)
+    builds the merge tree without splat-transform, reading the input, the scene and each model it
+    wrote once: the written model is a tree, every node's parent in the next tier, each tier with its
+    reference distances, and a coarse level draws fewer nodes than s_v = 1."""
+    import json
+
+    from clod_adapter.cli.adapt import main
+    from clod_adapter.io import splat_transform
+    from clod_adapter.jobs import adapt as job, adapt_inputs
+    from clod_adapter.lod import tree
+    from clod_adapter.io.load import load_scene
+    from conftest import FAST
+
+    def no_tool(*a, **k):
+        raise AssertionError("splat-transform was called")
+
+    monkeypatch.setattr(splat_transform, "find_splat_transform", lambda: None)  # as without node_modules
+    monkeypatch.setattr(splat_transform, "run_splat_transform", no_tool)
+    monkeypatch.setattr(tiers, "PARENT_MIN_GAUSSIANS", 100)
+    monkeypatch.setattr(tiers, "choose", lambda g, p, *a, **k: tiers.TierChoice(1.5, 1.0, {}))  # the tier pays
+    reads, scenes, own = [], [], []  # the checkpoints, scene folders and adapted models the job reads
+    for mod, name, log in ((adapt_inputs, "load_model", reads), (adapt_inputs, "load_scene", scenes),
+                           (job, "read_ply", own)):
+        monkeypatch.setattr(mod, name, lambda p, *a, f=getattr(mod, name), log=log, **k: log.append(p) or f(p, *a, **k))
+    out = tmp_path / "pruned"
+    assert main([str(tiny_model["ply"]), "--images", str(tiny_model["scene"]), *FAST, "-o", str(out),
+                 "--parent-share", "0.4", "--tier-finetune-steps", "1", "--tree-steps", "1"]) == 0
+    # read once each: the input, the scene, the tier's input (by its adaptation) and the tier's model
+    assert reads == [tiny_model["ply"], out / "parents_input.ply"] and scenes == [tiny_model["scene"]]
+    assert own == [out / "parents" / "point_cloud.ply"]
+    tier = json.loads((out / "metrics.json").read_text())["tier"]
+    g = read_ply(out / "point_cloud.ply")
+    assert tier["used"] and tree.is_tree(g) and tier["tree"] == [len(t) for t in tree.tiers_of(g)]
+    ts = tree.tiers_of(g)
+    assert len(ts) == 2 and len(ts[1]) == tier["parents"] < len(ts[0])
+    for below, above in zip(ts, ts[1:]):
+        par = below.extra["parent"].long()
+        assert par.min() >= 0 and par.max() < len(above)  # every node's parent in the next tier
+        assert torch.bincount(par, minlength=len(above)).min() > 0  # and every merged node a parent
+    assert "exit" in ts[-1].extra
+    assert all(tree.REFERENCE_KEY in t.extra and len(t.extra[tree.REFERENCE_KEY]) == len(t) for t in ts)
+    cam = load_scene(tiny_model["scene"]).train[0]
+    full, coarse = render_lod(g, cam, 1.0), render_lod(g, cam, 20.0)
+    assert coarse.n_parents > 0 and coarse.n_rendered < full.n_rendered
+
+
 @pytest.mark.slow
 def test_adapt_job_builds_a_tree(tiny_model, tmp_path, monkeypatch):
     """clod-adapt with merged tiers: the tiers linked into a merge tree (written whole, every node's

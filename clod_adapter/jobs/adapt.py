@@ -34,13 +34,13 @@ from ..io.atomic import atomic_write
 from ..io.load import resolve_model_path
 from . import InputError, pick_device  # noqa: F401 (public here since the first release)
 from ..io.ply import read_ply, write_ply
-from ..io.load import load_scene
+from ..io.scene import Scene
 from ..render.composite import deterministic_enabled
 from ..gaussians import Gaussians
 from ..lod.budget import Budget
 from ..lod.draw import PAPER, render_lod
 from .adapt_inputs import (METRICS_NAME, PLY_NAME, STRIP_NAME, TENSORBOARD_DIR, TRAINING_PLOT_NAME, Inputs,
-                           input_iteration, read_inputs, read_model)
+                           fresh_scene, input_iteration, job_scene, read_inputs, read_model)
 
 
 def write_inria_layout(out_dir: Path, model, scene, *, iteration: int, resolution: int, background,
@@ -202,18 +202,20 @@ def run(ply_path: os.PathLike, scene_root: os.PathLike, out_dir: os.PathLike, cf
                 group = dd.init(pick_device(o.device))
                 if not group.is_main:  # rank 0 speaks for the run
                     o = replace(o, log=lambda *a, **k: None, progress=False)
-            src, left = Path(ply_path), None
+            src, left, first = Path(ply_path), None, None
             if cfg.keep_share < 1.0:  # phase 0: leave out what the scene does not need
-                src, left = _leave_out(src, Path(scene_root), Path(out_dir), cfg, o, stop, group)
+                src, left, first = _leave_out(src, Path(scene_root), Path(out_dir), cfg, o, stop, group)
             ro = o if left is None else replace(o, force=True, iteration=None,  # the folder was checked
                                                 resume=o.resume and (Path(out_dir) / STATE_NAME).is_file())
-            metrics, given = _run(src, Path(scene_root), Path(out_dir), cfg, ro, stop, group)
+            metrics, adapted = _run(src, Path(scene_root), Path(out_dir), cfg, ro, stop, group,
+                                    scene=first.scene if first is not None else None)
             if left is not None and "rank" not in metrics:
                 metrics = _record_leave_out(Path(out_dir), metrics, left)
-                given = None  # the tiers are merged from the input itself, not the kept part
+                # the tiers are merged from the input itself, not the kept part (None: phase 0 resumed)
+                adapted = replace(adapted, input_model=first.input_model if first is not None else None)
             if cfg.parent_share and "rank" not in metrics:
                 metrics = _add_parent_tier(Path(ply_path), Path(scene_root), Path(out_dir), cfg, o, stop, group,
-                                           metrics, source=given)
+                                           metrics, adapted=adapted)
             if "rank" not in metrics:
                 metrics = _record_job_seconds(Path(out_dir), metrics, time.perf_counter() - t_job)
             return metrics
@@ -233,13 +235,25 @@ METRICS_KEYS = ("version", "input_ply", "scene", "resolution", "image_size", "de
                 "timing", "levels", "budgets", "dead_sigma_d", "notes")
 
 
+@dataclass
+class _Adapted:
+    """What an adaptation (:func:`_run`) or phase 0 (:func:`_leave_out`) hands to the phases after
+    it, not to be read again (None: nothing to hand on): ``input_model``, the input as read and
+    checked (masks applied, faint Gaussians not left out); ``model``, the adapted model as written
+    to ``point_cloud.ply`` (CPU); ``scene``, the job's scene at its resolution (:func:`job_scene`)."""
+
+    input_model: Optional[Gaussians]
+    model: Optional[Gaussians]
+    scene: Optional[Scene]
+
+
 def _run(ply_path: Path, scene_root: Path, out_dir: Path, cfg: AdaptConfig, o: AdaptOptions, stop: StopFlag,
-         group) -> tuple[dict, Optional[Gaussians]]:
-    """One adaptation of ``ply_path``: ``(its metrics, the input model as read and checked)``, the
-    model handed on so that the merged tiers are built without reading the checkpoint again (None
-    on a data-parallel rank other than 0)."""
+         group, scene: Optional[Scene] = None) -> tuple[dict, Optional[_Adapted]]:
+    """One adaptation of ``ply_path``: ``(its metrics, what it hands to the merged tiers)`` (None on
+    a data-parallel rank other than 0). ``scene``: the job's scene at ``o.resolution`` when an
+    earlier phase read it."""
     t_start = time.perf_counter()
-    inp = read_inputs(ply_path, scene_root, out_dir, cfg, o, stop, group)
+    inp = read_inputs(ply_path, scene_root, out_dir, cfg, o, stop, group, scene=scene)
     state, cfg, input_eval, init_s_v1 = _start_state(inp, cfg, o, stop, group)
     meta = {"input_ply": str(inp.ply_path), "scene": str(inp.scene_root), "resolution": o.resolution,
             "input_sha256": inp.input_sha256, "scene_key": inp.scene_fp, "init_s_v1": json.dumps(init_s_v1),
@@ -277,7 +291,7 @@ def _run(ply_path: Path, scene_root: Path, out_dir: Path, cfg: AdaptConfig, o: A
     o.log(format_summary(metrics))
     o.log(f"clod-adapt: wrote {', '.join(written)} to {inp.out_dir} in {metrics['wall_seconds']:.0f} s "
           f"({metrics['seconds_per_iteration']:.3f} s per iteration)")
-    return metrics, inp.input_model
+    return metrics, _Adapted(inp.input_model, model.to("cpu"), inp.scene)
 
 
 #: phase 0's files (``keep_share < 1``): the kept, recovered input the LoD is learned on, and
@@ -287,12 +301,13 @@ LEAVE_OUT_NAME = "leave_out.json"
 
 
 def _leave_out(ply_path: Path, scene_root: Path, out_dir: Path, cfg: AdaptConfig, o: AdaptOptions,
-               stop: StopFlag, group) -> tuple[Path, dict]:
+               stop: StopFlag, group) -> tuple[Path, dict, Optional[_Adapted]]:
     """Phase 0 (``cfg.keep_share < 1``, :mod:`clod_adapter.train.pruning`): every input checked as
     :func:`read_inputs` checks it (nothing written before), then the input less what the
     training views need least, recovered, written to ``out_dir/kept_input.ply`` (the input the
     following phases adapt) with ``leave_out.json``. With ``resume`` and both files there, they
-    are reused. Returns (the kept input's path, the ``metrics.json`` ``leave_out`` record).
+    are reused. Returns (the kept input's path, the ``metrics.json`` ``leave_out`` record, the
+    input as read and the scene for the phases after it; None when reused).
 
     Raises:
         InputError: a data-parallel run, or any input :func:`read_inputs` refuses.
@@ -305,7 +320,7 @@ def _leave_out(ply_path: Path, scene_root: Path, out_dir: Path, cfg: AdaptConfig
                          f"run first (its {KEPT_INPUT_NAME} is a plain input)")
     if o.resume and kept_path.is_file() and info_path.is_file():
         o.log(f"clod-adapt: resuming with the kept input {kept_path}")
-        return kept_path, json.loads(info_path.read_text())
+        return kept_path, json.loads(info_path.read_text()), None
     inp = read_inputs(ply_path, scene_root, out_dir, cfg, replace(o, resume=False), stop, group)
     input_eval = evaluate_level(inp.gaussians, inp.test_cams, inp.test_imgs, None, background=cfg.background)
     kept, info = pruning.leave_out(inp.gaussians, inp.scene.train, inp.train_imgs, keep_share=cfg.keep_share,
@@ -315,10 +330,12 @@ def _leave_out(ply_path: Path, scene_root: Path, out_dir: Path, cfg: AdaptConfig
               "input_test": {"psnr": input_eval.psnr, "ssim": input_eval.ssim}}
     o.log(f"clod-adapt: leave out: {len(kept):,} of {len(inp.gaussians):,} Gaussians kept in {info.seconds:.0f} s "
           f"(the input's test PSNR {input_eval.psnr:.2f} dB; the kept model's is the adaptation's input_model)")
+    # the adaptation reads the kept input back from its file, as a resumed run does: both adapt
+    # what the file holds (float32, no sigma_d), and the state's input hash is the file's
     write_ply(kept_path, kept.to("cpu"))
     with atomic_write(info_path, "w") as f:
         json.dump(record, f, indent=2)
-    return kept_path, record
+    return kept_path, record, _Adapted(inp.input_model.to("cpu"), None, inp.scene)
 
 
 def _rewrite_metrics(out_dir: Path, metrics: dict) -> None:
@@ -351,7 +368,7 @@ PARENT_INPUT_NAME = "parents_input.ply"
 
 def _add_parent_tier(ply_path: Path, scene_root: Path, out_dir: Path, cfg: AdaptConfig, o: AdaptOptions,
                      stop: StopFlag, group, metrics: dict, nested: bool = False,
-                     source: Optional[Gaussians] = None) -> dict:
+                     adapted: Optional[_Adapted] = None) -> dict:
     """Phase 6 (``cfg.parent_share``, :mod:`clod_adapter.train.tiers`): the input merged by
     splat-transform to the first of ``parent_share`` of its Gaussians (lowered while the merge is
     predicted to draw over ``tier_time_cap`` of the input's frame: :func:`clod_adapter.train.tiers.first_share`;
@@ -364,8 +381,9 @@ def _add_parent_tier(ply_path: Path, scene_root: Path, out_dir: Path, cfg: Adapt
     views (:func:`clod_adapter.train.tiers.choose`; a merged tier's own hand-over at its
     ``cfg.tier_hand_over`` at the latest, :func:`clod_adapter.train.tiers.link`). Left out, with a note
     in ``metrics["tier"]``, for an input under :data:`clod_adapter.train.tiers.PARENT_MIN_GAUSSIANS`
-    Gaussians, a data-parallel run, or without splat-transform. ``source``: the input model as the
-    adaptation read it (read again from ``ply_path`` when not given)."""
+    Gaussians, a data-parallel run, or without splat-transform. ``adapted``: what the adaptation of
+    ``ply_path`` into ``out_dir`` handed on (its input, model and scene; each read from disk where
+    missing)."""
     from ..train import tiers
 
     t0 = time.perf_counter()
@@ -388,17 +406,21 @@ def _add_parent_tier(ply_path: Path, scene_root: Path, out_dir: Path, cfg: Adapt
     if group is not None:
         return done("not built in a data-parallel run")
     quiet = replace(o, log=lambda *a, **k: None)
-    scene = _tier_scene(scene_root, cfg, o)
+    adapted = adapted if adapted is not None else _Adapted(None, None, None)
+    scene = fresh_scene(adapted.scene) if adapted.scene is not None else job_scene(scene_root, cfg, o)
     cams = tiers.choice_views(scene.train)
     try:
-        if source is None:  # the input was not handed on (a leave-out adapted another file)
+        source = adapted.input_model
+        if source is None:  # the input was not handed on (a resumed leave-out adapted another file)
             source = read_model(resolve_model_path(ply_path, o.iteration), cfg, quiet)[0]
         share, parents_in = _tier_start(source.to("cpu"), share, rest, scene.train, cams, cfg, o, nested, info)
         del source
     except RuntimeError as e:
         return done(f"splat-transform: {e}")
-    parents_in = _finetuned_tier(parents_in, scene if tres == o.resolution else
-                                 _tier_scene(scene_root, cfg, replace(o, resolution=tres)), cfg, info)
+    tscene = scene if tres == o.resolution else job_scene(scene_root, cfg, replace(o, resolution=tres))
+    parents_in = _finetuned_tier(parents_in, tscene, cfg, info)
+    # the tier adapts its input read back from the file, as a resumed tier does: both adapt what
+    # the file holds, and the tier's state names the file's hash
     write_ply(out_dir / PARENT_INPUT_NAME, parents_in)
     pdir = out_dir / PARENT_DIR
     o.log(f"clod-adapt: parent tier: {len(parents_in):,} Gaussians ({_MERGE_NAMES[_merge(cfg, nested)]}"
@@ -412,11 +434,14 @@ def _add_parent_tier(ply_path: Path, scene_root: Path, out_dir: Path, cfg: Adapt
     pcfg = replace(cfg, parent_share=tuple(x / share for x in rest), keep_share=1.0, faint_share=0.0,
                    iterations=cfg.tier_iterations(), tier_iteration_share=1.0,
                    tier_downscale=1 if nested else cfg.tier_downscale)  # the nested call downscales once
-    pm, p_given = _run(out_dir / PARENT_INPUT_NAME, scene_root, pdir, pcfg, po, stop, None)
+    pm, p_adapted = _run(out_dir / PARENT_INPUT_NAME, scene_root, pdir, pcfg, po, stop, None, scene=tscene)
     if pcfg.parent_share:  # the tier's own parent tiers, shares relative to it
         _add_parent_tier(out_dir / PARENT_INPUT_NAME, scene_root, pdir, pcfg, po, stop, None, pm, nested=True,
-                         source=p_given)
-    model, parents = _read_own(out_dir / PLY_NAME), _read_own(pdir / PLY_NAME)
+                         adapted=p_adapted)
+    # the tiers below are read from their files: each with its own tiers attached and their settings
+    # as a file stores them (written after their own linking), found in the folders as a resume finds them
+    model = adapted.model if adapted.model is not None else _read_own(out_dir / PLY_NAME)
+    parents = _read_own(pdir / PLY_NAME)
     imgs = [scene.load_image(c) for c in cams]
     dirs = _tier_dirs(pdir)
     cands = [parents] + [_read_own(d / PLY_NAME) for d in dirs[1:]]
@@ -429,7 +454,7 @@ def _add_parent_tier(ply_path: Path, scene_root: Path, out_dir: Path, cfg: Adapt
     if linked.parents is None:
         return done("no merged tier beats the model at equal predicted time on the training views")
     if not nested:
-        linked = _drawing_rule(linked, scene_root, out_dir, scene, cfg, o, info)
+        linked = _drawing_rule(linked, out_dir, scene, cfg, o, info)
     write_ply(out_dir / PLY_NAME, linked)
     st = linked.lod
     info.update({"used": True, "tier_s_v": st.tier_s_v, "tier_start": st.tier_start, "attached": len(linked.parents),
@@ -480,7 +505,7 @@ def _read_own(path: Path):
     return read_ply(path, unlinked_tiers=True)
 
 
-def _drawing_rule(linked, scene_root: Path, out_dir: Path, scene, cfg: AdaptConfig, o: AdaptOptions, info: dict):
+def _drawing_rule(linked, out_dir: Path, scene, cfg: AdaptConfig, o: AdaptOptions, info: dict):
     """The linked model's tiers as a merge tree (:func:`clod_adapter.lod.tree.build`;
     ``info["tree"]`` its tiers' sizes), its merged tiers fitted on its cuts
     (:func:`clod_adapter.train.tree_fit.finetune`, ``cfg.tree_steps`` at most ``cfg.iterations``,
@@ -501,21 +526,17 @@ def _drawing_rule(linked, scene_root: Path, out_dir: Path, scene, cfg: AdaptConf
                       log=lambda m: o.log("clod-adapt: " + m))
     info["tree_fit"] = {"steps": steps, "budget_steps": cfg.tree_budget_steps, "grow": cfg.tree_grow,
                         "free_roots": cfg.tree_free_roots, "seconds": round(time.perf_counter() - t0, 1)}
-    _final_strip(out_dir, linked, scene_root, cfg, o)
+    _final_strip(out_dir, linked, scene, cfg)
     return linked
 
 
-def _final_strip(out_dir: Path, model, scene_root: Path, cfg: AdaptConfig, o: AdaptOptions) -> None:
-    """``lod_strip.png`` of the model with its tree attached: the first test view (validation view
-    with ``o.holdout_val``) from ``s_v = 1`` to past the coarsest tier's reach, doubling."""
+def _final_strip(out_dir: Path, model, scene, cfg: AdaptConfig) -> None:
+    """``lod_strip.png`` of the model with its tree attached: the first test view of the job's
+    ``scene`` (a validation view with ``holdout_val``) from ``s_v = 1`` to past the coarsest tier's
+    reach, doubling."""
     from ..lod.draw import tier_reach
     from ..export.figures import write_strip
 
-    scene = load_scene(scene_root, resolution=o.resolution, background=cfg.background)
-    if o.holdout_val:
-        from ..io.scene import holdout_validation
-
-        scene = holdout_validation(scene)
     cam = (scene.test or scene.train[:1])[0]
     top = cfg.max_sv * tier_reach(model)
     levels = [2.0 ** i for i in range(int(math.log2(top)) + 1)][:7]
@@ -536,17 +557,6 @@ def _finetuned_tier(parents_in, scene, cfg: AdaptConfig, info: dict):
                           steps, background=cfg.background, seed=cfg.seed)
     info["finetune"] = {"steps": steps, "seconds": round(time.perf_counter() - t1, 1)}
     return out
-
-
-def _tier_scene(scene_root: Path, cfg: AdaptConfig, o: AdaptOptions):
-    """The scene a tier is fitted and chosen on: its training views (the fit views with
-    ``o.holdout_val``)."""
-    scene = load_scene(scene_root, resolution=o.resolution, background=cfg.background)
-    if o.holdout_val:
-        from ..io.scene import holdout_validation
-
-        scene = holdout_validation(scene)
-    return scene
 
 
 def _tier_dirs(pdir: Path) -> list[Path]:

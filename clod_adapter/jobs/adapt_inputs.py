@@ -25,6 +25,7 @@ from . import InputError, pick_device  # noqa: F401 (public here since the first
 from ..io.ply import PlyFormatError
 from ..io.view_images import ViewImages
 from ..io.load import load_scene
+from ..io.scene import Scene
 from ..lod.draw import render_lod
 
 
@@ -229,10 +230,33 @@ def read_model(ply_path: Path, cfg: AdaptConfig, o):
     return gaussians, mask_info, sanitized
 
 
+def job_scene(scene_root: Path, cfg: AdaptConfig, o) -> Scene:
+    """The scene a job reads: ``scene_root`` at ``o.resolution`` over ``cfg.background``; with
+    ``o.holdout_val`` its fit views as the training views and its validation views as the test
+    views (:func:`clod_adapter.io.scene.holdout_validation`).
+
+    Raises:
+        clod_adapter.io.scene.SceneError: as :func:`clod_adapter.io.load.load_scene`.
+    """
+    scene = load_scene(scene_root, resolution=o.resolution, background=cfg.background)
+    if o.holdout_val:
+        from ..io.scene import holdout_validation
+
+        scene = holdout_validation(scene)
+    return scene
+
+
+def fresh_scene(scene: Scene) -> Scene:
+    """``scene`` (its cameras and split) with its own empty image cache of the default size: one
+    :func:`job_scene` read serves every phase and merged tier at its resolution as a new read would."""
+    return replace(scene, cache_size=Scene.cache_size)
+
+
 def read_inputs(ply_path: Path, scene_root: Path, out_dir: Path, cfg: AdaptConfig, o,
-                 stop: StopFlag, group) -> Inputs:
+                stop: StopFlag, group, scene: Optional[Scene] = None) -> Inputs:
     """Phase 1: load and check the model, the scene, the output folder and (``resume``) the state;
-    the folder is created only once every input has passed."""
+    the folder is created only once every input has passed. ``scene``: the job's scene
+    (:func:`job_scene` at ``o.resolution``) when an earlier phase has read it, else read here."""
     if not ply_path.exists():
         raise InputError(f"{ply_path}: no such file")
     ply_path = resolve_model_path(ply_path, o.iteration)
@@ -246,12 +270,8 @@ def read_inputs(ply_path: Path, scene_root: Path, out_dir: Path, cfg: AdaptConfi
                              "(pip install -e \".[tensorboard]\")") from None
     dev = pick_device(o.device) if group is None else group.device
     gaussians, mask_info, sanitized = read_model(ply_path, cfg, o)
-    scene = load_scene(scene_root, resolution=o.resolution, background=cfg.background)
+    scene = job_scene(scene_root, cfg, o) if scene is None else fresh_scene(scene)
     stop.reinstall()  # importing pycolmap (COLMAP scenes only) replaces the SIGTERM handler
-    if o.holdout_val:  # fit on the training views minus the validation views, score on those
-        from ..io.scene import holdout_validation
-
-        scene = holdout_validation(scene)
     if not scene.train:
         raise InputError(f"{scene_root}: no training views (every image is a test view)")
     given = gaussians
@@ -260,6 +280,8 @@ def read_inputs(ply_path: Path, scene_root: Path, out_dir: Path, cfg: AdaptConfi
     if o.resume and not state_path.is_file():
         raise InputError(f"{state_path}: no state to resume from")
     check_output_dir(out_dir, [ply_path], create=False, force=o.force, resume=o.resume)  # checks only
+    # the file's bytes hashed in a pass of their own (a resumed state must name this input): the
+    # model's readers parse several formats (load_model); the pass finds the file just read in the cache
     input_sha256, scene_fp = file_sha256(ply_path), scene_key(scene.train)
     resumed = None
     if o.resume:

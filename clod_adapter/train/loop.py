@@ -23,6 +23,7 @@ Public entry points: :class:`AdaptConfig`, :func:`prepare`, :func:`fit`, :func:`
 """
 from __future__ import annotations
 
+import contextlib
 import signal
 from typing import Callable, Optional
 
@@ -352,6 +353,40 @@ def _record(h: dict, picks: list, rows: dict, ema: dict) -> None:
             ema[k] = v if ema[k] is None else 0.9 * ema[k] + 0.1 * v
 
 
+def _backward_views(g: Gaussians, picks: list, cameras, images, cfg: AdaptConfig, backend: str, rank: int,
+                    world: int) -> dict:
+    """One step's views of this rank (``j mod world == rank`` of ``picks``, ``(view, s_v)`` pairs):
+    each rendered at its ``s_v``, its loss backpropagated (gradients accumulate in ``g``'s leaves).
+    Returns ``{j: (loss, PSNR dB, eta)}``."""
+    rows = {}
+    for j, (vi, s_v) in enumerate(picks):
+        if j % world != rank:
+            continue
+        # grad on even when the caller is inside torch.no_grad() (an evaluation loop):
+        # without it the step would silently train nothing
+        with torch.enable_grad():
+            out, loss = view_loss(g, cameras[vi], images[vi], s_v, cfg, backend)
+            if loss.requires_grad:
+                loss.backward()
+        rows[j] = (float(loss.detach()), psnr(out.image, images[vi]), float(out.eta.detach()))
+        del out, loss
+    return rows
+
+
+def _after_step(state: AdaptState, cameras, cfg: AdaptConfig, picks: list, rows: dict, ema: dict, bar) -> None:
+    """After a step's Adam update: the calibrated schedule's :func:`recalibrate` when due, the
+    step's records (:func:`_record`) and the progress bar."""
+    if cfg.schedule == "calibrated" and (
+            state.iteration == cfg.iterations
+            or (cfg.recalibrate_every and state.iteration % cfg.recalibrate_every == 0)):
+        recalibrate(state, cameras, cfg)
+    _record(state.history, picks, rows, ema)
+    # frac: the rendered fraction eta of the step (not tqdm's "time remaining")
+    bar.set_postfix(loss=f"{ema['loss']:.4f}", psnr=f"{ema['psnr']:.2f}",
+                    s_v=f"{picks[-1][1]:.2f}", frac=f"{rows[len(picks) - 1][2]:.3f}", refresh=False)
+    bar.update(1)
+
+
 def fit(
     state: AdaptState,
     train_cameras,
@@ -407,8 +442,6 @@ def fit(
     bar = progress_bar(cfg.iterations, "clod-adapt", unit="it", initial=state.iteration, disable=not progress)
     ema = {"loss": None, "psnr": None}
     stop_at = cfg.iterations if max_steps is None else min(cfg.iterations, state.iteration + max_steps)
-    import contextlib
-
     if stop is None:
         ctx = StopFlag()
     else:
@@ -434,33 +467,14 @@ def fit(
             with torch.enable_grad():
                 g = state.gaussians()
             state.optimizer.zero_grad(set_to_none=True)
-            rows = {}
-            for j, (vi, s_v) in enumerate(picks):
-                if j % world != rank:
-                    continue
-                # grad on even when the caller is inside torch.no_grad() (an evaluation loop):
-                # without it the step would silently train nothing
-                with torch.enable_grad():
-                    out, loss = view_loss(g, train_cameras[vi], train_images[vi], s_v, cfg, backend)
-                    if loss.requires_grad:
-                        loss.backward()
-                rows[j] = (float(loss.detach()), psnr(out.image, train_images[vi]), float(out.eta.detach()))
-                del out, loss
+            rows = _backward_views(g, picks, train_cameras, train_images, cfg, backend, rank, world)
             if group is not None or views > 1:
                 from .distributed import combine_step
 
                 rows, agreed_stop = combine_step(state.optimizer, rows, views, group, stop=flag.stop)
             state.optimizer.step()
             state.iteration += 1
-            if cfg.schedule == "calibrated" and (
-                    state.iteration == cfg.iterations
-                    or (cfg.recalibrate_every and state.iteration % cfg.recalibrate_every == 0)):
-                recalibrate(state, train_cameras, cfg)
-            _record(state.history, picks, rows, ema)
-            # frac: the rendered fraction eta of the step (not tqdm's "time remaining")
-            bar.set_postfix(loss=f"{ema['loss']:.4f}", psnr=f"{ema['psnr']:.2f}",
-                            s_v=f"{picks[-1][1]:.2f}", frac=f"{rows[len(picks) - 1][2]:.3f}", refresh=False)
-            bar.update(1)
+            _after_step(state, train_cameras, cfg, picks, rows, ema, bar)
             if on_step is not None:
                 on_step(state)
         if stopping() and state.iteration >= stop_at:

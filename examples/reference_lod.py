@@ -1,6 +1,6 @@
 """The merge-tree drawing rule of a ``clod-adapt`` model, from ``docs/lod_rule.md`` alone: numpy and
 plyfile, no ``clod_adapter`` import. ``tests/test_tree.py`` holds the library to it, ``test_web_tree.py``
-the web page's port (``viewer/web_page/clod_tree.mjs``). A model without merged tiers: ``reference_lod_plain.py``.
+the web page's port (``export/web_page/clod_tree.mjs``). A model without merged tiers: ``reference_lod_plain.py``.
 
     python examples/reference_lod.py MODEL.ply [--s-v 2] [--budget K]   # what one camera draws
 

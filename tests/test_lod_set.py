@@ -18,7 +18,7 @@ import pytest
 from clod_adapter.export.bake import lod_set_s_vs
 from clod_adapter.cli.export import main as export_main
 from clod_adapter.io.splat_transform import SPLAT_TRANSFORM_ENV, find_splat_transform, read_info
-from clod_adapter.viewer.web import find_playcanvas, playcanvas_pose
+from clod_adapter.export.web import find_playcanvas, playcanvas_pose
 from conftest import err_line
 
 TOOL = find_splat_transform()

@@ -583,7 +583,7 @@ def test_export_carries_the_tree(tiny_adapted, tiny_model, tmp_path):
     from clod_adapter.io.load import load_scene
     from clod_adapter.lod import tree
     from clod_adapter.metrics import psnr
-    from clod_adapter.viewer.web import find_playcanvas
+    from clod_adapter.export.web import find_playcanvas
 
     g = read_ply(tiny_adapted / "point_cloud.ply")
     scene = load_scene(tiny_model["scene"])

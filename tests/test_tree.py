@@ -484,7 +484,7 @@ def test_the_web_page_of_a_tree(model, tmp_path, tiny_model):
     import json
 
     from clod_adapter.cli.export import main as export_main
-    from clod_adapter.viewer.web import find_playcanvas
+    from clod_adapter.export.web import find_playcanvas
 
     if find_playcanvas() is None:
         pytest.skip("PlayCanvas engine not found: run `npm ci` in the repository root")

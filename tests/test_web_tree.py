@@ -18,7 +18,7 @@ from clod_adapter.train import tiers
 from clod_adapter.lod import tree
 from clod_adapter.io.ply import write_ply
 from clod_adapter.io.synthetic import make_cameras
-from clod_adapter.viewer.web import TREE_STREAMS, find_playcanvas
+from clod_adapter.export.web import TREE_STREAMS, find_playcanvas
 from clod_adapter.lod.budget import Budget
 from test_tiers import _adapted
 
@@ -58,7 +58,7 @@ def tree_model():
 @needs_engine
 def test_tree_page_files(tree_model, tmp_path):
     from clod_adapter.io.ply import read_ply
-    from clod_adapter.viewer.web import write_web_viewer
+    from clod_adapter.export.web import write_web_viewer
 
     g, cams = tree_model
     names = write_web_viewer(g, tmp_path, cams, None)
@@ -84,7 +84,7 @@ def test_the_pages_rule_is_the_reference(tree_model, tmp_path):
     """clod_tree.mjs in node against examples/reference_lod.py on the same files and cameras: the
     same nodes per tier, the same s_v (a budget's to the bit), w to float32 rounding, and the kind
     of each drawn node (fading, the lead, a sibling) as the reference draws it."""
-    from clod_adapter.viewer.web import write_web_viewer
+    from clod_adapter.export.web import write_web_viewer
 
     g, cams = tree_model
     write_web_viewer(g, tmp_path / "web", cams, None)

@@ -16,7 +16,7 @@ import pytest
 import torch
 
 from clod_adapter.cli.export import main as export_main
-from clod_adapter.viewer.web import DATA_NAME, WEB_STREAMS, find_playcanvas, web_streams
+from clod_adapter.export.web import DATA_NAME, WEB_STREAMS, find_playcanvas, web_streams
 from conftest import err_line, shared_path
 
 ENGINE = find_playcanvas()
@@ -69,7 +69,7 @@ def test_static_rank_follows_the_scores():
 
 
 def test_web_without_the_engine_is_a_one_line_error(tiny_adapted, tiny_model, tmp_path, capfd, monkeypatch):
-    import clod_adapter.viewer.web as web
+    import clod_adapter.export.web as web
 
     monkeypatch.setattr(web, "find_playcanvas", lambda: None)
     out = tmp_path / "web"
@@ -235,7 +235,7 @@ def test_web_files_of_a_model_whose_tiers_are_not_linked(tmp_path):
 
     from clod_adapter.train import tiers
     from clod_adapter.io.synthetic import make_cameras
-    from clod_adapter.viewer.web import write_web_viewer
+    from clod_adapter.export.web import write_web_viewer
 
     children = _adapted(400, 0)
     g = tiers.attach(children, _adapted(60, 1), 2.0, 1.5)

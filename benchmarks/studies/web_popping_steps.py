@@ -29,7 +29,7 @@ from clod_adapter.lod.draw import render_lod
 from clod_adapter.io.load import load_model
 from clod_adapter.jobs.eval import image_change
 from clod_adapter.train.config import AdaptConfig
-from clod_adapter.viewer.web import find_playcanvas, write_web_viewer
+from clod_adapter.export.web import find_playcanvas, write_web_viewer
 
 from tests.browser import (browser_missing, chromium_driver, frame_change, open_web_viewer, serve_folder,  # noqa: E402
                      web_viewer_frame, web_viewer_popping)

@@ -98,7 +98,7 @@ def _check_tools(spz: bool, lod_dir, web_dir) -> None:
             raise InputError(f"--lod-meta: splat-transform not found; install the pinned version with `{NPM_INSTALL}` "
                              "in the repository root (or set $CLOD_SPLAT_TRANSFORM)")
     if web_dir is not None:
-        from clod_adapter.viewer.web import find_playcanvas
+        from clod_adapter.export.web import find_playcanvas
 
         if find_playcanvas() is None:
             raise InputError("--web: the PlayCanvas engine is not installed; run `npm ci` in the repository root")

@@ -1,1 +1,1 @@
-"""Writing a model out: baked levels, video, figures."""
+"""Writing a model out: baked levels, video, figures, the web page (:mod:`.web`)."""

@@ -39,7 +39,7 @@ class ExportOptions:
             None: no set).
         sog_sh_iterations: splat-transform's ``--sh-iterations`` for the LoD set (None: its
             default, 10; :func:`clod_adapter.io.splat_transform.write_lod_set`).
-        web_dir: where to write the web viewer (:func:`clod_adapter.viewer.web.write_web_viewer`;
+        web_dir: where to write the web viewer (:func:`clod_adapter.export.web.write_web_viewer`;
             None: none).
         progress: one step per phase (a tqdm bar on a terminal, else a line per phase).
         argv: the command line recorded in ``export.json`` (None: ``sys.argv``).
@@ -213,9 +213,9 @@ def _web_inputs(model, scene, test_cams, step) -> dict:
 
 
 def _write_web(model, web_dir: Path, web: dict, rep: dict) -> list[str]:
-    """The web viewer (:func:`clod_adapter.viewer.web.write_web_viewer`) into ``web_dir``;
+    """The web viewer (:func:`clod_adapter.export.web.write_web_viewer`) into ``web_dir``;
     ``rep["web"]`` says what was written. Returns the names written."""
-    from ..viewer.web import PLAYCANVAS_VERSION, write_web_viewer
+    from ..export.web import PLAYCANVAS_VERSION, write_web_viewer
 
     names = write_web_viewer(model, web_dir, web["cameras"], web["scores"])
     static = "lightgaussian significance (training views)" if web["scores"] is not None else None  # a tree: none

@@ -5,7 +5,7 @@ Core pieces (no viser needed, importable with the base install):
 * :mod:`.model`: loading the model and its trained ``max_sv`` (:func:`model_max_sv`);
 * :mod:`.cameras`: viser camera poses <-> our pinhole cameras, the start view;
 * :mod:`.selection`: what one client camera is sent at one level (:func:`view_payload`);
-* :mod:`.timing`: the estimated CPU raster time for a drawn count.
+* :mod:`.raster_time`: the estimated CPU raster time for a drawn count.
 
 :mod:`.app` (imports viser, the ``viewer`` extra) serves them: one LoD selection per connected
 browser camera.

@@ -18,6 +18,7 @@ import torch
 from torch import Tensor
 
 from clod_adapter.gaussians import Gaussians
+from clod_adapter.io.camera_pose import camera_to_world, matrix_to_quat, quat_to_matrix
 from clod_adapter.io.scene import Camera
 
 __all__ = ["ViewPose", "camera_from_pose", "pose_from_camera", "default_start_view",
@@ -40,36 +41,6 @@ class ViewPose:
     up: np.ndarray
 
 
-def _quat_to_matrix(wxyz: Sequence[float]) -> np.ndarray:
-    w, x, y, z = np.asarray(wxyz, dtype=np.float64) / max(float(np.linalg.norm(wxyz)), 1e-300)
-    return np.array([
-        [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
-        [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
-        [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
-    ])
-
-
-def _matrix_to_quat(R: np.ndarray) -> np.ndarray:
-    """wxyz (w >= 0) of a rotation matrix (Shepperd's method)."""
-    R = np.asarray(R, dtype=np.float64)
-    tr = R[0, 0] + R[1, 1] + R[2, 2]
-    if tr > 0:
-        s = 2.0 * math.sqrt(tr + 1.0)
-        q = [0.25 * s, (R[2, 1] - R[1, 2]) / s, (R[0, 2] - R[2, 0]) / s, (R[1, 0] - R[0, 1]) / s]
-    elif R[0, 0] > R[1, 1] and R[0, 0] > R[2, 2]:
-        s = 2.0 * math.sqrt(1.0 + R[0, 0] - R[1, 1] - R[2, 2])
-        q = [(R[2, 1] - R[1, 2]) / s, 0.25 * s, (R[0, 1] + R[1, 0]) / s, (R[0, 2] + R[2, 0]) / s]
-    elif R[1, 1] > R[2, 2]:
-        s = 2.0 * math.sqrt(1.0 + R[1, 1] - R[0, 0] - R[2, 2])
-        q = [(R[0, 2] - R[2, 0]) / s, (R[0, 1] + R[1, 0]) / s, 0.25 * s, (R[1, 2] + R[2, 1]) / s]
-    else:
-        s = 2.0 * math.sqrt(1.0 + R[2, 2] - R[0, 0] - R[1, 1])
-        q = [(R[1, 0] - R[0, 1]) / s, (R[0, 2] + R[2, 0]) / s, (R[1, 2] + R[2, 1]) / s, 0.25 * s]
-    q = np.asarray(q)
-    q /= np.linalg.norm(q)
-    return -q if q[0] < 0 else q
-
-
 def camera_from_pose(wxyz: Sequence[float], position: Sequence[float], fov: float, width: int,
                      height: int) -> Camera:
     """Our camera for a viser pose.
@@ -90,7 +61,7 @@ def camera_from_pose(wxyz: Sequence[float], position: Sequence[float], fov: floa
         raise ValueError(f"fov must be in (0, pi) radians, got {fov}")
     if int(width) < 1 or int(height) < 1:
         raise ValueError(f"image size must be >= 1 pixel, got {width}x{height}")
-    R = _quat_to_matrix(wxyz)
+    R = quat_to_matrix(wxyz)
     t = np.asarray(position, dtype=np.float64)
     vm = np.eye(4)
     vm[:3, :3] = R.T
@@ -106,14 +77,10 @@ def pose_from_camera(camera, look_at: Optional[Sequence[float]] = None) -> ViewP
     viser has no principal-point offset and one focal length: the pose keeps the vertical field
     of view ``2 atan(H / (2 fy))``. ``look_at`` defaults to one unit ahead of the camera.
     """
-    vm = camera.viewmat.detach().double().cpu().numpy()
-    R_wc = vm[:3, :3].T
-    pos = -R_wc @ vm[:3, 3]
-    fy = float(camera.K[1, 1])
-    fov = 2.0 * math.atan(0.5 * int(camera.height) / fy)
+    R_wc, pos, fov = camera_to_world(camera)
     fwd = R_wc[:, 2]
     la = pos + fwd if look_at is None else np.asarray(look_at, dtype=np.float64)
-    return ViewPose(_matrix_to_quat(R_wc), pos, fov, la, -R_wc[:, 1])
+    return ViewPose(matrix_to_quat(R_wc), pos, fov, la, -R_wc[:, 1])
 
 
 def robust_bounds(means: Tensor, q: float = 0.02, max_points: int = 1_000_000) -> tuple[np.ndarray, np.ndarray]:
@@ -152,7 +119,7 @@ def scene_start_view(camera, gaussians: Gaussians) -> ViewPose:
     lo, hi = robust_bounds(gaussians.means)
     centre = 0.5 * (lo + hi)
     p = pose_from_camera(camera)
-    fwd = _quat_to_matrix(p.wxyz)[:, 2]
+    fwd = quat_to_matrix(p.wxyz)[:, 2]
     depth = float((centre - p.position) @ fwd)
     p.look_at = p.position + fwd * (depth if depth > 1e-6 else 1.0)
     return p

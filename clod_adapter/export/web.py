@@ -41,7 +41,7 @@ def find_playcanvas() -> Optional[Path]:
 
 def playcanvas_pose(camera) -> dict:
     """One of our cameras (``viewmat``, ``K``, ``width``, ``height``) in PlayCanvas's terms: its
-    OpenCV pose (:func:`clod_adapter.viewer.cameras.pose_from_camera`, ``q_cv`` wxyz) turned
+    OpenCV pose (:func:`clod_adapter.io.camera_pose.camera_to_world`, ``q_cv`` wxyz) turned
     half a turn about its own x axis, ``q_cv (0, 1, 0, 0)``.
 
     Returns:
@@ -49,13 +49,13 @@ def playcanvas_pose(camera) -> dict:
         PlayCanvas ``Quat`` order), "fov": vertical field of view in degrees, "K": [fx, fy, cx, cy]
         (pixels; the page projects with them when its canvas has the camera's size)}``.
     """
-    from .cameras import pose_from_camera
+    from ..io.camera_pose import camera_to_world, matrix_to_quat
 
-    p = pose_from_camera(camera)
-    w, x, y, z = (float(v) for v in p.wxyz)
+    R_wc, position, fov = camera_to_world(camera)
+    w, x, y, z = (float(v) for v in matrix_to_quat(R_wc))
     K = camera.K
-    return {"position": [float(v) for v in p.position], "rotation": [w, z, -y, -x],
-            "fov": math.degrees(p.fov), "K": [float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2])]}
+    return {"position": [float(v) for v in position], "rotation": [w, z, -y, -x],
+            "fov": math.degrees(fov), "K": [float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2])]}
 
 
 #: the per-splat streams of ``clod.bin``, in order (each [N] float32).
@@ -195,7 +195,7 @@ def write_web_viewer(model, out_dir: Path, cameras, static_scores, *, engine: Op
     names = [MODEL_NAME, DATA_NAME]
     with atomic_write(out_dir / CONFIG_NAME, "w") as f:
         json.dump(cfg, f, indent=1)
-    page = resources.files("clod_adapter.viewer") / "web_page"
+    page = resources.files("clod_adapter.export") / "web_page"
     for name in PAGE_FILES:
         with atomic_write(out_dir / name, "wb") as f:
             f.write(page.joinpath(name).read_bytes())

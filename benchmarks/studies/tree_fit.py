@@ -27,6 +27,12 @@ printed for scale). No goal is enforced (a study: exit 0)::
         --grow none 1.25 1.1 1 --time --popping-views 7
     python -m benchmarks.studies.tree_fit --inputs skull fern maskgaussian --steps 1000 \\
         --budget-steps 0.5 --grow none 1 --free-roots 0 0.25 --time --popping-views 7
+    python -m benchmarks.studies.tree_fit --inputs fern maskgaussian skull --steps 1000 \\
+        --budget-steps 0.5 --popping-views 7 --rate 1 2 1,0.1 1,1,0.99
+    python -m benchmarks.studies.tree_fit --inputs skull --steps 250 500 750 1000 1250 1500 \\
+        --budget-steps 0.5 --popping-views 0 --rate 2 --held-out 10
+    python -m benchmarks.studies.tree_fit --inputs fern --steps 250 500 750 1000 1250 1500 \\
+        --budget-steps 0.5 --popping-views 0 --rate 2 --held-out 7
 
 ``--spread R ...`` builds the tree with each tier's hand-overs spread over a factor ``R`` of ``s_v``
 (:func:`clod_adapter.lod.tree.build`'s ``spread``; default the adaptation's ``tree_spread``),
@@ -51,6 +57,17 @@ the roots, those that leave last, free to grow (``finetune``'s ``free_roots``), 
 and bound. ``--time`` adds to each row its frame time at the
 counts splat-transform ``--decimate`` keeps at 30 / 15 / 8 % of the model, over the decimated
 model's (:func:`count_times`: 5 shuffled interleaved rounds on the validation views, 2 threads).
+
+``--rate SCALE[,FINAL[,EMA]] ...`` fits the tree with its learning rates (the official 3DGS
+rates, positions at a tenth of theirs: :func:`clod_adapter.train.tree_fit.finetune`) times
+``SCALE``, decayed log-linearly to ``FINAL`` times that at the last step, and with ``EMA`` in (0, 1)
+the model returned the exponential moving average of the trained attributes over the steps
+(``EMA`` per step) instead of their last values (:class:`RateAdam`, installed for the fit; default
+``1``: the job's fit), one row per value.
+
+``--held-out K`` fits on the fit views less every ``K``-th (from the ``K // 2``-th; the tree is
+still built on all of them) and adds to each row the mean PSNR at the same count budgets on those
+held-out training views: could a job stop its fit where the views it holds out stop gaining?
 
 ``--config KEY=VALUE ...`` takes the adaptation with those ``AdaptConfig`` settings (cached under
 their tag) instead of the defaults; ``--as-adapted`` scores it as the job fitted its tree (one row,
@@ -137,12 +154,17 @@ def scores(g, base, cams, gts, sig, n_pop: int) -> dict:
     with torch.no_grad():
         out = {"budget_pop": [popping_budget_ratio(g, base, c, sig)["ratio"] for c in cams[:n_pop]],
                "s_v_pop": [popping_ratio(g, base, c, sig)["ratio"] for c in cams[:n_pop]]}
-        for s in SHARES:
-            out[s] = statistics.mean(psnr(render_lod(g, c, budget=Budget(in_view=s)).image, gt, cap=True)
-                                     for c, gt in zip(cams, gts))
+        out.update(zip(SHARES, shares_psnr(g, cams, gts)))
         out["coarse"] = [statistics.mean(psnr(render_lod(g, c, sv).image, gt, cap=True)
                                          for c, gt in zip(cams, gts)) for sv in COARSE_S_V]
     return out
+
+
+def shares_psnr(g, cams, gts) -> list[float]:
+    """Mean PSNR of ``g`` on the views at count budgets of :data:`SHARES` of the Gaussians in view."""
+    with torch.no_grad():
+        return [statistics.mean(psnr(render_lod(g, c, budget=Budget(in_view=s)).image, gt, cap=True)
+                                for c, gt in zip(cams, gts)) for s in SHARES]
 
 
 def study(name: str, args) -> list[list]:
@@ -162,7 +184,7 @@ def study(name: str, args) -> list[list]:
             finally:
                 tree.MORPH = default_m
             row = [name, tag, f"{cfg.tree_spread:g}", f"{cfg.tree_exit_toward_parent:g}", f"{tree.HAND_OVER:g}", f"{m:g}",
-                   fitted.get("steps", "-"), f"{cfg.tree_budget_steps:g}", "full (job)",
+                   fitted.get("steps", "-"), "1,1,0", f"{cfg.tree_budget_steps:g}", "full (job)",
                    bound(cfg.tree_grow, cfg.tree_free_roots), f"{fitted.get('seconds', 0):.0f}",
                    " / ".join(f"{x:.1f}" for x in r["budget_pop"]), " / ".join(f"{x:.1f}" for x in r["s_v_pop"]),
                    *[f"{r[s]:.2f}" for s in SHARES], " / ".join(f"{x:.2f}" for x in r["coarse"])]
@@ -178,6 +200,12 @@ def study(name: str, args) -> list[list]:
         _, root, res = resolve_input(name)
         fit_scene = load_scene(root, resolution=2 * res)
         fit_cams = scene_views(fit_scene, "val")[0]
+    held = []
+    if args.held_out:
+        held = list(fit_cams)[args.held_out // 2::args.held_out]
+        fit_cams = [c for c in fit_cams if c not in held]
+        held = (held, [fit_scene.load_image(c) for c in held])
+        print(f"[{name}] fitting on {len(fit_cams)} views, {len(held[0])} held out", flush=True)
     fit_imgs = [fit_scene.load_image(c) for c in fit_cams]
     sig = lightgaussian_significance(base, fit)
     rows = []
@@ -191,32 +219,37 @@ def study(name: str, args) -> list[list]:
                 try:
                     rows += fit_rows(name, tag, built, base, (fit_cams, fit_imgs), (val, gts), sig, cfg, args,
                                      (cfg.tree_spread if spread is None else spread,
-                                      cfg.tree_exit_toward_parent if b is None else b))
+                                      cfg.tree_exit_toward_parent if b is None else b), held)
                 finally:
                     tree.HAND_OVER, tree.MORPH = default, default_m
     return rows
 
 
-def fit_rows(name, tag, built, base, fit_views, val_views, sig, cfg: AdaptConfig, args, built_with) -> list[list]:
-    """One row per ``--steps`` and ``--grow`` value: ``built`` (with ``built_with``: its spread and
-    exit share) fitted that long on ``fit_views`` (cameras, images) and scored on ``val_views``;
-    with ``--time``, each row ends with its time at the decimator's counts (:func:`count_times`)."""
+def fit_rows(name, tag, built, base, fit_views, val_views, sig, cfg: AdaptConfig, args, built_with,
+             held=()) -> list[list]:
+    """One row per ``--steps``, ``--rate`` and ``--grow`` value: ``built`` (with ``built_with``: its
+    spread and exit share) fitted that long on ``fit_views`` (cameras, images) and scored on
+    ``val_views``; with ``held`` (held-out training cameras, images), each row ends with the mean
+    PSNR at :data:`SHARES` on them; with ``--time``, with its time at the decimator's counts
+    (:func:`count_times`)."""
     (fit_cams, fit_imgs), (val, gts) = fit_views, val_views
     rows, fitted = [], []
-    for n in args.steps:
+    for n, rate in ((n, r) for n in args.steps for r in args.rate or [(1.0, 1.0, 0.0)]):
         for grow, free in dict.fromkeys((gr, fr if gr is not None else 0.0) for gr in args.grow or [cfg.tree_grow]
                                         for fr in args.free_roots or [cfg.tree_free_roots]):  # unbounded: none free
             t = time.perf_counter()
-            g = finetune(built, fit_cams, fit_imgs, n, background=cfg.background, seed=cfg.seed,
-                         budget_steps=args.budget_steps, grow=grow, free_roots=free)
+            g = fit_at_rate(rate, built, fit_cams, fit_imgs, n, background=cfg.background, seed=cfg.seed,
+                            budget_steps=args.budget_steps, grow=grow, free_roots=free)
             sec = time.perf_counter() - t
             r = scores(g, base, val, gts, sig, args.popping_views)
             row = [name, tag, *(f"{x:g}" for x in built_with), f"{tree.HAND_OVER:g}", f"{tree.MORPH:g}",
-                   n, f"{args.budget_steps:g}", "half" if args.half else "full",
+                   n, ",".join(f"{x:g}" for x in rate), f"{args.budget_steps:g}", "half" if args.half else "full",
                    bound(grow, free),
                    f"{sec:.0f}", " / ".join(f"{x:.1f}" for x in r["budget_pop"]),
                    " / ".join(f"{x:.1f}" for x in r["s_v_pop"]), *[f"{r[s]:.2f}" for s in SHARES],
                    " / ".join(f"{x:.2f}" for x in r["coarse"])]
+            if held:
+                row.append(" / ".join(f"{x:.2f}" for x in shares_psnr(g, *held)))
             print(" | ".join(map(str, row)), flush=True)
             rows.append(row)
             fitted.append(g)
@@ -224,6 +257,67 @@ def fit_rows(name, tag, built, base, fit_views, val_views, sig, cfg: AdaptConfig
         for row, ratios in zip(rows, count_times(fitted, base, val)):
             row.append(" / ".join(f"{x:.2f}" for x in ratios))
     return rows
+
+
+class RateAdam(torch.optim.Adam):
+    """``torch.optim.Adam`` as :func:`clod_adapter.train.tree_fit.finetune` builds it, its rates
+    times ``SCALE`` decayed log-linearly to ``FINAL`` times that over ``STEPS`` steps, keeping the
+    exponential moving average ``EMA`` (0: none) of its parameters in ``averages`` (class settings,
+    set by :func:`fit_at_rate`; the last instance built is ``RateAdam.last``)."""
+
+    SCALE, FINAL, EMA, STEPS, last = 1.0, 1.0, 0.0, 1, None
+
+    def __init__(self, params, **kw):
+        super().__init__(params, **kw)
+        self.base_lr = [g["lr"] * self.SCALE for g in self.param_groups]
+        self.done = 0
+        self.averages = [[p.detach().clone() for p in g["params"]] for g in self.param_groups] if self.EMA else None
+        RateAdam.last = self
+
+    def step(self, closure=None):
+        for g, lr in zip(self.param_groups, self.base_lr):
+            g["lr"] = lr * self.FINAL ** (self.done / max(self.STEPS - 1, 1))
+        out = super().step(closure)
+        self.done += 1
+        if self.averages is not None:
+            with torch.no_grad():
+                for g, avg in zip(self.param_groups, self.averages):
+                    for p, a in zip(g["params"], avg):
+                        a.mul_(self.EMA).add_(p.detach(), alpha=1.0 - self.EMA)
+        return out
+
+
+def fit_at_rate(rate: tuple, built, fit_cams, fit_imgs, n: int, **kw):
+    """:func:`finetune` of ``built`` for ``n`` steps with :class:`RateAdam` at ``rate`` (scale,
+    final, ema) in place of its Adam; with an ``ema``, the returned model holds the averages (the
+    returned tensors share the trained parameters' storage, which is checked)."""
+    import clod_adapter.train.tree_fit as tf
+
+    scale, final, ema = rate
+    RateAdam.SCALE, RateAdam.FINAL, RateAdam.EMA, RateAdam.STEPS, RateAdam.last = scale, final, ema, n, None
+    real, tf.torch.optim.Adam = tf.torch.optim.Adam, RateAdam
+    try:
+        g = finetune(built, fit_cams, fit_imgs, n, **kw)
+    finally:
+        tf.torch.optim.Adam = real
+    opt = RateAdam.last
+    if ema and opt is not None:
+        mine = {p.data_ptr() for grp in opt.param_groups for p in grp["params"]}
+        if tree.tiers_of(g)[1].means.data_ptr() not in mine:
+            raise RuntimeError("fit_at_rate: the fitted model does not share the parameters' storage")
+        with torch.no_grad():
+            for grp, avg in zip(opt.param_groups, opt.averages):
+                for p, a in zip(grp["params"], avg):
+                    p.copy_(a)
+    return g
+
+
+def parse_rate(v: str) -> tuple:
+    """``SCALE[,FINAL[,EMA]]`` -> (scale, final, ema)."""
+    x = [float(a) for a in v.split(",")]
+    if not 1 <= len(x) <= 3:
+        raise argparse.ArgumentTypeError(f"--rate takes SCALE[,FINAL[,EMA]], got {v!r}")
+    return tuple(x + [1.0, 0.0][len(x) - 1:])
 
 
 def bound(grow, free: float) -> str:
@@ -278,15 +372,22 @@ def main(argv=None) -> int:
     ap.add_argument("--free-roots", type=float, nargs="+",
                     help="with --grow, the share of the roots (by exit, the last to leave) left free to grow "
                          "(default: the adaptation's tree_free_roots)")
+    ap.add_argument("--rate", type=parse_rate, nargs="+", metavar="SCALE[,FINAL[,EMA]]",
+                    help="the fit's learning rates times SCALE, decayed to FINAL times that at the last step, "
+                         "the moving average EMA per step returned (default 1: the job's fit)")
+    ap.add_argument("--held-out", type=int, default=0, metavar="K",
+                    help="fit without every K-th fit view and score each row on those views too")
     ap.add_argument("--time", action="store_true",
                     help="also time each fit at --decimate's counts against the decimated models")
     args = ap.parse_args(argv)
     setup_threads(args.threads)
     rows = [r for name in selected_inputs(args) for r in study(name, args)]
-    head = ["input", "adaptation", "spread", "exit b", "F", "M", "steps", "budget steps", "resolution",
+    head = ["input", "adaptation", "spread", "exit b", "F", "M", "steps", "rate, final, ema", "budget steps", "resolution",
             "grow", "fit s", "popping along budgets", "popping along s_v",
             *[f"PSNR {int(100 * s)} % in view" for s in SHARES],
             "PSNR at s_v " + " / ".join(f"{x:g}" for x in COARSE_S_V)]
+    if args.held_out and not args.as_adapted:
+        head.append("held-out training views: PSNR at " + " / ".join(f"{100 * s:g}" for s in SHARES) + " % in view")
     if args.time and not args.as_adapted:
         head.append("time at --decimate's count "
                     + " / ".join(f"{100 * s:g} %" for s in COUNT_SHARES))
@@ -299,7 +400,9 @@ def main(argv=None) -> int:
                + ("_M" + "-".join(f"{x:g}" for x in args.morph) if args.morph else "")
                + ("_b" + "-".join(f"{x:g}" for x in args.exit_toward_parent) if args.exit_toward_parent else "")
                + ("_grow" + "-".join("none" if x is None else f"{x:g}" for x in args.grow) if args.grow else "")
-               + ("_free" + "-".join(f"{x:g}" for x in args.free_roots) if args.free_roots else "")))
+               + ("_free" + "-".join(f"{x:g}" for x in args.free_roots) if args.free_roots else "")
+               + ("_rate" + "-".join(",".join(f"{x:g}" for x in r) for r in args.rate) if args.rate else "")
+               + (f"_heldout{args.held_out}" if args.held_out else "")))
     print(text)
     print(write_summary(name, text))
     return 0

@@ -31,6 +31,8 @@ printed for scale). No goal is enforced (a study: exit 0)::
         --budget-steps 0.5 --popping-views 7 --rate 1 2 1,0.1 1,1,0.99
     python -m benchmarks.studies.tree_fit --inputs skull --steps 250 500 750 1000 1250 1500 \\
         --budget-steps 0.5 --popping-views 0 --rate 2 --held-out 10
+    python -m benchmarks.studies.tree_fit --inputs skull fern maskgaussian --steps 1000 \\
+        --budget-steps 0.5 --popping-views 7 --lead centre
     python -m benchmarks.studies.tree_fit --inputs fern --steps 250 500 750 1000 1250 1500 \\
         --budget-steps 0.5 --popping-views 0 --rate 2 --held-out 7
 
@@ -69,6 +71,11 @@ the model returned the exponential moving average of the trained attributes over
 still built on all of them) and adds to each row the mean PSNR at the same count budgets on those
 held-out training views: could a job stop its fit where the views it holds out stop gaining?
 
+``--lead centre`` builds, fits and draws the tree with each parent's lead (the child that turns
+into it, docs/lod_rule.md step 3) the child nearest its family's mass-weighted centre (the mass
+``sigmoid(opacity) s0 s1 s2``; ties: the first row) instead of the child of largest mass
+(:func:`centre_leads`, installed as ``lod.tree.leads`` for the run; default ``mass``, the rule).
+
 ``--config KEY=VALUE ...`` takes the adaptation with those ``AdaptConfig`` settings (cached under
 their tag) instead of the defaults; ``--as-adapted`` scores it as the job fitted its tree (one row,
 no fit here).
@@ -80,6 +87,8 @@ cores) unless cached, then about 2 minutes per setting plus the fit.
 from __future__ import annotations
 
 import argparse
+import contextlib
+import math
 import random
 import statistics
 import time
@@ -93,7 +102,8 @@ from benchmarks.common import (add_inputs_args, adapt_cached, load_input, metric
 from clod_adapter.evaluate.popping import popping_budget_ratio, popping_ratio
 from clod_adapter.io.load import load_model, load_scene
 from clod_adapter.io.ply import read_ply
-from clod_adapter.lod import tree
+from clod_adapter.gaussians import Gaussians
+from clod_adapter.lod import rule as lod_rule, tree
 from clod_adapter.lod.budget import Budget
 from clod_adapter.lod.draw import render_lod
 from clod_adapter.lod.rankings import lightgaussian_significance
@@ -312,6 +322,39 @@ def fit_at_rate(rate: tuple, built, fit_cams, fit_imgs, n: int, **kw):
     return g
 
 
+def centre_leads(tier: Gaussians) -> torch.Tensor:
+    """[N] bool, ``lod.tree.leads`` with each family's lead the child nearest the family's
+    mass-weighted centre (``--lead centre``; the family: the children of one parent,
+    ``extra["parent"]``). Cached per parent-index tensor, as the rule's."""
+    def make(p: torch.Tensor) -> torch.Tensor:
+        p = p.long()
+        n = int(p.max()) + 1 if p.numel() else 0
+        mass = torch.sigmoid(tier.opacity_logits.detach().double()) * torch.exp(tier.log_scales.detach().double().sum(-1))
+        mu = tier.means.detach().double()
+        centre = torch.zeros(n, 3, dtype=torch.float64, device=p.device).index_add_(0, p, mu * mass[:, None])
+        centre = centre / torch.zeros(n, dtype=torch.float64, device=p.device).index_add_(0, p, mass).clamp_min(1e-300)[:, None]
+        d = (mu - centre[p]).norm(dim=-1)
+        top = torch.full((n,), math.inf, dtype=torch.float64, device=p.device).scatter_reduce(0, p, d, reduce="amin")
+        rows = torch.arange(len(p), device=p.device)
+        cand = d == top[p]
+        first = torch.full_like(top, float(len(p))).scatter_reduce(0, p[cand], rows[cand].double(), reduce="amin")
+        return rows == first[p].long()
+
+    return lod_rule.cached_value(tier.extra[tree.PARENT_KEY], "tree_leads_centre", make)
+
+
+@contextlib.contextmanager
+def lead_rule(lead: str):
+    """``lod.tree.leads`` as ``--lead`` says for the run (``mass``: the rule's), restored on exit."""
+    rule = tree.leads
+    if lead == "centre":
+        tree.leads = centre_leads
+    try:
+        yield
+    finally:
+        tree.leads = rule
+
+
 def parse_rate(v: str) -> tuple:
     """``SCALE[,FINAL[,EMA]]`` -> (scale, final, ema)."""
     x = [float(a) for a in v.split(",")]
@@ -375,13 +418,16 @@ def main(argv=None) -> int:
     ap.add_argument("--rate", type=parse_rate, nargs="+", metavar="SCALE[,FINAL[,EMA]]",
                     help="the fit's learning rates times SCALE, decayed to FINAL times that at the last step, "
                          "the moving average EMA per step returned (default 1: the job's fit)")
+    ap.add_argument("--lead", choices=("mass", "centre"), default="mass",
+                    help="each parent's lead child: the largest mass (the rule) or the nearest its family's centre")
     ap.add_argument("--held-out", type=int, default=0, metavar="K",
                     help="fit without every K-th fit view and score each row on those views too")
     ap.add_argument("--time", action="store_true",
                     help="also time each fit at --decimate's counts against the decimated models")
     args = ap.parse_args(argv)
     setup_threads(args.threads)
-    rows = [r for name in selected_inputs(args) for r in study(name, args)]
+    with lead_rule(args.lead):
+        rows = [r for name in selected_inputs(args) for r in study(name, args)]
     head = ["input", "adaptation", "spread", "exit b", "F", "M", "steps", "rate, final, ema", "budget steps", "resolution",
             "grow", "fit s", "popping along budgets", "popping along s_v",
             *[f"PSNR {int(100 * s)} % in view" for s in SHARES],
@@ -402,7 +448,8 @@ def main(argv=None) -> int:
                + ("_grow" + "-".join("none" if x is None else f"{x:g}" for x in args.grow) if args.grow else "")
                + ("_free" + "-".join(f"{x:g}" for x in args.free_roots) if args.free_roots else "")
                + ("_rate" + "-".join(",".join(f"{x:g}" for x in r) for r in args.rate) if args.rate else "")
-               + (f"_heldout{args.held_out}" if args.held_out else "")))
+               + (f"_heldout{args.held_out}" if args.held_out else "")
+               + ("_lead-centre" if args.lead == "centre" else "")))
     print(text)
     print(write_summary(name, text))
     return 0

@@ -31,10 +31,10 @@ printed for scale). No goal is enforced (a study: exit 0)::
         --budget-steps 0.5 --popping-views 7 --rate 1 2 1,0.1 1,1,0.99
     python -m benchmarks.studies.tree_fit --inputs skull --steps 250 500 750 1000 1250 1500 \\
         --budget-steps 0.5 --popping-views 0 --rate 2 --held-out 10
-    python -m benchmarks.studies.tree_fit --inputs skull fern maskgaussian --steps 1000 \\
-        --budget-steps 0.5 --popping-views 7 --lead centre
     python -m benchmarks.studies.tree_fit --inputs fern --steps 250 500 750 1000 1250 1500 \\
         --budget-steps 0.5 --popping-views 0 --rate 2 --held-out 7
+    python -m benchmarks.studies.tree_fit --inputs skull fern maskgaussian --steps 1000 \\
+        --budget-steps 0.5 --popping-views 7 --lead centre
 
 ``--spread R ...`` builds the tree with each tier's hand-overs spread over a factor ``R`` of ``s_v``
 (:func:`clod_adapter.lod.tree.build`'s ``spread``; default the adaptation's ``tree_spread``),

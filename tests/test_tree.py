@@ -137,8 +137,9 @@ def test_render_lod_draws_the_cut_and_lod_subset_matches(model):
                             cam.K[None], cam.width, cam.height, sh_degree=g.sh_degree)[0][0]
         assert torch.allclose(img, r.image, atol=1e-5)
     rb = render_lod(g, cam, budget=Budget(count=200))
-    tt = tree.terms(tree.tiers_of(g), cam)
-    c = tree.cut(tree.tiers_of(g), cam, rb.s_v, tt=tt)
+    ts = tree.tiers_of(g)
+    tt = tree.terms(ts, cam, at=tree.budget_frame(ts, cam))  # a budget's cut: every node at its d_ref (step 6)
+    c = tree.cut(ts, cam, rb.s_v, tt=tt)
     assert rb.s_v > 1.0 and sum(int(f[i].sum()) for f, i in zip(tt.frustum, c.ids)) <= 200
 
 

@@ -425,6 +425,8 @@ def main(argv=None) -> int:
     ap.add_argument("--time", action="store_true",
                     help="also time each fit at --decimate's counts against the decimated models")
     args = ap.parse_args(argv)
+    if args.as_adapted and (args.rate or args.held_out or args.lead != "mass"):
+        ap.error("--as-adapted scores the job's own tree and fit: --rate, --held-out and --lead refit or rebuild it")
     setup_threads(args.threads)
     with lead_rule(args.lead):
         rows = [r for name in selected_inputs(args) for r in study(name, args)]

@@ -93,12 +93,11 @@ def budget_s_v(tiers, E, U, viewmat, K, width, height, k):
 
 
 def leads(t, n_parents):
-    """Step 5's lead child of each parent: the largest ``a s0 s1 s2``, ties the first row."""
-    mass, rows, p = t["opacity"] * np.exp(t["log_scales"].sum(1)), np.arange(len(t["parent"])), t["parent"]
-    top, first = np.full(n_parents, -1.0), np.full(n_parents, len(p))
-    np.maximum.at(top, p, mass)
-    np.minimum.at(first, p[mass == top[p]], rows[mass == top[p]])
-    return rows == first[p]
+    """Step 3's lead: the child nearest its family's centre weighted by ``a s0 s1 s2``, ties the first row."""
+    p, mu, mass = t["parent"], t["means"], t["opacity"] * np.exp(t["log_scales"].sum(1))
+    c = np.stack([np.bincount(p, mass * x, n_parents) for x in mu.T], 1) / np.bincount(p, mass, n_parents)[:, None]
+    order = np.lexsort((np.arange(len(p)), np.linalg.norm(mu - c[p], axis=1), p))  # by parent, distance, row
+    return np.isin(np.arange(len(p)), order[np.r_[True, p[order][1:] != p[order][:-1]]])
 
 
 def draw(tiers, viewmat, K, width, height, s_v=None, budget=None) -> dict:

@@ -662,16 +662,22 @@ def _quat_lerp(q: Tensor, qp: Tensor, t: Tensor) -> Tensor:
 
 
 def leads(tier: Gaussians) -> Tensor:
-    """[N] bool: the child that becomes its parent at the switch, one per parent: the largest mass
-    ``sigmoid(opacity) s0 s1 s2`` among the children of its parent (ties: the first row). Cached
-    per parent-index tensor."""
+    """[N] bool: the child that becomes its parent at the switch, one per parent: the child nearest
+    (Euclidean) the centre of its parent's children weighted by their mass ``sigmoid(opacity) s0
+    s1 s2`` (the moment-matched centre of the family; ties: the first row), the one with the least
+    far to go (docs/studies.md "Which child turns into its parent"). Cached per parent-index tensor."""
     def make(p: Tensor) -> Tensor:
         p = p.long()
+        n = int(p.max()) + 1 if p.numel() else 0
         mass = torch.sigmoid(tier.opacity_logits.detach().double()) * torch.exp(
             tier.log_scales.detach().double().sum(-1))
-        top = torch.full((int(p.max()) + 1 if p.numel() else 0,), -1.0, dtype=torch.float64, device=p.device)
-        top = top.scatter_reduce(0, p, mass, reduce="amax", include_self=True)
-        cand = mass == top[p]
+        mu = tier.means.detach().double()
+        centre = torch.zeros(n, 3, dtype=torch.float64, device=p.device).index_add_(0, p, mu * mass[:, None])
+        weight = torch.zeros(n, dtype=torch.float64, device=p.device).index_add_(0, p, mass)
+        d = torch.linalg.vector_norm(mu - (centre / weight[:, None].clamp_min(1e-300))[p], dim=-1)
+        top = torch.full((n,), math.inf, dtype=torch.float64, device=p.device)
+        top = top.scatter_reduce(0, p, d, reduce="amin", include_self=True)
+        cand = d == top[p]
         rows = torch.arange(len(p), device=p.device)
         first = torch.full_like(top, float(len(p))).scatter_reduce(0, p[cand], rows[cand].double(), reduce="amin",
                                                                     include_self=True)

@@ -120,17 +120,23 @@ export function budgetSv(tr, tt, k) {
     return uniq[first];
 }
 
-// step 5's lead child of each parent: the largest a s0 s1 s2, ties the first row ([N] 1/0; the
-// last tier 0)
+// step 3's lead child of each parent: the child nearest its family's centre weighted by a s0 s1 s2,
+// ties the first row ([N] 1/0; the last tier 0)
 export function leads(tr) {
-    const { N, T, off, parent, opacity, logScales: [l0, l1, l2] } = tr;
-    const rows = off[T], mass = new Float64Array(rows);
-    const top = new Float64Array(N).fill(-1.0), first = new Int32Array(N).fill(N), out = new Uint8Array(N);
+    const { N, T, off, parent, opacity, x, y, z, logScales: [l0, l1, l2] } = tr;
+    const rows = off[T], mass = new Float64Array(rows), dist = new Float64Array(rows);
+    const cx = new Float64Array(N), cy = new Float64Array(N), cz = new Float64Array(N), w = new Float64Array(N);
+    const top = new Float64Array(N).fill(Infinity), first = new Int32Array(N).fill(N), out = new Uint8Array(N);
     for (let i = 0; i < rows; i++) {
-        mass[i] = opacity[i] * Math.exp(l0[i] + l1[i] + l2[i]);
-        top[parent[i]] = Math.max(top[parent[i]], mass[i]);
+        const p = parent[i], m = (mass[i] = opacity[i] * Math.exp(l0[i] + l1[i] + l2[i]));
+        cx[p] += m * x[i]; cy[p] += m * y[i]; cz[p] += m * z[i]; w[p] += m;
     }
-    for (let i = 0; i < rows; i++) if (mass[i] === top[parent[i]]) first[parent[i]] = Math.min(first[parent[i]], i);
+    for (let i = 0; i < rows; i++) {
+        const p = parent[i], ww = Math.max(w[p], 1e-300);
+        dist[i] = Math.hypot(x[i] - cx[p] / ww, y[i] - cy[p] / ww, z[i] - cz[p] / ww);
+        top[p] = Math.min(top[p], dist[i]);
+    }
+    for (let i = 0; i < rows; i++) if (dist[i] === top[parent[i]]) first[parent[i]] = Math.min(first[parent[i]], i);
     for (let i = 0; i < rows; i++) out[i] = first[parent[i]] === i ? 1 : 0;
     return out;
 }

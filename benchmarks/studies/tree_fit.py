@@ -34,7 +34,7 @@ printed for scale). No goal is enforced (a study: exit 0)::
     python -m benchmarks.studies.tree_fit --inputs fern --steps 250 500 750 1000 1250 1500 \\
         --budget-steps 0.5 --popping-views 0 --rate 2 --held-out 7
     python -m benchmarks.studies.tree_fit --inputs skull fern maskgaussian --steps 1000 \\
-        --budget-steps 0.5 --popping-views 7 --lead centre
+        --budget-steps 0.5 --popping-views 7 --lead mass
 
 ``--spread R ...`` builds the tree with each tier's hand-overs spread over a factor ``R`` of ``s_v``
 (:func:`clod_adapter.lod.tree.build`'s ``spread``; default the adaptation's ``tree_spread``),
@@ -71,10 +71,10 @@ the model returned the exponential moving average of the trained attributes over
 still built on all of them) and adds to each row the mean PSNR at the same count budgets on those
 held-out training views: could a job stop its fit where the views it holds out stop gaining?
 
-``--lead centre`` builds, fits and draws the tree with each parent's lead (the child that turns
-into it, docs/lod_rule.md step 3) the child nearest its family's mass-weighted centre (the mass
-``sigmoid(opacity) s0 s1 s2``; ties: the first row) instead of the child of largest mass
-(:func:`centre_leads`, installed as ``lod.tree.leads`` for the run; default ``mass``, the rule).
+``--lead mass`` builds, fits and draws the tree with each parent's lead (the child that turns
+into it, docs/lod_rule.md step 3) the child of largest mass ``sigmoid(opacity) s0 s1 s2`` (ties:
+the first row) instead of the child nearest its family's mass-weighted centre
+(:func:`mass_leads`, installed as ``lod.tree.leads`` for the run; default ``centre``, the rule).
 
 ``--config KEY=VALUE ...`` takes the adaptation with those ``AdaptConfig`` settings (cached under
 their tag) instead of the defaults; ``--as-adapted`` scores it as the job fitted its tree (one row,
@@ -88,7 +88,6 @@ from __future__ import annotations
 
 import argparse
 import contextlib
-import math
 import random
 import statistics
 import time
@@ -322,33 +321,29 @@ def fit_at_rate(rate: tuple, built, fit_cams, fit_imgs, n: int, **kw):
     return g
 
 
-def centre_leads(tier: Gaussians) -> torch.Tensor:
-    """[N] bool, ``lod.tree.leads`` with each family's lead the child nearest the family's
-    mass-weighted centre (``--lead centre``; the family: the children of one parent,
-    ``extra["parent"]``). Cached per parent-index tensor, as the rule's."""
+def mass_leads(tier: Gaussians) -> torch.Tensor:
+    """[N] bool, ``lod.tree.leads`` with each family's lead the child of largest mass
+    ``sigmoid(opacity) s0 s1 s2`` (``--lead mass``; the family: the children of one parent,
+    ``extra["parent"]``; ties: the first row). Cached per parent-index tensor, as the rule's."""
     def make(p: torch.Tensor) -> torch.Tensor:
         p = p.long()
         n = int(p.max()) + 1 if p.numel() else 0
         mass = torch.sigmoid(tier.opacity_logits.detach().double()) * torch.exp(tier.log_scales.detach().double().sum(-1))
-        mu = tier.means.detach().double()
-        centre = torch.zeros(n, 3, dtype=torch.float64, device=p.device).index_add_(0, p, mu * mass[:, None])
-        centre = centre / torch.zeros(n, dtype=torch.float64, device=p.device).index_add_(0, p, mass).clamp_min(1e-300)[:, None]
-        d = (mu - centre[p]).norm(dim=-1)
-        top = torch.full((n,), math.inf, dtype=torch.float64, device=p.device).scatter_reduce(0, p, d, reduce="amin")
+        top = torch.full((n,), -1.0, dtype=torch.float64, device=p.device).scatter_reduce(0, p, mass, reduce="amax")
         rows = torch.arange(len(p), device=p.device)
-        cand = d == top[p]
+        cand = mass == top[p]
         first = torch.full_like(top, float(len(p))).scatter_reduce(0, p[cand], rows[cand].double(), reduce="amin")
         return rows == first[p].long()
 
-    return lod_rule.cached_value(tier.extra[tree.PARENT_KEY], "tree_leads_centre", make)
+    return lod_rule.cached_value(tier.extra[tree.PARENT_KEY], "tree_leads_mass", make)
 
 
 @contextlib.contextmanager
 def lead_rule(lead: str):
-    """``lod.tree.leads`` as ``--lead`` says for the run (``mass``: the rule's), restored on exit."""
+    """``lod.tree.leads`` as ``--lead`` says for the run (``centre``: the rule's), restored on exit."""
     rule = tree.leads
-    if lead == "centre":
-        tree.leads = centre_leads
+    if lead == "mass":
+        tree.leads = mass_leads
     try:
         yield
     finally:
@@ -418,14 +413,14 @@ def main(argv=None) -> int:
     ap.add_argument("--rate", type=parse_rate, nargs="+", metavar="SCALE[,FINAL[,EMA]]",
                     help="the fit's learning rates times SCALE, decayed to FINAL times that at the last step, "
                          "the moving average EMA per step returned (default 1: the job's fit)")
-    ap.add_argument("--lead", choices=("mass", "centre"), default="mass",
-                    help="each parent's lead child: the largest mass (the rule) or the nearest its family's centre")
+    ap.add_argument("--lead", choices=("centre", "mass"), default="centre",
+                    help="each parent's lead child: the nearest its family's centre (the rule) or the largest mass")
     ap.add_argument("--held-out", type=int, default=0, metavar="K",
                     help="fit without every K-th fit view and score each row on those views too")
     ap.add_argument("--time", action="store_true",
                     help="also time each fit at --decimate's counts against the decimated models")
     args = ap.parse_args(argv)
-    if args.as_adapted and (args.rate or args.held_out or args.lead != "mass"):
+    if args.as_adapted and (args.rate or args.held_out or args.lead != "centre"):
         ap.error("--as-adapted scores the job's own tree and fit: --rate, --held-out and --lead refit or rebuild it")
     setup_threads(args.threads)
     with lead_rule(args.lead):
@@ -451,7 +446,7 @@ def main(argv=None) -> int:
                + ("_free" + "-".join(f"{x:g}" for x in args.free_roots) if args.free_roots else "")
                + ("_rate" + "-".join(",".join(f"{x:g}" for x in r) for r in args.rate) if args.rate else "")
                + (f"_heldout{args.held_out}" if args.held_out else "")
-               + ("_lead-centre" if args.lead == "centre" else "")))
+               + ("_lead-mass" if args.lead == "mass" else "")))
     print(text)
     print(write_summary(name, text))
     return 0

@@ -21,9 +21,9 @@ Per camera (:func:`terms`, :func:`cut`), with ``F`` = :data:`HAND_OVER`:
    at least a factor ``F`` of ``s_v`` before its parent takes over, and ``s_v = 1`` is tier 0
    whole. Tier 0 enters at 0.
 3. A node is drawn at ``s_v`` iff ``E_i <= s_v < U_i``, its end ``U_i`` its parent's entry ``E_p``
-   for the parent's *lead* child (:func:`leads`, the most massive), the smaller of ``E_p`` and its
-   own exit ``X_i = max(x_i / d'_i, F max(E_i, 1))`` for the others (``x_i``, ``extra["exit"]``),
-   ``X_i`` in the last tier. No path crosses the cut twice.
+   for the parent's *lead* child (:func:`leads`, the one nearest the family's centre), the
+   smaller of ``E_p`` and its own exit ``X_i = max(x_i / d'_i, F max(E_i, 1))`` for the others
+   (``x_i``, ``extra["exit"]``), ``X_i`` in the last tier. No path crosses the cut twice.
 4. A drawn node at ``t = clamp(ln(U_i / s_v) / ln min(M, U_i / max(E_i, 1)), 0, 1)`` (``M`` =
    :data:`MORPH`: it changes over the last factor ``M`` of its interval, or all of a shorter one)
    whose end is its own exit *leaves*:

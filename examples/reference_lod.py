@@ -74,7 +74,7 @@ def terms(tiers, viewmat, K, width, height, ref=False):
             U.append(X)
             fade.append(np.ones(len(X), bool))
         else:
-            f = ~leads(t, len(tiers[k + 1]["means"])) & (X < E[k + 1][t["parent"]])
+            f = X < E[k + 1][t["parent"]]  # a lead's exit is +inf: it hands over
             U.append(np.where(f, X, E[k + 1][t["parent"]]))
             fade.append(f)
     return E, U, fade
@@ -90,14 +90,6 @@ def budget_s_v(tiers, E, U, viewmat, K, width, height, k):
     count = np.cumsum(np.bincount(inv, weights=np.concatenate([np.ones(len(lo)), -np.ones(len(hi)), [0.0]])))
     ok = np.flatnonzero(np.maximum.accumulate(count[::-1])[::-1] <= k)
     return float(uniq[ok[0]]) if ok.size else float(uniq[-1])
-
-
-def leads(t, n_parents):
-    """Step 3's lead: the child nearest its family's centre weighted by ``a s0 s1 s2``, ties the first row."""
-    p, mu, mass = t["parent"], t["means"], t["opacity"] * np.exp(t["log_scales"].sum(1))
-    c = np.stack([np.bincount(p, mass * x, n_parents) for x in mu.T], 1) / np.bincount(p, mass, n_parents)[:, None]
-    order = np.lexsort((np.arange(len(p)), np.linalg.norm(mu - c[p], axis=1), p))  # by parent, distance, row
-    return np.isin(np.arange(len(p)), order[np.r_[True, p[order][1:] != p[order][:-1]]])
 
 
 def draw(tiers, viewmat, K, width, height, s_v=None, budget=None) -> dict:
@@ -117,7 +109,7 @@ def draw(tiers, viewmat, K, width, height, s_v=None, budget=None) -> dict:
             q = q / np.linalg.norm(q, axis=1, keepdims=True)
             qp = par["quats"][p] / np.linalg.norm(par["quats"][p], axis=1, keepdims=True)
             qp = np.where((q * qp).sum(1, keepdims=True) < 0, -qp, qp)
-            wc, lead = wh[:, None], leads(t, len(par["means"]))[i]
+            wc, lead = wh[:, None], np.isposinf(t["exit"][i])  # step 3's lead: its exit is +inf
             lc = lead[:, None]  # the lead grows into its parent; its siblings shrink and fade where they are
             mu = np.where(lc, wc * mu + (1 - wc) * par["means"][p], mu)
             ls = np.where(lc, wc * ls + (1 - wc) * par["log_scales"][p], ls + np.log(np.maximum(wc, 1e-4)))

@@ -52,6 +52,70 @@ def test_the_tree_is_whole(model):
     assert _adapted(60, 3).has_gains and not any(t.has_gains for t in ts)
 
 
+def _with_exits(g, fn):
+    """``g`` with each tier's exit but the last's replaced by ``fn(k, tier, exit)``."""
+    ts = tree.tiers_of(g)
+    return tree.linked([replace(t, extra={**t.extra, tree.EXIT_KEY: fn(k, t, t.extra[tree.EXIT_KEY])})
+                        if k + 1 < len(ts) else t for k, t in enumerate(ts)])
+
+
+def test_each_parent_has_one_lead_marked_and_the_fit_and_file_keep_it(model, tmp_path):
+    """tree.build marks one child of each parent, its lead, by an exit of +inf, the build's choice
+    (tree.choose_leads: the child nearest its family's mass-weighted centre); the fit moves the
+    children but not the marks, and the file keeps them, so every consumer draws the lead the fit
+    trained."""
+    from clod_adapter.train.tree_fit import finetune
+
+    g, _ = model
+    ts = tree.tiers_of(g)
+    for below, above in zip(ts, ts[1:]):
+        lead = tree.leads(below)
+        assert torch.equal(lead, torch.isposinf(below.extra[tree.EXIT_KEY]))
+        assert torch.equal(lead, tree.choose_leads(below))
+        assert bool((torch.bincount(below.extra["parent"].long()[lead], minlength=len(above)) == 1).all())
+        assert bool(torch.isfinite(below.extra[tree.EXIT_KEY][~lead]).all())
+    assert bool(torch.isfinite(ts[-1].extra[tree.EXIT_KEY]).all())  # the roots leave
+    cams = make_cameras(2, 3)
+    tuned = finetune(g, cams, [render_lod(g, c, 1.0).image.clamp(0, 1) for c in cams], 30, budget_steps=0.0)
+    back = tree.tiers_of(read_ply(write_ply(tmp_path / "fitted.ply", tuned)))
+    for k in range(len(ts) - 1):
+        assert not torch.equal(tree.tiers_of(tuned)[k + 1].means, ts[k + 1].means)  # the fit moved them
+        assert torch.equal(tree.leads(back[k]), tree.leads(ts[k]))
+
+
+def test_a_tree_file_without_lead_marks_draws_the_builds_choice_and_bad_marks_are_refused(model, tmp_path):
+    """A tree file whose exits hold no +inf (written before the marks) gets its leads from
+    tree.choose_leads when drawn, one per parent, and draws what the same model with those leads
+    marked draws; a file where a parent has no marked lead, or two, is refused, as is +inf in the
+    roots' exits."""
+    g, cams = model
+    unmarked = _with_exits(g, lambda k, t, x: torch.where(torch.isposinf(x), torch.full_like(x, 50.0), x))
+    back = read_ply(write_ply(tmp_path / "unmarked.ply", unmarked))
+    for t, above in zip(tree.tiers_of(back)[:-1], tree.tiers_of(back)[1:]):
+        assert bool(torch.isfinite(t.extra[tree.EXIT_KEY]).all())
+        lead = tree.leads(t)
+        assert torch.equal(lead, tree.choose_leads(t))
+        assert bool((torch.bincount(t.extra["parent"].long()[lead], minlength=len(above)) == 1).all())
+    marked = _with_exits(back, lambda k, t, x: torch.where(tree.choose_leads(t), torch.full_like(x, math.inf), x))
+    for s in (1.5, 3.0, 6.0, 12.0):
+        assert torch.equal(render_lod(back, cams[0], s).image, render_lod(marked, cams[0], s).image)
+    t0 = tree.tiers_of(g)[0]
+    p, lead = t0.extra["parent"].long(), tree.leads(t0)
+    family = int(torch.nonzero(torch.bincount(p) >= 2)[0])  # a parent with two children or more
+    one = int(torch.nonzero(lead & (p == family))[0])
+    sibling = int(torch.nonzero(~lead & (p == family))[0])
+    for i, (row, value) in enumerate(((one, 1.0), (sibling, math.inf))):  # no lead; two leads
+        bad = _with_exits(g, lambda k, t, x: torch.where(torch.arange(len(x)) == row, torch.full_like(x, value), x)
+                          if k == 0 else x)
+        with pytest.raises(PlyFormatError, match=f"row {family} of 'lod_parent' has {2 * i} lead children"):
+            read_ply(write_ply(tmp_path / f"bad_lead{i}.ply", bad))
+    ts = tree.tiers_of(g)
+    inf_root = tree.linked(ts[:-1] + [replace(ts[-1], extra={**ts[-1].extra, tree.EXIT_KEY: torch.full(
+        (len(ts[-1]),), math.inf)})])
+    with pytest.raises(PlyFormatError, match="exit"):
+        read_ply(write_ply(tmp_path / "inf_root.ply", inf_root))
+
+
 def test_each_path_crosses_the_cut_once(model):
     g, cams = model
     ts = tree.tiers_of(g)

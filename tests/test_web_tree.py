@@ -122,7 +122,7 @@ console.log(JSON.stringify(JSON.parse(cases).map((c) => {
             width = np.minimum(ref.M, U[k][ids] / np.maximum(E[k][ids], 1.0))  # step 5: over min(M, U / max(E, 1))
             want = np.clip(np.log(U[k][ids] / r["s_v"]) / np.log(width), 0, 1)
             np.testing.assert_allclose(w[off[k] + ids], want, atol=W_ATOL)
-            lead = ref.leads(rt[k], len(rt[k + 1]["means"]))[ids] if k + 1 < len(rt) else np.zeros(len(ids), bool)
+            lead = np.isposinf(rt[k]["exit"][ids]) if k + 1 < len(rt) else np.zeros(len(ids), bool)
             assert np.array_equal(kind[off[k] + ids], np.where(fade[k][ids], 1, np.where(lead, 2, 3))), (c, k)
         fr = [ref.frustum(t["means"], *args) for t in rt]
         assert js["inView"] == [int(f[i].sum()) for f, i in zip(fr, r["ids"])], c

@@ -74,11 +74,14 @@ held-out training views: could a job stop its fit where the views it holds out s
 ``--lead mass`` builds, fits and draws the tree with each parent's lead (the child that turns
 into it, docs/lod_rule.md step 3) the child of largest mass ``sigmoid(opacity) s0 s1 s2`` (ties:
 the first row) instead of the child nearest its family's mass-weighted centre
-(:func:`mass_leads`, installed as ``lod.tree.leads`` for the run; default ``centre``, the rule).
+(:func:`mass_leads`, installed as ``lod.tree.choose_leads``, the build's choice, for the run;
+default ``centre``, the rule).
 
 ``--config KEY=VALUE ...`` takes the adaptation with those ``AdaptConfig`` settings (cached under
 their tag) instead of the defaults; ``--as-adapted`` scores it as the job fitted its tree (one row,
-no fit here).
+no fit here) and prints, per tier, how many families would get another lead if it were chosen
+again from the fitted attributes instead of read from the marks the build wrote
+(:func:`rechosen_leads`).
 
 Written: ``runs/bench/tree_fit[_TAG](_adapted|[_budgetB][_half])/summary.md`` (``TAG``: the
 ``--config`` settings' cache tag). The adaptation (about 20 minutes per scene on 2
@@ -186,6 +189,8 @@ def study(name: str, args) -> list[list]:
     if args.as_adapted:  # the job's own fit, drawn at each --morph
         sig = lightgaussian_significance(base, fit)
         fitted, g, rows, default_m = metrics_of(ply)["tier"].get("tree_fit", {}), load_model(ply), [], tree.MORPH
+        print(f"[{name}] families of two children or more whose lead the fitted attributes would choose "
+              f"again as another child: {rechosen_leads(g)}", flush=True)
         for m in args.morph or [default_m]:
             tree.MORPH = m
             try:
@@ -232,6 +237,19 @@ def study(name: str, args) -> list[list]:
                 finally:
                     tree.HAND_OVER, tree.MORPH = default, default_m
     return rows
+
+
+def rechosen_leads(g: Gaussians) -> str:
+    """Per tier with parents, ``"tier k: n of m"``: of the ``m`` families with two children or
+    more, the ``n`` whose marked lead (``lod.tree.leads``, the build's choice the fit trained)
+    differs from ``lod.tree.choose_leads`` of the tier's attributes as they are now."""
+    out = []
+    for k, t in enumerate(tree.tiers_of(g)[:-1]):
+        p = t.extra[tree.PARENT_KEY].long()
+        big = torch.bincount(p) >= 2
+        moved = torch.zeros_like(big).index_fill_(0, p[tree.leads(t) != tree.choose_leads(t)], True)
+        out.append(f"tier {k}: {int((moved & big).sum()):,} of {int(big.sum()):,}")
+    return "; ".join(out)
 
 
 def fit_rows(name, tag, built, base, fit_views, val_views, sig, cfg: AdaptConfig, args, built_with,
@@ -322,7 +340,7 @@ def fit_at_rate(rate: tuple, built, fit_cams, fit_imgs, n: int, **kw):
 
 
 def mass_leads(tier: Gaussians) -> torch.Tensor:
-    """[N] bool, ``lod.tree.leads`` with each family's lead the child of largest mass
+    """[N] bool, ``lod.tree.choose_leads`` with each family's lead the child of largest mass
     ``sigmoid(opacity) s0 s1 s2`` (``--lead mass``; the family: the children of one parent,
     ``extra["parent"]``; ties: the first row). Cached per parent-index tensor, as the rule's."""
     def make(p: torch.Tensor) -> torch.Tensor:
@@ -340,14 +358,15 @@ def mass_leads(tier: Gaussians) -> torch.Tensor:
 
 @contextlib.contextmanager
 def lead_rule(lead: str):
-    """``lod.tree.leads`` as ``--lead`` says for the run (``centre``: the rule's), restored on exit."""
-    rule = tree.leads
+    """``lod.tree.choose_leads`` (the leads the tree's build marks) as ``--lead`` says for the run
+    (``centre``: the rule's), restored on exit."""
+    rule = tree.choose_leads
     if lead == "mass":
-        tree.leads = mass_leads
+        tree.choose_leads = mass_leads
     try:
         yield
     finally:
-        tree.leads = rule
+        tree.choose_leads = rule
 
 
 def parse_rate(v: str) -> tuple:

@@ -32,7 +32,7 @@ from ..lod.budget import Budget
 from ..lod.draw import PAPER, render_lod, tier_chain
 from ..lod.view import view_lod
 from ..lod.cut import tree_select
-from ..lod.tree import PARENT_KEY, in_frustum, is_tree, leads, tiers_of
+from ..lod.tree import EXIT_KEY, in_frustum, is_tree, leads, tiers_of
 
 __all__ = ["persistence", "importance_order", "bake", "lod_set_s_vs", "lod_level", "prune_never_rendered",
            "reduce_sh", "truncate_sh", "BakeInfo"]
@@ -321,7 +321,7 @@ def prune_never_rendered(gaussians: Gaussians, cameras: Sequence, *,
     A merge tree (:func:`clod_adapter.lod.tree.is_tree`) loses only tier-0 rows that are outside
     every camera's frustum (their centre) and not visible from any (gsplat 1.5.3 culling), and are
     not their parent's lead child (:func:`clod_adapter.lod.tree.leads`, the one that grows into
-    the parent) nor a sibling of a child in some view: every cut, count and hand-over on
+    the parent; written with its mark, an exit of +inf): every cut, count and hand-over on
     ``cameras`` is then the same; the merged tiers and the parent links are kept.
 
     The rendered set shrinks as ``s_v`` grows, so "rendered at some s_v >= 1" is "rendered at
@@ -353,18 +353,15 @@ def prune_never_rendered(gaussians: Gaussians, cameras: Sequence, *,
 
 def _prune_tree_leaves(gaussians: Gaussians, cameras: Sequence, *, tau, eps) -> tuple[Gaussians, int]:
     """:func:`prune_never_rendered` of a merge tree: its tier 0's rows out of every view dropped
-    but each parent's lead and every child of a parent with a child in some view (a lead is chosen
-    among all of its parent's children, so a family is kept whole or down to its lead alone); the
-    tiers above kept with their links."""
+    but each parent's lead (its parent grows out of it); the tiers above kept with their links."""
     seen = torch.zeros(len(gaussians), dtype=torch.bool, device=gaussians.means.device)
     for cam in cameras:
         seen |= view_lod(gaussians, cam, tau=tau, eps=eps).visible | in_frustum(gaussians, cam)
-    parent = gaussians.extra[PARENT_KEY].long()
-    family_seen = torch.zeros(len(gaussians.parents), dtype=torch.long, device=parent.device).index_add_(
-        0, parent, seen.long()) > 0
-    keep = leads(gaussians) | family_seen[parent]
-    n_drop = int((~keep).sum())
-    return replace(gaussians.subset(keep).clone(), parents=gaussians.parents), n_drop
+    lead = leads(gaussians)
+    keep = lead | seen
+    marked = torch.where(lead, torch.full_like(gaussians.extra[EXIT_KEY], float("inf")), gaussians.extra[EXIT_KEY])
+    gaussians = replace(gaussians, extra={**gaussians.extra, EXIT_KEY: marked})
+    return replace(gaussians.subset(keep).clone(), parents=gaussians.parents), int((~keep).sum())
 
 
 def truncate_sh(gaussians: Gaussians, degree: int) -> Gaussians:

@@ -92,8 +92,8 @@ def web_streams(model, static_scores) -> dict:
 def tree_streams(model) -> tuple[dict, list[int]]:
     """The per-node data a merge tree's page reads (:data:`TREE_STREAMS`, [N_0 + N_1 + ...]
     float32 numpy each, tier 0's rows first, each tier's rows in the file's order): the centres,
-    ``sigma_d``, the exit, the reference distance, the parent's row in that order (-1 in the last tier), the opacity logit
-    and the log-scales; and the tiers' counts.
+    ``sigma_d``, the exit (+inf: a parent's lead), the reference distance, the parent's row in
+    that order (-1 in the last tier), the opacity logit and the log-scales; and the tiers' counts.
 
     Raises:
         ValueError: a node index past float32's exact integers (2^24 nodes).

@@ -317,7 +317,10 @@ def read_ply(path: PathLike, *, allow_nonfinite: bool = False, unlinked_tiers: b
 def _check_tree(path: Path, tiers: list) -> None:
     """A ``tree=True`` file's tree (docs/lod_rule.md "The file"): every element but the last has an
     integer ``parent`` property naming a row of the next element, every row of the next element is
-    some row's parent, and every element has finite float ``exit`` and ``d_ref`` properties.
+    some row's parent, and every element has finite float ``exit`` and ``d_ref`` properties, but
+    for an ``exit`` of +inf marking a parent's lead child: where an element marks any, exactly one
+    child of each parent (a file without marks gets its leads chosen when drawn,
+    ``clod_adapter.lod.tree.leads``).
 
     Raises:
         PlyFormatError: the file says ``tree=True`` and one of these does not hold.
@@ -336,11 +339,21 @@ def _check_tree(path: Path, tiers: list) -> None:
         if bool((torch.bincount(p, minlength=len(above)) == 0).any()):
             raise PlyFormatError(path, f"element '{tier_element(k + 1)}': a row that is no row's parent")
     for k, tier in enumerate(tiers):
+        name = "vertex" if k == 0 else tier_element(k)
         for key in ("exit", "d_ref"):
             x = tier.extra.get(key)
-            if x is None or not x.dtype.is_floating_point or not bool(torch.isfinite(x).all()):
-                raise PlyFormatError(path, f"'tree=True' but element '{'vertex' if k == 0 else tier_element(k)}' has "
-                                           f"no finite float '{key}' property")
+            marks = key == "exit" and k + 1 < len(tiers)  # +inf marks a parent's lead child
+            if x is None or not x.dtype.is_floating_point or not bool(
+                    (torch.isfinite(x) | (torch.isposinf(x) if marks else False)).all()):
+                raise PlyFormatError(path, f"'tree=True' but element '{name}' has no finite float '{key}' property"
+                                           + (" (+inf only for a parent's lead)" if marks else ""))
+            lead = torch.isposinf(x) if marks else None
+            if lead is not None and bool(lead.any()):
+                n = torch.bincount(tier.extra["parent"].long()[lead], minlength=len(tiers[k + 1]))
+                if bool((n != 1).any()):
+                    j = int(torch.nonzero(n != 1)[0])
+                    raise PlyFormatError(path, f"element '{name}': row {j} of '{tier_element(k + 1)}' has "
+                                               f"{int(n[j])} lead children (an 'exit' of +inf), not 1")
 
 
 def _tier_comments(comments, path: Path) -> dict:

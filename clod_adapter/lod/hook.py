@@ -233,8 +233,8 @@ def clod_rasterization(
             own ``parents``. Drawn only with ``lod_settings.tree`` (below); otherwise not read.
         lod_nodes: a merge tree's node data of the N Gaussians, as each tier's dict in ``parents``
             holds its own (:func:`clod_kwargs`; docs/lod_rule.md "The file"): ``"parent"`` [N] int,
-            each one's parent in ``parents``; ``"exit"`` [N] float, the exit constants;
-            ``"d_ref"`` [N] float, the reference distances a budget's cut uses (needed for a
+            each one's parent in ``parents``; ``"exit"`` [N] float, the exit constants (+inf:
+            the parent's lead); ``"d_ref"`` [N] float, the reference distances a budget's cut uses (needed for a
             budget). With ``lod_settings.tree`` an ``s_v`` or a budget draws one cut of the tree
             (:func:`clod_adapter.lod.cut.tree_select`).
         opacity_logits: [N] the raw opacities ``opacities`` came from: the rule works on logits

@@ -20,10 +20,10 @@ Per camera (:func:`terms`, :func:`cut`), with ``F`` = :data:`HAND_OVER`:
    F^k)`` (``p`` its parent, ``k`` its tier; no ``E_p`` in the last tier), so a node is drawn over
    at least a factor ``F`` of ``s_v`` before its parent takes over, and ``s_v = 1`` is tier 0
    whole. Tier 0 enters at 0.
-3. A node is drawn at ``s_v`` iff ``E_i <= s_v < U_i``, its end ``U_i`` its parent's entry ``E_p``
-   for the parent's *lead* child (:func:`leads`, the one nearest the family's centre), the
-   smaller of ``E_p`` and its own exit ``X_i = max(x_i / d'_i, F max(E_i, 1))`` for the others
-   (``x_i``, ``extra["exit"]``), ``X_i`` in the last tier. No path crosses the cut twice.
+3. A node is drawn at ``s_v`` iff ``E_i <= s_v < U_i``, its end ``U_i = min(E_p, X_i)`` (``X_i``
+   in the last tier), its own exit ``X_i = max(x_i / d'_i, F max(E_i, 1))`` (``x_i``,
+   ``extra["exit"]``, +inf for each parent's *lead* child, :func:`leads`, which therefore ends
+   where its parent enters). No path crosses the cut twice.
 4. A drawn node at ``t = clamp(ln(U_i / s_v) / ln min(M, U_i / max(E_i, 1)), 0, 1)`` (``M`` =
    :data:`MORPH`: it changes over the last factor ``M`` of its interval, or all of a shorter one)
    whose end is its own exit *leaves*:
@@ -64,7 +64,8 @@ from ..gaussians import GAIN_NAMES, TREE_NODE_KEYS, Gaussians
 
 __all__ = ["CPP_KERNELS", "HAND_OVER", "MORPH", "PARENT_KEY", "EXIT_KEY", "REFERENCE_KEY", "NODE_KEYS", "budget_frame",
            "is_tree", "tiers_of", "linked", "own_model", "tier_scales", "assign_parents", "build", "cut", "walk",
-           "budget_s_v", "budget_cut", "TreeCut", "TreeTerms", "terms", "cut_attributes", "leads", "in_frustum"]
+           "budget_s_v", "budget_cut", "TreeCut", "TreeTerms", "terms", "cut_attributes", "leads", "choose_leads",
+           "in_frustum"]
 
 #: whether the rule's C++ kernels (``render/csrc/tree_cut.cpp``) draw where they can run (CPU, the
 #: kernels wanted by :mod:`clod_adapter.render.native`); False: its Python twin draws every cut
@@ -324,8 +325,9 @@ def build(gaussians: Gaussians, cameras, log=None, *, spread: float = None,
       root's exit (``extra["exit"]``) is its own; a child that is not its parent's lead leaves the
       share ``b`` = ``exit_toward_parent`` (default :data:`EXIT_TOWARD_PARENT`, in [0, 1]) of the
       way from its own exit toward its parent's ``sigma_d``, in ``ln s_v`` (``own^(1 - b)
-      sigma_p^b``), so the count of a frame falls near the hand-overs that change its image (a
-      lead's exit is never reached: its parent takes over first);
+      sigma_p^b``), so the count of a frame falls near the hand-overs that change its image; each
+      family's lead (:func:`choose_leads`, the child nearest the family's centre) gets an exit of
+      +inf instead, the mark :func:`leads` reads (it is drawn until its parent takes over);
     * every node keeps its ``d_ref`` (``extra["d_ref"]``, float32), the ``d'`` its budgets' cuts
       use (:func:`budget_frame`);
     * no tier keeps level gains (the tree does not draw them: docs/lod_rule.md "The file"), and
@@ -368,16 +370,19 @@ def build(gaussians: Gaussians, cameras, log=None, *, spread: float = None,
         rank = _group_rank(own[k - 1], p, len(t))
         s = (scales[k] * spread ** (rank - 0.5) * d_ref[k]).double()
         if a > 0.0:  # toward the last exit of its children that are not its lead
-            nl = ~leads(tiers[k - 1]).cpu()
+            nl = ~choose_leads(tiers[k - 1]).cpu()
             last = torch.zeros(len(t), dtype=torch.float64).scatter_reduce(
                 0, p[nl], exits[k - 1].double()[nl].clamp_min(0.0), reduce="amax", include_self=True)
             s = torch.where(last > 0, _toward(s, last, a), s)
         tiers[k] = replace(t, sigma_d=s.to(t.means))
     for k, t in enumerate(tiers):  # where its tier's own level of detail drops it, moved toward the parent
         x = exits[k]
-        if k + 1 < len(tiers) and b > 0.0:
-            s_p = tiers[k + 1].sigma_d.detach().double().cpu()[t.extra[PARENT_KEY].long().cpu()]
-            x = torch.where(leads(t).cpu(), x, _toward(x, s_p, b).to(x.dtype))
+        if k + 1 < len(tiers):  # each family's lead marked by an exit of +inf
+            lead = choose_leads(t).cpu()
+            if b > 0.0:
+                s_p = tiers[k + 1].sigma_d.detach().double().cpu()[t.extra[PARENT_KEY].long().cpu()]
+                x = _toward(x, s_p, b).to(x.dtype)
+            x = torch.where(lead, torch.full_like(x, math.inf), x)
         tiers[k] = replace(t, extra={**t.extra, EXIT_KEY: x.float().to(t.means.device),
                                      REFERENCE_KEY: d_ref[k].float().to(t.means.device)})
     out = linked(tiers)
@@ -661,11 +666,11 @@ def _quat_lerp(q: Tensor, qp: Tensor, t: Tensor) -> Tensor:
     return t[:, None] * q + (1.0 - t[:, None]) * qp
 
 
-def leads(tier: Gaussians) -> Tensor:
-    """[N] bool: the child that becomes its parent at the switch, one per parent: the child nearest
-    (Euclidean) the centre of its parent's children weighted by their mass ``sigmoid(opacity) s0
-    s1 s2`` (the moment-matched centre of the family; ties: the first row), the one with the least
-    far to go (docs/studies.md "Which child turns into its parent"). Cached per parent-index tensor."""
+def choose_leads(tier: Gaussians) -> Tensor:
+    """[N] bool: the lead :func:`build` marks in each family, the child nearest (Euclidean) the
+    centre of its parent's children weighted by their mass ``sigmoid(opacity) s0 s1 s2`` (the
+    moment-matched centre of the family; ties: the first row), the one with the least far to go
+    (docs/studies.md "Which child turns into its parent"). Cached per parent-index tensor."""
     def make(p: Tensor) -> Tensor:
         p = p.long()
         n = int(p.max()) + 1 if p.numel() else 0
@@ -683,7 +688,23 @@ def leads(tier: Gaussians) -> Tensor:
                                                                     include_self=True)
         return rows == first[p].long()
 
-    return lod.cached_value(tier.extra[PARENT_KEY], "tree_leads", make)
+    return lod.cached_value(tier.extra[PARENT_KEY], "tree_choose_leads", make)
+
+
+def leads(tier: Gaussians) -> Tensor:
+    """[N] bool: the child that becomes its parent at the switch, one per parent: the row whose
+    ``extra["exit"]`` is +inf, the mark :func:`build` writes (its choice, :func:`choose_leads`),
+    so the fit, the file and every consumer draw the leads the fit trained whatever it moves. A
+    tier with parents but no mark (a tree file written before the marks) gets
+    :func:`choose_leads` of its attributes as they are, and so does a tier without exits. Cached
+    per exit tensor."""
+    def make(x: Tensor) -> Tensor:
+        marked = torch.isposinf(x)
+        return marked if bool(marked.any()) or not x.numel() else choose_leads(tier)
+
+    if EXIT_KEY not in tier.extra:
+        return choose_leads(tier)
+    return lod.cached_value(tier.extra[EXIT_KEY], "tree_leads", make)
 
 
 def _handed_over(t: Gaussians, par: Gaussians, rows: Tensor, w: Tensor, mu: Tensor, ls: Tensor, q: Tensor,

@@ -78,7 +78,7 @@ export function terms(tr, cam, ref = false) {
                 U[i] = X;
                 fade[i] = 1;
             } else {
-                const f = !tr.lead[i] && X < E[parent[i]];
+                const f = X < E[parent[i]];  // a lead's exit is +inf: it hands over
                 U[i] = f ? X : E[parent[i]];
                 fade[i] = f ? 1 : 0;
             }
@@ -120,24 +120,10 @@ export function budgetSv(tr, tt, k) {
     return uniq[first];
 }
 
-// step 3's lead child of each parent: the child nearest its family's centre weighted by a s0 s1 s2,
-// ties the first row ([N] 1/0; the last tier 0)
+// step 3's lead child of each parent: the one whose exit is +inf ([N] 1/0; the last tier 0)
 export function leads(tr) {
-    const { N, T, off, parent, opacity, x, y, z, logScales: [l0, l1, l2] } = tr;
-    const rows = off[T], mass = new Float64Array(rows), dist = new Float64Array(rows);
-    const cx = new Float64Array(N), cy = new Float64Array(N), cz = new Float64Array(N), w = new Float64Array(N);
-    const top = new Float64Array(N).fill(Infinity), first = new Int32Array(N).fill(N), out = new Uint8Array(N);
-    for (let i = 0; i < rows; i++) {
-        const p = parent[i], m = (mass[i] = opacity[i] * Math.exp(l0[i] + l1[i] + l2[i]));
-        cx[p] += m * x[i]; cy[p] += m * y[i]; cz[p] += m * z[i]; w[p] += m;
-    }
-    for (let i = 0; i < rows; i++) {
-        const p = parent[i], ww = Math.max(w[p], 1e-300);
-        dist[i] = Math.hypot(x[i] - cx[p] / ww, y[i] - cy[p] / ww, z[i] - cz[p] / ww);
-        top[p] = Math.min(top[p], dist[i]);
-    }
-    for (let i = 0; i < rows; i++) if (dist[i] === top[parent[i]]) first[parent[i]] = Math.min(first[parent[i]], i);
-    for (let i = 0; i < rows; i++) out[i] = first[parent[i]] === i ? 1 : 0;
+    const out = new Uint8Array(tr.N);
+    for (let i = 0; i < tr.off[tr.T]; i++) out[i] = tr.exit[i] === Infinity ? 1 : 0;
     return out;
 }
 

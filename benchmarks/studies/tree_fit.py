@@ -35,6 +35,7 @@ printed for scale). No goal is enforced (a study: exit 0)::
         --budget-steps 0.5 --popping-views 0 --rate 2 --held-out 7
     python -m benchmarks.studies.tree_fit --inputs skull fern maskgaussian --steps 1000 \\
         --budget-steps 0.5 --popping-views 7 --lead mass
+    python -m benchmarks.studies.tree_fit --inputs skull --as-adapted --popping-views 7
 
 ``--spread R ...`` builds the tree with each tier's hand-overs spread over a factor ``R`` of ``s_v``
 (:func:`clod_adapter.lod.tree.build`'s ``spread``; default the adaptation's ``tree_spread``),

@@ -343,11 +343,11 @@ def _check_tree(path: Path, tiers: list) -> None:
         for key in ("exit", "d_ref"):
             x = tier.extra.get(key)
             marks = key == "exit" and k + 1 < len(tiers)  # +inf marks a parent's lead child
-            if x is None or not x.dtype.is_floating_point or not bool(
-                    (torch.isfinite(x) | (torch.isposinf(x) if marks else False)).all()):
+            ok = x is not None and x.dtype.is_floating_point
+            lead = torch.isposinf(x) if ok and marks else None
+            if not ok or not bool((torch.isfinite(x) if lead is None else torch.isfinite(x) | lead).all()):
                 raise PlyFormatError(path, f"'tree=True' but element '{name}' has no finite float '{key}' property"
                                            + (" (+inf only for a parent's lead)" if marks else ""))
-            lead = torch.isposinf(x) if marks else None
             if lead is not None and bool(lead.any()):
                 n = torch.bincount(tier.extra["parent"].long()[lead], minlength=len(tiers[k + 1]))
                 if bool((n != 1).any()):

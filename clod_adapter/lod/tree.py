@@ -670,7 +670,8 @@ def choose_leads(tier: Gaussians) -> Tensor:
     """[N] bool: the lead :func:`build` marks in each family, the child nearest (Euclidean) the
     centre of its parent's children weighted by their mass ``sigmoid(opacity) s0 s1 s2`` (the
     moment-matched centre of the family; ties: the first row), the one with the least far to go
-    (docs/studies.md "Which child turns into its parent"). Cached per parent-index tensor."""
+    (docs/studies.md "Which child turns into its parent"). Cached per parent-index tensor. Raises
+    KeyError where the tier has no ``extra["parent"]``."""
     def make(p: Tensor) -> Tensor:
         p = p.long()
         n = int(p.max()) + 1 if p.numel() else 0
@@ -697,7 +698,7 @@ def leads(tier: Gaussians) -> Tensor:
     so the fit, the file and every consumer draw the leads the fit trained whatever it moves. A
     tier with parents but no mark (a tree file written before the marks) gets
     :func:`choose_leads` of its attributes as they are, and so does a tier without exits. Cached
-    per exit tensor."""
+    per exit tensor. Raises KeyError where it falls back and the tier has no ``extra["parent"]``."""
     def make(x: Tensor) -> Tensor:
         marked = torch.isposinf(x)
         return marked if bool(marked.any()) or not x.numel() else choose_leads(tier)

@@ -7,7 +7,7 @@ import torch
 from skimage.metrics import structural_similarity
 
 from clod_adapter.train.losses import clod_loss, render_loss
-from clod_adapter.metrics import psnr, ssim, ssim_map
+from clod_adapter.metrics import _ssim_map_autograd, psnr, ssim, ssim_map
 
 
 def _pair(seed=0, h=48, w=64):
@@ -32,6 +32,27 @@ def test_ssim_identity_and_gradient():
     x = b.clone().requires_grad_(True)
     (1 - ssim(x, a)).backward()
     assert torch.isfinite(x.grad).all() and x.grad.abs().sum() > 0
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_fused_ssim_gradient_equals_autograd_twin(dtype):
+    a, b = _pair(3, h=37, w=53)  # odd sizes: the zero padding at every border
+    a, b = a.to(dtype), b.to(dtype)
+    w = torch.rand(a.shape, generator=torch.Generator().manual_seed(4), dtype=dtype)  # any upstream gradient
+    grads = []
+    for fn in (ssim_map, _ssim_map_autograd):
+        x = b.clone().requires_grad_(True)
+        m = fn(x, a)
+        (m * w).sum().backward()
+        grads.append((m.detach(), x.grad))
+    tol = 1e-12 if dtype == torch.float64 else 1e-5
+    scale = float(grads[1][1].abs().max())
+    assert scale > 0
+    torch.testing.assert_close(grads[0][0], grads[1][0], atol=tol, rtol=0)
+    torch.testing.assert_close(grads[0][1], grads[1][1], atol=tol * scale, rtol=0)
+    if dtype == torch.float64:  # and both equal the numerical gradient
+        x = b[:12, :13].clone().requires_grad_(True)
+        assert torch.autograd.gradcheck(lambda t: ssim_map(t, a[:12, :13]), (x,))
 
 
 def test_psnr_known_value():

@@ -536,6 +536,17 @@ def test_adapt_job_builds_a_tree_from_a_pruned_tier(tiny_model, tmp_path, monkey
     cam = load_scene(tiny_model["scene"]).train[0]
     full, coarse = render_lod(g, cam, 1.0), render_lod(g, cam, 20.0)
     assert coarse.n_parents > 0 and coarse.n_rendered < full.n_rendered
+    # metrics.json's levels are the tree's as written (measured once, after the tier is attached);
+    # the tier's own run measures none
+    from clod_adapter.evaluate.level_metrics import evaluate_levels
+    m = json.loads((out / "metrics.json").read_text())
+    sc = load_scene(tiny_model["scene"])
+    ev = evaluate_levels(g, sc.test, [sc.load_image(c) for c in sc.test], [lv["s_v"] for lv in m["levels"]],
+                         tau=m["config"]["tau"])
+    assert len(m["levels"]) > 1 and m["timing"]["method"] == "interleaved"
+    assert [lv["gaussians"] for lv in m["levels"]] == pytest.approx([e.gaussians for e in ev])
+    assert [lv["psnr"] for lv in m["levels"]] == pytest.approx([e.psnr for e in ev], abs=1e-3)
+    assert json.loads((out / "parents" / "metrics.json").read_text())["levels"] == []
 
 
 @pytest.mark.slow

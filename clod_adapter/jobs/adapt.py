@@ -207,15 +207,18 @@ def run(ply_path: os.PathLike, scene_root: os.PathLike, out_dir: os.PathLike, cf
                 src, left, first = _leave_out(src, Path(scene_root), Path(out_dir), cfg, o, stop, group)
             ro = o if left is None else replace(o, force=True, iteration=None,  # the folder was checked
                                                 resume=o.resume and (Path(out_dir) / STATE_NAME).is_file())
+            tiered = bool(cfg.parent_share) and group is None  # the levels measured once the tiers are attached
             metrics, adapted = _run(src, Path(scene_root), Path(out_dir), cfg, ro, stop, group,
-                                    scene=first.scene if first is not None else None)
+                                    scene=first.scene if first is not None else None, levels=not tiered)
             if left is not None and "rank" not in metrics:
                 metrics = _record_leave_out(Path(out_dir), metrics, left)
                 # the tiers are merged from the input itself, not the kept part (None: phase 0 resumed)
                 adapted = replace(adapted, input_model=first.input_model if first is not None else None)
             if cfg.parent_share and "rank" not in metrics:
-                metrics = _add_parent_tier(Path(ply_path), Path(scene_root), Path(out_dir), cfg, o, stop, group,
-                                           metrics, adapted=adapted)
+                metrics, linked = _add_parent_tier(Path(ply_path), Path(scene_root), Path(out_dir), cfg, o, stop,
+                                                   group, metrics, adapted=adapted)
+                metrics = _final_levels(Path(out_dir), metrics, linked if linked is not None else adapted.model,
+                                        adapted.inputs, cfg, o)
             if "rank" not in metrics:
                 metrics = _record_job_seconds(Path(out_dir), metrics, time.perf_counter() - t_job)
             return metrics
@@ -240,18 +243,20 @@ class _Adapted:
     """What an adaptation (:func:`_run`) or phase 0 (:func:`_leave_out`) hands to the phases after
     it, not to be read again (None: nothing to hand on): ``input_model``, the input as read and
     checked (masks applied, faint Gaussians not left out); ``model``, the adapted model as written
-    to ``point_cloud.ply`` (CPU); ``scene``, the job's scene at its resolution (:func:`job_scene`)."""
+    to ``point_cloud.ply`` (CPU); ``scene``, the job's scene at its resolution (:func:`job_scene`);
+    ``inputs``, the adaptation's checked inputs (its test views: :func:`_final_levels`)."""
 
     input_model: Optional[Gaussians]
     model: Optional[Gaussians]
     scene: Optional[Scene]
+    inputs: Optional[Inputs] = None
 
 
 def _run(ply_path: Path, scene_root: Path, out_dir: Path, cfg: AdaptConfig, o: AdaptOptions, stop: StopFlag,
-         group, scene: Optional[Scene] = None) -> tuple[dict, Optional[_Adapted]]:
+         group, scene: Optional[Scene] = None, levels: bool = True) -> tuple[dict, Optional[_Adapted]]:
     """One adaptation of ``ply_path``: ``(its metrics, what it hands to the merged tiers)`` (None on
     a data-parallel rank other than 0). ``scene``: the job's scene at ``o.resolution`` when an
-    earlier phase read it."""
+    earlier phase read it. ``levels``: measure the levels and budgets (:func:`_evaluate`)."""
     t_start = time.perf_counter()
     inp = read_inputs(ply_path, scene_root, out_dir, cfg, o, stop, group, scene=scene)
     state, cfg, input_eval, init_s_v1 = _start_state(inp, cfg, o, stop, group)
@@ -272,7 +277,7 @@ def _run(ply_path: Path, scene_root: Path, out_dir: Path, cfg: AdaptConfig, o: A
             return {"rank": group.rank, "world_size": group.world_size, "iteration": state.iteration,
                     "train_seconds": round(train_s, 2)}, None
     stop.set_abortable(True)  # the evaluation writes nothing; raises if a signal came meanwhile
-    metrics = _evaluate(inp, model, cfg, o, input_eval)
+    metrics = _evaluate(inp, model, cfg, o, input_eval, levels=levels)
     stop.set_abortable(False)
     metrics.update({
         "config": asdict(cfg), "train_seconds": round(train_s, 2),
@@ -288,10 +293,11 @@ def _run(ply_path: Path, scene_root: Path, out_dir: Path, cfg: AdaptConfig, o: A
     if stop.stop:
         o.log("clod-adapt: signal received while writing the outputs; they were completed first")
     metrics["wall_seconds"] = round(time.perf_counter() - t_start, 1)
-    o.log(format_summary(metrics))
+    if levels:
+        o.log(format_summary(metrics))
     o.log(f"clod-adapt: wrote {', '.join(written)} to {inp.out_dir} in {metrics['wall_seconds']:.0f} s "
           f"({metrics['seconds_per_iteration']:.3f} s per iteration)")
-    return metrics, _Adapted(inp.input_model, model.to("cpu"), inp.scene)
+    return metrics, _Adapted(inp.input_model, model.to("cpu"), inp.scene, inp)
 
 
 #: phase 0's files (``keep_share < 1``): the kept, recovered input the LoD is learned on, and
@@ -368,7 +374,7 @@ PARENT_INPUT_NAME = "parents_input.ply"
 
 def _add_parent_tier(ply_path: Path, scene_root: Path, out_dir: Path, cfg: AdaptConfig, o: AdaptOptions,
                      stop: StopFlag, group, metrics: dict, nested: bool = False,
-                     adapted: Optional[_Adapted] = None) -> dict:
+                     adapted: Optional[_Adapted] = None) -> tuple[dict, Optional[Gaussians]]:
     """Phase 6 (``cfg.parent_share``, :mod:`clod_adapter.train.tiers`): the input merged by
     splat-transform to the first of ``parent_share`` of its Gaussians (lowered while the merge is
     predicted to draw over ``tier_time_cap`` of the input's frame: :func:`clod_adapter.train.tiers.first_share`;
@@ -383,7 +389,7 @@ def _add_parent_tier(ply_path: Path, scene_root: Path, out_dir: Path, cfg: Adapt
     in ``metrics["tier"]``, for an input under :data:`clod_adapter.train.tiers.PARENT_MIN_GAUSSIANS`
     Gaussians, a data-parallel run, or without splat-transform. ``adapted``: what the adaptation of
     ``ply_path`` into ``out_dir`` handed on (its input, model and scene; each read from disk where
-    missing)."""
+    missing). Returns ``(metrics, the model as written with its tier attached, or None when none was)``."""
     from ..train import tiers
 
     t0 = time.perf_counter()
@@ -392,14 +398,14 @@ def _add_parent_tier(ply_path: Path, scene_root: Path, out_dir: Path, cfg: Adapt
     tres = cfg.tier_resolution(o.resolution) if nested else o.resolution  # trained at it, linked at o's
     info = {"parent_share": share, "used": False, "resolution": tres}
 
-    def done(why: Optional[str] = None) -> dict:
+    def done(why: Optional[str] = None, linked=None) -> tuple[dict, Optional[Gaussians]]:
         if why:
             info["why"] = why
             o.log(f"clod-adapt: no merged tier: {why}")
         info["seconds"] = round(time.perf_counter() - t0, 1)
         metrics["tier"] = info
         _rewrite_metrics(out_dir, metrics)
-        return metrics
+        return metrics, linked
 
     if n < tiers.PARENT_MIN_GAUSSIANS and not nested:  # a tier's own tiers: the input's size decided
         return done(f"{n:,} Gaussians, under {tiers.PARENT_MIN_GAUSSIANS:,}")
@@ -434,7 +440,8 @@ def _add_parent_tier(ply_path: Path, scene_root: Path, out_dir: Path, cfg: Adapt
     pcfg = replace(cfg, parent_share=tuple(x / share for x in rest), keep_share=1.0, faint_share=0.0,
                    iterations=cfg.tier_iterations(), tier_iteration_share=1.0,
                    tier_downscale=1 if nested else cfg.tier_downscale)  # the nested call downscales once
-    pm, p_adapted = _run(out_dir / PARENT_INPUT_NAME, scene_root, pdir, pcfg, po, stop, None, scene=tscene)
+    pm, p_adapted = _run(out_dir / PARENT_INPUT_NAME, scene_root, pdir, pcfg, po, stop, None, scene=tscene,
+                         levels=False)
     if pcfg.parent_share:  # the tier's own parent tiers, shares relative to it
         _add_parent_tier(out_dir / PARENT_INPUT_NAME, scene_root, pdir, pcfg, po, stop, None, pm, nested=True,
                          adapted=p_adapted)
@@ -461,7 +468,7 @@ def _add_parent_tier(ply_path: Path, scene_root: Path, out_dir: Path, cfg: Adapt
                  "attached_dir": tried[-1]["dir"]})
     o.log(f"clod-adapt: merged tier of {len(linked.parents):,} attached to {out_dir / PLY_NAME} (from s_v = "
           f"{st.tier_s_v:g}) in {time.perf_counter() - t0:.0f} s")
-    return done()
+    return done(linked=linked)
 
 
 #: how each merge is named in the log
@@ -687,10 +694,32 @@ def _train(inp: Inputs, state, cfg: AdaptConfig, o: AdaptOptions, stop: StopFlag
     return time.perf_counter() - t_train
 
 
-def _evaluate(inp: Inputs, model, cfg: AdaptConfig, o: AdaptOptions, input_eval) -> dict:
-    """Phase 4: the adapted model at every level and budget on the test views, the input and the
-    levels timed in interleaved rounds; returns the metrics dict (without the run's training
-    facts, which :func:`_run` adds)."""
+def _evaluate(inp: Inputs, model, cfg: AdaptConfig, o: AdaptOptions, input_eval, levels: bool = True) -> dict:
+    """Phase 4: the metrics dict (without the run's training facts, which :func:`_run` adds): the
+    input's quality and, with ``levels``, the adapted model at every level and budget on the test
+    views, the input and the levels timed in interleaved rounds (:func:`_level_metrics`); without,
+    empty ``levels`` and ``budgets`` (a merged tier's own run; the top job's when its tiers are
+    built, which :func:`_final_levels` measures once they are attached)."""
+    input_model = {"psnr": input_eval.psnr, "ssim": input_eval.ssim,
+                   "gaussians": input_eval.gaussians, "ms_per_frame": input_eval.ms_per_frame}
+    metrics = {
+        "version": __version__, "input_ply": str(inp.ply_path), "scene": str(inp.scene_root),
+        "resolution": o.resolution, "image_size": list(inp.size), "device": str(inp.dev),
+        "threads": torch.get_num_threads(), "num_gaussians": len(model), "input_sanitized": inp.sanitized,
+        "input_masks": asdict(inp.mask_info) if inp.mask_info is not None else None, "faint": inp.faint,
+        "test_views": [c.name for c in inp.test_cams], "holdout_val": bool(o.holdout_val),
+        "input_model": input_model, "scene_match": inp.match,
+        "deterministic": bool(deterministic_enabled()),
+        "timing": {"method": "none", "repeats": 0, "omp_wait_policy": os.environ.get("OMP_WAIT_POLICY"),
+                   "what": "levels not measured"},
+        "levels": [], "budgets": [], "notes": inp.notes,
+    }
+    return _level_metrics(inp, model, cfg, o, metrics) if levels else metrics
+
+
+def _level_metrics(inp: Inputs, model, cfg: AdaptConfig, o: AdaptOptions, metrics: dict) -> dict:
+    """``metrics`` with ``levels``, ``budgets`` and ``timing`` of ``model`` on ``inp``'s test views
+    (the input's ``ms_per_frame`` retimed in the same rounds when ``o.timing_repeats`` > 0)."""
     bg = cfg.background
     levels = sv_levels(cfg.max_sv)
     evals = evaluate_levels(model, inp.test_cams, inp.test_imgs, levels, tau=cfg.tau, background=bg)
@@ -701,29 +730,31 @@ def _evaluate(inp: Inputs, model, cfg: AdaptConfig, o: AdaptOptions, input_eval)
         timing = retime_levels(inp.input_model, model, inp.test_cams, levels, tau=cfg.tau, background=bg,
                                repeats=o.timing_repeats)
     level_dicts = [m.to_dict() for m in evals]
-    input_model = {"psnr": input_eval.psnr, "ssim": input_eval.ssim,
-                   "gaussians": input_eval.gaussians, "ms_per_frame": input_eval.ms_per_frame}
+    input_model = dict(metrics["input_model"])
     if timing is not None:
         for d, t in [(input_model, timing["input"])] + [(d, timing[d["s_v"]]) for d in level_dicts]:
             d["ms_per_frame"] = t["ms_total"]
             d["ms_per_frame_min"], d["ms_per_frame_max"] = t["ms_total_min"], t["ms_total_max"]
             if "select_ms" in d:
                 d["select_ms"], d["raster_ms"] = t["ms_select"], t["ms_raster"]
-    return {
-        "version": __version__, "input_ply": str(inp.ply_path), "scene": str(inp.scene_root),
-        "resolution": o.resolution, "image_size": list(inp.size), "device": str(inp.dev),
-        "threads": torch.get_num_threads(), "num_gaussians": len(model), "input_sanitized": inp.sanitized,
-        "input_masks": asdict(inp.mask_info) if inp.mask_info is not None else None, "faint": inp.faint,
-        "test_views": [c.name for c in inp.test_cams], "holdout_val": bool(o.holdout_val),
-        "input_model": input_model, "scene_match": inp.match,
-        "deterministic": bool(deterministic_enabled()),
-        "timing": {"method": "interleaved" if timing is not None else "single pass",
-                   "repeats": o.timing_repeats, "omp_wait_policy": os.environ.get("OMP_WAIT_POLICY"),
-                   "what": "median over rounds of the median over test views of LoD selection + "
-                           "rasterisation wall time (ms); *_min/*_max: smallest/largest round; "
-                           "budgets: single pass"},
-        "levels": level_dicts, "budgets": [m.to_dict() for m in budget_evals], "notes": inp.notes,
-    }
+    return {**metrics, "input_model": input_model,
+            "timing": {"method": "interleaved" if timing is not None else "single pass",
+                       "repeats": o.timing_repeats, "omp_wait_policy": os.environ.get("OMP_WAIT_POLICY"),
+                       "what": "median over rounds of the median over test views of LoD selection + "
+                               "rasterisation wall time (ms); *_min/*_max: smallest/largest round; "
+                               "budgets: single pass"},
+            "levels": level_dicts, "budgets": [m.to_dict() for m in budget_evals]}
+
+
+def _final_levels(out_dir: Path, metrics: dict, model, inp: Inputs, cfg: AdaptConfig, o: AdaptOptions) -> dict:
+    """Phase 7 (a job that may build merged tiers): the levels and budgets of ``model``, as written
+    to ``point_cloud.ply`` (the merge tree when a tier was attached, else the model alone), on the
+    test views of ``inp``, timed (:func:`_level_metrics`); ``metrics.json`` rewritten and the summary
+    logged."""
+    metrics = _level_metrics(inp, model.to(inp.dev), cfg, o, metrics)
+    _rewrite_metrics(out_dir, metrics)
+    o.log(format_summary(metrics))
+    return metrics
 
 
 def _write_outputs(inp: Inputs, model, state, cfg: AdaptConfig, o: AdaptOptions, metrics: dict) -> list:

@@ -166,7 +166,10 @@ def run(ply_path: os.PathLike, scene_root: os.PathLike, out_dir: os.PathLike, cf
     nothing is written before all of them pass), :func:`_start_state` (the input's quality, the
     initial or resumed state), :func:`_train` (with resumable saves on a signal, at checkpoints
     and at the end), :func:`_evaluate` (the levels and budgets on the test views, timed) and
-    :func:`_write_outputs` (each file atomically).
+    :func:`_write_outputs` (each file atomically); with merged tiers (``cfg.parent_share``) then
+    :func:`_add_parent_tier` (the tiers, linked into a merge tree) and :func:`_final_levels` (the
+    levels and budgets measured on the model as written, tree included, instead of in
+    :func:`_evaluate`).
 
     ``masks``: unknown per-Gaussian .ply properties of the kept Gaussians (e.g. MaskGaussian's
     mask scores) are written back to ``point_cloud.ply`` (not to the exact INRIA copy). With
@@ -218,7 +221,7 @@ def run(ply_path: os.PathLike, scene_root: os.PathLike, out_dir: os.PathLike, cf
                 metrics, linked = _add_parent_tier(Path(ply_path), Path(scene_root), Path(out_dir), cfg, o, stop,
                                                    group, metrics, adapted=adapted)
                 metrics = _final_levels(Path(out_dir), metrics, linked if linked is not None else adapted.model,
-                                        adapted.inputs, cfg, o)
+                                        adapted.inputs, cfg, o, stop)
             if "rank" not in metrics:
                 metrics = _record_job_seconds(Path(out_dir), metrics, time.perf_counter() - t_job)
             return metrics
@@ -746,12 +749,16 @@ def _level_metrics(inp: Inputs, model, cfg: AdaptConfig, o: AdaptOptions, metric
             "levels": level_dicts, "budgets": [m.to_dict() for m in budget_evals]}
 
 
-def _final_levels(out_dir: Path, metrics: dict, model, inp: Inputs, cfg: AdaptConfig, o: AdaptOptions) -> dict:
+def _final_levels(out_dir: Path, metrics: dict, model, inp: Inputs, cfg: AdaptConfig, o: AdaptOptions,
+                  stop: StopFlag) -> dict:
     """Phase 7 (a job that may build merged tiers): the levels and budgets of ``model``, as written
     to ``point_cloud.ply`` (the merge tree when a tier was attached, else the model alone), on the
     test views of ``inp``, timed (:func:`_level_metrics`); ``metrics.json`` rewritten and the summary
-    logged."""
+    logged. A signal meanwhile stops it at once (the outputs are written; ``metrics.json`` then
+    has no levels)."""
+    stop.set_abortable(True)
     metrics = _level_metrics(inp, model.to(inp.dev), cfg, o, metrics)
+    stop.set_abortable(False)
     _rewrite_metrics(out_dir, metrics)
     o.log(format_summary(metrics))
     return metrics

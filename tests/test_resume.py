@@ -143,9 +143,9 @@ def _inprocess_run(scene: Path, out: Path, **kw):
 
 @pytest.mark.slow
 def test_interrupt_during_final_evaluation_resumes(scene, tmp_path, monkeypatch):
-    import clod_adapter.jobs.adapt as pl
+    import clod_adapter.jobs.adapt_levels as lv
 
-    real = pl.evaluate_levels
+    real = lv.evaluate_levels
 
     def interrupted(*a, **k):
         os.kill(os.getpid(), signal.SIGINT)  # arrives while evaluating
@@ -153,7 +153,7 @@ def test_interrupt_during_final_evaluation_resumes(scene, tmp_path, monkeypatch)
 
     out = tmp_path / "out"
     with monkeypatch.context() as m:
-        m.setattr(pl, "evaluate_levels", interrupted)
+        m.setattr(lv, "evaluate_levels", interrupted)
         with pytest.raises(KeyboardInterrupt):
             _inprocess_run(scene, out)
     _only_state(out)

@@ -549,6 +549,40 @@ def test_adapt_job_builds_a_tree_from_a_pruned_tier(tiny_model, tmp_path, monkey
     assert json.loads((out / "parents" / "metrics.json").read_text())["levels"] == []
 
 
+def test_a_signal_while_the_tree_is_measured_stops_the_job(tiny_model, tmp_path, monkeypatch):
+    """A job that builds merged tiers measures its levels once they are attached; a signal then
+    stops it at once (exit by KeyboardInterrupt), the merge tree written and ``metrics.json``
+    without levels."""
+    import json
+    import os
+    import signal
+
+    from clod_adapter.cli.adapt import main
+    from clod_adapter.io import splat_transform
+    from clod_adapter.jobs import adapt_levels
+    from clod_adapter.lod import tree
+    from conftest import FAST
+
+    monkeypatch.setattr(splat_transform, "find_splat_transform", lambda: None)
+    monkeypatch.setattr(tiers, "PARENT_MIN_GAUSSIANS", 100)
+    monkeypatch.setattr(tiers, "choose", lambda g, p, *a, **k: tiers.TierChoice(1.5, 1.0, {}))
+    measured = []
+    real = adapt_levels.evaluate_levels
+
+    def interrupted(*a, **k):
+        measured.append(1)
+        os.kill(os.getpid(), signal.SIGINT)  # arrives while the tree is measured
+        return real(*a, **k)
+
+    monkeypatch.setattr(adapt_levels, "evaluate_levels", interrupted)
+    out = tmp_path / "stopped"
+    assert main([str(tiny_model["ply"]), "--images", str(tiny_model["scene"]), *FAST, "-o", str(out),
+                 "--parent-share", "0.4", "--tier-finetune-steps", "1", "--tree-steps", "1"]) == 130
+    assert measured == [1]  # the top model's levels only, after the tier (the tier's own run measures none)
+    assert tree.is_tree(read_ply(out / "point_cloud.ply"))
+    assert json.loads((out / "metrics.json").read_text())["levels"] == []
+
+
 @pytest.mark.slow
 def test_adapt_job_builds_a_tree(tiny_model, tmp_path, monkeypatch):
     """clod-adapt with merged tiers: the tiers linked into a merge tree (written whole, every node's

@@ -29,7 +29,7 @@ from ..train.state import STATE_NAME, save_state
 from ..train.config import AdaptConfig
 from ..train.loop import StopFlag, fit, prepare
 from ..export.figures import write_strip, write_training_plot
-from ..evaluate.level_metrics import budget_levels, evaluate_level, evaluate_levels, sv_levels
+from ..evaluate.level_metrics import evaluate_level, sv_levels
 from ..io.atomic import atomic_write
 from ..io.load import resolve_model_path
 from . import InputError, pick_device  # noqa: F401 (public here since the first release)
@@ -37,8 +37,7 @@ from ..io.ply import read_ply, write_ply
 from ..io.scene import Scene
 from ..render.composite import deterministic_enabled
 from ..gaussians import Gaussians
-from ..lod.budget import Budget
-from ..lod.draw import PAPER, render_lod
+from .adapt_levels import format_summary, level_metrics, retime_levels  # noqa: F401 (public here)
 from .adapt_inputs import (METRICS_NAME, PLY_NAME, STRIP_NAME, TENSORBOARD_DIR, TRAINING_PLOT_NAME, Inputs,
                            fresh_scene, input_iteration, job_scene, read_inputs, read_model)
 
@@ -74,21 +73,6 @@ def write_inria_layout(out_dir: Path, model, scene, *, iteration: int, resolutio
     with atomic_write(out_dir / "cfg_args", "w") as f:
         f.write(cfg)
     return [str(rel_ply), "cameras.json", "cfg_args"]
-
-
-@torch.no_grad()
-def retime_levels(input_model, model, cameras, levels, *, tau, background, repeats: int) -> dict:
-    """Interleaved render timings (:func:`clod_adapter.evaluate.timing.time_interleaved`) of the input
-    model and of ``model`` at each s_v in ``levels``, on ``cameras``: keys ``"input"`` and each
-    level."""
-    from ..evaluate.timing import time_interleaved
-
-    jobs_ = {"input": [lambda c=c: render_lod(input_model, c, None, tau=tau, background=background,
-                                              eta_grad=PAPER) for c in cameras]}
-    for s in levels:
-        jobs_[s] = [lambda c=c, s=s: render_lod(model, c, s, tau=tau, background=background, eta_grad=PAPER)
-                    for c in cameras]
-    return time_interleaved(jobs_, repeats=repeats, warmup=1)
 
 
 @dataclass
@@ -210,9 +194,8 @@ def run(ply_path: os.PathLike, scene_root: os.PathLike, out_dir: os.PathLike, cf
                 src, left, first = _leave_out(src, Path(scene_root), Path(out_dir), cfg, o, stop, group)
             ro = o if left is None else replace(o, force=True, iteration=None,  # the folder was checked
                                                 resume=o.resume and (Path(out_dir) / STATE_NAME).is_file())
-            tiered = bool(cfg.parent_share) and group is None  # the levels measured once the tiers are attached
             metrics, adapted = _run(src, Path(scene_root), Path(out_dir), cfg, ro, stop, group,
-                                    scene=first.scene if first is not None else None, levels=not tiered)
+                                    scene=first.scene if first is not None else None, levels="untiered")
             if left is not None and "rank" not in metrics:
                 metrics = _record_leave_out(Path(out_dir), metrics, left)
                 # the tiers are merged from the input itself, not the kept part (None: phase 0 resumed)
@@ -220,8 +203,9 @@ def run(ply_path: os.PathLike, scene_root: os.PathLike, out_dir: os.PathLike, cf
             if cfg.parent_share and "rank" not in metrics:
                 metrics, linked = _add_parent_tier(Path(ply_path), Path(scene_root), Path(out_dir), cfg, o, stop,
                                                    group, metrics, adapted=adapted)
-                metrics = _final_levels(Path(out_dir), metrics, linked if linked is not None else adapted.model,
-                                        adapted.inputs, cfg, o, stop)
+                if not metrics["levels"]:  # deferred to the model as written, its tiers attached
+                    metrics = _final_levels(Path(out_dir), metrics, linked if linked is not None else adapted.model,
+                                            adapted.inputs, cfg, o, stop)
             if "rank" not in metrics:
                 metrics = _record_job_seconds(Path(out_dir), metrics, time.perf_counter() - t_job)
             return metrics
@@ -256,12 +240,15 @@ class _Adapted:
 
 
 def _run(ply_path: Path, scene_root: Path, out_dir: Path, cfg: AdaptConfig, o: AdaptOptions, stop: StopFlag,
-         group, scene: Optional[Scene] = None, levels: bool = True) -> tuple[dict, Optional[_Adapted]]:
+         group, scene: Optional[Scene] = None, levels: str = "yes") -> tuple[dict, Optional[_Adapted]]:
     """One adaptation of ``ply_path``: ``(its metrics, what it hands to the merged tiers)`` (None on
     a data-parallel rank other than 0). ``scene``: the job's scene at ``o.resolution`` when an
-    earlier phase read it. ``levels``: measure the levels and budgets (:func:`_evaluate`)."""
+    earlier phase read it. ``levels``: whether :func:`_evaluate` measures the levels and budgets,
+    ``"yes"``, ``"no"`` (a merged tier's own run) or ``"untiered"`` (unless the job will build merged
+    tiers for the model, :func:`_builds_tiers`: then :func:`_final_levels` measures them)."""
     t_start = time.perf_counter()
     inp = read_inputs(ply_path, scene_root, out_dir, cfg, o, stop, group, scene=scene)
+    measure = levels == "yes" or (levels == "untiered" and not _builds_tiers(cfg, len(inp.gaussians), group))
     state, cfg, input_eval, init_s_v1 = _start_state(inp, cfg, o, stop, group)
     meta = {"input_ply": str(inp.ply_path), "scene": str(inp.scene_root), "resolution": o.resolution,
             "input_sha256": inp.input_sha256, "scene_key": inp.scene_fp, "init_s_v1": json.dumps(init_s_v1),
@@ -280,7 +267,7 @@ def _run(ply_path: Path, scene_root: Path, out_dir: Path, cfg: AdaptConfig, o: A
             return {"rank": group.rank, "world_size": group.world_size, "iteration": state.iteration,
                     "train_seconds": round(train_s, 2)}, None
     stop.set_abortable(True)  # the evaluation writes nothing; raises if a signal came meanwhile
-    metrics = _evaluate(inp, model, cfg, o, input_eval, levels=levels)
+    metrics = _evaluate(inp, model, cfg, o, input_eval, levels=measure)
     stop.set_abortable(False)
     metrics.update({
         "config": asdict(cfg), "train_seconds": round(train_s, 2),
@@ -296,7 +283,7 @@ def _run(ply_path: Path, scene_root: Path, out_dir: Path, cfg: AdaptConfig, o: A
     if stop.stop:
         o.log("clod-adapt: signal received while writing the outputs; they were completed first")
     metrics["wall_seconds"] = round(time.perf_counter() - t_start, 1)
-    if levels:
+    if measure:
         o.log(format_summary(metrics))
     o.log(f"clod-adapt: wrote {', '.join(written)} to {inp.out_dir} in {metrics['wall_seconds']:.0f} s "
           f"({metrics['seconds_per_iteration']:.3f} s per iteration)")
@@ -375,6 +362,15 @@ PARENT_DIR = "parents"
 PARENT_INPUT_NAME = "parents_input.ply"
 
 
+def _builds_tiers(cfg: AdaptConfig, n: int, group) -> bool:
+    """Whether the job goes on to build merged tiers (:func:`_add_parent_tier`) for a model of ``n``
+    Gaussians: ``cfg.parent_share`` set, ``n`` at least
+    :data:`clod_adapter.train.tiers.PARENT_MIN_GAUSSIANS`, no data-parallel group."""
+    from ..train.tiers import PARENT_MIN_GAUSSIANS
+
+    return bool(cfg.parent_share) and n >= PARENT_MIN_GAUSSIANS and group is None
+
+
 def _add_parent_tier(ply_path: Path, scene_root: Path, out_dir: Path, cfg: AdaptConfig, o: AdaptOptions,
                      stop: StopFlag, group, metrics: dict, nested: bool = False,
                      adapted: Optional[_Adapted] = None) -> tuple[dict, Optional[Gaussians]]:
@@ -444,7 +440,7 @@ def _add_parent_tier(ply_path: Path, scene_root: Path, out_dir: Path, cfg: Adapt
                    iterations=cfg.tier_iterations(), tier_iteration_share=1.0,
                    tier_downscale=1 if nested else cfg.tier_downscale)  # the nested call downscales once
     pm, p_adapted = _run(out_dir / PARENT_INPUT_NAME, scene_root, pdir, pcfg, po, stop, None, scene=tscene,
-                         levels=False)
+                         levels="no")
     if pcfg.parent_share:  # the tier's own parent tiers, shares relative to it
         _add_parent_tier(out_dir / PARENT_INPUT_NAME, scene_root, pdir, pcfg, po, stop, None, pm, nested=True,
                          adapted=p_adapted)
@@ -717,36 +713,7 @@ def _evaluate(inp: Inputs, model, cfg: AdaptConfig, o: AdaptOptions, input_eval,
                    "what": "levels not measured"},
         "levels": [], "budgets": [], "notes": inp.notes,
     }
-    return _level_metrics(inp, model, cfg, o, metrics) if levels else metrics
-
-
-def _level_metrics(inp: Inputs, model, cfg: AdaptConfig, o: AdaptOptions, metrics: dict) -> dict:
-    """``metrics`` with ``levels``, ``budgets`` and ``timing`` of ``model`` on ``inp``'s test views
-    (the input's ``ms_per_frame`` retimed in the same rounds when ``o.timing_repeats`` > 0)."""
-    bg = cfg.background
-    levels = sv_levels(cfg.max_sv)
-    evals = evaluate_levels(model, inp.test_cams, inp.test_imgs, levels, tau=cfg.tau, background=bg)
-    budget_evals = [evaluate_level(model, inp.test_cams, inp.test_imgs, None, tau=cfg.tau, background=bg,
-                                   budget=Budget(in_view=float(b))) for b in budget_levels(cfg.max_sv)]
-    timing = None
-    if o.timing_repeats > 0:  # ms/frame of the input and every level, interleaved (load hits all alike)
-        timing = retime_levels(inp.input_model, model, inp.test_cams, levels, tau=cfg.tau, background=bg,
-                               repeats=o.timing_repeats)
-    level_dicts = [m.to_dict() for m in evals]
-    input_model = dict(metrics["input_model"])
-    if timing is not None:
-        for d, t in [(input_model, timing["input"])] + [(d, timing[d["s_v"]]) for d in level_dicts]:
-            d["ms_per_frame"] = t["ms_total"]
-            d["ms_per_frame_min"], d["ms_per_frame_max"] = t["ms_total_min"], t["ms_total_max"]
-            if "select_ms" in d:
-                d["select_ms"], d["raster_ms"] = t["ms_select"], t["ms_raster"]
-    return {**metrics, "input_model": input_model,
-            "timing": {"method": "interleaved" if timing is not None else "single pass",
-                       "repeats": o.timing_repeats, "omp_wait_policy": os.environ.get("OMP_WAIT_POLICY"),
-                       "what": "median over rounds of the median over test views of LoD selection + "
-                               "rasterisation wall time (ms); *_min/*_max: smallest/largest round; "
-                               "budgets: single pass"},
-            "levels": level_dicts, "budgets": [m.to_dict() for m in budget_evals]}
+    return level_metrics(inp, model, cfg, o, metrics) if levels else metrics
 
 
 def _final_levels(out_dir: Path, metrics: dict, model, inp: Inputs, cfg: AdaptConfig, o: AdaptOptions,
@@ -757,7 +724,7 @@ def _final_levels(out_dir: Path, metrics: dict, model, inp: Inputs, cfg: AdaptCo
     logged. A signal meanwhile stops it at once (the outputs are written; ``metrics.json`` then
     has no levels)."""
     stop.set_abortable(True)
-    metrics = _level_metrics(inp, model.to(inp.dev), cfg, o, metrics)
+    metrics = level_metrics(inp, model.to(inp.dev), cfg, o, metrics)
     stop.set_abortable(False)
     _rewrite_metrics(out_dir, metrics)
     o.log(format_summary(metrics))
@@ -807,28 +774,3 @@ def deterministic_mode(on: bool = True):
     finally:
         composite.set_deterministic(prev)
         torch.use_deterministic_algorithms(prev_alg, warn_only=prev_warn)
-
-
-def format_summary(metrics: dict) -> str:
-    """A short text table of ``metrics`` (input model, then each s_v); ms/frame is the median of
-    interleaved rounds, with the smallest-largest round when measured."""
-    n = metrics["num_gaussians"]
-    im = metrics["input_model"]
-
-    def ms(d):
-        if "ms_per_frame_min" in d:
-            return f"{d['ms_per_frame']:9.1f} ({d['ms_per_frame_min']:.1f}-{d['ms_per_frame_max']:.1f})"
-        return f"{d['ms_per_frame']:9.1f}"
-
-    lines = [f"{'model':>10} {'PSNR':>7} {'SSIM':>7} {'Gaussians':>10} {'%':>6} {'ms/frame (range)':>16}",
-             f"{'input':>10} {im['psnr']:7.2f} {im['ssim']:7.4f} {im['gaussians']:10.0f} "
-             f"{100 * im['gaussians'] / n:6.1f} {ms(im)}"]
-    for lv in metrics["levels"]:
-        lines.append(f"{'s_v=' + format(lv['s_v'], 'g'):>10} {lv['psnr']:7.2f} {lv['ssim']:7.4f} "
-                     f"{lv['gaussians']:10.0f} {100 * lv['fraction']:6.1f} {ms(lv)}")
-    for lv in metrics.get("budgets", []):
-        lines.append(f"{'b=' + format(100 * lv['budget'], '.3g') + '%':>10} {lv['psnr']:7.2f} {lv['ssim']:7.4f} "
-                     f"{lv['gaussians']:10.0f} {100 * lv['fraction']:6.1f} {ms(lv)}")
-    for note in metrics.get("notes", []):
-        lines.append(f"note: {note}")
-    return "\n".join(lines)

@@ -16,9 +16,10 @@ __all__ = ["retime_levels", "level_metrics", "format_summary"]
 
 @torch.no_grad()
 def retime_levels(input_model, model, cameras, levels, *, tau, background, repeats: int) -> dict:
-    """Interleaved render timings (:func:`clod_adapter.evaluate.timing.time_interleaved`) of the input
-    model and of ``model`` at each s_v in ``levels``, on ``cameras``: keys ``"input"`` and each
-    level."""
+    """Interleaved render timings (:func:`clod_adapter.evaluate.timing.time_interleaved`, ``repeats``
+    rounds after one warm-up) of the input model and of ``model`` at each s_v in ``levels``, on
+    ``cameras``: keys ``"input"`` and each level, each ``time_interleaved``'s record (``ms_total``,
+    ``ms_total_min``, ``ms_total_max``, ``ms_select``, ``ms_raster``: wall milliseconds per frame)."""
     from ..evaluate.timing import time_interleaved
 
     jobs_ = {"input": [lambda c=c: render_lod(input_model, c, None, tau=tau, background=background,

@@ -43,7 +43,9 @@ and the results table between README.md's ``results-table`` markers.
 
 Takes about 8-14 minutes per shared scene on 2 cores with the adaptation cached (the ceiling's
 fine-tunes, then about 90 settings x the test views x 7 renders), and 11-13 minutes more to adapt
-when it is not::
+when it is not. The ceiling's models are kept in ``runs/bench/<input>/ceiling/`` and read back by
+later runs while their starts, views and steps match (delete the folder to fit them again), which
+saves their fine-tunes (4 of about 4 minutes per scene)::
 
     python -m benchmarks.quality_vs_time --docs               # fern, maskgaussian, skull; test views
     python -m benchmarks.quality_vs_time --inputs skull --split val
@@ -91,6 +93,7 @@ def run_input(name: str, args, config: dict, tag: str, lpips_fn, tool: str) -> d
     fit, cams = scene_views(scene, args.split)
     opts = qvt.CompareOptions(merge_tool=tool, lpips_fn=lpips_fn, repeats=args.repeats,
                               ceiling_views=ceiling_views(scene, args), ceiling_steps=args.ceiling_steps,
+                              ceiling_cache=common.RUNS / name / "ceiling",
                               sweep_rounds=qvt.SWEEP_ROUNDS)
     comp = qvt.compare(load_model(ply), g0, fit, cams, gts, max_sv=cfg.max_sv, options=opts, log=log)
     cs = qvt.cells(comp)

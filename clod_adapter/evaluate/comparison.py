@@ -35,10 +35,12 @@ from __future__ import annotations
 
 import csv
 import io
+import json
 import math
 import statistics
 import time
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Callable, Optional, Sequence
 
 import torch
@@ -292,7 +294,8 @@ def _in_range(st: Setting, ctx: _Context, max_sv: float) -> bool:
 
 
 def ceiling_settings(settings: Sequence[Setting], ctx: _Context, max_sv: float, ceiling_views: tuple, *,
-                     steps: int = CEILING_STEPS, log: Callable[[str], None] = lambda s: None) -> list[Setting]:
+                     steps: int = CEILING_STEPS, cache: Optional[Path] = None,
+                     log: Callable[[str], None] = lambda s: None) -> list[Setting]:
     """The honest ceiling at each in-range decimator share (issue 36's goal 4): per model share,
     the best start among both decimators' outputs and the LightGaussian cut of the input to the
     same count (:func:`clod_adapter.train.finetune.best_start` on the validation views), every
@@ -309,6 +312,11 @@ def ceiling_settings(settings: Sequence[Setting], ctx: _Context, max_sv: float, 
             and views that choose its step (images [H, W, 3] float32 in [0, 1]); neither may be
             an evaluation view.
         steps: the fine-tune's length (its step is chosen among its checkpoints).
+        cache: a folder for the fitted models (made when missing): each is written there as
+            ``model=<share>.ply`` with a ``.json`` beside it (the start chosen, the step kept and
+            what they were fitted from: the starts' counts, the input's count, the views' counts,
+            ``steps``), and read back instead of fitted again while those match. Delete the
+            folder to fit them again (after a change to the fine-tune). None: fitted every call.
 
     Returns:
         one :class:`Setting` per model share, method ``ceiling``, setting ``model=<share>``.
@@ -325,16 +333,56 @@ def ceiling_settings(settings: Sequence[Setting], ctx: _Context, max_sv: float, 
         cands = {m: ctx.merged[(m, share)] for m in DECIMATORS if (m, share) in ctx.merged}
         n = len(next(iter(cands.values())))
         cands["lightgaussian"] = ctx.base.subset(global_cut(ctx.scores["lightgaussian"], n / len(ctx.base)))
+        key = {"steps": steps, "starts": {m: len(g) for m, g in cands.items()}, "input": len(ctx.base),
+               "fit_views": len(fit_cams), "val_views": len(val_cams), "background": [float(v) for v in bg]}
         t = time.perf_counter()
-        name, start = best_start(cands, val_cams, val_imgs, background=bg)
-        tuned, info = finetune_subset(start, fit_cams, fit_imgs,
-                                      FinetuneOptions(iterations=steps, background=bg, val_every=CEILING_VAL_EVERY),
-                                      val=(val_cams, val_imgs), return_info=True)
-        log(f"ceiling at model={share:g}: {name} fine-tuned, step {info.best_step} of {steps} chosen on "
-            f"{len(val_cams)} validation views, in {time.perf_counter() - t:.0f} s")
+        tuned = _cached_ceiling(cache, share, key)
+        if tuned is not None:
+            log(f"ceiling at model={share:g}: reusing {cache / f'model={share:g}.ply'} ({tuned[1]['start']} "
+                f"fine-tuned, step {tuned[1]['best_step']} of {steps})")
+            tuned = tuned[0]
+        else:
+            name, start = best_start(cands, val_cams, val_imgs, background=bg)
+            tuned, info = finetune_subset(start, fit_cams, fit_imgs,
+                                          FinetuneOptions(iterations=steps, background=bg, val_every=CEILING_VAL_EVERY),
+                                          val=(val_cams, val_imgs), return_info=True)
+            log(f"ceiling at model={share:g}: {name} fine-tuned, step {info.best_step} of {steps} chosen on "
+                f"{len(val_cams)} validation views, in {time.perf_counter() - t:.0f} s")
+            if cache is not None:
+                _store_ceiling(cache, share, tuned, {**key, "start": name, "best_step": info.best_step})
         out.append(Setting("ceiling", f"model={share:g}", [lod_render(tuned, c, **ctx.render_kw) for c in ctx.cams],
                            ply_bytes(tuned)))
     return out
+
+
+def _cached_ceiling(cache: Optional[Path], share: float, key: dict) -> Optional[tuple[Gaussians, dict]]:
+    """The ceiling model at ``share`` stored in ``cache`` and its record, when its record matches
+    ``key``; else None."""
+    from ..io.ply import read_ply
+
+    if cache is None:
+        return None
+    ply, rec = Path(cache) / f"model={share:g}.ply", Path(cache) / f"model={share:g}.json"
+    try:
+        info = json.loads(rec.read_text())
+        if {k: info.get(k) for k in key} != key:
+            return None
+        return read_ply(ply), info
+    except (OSError, ValueError):
+        return None
+
+
+def _store_ceiling(cache: Path, share: float, tuned: Gaussians, info: dict) -> None:
+    """Write a fitted ceiling model and its record into ``cache`` (both atomically; the record
+    last, so a model without one is never read)."""
+    from ..io.atomic import atomic_write
+    from ..io.ply import write_ply
+
+    cache = Path(cache)
+    cache.mkdir(parents=True, exist_ok=True)
+    write_ply(cache / f"model={share:g}.ply", tuned)
+    with atomic_write(cache / f"model={share:g}.json", "w") as f:
+        f.write(json.dumps(info, indent=1) + "\n")
 
 
 def _time(settings: Sequence[Setting], repeats: int, tick, seed: int = 0) -> dict:
@@ -440,6 +488,8 @@ class CompareOptions:
         ceiling_views: ``(fit_cams, fit_imgs, val_cams, val_imgs)`` for the per-budget ceiling
             (:func:`ceiling_settings`; needs the decimators), or None (not built).
         ceiling_steps: its fine-tune's length.
+        ceiling_cache: a folder where the ceiling's models are kept and read back
+            (:func:`ceiling_settings`' ``cache``), or None.
         sweep_rounds: rounds of :func:`sweep_times` (0: not measured; the cost goals read the
             comparison's own timing then).
     """
@@ -451,6 +501,7 @@ class CompareOptions:
     background: Optional[Sequence[float]] = None
     ceiling_views: Optional[tuple] = None
     ceiling_steps: int = CEILING_STEPS
+    ceiling_cache: Optional[Path] = None
     sweep_rounds: int = 0
 
 
@@ -479,7 +530,8 @@ def compare(adapted: Gaussians, base: Gaussians, fit_cams: Sequence, cams: Seque
     score(settings, gts, o.lpips_fn, tick)
     extra = matched_settings(settings, ctx, max_sv)
     if o.ceiling_views is not None and o.merge_tool is not None and o.ceiling_steps > 0:
-        extra += ceiling_settings(settings, ctx, max_sv, o.ceiling_views, steps=o.ceiling_steps, log=log)
+        extra += ceiling_settings(settings, ctx, max_sv, o.ceiling_views, steps=o.ceiling_steps,
+                                  cache=o.ceiling_cache, log=log)
     score(extra, gts, o.lpips_fn, tick)
     settings += extra
     log(f"{len(settings)} settings x {len(cams)} views scored; timing x{o.repeats} ...")

@@ -45,7 +45,7 @@ Takes about 8-14 minutes per shared scene on 2 cores with the adaptation cached 
 fine-tunes, then about 90 settings x the test views x 7 renders), and 11-13 minutes more to adapt
 when it is not. The ceiling's models are kept in ``runs/bench/<input>/ceiling/`` and read back by
 later runs while their starts, views and steps match (delete the folder to fit them again), which
-saves their fine-tunes (4 of about 4 minutes per scene)::
+saves their fine-tunes (3-4 minutes a model on 2 cores, three or four models a scene)::
 
     python -m benchmarks.quality_vs_time --docs               # fern, maskgaussian, skull; test views
     python -m benchmarks.quality_vs_time --inputs skull --split val

@@ -139,23 +139,24 @@ def test_a_ceiling_model_is_kept_and_read_back_only_while_its_record_matches(tmp
     bit-exact for the same starts, views and steps; any other key, or a missing record, fits anew."""
     import torch
 
+    from clod_adapter.evaluate.ceiling_cache import cached_ceiling, store_ceiling
     from clod_adapter.io.synthetic import make_ground_truth
 
     g = make_ground_truth(50, seed=3)
     key = {"steps": 600, "starts": {"decimate": 50, "lightgaussian": 50}, "input": 200, "fit_views": 17,
            "val_views": 2, "background": [0.0, 0.0, 0.0]}
     cache = tmp_path / "ceiling"
-    assert qvt._cached_ceiling(cache, 0.3, key) is None  # nothing kept yet
-    qvt._store_ceiling(cache, 0.3, g, {**key, "start": "decimate", "best_step": 500})
-    back, info = qvt._cached_ceiling(cache, 0.3, key)
+    assert cached_ceiling(cache, 0.3, key) is None  # nothing kept yet
+    store_ceiling(cache, 0.3, g, {**key, "start": "decimate", "best_step": 500})
+    back, info = cached_ceiling(cache, 0.3, key)
     assert (info["start"], info["best_step"]) == ("decimate", 500)
     for name in ("means", "quats", "log_scales", "opacity_logits", "sh0", "shN"):
         assert torch.equal(getattr(back, name), getattr(g, name).float()), name
-    assert qvt._cached_ceiling(cache, 0.15, key) is None  # another share
-    assert qvt._cached_ceiling(cache, 0.3, {**key, "steps": 300}) is None
-    assert qvt._cached_ceiling(cache, 0.3, {**key, "starts": {"decimate": 49, "lightgaussian": 50}}) is None
+    assert cached_ceiling(cache, 0.15, key) is None  # another share
+    assert cached_ceiling(cache, 0.3, {**key, "steps": 300}) is None
+    assert cached_ceiling(cache, 0.3, {**key, "starts": {"decimate": 49, "lightgaussian": 50}}) is None
     (cache / "model=0.3.json").unlink()
-    assert qvt._cached_ceiling(cache, 0.3, key) is None
+    assert cached_ceiling(cache, 0.3, key) is None
 
 
 def _bench():

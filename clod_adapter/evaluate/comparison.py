@@ -49,6 +49,7 @@ from ..lod.rankings import lightgaussian_significance, merge_decimate, topk_in_v
 from ..lod.budget import Budget
 from ..lod.draw import render_lod, tier_reach
 from ..lod.view import view_lod
+from .ceiling_cache import cached_ceiling, store_ceiling
 from .frontier import Point, frontier, time_margins
 from ..gaussians import Gaussians
 from ..metrics import psnr, ssim
@@ -336,7 +337,7 @@ def ceiling_settings(settings: Sequence[Setting], ctx: _Context, max_sv: float, 
         key = {"steps": steps, "starts": {m: len(g) for m, g in cands.items()}, "input": len(ctx.base),
                "fit_views": len(fit_cams), "val_views": len(val_cams), "background": [float(v) for v in bg]}
         t = time.perf_counter()
-        tuned = _cached_ceiling(cache, share, key)
+        tuned = cached_ceiling(cache, share, key)
         if tuned is not None:
             log(f"ceiling at model={share:g}: reusing {cache / f'model={share:g}.ply'} ({tuned[1]['start']} "
                 f"fine-tuned, step {tuned[1]['best_step']} of {steps})")
@@ -349,40 +350,10 @@ def ceiling_settings(settings: Sequence[Setting], ctx: _Context, max_sv: float, 
             log(f"ceiling at model={share:g}: {name} fine-tuned, step {info.best_step} of {steps} chosen on "
                 f"{len(val_cams)} validation views, in {time.perf_counter() - t:.0f} s")
             if cache is not None:
-                _store_ceiling(cache, share, tuned, {**key, "start": name, "best_step": info.best_step})
+                store_ceiling(cache, share, tuned, {**key, "start": name, "best_step": info.best_step})
         out.append(Setting("ceiling", f"model={share:g}", [lod_render(tuned, c, **ctx.render_kw) for c in ctx.cams],
                            ply_bytes(tuned)))
     return out
-
-
-def _cached_ceiling(cache: Optional[Path], share: float, key: dict) -> Optional[tuple[Gaussians, dict]]:
-    """The ceiling model at ``share`` stored in ``cache`` and its record, when its record matches
-    ``key``; else None."""
-    from ..io.ply import read_ply
-
-    if cache is None:
-        return None
-    ply, rec = Path(cache) / f"model={share:g}.ply", Path(cache) / f"model={share:g}.json"
-    try:
-        info = json.loads(rec.read_text())
-        if {k: info.get(k) for k in key} != key:
-            return None
-        return read_ply(ply), info
-    except (OSError, ValueError):
-        return None
-
-
-def _store_ceiling(cache: Path, share: float, tuned: Gaussians, info: dict) -> None:
-    """Write a fitted ceiling model and its record into ``cache`` (both atomically; the record
-    last, so a model without one is never read)."""
-    from ..io.atomic import atomic_write
-    from ..io.ply import write_ply
-
-    cache = Path(cache)
-    cache.mkdir(parents=True, exist_ok=True)
-    write_ply(cache / f"model={share:g}.ply", tuned)
-    with atomic_write(cache / f"model={share:g}.json", "w") as f:
-        f.write(json.dumps(info, indent=1) + "\n")
 
 
 def _time(settings: Sequence[Setting], repeats: int, tick, seed: int = 0) -> dict:

@@ -551,7 +551,7 @@ def test_adapt_job_builds_a_tree_from_a_pruned_tier(tiny_model, tmp_path, monkey
 
 def test_a_signal_while_the_tree_is_measured_stops_the_job(tiny_model, tmp_path, monkeypatch):
     """A job that builds merged tiers measures its levels once they are attached; a signal then
-    stops it at once (exit by KeyboardInterrupt), the merge tree written and ``metrics.json``
+    stops it at once (exit status 130), the merge tree written and ``metrics.json``
     without levels."""
     import json
     import os

@@ -336,11 +336,11 @@ def ceiling_settings(settings: Sequence[Setting], ctx: _Context, max_sv: float, 
         key = {"steps": steps, "starts": {m: len(g) for m, g in cands.items()}, "input": len(ctx.base),
                "fit_views": len(fit_cams), "val_views": len(val_cams), "background": [float(v) for v in bg]}
         t = time.perf_counter()
-        tuned = cached_ceiling(cache, share, key)
-        if tuned is not None:
-            log(f"ceiling at model={share:g}: reusing {cache / f'model={share:g}.ply'} ({tuned[1]['start']} "
-                f"fine-tuned, step {tuned[1]['best_step']} of {steps})")
-            tuned = tuned[0]
+        kept = cached_ceiling(cache, share, key)
+        if kept is not None:
+            tuned, record = kept
+            log(f"ceiling at model={share:g}: reusing {cache / f'model={share:g}.ply'} ({record['start']} "
+                f"fine-tuned, step {record['best_step']} of {steps})")
         else:
             name, start = best_start(cands, val_cams, val_imgs, background=bg)
             tuned, info = finetune_subset(start, fit_cams, fit_imgs,

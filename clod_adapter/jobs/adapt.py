@@ -696,8 +696,8 @@ def _train(inp: Inputs, state, cfg: AdaptConfig, o: AdaptOptions, stop: StopFlag
 def _evaluate(inp: Inputs, model, cfg: AdaptConfig, o: AdaptOptions, input_eval, levels: bool = True) -> dict:
     """Phase 4: the metrics dict (without the run's training facts, which :func:`_run` adds): the
     input's quality and, with ``levels``, the adapted model at every level and budget on the test
-    views, the input and the levels timed in interleaved rounds (:func:`_level_metrics`); without,
-    empty ``levels`` and ``budgets`` (a merged tier's own run; the top job's when its tiers are
+    views, the input and the levels timed in interleaved rounds
+    (:func:`clod_adapter.jobs.adapt_levels.level_metrics`); without, empty ``levels`` and ``budgets`` (a merged tier's own run; the top job's when its tiers are
     built, which :func:`_final_levels` measures once they are attached)."""
     input_model = {"psnr": input_eval.psnr, "ssim": input_eval.ssim,
                    "gaussians": input_eval.gaussians, "ms_per_frame": input_eval.ms_per_frame}
@@ -720,8 +720,8 @@ def _final_levels(out_dir: Path, metrics: dict, model, inp: Inputs, cfg: AdaptCo
                   stop: StopFlag) -> dict:
     """Phase 7 (a job that may build merged tiers): the levels and budgets of ``model``, as written
     to ``point_cloud.ply`` (the merge tree when a tier was attached, else the model alone), on the
-    test views of ``inp``, timed (:func:`_level_metrics`); ``metrics.json`` rewritten and the summary
-    logged. A signal meanwhile stops it at once (the outputs are written; ``metrics.json`` then
+    test views of ``inp``, timed (:func:`clod_adapter.jobs.adapt_levels.level_metrics`);
+    ``metrics.json`` rewritten and the summary logged. A signal meanwhile stops it at once (the outputs are written; ``metrics.json`` then
     has no levels)."""
     stop.set_abortable(True)
     metrics = level_metrics(inp, model.to(inp.dev), cfg, o, metrics)

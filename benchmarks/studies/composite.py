@@ -1,4 +1,5 @@
-"""Benchmark of the per-pixel compositor: C++/OpenMP vs the PyTorch twin.
+"""Benchmark of the per-pixel compositor: C++/OpenMP (its vector rows, and its scalar rows alone)
+vs the PyTorch twin.
 
 Synthetic 2D splats approximating a real scene after projection: centres
 spread over (and slightly beyond) the image, log-normal-ish screen radii of
@@ -9,7 +10,8 @@ Usage:  python -m benchmarks.studies.composite [--configs 10000:128,50000:256,20
         [--repeat 3] [--skip-torch-above 0]
 
 Prints, per config: intersections, mean list length, forward and
-forward+backward time of cpp and torch, their ratio, and the peak RSS delta.
+forward+backward time of cpp (vector rows where the CPU has AVX2/FMA), cpp-scalar (the scalar
+rows alone, ``composite.simd_rows(False)``) and torch, their ratios, and the peak RSS delta.
 """
 from __future__ import annotations
 
@@ -18,6 +20,7 @@ import os
 os.environ.setdefault("OMP_NUM_THREADS", "2")
 
 import argparse  # noqa: E402
+import contextlib  # noqa: E402
 import math  # noqa: E402
 import resource  # noqa: E402
 import time  # noqa: E402
@@ -28,6 +31,7 @@ from clod_adapter.render.composite import use_impl  # noqa: E402
 from clod_adapter.render.composite import (  # noqa: E402
     cpp_extension_available,
     rasterize_to_pixels,
+    simd_rows,
 )
 
 torch.set_num_threads(2)
@@ -96,7 +100,8 @@ def run(scene, impl, backward):
     leaves = [scene[k].clone().requires_grad_(backward)
               for k in ("means2d", "conics", "colors", "opacities")]
     t0 = time.perf_counter()
-    with use_impl(impl):
+    with use_impl("cpp" if impl.startswith("cpp") else impl), \
+            simd_rows(impl != "cpp-scalar") if impl.startswith("cpp") else contextlib.nullcontext():
         img, alpha = rasterize_to_pixels(*leaves, scene["width"], scene["height"], scene["tile_size"],
                                          scene["isect_offsets"], scene["flatten_ids"])
     if backward:
@@ -121,7 +126,7 @@ def main():
     args = ap.parse_args()
     print(f"threads={torch.get_num_threads()} OMP_NUM_THREADS={os.environ.get('OMP_NUM_THREADS')} "
           f"cpp={'yes' if cpp_extension_available() else 'NO'}")
-    hdr = (f"{'N':>7} {'size':>5} {'isects':>9} {'len/tile':>8} | {'impl':>5} {'fwd s':>8} "
+    hdr = (f"{'N':>7} {'size':>5} {'isects':>9} {'len/tile':>8} | {'impl':>10} {'fwd s':>8} "
            f"{'fwd+bwd s':>9} {'bwd s':>8} {'dRSS MB':>8}")
     print(hdr)
     print("-" * len(hdr))
@@ -131,15 +136,18 @@ def main():
         M = scene["flatten_ids"].numel()
         ntiles = scene["isect_offsets"].numel()
         res = {}
-        impls = ["cpp"] if cpp_extension_available() else []
+        impls = ["cpp", "cpp-scalar"] if cpp_extension_available() else []
         if not args.skip_torch_above or n <= args.skip_torch_above:
             impls.append("torch")
         for impl in impls:
-            reps = args.repeat if impl == "cpp" else 1
+            reps = args.repeat if impl.startswith("cpp") else 1
             fwd, fb, drss = bench(scene, impl, reps)
             res[impl] = (fwd, fb)
-            print(f"{n:>7} {size:>5} {M:>9} {M / ntiles:>8.0f} | {impl:>5} {fwd:>8.4f} {fb:>9.4f} "
+            print(f"{n:>7} {size:>5} {M:>9} {M / ntiles:>8.0f} | {impl:>10} {fwd:>8.4f} {fb:>9.4f} "
                   f"{fb - fwd:>8.4f} {drss:>8.1f}", flush=True)
+        if "cpp" in res and "cpp-scalar" in res:
+            print(f"{'':>33}   ratio cpp-scalar/cpp: fwd {res['cpp-scalar'][0] / res['cpp'][0]:.2f}x, "
+                  f"fwd+bwd {res['cpp-scalar'][1] / res['cpp'][1]:.2f}x")
         if "cpp" in res and "torch" in res:
             print(f"{'':>33}   ratio torch/cpp: fwd {res['torch'][0] / res['cpp'][0]:.1f}x, "
                   f"fwd+bwd {res['torch'][1] / res['cpp'][1]:.1f}x")

@@ -18,6 +18,7 @@ T = next_T.  render_alphas = 1 - T_final, render_colors += T_final * bg.
 """
 from __future__ import annotations
 
+import contextlib
 import os
 import warnings
 from typing import Optional, Tuple
@@ -31,6 +32,7 @@ __all__ = [
     "deterministic_enabled",
     "deterministic_override",
     "set_deterministic",
+    "simd_rows",
 ]
 
 from ._torch_impl import ALPHA_THRESHOLD, MAX_ALPHA, TRANSMITTANCE_THRESHOLD, rasterize_to_pixels_torch  # noqa: F401
@@ -74,6 +76,25 @@ def deterministic_enabled() -> bool:
         return _DETERMINISTIC
     v = os.environ.get("CLOD_DETERMINISTIC", "").strip().lower()
     return v not in ("", "0", "false", "no", "off")
+
+
+@contextlib.contextmanager
+def simd_rows(on: bool):
+    """Within the block the C++ compositor runs its vector rows (``on``, the default where the CPU
+    has AVX2 and FMA and their exp matches this process's ``expf``) or its scalar rows only, their
+    twin: the two give bit-identical results (``csrc/composite_simd.cpp``). Yields whether the
+    vector rows run. For tests and benchmarks; not a user option.
+
+    Raises:
+        RuntimeError: the C++ compositor did not build (:func:`cpp_extension_available`)."""
+    ext = _load()
+    if ext is None:
+        raise RuntimeError(f"the C++ compositor did not build: {_error()!r}")
+    prev = bool(ext.composite_simd(-1))
+    try:
+        yield bool(ext.composite_simd(1 if on else 0))
+    finally:
+        ext.composite_simd(1 if prev else 0)
 
 
 def _num_threads() -> int:

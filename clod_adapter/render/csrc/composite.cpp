@@ -25,6 +25,14 @@
 // buffer b the tiles b, b + nthreads, ... (static schedule, increasing order)
 // and the backward is then bit-reproducible for a given nthreads. The forward
 // is always deterministic (each pixel is written by one thread).
+//
+// SIMD: on x86-64 CPUs with AVX2 and FMA the float kernels composite four pixels of a row at
+// once (composite_simd.cpp). Every lane does the scalar code's arithmetic in the scalar code's
+// order (no contraction), its exp is glibc's expf algorithm (ARM optimized-routines, the FMA
+// variant glibc selects on such CPUs) and the backward's sums over pixels are added lane by lane
+// in pixel order, so the result is bit-identical to the scalar kernel, which stays the twin
+// (composite_simd(0) selects it; tests hold the two equal). The vector path is used only after
+// a self-check of its exp against this process's std::exp; double inputs stay scalar.
 #include <torch/extension.h>
 
 #include <omp.h>
@@ -33,7 +41,20 @@
 #include <cmath>
 #include <cstdint>
 #include <limits>
+#include <type_traits>
 #include <vector>
+
+namespace clod_simd {  // composite_simd.cpp
+bool available();
+bool active();
+int set_mode(int mode);
+int forward_row(uint64_t* wrow, int xa, int xb, int px0, int pbase, float mx, float dy, float a, float b,
+                float op, float sthr, float cdy2, const float* cg, int D, float* T, float* col, int cs,
+                int32_t* last, int32_t idx);
+bool backward_row(const uint64_t* row, int xa, int xb, int px0, int pbase, float mx, float dy, float a, float b,
+                  float c, float op, float sthr, float cdy2, const float* cg, int D, double* T, const double* w,
+                  const float* vc, double* buf, int cs, double* sums);
+}  // namespace clod_simd
 
 namespace {
 
@@ -91,6 +112,18 @@ inline bool row_span(const GParam<S>& q, double dy, int32_t px0, int32_t pw,
     xa = il < 0 ? 0 : il;
     xb = ih > pw - 1 ? pw - 1 : ih;
     return xa <= xb;
+}
+
+// The vector rows (composite_simd.cpp) take a Gaussian in float with a well-conditioned ellipse
+// and a finite skip threshold (every drawn sigma in [0, 80]), rows of at most 64 pixels and at
+// most 16 channels; `on` is clod_simd::active() read once per call.
+template <typename S>
+inline bool simd_rows(const GParam<S>& q, int nw, int D, bool on) {
+    if constexpr (!std::is_same<S, float>::value) {
+        return false;
+    } else {
+        return on && nw == 1 && D <= 16 && q.span_ok && q.sthr <= 80.0f;  // NaN sthr: false
+    }
 }
 
 // Iterate the set bits of a row bitmask restricted to [xa, xb].
@@ -181,6 +214,9 @@ void precompute_params(
     }
 }
 
+// how many Gaussians of a tile's list ahead their parameters (and gradient rows) are prefetched
+constexpr int64_t kPrefetch = 8;
+
 inline void tile_range(
     const int64_t* offsets, int64_t ntiles, int64_t M, int64_t t,
     int64_t& start, int64_t& end) {
@@ -208,12 +244,14 @@ void forward_impl(
     constexpr S maxA = Consts<S>::max_alpha;
     constexpr S athr = Consts<S>::alpha_thr;
     constexpr S tthr = Consts<S>::trans_thr;
+    const bool simd_on = clod_simd::active();
 
 #pragma omp parallel num_threads(nthreads)
     {
         const int npix_max = ts * ts;
-        std::vector<S> Tv(npix_max), colv(static_cast<size_t>(npix_max) * D);
-        std::vector<int32_t> lastv(npix_max);
+        const int cs = npix_max + 4;  // colour plane stride (SoA: col[k * cs + p]); 4 lanes of padding
+        std::vector<S> Tv(cs), colv(static_cast<size_t>(cs) * D);
+        std::vector<int32_t> lastv(cs);
         const int nw_max = (ts + 63) / 64;
         std::vector<uint64_t> actv(static_cast<size_t>(ts) * nw_max);
 #pragma omp for schedule(dynamic, 1)
@@ -230,7 +268,7 @@ void forward_impl(
             int32_t* last = lastv.data();
             uint64_t* act = actv.data();  // active (not done) pixels, per row
             std::fill(T, T + npix, S(1));
-            std::fill(col, col + static_cast<size_t>(npix) * D, S(0));
+            for (int k = 0; k < D; ++k) std::fill(col + static_cast<size_t>(k) * cs, col + static_cast<size_t>(k) * cs + npix, S(0));
             std::fill(last, last + npix, -1);
             for (int ly = 0; ly < ph; ++ly) {
                 for (int w = 0; w < nw; ++w) {
@@ -243,12 +281,15 @@ void forward_impl(
             tile_range(offsets, ntiles, M, t, start, end);
             for (int64_t idx = start; idx < end; ++idx) {
                 const int64_t g = ids[idx];
+                // the Gaussians are visited in depth order, at random in memory: fetch ahead
+                if (idx + kPrefetch < end) __builtin_prefetch(P + ids[idx + kPrefetch]);
                 const GParam<S>& q = P[g];
                 const int32_t y0 = std::max(q.y0, py0), y1 = std::min(q.y1, py0 + ph - 1);
                 if (y0 > y1 || q.x0 > px0 + pw - 1 || q.x1 < px0) continue;
                 const S mx = q.mx, my = q.my, a = q.a, b = q.b, c = q.c, op = q.op;
                 const S sthr = q.sthr;
                 const S* cg = colors + g * D;
+                const bool vec = simd_rows(q, nw, D, simd_on);
                 for (int32_t y = y0; y <= y1; ++y) {
                     const int ly = y - py0;
                     const uint64_t* row = act + ly * nw;
@@ -258,6 +299,13 @@ void forward_impl(
                     if (!row_span(q, static_cast<double>(dy), px0, pw, xa, xb)) continue;
                     const S cdy2 = c * dy * dy;
                     uint64_t* wrow = act + ly * nw;
+                    if constexpr (std::is_same<S, float>::value) {
+                        if (vec) {
+                            ndone += clod_simd::forward_row(wrow, xa, xb, px0, ly * pw, mx, dy, a, b, op, sthr, cdy2,
+                                                            cg, D, T, col, cs, last, static_cast<int32_t>(idx));
+                            continue;
+                        }
+                    }
                     for_bits(row, xa, xb, [&](int lx) {
                         const int p = ly * pw + lx;
                         const S dx = mx - (static_cast<S>(px0 + lx) + S(0.5));
@@ -273,8 +321,7 @@ void forward_impl(
                             return;
                         }
                         const S vis = alpha * Tp;
-                        S* cp = col + static_cast<size_t>(p) * D;
-                        for (int k = 0; k < D; ++k) cp[k] += cg[k] * vis;
+                        for (int k = 0; k < D; ++k) col[static_cast<size_t>(k) * cs + p] += cg[k] * vis;
                         last[p] = static_cast<int32_t>(idx);
                         T[p] = nT;
                     });
@@ -291,11 +338,11 @@ void forward_impl(
                     out_T[pix] = Tp;
                     out_last[pix] = last[p];
                     S* oc = out_col + pix * D;
-                    const S* cp = col + static_cast<size_t>(p) * D;
+                    const S* cp = col + p;
                     if (bg != nullptr) {
-                        for (int k = 0; k < D; ++k) oc[k] = cp[k] + Tp * bg[k];
+                        for (int k = 0; k < D; ++k) oc[k] = cp[static_cast<size_t>(k) * cs] + Tp * bg[k];
                     } else {
-                        for (int k = 0; k < D; ++k) oc[k] = cp[k];
+                        for (int k = 0; k < D; ++k) oc[k] = cp[static_cast<size_t>(k) * cs];
                     }
                 }
             }
@@ -322,6 +369,7 @@ void backward_impl(
     const int64_t ntiles = static_cast<int64_t>(th) * tw;
     constexpr S maxA = Consts<S>::max_alpha;
     constexpr S athr = Consts<S>::alpha_thr;
+    const bool simd_on = clod_simd::active();
 
     // per-thread gradient buffers
     std::vector<std::vector<S>> bufs(nthreads);
@@ -333,11 +381,12 @@ void backward_impl(
         // fixed tile set {b, b + nthreads, ...} whichever thread runs it (allocated there)
         if (!deterministic) bufs[tid].assign(static_cast<size_t>(N) * G, S(0));
         const int npix_max = ts * ts;
-        std::vector<double> Tv(npix_max), bufv(static_cast<size_t>(npix_max) * D);
-        std::vector<double> wv(npix_max);  // T_final * (v_alpha - bg . v_col)
-        std::vector<S> vcv(static_cast<size_t>(npix_max) * D);
+        const int cs = npix_max + 4;  // channel plane stride (SoA: buf[k * cs + p]); 4 lanes of padding
+        std::vector<double> Tv(cs), bufv(static_cast<size_t>(cs) * D);
+        std::vector<double> wv(cs);  // T_final * (v_alpha - bg . v_col)
+        std::vector<S> vcv(static_cast<size_t>(cs) * D);
         std::vector<int32_t> lastv(npix_max);
-        std::vector<double> acc_col(D);
+        std::vector<double> sumv(6 + D);  // one Gaussian's sums over pixels: mx my a b c op colours...
         const int nw_max = (ts + 63) / 64;
         std::vector<uint64_t> actv(static_cast<size_t>(ts) * nw_max);
         std::vector<std::pair<int32_t, int32_t>> order(npix_max);
@@ -371,8 +420,8 @@ void backward_impl(
                     double acc_bg = 0.0;
                     for (int k = 0; k < D; ++k) {
                         const S v = v_col[pix * D + k];
-                        vc[static_cast<size_t>(p) * D + k] = v;
-                        buf[static_cast<size_t>(p) * D + k] = 0.0;
+                        vc[static_cast<size_t>(k) * cs + p] = v;
+                        buf[static_cast<size_t>(k) * cs + p] = 0.0;
                         if (bg != nullptr) acc_bg += static_cast<double>(bg[k]) * v;
                     }
                     const double va = v_alpha_img != nullptr ? static_cast<double>(v_alpha_img[pix]) : 0.0;
@@ -394,15 +443,25 @@ void backward_impl(
                     ++nact;
                 }
                 const int64_t g = ids[idx];
+                if (idx - kPrefetch >= start) {  // back to front, at random in memory: fetch ahead
+                    const int64_t gn = ids[idx - kPrefetch];
+                    __builtin_prefetch(P + gn);
+                    __builtin_prefetch(gout + static_cast<size_t>(gn) * G, 1);
+                }
                 const GParam<S>& q = P[g];
                 const int32_t y0 = std::max(q.y0, py0), y1 = std::min(q.y1, py0 + ph - 1);
                 if (y0 > y1 || q.x0 > px0 + pw - 1 || q.x1 < px0) continue;
                 const S mx = q.mx, my = q.my, a = q.a, b = q.b, c = q.c, op = q.op;
                 const S sthr = q.sthr;
                 const S* cg = colors + g * D;
+                // the sums over pixels: locals in the scalar rows, sums[] in the vector rows (a
+                // Gaussian's rows are all one or all the other)
                 double vmx = 0, vmy = 0, va = 0, vb = 0, vcc = 0, vop = 0;
-                for (int k = 0; k < D; ++k) acc_col[k] = 0.0;
+                double* sums = sumv.data();
+                double* acc_col = sums + 6;
+                std::fill(sums, sums + 6 + D, 0.0);
                 bool any = false;
+                const bool vec = simd_rows(q, nw, D, simd_on);
                 for (int32_t y = y0; y <= y1; ++y) {
                     const int ly = y - py0;
                     const uint64_t* row = act + ly * nw;
@@ -411,6 +470,13 @@ void backward_impl(
                     int32_t xa, xb;
                     if (!row_span(q, static_cast<double>(dy), px0, pw, xa, xb)) continue;
                     const S cdy2 = c * dy * dy;
+                    if constexpr (std::is_same<S, float>::value) {
+                        if (vec) {
+                            any |= clod_simd::backward_row(row, xa, xb, px0, ly * pw, mx, dy, a, b, c, op, sthr, cdy2,
+                                                           cg, D, T, w, vc, buf, cs, sums);
+                            continue;
+                        }
+                    }
                     for_bits(row, xa, xb, [&](int lx) {
                         const int p = ly * pw + lx;
                         const S dx = mx - (static_cast<S>(px0 + lx) + S(0.5));
@@ -424,14 +490,13 @@ void backward_impl(
                         const double Tp = T[p] * ra;
                         T[p] = Tp;
                         const double fac = alpha * Tp;
-                        const S* vcp = vc + static_cast<size_t>(p) * D;
-                        double* bp = buf + static_cast<size_t>(p) * D;
                         double v_alpha = ra * w[p];
                         for (int k = 0; k < D; ++k) {
-                            const double v = vcp[k];
+                            const size_t kp = static_cast<size_t>(k) * cs + p;
+                            const double v = vc[kp];
                             acc_col[k] += fac * v;
-                            v_alpha += (cg[k] * Tp - bp[k] * ra) * v;
-                            bp[k] += cg[k] * fac;
+                            v_alpha += (cg[k] * Tp - buf[kp] * ra) * v;
+                            buf[kp] += cg[k] * fac;
                         }
                         if (op * vis <= maxA) {
                             const double v_sigma = -static_cast<double>(op * vis) * v_alpha;
@@ -446,14 +511,16 @@ void backward_impl(
                     });
                 }
                 if (any) {
+                    if (!vec) {
+                        sums[0] = vmx;
+                        sums[1] = vmy;
+                        sums[2] = va;
+                        sums[3] = vb;
+                        sums[4] = vcc;
+                        sums[5] = vop;
+                    }
                     S* o = gout + static_cast<size_t>(g) * G;
-                    o[0] += static_cast<S>(vmx);
-                    o[1] += static_cast<S>(vmy);
-                    o[2] += static_cast<S>(va);
-                    o[3] += static_cast<S>(vb);
-                    o[4] += static_cast<S>(vcc);
-                    o[5] += static_cast<S>(vop);
-                    for (int k = 0; k < D; ++k) o[6 + k] += static_cast<S>(acc_col[k]);
+                    for (int j = 0; j < G; ++j) o[j] += static_cast<S>(sums[j]);
                 }
             }
         };
@@ -625,6 +692,8 @@ std::vector<torch::Tensor> composite_backward(
 
 }  // namespace
 
+int64_t composite_simd(int64_t mode) { return clod_simd::set_mode(static_cast<int>(mode)); }
+
 // lod_terms.cpp (the per-frame LoD terms; one extension, one build)
 std::vector<torch::Tensor> lod_frustum_distances(torch::Tensor cols, std::vector<double> R, std::vector<double> t,
                                                  double fx, double cx, double fy, double cy, int64_t width,
@@ -670,6 +739,9 @@ torch::Tensor splat_cost_cpu(torch::Tensor means, torch::Tensor quats, torch::Te
 PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
     m.def("forward", &composite_forward, "CPU Gaussian compositor forward");
     m.def("backward", &composite_backward, "CPU Gaussian compositor backward");
+    m.def("composite_simd", &composite_simd,
+          "the compositor's vector rows: -1 asks, 0 turns them off (the scalar twin), 1 on where the CPU has them; "
+          "returns whether they run");
     m.def("lod_frustum_distances", &lod_frustum_distances, "frustum test and d' of the LoD (lod.frame_terms)");
     m.def("lod_mask", &lod_mask_cpu, "Eq. 2 mask alpha'' > tau s_v (lod.lod_mask)");
     m.def("lod_keep", &lod_keep_cpu, "ids of Eq. 2's mask and the frustum counts (lod.lod_keep)");

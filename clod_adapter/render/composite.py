@@ -80,8 +80,9 @@ def deterministic_enabled() -> bool:
 
 @contextlib.contextmanager
 def simd_rows(on: bool):
-    """Within the block the C++ compositor runs its vector rows (``on``, the default where the CPU
-    has AVX2 and FMA and their exp matches this process's ``expf``) or its scalar rows only, their
+    """Within the block the C++ compositor runs its vector rows (``on``, the default where GCC built
+    it for an x86-64 CPU with AVX2 and FMA and their exp matches this process's ``expf``) or its
+    scalar rows only, their
     twin: the two give bit-identical results (``csrc/composite_simd.cpp``). Yields whether the
     vector rows run. For tests and benchmarks; not a user option.
 

@@ -268,7 +268,7 @@ void forward_impl(
             int32_t* last = lastv.data();
             uint64_t* act = actv.data();  // active (not done) pixels, per row
             std::fill(T, T + npix, S(1));
-            for (int k = 0; k < D; ++k) std::fill(col + static_cast<size_t>(k) * cs, col + static_cast<size_t>(k) * cs + npix, S(0));
+            for (int k = 0; k < D; ++k) std::fill_n(col + static_cast<size_t>(k) * cs, npix, S(0));
             std::fill(last, last + npix, -1);
             for (int ly = 0; ly < ph; ++ly) {
                 for (int w = 0; w < nw; ++w) {

@@ -1,6 +1,6 @@
 // SIMD rows of the CPU compositor (composite.cpp): four pixels of one tile row at once, for one
-// Gaussian, in float, on x86-64 CPUs with AVX2 and FMA (selected at run time; the scalar kernel
-// in composite.cpp is the twin and runs everywhere else).
+// Gaussian, in float, on x86-64 CPUs with AVX2 and FMA, built by GCC (selected at run time; the
+// scalar kernel in composite.cpp is the twin and runs everywhere else).
 //
 // Bit-identical to the scalar kernel by construction:
 //   * every lane evaluates the scalar expressions with the same operations in the same order
@@ -15,7 +15,8 @@
 #include <cstring>
 #include <cmath>
 
-#if defined(__x86_64__) && defined(__GNUC__)
+// GCC only: the vector code is compiled under `#pragma GCC target`, which clang does not honour
+#if defined(__x86_64__) && defined(__GNUC__) && !defined(__clang__)
 #include <immintrin.h>
 #define CLOD_SIMD_X86 1
 #endif
@@ -228,15 +229,18 @@ bool backward_row(const uint64_t* row, int xa, int xb, int px0, int pbase, float
             const __m256d cgk = _mm256_set1_pd(static_cast<double>(cg[k]));
             double* bk = buf + static_cast<size_t>(k) * cs + p;
             const __m256d b0 = _mm256_loadu_pd(bk);
-            v_alpha = _mm256_add_pd(v_alpha, _mm256_mul_pd(_mm256_sub_pd(_mm256_mul_pd(cgk, Tp), _mm256_mul_pd(b0, ra)), v));
+            const __m256d dv = _mm256_sub_pd(_mm256_mul_pd(cgk, Tp), _mm256_mul_pd(b0, ra));
+            v_alpha = _mm256_add_pd(v_alpha, _mm256_mul_pd(dv, v));
             _mm256_storeu_pd(bk, _mm256_blendv_pd(b0, _mm256_add_pd(b0, _mm256_mul_pd(cgk, fac)), okd));
         }
         const __m256d v_sigma = _mm256_mul_pd(_mm256_xor_pd(_mm256_cvtps_pd(opvis), negd), v_alpha);
         const __m256d ddx = _mm256_cvtps_pd(dx);
         const __m256d hvs = _mm256_mul_pd(half, v_sigma);
         // the order of the scalar kernel's sums: vmx vmy va vb vcc vop, then the colours
-        _mm256_store_pd(terms[0], _mm256_and_pd(_mm256_mul_pd(v_sigma, _mm256_add_pd(_mm256_mul_pd(da, ddx), _mm256_mul_pd(db, ddy))), innerd));
-        _mm256_store_pd(terms[1], _mm256_and_pd(_mm256_mul_pd(v_sigma, _mm256_add_pd(_mm256_mul_pd(db, ddx), _mm256_mul_pd(dc, ddy))), innerd));
+        const __m256d gx = _mm256_add_pd(_mm256_mul_pd(da, ddx), _mm256_mul_pd(db, ddy));
+        const __m256d gy = _mm256_add_pd(_mm256_mul_pd(db, ddx), _mm256_mul_pd(dc, ddy));
+        _mm256_store_pd(terms[0], _mm256_and_pd(_mm256_mul_pd(v_sigma, gx), innerd));
+        _mm256_store_pd(terms[1], _mm256_and_pd(_mm256_mul_pd(v_sigma, gy), innerd));
         _mm256_store_pd(terms[2], _mm256_and_pd(_mm256_mul_pd(_mm256_mul_pd(hvs, ddx), ddx), innerd));
         _mm256_store_pd(terms[3], _mm256_and_pd(_mm256_mul_pd(_mm256_mul_pd(v_sigma, ddx), ddy), innerd));
         _mm256_store_pd(terms[4], _mm256_and_pd(_mm256_mul_pd(_mm256_mul_pd(hvs, ddy), ddy), innerd));
@@ -250,7 +254,7 @@ bool backward_row(const uint64_t* row, int xa, int xb, int px0, int pbase, float
 
 #pragma GCC pop_options
 
-#else  // not x86-64 GCC/Clang: the scalar kernel only
+#else  // not x86-64 GCC: the scalar kernel only
 
 bool available() { return false; }
 bool active() { return false; }

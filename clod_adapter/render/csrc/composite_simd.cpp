@@ -145,24 +145,31 @@ inline __m128 sigma4(int px, float mx, float dy, float a, float b, float cdy2, _
     return _mm_add_ps(_mm_mul_ps(half, _mm_add_ps(_mm_mul_ps(_mm_mul_ps(va, dx), dx), _mm_set1_ps(cdy2))),
                       _mm_mul_ps(_mm_mul_ps(vb, dx), _mm_set1_ps(dy)));
 }
+// The lanes of pixels px .. px + 3 (live bits m) that the scalar kernel draws: sigma within the
+// skip threshold, sigma >= 0 and alpha >= 1/255 (its three skips, in its order, NaN as it treats
+// NaN), with every lane's dx, exp(-sigma) and alpha. No lane when none passes the first skip.
+inline __m128 drawn_lanes(unsigned m, int px, float mx, float dy, float a, float b, float op, float sthr,
+                          float cdy2, __m128& dx, __m128& vis, __m128& alpha) {
+    const __m128 sigma = sigma4(px, mx, dy, a, b, cdy2, dx);
+    const __m128 ok = _mm_and_ps(lane_mask(m), _mm_cmp_ps(sigma, _mm_set1_ps(sthr), _CMP_NGT_UQ));
+    if (!_mm_movemask_ps(ok)) return ok;
+    vis = exp4(_mm_xor_ps(sigma, _mm_set1_ps(-0.0f)));
+    alpha = _mm_min_ps(_mm_mul_ps(_mm_set1_ps(op), vis), _mm_set1_ps(0.999f));
+    return _mm_and_ps(ok, _mm_and_ps(_mm_cmp_ps(sigma, _mm_setzero_ps(), _CMP_NLT_UQ),
+                                     _mm_cmp_ps(alpha, _mm_set1_ps(1.0f / 255.0f), _CMP_NLT_UQ)));
+}
 }  // namespace
 
 int forward_row(uint64_t* wrow, int xa, int xb, int px0, int pbase, float mx, float dy, float a, float b,
                 float op, float sthr, float cdy2, const float* cg, int D, float* T, float* col, int cs,
                 int32_t* last, int32_t idx) {
-    const __m128 one = _mm_set1_ps(1.0f), maxA = _mm_set1_ps(0.999f), athr = _mm_set1_ps(1.0f / 255.0f);
-    const __m128 tthr = _mm_set1_ps(1e-4f), zero = _mm_setzero_ps(), vsthr = _mm_set1_ps(sthr);
-    const __m128 vop = _mm_set1_ps(op), neg = _mm_set1_ps(-0.0f);
+    const __m128 one = _mm_set1_ps(1.0f), tthr = _mm_set1_ps(1e-4f);
     int ndone = 0;
     for (int lx = xa; lx <= xb; lx += 4) {
         const unsigned m = live_bits(wrow[0], lx, xb);
         if (!m) continue;
-        __m128 dx;
-        const __m128 sigma = sigma4(px0 + lx, mx, dy, a, b, cdy2, dx);
-        __m128 ok = _mm_and_ps(lane_mask(m), _mm_cmp_ps(sigma, vsthr, _CMP_NGT_UQ));
-        if (!_mm_movemask_ps(ok)) continue;
-        const __m128 alpha = _mm_min_ps(_mm_mul_ps(vop, exp4(_mm_xor_ps(sigma, neg))), maxA);
-        ok = _mm_and_ps(ok, _mm_and_ps(_mm_cmp_ps(sigma, zero, _CMP_NLT_UQ), _mm_cmp_ps(alpha, athr, _CMP_NLT_UQ)));
+        __m128 dx, vis, alpha;
+        const __m128 ok = drawn_lanes(m, px0 + lx, mx, dy, a, b, op, sthr, cdy2, dx, vis, alpha);
         if (!_mm_movemask_ps(ok)) continue;
         const int p = pbase + lx;
         const __m128 Tp = _mm_loadu_ps(T + p);
@@ -175,11 +182,11 @@ int forward_row(uint64_t* wrow, int xa, int xb, int px0, int pbase, float mx, fl
         }
         const __m128 add = _mm_andnot_ps(done, ok);
         if (!_mm_movemask_ps(add)) continue;
-        const __m128 vis = _mm_mul_ps(alpha, Tp);
+        const __m128 w = _mm_mul_ps(alpha, Tp);  // the scalar kernel's vis
         for (int k = 0; k < D; ++k) {
             float* ck = col + static_cast<size_t>(k) * cs + p;
             const __m128 c0 = _mm_loadu_ps(ck);
-            _mm_storeu_ps(ck, _mm_blendv_ps(c0, _mm_add_ps(c0, _mm_mul_ps(_mm_set1_ps(cg[k]), vis)), add));
+            _mm_storeu_ps(ck, _mm_blendv_ps(c0, _mm_add_ps(c0, _mm_mul_ps(_mm_set1_ps(cg[k]), w)), add));
         }
         const __m128i l0 = _mm_loadu_si128(reinterpret_cast<const __m128i*>(last + p));
         _mm_storeu_si128(reinterpret_cast<__m128i*>(last + p),
@@ -192,8 +199,7 @@ int forward_row(uint64_t* wrow, int xa, int xb, int px0, int pbase, float mx, fl
 bool backward_row(const uint64_t* row, int xa, int xb, int px0, int pbase, float mx, float dy, float a, float b,
                   float c, float op, float sthr, float cdy2, const float* cg, int D, double* T, const double* w,
                   const float* vc, double* buf, int cs, double* sums) {
-    const __m128 maxA = _mm_set1_ps(0.999f), athr = _mm_set1_ps(1.0f / 255.0f), zero = _mm_setzero_ps();
-    const __m128 vsthr = _mm_set1_ps(sthr), vop = _mm_set1_ps(op), neg = _mm_set1_ps(-0.0f);
+    const __m128 maxA = _mm_set1_ps(0.999f), vop = _mm_set1_ps(op);
     const __m256d one = _mm256_set1_pd(1.0), half = _mm256_set1_pd(0.5), negd = _mm256_set1_pd(-0.0);
     const __m256d ddy = _mm256_set1_pd(static_cast<double>(dy)), da = _mm256_set1_pd(static_cast<double>(a));
     const __m256d db = _mm256_set1_pd(static_cast<double>(b)), dc = _mm256_set1_pd(static_cast<double>(c));
@@ -202,15 +208,10 @@ bool backward_row(const uint64_t* row, int xa, int xb, int px0, int pbase, float
     for (int lx = xa; lx <= xb; lx += 4) {
         const unsigned m = live_bits(row[0], lx, xb);
         if (!m) continue;
-        __m128 dx;
-        const __m128 sigma = sigma4(px0 + lx, mx, dy, a, b, cdy2, dx);
-        __m128 ok = _mm_and_ps(lane_mask(m), _mm_cmp_ps(sigma, vsthr, _CMP_NGT_UQ));
+        __m128 dx, vis, alpha;
+        const __m128 ok = drawn_lanes(m, px0 + lx, mx, dy, a, b, op, sthr, cdy2, dx, vis, alpha);
         if (!_mm_movemask_ps(ok)) continue;
-        const __m128 vis = exp4(_mm_xor_ps(sigma, neg));
         const __m128 opvis = _mm_mul_ps(vop, vis);
-        const __m128 alpha = _mm_min_ps(opvis, maxA);
-        ok = _mm_and_ps(ok, _mm_and_ps(_mm_cmp_ps(sigma, zero, _CMP_NLT_UQ), _mm_cmp_ps(alpha, athr, _CMP_NLT_UQ)));
-        if (!_mm_movemask_ps(ok)) continue;
         any = true;
         const __m256d okd = _mm256_castsi256_pd(_mm256_cvtepi32_epi64(_mm_castps_si128(ok)));
         const __m128 inner = _mm_and_ps(ok, _mm_cmp_ps(opvis, maxA, _CMP_LE_OQ));

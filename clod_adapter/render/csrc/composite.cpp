@@ -26,9 +26,9 @@
 // and the backward is then bit-reproducible for a given nthreads. The forward
 // is always deterministic (each pixel is written by one thread).
 //
-// SIMD: on x86-64 CPUs with AVX2 and FMA the float kernels composite four pixels of a row at
-// once (composite_simd.cpp). Every lane does the scalar code's arithmetic in the scalar code's
-// order (no contraction), its exp is glibc's expf algorithm (ARM optimized-routines, the FMA
+// SIMD: built by GCC for an x86-64 CPU with AVX2 and FMA, the float kernels composite four
+// pixels of a row at once (composite_simd.cpp). Every lane does the scalar code's arithmetic
+// in the scalar code's order (no contraction), its exp is glibc's expf algorithm (ARM optimized-routines, the FMA
 // variant glibc selects on such CPUs) and the backward's sums over pixels are added lane by lane
 // in pixel order, so the result is bit-identical to the scalar kernel, which stays the twin
 // (composite_simd(0) selects it; tests hold the two equal). The vector path is used only after
@@ -45,7 +45,6 @@
 #include <vector>
 
 namespace clod_simd {  // composite_simd.cpp
-bool available();
 bool active();
 int set_mode(int mode);
 int forward_row(uint64_t* wrow, int xa, int xb, int px0, int pbase, float mx, float dy, float a, float b,

@@ -257,7 +257,6 @@ bool backward_row(const uint64_t* row, int xa, int xb, int px0, int pbase, float
 
 #else  // not x86-64 GCC: the scalar kernel only
 
-bool available() { return false; }
 bool active() { return false; }
 int set_mode(int) { return 0; }
 int forward_row(uint64_t*, int, int, int, int, float, float, float, float, float, float, float, const float*, int,

@@ -14,6 +14,8 @@ from clod_adapter.lod.draw import lod_subset, render_lod
 from clod_adapter.lod.cut import tree_node_costs, tree_select
 from clod_adapter.io.ply import PlyFormatError, read_ply, write_ply
 from clod_adapter.render import native
+from clod_adapter.render.cpu import sh_colors
+from clod_adapter.render.projection import camera_center
 from clod_adapter.render.dispatch import rasterization
 from clod_adapter.lod.budget import Budget, as_budget
 from clod_adapter.io.synthetic import make_cameras
@@ -609,6 +611,15 @@ def test_the_cpp_cut_and_attributes_equal_their_torch_twins(model):
             assert all(torch.allclose(x, y, atol=1e-6) for x, y in zip(a.t, b.t))
             for x, y in zip(attrs_a, attrs_b):
                 assert x.shape == y.shape and torch.allclose(x, y, rtol=1e-5, atol=1e-6)
+            centre = camera_center(cam.viewmat.to(g.means.dtype))
+            for deg in sorted({0, g.sh_degree}):  # colours seen from the camera, evaluated in the pass over the rows
+                with torch.no_grad(), native.use_impl("cpp"):
+                    rgb_a = tree.cut_attributes(ts, a, campos=centre, sh_degree=deg)
+                with torch.no_grad(), native.use_impl("torch"):
+                    rgb_b = tree.cut_attributes(ts, a, campos=centre, sh_degree=deg)
+                assert rgb_a[4].shape == (attrs_a[0].shape[0], 3)
+                assert all(torch.allclose(x, y, rtol=1e-5, atol=1e-6) for x, y in zip(rgb_a, rgb_b))
+                assert torch.allclose(rgb_b[4], sh_colors(deg, attrs_b[0], attrs_b[4], centre), rtol=1e-5, atol=1e-6)
             handing += sum(int(((w < 1) & ~f).sum()) for w, f in zip(a.t[:-1], a.fade[:-1]))
     assert handing > 100  # the interpolation was compared, not only whole nodes
 

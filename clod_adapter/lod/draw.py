@@ -23,7 +23,7 @@ from ..render.dispatch import Backend
 from .budget import Budget
 from .cut import tree_cut, tree_select
 from ..gaussians import Gaussians
-from ..render.projection import EPS2D
+from ..render.projection import EPS2D, camera_center
 from .view import LodSelection, LodView, view_lod
 
 #: ``eta`` without a gradient (selections for drawing only)
@@ -285,15 +285,18 @@ def _render_tree(gaussians: Gaussians, camera, s_v: Optional[float] = None, *, b
     c = tree_cut(gaussians, camera, s_v, budget=budget, whole_as_none=True)
     if c is None or c.s_v <= 1.0:  # the budget holds tier 0: drawn whole, as s_v = 1 draws it
         return whole((time.perf_counter() - t0) * 1e3)
-    means, quats, scales, opacities, colors = tree.cut_attributes(tree.tiers_of(gaussians), c)
+    sh = gaussians.sh_degree if sh_degree is None else sh_degree
+    vm, K = (m.to(gaussians.means.device, gaussians.means.dtype)[None] for m in (camera.viewmat, camera.K))  # CUDA too
+    # colours seen from the camera, evaluated in the cut's pass over its rows (the SH not copied)
+    means, quats, scales, opacities, colors = tree.cut_attributes(tree.tiers_of(gaussians), c,
+                                                                  campos=camera_center(vm[0]), sh_degree=sh)
     t1 = time.perf_counter()
     bg = None
     if background is not None:
         bg = torch.as_tensor(background, dtype=means.dtype, device=means.device).reshape(1, -1)
-    sh = gaussians.sh_degree if sh_degree is None else sh_degree
-    vm, K = (m.to(means.device, means.dtype)[None] for m in (camera.viewmat, camera.K))  # CUDA models too
     image, alpha, meta = rasterization(means, quats, scales, opacities, colors, vm, K, int(camera.width),
-                                       int(camera.height), eps2d=EPS2D, sh_degree=sh, backgrounds=bg, backend=backend)
+                                       int(camera.height), eps2d=EPS2D, sh_degree=None, backgrounds=bg,
+                                       backend=backend)
     t2 = time.perf_counter()
     n0 = int(c.ids[0].numel())
     n_vis = int(torch.as_tensor(meta.get("n_visible", c.n_drawn)).sum())  # the cut's nodes in view

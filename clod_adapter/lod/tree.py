@@ -729,20 +729,37 @@ def _handed_over(t: Gaussians, par: Gaussians, rows: Tensor, w: Tensor, mu: Tens
                  for x, v in zip((mu, ls, q, col, a), grown))
 
 
-def cut_attributes(tiers: Sequence[Gaussians], c: TreeCut) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
+def cut_attributes(tiers: Sequence[Gaussians], c: TreeCut, *, campos: Optional[Tensor] = None,
+                   sh_degree: Optional[int] = None) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
     """The drawn attributes of a cut, tier 0's rows first: ``(means [k, 3], quats [k, 4] wxyz,
-    scales [k, 3] activated (world units), opacities [k], colors [k, K, 3] SH in gsplat's
-    layout)``, each node interpolated toward its parent by its ``t`` (module docstring, step 4;
-    only the rows in a hand-over are interpolated)."""
-    if c.fade is not None and _native(tiers):
+    scales [k, 3] activated (world units), opacities [k], colors)``, each node interpolated toward
+    its parent by its ``t`` (module docstring, step 4; only the rows in a hand-over are
+    interpolated). ``colors``: [k, K, 3] SH in gsplat's layout; with a camera centre ``campos``
+    [3] (world units) and ``sh_degree`` (0..3, default the tiers'), [k, 3] the colours seen from
+    it at the drawn positions (:func:`clod_adapter.render.cpu.sh_colors`; the C++ kernel
+    evaluates them in its pass over the rows instead of copying the coefficients)."""
+    rgb = campos is not None
+    deg = (tiers[0].sh_degree if sh_degree is None else int(sh_degree)) if rgb else -1
+    if c.fade is not None and _native(tiers) and (not rgb or tiers[0].shN.shape[1] < 16):
         from ..render.native import load
 
         attrs = [x.detach().contiguous() for t in tiers
                  for x in (t.means, t.quats, t.log_scales, t.opacity_logits, t.sh0, t.shN)]
+        centre = [float(v) for v in campos.detach().to(tiers[0].means.dtype).tolist()] if rgb else []
         return tuple(load().tree_attributes(attrs, [i.contiguous() for i in c.ids],
                                             [w.to(tiers[0].means.dtype).contiguous() for w in c.t],
                                             [f.contiguous() for f in c.fade], [_int_parents(t) for t in tiers[:-1]],
-                                            [leads(t).contiguous() for t in tiers[:-1]], SHRINK_FLOOR))
+                                            [leads(t).contiguous() for t in tiers[:-1]], SHRINK_FLOOR, centre, deg))
+    out = _cut_attributes(tiers, c)
+    if not rgb:
+        return out
+    from ..render.cpu import sh_colors
+
+    return (*out[:4], sh_colors(deg, out[0], out[4], campos.to(out[0])))
+
+
+def _cut_attributes(tiers: Sequence[Gaussians], c: TreeCut) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
+    """:func:`cut_attributes` in torch, the SH as coefficients (the C++ kernel's twin)."""
     out = [[] for _ in range(5)]
     for k, (t, ids, w) in enumerate(zip(tiers, c.ids, c.t)):
         whole = ids.numel() == len(t) and bool((w >= 1.0).all())

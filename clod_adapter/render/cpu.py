@@ -24,7 +24,17 @@ __all__ = ["rasterization_cpu", "rasterize_projected", "sh_colors"]
 
 def sh_colors(sh_degree: int, means: Tensor, coeffs: Tensor, campos: Tensor) -> Tensor:
     """[V, 3] colours of SH coefficients ``coeffs`` [V, K, 3] seen from ``campos`` [3] (the
-    direction ``means - campos``), gsplat's ``clamp_min(sh + 0.5, 0)``."""
+    direction ``means - campos``; ``means`` [V, 3], world units), gsplat's ``clamp_min(sh + 0.5,
+    0)``, in the dtype of ``means``. Where autograd does not record and the C++ kernels run
+    (:func:`clod_adapter.render.native.wanted`), one pass of ``csrc/sh_colors.cpp``; else this
+    torch form (its twin, equal to float rounding: ``tests/test_sh.py``)."""
+    from .native import load, wanted
+
+    if (not (torch.is_grad_enabled() and (means.requires_grad or coeffs.requires_grad or campos.requires_grad))
+            and means.dtype in (torch.float32, torch.float64) and coeffs.dtype == means.dtype
+            and wanted(means.device.type == "cpu" and coeffs.device.type == "cpu")):
+        return load().sh_colors(means, coeffs, [float(v) for v in campos.detach().to(means.dtype).tolist()],
+                                       int(sh_degree))
     col = spherical_harmonics(sh_degree, means - campos, coeffs)
     return torch.clamp_min(col + 0.5, 0.0)
 

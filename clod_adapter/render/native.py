@@ -27,7 +27,7 @@ __all__ = ["load", "available", "error", "impl", "use_impl", "wanted"]
 
 _CSRC = Path(__file__).resolve().parent / "csrc"
 SOURCES = (_CSRC / "composite.cpp", _CSRC / "composite_simd.cpp", _CSRC / "lod_terms.cpp", _CSRC / "tree_cut.cpp",
-           _CSRC / "splat_cost.cpp")
+           _CSRC / "splat_cost.cpp", _CSRC / "sh_colors.cpp")
 _EXT = None
 _EXT_ERROR: Optional[BaseException] = None
 _LOCK = threading.Lock()

@@ -723,7 +723,7 @@ std::vector<torch::Tensor> tree_frame_cpu(std::vector<torch::Tensor> cols, std::
 std::vector<torch::Tensor> tree_attributes_cpu(std::vector<torch::Tensor> attrs, std::vector<torch::Tensor> ids,
                                                std::vector<torch::Tensor> ws, std::vector<torch::Tensor> fades,
                                                std::vector<torch::Tensor> parents, std::vector<torch::Tensor> leads,
-                                               double shrink_floor);
+                                               double shrink_floor, std::vector<double> campos, int64_t sh_degree);
 
 std::vector<torch::Tensor> tree_budget_cut_cpu(std::vector<torch::Tensor> d_norm, std::vector<torch::Tensor> sigma_d,
                                                std::vector<torch::Tensor> exits, std::vector<torch::Tensor> parents,
@@ -734,6 +734,9 @@ std::vector<torch::Tensor> tree_budget_cut_cpu(std::vector<torch::Tensor> d_norm
 torch::Tensor splat_cost_cpu(torch::Tensor means, torch::Tensor quats, torch::Tensor scales, torch::Tensor opacities,
                              std::vector<double> R, std::vector<double> t, double fx, double cx, double fy, double cy,
                              int64_t width, int64_t height, double near_plane, double far_plane, double eps2d);
+
+// sh_colors.cpp (the rasteriser's colours from SH, render.cpu.sh_colors)
+torch::Tensor sh_colors_cpu(torch::Tensor means, torch::Tensor coeffs, std::vector<double> campos, int64_t degree);
 
 PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
     m.def("forward", &composite_forward, "CPU Gaussian compositor forward");
@@ -752,5 +755,6 @@ PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
     m.def("tree_budget_cut", &tree_budget_cut_cpu, "a budget's cut in one call (tree.budget_cut)");
     m.def("tree_frame", &tree_frame_cpu, "every node's frustum test and d' (tree.frame)");
     m.def("tree_attributes", &tree_attributes_cpu, "a cut's drawn attributes (tree.cut_attributes)");
+    m.def("sh_colors", &sh_colors_cpu, "colours of SH coefficients from a camera centre (render.cpu.sh_colors)");
     m.def("splat_cost", &splat_cost_cpu, "every Gaussian's ellipse_px cost (lod.cost.splat_cost at level 0)");
 }

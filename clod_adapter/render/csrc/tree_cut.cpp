@@ -18,6 +18,11 @@
 #include <type_traits>
 #include <vector>
 
+namespace clod_sh {
+template <typename S>
+void rgb(int degree, const S* coeffs, S dx, S dy, S dz, S* out);  // sh_colors.cpp
+}  // namespace clod_sh
+
 namespace {
 
 constexpr int64_t kGrainCut = 16384;   // a log and a few divisions an element
@@ -136,14 +141,21 @@ template <typename S>
 std::vector<torch::Tensor> attributes_impl(const std::vector<torch::Tensor>& attrs, const std::vector<torch::Tensor>& ids,
                                            const std::vector<torch::Tensor>& ws, const std::vector<torch::Tensor>& fades,
                                            const std::vector<torch::Tensor>& parents,
-                                           const std::vector<torch::Tensor>& leads, double shrink_floor) {
+                                           const std::vector<torch::Tensor>& leads, double shrink_floor,
+                                           const std::vector<double>& campos, int64_t sh_degree) {
     const int64_t T = static_cast<int64_t>(ids.size()) - 1;
     int64_t M = 0;
     for (const auto& i : ids) M += i.numel();
     const int64_t KR = attrs[5].size(1), K = KR + 1;
+    const bool rgb = !campos.empty();  // colours seen from campos instead of the SH coefficients
+    TORCH_CHECK(!rgb || (campos.size() == 3 && K <= 16 && sh_degree >= 0 && (sh_degree + 1) * (sh_degree + 1) <= K),
+                "tree_attributes: campos must hold 3 values and sh_degree fit the SH (at most degree 3)");
+    const S cx = rgb ? static_cast<S>(campos[0]) : S(0), cy = rgb ? static_cast<S>(campos[1]) : S(0),
+            cz = rgb ? static_cast<S>(campos[2]) : S(0);
     auto opts = attrs[0].options();
     auto o_means = torch::empty({M, 3}, opts), o_quats = torch::empty({M, 4}, opts),
-         o_scales = torch::empty({M, 3}, opts), o_opac = torch::empty({M}, opts), o_col = torch::empty({M, K, 3}, opts);
+         o_scales = torch::empty({M, 3}, opts), o_opac = torch::empty({M}, opts),
+         o_col = rgb ? torch::empty({M, 3}, opts) : torch::empty({M, K, 3}, opts);
     S *om = o_means.data_ptr<S>(), *oq = o_quats.data_ptr<S>(), *os = o_scales.data_ptr<S>(),
       *oa = o_opac.data_ptr<S>(), *oc = o_col.data_ptr<S>();
     int64_t offset = 0;
@@ -164,7 +176,8 @@ std::vector<torch::Tensor> attributes_impl(const std::vector<torch::Tensor>& att
                 for (int c = 0; c < 3; ++c) mu[c] = t.means[3 * i + c], ls[c] = t.log_scales[3 * i + c];
                 for (int c = 0; c < 4; ++c) q[c] = t.quats[4 * i + c];
                 S a = sigmoid(t.logits[i]);
-                S* col = oc + r * K * 3;
+                S row[48];
+                S* col = rgb ? row : oc + r * K * 3;
                 for (int c = 0; c < 3; ++c) col[c] = t.sh0[3 * i + c];
                 const S* rest = t.shN + i * t.k_rest * 3;
                 std::copy(rest, rest + t.k_rest * 3, col + 3);
@@ -199,6 +212,7 @@ std::vector<torch::Tensor> attributes_impl(const std::vector<torch::Tensor>& att
                 for (int c = 0; c < 3; ++c) om[3 * r + c] = mu[c], os[3 * r + c] = std::exp(ls[c]);
                 for (int c = 0; c < 4; ++c) oq[4 * r + c] = q[c];
                 oa[r] = a;
+                if (rgb) clod_sh::rgb<S>(static_cast<int>(sh_degree), col, mu[0] - cx, mu[1] - cy, mu[2] - cz, oc + 3 * r);
             }
         });
         offset += m;
@@ -421,12 +435,12 @@ std::vector<torch::Tensor> tree_terms_cpu(std::vector<torch::Tensor> d_norm, std
 std::vector<torch::Tensor> tree_attributes_cpu(std::vector<torch::Tensor> attrs, std::vector<torch::Tensor> ids,
                                                std::vector<torch::Tensor> ws, std::vector<torch::Tensor> fades,
                                                std::vector<torch::Tensor> parents, std::vector<torch::Tensor> leads,
-                                               double shrink_floor) {
+                                               double shrink_floor, std::vector<double> campos, int64_t sh_degree) {
     TORCH_CHECK(attrs.size() == 6 * ids.size() && ws.size() == ids.size() && fades.size() == ids.size() &&
                 parents.size() + 1 == ids.size() && leads.size() + 1 == ids.size(), "tree_attributes: one entry per tier");
     std::vector<torch::Tensor> out;
     AT_DISPATCH_FLOATING_TYPES(attrs[0].scalar_type(), "tree_attributes", [&] {
-        out = attributes_impl<scalar_t>(attrs, ids, ws, fades, parents, leads, shrink_floor);
+        out = attributes_impl<scalar_t>(attrs, ids, ws, fades, parents, leads, shrink_floor, campos, sh_degree);
     });
     return out;
 }

@@ -1,0 +1,101 @@
+// The rasteriser's colours: [V, 3] from SH coefficients [V, K, 3] seen from the camera centre, in
+// one pass over the rows. Twin: clod_adapter.render.cpu.sh_colors (its torch form: about 40
+// elementwise operations and a batched product over [V]); tests/test_sh.py holds them together.
+// clod_sh::rgb is also tree_cut.cpp's (a cut's drawn colours), declared there.
+#include <torch/extension.h>
+
+#include <ATen/Parallel.h>
+
+#include <algorithm>
+#include <cmath>
+#include <cstdint>
+#include <vector>
+
+namespace clod_sh {
+
+// View-dependent colour of real SH coefficients (degree 0..3), gsplat 1.5.3's spherical_harmonics
+// + rendering.py's clamp_min(sh + 0.5, 0): the bases of clod_adapter.render.sh.sh_bases (Sloan,
+// JCGT 2013, gsplat's signs and order) at the unit direction from the camera centre to the
+// Gaussian, summed over the coefficients in order.
+// out[3] = max(sum_b basis_b(dir) coeffs[b][c] + 0.5, 0); coeffs: [(degree + 1)^2][3] row-major;
+// dir = mean - campos (any length; normalised here, its norm at least 1e-12, as the twin).
+template <typename S>
+void rgb(int degree, const S* coeffs, S dx, S dy, S dz, S* out) {
+    S b[16];
+    b[0] = S(0.2820947917738781);
+    int nb = 1;
+    if (degree >= 1) {
+        const S n = std::max(std::sqrt(dx * dx + dy * dy + dz * dz), S(1e-12));
+        const S x = dx / n, y = dy / n, z = dz / n;
+        const S c1 = S(0.48860251190292);
+        b[1] = -c1 * y;
+        b[2] = c1 * z;
+        b[3] = -c1 * x;
+        nb = 4;
+        if (degree >= 2) {
+            const S z2 = z * z, tB = S(-1.092548430592079) * z, fC1 = x * x - y * y, fS1 = S(2) * x * y;
+            b[4] = S(0.5462742152960395) * fS1;
+            b[5] = tB * y;
+            b[6] = S(0.9461746957575601) * z2 - S(0.3153915652525201);
+            b[7] = tB * x;
+            b[8] = S(0.5462742152960395) * fC1;
+            nb = 9;
+            if (degree >= 3) {
+                const S tC = S(-2.285228997322329) * z2 + S(0.4570457994644658), tB3 = S(1.445305721320277) * z;
+                const S fC2 = x * fC1 - y * fS1, fS2 = x * fS1 + y * fC1;
+                b[9] = S(-0.5900435899266435) * fS2;
+                b[10] = tB3 * fS1;
+                b[11] = tC * y;
+                b[12] = z * (S(1.865881662950577) * z2 - S(1.119528997770346));
+                b[13] = tC * x;
+                b[14] = tB3 * fC1;
+                b[15] = S(-0.5900435899266435) * fC2;
+                nb = 16;
+            }
+        }
+    }
+    S v0 = S(0), v1 = S(0), v2 = S(0);  // each channel summed over the coefficients in order
+    for (int k = 0; k < nb; ++k) {
+        v0 += b[k] * coeffs[3 * k];
+        v1 += b[k] * coeffs[3 * k + 1];
+        v2 += b[k] * coeffs[3 * k + 2];
+    }
+    out[0] = std::max(v0 + S(0.5), S(0));
+    out[1] = std::max(v1 + S(0.5), S(0));
+    out[2] = std::max(v2 + S(0.5), S(0));
+}
+
+
+template void rgb<float>(int, const float*, float, float, float, float*);
+template void rgb<double>(int, const double*, double, double, double, double*);
+
+}  // namespace clod_sh
+
+namespace {
+constexpr int64_t kGrainSh = 4096;  // ~50 multiply-adds a row at degree 3
+}
+
+torch::Tensor sh_colors_cpu(torch::Tensor means, torch::Tensor coeffs, std::vector<double> campos, int64_t degree) {
+    TORCH_CHECK(means.dim() == 2 && means.size(1) == 3, "sh_colors: means must be [V, 3]");
+    TORCH_CHECK(coeffs.dim() == 3 && coeffs.size(0) == means.size(0) && coeffs.size(2) == 3 &&
+                    coeffs.size(1) >= (degree + 1) * (degree + 1) && degree >= 0 && degree <= 3,
+                "sh_colors: coeffs must be [V, K >= (degree + 1)^2, 3], degree 0..3");
+    TORCH_CHECK(campos.size() == 3, "sh_colors: campos must hold 3 values");
+    auto m = means.contiguous();
+    auto c = coeffs.contiguous();
+    const int64_t V = m.size(0), K = c.size(1);
+    auto out = torch::empty({V, 3}, m.options());
+    AT_DISPATCH_FLOATING_TYPES(m.scalar_type(), "sh_colors", [&] {
+        const scalar_t* mp = m.data_ptr<scalar_t>();
+        const scalar_t* cp = c.data_ptr<scalar_t>();
+        scalar_t* op = out.data_ptr<scalar_t>();
+        const scalar_t cx = static_cast<scalar_t>(campos[0]), cy = static_cast<scalar_t>(campos[1]),
+                       cz = static_cast<scalar_t>(campos[2]);
+        at::parallel_for(0, V, kGrainSh, [&](int64_t b, int64_t e) {
+            for (int64_t i = b; i < e; ++i)
+                clod_sh::rgb<scalar_t>(static_cast<int>(degree), cp + i * K * 3, mp[3 * i] - cx, mp[3 * i + 1] - cy,
+                                       mp[3 * i + 2] - cz, op + 3 * i);
+        });
+    });
+    return out;
+}

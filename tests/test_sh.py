@@ -1,0 +1,42 @@
+"""The rasteriser's colours from SH: the C++ pass (``csrc/sh_colors.cpp``) against its torch twin
+(:func:`clod_adapter.render.cpu.sh_colors`, gsplat 1.5.3's ``spherical_harmonics`` + ``clamp_min(sh +
+0.5, 0)``), and which one runs when."""
+import pytest
+import torch
+
+from clod_adapter.render import native
+from clod_adapter.render.cpu import sh_colors
+
+pytestmark = pytest.mark.skipif(not native.available(), reason="the C++ kernels do not build here")
+
+
+def _rows(n, k, dtype, seed=0):
+    g = torch.Generator().manual_seed(seed)
+    means = torch.randn(n, 3, generator=g, dtype=dtype) * 3
+    coeffs = torch.randn(n, k, 3, generator=g, dtype=dtype) * 0.5
+    means[0] = torch.tensor([1.0, -2.0, 0.5], dtype=dtype)  # at the camera centre: direction 0
+    return means, coeffs, torch.tensor([1.0, -2.0, 0.5], dtype=dtype)
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+@pytest.mark.parametrize("degree,k", [(0, 1), (1, 4), (2, 9), (3, 16), (1, 16)])
+def test_the_cpp_colours_equal_the_torch_twin(dtype, degree, k):
+    means, coeffs, campos = _rows(9000, k, dtype)  # more rows than one thread's grain
+    with native.use_impl("cpp"):
+        a = sh_colors(degree, means, coeffs, campos)
+    with native.use_impl("torch"):
+        b = sh_colors(degree, means, coeffs, campos)
+    tol = 1e-5 if dtype == torch.float32 else 1e-12
+    assert a.shape == b.shape == (9000, 3) and a.dtype == dtype
+    assert torch.allclose(a, b, rtol=tol, atol=tol)
+    assert (a == 0).any() and (a > 0.5).any()  # the clamp and the view dependence were exercised
+    assert torch.isfinite(a).all()
+
+
+def test_the_torch_form_runs_where_autograd_records():
+    means, coeffs, campos = _rows(50, 16, torch.float32, seed=1)
+    coeffs.requires_grad_(True)
+    out = sh_colors(3, means, coeffs, campos)
+    assert out.grad_fn is not None  # the kernel has no backward: the twin carries the gradient
+    out.sum().backward()
+    assert coeffs.grad is not None and coeffs.grad.abs().sum() > 0

@@ -649,6 +649,31 @@ def test_the_one_call_budget_cut_equals_its_three_step_twin(model):
 
 
 @pytest.mark.skipif(not native.available(), reason="the C++ kernels do not build here")
+def test_the_kept_budget_terms_follow_an_edited_model(model):
+    """The C++ budget keeps every node's terms at its reference distance per model: an in-place
+    edit of a ``sigma_d`` or an exit (an optimiser step), or another tensor, makes new ones, so the
+    cut stays its twin's."""
+    g, cams = model
+    ts = [replace(t, sigma_d=t.sigma_d.clone(), extra=dict(t.extra)) for t in tree.tiers_of(g)]
+    cam, k = cams[0], 40
+    def both():
+        with torch.no_grad():
+            with native.use_impl("cpp"):
+                a = tree.budget_cut(ts, cam, k)
+            with native.use_impl("torch"):
+                b = tree.budget_cut(ts, cam, k)
+        assert a.s_v == b.s_v and all(torch.equal(x, y) for x, y in zip(a.ids, b.ids))
+        return a.s_v
+    first = both()
+    with torch.no_grad():
+        ts[1].sigma_d.mul_(3.0)  # in place: the same tensor, a new version
+    second = both()
+    ts[0].extra[tree.EXIT_KEY] = ts[0].extra[tree.EXIT_KEY] * 0.5  # another tensor
+    third = both()
+    assert len({first, second, third}) > 1  # the edits moved the level: the kept terms were not reused
+
+
+@pytest.mark.skipif(not native.available(), reason="the C++ kernels do not build here")
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
 def test_the_binned_budget_level_equals_a_full_sort(model, dtype):
     """``tree_budget`` sorts only the bins that may break the bound: on clustered positions (many

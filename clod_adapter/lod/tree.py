@@ -11,29 +11,19 @@ interpolates the children toward their parent so that the image is continuous at
 merged node replaces its children once ``d' s_v`` reaches its ``sigma_d``, the level at which Eq.
 2's exponent ``(d' s_v)^2 / (2 sigma_d^2)`` reaches 1/2, so far things hand over first.
 
-Per camera (:func:`terms`, :func:`cut`), with ``F`` = :data:`HAND_OVER`:
-
-1. ``d'_i = |mu_i - c| / D`` for every node, ``D`` the largest distance of the last tier's centres
-   in the frustum (CLoD-GS's normaliser, over the coarsest stand-in for the scene: a walk from the
-   roots, :func:`walk`, needs no other tier's).
-2. A merged node's *entry*, from the last tier down: ``E_i = max(min(sigma_d_i / d'_i, E_p / F),
-   F^k)`` (``p`` its parent, ``k`` its tier; no ``E_p`` in the last tier), so a node is drawn over
-   at least a factor ``F`` of ``s_v`` before its parent takes over, and ``s_v = 1`` is tier 0
-   whole. Tier 0 enters at 0.
-3. A node is drawn at ``s_v`` iff ``E_i <= s_v < U_i``, its end ``U_i = min(E_p, X_i)`` (``X_i``
-   in the last tier), its own exit ``X_i = max(x_i / d'_i, F max(E_i, 1))`` (``x_i``,
-   ``extra["exit"]``, +inf for each parent's *lead* child, :func:`leads`, which therefore ends
-   where its parent enters). No path crosses the cut twice.
-4. A drawn node at ``t = clamp(ln(U_i / s_v) / ln min(M, U_i / max(E_i, 1)), 0, 1)`` (``M`` =
-   :data:`MORPH`: it changes over the last factor ``M`` of its interval, or all of a shorter one)
-   whose end is its own exit *leaves*:
-   its opacity is times ``t``. A lead that hands over is drawn with its attributes interpolated
-   toward its parent's (``t = 1`` its own, ``t = 0`` the parent's; position, log-scales, rotation,
-   SH linearly) and opacity ``t a_i + (1 - t) a_p``; its siblings shrink (log-scales plus ``ln
-   t``) and fade (opacity ``t a_i``) where they are: at ``t = 0`` the lead is the parent and its
-   siblings are gone, so the image is continuous and the frame's cost falls to the parent's.
-   (Hierarchical 3DGS gives each of ``K`` children ``1 - (1 - a_p)^(1/K)``, which composites to
-   the parent at its centre only and draws the parent's size ``K`` times.)
+Per camera (:func:`terms`, :func:`cut`; docs/lod_rule.md steps 1-5, ``F`` = :data:`HAND_OVER`,
+``M`` = :data:`MORPH`): every node's ``d'_i = |mu_i - c| / D`` (``D`` the largest distance of the
+last tier's centres in the frustum); a merged node's *entry* ``E_i = max(min(sigma_d_i / d'_i, E_p /
+F), F^k)`` from the last tier down (tier 0 enters at 0), its end ``U_i = min(E_p, X_i)`` with its
+own exit ``X_i = max(x_i / d'_i, F max(E_i, 1))`` (``extra["exit"]``, +inf for each parent's *lead*
+child, :func:`leads`); it is drawn iff ``E_i <= s_v < U_i`` (no path crosses the cut twice), over
+the last factor ``min(M, U_i / max(E_i, 1))`` of its interval at ``t`` falling from 1 to 0 in ``ln
+s_v``. A node whose end is its own exit fades out (opacity times ``t``); a lead that hands over is
+drawn with position, log-scales, rotation and SH interpolated toward its parent's and opacity ``t
+a_i + (1 - t) a_p``; its siblings shrink (log-scales plus ``ln t``) and fade where they are. At ``t
+= 0`` the lead is the parent and its siblings are gone: the image is continuous and the frame's cost
+falls to the parent's (Hierarchical 3DGS gives each of ``K`` children ``1 - (1 - a_p)^(1/K)``,
+which composites to the parent at its centre only and draws the parent's size ``K`` times).
 
 The node constants are set by :func:`build` from the tiers the job linked: at their mean ``d'``
 over the training views a tier's nodes enter around ``s_v = G_k`` (:func:`tier_scales`, where the
@@ -52,6 +42,7 @@ budget never draws a coarser cut.
 from __future__ import annotations
 
 import math
+import weakref
 from dataclasses import dataclass, replace
 from typing import Optional, Sequence
 
@@ -250,11 +241,6 @@ def _camera(tiers: Sequence[Gaussians], camera) -> tuple[list, float, Tensor]:
     d = _node_distances(tiers[-1].means, c)
     D = _normaliser(d, in_frustum(tiers[-1], camera))
     return c, D, d / D
-
-
-def _distances(tiers: Sequence[Gaussians], camera) -> list:
-    """Step 1: per tier [N_k] ``d'``, in the centres' dtype."""
-    return frame(tiers, camera)[0]
 
 
 @torch.no_grad()
@@ -502,22 +488,50 @@ def cut(tiers: Sequence[Gaussians], camera, s_v: float, *, hand_over: Optional[f
 @torch.no_grad()
 def budget_cut(tiers: Sequence[Gaussians], camera, k: float, *, hand_over: Optional[float] = None,
                at: Optional[tuple] = None) -> TreeCut:
-    """The cut a count budget of ``k`` nodes with their centre in the frustum draws (module
-    docstring, step 6): :func:`terms`, :func:`budget_s_v` and :func:`cut` at that level, in one
-    C++ call where the kernels run (``render/csrc/tree_cut.cpp``; the three functions are its twin,
-    ``tests/test_tree.py`` holds them equal), every node at its reference distance
-    (:func:`budget_frame`). ``camera``: ``viewmat`` [4, 4] world-to-camera, ``K`` [3, 3] pixels,
-    ``width``, ``height``; ``k`` >= 0 nodes; ``at``: :func:`budget_frame` of this camera, when the
-    caller has it. Returns the :class:`TreeCut` (its ``s_v`` the level, >= 1). Raises KeyError
-    where a tier lacks ``extra["parent"]``, ``extra["exit"]`` or ``extra["d_ref"]``."""
+    """The cut a count budget of ``k`` nodes with their centre in the frustum draws (docs/lod_rule.md
+    step 6): :func:`terms` at the reference distances (:func:`budget_frame`), :func:`budget_s_v`
+    and :func:`cut` at that level. Where the kernels run, the terms and their sorted ends are kept
+    per model (:func:`_budget_terms`) and ``tree_budget_walk`` (``render/csrc/tree_cut.cpp``) finds
+    the level from the coarsest end down and emits the cut (the three functions are its twin,
+    ``tests/test_tree.py``). ``camera``: ``viewmat`` [4, 4], ``K`` [3, 3] pixels, ``width``,
+    ``height``; ``k`` >= 0 nodes; ``at``: :func:`budget_frame` of this camera, when the caller has
+    it. Returns the :class:`TreeCut` (its ``s_v`` the level, >= 1). Raises KeyError where a tier
+    lacks ``extra["parent"]``, ``extra["exit"]`` or ``extra["d_ref"]``."""
     ds, frs = budget_frame(tiers, camera) if at is None else at
     if _native(tiers):
-        out = _native_call("tree_budget_cut", tiers, ds, [f.double().contiguous() for f in frs], float(k),
-                           _width(hand_over), _morph(hand_over))
+        from ..render.native import load
+
+        F = _width(hand_over)
+        E, U, fade, pos, node, hi = _budget_terms(tiers, ds, F)
+        out = load().tree_budget_walk(E, U, fade, pos, node, hi, [f.contiguous() for f in frs], float(k), _morph(F))
         level = max(float(out[-1]), 1.0)
         return TreeCut(out[0:-1:3], out[1:-1:3], level, int(frs[0].sum()), out[2:-1:3])
     tt = terms(tiers, camera, hand_over=hand_over, at=(ds, frs))
     return cut(tiers, camera, budget_s_v(tt, k), hand_over=hand_over, tt=tt)
+
+
+_BUDGET_TERMS: dict = {}
+
+
+def _budget_terms(tiers: Sequence[Gaussians], ds: Sequence[Tensor], F: float) -> tuple:
+    """Every node's terms at its reference distance (:func:`terms` at ``ds``: the same for every
+    camera) and their intervals' ends sorted coarsest first (``tree_budget_events``): ``(E, U,
+    fade, positions, nodes, is_end)``, kept while every tensor they come from is the same object
+    at the same in-place version."""
+    from ..render.native import load
+
+    deps = [x for t in tiers for x in (t.sigma_d, t.extra[EXIT_KEY], t.extra[REFERENCE_KEY])]
+    deps += [t.extra[PARENT_KEY] for t in tiers[:-1]]
+    key, stamp = (id(deps[0]), F, tiers[0].means.dtype), [(id(x), x._version) for x in deps]
+    hit = _BUDGET_TERMS.get(key)
+    if hit is None or hit[0] != stamp or any(r() is not x for r, x in zip(hit[1], deps)):
+        out = _native_call("tree_terms", tiers, ds, F)
+        terms_ = (out[0::3], out[1::3], out[2::3])
+        hit = (stamp, [weakref.ref(x) for x in deps], (*terms_, *load().tree_budget_events(*terms_[:2])))
+        while len(_BUDGET_TERMS) >= 8:
+            _BUDGET_TERMS.pop(next(iter(_BUDGET_TERMS)))
+        _BUDGET_TERMS[key] = hit
+    return hit[2]
 
 
 def _weight(E: Tensor, U: Tensor, s: float, M: float) -> Tensor:

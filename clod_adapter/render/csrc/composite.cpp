@@ -725,10 +725,10 @@ std::vector<torch::Tensor> tree_attributes_cpu(std::vector<torch::Tensor> attrs,
                                                std::vector<torch::Tensor> parents, std::vector<torch::Tensor> leads,
                                                double shrink_floor, std::vector<double> campos, int64_t sh_degree);
 
-std::vector<torch::Tensor> tree_budget_cut_cpu(std::vector<torch::Tensor> d_norm, std::vector<torch::Tensor> sigma_d,
-                                               std::vector<torch::Tensor> exits, std::vector<torch::Tensor> parents,
-                                               std::vector<torch::Tensor> leads, std::vector<torch::Tensor> weights,
-                                               double k, double F, double M);
+std::vector<torch::Tensor> tree_budget_events_cpu(std::vector<torch::Tensor> E, std::vector<torch::Tensor> U);
+std::vector<torch::Tensor> tree_budget_walk_cpu(std::vector<torch::Tensor> E, std::vector<torch::Tensor> U,
+                                                std::vector<torch::Tensor> fade, torch::Tensor pos, torch::Tensor node,
+                                                torch::Tensor hi, std::vector<torch::Tensor> frustum, double k, double M);
 
 // splat_cost.cpp (the "ellipse_px" cost of every Gaussian, lod.cost.splat_cost)
 torch::Tensor splat_cost_cpu(torch::Tensor means, torch::Tensor quats, torch::Tensor scales, torch::Tensor opacities,
@@ -752,7 +752,8 @@ PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
     m.def("tree_cut", &tree_cut_cpu, "the merge tree's cut at one s_v (tree.terms + tree.cut)");
     m.def("tree_terms", &tree_terms_cpu, "every node's entry, end and fade (tree.terms)");
     m.def("tree_budget", &tree_budget_cpu, "the level a budget draws (tree.budget_s_v)");
-    m.def("tree_budget_cut", &tree_budget_cut_cpu, "a budget's cut in one call (tree.budget_cut)");
+    m.def("tree_budget_events", &tree_budget_events_cpu, "a budget's interval ends sorted, coarsest first");
+    m.def("tree_budget_walk", &tree_budget_walk_cpu, "a count budget's level and cut from cached terms and ends");
     m.def("tree_frame", &tree_frame_cpu, "every node's frustum test and d' (tree.frame)");
     m.def("tree_attributes", &tree_attributes_cpu, "a cut's drawn attributes (tree.cut_attributes)");
     m.def("sh_colors", &sh_colors_cpu, "colours of SH coefficients from a camera centre (render.cpu.sh_colors)");

@@ -15,6 +15,7 @@
 #include <cstdint>
 #include <cstring>
 #include <limits>
+#include <tuple>
 #include <type_traits>
 #include <vector>
 
@@ -315,6 +316,72 @@ double budget_impl(const std::vector<torch::Tensor>& E, const std::vector<torch:
     return static_cast<double>(answer);
 }
 
+// A count budget's level by walking the intervals' ends from the coarsest down (budget_s_v with
+// weights 0 or 1, the frustum): the ends are the camera-independent terms at the reference
+// distances, sorted once per model (budget_events), so a frame visits only the ends above the
+// level it finds, few for a small budget. count(q) = the nodes in the frustum with lo <= q < hi,
+// lo = max(E, 1), hi = U; the level is the smallest candidate q (an end of a node in the frustum,
+// or 1) from which every candidate's count is at most k (the coarsest such end where none holds).
+template <typename S>
+std::vector<torch::Tensor> events_impl(const std::vector<torch::Tensor>& E, const std::vector<torch::Tensor>& U) {
+    std::vector<std::tuple<S, int64_t, bool>> ev;  // (position, tier << 48 | row, the interval's end)
+    for (size_t t = 0; t < E.size(); ++t) {
+        const S* e = E[t].data_ptr<S>();
+        const S* u = U[t].data_ptr<S>();
+        for (int64_t i = 0; i < E[t].numel(); ++i) {
+            const S lo = std::max(e[i], S(1));
+            if (u[i] > lo) {
+                const int64_t node = (static_cast<int64_t>(t) << 48) | i;
+                ev.emplace_back(lo, node, false);
+                ev.emplace_back(u[i], node, true);
+            }
+        }
+    }
+    std::sort(ev.begin(), ev.end(), [](const auto& a, const auto& b) { return std::get<0>(a) > std::get<0>(b); });
+    const int64_t n = static_cast<int64_t>(ev.size());
+    auto pos = torch::empty({n}, E[0].options());
+    auto node = torch::empty({n}, torch::TensorOptions().dtype(torch::kInt64));
+    auto hi = torch::empty({n}, torch::TensorOptions().dtype(torch::kBool));
+    S* pp = pos.data_ptr<S>();
+    int64_t* np = node.data_ptr<int64_t>();
+    bool* hp = hi.data_ptr<bool>();
+    for (int64_t j = 0; j < n; ++j) pp[j] = std::get<0>(ev[j]), np[j] = std::get<1>(ev[j]), hp[j] = std::get<2>(ev[j]);
+    return {pos, node, hi};
+}
+
+template <typename S>
+double walk_impl(const torch::Tensor& pos, const torch::Tensor& node, const torch::Tensor& hi,
+                 const std::vector<torch::Tensor>& frustum, double k) {
+    const S* pp = pos.data_ptr<S>();
+    const int64_t* np = node.data_ptr<int64_t>();
+    const bool* hp = hi.data_ptr<bool>();
+    std::vector<const bool*> fr;
+    for (const auto& f : frustum) fr.push_back(f.data_ptr<bool>());
+    const double limit = k + 1e-9 * std::abs(k);  // as budget_impl
+    const int64_t n = pos.numel();
+    const int64_t mask = (int64_t(1) << 48) - 1;
+    double run = 0.0;  // count just below the last candidate evaluated (every end above applied)
+    bool have = false;
+    S ok = S(1);  // the lowest candidate so far whose count, and every higher one's, is <= k
+    for (int64_t i = 0; i < n;) {
+        const S q = pp[i];
+        double delta = 0.0;
+        bool any = false;
+        for (; i < n && pp[i] == q; ++i) {
+            if (!fr[np[i] >> 48][np[i] & mask]) continue;
+            any = true;
+            delta += hp[i] ? 1.0 : -1.0;  // below an end the node is drawn; below its entry, not
+        }
+        if (!any) continue;
+        if (run > limit) return static_cast<double>(have ? ok : q);
+        ok = q, have = true;
+        run += delta;
+        if (q == S(1)) return 1.0;
+    }
+    if (run > limit) return static_cast<double>(have ? ok : S(1));
+    return 1.0;
+}
+
 // tree_frame: per tier the frustum test and d' of every node (docs/lod_rule.md step 1): the
 // distance to the camera in double, rounded to S, over D = the largest of the last tier's in the
 // frustum (of all of them when none is), divided in S (tree._frame_twin rounds alike)
@@ -399,7 +466,7 @@ double tree_budget_cpu(std::vector<torch::Tensor> E, std::vector<torch::Tensor> 
 }
 
 // clod_adapter.lod.tree.cut at one s_v from every node's terms (d_norm: per tier [N_k] its d', as
-// tree._distances rounds it): per tier [ids (int64, ascending), w, fade]
+// tree.frame rounds it): per tier [ids (int64, ascending), w, fade]
 std::vector<torch::Tensor> tree_cut_cpu(std::vector<torch::Tensor> d_norm, std::vector<torch::Tensor> sigma_d,
                                         std::vector<torch::Tensor> exits, std::vector<torch::Tensor> parents,
                                         std::vector<torch::Tensor> leads, double s, double F, double M) {
@@ -430,6 +497,33 @@ std::vector<torch::Tensor> tree_terms_cpu(std::vector<torch::Tensor> d_norm, std
     return out;
 }
 
+// the sorted ends of a budget's intervals (walk_impl): (positions descending, tier << 48 | row,
+// whether the position is the node's end U rather than its entry max(E, 1))
+std::vector<torch::Tensor> tree_budget_events_cpu(std::vector<torch::Tensor> E, std::vector<torch::Tensor> U) {
+    TORCH_CHECK(!E.empty() && U.size() == E.size(), "tree_budget_events: one entry per tier");
+    std::vector<torch::Tensor> out;
+    AT_DISPATCH_FLOATING_TYPES(E[0].scalar_type(), "tree_budget_events", [&] { out = events_impl<scalar_t>(E, U); });
+    return out;
+}
+
+// a count budget's level and cut from the cached terms and ends: per tier [ids, w, fade], then a
+// 0-dim float64 tensor of the level
+std::vector<torch::Tensor> tree_budget_walk_cpu(std::vector<torch::Tensor> E, std::vector<torch::Tensor> U,
+                                                std::vector<torch::Tensor> fade, torch::Tensor pos, torch::Tensor node,
+                                                torch::Tensor hi, std::vector<torch::Tensor> frustum, double k, double M) {
+    TORCH_CHECK(!E.empty() && U.size() == E.size() && fade.size() == E.size() && frustum.size() == E.size(),
+                "tree_budget_walk: one entry per tier");
+    for (const auto& f : frustum) TORCH_CHECK(f.scalar_type() == torch::kBool && f.is_contiguous(), "tree_budget_walk: bool frustum masks");
+    std::vector<torch::Tensor> out;
+    double level = 1.0;
+    AT_DISPATCH_FLOATING_TYPES(E[0].scalar_type(), "tree_budget_walk", [&] {
+        level = walk_impl<scalar_t>(pos, node, hi, frustum, k);
+        emit_cut<scalar_t>(E, U, fade, std::max(level, 1.0), M, out);
+    });
+    out.push_back(torch::full({}, level, torch::TensorOptions().dtype(torch::kFloat64)));
+    return out;
+}
+
 // clod_adapter.lod.tree.cut_attributes: attrs per tier (means, quats, log_scales, opacity_logits, sh0, shN),
 // the cut's ids / w / fade per tier; returns (means, quats, scales, opacities, colors [M, K, 3])
 std::vector<torch::Tensor> tree_attributes_cpu(std::vector<torch::Tensor> attrs, std::vector<torch::Tensor> ids,
@@ -442,27 +536,5 @@ std::vector<torch::Tensor> tree_attributes_cpu(std::vector<torch::Tensor> attrs,
     AT_DISPATCH_FLOATING_TYPES(attrs[0].scalar_type(), "tree_attributes", [&] {
         out = attributes_impl<scalar_t>(attrs, ids, ws, fades, parents, leads, shrink_floor, campos, sh_degree);
     });
-    return out;
-}
-
-// clod_adapter.lod.tree.budget_cut: a count (or weighted) budget's cut in one call: every node's
-// terms (tree.terms), the level (tree.budget_s_v with ``weights``, per tier [N_k] float64) and the
-// cut at it (tree.cut). Returns per tier [ids, w, fade], then a 0-dim float64 tensor of the level.
-std::vector<torch::Tensor> tree_budget_cut_cpu(std::vector<torch::Tensor> d_norm, std::vector<torch::Tensor> sigma_d,
-                                               std::vector<torch::Tensor> exits, std::vector<torch::Tensor> parents,
-                                               std::vector<torch::Tensor> leads, std::vector<torch::Tensor> weights,
-                                               double k, double F, double M) {
-    TORCH_CHECK(!d_norm.empty() && sigma_d.size() == d_norm.size() && exits.size() == d_norm.size() &&
-                parents.size() + 1 == d_norm.size() && leads.size() + 1 == d_norm.size() &&
-                weights.size() == d_norm.size(), "tree_budget_cut: one entry per tier");
-    std::vector<torch::Tensor> out;
-    double level = 1.0;
-    AT_DISPATCH_FLOATING_TYPES(d_norm[0].scalar_type(), "tree_budget_cut", [&] {
-        std::vector<torch::Tensor> E, U, fade;
-        terms_impl<scalar_t>(d_norm, sigma_d, exits, parents, leads, F, E, U, fade);
-        level = budget_impl<scalar_t>(E, U, weights, k);
-        emit_cut<scalar_t>(E, U, fade, std::max(level, 1.0), M, out);
-    });
-    out.push_back(torch::full({}, level, torch::TensorOptions().dtype(torch::kFloat64)));
     return out;
 }

@@ -22,19 +22,44 @@ from .tiles import isect_offset_encode, isect_tiles
 __all__ = ["rasterization_cpu", "rasterize_projected", "sh_colors"]
 
 
+class _ShColors(torch.autograd.Function):
+    """``csrc/sh_colors.cpp``'s forward and backward as one autograd node (the gradients of the
+    means and the coefficients; the camera centre is a constant)."""
+
+    @staticmethod
+    def forward(ctx, means: Tensor, coeffs: Tensor, campos: list, degree: int) -> Tensor:
+        from .native import load
+
+        ctx.save_for_backward(means, coeffs)
+        ctx.campos, ctx.degree = campos, degree
+        return load().sh_colors(means, coeffs, campos, degree)
+
+    @staticmethod
+    def backward(ctx, v_colors: Tensor):
+        from .native import load
+
+        means, coeffs = ctx.saved_tensors
+        v_means, v_coeffs = load().sh_colors_backward(means, coeffs, ctx.campos, ctx.degree, v_colors)
+        return (v_means if ctx.needs_input_grad[0] else None, v_coeffs if ctx.needs_input_grad[1] else None,
+                None, None)
+
+
 def sh_colors(sh_degree: int, means: Tensor, coeffs: Tensor, campos: Tensor) -> Tensor:
     """[V, 3] colours of SH coefficients ``coeffs`` [V, K, 3] seen from ``campos`` [3] (the
     direction ``means - campos``; ``means`` [V, 3], world units), gsplat's ``clamp_min(sh + 0.5,
-    0)``, in the dtype of ``means``. Where autograd does not record and the C++ kernels run
-    (:func:`clod_adapter.render.native.wanted`), one pass of ``csrc/sh_colors.cpp``; else this
-    torch form (its twin, equal to float rounding: ``tests/test_sh.py``)."""
+    0)``, in the dtype of ``means``. Where the C++ kernels run
+    (:func:`clod_adapter.render.native.wanted`) and ``campos`` needs no gradient, one pass of
+    ``csrc/sh_colors.cpp`` each way (the backward gives the means' and the coefficients'
+    gradients); else this torch form (its twin, equal to float rounding: ``tests/test_sh.py``)."""
     from .native import load, wanted
 
-    if (not (torch.is_grad_enabled() and (means.requires_grad or coeffs.requires_grad or campos.requires_grad))
+    if (not (torch.is_grad_enabled() and campos.requires_grad)
             and means.dtype in (torch.float32, torch.float64) and coeffs.dtype == means.dtype
             and wanted(means.device.type == "cpu" and coeffs.device.type == "cpu")):
-        return load().sh_colors(means, coeffs, [float(v) for v in campos.detach().to(means.dtype).tolist()],
-                                       int(sh_degree))
+        centre = [float(v) for v in campos.detach().to(means.dtype).tolist()]
+        if torch.is_grad_enabled() and (means.requires_grad or coeffs.requires_grad):
+            return _ShColors.apply(means, coeffs, centre, int(sh_degree))
+        return load().sh_colors(means, coeffs, centre, int(sh_degree))
     col = spherical_harmonics(sh_degree, means - campos, coeffs)
     return torch.clamp_min(col + 0.5, 0.0)
 

@@ -737,6 +737,8 @@ torch::Tensor splat_cost_cpu(torch::Tensor means, torch::Tensor quats, torch::Te
 
 // sh_colors.cpp (the rasteriser's colours from SH, render.cpu.sh_colors)
 torch::Tensor sh_colors_cpu(torch::Tensor means, torch::Tensor coeffs, std::vector<double> campos, int64_t degree);
+std::vector<torch::Tensor> sh_colors_backward_cpu(torch::Tensor means, torch::Tensor coeffs, std::vector<double> campos,
+                                                  int64_t degree, torch::Tensor v_colors);
 
 PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
     m.def("forward", &composite_forward, "CPU Gaussian compositor forward");
@@ -757,5 +759,6 @@ PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
     m.def("tree_frame", &tree_frame_cpu, "every node's frustum test and d' (tree.frame)");
     m.def("tree_attributes", &tree_attributes_cpu, "a cut's drawn attributes (tree.cut_attributes)");
     m.def("sh_colors", &sh_colors_cpu, "colours of SH coefficients from a camera centre (render.cpu.sh_colors)");
+    m.def("sh_colors_backward", &sh_colors_backward_cpu, "the gradients of sh_colors (means, coefficients)");
     m.def("splat_cost", &splat_cost_cpu, "every Gaussian's ellipse_px cost (lod.cost.splat_cost at level 0)");
 }

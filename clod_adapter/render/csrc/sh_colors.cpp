@@ -66,8 +66,70 @@ void rgb(int degree, const S* coeffs, S dx, S dy, S dz, S* out) {
 }
 
 
+// The vector-Jacobian product of rgb: given v_out[3] (the gradient of the clamped colour), adds
+// the coefficients' gradient to v_coeffs[(degree + 1)^2][3] and returns the direction's in v_dir[3]
+// (through the normalisation), as autograd differentiates the twin: the clamp passes where
+// sum + 0.5 >= 0 (torch's clamp_min), the bases' derivatives are those of sh_bases' polynomials.
+template <typename S>
+void rgb_vjp(int degree, const S* coeffs, S dx, S dy, S dz, const S* v_out, S* v_coeffs, S* v_dir) {
+    S b[16], g[3];
+    const int nb = degree >= 3 ? 16 : degree >= 2 ? 9 : degree >= 1 ? 4 : 1;
+    S sums[3] = {S(0), S(0), S(0)};
+    b[0] = S(0.2820947917738781);
+    const S n = std::max(std::sqrt(dx * dx + dy * dy + dz * dz), S(1e-12));
+    const S x = dx / n, y = dy / n, z = dz / n;
+    if (degree >= 1) {
+        const S c1 = S(0.48860251190292);
+        b[1] = -c1 * y, b[2] = c1 * z, b[3] = -c1 * x;
+    }
+    const S z2 = z * z, fC1 = x * x - y * y, fS1 = S(2) * x * y;
+    if (degree >= 2) {
+        const S tB = S(-1.092548430592079) * z;
+        b[4] = S(0.5462742152960395) * fS1, b[5] = tB * y, b[6] = S(0.9461746957575601) * z2 - S(0.3153915652525201);
+        b[7] = tB * x, b[8] = S(0.5462742152960395) * fC1;
+    }
+    const S tC = S(-2.285228997322329) * z2 + S(0.4570457994644658), tB3 = S(1.445305721320277) * z;
+    if (degree >= 3) {
+        const S fC2 = x * fC1 - y * fS1, fS2 = x * fS1 + y * fC1;
+        b[9] = S(-0.5900435899266435) * fS2, b[10] = tB3 * fS1, b[11] = tC * y;
+        b[12] = z * (S(1.865881662950577) * z2 - S(1.119528997770346));
+        b[13] = tC * x, b[14] = tB3 * fC1, b[15] = S(-0.5900435899266435) * fC2;
+    }
+    for (int k = 0; k < nb; ++k)
+        for (int c = 0; c < 3; ++c) sums[c] += b[k] * coeffs[3 * k + c];
+    for (int c = 0; c < 3; ++c) g[c] = sums[c] + S(0.5) >= S(0) ? v_out[c] : S(0);
+    for (int k = 0; k < nb; ++k)
+        for (int c = 0; c < 3; ++c) v_coeffs[3 * k + c] += b[k] * g[c];
+    v_dir[0] = v_dir[1] = v_dir[2] = S(0);
+    if (degree < 1) return;
+    // w[k] = sum_c g[c] coeffs[k][c]: the gradient of each basis
+    S w[16];
+    for (int k = 0; k < nb; ++k) w[k] = g[0] * coeffs[3 * k] + g[1] * coeffs[3 * k + 1] + g[2] * coeffs[3 * k + 2];
+    const S c1 = S(0.48860251190292);
+    S vx = -c1 * w[3], vy = -c1 * w[1], vz = c1 * w[2];
+    if (degree >= 2) {
+        const S a = S(0.5462742152960395), t = S(-1.092548430592079);
+        vx += a * S(2) * y * w[4] + t * z * w[7] + a * S(2) * x * w[8];
+        vy += a * S(2) * x * w[4] + t * z * w[5] - a * S(2) * y * w[8];
+        vz += t * y * w[5] + S(2) * S(0.9461746957575601) * z * w[6] + t * x * w[7];
+    }
+    if (degree >= 3) {
+        const S p = S(-0.5900435899266435), q = S(1.445305721320277), r = S(-2.285228997322329);
+        const S x2y2 = S(3) * (x * x - y * y), xy6 = S(6) * x * y;
+        vx += p * xy6 * w[9] + q * z * S(2) * y * w[10] + tC * w[13] + q * z * S(2) * x * w[14] + p * x2y2 * w[15];
+        vy += p * x2y2 * w[9] + q * z * S(2) * x * w[10] + tC * w[11] - q * z * S(2) * y * w[14] - p * xy6 * w[15];
+        vz += q * fS1 * w[10] + r * S(2) * z * y * w[11] + (S(3) * S(1.865881662950577) * z2 - S(1.119528997770346)) * w[12] +
+              r * S(2) * z * x * w[13] + q * fC1 * w[14];
+    }
+    // through the normalisation: (v - n (n . v)) / |d|
+    const S dot = x * vx + y * vy + z * vz;
+    v_dir[0] = (vx - x * dot) / n, v_dir[1] = (vy - y * dot) / n, v_dir[2] = (vz - z * dot) / n;
+}
+
 template void rgb<float>(int, const float*, float, float, float, float*);
 template void rgb<double>(int, const double*, double, double, double, double*);
+template void rgb_vjp<float>(int, const float*, float, float, float, const float*, float*, float*);
+template void rgb_vjp<double>(int, const double*, double, double, double, const double*, double*, double*);
 
 }  // namespace clod_sh
 
@@ -98,4 +160,34 @@ torch::Tensor sh_colors_cpu(torch::Tensor means, torch::Tensor coeffs, std::vect
         });
     });
     return out;
+}
+
+// the backward of sh_colors_cpu: (v_means [V, 3], v_coeffs [V, K, 3]) from v_colors [V, 3]
+std::vector<torch::Tensor> sh_colors_backward_cpu(torch::Tensor means, torch::Tensor coeffs, std::vector<double> campos,
+                                                  int64_t degree, torch::Tensor v_colors) {
+    TORCH_CHECK(means.dim() == 2 && means.size(1) == 3 && coeffs.dim() == 3 && coeffs.size(0) == means.size(0) &&
+                    coeffs.size(2) == 3 && coeffs.size(1) >= (degree + 1) * (degree + 1) && degree >= 0 && degree <= 3 &&
+                    campos.size() == 3 && v_colors.sizes() == means.sizes(),
+                "sh_colors_backward: means [V, 3], coeffs [V, K, 3], v_colors [V, 3], degree 0..3");
+    auto m = means.contiguous();
+    auto c = coeffs.contiguous();
+    auto v = v_colors.to(m.scalar_type()).contiguous();
+    const int64_t V = m.size(0), K = c.size(1);
+    auto v_means = torch::empty_like(m);
+    auto v_coeffs = torch::zeros_like(c);
+    AT_DISPATCH_FLOATING_TYPES(m.scalar_type(), "sh_colors_backward", [&] {
+        const scalar_t* mp = m.data_ptr<scalar_t>();
+        const scalar_t* cp = c.data_ptr<scalar_t>();
+        const scalar_t* vp = v.data_ptr<scalar_t>();
+        scalar_t* vm = v_means.data_ptr<scalar_t>();
+        scalar_t* vc = v_coeffs.data_ptr<scalar_t>();
+        const scalar_t cx = static_cast<scalar_t>(campos[0]), cy = static_cast<scalar_t>(campos[1]),
+                       cz = static_cast<scalar_t>(campos[2]);
+        at::parallel_for(0, V, kGrainSh, [&](int64_t b, int64_t e) {
+            for (int64_t i = b; i < e; ++i)
+                clod_sh::rgb_vjp<scalar_t>(static_cast<int>(degree), cp + i * K * 3, mp[3 * i] - cx, mp[3 * i + 1] - cy,
+                                           mp[3 * i + 2] - cz, vp + 3 * i, vc + i * K * 3, vm + 3 * i);
+        });
+    });
+    return {v_means, v_coeffs};
 }

@@ -55,7 +55,7 @@ def sh_colors(sh_degree: int, means: Tensor, coeffs: Tensor, campos: Tensor) -> 
 
     if (not (torch.is_grad_enabled() and campos.requires_grad)
             and means.dtype in (torch.float32, torch.float64) and coeffs.dtype == means.dtype
-            and wanted(means.device.type == "cpu" and coeffs.device.type == "cpu")):
+            and means.device.type == "cpu" and coeffs.device.type == "cpu" and wanted(True)):
         centre = [float(v) for v in campos.detach().to(means.dtype).tolist()]
         if torch.is_grad_enabled() and (means.requires_grad or coeffs.requires_grad):
             return _ShColors.apply(means, coeffs, centre, int(sh_degree))

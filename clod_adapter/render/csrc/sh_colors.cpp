@@ -134,29 +134,41 @@ template void rgb_vjp<double>(int, const double*, double, double, double, const 
 }  // namespace clod_sh
 
 namespace {
+
 constexpr int64_t kGrainSh = 4096;  // ~50 multiply-adds a row at degree 3
+
+// the rows' shapes (means [V, 3], coeffs [V, K >= (degree + 1)^2, 3], campos [3]), or a TORCH_CHECK
+void check_rows(const torch::Tensor& means, const torch::Tensor& coeffs, const std::vector<double>& campos,
+                int64_t degree, const char* name) {
+    TORCH_CHECK(means.dim() == 2 && means.size(1) == 3 && coeffs.dim() == 3 && coeffs.size(0) == means.size(0) &&
+                    coeffs.size(2) == 3 && degree >= 0 && degree <= 3 && coeffs.size(1) >= (degree + 1) * (degree + 1) &&
+                    campos.size() == 3,
+                name, ": means [V, 3], coeffs [V, K >= (degree + 1)^2, 3], degree 0..3, campos 3 values");
 }
 
+// fn(row, its coefficients, its direction from the camera centre) over every row, in parallel
+template <typename S, typename Fn>
+void each_row(const torch::Tensor& m, const torch::Tensor& c, const std::vector<double>& campos, Fn&& fn) {
+    const S* mp = m.data_ptr<S>();
+    const S* cp = c.data_ptr<S>();
+    const int64_t K = c.size(1);
+    const S cx = static_cast<S>(campos[0]), cy = static_cast<S>(campos[1]), cz = static_cast<S>(campos[2]);
+    at::parallel_for(0, m.size(0), kGrainSh, [&](int64_t b, int64_t e) {
+        for (int64_t i = b; i < e; ++i) fn(i, cp + i * K * 3, mp[3 * i] - cx, mp[3 * i + 1] - cy, mp[3 * i + 2] - cz);
+    });
+}
+
+}  // namespace
+
 torch::Tensor sh_colors_cpu(torch::Tensor means, torch::Tensor coeffs, std::vector<double> campos, int64_t degree) {
-    TORCH_CHECK(means.dim() == 2 && means.size(1) == 3, "sh_colors: means must be [V, 3]");
-    TORCH_CHECK(coeffs.dim() == 3 && coeffs.size(0) == means.size(0) && coeffs.size(2) == 3 &&
-                    coeffs.size(1) >= (degree + 1) * (degree + 1) && degree >= 0 && degree <= 3,
-                "sh_colors: coeffs must be [V, K >= (degree + 1)^2, 3], degree 0..3");
-    TORCH_CHECK(campos.size() == 3, "sh_colors: campos must hold 3 values");
+    check_rows(means, coeffs, campos, degree, "sh_colors");
     auto m = means.contiguous();
     auto c = coeffs.contiguous();
-    const int64_t V = m.size(0), K = c.size(1);
-    auto out = torch::empty({V, 3}, m.options());
+    auto out = torch::empty({m.size(0), 3}, m.options());
     AT_DISPATCH_FLOATING_TYPES(m.scalar_type(), "sh_colors", [&] {
-        const scalar_t* mp = m.data_ptr<scalar_t>();
-        const scalar_t* cp = c.data_ptr<scalar_t>();
         scalar_t* op = out.data_ptr<scalar_t>();
-        const scalar_t cx = static_cast<scalar_t>(campos[0]), cy = static_cast<scalar_t>(campos[1]),
-                       cz = static_cast<scalar_t>(campos[2]);
-        at::parallel_for(0, V, kGrainSh, [&](int64_t b, int64_t e) {
-            for (int64_t i = b; i < e; ++i)
-                clod_sh::rgb<scalar_t>(static_cast<int>(degree), cp + i * K * 3, mp[3 * i] - cx, mp[3 * i + 1] - cy,
-                                       mp[3 * i + 2] - cz, op + 3 * i);
+        each_row<scalar_t>(m, c, campos, [&](int64_t i, const scalar_t* co, scalar_t dx, scalar_t dy, scalar_t dz) {
+            clod_sh::rgb<scalar_t>(static_cast<int>(degree), co, dx, dy, dz, op + 3 * i);
         });
     });
     return out;
@@ -165,28 +177,20 @@ torch::Tensor sh_colors_cpu(torch::Tensor means, torch::Tensor coeffs, std::vect
 // the backward of sh_colors_cpu: (v_means [V, 3], v_coeffs [V, K, 3]) from v_colors [V, 3]
 std::vector<torch::Tensor> sh_colors_backward_cpu(torch::Tensor means, torch::Tensor coeffs, std::vector<double> campos,
                                                   int64_t degree, torch::Tensor v_colors) {
-    TORCH_CHECK(means.dim() == 2 && means.size(1) == 3 && coeffs.dim() == 3 && coeffs.size(0) == means.size(0) &&
-                    coeffs.size(2) == 3 && coeffs.size(1) >= (degree + 1) * (degree + 1) && degree >= 0 && degree <= 3 &&
-                    campos.size() == 3 && v_colors.sizes() == means.sizes(),
-                "sh_colors_backward: means [V, 3], coeffs [V, K, 3], v_colors [V, 3], degree 0..3");
+    check_rows(means, coeffs, campos, degree, "sh_colors_backward");
+    TORCH_CHECK(v_colors.sizes() == means.sizes(), "sh_colors_backward: v_colors must be [V, 3]");
     auto m = means.contiguous();
     auto c = coeffs.contiguous();
     auto v = v_colors.to(m.scalar_type()).contiguous();
-    const int64_t V = m.size(0), K = c.size(1);
+    const int64_t K = c.size(1);
     auto v_means = torch::empty_like(m);
     auto v_coeffs = torch::zeros_like(c);
     AT_DISPATCH_FLOATING_TYPES(m.scalar_type(), "sh_colors_backward", [&] {
-        const scalar_t* mp = m.data_ptr<scalar_t>();
-        const scalar_t* cp = c.data_ptr<scalar_t>();
         const scalar_t* vp = v.data_ptr<scalar_t>();
         scalar_t* vm = v_means.data_ptr<scalar_t>();
         scalar_t* vc = v_coeffs.data_ptr<scalar_t>();
-        const scalar_t cx = static_cast<scalar_t>(campos[0]), cy = static_cast<scalar_t>(campos[1]),
-                       cz = static_cast<scalar_t>(campos[2]);
-        at::parallel_for(0, V, kGrainSh, [&](int64_t b, int64_t e) {
-            for (int64_t i = b; i < e; ++i)
-                clod_sh::rgb_vjp<scalar_t>(static_cast<int>(degree), cp + i * K * 3, mp[3 * i] - cx, mp[3 * i + 1] - cy,
-                                           mp[3 * i + 2] - cz, vp + 3 * i, vc + i * K * 3, vm + 3 * i);
+        each_row<scalar_t>(m, c, campos, [&](int64_t i, const scalar_t* co, scalar_t dx, scalar_t dy, scalar_t dz) {
+            clod_sh::rgb_vjp<scalar_t>(static_cast<int>(degree), co, dx, dy, dz, vp + 3 * i, vc + i * K * 3, vm + 3 * i);
         });
     });
     return {v_means, v_coeffs};

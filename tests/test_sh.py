@@ -66,3 +66,10 @@ def test_the_torch_form_runs_where_the_camera_centre_needs_a_gradient():
     out = sh_colors(3, means, coeffs, campos)
     out.sum().backward()
     assert campos.grad is not None and campos.grad.abs().sum() > 0
+
+
+@pytest.mark.parametrize("impl", ["cpp", "torch"])
+def test_a_degree_the_coefficients_cannot_hold_is_a_value_error(impl):
+    means, coeffs, campos = _rows(10, 4, torch.float32)
+    with native.use_impl(impl), pytest.raises(ValueError, match="SH degree 2"):
+        sh_colors(2, means, coeffs, campos)

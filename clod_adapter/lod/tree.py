@@ -749,12 +749,14 @@ def cut_attributes(tiers: Sequence[Gaussians], c: TreeCut, *, campos: Optional[T
     scales [k, 3] activated (world units), opacities [k], colors)``, each node interpolated toward
     its parent by its ``t`` (module docstring, step 4; only the rows in a hand-over are
     interpolated). ``colors``: [k, K, 3] SH in gsplat's layout; with a camera centre ``campos``
-    [3] (world units) and ``sh_degree`` (0..3, default the tiers'), [k, 3] the colours seen from
-    it at the drawn positions (:func:`clod_adapter.render.cpu.sh_colors`; the C++ kernel
-    evaluates them in its pass over the rows instead of copying the coefficients)."""
+    [3] (world units) and ``sh_degree`` (default the tiers'), [k, 3] the colours seen from it at
+    the drawn positions (:func:`clod_adapter.render.cpu.sh_colors`; the C++ kernel evaluates them
+    in its pass over the rows). Raises ValueError: ``sh_degree`` outside 0..the tiers' degree."""
     rgb = campos is not None
     deg = (tiers[0].sh_degree if sh_degree is None else int(sh_degree)) if rgb else -1
-    if c.fade is not None and _native(tiers) and (not rgb or tiers[0].shN.shape[1] < 16):
+    if rgb and not 0 <= deg <= tiers[0].sh_degree:
+        raise ValueError(f"sh_degree must be in 0..{tiers[0].sh_degree}, got {sh_degree}")
+    if c.fade is not None and _native(tiers):
         from ..render.native import load
 
         attrs = [x.detach().contiguous() for t in tiers

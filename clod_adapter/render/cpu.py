@@ -50,9 +50,18 @@ def sh_colors(sh_degree: int, means: Tensor, coeffs: Tensor, campos: Tensor) -> 
     0)``, in the dtype of ``means``. Where the C++ kernels run
     (:func:`clod_adapter.render.native.wanted`) and ``campos`` needs no gradient, one pass of
     ``csrc/sh_colors.cpp`` each way (the backward gives the means' and the coefficients'
-    gradients); else this torch form (its twin, equal to float rounding: ``tests/test_sh.py``)."""
+    gradients); else this torch form (its twin, equal to float rounding: ``tests/test_sh.py``).
+
+    Raises:
+        ValueError: ``sh_degree`` outside 0..3 or more than ``coeffs`` holds (K < (degree + 1)^2),
+            or ``coeffs`` not [V, K, 3].
+    """
     from .native import load, wanted
 
+    if not 0 <= int(sh_degree) <= 3 or coeffs.ndim != 3 or coeffs.shape[-1] != 3 or \
+            coeffs.shape[1] < (int(sh_degree) + 1) ** 2:
+        raise ValueError(f"SH degree {sh_degree} needs [V, >= {(int(sh_degree) + 1) ** 2}, 3] coefficients, "
+                         f"got {tuple(coeffs.shape)}")
     if (not (torch.is_grad_enabled() and campos.requires_grad)
             and means.dtype in (torch.float32, torch.float64) and coeffs.dtype == means.dtype
             and means.device.type == "cpu" and coeffs.device.type == "cpu" and wanted(True)):

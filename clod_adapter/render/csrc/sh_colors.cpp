@@ -13,58 +13,61 @@
 
 namespace clod_sh {
 
-// View-dependent colour of real SH coefficients (degree 0..3), gsplat 1.5.3's spherical_harmonics
-// + rendering.py's clamp_min(sh + 0.5, 0): the bases of clod_adapter.render.sh.sh_bases (Sloan,
-// JCGT 2013, gsplat's signs and order) at the unit direction from the camera centre to the
-// Gaussian, summed over the coefficients in order.
-// out[3] = max(sum_b basis_b(dir) coeffs[b][c] + 0.5, 0); coeffs: [(degree + 1)^2][3] row-major;
-// dir = mean - campos (any length; normalised here, its norm at least 1e-12, as the twin).
+// The real SH bases of clod_adapter.render.sh.sh_bases (degree 0..3; Sloan, JCGT 2013, gsplat
+// 1.5.3's signs and order) at the unit direction of dir = mean - campos (any length; normalised
+// here, its norm at least 1e-12, as the twin): b[0 .. nb), nb = (degree + 1)^2 returned; u[3]
+// the unit direction and *norm its length (degree >= 1 only).
 template <typename S>
-void rgb(int degree, const S* coeffs, S dx, S dy, S dz, S* out) {
-    S b[16];
+int bases(int degree, S dx, S dy, S dz, S* b, S* u, S* norm) {
     b[0] = S(0.2820947917738781);
-    int nb = 1;
-    if (degree >= 1) {
-        const S n = std::max(std::sqrt(dx * dx + dy * dy + dz * dz), S(1e-12));
-        const S x = dx / n, y = dy / n, z = dz / n;
-        const S c1 = S(0.48860251190292);
-        b[1] = -c1 * y;
-        b[2] = c1 * z;
-        b[3] = -c1 * x;
-        nb = 4;
-        if (degree >= 2) {
-            const S z2 = z * z, tB = S(-1.092548430592079) * z, fC1 = x * x - y * y, fS1 = S(2) * x * y;
-            b[4] = S(0.5462742152960395) * fS1;
-            b[5] = tB * y;
-            b[6] = S(0.9461746957575601) * z2 - S(0.3153915652525201);
-            b[7] = tB * x;
-            b[8] = S(0.5462742152960395) * fC1;
-            nb = 9;
-            if (degree >= 3) {
-                const S tC = S(-2.285228997322329) * z2 + S(0.4570457994644658), tB3 = S(1.445305721320277) * z;
-                const S fC2 = x * fC1 - y * fS1, fS2 = x * fS1 + y * fC1;
-                b[9] = S(-0.5900435899266435) * fS2;
-                b[10] = tB3 * fS1;
-                b[11] = tC * y;
-                b[12] = z * (S(1.865881662950577) * z2 - S(1.119528997770346));
-                b[13] = tC * x;
-                b[14] = tB3 * fC1;
-                b[15] = S(-0.5900435899266435) * fC2;
-                nb = 16;
-            }
-        }
-    }
-    S v0 = S(0), v1 = S(0), v2 = S(0);  // each channel summed over the coefficients in order
-    for (int k = 0; k < nb; ++k) {
-        v0 += b[k] * coeffs[3 * k];
-        v1 += b[k] * coeffs[3 * k + 1];
-        v2 += b[k] * coeffs[3 * k + 2];
-    }
-    out[0] = std::max(v0 + S(0.5), S(0));
-    out[1] = std::max(v1 + S(0.5), S(0));
-    out[2] = std::max(v2 + S(0.5), S(0));
+    if (degree < 1) return 1;
+    const S n = std::max(std::sqrt(dx * dx + dy * dy + dz * dz), S(1e-12));
+    const S x = dx / n, y = dy / n, z = dz / n;
+    u[0] = x, u[1] = y, u[2] = z, *norm = n;
+    const S c1 = S(0.48860251190292);
+    b[1] = -c1 * y;
+    b[2] = c1 * z;
+    b[3] = -c1 * x;
+    if (degree < 2) return 4;
+    const S z2 = z * z, tB = S(-1.092548430592079) * z, fC1 = x * x - y * y, fS1 = S(2) * x * y;
+    b[4] = S(0.5462742152960395) * fS1;
+    b[5] = tB * y;
+    b[6] = S(0.9461746957575601) * z2 - S(0.3153915652525201);
+    b[7] = tB * x;
+    b[8] = S(0.5462742152960395) * fC1;
+    if (degree < 3) return 9;
+    const S tC = S(-2.285228997322329) * z2 + S(0.4570457994644658), tB3 = S(1.445305721320277) * z;
+    const S fC2 = x * fC1 - y * fS1, fS2 = x * fS1 + y * fC1;
+    b[9] = S(-0.5900435899266435) * fS2;
+    b[10] = tB3 * fS1;
+    b[11] = tC * y;
+    b[12] = z * (S(1.865881662950577) * z2 - S(1.119528997770346));
+    b[13] = tC * x;
+    b[14] = tB3 * fC1;
+    b[15] = S(-0.5900435899266435) * fC2;
+    return 16;
 }
 
+// each channel's sum over the bases, in order: the colour before the offset and the clamp
+template <typename S>
+void sums(int nb, const S* b, const S* coeffs, S* v) {
+    v[0] = v[1] = v[2] = S(0);
+    for (int k = 0; k < nb; ++k) {
+        v[0] += b[k] * coeffs[3 * k];
+        v[1] += b[k] * coeffs[3 * k + 1];
+        v[2] += b[k] * coeffs[3 * k + 2];
+    }
+}
+
+// View-dependent colour of real SH coefficients (degree 0..3), gsplat 1.5.3's spherical_harmonics
+// + rendering.py's clamp_min(sh + 0.5, 0): out[3] = max(sum_b basis_b(dir) coeffs[b][c] + 0.5, 0);
+// coeffs: [(degree + 1)^2][3] row-major; dir = mean - campos (bases).
+template <typename S>
+void rgb(int degree, const S* coeffs, S dx, S dy, S dz, S* out) {
+    S b[16], u[3], n, v[3];
+    sums(bases(degree, dx, dy, dz, b, u, &n), b, coeffs, v);
+    for (int c = 0; c < 3; ++c) out[c] = std::max(v[c] + S(0.5), S(0));
+}
 
 // The vector-Jacobian product of rgb: given v_out[3] (the gradient of the clamped colour), adds
 // the coefficients' gradient to v_coeffs[(degree + 1)^2][3] and returns the direction's in v_dir[3]
@@ -72,38 +75,16 @@ void rgb(int degree, const S* coeffs, S dx, S dy, S dz, S* out) {
 // sum + 0.5 >= 0 (torch's clamp_min), the bases' derivatives are those of sh_bases' polynomials.
 template <typename S>
 void rgb_vjp(int degree, const S* coeffs, S dx, S dy, S dz, const S* v_out, S* v_coeffs, S* v_dir) {
-    S b[16], g[3];
-    const int nb = degree >= 3 ? 16 : degree >= 2 ? 9 : degree >= 1 ? 4 : 1;
-    S sums[3] = {S(0), S(0), S(0)};
-    b[0] = S(0.2820947917738781);
-    const S n = std::max(std::sqrt(dx * dx + dy * dy + dz * dz), S(1e-12));
-    const S x = dx / n, y = dy / n, z = dz / n;
-    if (degree >= 1) {
-        const S c1 = S(0.48860251190292);
-        b[1] = -c1 * y, b[2] = c1 * z, b[3] = -c1 * x;
-    }
-    const S z2 = z * z, fC1 = x * x - y * y, fS1 = S(2) * x * y;
-    if (degree >= 2) {
-        const S tB = S(-1.092548430592079) * z;
-        b[4] = S(0.5462742152960395) * fS1, b[5] = tB * y, b[6] = S(0.9461746957575601) * z2 - S(0.3153915652525201);
-        b[7] = tB * x, b[8] = S(0.5462742152960395) * fC1;
-    }
-    const S tC = S(-2.285228997322329) * z2 + S(0.4570457994644658), tB3 = S(1.445305721320277) * z;
-    if (degree >= 3) {
-        const S fC2 = x * fC1 - y * fS1, fS2 = x * fS1 + y * fC1;
-        b[9] = S(-0.5900435899266435) * fS2, b[10] = tB3 * fS1, b[11] = tC * y;
-        b[12] = z * (S(1.865881662950577) * z2 - S(1.119528997770346));
-        b[13] = tC * x, b[14] = tB3 * fC1, b[15] = S(-0.5900435899266435) * fC2;
-    }
-    for (int k = 0; k < nb; ++k)
-        for (int c = 0; c < 3; ++c) sums[c] += b[k] * coeffs[3 * k + c];
-    for (int c = 0; c < 3; ++c) g[c] = sums[c] + S(0.5) >= S(0) ? v_out[c] : S(0);
+    S b[16], u[3], n = S(1), v[3], g[3];
+    const int nb = bases(degree, dx, dy, dz, b, u, &n);
+    sums(nb, b, coeffs, v);
+    for (int c = 0; c < 3; ++c) g[c] = v[c] + S(0.5) >= S(0) ? v_out[c] : S(0);
     for (int k = 0; k < nb; ++k)
         for (int c = 0; c < 3; ++c) v_coeffs[3 * k + c] += b[k] * g[c];
     v_dir[0] = v_dir[1] = v_dir[2] = S(0);
     if (degree < 1) return;
-    // w[k] = sum_c g[c] coeffs[k][c]: the gradient of each basis
-    S w[16];
+    const S x = u[0], y = u[1], z = u[2];
+    S w[16];  // w[k] = sum_c g[c] coeffs[k][c]: the gradient of each basis
     for (int k = 0; k < nb; ++k) w[k] = g[0] * coeffs[3 * k] + g[1] * coeffs[3 * k + 1] + g[2] * coeffs[3 * k + 2];
     const S c1 = S(0.48860251190292);
     S vx = -c1 * w[3], vy = -c1 * w[1], vz = c1 * w[2];
@@ -115,13 +96,14 @@ void rgb_vjp(int degree, const S* coeffs, S dx, S dy, S dz, const S* v_out, S* v
     }
     if (degree >= 3) {
         const S p = S(-0.5900435899266435), q = S(1.445305721320277), r = S(-2.285228997322329);
-        const S x2y2 = S(3) * (x * x - y * y), xy6 = S(6) * x * y;
+        const S z2 = z * z, fC1 = x * x - y * y, fS1 = S(2) * x * y, tC = r * z2 + S(0.4570457994644658);
+        const S x2y2 = S(3) * fC1, xy6 = S(6) * x * y;
         vx += p * xy6 * w[9] + q * z * S(2) * y * w[10] + tC * w[13] + q * z * S(2) * x * w[14] + p * x2y2 * w[15];
         vy += p * x2y2 * w[9] + q * z * S(2) * x * w[10] + tC * w[11] - q * z * S(2) * y * w[14] - p * xy6 * w[15];
         vz += q * fS1 * w[10] + r * S(2) * z * y * w[11] + (S(3) * S(1.865881662950577) * z2 - S(1.119528997770346)) * w[12] +
               r * S(2) * z * x * w[13] + q * fC1 * w[14];
     }
-    // through the normalisation: (v - n (n . v)) / |d|
+    // through the normalisation: (v - u (u . v)) / |dir|
     const S dot = x * vx + y * vy + z * vz;
     v_dir[0] = (vx - x * dot) / n, v_dir[1] = (vy - y * dot) / n, v_dir[2] = (vz - z * dot) / n;
 }

@@ -633,6 +633,11 @@ def test_the_one_call_budget_cut_equals_its_three_step_twin(model):
     levels = set()
     for cam in cams:
         n0 = int(tree.in_frustum(ts[0], cam).sum())
+        with torch.no_grad(), native.use_impl("cpp"):  # the frustum alone, without the view's distances
+            fa = tree.budget_frame(ts, cam)
+        with torch.no_grad(), native.use_impl("torch"):
+            fb = tree.budget_frame(ts, cam)
+        assert all(torch.equal(x, y) for x, y in zip(fa[0] + fa[1], fb[0] + fb[1]))
         for k in (0, 1, 3, 17, 60, 200, n0 // 2, n0 - 1):
             with torch.no_grad():
                 with native.use_impl("cpp"):

@@ -217,21 +217,24 @@ def frame(tiers: Sequence[Gaussians], camera) -> tuple[list, list]:
     """Step 1 for ``camera``, per tier: ``(d' [N_k] in the centres' dtype, frustum [N_k] bool)``
     (:func:`in_frustum`). One pass of the C++ kernel over every node on the CPU; its twin
     elsewhere (the same rounding: distances in double rounded to the dtype, divided by ``D``)."""
-    c = _centre(camera)
     if _native(tiers):
-        from ..render.native import load
-
-        dt = tiers[0].means.dtype
-        vm = camera.viewmat.detach().to(torch.float64)
-        K = camera.K.detach().to(torch.float64)
-        out = load().tree_frame([lod.centre_columns(t.means, dt) for t in tiers], vm[:3, :3].reshape(-1).tolist(),
-                                vm[:3, 3].tolist(), float(K[0, 0]), float(K[0, 2]), float(K[1, 1]), float(K[1, 2]),
-                                int(camera.width), int(camera.height), 0.01, c)
+        out = _native_frame(tiers, camera, _centre(camera))
         return out[1::2], out[0::2]
+    c = _centre(camera)
     frs = [in_frustum(t, camera) for t in tiers]
     ds = [_node_distances(t.means, c) for t in tiers]
     D = _normaliser(ds[-1], frs[-1])
     return [d / D for d in ds], frs
+
+
+def _native_frame(tiers: Sequence[Gaussians], camera, c: list) -> list:
+    """``tree_frame`` (``render/csrc/tree_cut.cpp``): per tier [frustum, d']; with ``c = []`` the frustum alone."""
+    from ..render.native import load
+
+    vm, K = camera.viewmat.detach().to(torch.float64), camera.K.detach().to(torch.float64)
+    return load().tree_frame([lod.centre_columns(t.means, tiers[0].means.dtype) for t in tiers],
+                             vm[:3, :3].reshape(-1).tolist(), vm[:3, 3].tolist(), float(K[0, 0]), float(K[0, 2]),
+                             float(K[1, 1]), float(K[1, 2]), int(camera.width), int(camera.height), 0.01, c)
 
 
 def _camera(tiers: Sequence[Gaussians], camera) -> tuple[list, float, Tensor]:
@@ -247,9 +250,7 @@ def _camera(tiers: Sequence[Gaussians], camera) -> tuple[list, float, Tensor]:
 def reference_distances(tiers: Sequence[Gaussians], cameras) -> list[Tensor]:
     """Per tier [N_k] float64: each node's mean ``d'`` (step 1) over the views whose frustum holds
     its centre (over all views where none does)."""
-    s_in = [torch.zeros(len(t), dtype=torch.float64) for t in tiers]
-    c_in = [torch.zeros(len(t), dtype=torch.float64) for t in tiers]
-    s_all = [torch.zeros(len(t), dtype=torch.float64) for t in tiers]
+    s_in, c_in, s_all = ([torch.zeros(len(t), dtype=torch.float64) for t in tiers] for _ in range(3))
     for cam in cameras:
         ds, frs = frame(tiers, cam)
         for k, (fr, d) in enumerate(zip(frs, ds)):
@@ -266,9 +267,8 @@ def budget_frame(tiers: Sequence[Gaussians], camera) -> tuple[list, list]:
     gives them, but every node's ``d'`` its stored reference distance (``extra["d_ref"]``, in the
     centres' dtype), so a budget draws one cut of the tree for every view at that share, only the
     frustum the view's. Raises KeyError where a tier lacks ``extra["d_ref"]``."""
-    refs = [t.extra[REFERENCE_KEY].detach() for t in tiers]
-    frs = frame(tiers, camera)[1] if _native(tiers) else [in_frustum(t, camera) for t in tiers]
-    return [r.to(t.means.dtype) for r, t in zip(refs, tiers)], frs
+    refs = [t.extra[REFERENCE_KEY].detach().to(t.means.dtype) for t in tiers]
+    return refs, _native_frame(tiers, camera, []) if _native(tiers) else [in_frustum(t, camera) for t in tiers]
 
 
 def _group_rank(child_level: Tensor, parent: Tensor, n_parents: int) -> Tensor:

@@ -384,7 +384,8 @@ double walk_impl(const torch::Tensor& pos, const torch::Tensor& node, const torc
 
 // tree_frame: per tier the frustum test and d' of every node (docs/lod_rule.md step 1): the
 // distance to the camera in double, rounded to S, over D = the largest of the last tier's in the
-// frustum (of all of them when none is), divided in S (tree._frame_twin rounds alike)
+// frustum (of all of them when none is), divided in S (tree._frame_twin rounds alike). Without a
+// camera centre (c == nullptr: a budget's frame, whose d' are the stored ones) the frustum alone.
 template <typename S>
 std::vector<torch::Tensor> frame_impl(const std::vector<torch::Tensor>& cols, const double* R, const double* t,
                                       double fx, double cx, double fy, double cy, double width, double height,
@@ -394,11 +395,11 @@ std::vector<torch::Tensor> frame_impl(const std::vector<torch::Tensor>& cols, co
     for (size_t k = 0; k < T; ++k) {
         const int64_t n = cols[k].size(1);
         fr[k] = torch::empty({n}, cols[k].options().dtype(torch::kBool));
-        d[k] = torch::empty({n}, cols[k].options());
+        if (c) d[k] = torch::empty({n}, cols[k].options());
         const S* x = cols[k].data_ptr<S>();
         const S *y = x + n, *z = x + 2 * n;
         bool* f = fr[k].data_ptr<bool>();
-        S* dd = d[k].data_ptr<S>();
+        S* dd = c ? d[k].data_ptr<S>() : nullptr;
         at::parallel_for(0, n, kGrainCut, [&](int64_t b, int64_t e) {
             for (int64_t i = b; i < e; ++i) {
                 const double px = x[i], py = y[i], pz = z[i];
@@ -407,11 +408,15 @@ std::vector<torch::Tensor> frame_impl(const std::vector<torch::Tensor>& cols, co
                 const double cys = R[3] * px + R[4] * py + R[5] * pz + t[1];
                 const double a = fx * cxs + cx * cz, bb = fy * cys + cy * cz;  // pixel * z
                 f[i] = (cz > near_plane) & (a >= 0.0) & (a < cz * width) & (bb >= 0.0) & (bb < cz * height);
-                const double dx = px - c[0], dy = py - c[1], dz = pz - c[2];
-                dd[i] = static_cast<S>(std::sqrt(dx * dx + dy * dy + dz * dz));
             }
+            if (dd)
+                for (int64_t i = b; i < e; ++i) {
+                    const double dx = double(x[i]) - c[0], dy = double(y[i]) - c[1], dz = double(z[i]) - c[2];
+                    dd[i] = static_cast<S>(std::sqrt(dx * dx + dy * dy + dz * dz));
+                }
         });
     }
+    if (!c) return fr;
     const int64_t nT = cols[T - 1].size(1);
     const bool* fT = fr[T - 1].data_ptr<bool>();
     const S* dT = d[T - 1].data_ptr<S>();
@@ -438,18 +443,21 @@ std::vector<torch::Tensor> frame_impl(const std::vector<torch::Tensor>& cols, co
 
 // clod_adapter.lod.tree.frame: cols per tier [3, N_k] contiguous (lod.centre_columns, one dtype); R [9]
 // row-major and t [3] of the world-to-camera matrix; intrinsics and image size in pixels; the camera
-// centre (world). Returns per tier [frustum [N_k] bool, d' [N_k]].
+// centre (world). Returns per tier [frustum [N_k] bool, d' [N_k]]; with an empty centre, per tier
+// the frustum [N_k] bool alone (tree.budget_frame).
 std::vector<torch::Tensor> tree_frame_cpu(std::vector<torch::Tensor> cols, std::vector<double> R, std::vector<double> t,
                                           double fx, double cx, double fy, double cy, int64_t width, int64_t height,
                                           double near_plane, std::vector<double> center) {
-    TORCH_CHECK(!cols.empty() && R.size() == 9 && t.size() == 3 && center.size() == 3, "tree_frame: tiers, R [9], t [3], c [3]");
+    TORCH_CHECK(!cols.empty() && R.size() == 9 && t.size() == 3 && (center.size() == 3 || center.empty()),
+                "tree_frame: tiers, R [9], t [3], c [3] or none");
     for (const auto& c : cols)
         TORCH_CHECK(c.dim() == 2 && c.size(0) == 3 && c.is_contiguous() && c.device().is_cpu() &&
                     c.scalar_type() == cols[0].scalar_type(), "tree_frame: contiguous CPU [3, N] columns of one dtype");
     std::vector<torch::Tensor> out;
     AT_DISPATCH_FLOATING_TYPES(cols[0].scalar_type(), "tree_frame", [&] {
         out = frame_impl<scalar_t>(cols, R.data(), t.data(), fx, cx, fy, cy, static_cast<double>(width),
-                                   static_cast<double>(height), near_plane, center.data());
+                                   static_cast<double>(height), near_plane,
+                                   center.empty() ? nullptr : center.data());
     });
     return out;
 }

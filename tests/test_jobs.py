@@ -170,7 +170,7 @@ def test_help_has_an_example_and_every_flag_has_help(capsys):
 
 def test_clod_adapt_flag_defaults_are_the_configs():
     """Every clod-adapt flag with a literal default that names an AdaptConfig field has the
-    config's default (``--tier-finetune-steps`` 400, ``--max-sv`` 5, ...): the two cannot drift."""
+    config's default (``--max-sv`` 5, ``--recovery-steps`` 1000, ...): the two cannot drift."""
     import dataclasses
 
     from clod_adapter.cli import adapt
@@ -182,7 +182,7 @@ def test_clod_adapt_flag_defaults_are_the_configs():
         if a.dest in fields and a.default is not None and a.dest != "background":  # a colour name, parsed later
             assert a.default == getattr(cfg, a.dest), (a.dest, a.default, getattr(cfg, a.dest))
             checked.append(a.dest)
-    assert {"tier_finetune_steps", "max_sv", "tier_merge", "recovery_steps"} <= set(checked)
+    assert {"max_sv", "level_max", "keep_share", "recovery_steps"} <= set(checked)
 
 
 # --- timings ---------------------------------------------------------------------------------------

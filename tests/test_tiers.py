@@ -293,10 +293,8 @@ def test_first_share_lowers_a_slow_first_merge(monkeypatch):
         tiers.first_share(g, 0.5, [None], cap=-0.1)
 
 
-def test_tier_time_cap_is_a_share_of_the_frame(tiny_model, tmp_path, capfd):
-    from clod_adapter.cli.adapt import main
+def test_tier_time_cap_is_a_share_of_the_frame():
     from clod_adapter.train.config import AdaptConfig
-    from conftest import FAST, err_line
 
     assert AdaptConfig().tier_time_cap == config.TIER_TIME_CAP == 0.8
     assert AdaptConfig(schedule="paper").tier_time_cap == 0.0
@@ -304,10 +302,6 @@ def test_tier_time_cap_is_a_share_of_the_frame(tiny_model, tmp_path, capfd):
     for bad in (-0.1, 1.5, float("nan")):
         with pytest.raises(ValueError, match="tier_time_cap"):
             AdaptConfig(tier_time_cap=bad)
-    out = tmp_path / "bad"
-    args = [str(tiny_model["ply"]), "--images", str(tiny_model["scene"]), *FAST, "-o", str(out)]
-    assert main(args + ["--tier-time-cap", "1.5"]) == 2
-    assert "--tier-time-cap must be in [0, 1]" in err_line(capfd) and not out.exists()
 
 
 def test_link_hands_a_merged_tier_over_no_later_than_asked(tiered, monkeypatch):
@@ -330,10 +324,8 @@ def test_link_hands_a_merged_tier_over_no_later_than_asked(tiered, monkeypatch):
             tiers.link(model, [parents], cams, [None], max_tier_s_v=bad)
 
 
-def test_tier_hand_over_is_an_s_v_or_the_time_rule(tiny_model, tmp_path, capfd):
-    from clod_adapter.cli.adapt import main
+def test_tier_hand_over_is_an_s_v_or_the_time_rule():
     from clod_adapter.train.config import AdaptConfig
-    from conftest import FAST, err_line
 
     assert AdaptConfig().tier_hand_over == config.TIER_HAND_OVER == 1.6
     assert AdaptConfig(schedule="paper").tier_hand_over == 0.0
@@ -341,18 +333,14 @@ def test_tier_hand_over_is_an_s_v_or_the_time_rule(tiny_model, tmp_path, capfd):
     for bad in (1.0, 0.5, -1.0, float("nan"), float("inf")):
         with pytest.raises(ValueError, match="tier_hand_over"):
             AdaptConfig(tier_hand_over=bad)
-    out = tmp_path / "bad"
-    args = [str(tiny_model["ply"]), "--images", str(tiny_model["scene"]), *FAST, "-o", str(out)]
-    assert main(args + ["--tier-hand-over", "0.9"]) == 2
-    assert "--tier-hand-over must be 0" in err_line(capfd) and not out.exists()
 
 
 def test_adapt_job_caps_only_the_merged_tiers_hand_overs(tiny_model, tmp_path, monkeypatch):
-    """clod-adapt with two merged tiers: the first tier's own link (to the second) is capped at
-    --tier-hand-over, the input's link to the first tier is not."""
-    from clod_adapter.cli.adapt import main
+    """The adaptation job with two merged tiers: the first tier's own link (to the second) is capped
+    at ``tier_hand_over``, the input's link to the first tier is not."""
     from clod_adapter.io.splat_transform import find_splat_transform
-    from conftest import FAST
+    from clod_adapter.jobs.adapt import AdaptOptions, run
+    from clod_adapter.train.config import AdaptConfig
 
     if find_splat_transform() is None:
         pytest.skip("splat-transform is not installed (npm ci): the tier's merge needs it")
@@ -364,10 +352,21 @@ def test_adapt_job_caps_only_the_merged_tiers_hand_overs(tiny_model, tmp_path, m
         return link(*a, max_tier_s_v=max_tier_s_v, **k)
 
     monkeypatch.setattr(tiers, "link", spy)
-    args = [str(tiny_model["ply"]), "--images", str(tiny_model["scene"]), *FAST, "--parent-share", "0.4,0.2",
-            "--tier-finetune-steps", "0", "--tier-time-cap", "0", "--tier-hand-over", "1.3"]
-    assert main(args + ["-o", str(tmp_path / "two")]) == 0
+    cfg = AdaptConfig(iterations=2, max_sv=2.0, parent_share=(0.4, 0.2), tier_finetune_steps=0, tier_time_cap=0,
+                      tier_hand_over=1.3)
+    run(tiny_model["ply"], tiny_model["scene"], tmp_path / "two", cfg, AdaptOptions(progress=False, timing_repeats=1))
     assert caps == [1.3, 0.0]  # the first tier's link (to the second) first, then the input's
+
+
+def test_clod_adapt_has_one_tier_option():
+    """Of the merged tiers, clod-adapt shows a user their shares alone (``--parent-share``); how
+    each tier is built, fitted and handed over is AdaptConfig's (the benchmarks' ``--config``)."""
+    from clod_adapter.cli.adapt import build_parser
+
+    flags = {f for a in build_parser()._actions for f in a.option_strings}
+    assert {f for f in flags if f.startswith(("--tier", "--tree", "--parent"))} == {"--parent-share"}
+    with pytest.raises(SystemExit):
+        build_parser().parse_args(["m.ply", "--tier-merge", "decimate"])
 
 
 def test_tier_iteration_share_sets_each_tiers_steps():
@@ -453,8 +452,7 @@ def test_adapt_job_builds_the_tier_or_says_why_not(tiny_model, tmp_path, monkeyp
     monkeypatch.setattr(tree_mod, "build", lambda *a, **k: spreads.append(
         (k.get("spread"), k.get("exit_toward_parent"), k.get("entry_toward_children"))) or build(*a, **k))
     out = tmp_path / "tier"
-    assert main(args + ["-o", str(out), "--parent-share", "0.2,0.1", "--tier-finetune-steps", "7",
-                        "--tier-iteration-share", "0.5", "--tier-downscale", "2"]) == 0
+    assert main(args + ["-o", str(out), "--parent-share", "0.2,0.1"]) == 0
     # read once each: the input, then each tier's merged input by the adaptation of that tier
     assert reads == [str(tiny_model["ply"]), str(out / "parents_input.ply"),
                      str(out / "parents" / "parents_input.ply")], reads
@@ -465,7 +463,7 @@ def test_adapt_job_builds_the_tier_or_says_why_not(tiny_model, tmp_path, monkeyp
     assert "job_seconds" not in pm  # the top job's only
     # the tier's own test evaluation is untimed (the top job times the linked model); the top job's is timed
     assert pm["timing"]["repeats"] == 0 and top["timing"]["repeats"] == 1 and top["timing"]["method"] == "interleaved"
-    # --tier-downscale 2: the first tier is trained at the model's resolution, the next at half of it
+    # tier_downscale 2: the first tier is trained at the model's resolution, the next at half of it
     ppm = json.loads((out / "parents" / "parents" / "metrics.json").read_text())
     assert pm["resolution"] == tier["resolution"] == top["resolution"] and pm["image_size"] == top["image_size"]
     assert ppm["resolution"] == pm["tier"]["resolution"] == 2 * top["resolution"]
@@ -474,7 +472,7 @@ def test_adapt_job_builds_the_tier_or_says_why_not(tiny_model, tmp_path, monkeyp
     assert tier["time_cap"]["cap"] == config.TIER_TIME_CAP and tried[0][0] == 0.2
     assert tier["parent_share"] == tried[-1][0] and all(r > config.TIER_TIME_CAP for _, r in tried[:-1])
     n_parents = round(tier["parent_share"] * 300)
-    assert tier["finetune"]["steps"] == 2  # --tier-finetune-steps 7, at most --iterations 2
+    assert tier["finetune"]["steps"] == 2  # tier_finetune_steps 400, at most --iterations 2
     steps = json.loads((out / "metrics.json").read_text())["config"]["iterations"]
     assert json.loads((out / "parents" / "metrics.json").read_text())["config"]["iterations"] == round(steps / 2)
     assert tier["parents"] == n_parents and (out / "parents" / "point_cloud.ply").is_file()
@@ -518,7 +516,7 @@ def test_adapt_job_builds_a_tree_from_a_pruned_tier(tiny_model, tmp_path, monkey
         monkeypatch.setattr(mod, name, lambda p, *a, f=getattr(mod, name), log=log, **k: log.append(p) or f(p, *a, **k))
     out = tmp_path / "pruned"
     assert main([str(tiny_model["ply"]), "--images", str(tiny_model["scene"]), *FAST, "-o", str(out),
-                 "--parent-share", "0.4", "--tier-finetune-steps", "1", "--tree-steps", "1"]) == 0
+                 "--parent-share", "0.4"]) == 0
     # read once each: the input, the scene, the tier's input (by its adaptation) and the tier's model
     assert reads == [tiny_model["ply"], out / "parents_input.ply"] and scenes == [tiny_model["scene"]]
     assert own == [out / "parents" / "point_cloud.ply"]
@@ -577,7 +575,7 @@ def test_a_signal_while_the_tree_is_measured_stops_the_job(tiny_model, tmp_path,
     monkeypatch.setattr(adapt_levels, "evaluate_levels", interrupted)
     out = tmp_path / "stopped"
     assert main([str(tiny_model["ply"]), "--images", str(tiny_model["scene"]), *FAST, "-o", str(out),
-                 "--parent-share", "0.4", "--tier-finetune-steps", "1", "--tree-steps", "1"]) == 130
+                 "--parent-share", "0.4"]) == 130
     assert measured == [1]  # the top model's levels only, after the tier (the tier's own run measures none)
     assert tree.is_tree(read_ply(out / "point_cloud.ply"))
     assert json.loads((out / "metrics.json").read_text())["levels"] == []
@@ -593,6 +591,7 @@ def test_adapt_job_builds_a_tree(tiny_model, tmp_path, monkeypatch):
     from clod_adapter.lod import tree
     from clod_adapter.cli.adapt import main
     from clod_adapter.io.splat_transform import find_splat_transform
+    from clod_adapter.train.config import AdaptConfig
     from conftest import FAST
 
     if find_splat_transform() is None:
@@ -601,9 +600,9 @@ def test_adapt_job_builds_a_tree(tiny_model, tmp_path, monkeypatch):
     monkeypatch.setattr(tiers, "choose", lambda g, p, *a, **k: tiers.TierChoice(1.5, 1.0, {}))  # every tier pays
     out = tmp_path / "tree"
     assert main([str(tiny_model["ply"]), "--images", str(tiny_model["scene"]), *FAST, "-o", str(out),
-                 "--parent-share", "0.5,0.2", "--tier-finetune-steps", "3", "--tree-budget-steps", "1"]) == 0
+                 "--parent-share", "0.5,0.2"]) == 0
     tier = json.loads((out / "metrics.json").read_text())["tier"]
-    assert tier["tree_fit"]["budget_steps"] == 1.0  # --tree-budget-steps reaches the fit
+    assert tier["tree_fit"]["budget_steps"] == AdaptConfig().tree_budget_steps == 0.5  # the config's reaches the fit
     g = read_ply(out / "point_cloud.ply")
     assert tier["used"] and g.lod.tree and tree.is_tree(g) and tier["tree"] == [len(t) for t in tree.tiers_of(g)]
     assert len(tier["tree"]) == 3 and tier["tree_fit"]["steps"] == 2  # --tree-steps 1000, at most --iterations 2

@@ -1,4 +1,4 @@
-"""Which score the pruned first tier (``clod-adapt --tier-merge prune``) keeps by: static cuts of the input.
+"""Which score the pruned first tier (``AdaptConfig.tier_merge = "prune"``) keeps by: static cuts of the input.
 
 For each input (default: fern) every Gaussian gets its blending weight summed over the fit views
 (:func:`clod_adapter.train.pruning.blend_weights`) over ``(1 + cost)^p``, ``cost`` its drawing cost

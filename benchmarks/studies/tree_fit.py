@@ -126,7 +126,7 @@ COUNT_SHARES = (0.3, 0.15, 0.08)
 def job_hand_overs(linked, final):
     """``linked`` with each tier's hand-over settings (``tier_s_v``, ``tier_start``, ``tier_fade``)
     as the job chose them, from its model ``final``: the job chooses them on its tier scene (the
-    images at ``--tier-downscale``), which this study does not load. Raises ValueError where the
+    images at ``tier_downscale``), which this study does not load. Raises ValueError where the
     two do not have the same number of tiers."""
     if (linked.parents is None) != (final.parents is None):
         raise ValueError("the relinked model and the job's do not have the same tiers")

@@ -102,41 +102,15 @@ def build_parser():
 
 
 def _tier_flags(p) -> None:
-    """The merged tiers (AdaptConfig's ``parent_share``, ``tier_*`` and ``tree_steps``)."""
+    """The merged tiers: which shares of the input (AdaptConfig's ``parent_share``). How each tier
+    is built, fitted and handed over (``tier_*``, ``tree_steps``, ``tree_budget_steps``) are
+    AdaptConfig's, chosen on validation views (docs/studies.md) and set by the benchmarks'
+    ``--config KEY=VALUE`` for a study, not flags: ``--iterations`` bounds every one of their steps."""
     p.add_argument("--parent-share", type=_shares, default=None, metavar="SHARE[,SHARE...]",
-                   help="calibrated schedule: also adapt the input merged by splat-transform --decimate to each SHARE "
-                        "of its Gaussians (descending), each tier handing over to the next at the levels where it "
-                        "pays (default 0.5,0.15,0.04; 0: none; left out under 10,000 Gaussians or without "
-                        "splat-transform; docs/method.md)")
-    p.add_argument("--tier-finetune-steps", type=int, default=400, metavar="N",
-                   help="fine-tune each merged tier at full detail for N steps on the training views before its "
-                        "LoD is learned (default 400; 0: the merge as splat-transform wrote it)")
-    p.add_argument("--tier-iteration-share", type=float, default=0.5, metavar="SHARE",
-                   help="each merged tier learns its level of detail for SHARE of --iterations (default 0.5; "
-                        "docs/studies.md)")
-    p.add_argument("--tier-downscale", type=int, choices=(1, 2, 4, 8), default=2, metavar="F",
-                   help="fine-tune and train the second and later merged tiers at 1/F of the model's resolution "
-                        "(1, 2, 4 or 8; default 2; docs/studies.md)")
-    p.add_argument("--tier-merge", choices=("prune", "decimate", "adaptive"), default="prune",
-                   help="what each tier starts from: prune (default): the first tier keeps the input's "
-                        "Gaussians of the largest blending weight per square root of cost, the later ones "
-                        "are merged by splat-transform's --decimate; decimate / adaptive: every tier "
-                        "merged by --decimate / --decimate-adaptive (docs/studies.md)")
-    p.add_argument("--tier-time-cap", type=float, default=None, metavar="SHARE",
-                   help="lower the first tier's share (0.7x per try) while its merge is predicted to draw a frame "
-                        "in more than SHARE of the input's (default 0.8 with the calibrated schedule; 0: the shares "
-                        "as given; docs/studies.md)")
-    p.add_argument("--tier-hand-over", type=float, default=None, metavar="S_V",
-                   help="with merged tiers, each merged tier hands over to the next at its own S_V at the latest "
-                        "(default 1.6 with the calibrated schedule; 0: where the time rule puts it; the input's own "
-                        "hand-over stays the rule's; docs/studies.md)")
-    p.add_argument("--tree-steps", type=int, default=1000, metavar="N",
-                   help="with merged tiers (linked into a merge tree, one cut of it drawn per frame; docs/method.md), "
-                        "fit the merged tiers on the tree's own cuts for N steps, at most --iterations (default 1000; "
-                        "0: not fitted)")
-    p.add_argument("--tree-budget-steps", type=float, default=0.5, metavar="SHARE",
-                   help="draw a count budget's cut (100 %% to 1 %% of the Gaussians in view) instead of a level's "
-                        "at SHARE of the --tree-steps (0-1; default 0.5; 0: levels only)")
+                   help="calibrated schedule: the merge tree's tiers, each SHARE of the input's Gaussians "
+                        "(descending), each drawn where it pays (default 0.5,0.15,0.04; 0: none, a smaller file "
+                        "and a shorter job; left out under 10,000 Gaussians or without splat-transform; "
+                        "docs/method.md)")
 
 
 def _run_flags(p) -> None:
@@ -197,13 +171,7 @@ def _config(args, world: int):
                            fade=args.fade, gains=args.gains, eta_estimator=args.eta_estimator or "ste",
                            background=(1.0, 1.0, 1.0) if args.background == "white" else (0.0, 0.0, 0.0),
                            views_per_step=args.views_per_step if args.views_per_step is not None else world,
-                           level_max=args.level_max, parent_share=args.parent_share,
-                           tier_finetune_steps=args.tier_finetune_steps,
-                           tier_iteration_share=args.tier_iteration_share, tier_downscale=args.tier_downscale,
-                           tier_merge=args.tier_merge, tier_time_cap=args.tier_time_cap,
-                           tier_hand_over=args.tier_hand_over, tree_steps=args.tree_steps,
-                           tree_budget_steps=args.tree_budget_steps,
-                           faint_share=args.faint_share, keep_share=args.keep_share, recovery_steps=args.recovery_steps, **kw)
+                           level_max=args.level_max, parent_share=args.parent_share, faint_share=args.faint_share, keep_share=args.keep_share, recovery_steps=args.recovery_steps, **kw)
     except ValueError as e:  # "<field> must be ...": the field is the flag
         field, _, rest = str(e).partition(" ")
         raise InputError(f"--{field.replace('_', '-')} {rest}") from None

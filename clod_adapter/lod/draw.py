@@ -271,7 +271,9 @@ def _render_tree(gaussians: Gaussians, camera, s_v: Optional[float] = None, *, b
     ``n_rendered``: the cut's nodes in view, as the rasteriser culls them; ``n_parents``: the merged
     ones among them; ``level`` 0). ``s_v = 1`` is tier 0 whole, drawn as a plain model (no per-node
     terms), and so is a count budget that holds tier 0's frustum (decided before any cut)."""
-    from ..render.dispatch import rasterization
+    from ..render.dispatch import rasterization, resolve_backend
+    from ..render.projection import project_visible
+    from .view import composite_projected
 
     def whole(select_ms: float = 0.0):
         out = render_lod(gaussians.with_sigma_d(None), camera, background=background, sh_degree=sh_degree,
@@ -291,12 +293,16 @@ def _render_tree(gaussians: Gaussians, camera, s_v: Optional[float] = None, *, b
     means, quats, scales, opacities, colors = tree.cut_attributes(tree.tiers_of(gaussians), c,
                                                                   campos=camera_center(vm[0]), sh_degree=sh)
     t1 = time.perf_counter()
-    bg = None
-    if background is not None:
-        bg = torch.as_tensor(background, dtype=means.dtype, device=means.device).reshape(1, -1)
-    image, alpha, meta = rasterization(means, quats, scales, opacities, colors, vm, K, int(camera.width),
-                                       int(camera.height), eps2d=EPS2D, sh_degree=None, backgrounds=bg,
-                                       backend=backend)
+    bg = None if background is None else torch.as_tensor(background, dtype=means.dtype, device=means.device)
+    w, h = int(camera.width), int(camera.height)
+    if resolve_backend(backend, means) == "gsplat":
+        image, alpha, meta = rasterization(means, quats, scales, opacities, colors, vm, K, w, h, eps2d=EPS2D,
+                                           backgrounds=None if bg is None else bg.reshape(1, -1), backend="gsplat")
+        image, alpha = image[0], alpha[0]
+    else:  # as a plain frame draws (LodView.rasterize): the visible rows only, no [N] meta arrays
+        proj = project_visible(means, quats, scales, opacities, vm[0], K[0], w, h, EPS2D)
+        image, alpha, meta = composite_projected(proj, colors.index_select(0, proj.ids),
+                                                 opacities.index_select(0, proj.ids), w, h, bg)
     t2 = time.perf_counter()
     n0 = int(c.ids[0].numel())
     n_vis = int(torch.as_tensor(meta.get("n_visible", c.n_drawn)).sum())  # the cut's nodes in view
@@ -306,6 +312,6 @@ def _render_tree(gaussians: Gaussians, camera, s_v: Optional[float] = None, *, b
     n_par = n_vis - int((vis_ids < n0).sum()) if isinstance(vis_ids, torch.Tensor) else c.n_drawn - n0
     eta = torch.tensor(n_vis / max(c.n_frustum, 1), dtype=means.dtype)
     sel = LodSelection(c.ids[0], opacities[:n0], None, c.s_v, 0.0, eta, n=len(gaussians))
-    return LodRender(image=image[0], alpha=alpha[0], selection=sel, n_rendered=n_vis, n_frustum=c.n_frustum,
+    return LodRender(image=image, alpha=alpha, selection=sel, n_rendered=n_vis, n_frustum=c.n_frustum,
                      eta=eta, s_v=c.s_v, level=0.0, select_ms=(t1 - t0) * 1e3, raster_ms=(t2 - t1) * 1e3,
                      meta=meta, n_parents=n_par)

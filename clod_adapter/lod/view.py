@@ -592,8 +592,6 @@ def in_view_tensors(means: Tensor, quats: Tensor, scales: Tensor, viewmat: Tenso
 def composite_parts(parts, background, sh, colors=None):
     """CPU: each (view, selection)'s finished rows (:meth:`LodView._finished`), concatenated (a
     later view's ids offset by the earlier views' N) and composited as one image."""
-    from ..render.cpu import rasterize_projected
-
     projs, cols, ops, off = [], [], [], 0
     for v, sel in parts:
         p, c, o = v._finished(sel, sh, colors)
@@ -604,10 +602,20 @@ def composite_parts(parts, background, sh, colors=None):
     proj = projs[0] if len(projs) == 1 else VisibleProjection(
         *(torch.cat([getattr(p, f) for p in projs]) for f in ("ids", "radii", "means2d", "depths", "conics")))
     col, op = (cols[0], ops[0]) if len(parts) == 1 else (torch.cat(cols), torch.cat(ops))
-    w, h = parts[0][0].width, parts[0][0].height
+    return composite_projected(proj, col, op, parts[0][0].width, parts[0][0].height, background)
+
+
+def composite_projected(proj: VisibleProjection, colors: Tensor, opacities: Tensor, width: int, height: int,
+                        background: Optional[Tensor] = None):
+    """CPU: the visible rows of one projection (:func:`clod_adapter.render.projection.project_visible`,
+    V rows), their colours [V, D] and opacities [V], composited (tile size :data:`TILE_SIZE`) over
+    ``background`` ([D] or None: black): ``(image [H, W, D], alpha [H, W, 1], meta)``, meta's
+    per-Gaussian arrays indexing ``meta["visible_ids"]`` (the plain frame's and a tree cut's)."""
+    from ..render.cpu import rasterize_projected
+
     bg = None if background is None else background.reshape(-1)
-    rc, ra, offsets, flat = rasterize_projected(proj, col, op, w, h, TILE_SIZE, bg)
+    rc, ra, offsets, flat = rasterize_projected(proj, colors, opacities, width, height, TILE_SIZE, bg)
     meta = {"visible_ids": proj.ids, "radii": proj.radii, "means2d": proj.means2d, "depths": proj.depths,
             "conics": proj.conics, "isect_offsets": offsets, "flatten_ids": flat,
-            "n_visible": int(proj.ids.numel()), "width": w, "height": h, "tile_size": TILE_SIZE}
+            "n_visible": int(proj.ids.numel()), "width": width, "height": height, "tile_size": TILE_SIZE}
     return rc, ra, meta

@@ -171,7 +171,8 @@ def _config(args, world: int):
                            fade=args.fade, gains=args.gains, eta_estimator=args.eta_estimator or "ste",
                            background=(1.0, 1.0, 1.0) if args.background == "white" else (0.0, 0.0, 0.0),
                            views_per_step=args.views_per_step if args.views_per_step is not None else world,
-                           level_max=args.level_max, parent_share=args.parent_share, faint_share=args.faint_share, keep_share=args.keep_share, recovery_steps=args.recovery_steps, **kw)
+                           level_max=args.level_max, parent_share=args.parent_share, faint_share=args.faint_share,
+                           keep_share=args.keep_share, recovery_steps=args.recovery_steps, **kw)
     except ValueError as e:  # "<field> must be ...": the field is the flag
         field, _, rest = str(e).partition(" ")
         raise InputError(f"--{field.replace('_', '-')} {rest}") from None

@@ -644,7 +644,11 @@ def test_the_one_call_budget_cut_equals_its_three_step_twin(model):
                     a = tree.budget_cut(ts, cam, k)
                 with native.use_impl("torch"):
                     b = tree.budget_cut(ts, cam, k)
-            assert a.s_v == b.s_v and a.n_frustum == b.n_frustum, k
+            assert a.s_v == b.s_v and a.n_frustum == b.n_frustum == n0, k
+            if 0 < k < n0:  # a count budget's cut through tree_select: the count it solved from is its n_frustum
+                with torch.no_grad():
+                    sel = tree_select(g, cam, budget=Budget(count=k))[0]
+                assert sel.n_frustum == n0 and all(torch.equal(x, y) for x, y in zip(sel.ids, a.ids)), k
             assert all(torch.equal(x, y) for x, y in zip(a.ids, b.ids)), k
             assert all(torch.equal(x, y) for x, y in zip(a.fade, b.fade)), k
             assert all(torch.allclose(x, y, atol=1e-6) for x, y in zip(a.t, b.t)), k

@@ -110,7 +110,7 @@ def tree_cut(gaussians: Gaussians, camera, s_v: Optional[float] = None, *, budge
         at = tree.budget_frame(tiers, camera)
         n0 = int(at[1][0].sum())
         k = budget.of(n, n0)
-        return whole() if k >= n0 else tree.budget_cut(tiers, camera, k, hand_over=hand_over, at=at)
+        return whole() if k >= n0 else tree.budget_cut(tiers, camera, k, hand_over=hand_over, at=at, n_frustum=n0)
     from .cost import DEFAULT_FRAME_TIME_MODEL
 
     tt = tree.terms(tiers, camera, hand_over=hand_over, at=tree.budget_frame(tiers, camera))

@@ -220,8 +220,7 @@ def frame(tiers: Sequence[Gaussians], camera) -> tuple[list, list]:
     if _native(tiers):
         out = _native_frame(tiers, camera, _centre(camera))
         return out[1::2], out[0::2]
-    c = _centre(camera)
-    frs = [in_frustum(t, camera) for t in tiers]
+    c, frs = _centre(camera), [in_frustum(t, camera) for t in tiers]
     ds = [_node_distances(t.means, c) for t in tiers]
     D = _normaliser(ds[-1], frs[-1])
     return [d / D for d in ds], frs
@@ -487,16 +486,16 @@ def cut(tiers: Sequence[Gaussians], camera, s_v: float, *, hand_over: Optional[f
 
 @torch.no_grad()
 def budget_cut(tiers: Sequence[Gaussians], camera, k: float, *, hand_over: Optional[float] = None,
-               at: Optional[tuple] = None) -> TreeCut:
+               at: Optional[tuple] = None, n_frustum: Optional[int] = None) -> TreeCut:
     """The cut a count budget of ``k`` nodes with their centre in the frustum draws (docs/lod_rule.md
     step 6): :func:`terms` at the reference distances (:func:`budget_frame`), :func:`budget_s_v`
     and :func:`cut` at that level. Where the kernels run, the terms and their sorted ends are kept
     per model (:func:`_budget_terms`) and ``tree_budget_walk`` (``render/csrc/tree_cut.cpp``) finds
     the level from the coarsest end down and emits the cut (the three functions are its twin,
     ``tests/test_tree.py``). ``camera``: ``viewmat`` [4, 4], ``K`` [3, 3] pixels, ``width``,
-    ``height``; ``k`` >= 0 nodes; ``at``: :func:`budget_frame` of this camera, when the caller has
-    it. Returns the :class:`TreeCut` (its ``s_v`` the level, >= 1). Raises KeyError where a tier
-    lacks ``extra["parent"]``, ``extra["exit"]`` or ``extra["d_ref"]``."""
+    ``height``; ``k`` >= 0 nodes; ``at``: :func:`budget_frame` of this camera and ``n_frustum`` its
+    tier-0 count, when the caller has them. Returns the :class:`TreeCut` (its ``s_v`` the level,
+    >= 1). Raises KeyError where a tier lacks ``extra["parent"]``, ``extra["exit"]`` or ``extra["d_ref"]``."""
     ds, frs = budget_frame(tiers, camera) if at is None else at
     if _native(tiers):
         from ..render.native import load
@@ -505,7 +504,8 @@ def budget_cut(tiers: Sequence[Gaussians], camera, k: float, *, hand_over: Optio
         E, U, fade, pos, node, hi = _budget_terms(tiers, ds, F)
         out = load().tree_budget_walk(E, U, fade, pos, node, hi, [f.contiguous() for f in frs], float(k), _morph(F))
         level = max(float(out[-1]), 1.0)
-        return TreeCut(out[0:-1:3], out[1:-1:3], level, int(frs[0].sum()), out[2:-1:3])
+        n0 = (lambda: int(frs[0].sum())) if n_frustum is None else n_frustum
+        return TreeCut(out[0:-1:3], out[1:-1:3], level, n0, out[2:-1:3])
     tt = terms(tiers, camera, hand_over=hand_over, at=(ds, frs))
     return cut(tiers, camera, budget_s_v(tt, k), hand_over=hand_over, tt=tt)
 

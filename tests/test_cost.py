@@ -150,7 +150,7 @@ def test_splat_cost_matches_the_rasteriser(scene):
             proj = VisibleProjection(ids, meta["radii"], meta["means2d"], meta["depths"], meta["conics"])
             ref = torch.zeros(gg.means.shape[0], dtype=torch.float64)
             ref[ids] = cost_units(proj, op, view.width, view.height)["ellipse_px"]
-            torch.testing.assert_close(ell, ref[sel.indices])
+            torch.testing.assert_close(ell, ref[sel.indices], rtol=1e-6, atol=1e-4)  # float32 rounding, two paths
 
 
 def test_base_opacity_cost_bounds_the_drawn_cost():

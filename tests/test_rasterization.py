@@ -7,6 +7,7 @@ import pytest
 import torch
 
 from clod_adapter.render import fully_fused_projection, rasterization, spherical_harmonics
+from clod_adapter.render.composite import cpp_extension_available
 from clod_adapter.render.projection import project_visible
 from clod_adapter.render.tiles import isect_offset_encode, isect_tiles
 
@@ -192,6 +193,66 @@ def test_projection_float32_matches_float64():
     assert same.float().mean() > 0.97  # ceil() may flip at exact integers
     torch.testing.assert_close(m32.double()[same], m64[same], rtol=1e-5, atol=1e-4)
     torch.testing.assert_close(c32.double()[same], c64[same], rtol=1e-4, atol=1e-6)
+
+
+def _stiff_scene(n, dtype, seed=5):
+    """Random Gaussians with the cases the projection culls or must keep well-conditioned: some
+    behind or at the camera, off-screen, under the 1/255 opacity, needles (scale ratio 1e6), huge."""
+    means, quats, scales, opac, _ = scene(n=n, seed=seed, spread=1.2, dtype=dtype, sh_degree=0)
+    g = torch.Generator().manual_seed(seed + 1)
+    kind = torch.randint(0, 6, (n,), generator=g)
+    means[kind == 0, 2] = -means[kind == 0, 2]  # behind the camera
+    scales[kind == 1] = scales[kind == 1] * torch.tensor([1e3, 1e-3, 1e-3], dtype=dtype)  # needles
+    scales[kind == 2] = scales[kind == 2] * 40.0  # larger than the image
+    opac[kind == 3] = opac[kind == 3] * 0.01  # some under 1/255
+    means[kind == 4, 0] = means[kind == 4, 0] * 8.0  # off-screen
+    return means, quats, scales, opac
+
+
+@pytest.mark.skipif(not cpp_extension_available(), reason="the C++ kernels do not build here")
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_the_cpp_projection_equals_its_torch_twin(dtype):
+    """project_geometry / finish_projection without gradients (csrc/projection.cpp, arithmetic in
+    double) against their torch form: in float64 the same rows, radii and values; in float32 the
+    same rows but where a ceil lands on the other side of an integer, and every value at least as
+    close to the float64 projection as the torch form's."""
+    from clod_adapter.render import native
+    from clod_adapter.render.projection import finish_projection, project_geometry
+
+    means, quats, scales, opac = _stiff_scene(3000, dtype)
+    V, K = camera(dtype)
+    n = means.shape[0]
+    cov_scale = torch.empty(n, dtype=dtype).uniform_(0.5, 2.0, generator=torch.Generator().manual_seed(2))
+
+    def project(impl, dt, keep, op, cs):
+        with native.use_impl(impl), torch.no_grad():
+            geom = project_geometry(means.to(dt), quats.to(dt), scales.to(dt), V.to(dtype).to(dt), K.to(dtype).to(dt),
+                                    W, H, 0.01, 1e10, keep)
+            r = geom.ids
+            return geom, finish_projection(geom, None if op is None else op.to(dt)[r], W, H, 0.3, 0.0,
+                                           None if cs is None else cs.to(dt)[r])
+
+    def close(x, y, ref):  # x (the kernel's) no further from ref than y (the twin's), or both at rounding
+        ex, ey = (x.double() - ref).abs(), (y.double() - ref).abs()
+        return bool((ex <= torch.maximum(ey, 1e-12 + 1e-12 * ref.abs())).all()) if dtype == torch.float64 else \
+            bool((ex <= ey + 1e-6 * ref.abs() + 1e-6).all())
+
+    for keep in (None, opac >= 0.2, torch.arange(0, n, 3)):
+        for op, cs in ((opac, None), (None, None), (opac, cov_scale)):
+            (ga, pa), (gb, pb) = project("cpp", dtype, keep, op, cs), project("torch", dtype, keep, op, cs)
+            gr, pr = project("torch", torch.float64, keep, op, cs)
+            assert torch.equal(ga.ids, gb.ids) and torch.equal(ga.ids, gr.ids) and ga.ids.numel() > 100
+            for x, y, ref in zip(ga[1:], gb[1:], gr[1:]):
+                assert x.dtype == dtype and close(x, y, ref)
+            kept = torch.isin(pa.ids, pb.ids)
+            assert kept.float().mean() >= (0.995 if dtype == torch.float32 else 1.0) and int(kept.sum()) > 50
+            assert torch.equal(pa.ids, pr.ids) or dtype == torch.float32
+            ia, ib, ir = kept, torch.isin(pb.ids, pa.ids), torch.isin(pr.ids, pa.ids)
+            assert torch.equal(pa.ids[ia], pb.ids[ib]) and torch.equal(pa.ids[ia], pr.ids[ir])
+            d = (pa.radii[ia] - pb.radii[ib]).abs()
+            assert int(d.max()) <= 1 and (d == 0).all(-1).float().mean() >= (0.99 if dtype == torch.float32 else 1.0)
+            for f in ("means2d", "depths", "conics"):
+                assert close(getattr(pa, f)[ia], getattr(pb, f)[ib], getattr(pr, f)[ir].double())
 
 
 # ------------------------------------------------------------------------------------------

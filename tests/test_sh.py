@@ -5,7 +5,7 @@ import pytest
 import torch
 
 from clod_adapter.render import native
-from clod_adapter.render.cpu import sh_colors
+from clod_adapter.render.cpu import sh_colors, sh_colors_rows
 
 pytestmark = pytest.mark.skipif(not native.available(), reason="the C++ kernels do not build here")
 
@@ -31,6 +31,24 @@ def test_the_cpp_colours_equal_the_torch_twin(dtype, degree, k):
     assert torch.allclose(a, b, rtol=tol, atol=tol)
     assert (a == 0).any() and (a > 0.5).any()  # the clamp and the view dependence were exercised
     assert torch.isfinite(a).all()
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+@pytest.mark.parametrize("degree,k", [(0, 1), (2, 9), (3, 16), (1, 16)])
+def test_colours_of_rows_read_in_place_equal_the_gathered_rows(dtype, degree, k):
+    """sh_colors_rows (sh0 / shN read at the rows, no [V, K, 3] gather) against sh_colors of the
+    gathered rows, in C++ and in its torch twin; a row outside the model is refused."""
+    means, coeffs, campos = _rows(12000, k, dtype)
+    sh0, shN = coeffs[:, :1].clone(), coeffs[:, 1:].clone()
+    ids = torch.randperm(12000, generator=torch.Generator().manual_seed(1))[:9000].sort().values
+    want = sh_colors(degree, means[ids], coeffs[ids], campos)
+    for impl in ("cpp", "torch"):
+        with native.use_impl(impl):
+            got = sh_colors_rows(degree, means, sh0, shN, ids, campos)
+        tol = 1e-5 if dtype == torch.float32 else 1e-12
+        assert got.shape == (9000, 3) and got.dtype == dtype and torch.allclose(got, want, rtol=tol, atol=tol)
+    with native.use_impl("cpp"), pytest.raises(RuntimeError, match="outside"):
+        sh_colors_rows(degree, means, sh0, shN, torch.tensor([0, 12000]), campos)
 
 
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64])

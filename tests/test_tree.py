@@ -606,8 +606,12 @@ def test_the_cpp_cut_and_attributes_equal_their_torch_twins(model):
                 with native.use_impl("torch"):
                     b = tree.cut(ts, cam, float(s))
                     attrs_b = tree.cut_attributes(ts, a)  # the same cut: w rounded alike
+                full = tree.cut(ts, cam, float(s), tt=ta)  # every node's C++ terms: the walk skips none it draws
             assert all(torch.equal(x, y) for x, y in zip(a.ids, b.ids))
             assert all(torch.equal(x, y) for x, y in zip(a.fade, b.fade))
+            assert all(torch.equal(x, y) for x, y in zip(a.ids, full.ids)) and all(
+                torch.allclose(x, y, atol=1e-6) for x, y in zip(a.t, full.t))
+            assert a.n_frustum == b.n_frustum == full.n_frustum
             assert all(torch.allclose(x, y, atol=1e-6) for x, y in zip(a.t, b.t))
             for x, y in zip(attrs_a, attrs_b):
                 assert x.shape == y.shape and torch.allclose(x, y, rtol=1e-5, atol=1e-6)

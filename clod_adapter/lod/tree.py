@@ -50,6 +50,7 @@ import torch
 from torch import Tensor
 
 from . import rule as lod
+from ..render import native
 from .budget import critical_s_v
 from ..gaussians import GAIN_NAMES, TREE_NODE_KEYS, Gaussians
 
@@ -218,7 +219,7 @@ def frame(tiers: Sequence[Gaussians], camera) -> tuple[list, list]:
     (:func:`in_frustum`). One pass of the C++ kernel over every node on the CPU; its twin
     elsewhere (the same rounding: distances in double rounded to the dtype, divided by ``D``)."""
     if _native(tiers):
-        out = _native_frame(tiers, camera, _centre(camera))
+        out = native.load().tree_frame(*_camera_args(tiers, camera), _centre(camera))
         return out[1::2], out[0::2]
     c, frs = _centre(camera), [in_frustum(t, camera) for t in tiers]
     ds = [_node_distances(t.means, c) for t in tiers]
@@ -226,14 +227,13 @@ def frame(tiers: Sequence[Gaussians], camera) -> tuple[list, list]:
     return [d / D for d in ds], frs
 
 
-def _native_frame(tiers: Sequence[Gaussians], camera, c: list) -> list:
-    """``tree_frame`` (``render/csrc/tree_cut.cpp``): per tier [frustum, d']; with ``c = []`` the frustum alone."""
-    from ..render.native import load
-
+def _camera_args(tiers: Sequence[Gaussians], camera) -> tuple:
+    """The tiers' centre columns and the camera as ``render/csrc/tree_cut.cpp`` takes them (``tree_frame``:
+    then the centre, per tier [frustum, d']; ``[]``, the frustum alone)."""
     vm, K = camera.viewmat.detach().to(torch.float64), camera.K.detach().to(torch.float64)
-    return load().tree_frame([lod.centre_columns(t.means, tiers[0].means.dtype) for t in tiers],
-                             vm[:3, :3].reshape(-1).tolist(), vm[:3, 3].tolist(), float(K[0, 0]), float(K[0, 2]),
-                             float(K[1, 1]), float(K[1, 2]), int(camera.width), int(camera.height), 0.01, c)
+    return ([lod.centre_columns(t.means, tiers[0].means.dtype) for t in tiers], vm[:3, :3].reshape(-1).tolist(),
+            vm[:3, 3].tolist(), float(K[0, 0]), float(K[0, 2]), float(K[1, 1]), float(K[1, 2]), int(camera.width),
+            int(camera.height), 0.01)
 
 
 def _camera(tiers: Sequence[Gaussians], camera) -> tuple[list, float, Tensor]:
@@ -267,7 +267,9 @@ def budget_frame(tiers: Sequence[Gaussians], camera) -> tuple[list, list]:
     centres' dtype), so a budget draws one cut of the tree for every view at that share, only the
     frustum the view's. Raises KeyError where a tier lacks ``extra["d_ref"]``."""
     refs = [t.extra[REFERENCE_KEY].detach().to(t.means.dtype) for t in tiers]
-    return refs, _native_frame(tiers, camera, []) if _native(tiers) else [in_frustum(t, camera) for t in tiers]
+    if _native(tiers):
+        return refs, native.load().tree_frame(*_camera_args(tiers, camera), [])
+    return refs, [in_frustum(t, camera) for t in tiers]
 
 
 def _group_rank(child_level: Tensor, parent: Tensor, n_parents: int) -> Tensor:
@@ -498,11 +500,10 @@ def budget_cut(tiers: Sequence[Gaussians], camera, k: float, *, hand_over: Optio
     >= 1). Raises KeyError where a tier lacks ``extra["parent"]``, ``extra["exit"]`` or ``extra["d_ref"]``."""
     ds, frs = budget_frame(tiers, camera) if at is None else at
     if _native(tiers):
-        from ..render.native import load
-
         F = _width(hand_over)
         E, U, fade, pos, node, hi = _budget_terms(tiers, ds, F)
-        out = load().tree_budget_walk(E, U, fade, pos, node, hi, [f.contiguous() for f in frs], float(k), _morph(F))
+        out = native.load().tree_budget_walk(E, U, fade, pos, node, hi, [f.contiguous() for f in frs], float(k),
+                                             _morph(F))
         level = max(float(out[-1]), 1.0)
         n0 = (lambda: int(frs[0].sum())) if n_frustum is None else n_frustum
         return TreeCut(out[0:-1:3], out[1:-1:3], level, n0, out[2:-1:3])
@@ -518,8 +519,6 @@ def _budget_terms(tiers: Sequence[Gaussians], ds: Sequence[Tensor], F: float) ->
     camera) and their intervals' ends sorted coarsest first (``tree_budget_events``): ``(E, U,
     fade, positions, nodes, is_end)``, kept while every tensor they come from is the same object
     at the same in-place version."""
-    from ..render.native import load
-
     deps = [x for t in tiers for x in (t.sigma_d, t.extra[EXIT_KEY], t.extra[REFERENCE_KEY])]
     deps += [t.extra[PARENT_KEY] for t in tiers[:-1]]
     key, stamp = (id(deps[0]), F, tiers[0].means.dtype), [(id(x), x._version) for x in deps]
@@ -527,7 +526,7 @@ def _budget_terms(tiers: Sequence[Gaussians], ds: Sequence[Tensor], F: float) ->
     if hit is None or hit[0] != stamp or any(r() is not x for r, x in zip(hit[1], deps)):
         out = _native_call("tree_terms", tiers, ds, F)
         terms_ = (out[0::3], out[1::3], out[2::3])
-        hit = (stamp, [weakref.ref(x) for x in deps], (*terms_, *load().tree_budget_events(*terms_[:2])))
+        hit = (stamp, [weakref.ref(x) for x in deps], (*terms_, *native.load().tree_budget_events(*terms_[:2])))
         while len(_BUDGET_TERMS) >= 8:
             _BUDGET_TERMS.pop(next(iter(_BUDGET_TERMS)))
         _BUDGET_TERMS[key] = hit
@@ -556,8 +555,6 @@ def _native(tiers: Sequence[Gaussians]) -> bool:
     """Whether the C++ kernels (``render/csrc/tree_cut.cpp``) draw these tiers: :data:`CPP_KERNELS`,
     CPU, one dtype, one SH size, no autograd recording, and the kernels wanted
     (``clod_adapter.render.native``)."""
-    from ..render.native import wanted
-
     if not CPP_KERNELS:
         return False
     t0 = tiers[0]
@@ -565,31 +562,35 @@ def _native(tiers: Sequence[Gaussians]) -> bool:
         t.means, t.quats, t.log_scales, t.opacity_logits, t.sh0, t.shN))
     return (not records and all(t.means.device.type == "cpu" and t.means.dtype == t0.means.dtype
                                                  and t.shN.shape[1] == t0.shN.shape[1] for t in tiers)
-            and wanted(t0.means.device.type == "cpu"))
+            and native.wanted(t0.means.device.type == "cpu"))
 
 
 def _int_parents(tier: Gaussians) -> Tensor:
     return lod.cached_value(tier.extra[PARENT_KEY], "tree_parent64", lambda p: p.long().contiguous())
 
 
+def _node_constants(tiers: Sequence[Gaussians]) -> list:
+    """The nodes' constants as ``render/csrc/tree_cut.cpp`` takes them: per tier ``sigma_d`` and
+    ``exit`` [N_k] in the centres' dtype, and for all but the last int64 parents and bool leads."""
+    dt = tiers[0].means.dtype
+    return [[t.sigma_d.detach().to(dt).contiguous() for t in tiers],
+            [t.extra[EXIT_KEY].detach().to(dt).contiguous() for t in tiers],
+            [_int_parents(t) for t in tiers[:-1]], [leads(t).contiguous() for t in tiers[:-1]]]
+
+
 def _native_call(name: str, tiers: Sequence[Gaussians], ds: Sequence[Tensor], *args) -> list:
     """A kernel of ``render/csrc/tree_cut.cpp`` over the tiers' node constants at the nodes' ``d'``
     ``ds`` (:func:`frame`)."""
-    from ..render.native import load
-
-    dt = tiers[0].means.dtype
-    return getattr(load(), name)([d.contiguous() for d in ds],
-                                 [t.sigma_d.detach().to(dt).contiguous() for t in tiers],
-                                 [t.extra[EXIT_KEY].detach().to(dt).contiguous() for t in tiers],
-                                 [_int_parents(t) for t in tiers[:-1]], [leads(t).contiguous() for t in tiers[:-1]],
-                                 *args)
+    return getattr(native.load(), name)([d.contiguous() for d in ds], *_node_constants(tiers), *args)
 
 
 def _native_cut(tiers: Sequence[Gaussians], camera, s: float, F: float) -> TreeCut:
-    """:func:`cut` by the C++ twin of :func:`terms` + :func:`cut` (every node, one pass per tier)."""
-    ds, frs = frame(tiers, camera)
-    out = _native_call("tree_cut", tiers, ds, s, F, _morph(F))
-    return TreeCut(out[0::3], out[1::3], s, lambda: int(frs[0].sum()), out[2::3])
+    """:func:`cut` by :func:`walk`'s C++ twin (``tree_cut``): from the roots down, only the children
+    of nodes not yet entered computed, so a coarse frame's cut costs about its drawn nodes (and one
+    frustum test of tier 0's centres, for :attr:`TreeCut.n_frustum`)."""
+    out = native.load().tree_cut(*_camera_args(tiers, camera), _centre(camera), *_node_constants(tiers), s, F,
+                                 _morph(F))
+    return TreeCut(out[0:-1:3], out[1:-1:3], s, int(out[-1]), out[2:-1:3])
 
 
 def _children(tier: Gaussians) -> tuple[Tensor, Tensor, Tensor]:
@@ -653,9 +654,7 @@ def budget_s_v(tt: TreeTerms, k: float, weights: Optional[Sequence[Tensor]] = No
     if weights is None:
         weights = [f.double() for f in tt.frustum]
     if _native(tt.tiers):
-        from ..render.native import load
-
-        return load().tree_budget([e.contiguous() for e in tt.entry], [u.contiguous() for u in tt.upper],
+        return native.load().tree_budget([e.contiguous() for e in tt.entry], [u.contiguous() for u in tt.upper],
                                   [w.double().contiguous() for w in weights], float(k))
     sel = [(w > 0) & (u > n.clamp_min(1.0)) for w, n, u in zip(weights, tt.entry, tt.upper)]
     lo = torch.cat([n[m] for n, m in zip(tt.entry, sel)]).clamp_min(1.0)
@@ -757,12 +756,10 @@ def cut_attributes(tiers: Sequence[Gaussians], c: TreeCut, *, campos: Optional[T
     if rgb and not 0 <= deg <= tiers[0].sh_degree:
         raise ValueError(f"sh_degree must be in 0..{tiers[0].sh_degree}, got {sh_degree}")
     if c.fade is not None and _native(tiers):
-        from ..render.native import load
-
         attrs = [x.detach().contiguous() for t in tiers
                  for x in (t.means, t.quats, t.log_scales, t.opacity_logits, t.sh0, t.shN)]
         centre = [float(v) for v in campos.detach().to(tiers[0].means.dtype).tolist()] if rgb else []
-        return tuple(load().tree_attributes(attrs, [i.contiguous() for i in c.ids],
+        return tuple(native.load().tree_attributes(attrs, [i.contiguous() for i in c.ids],
                                             [w.to(tiers[0].means.dtype).contiguous() for w in c.t],
                                             [f.contiguous() for f in c.fade], [_int_parents(t) for t in tiers[:-1]],
                                             [leads(t).contiguous() for t in tiers[:-1]], SHRINK_FLOOR, centre, deg))

@@ -493,7 +493,7 @@ class LodView:
         """CPU drawing of ``sel`` up to compositing: (VisibleProjection of the drawn rows, their
         colours [V, D], opacities [V]); the projection's rows are finished with the drawn
         opacities and the level's scales (no second projection)."""
-        from ..render.cpu import sh_colors
+        from ..render.cpu import sh_colors, sh_colors_rows
 
         idx = sel.indices
         w, h = self.width, self.height
@@ -522,6 +522,8 @@ class LodView:
             col = colors.index_select(0, proj.ids)
         elif sh is None:
             col = feats.index_select(0, proj.ids)
+        elif isinstance(feats, ShParts) and not (self.gains.get("sh0_gain") is not None and sel.level > 0):
+            col = sh_colors_rows(sh, self.means, feats.sh0, feats.shN, proj.ids, lod.camera_center(self.viewmat))
         else:
             coeffs = self._colors_at(proj.ids, sel.level)
             col = sh_colors(sh, self.means.index_select(0, proj.ids), coeffs, lod.camera_center(self.viewmat))

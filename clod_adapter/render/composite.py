@@ -118,11 +118,13 @@ def _prep(means2d, conics, colors, opacities, isect_offsets, flatten_ids, backgr
 class _CompositeCpp(torch.autograd.Function):
     @staticmethod
     def forward(ctx, means2d, conics, colors, opacities, backgrounds,
-                width, height, tile_size, offsets, ids):
+                width, height, tile_size, offsets, ids, with_state=True):
         ext = _load()
+        # with_state False (nothing will ask for gradients): the per-pixel T and last index the
+        # backward reads are not written (a third of the per-pixel output)
         out_col, out_alpha, T_final, last_ids = ext.forward(
             means2d, conics, colors, opacities, backgrounds,
-            int(width), int(height), int(tile_size), offsets, ids, _num_threads())
+            int(width), int(height), int(tile_size), offsets, ids, _num_threads(), bool(with_state))
         ctx.dims = (int(width), int(height), int(tile_size))
         ctx.has_bg = backgrounds is not None
         ctx.save_for_backward(means2d, conics, colors, opacities,
@@ -148,14 +150,15 @@ class _CompositeCpp(torch.autograd.Function):
         if ctx.has_bg and ctx.needs_input_grad[4]:
             g_bg = (v_col * T_final.unsqueeze(-1)).sum(dim=(0, 1))
         return (g_means, g_conics, g_colors, g_opac, g_bg,
-                None, None, None, None, None)
+                None, None, None, None, None, None)
 
 
 def _rasterize_cpp(means2d, conics, colors, opacities, width, height, tile_size,
                    isect_offsets, flatten_ids, backgrounds):
     m, c, col, op, off, ids, bg = _prep(means2d, conics, colors, opacities,
                                         isect_offsets, flatten_ids, backgrounds)
-    return _CompositeCpp.apply(m, c, col, op, bg, width, height, tile_size, off, ids)
+    with_state = torch.is_grad_enabled() and any(x is not None and x.requires_grad for x in (m, c, col, op, bg))
+    return _CompositeCpp.apply(m, c, col, op, bg, width, height, tile_size, off, ids, with_state)
 
 
 # ----------------------------------------------------------------------------

@@ -19,7 +19,7 @@ from .projection import project_visible
 from .sh import spherical_harmonics
 from .tiles import isect_offset_encode, isect_tiles
 
-__all__ = ["rasterization_cpu", "rasterize_projected", "sh_colors"]
+__all__ = ["rasterization_cpu", "rasterize_projected", "sh_colors", "sh_colors_rows"]
 
 
 class _ShColors(torch.autograd.Function):
@@ -71,6 +71,25 @@ def sh_colors(sh_degree: int, means: Tensor, coeffs: Tensor, campos: Tensor) -> 
         return load().sh_colors(means, coeffs, centre, int(sh_degree))
     col = spherical_harmonics(sh_degree, means - campos, coeffs)
     return torch.clamp_min(col + 0.5, 0.0)
+
+
+def sh_colors_rows(sh_degree: int, means: Tensor, sh0: Tensor, shN: Tensor, ids: Tensor, campos: Tensor) -> Tensor:
+    """[V, 3] :func:`sh_colors` of the rows ``ids`` [V] int64 of a model whose SH is stored as
+    ``sh0`` [N, 1, 3] and ``shN`` [N, K-1, 3] (``means`` [N, 3], ``campos`` [3]): where the C++
+    kernels run and nothing records autograd, each row's coefficients read in place
+    (``csrc/sh_colors.cpp``), no [V, K, 3] gather; else :func:`sh_colors` of the gathered rows, its
+    twin (``tests/test_sh.py``). Raises ValueError as :func:`sh_colors`."""
+    from .native import load, wanted
+
+    xs = (means, sh0, shN, campos)
+    if (not (torch.is_grad_enabled() and any(x.requires_grad for x in xs)) and 0 <= int(sh_degree) <= 3
+            and means.dtype in (torch.float32, torch.float64) and sh0.dtype == shN.dtype == means.dtype
+            and shN.ndim == 3 and sh0.shape[1] + shN.shape[1] >= (int(sh_degree) + 1) ** 2
+            and sh0.shape[1] + shN.shape[1] <= 16 and all(x.device.type == "cpu" for x in xs) and wanted(True)):
+        centre = [float(v) for v in campos.detach().to(means.dtype).tolist()]
+        return load().sh_colors_rows(means, sh0, shN, ids.to(torch.int64), centre, int(sh_degree))
+    coeffs = torch.cat([sh0.index_select(0, ids), shN.index_select(0, ids)], dim=1)
+    return sh_colors(sh_degree, means.index_select(0, ids), coeffs, campos)
 
 
 def rasterize_projected(proj, colors: Tensor, opacities: Tensor, width: int, height: int,

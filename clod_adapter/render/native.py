@@ -5,6 +5,8 @@
   :func:`clod_adapter.lod.rule.lod_mask`, :func:`clod_adapter.lod.budget.critical_s_v`);
 * the merge tree's cut and drawn attributes (``csrc/tree_cut.cpp``; :func:`clod_adapter.lod.tree.cut`,
   :func:`clod_adapter.lod.tree.cut_attributes`);
+* the projection of a frame without gradients (``csrc/projection.cpp``;
+  :func:`clod_adapter.render.projection.project_geometry`, :func:`clod_adapter.render.projection.finish_projection`);
 * every Gaussian's rasterisation cost (``csrc/splat_cost.cpp``; :func:`clod_adapter.lod.cost.splat_cost`
   at level 0, behind :func:`clod_adapter.lod.cut.tree_node_costs`).
 
@@ -27,7 +29,7 @@ __all__ = ["load", "available", "error", "impl", "use_impl", "wanted"]
 
 _CSRC = Path(__file__).resolve().parent / "csrc"
 SOURCES = (_CSRC / "composite.cpp", _CSRC / "composite_simd.cpp", _CSRC / "lod_terms.cpp", _CSRC / "tree_cut.cpp",
-           _CSRC / "splat_cost.cpp", _CSRC / "sh_colors.cpp")
+           _CSRC / "splat_cost.cpp", _CSRC / "sh_colors.cpp", _CSRC / "projection.cpp")
 _EXT = None
 _EXT_ERROR: Optional[BaseException] = None
 _LOCK = threading.Lock()

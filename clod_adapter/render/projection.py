@@ -86,6 +86,19 @@ def _check(means: Tensor, quats: Tensor, scales: Tensor, opacities: Optional[Ten
         raise ValueError(f"K must be [3, 3], got {tuple(K.shape)}")
 
 
+def _kernel(*xs: Optional[Tensor]) -> bool:
+    """Whether a stage runs its C++ form (``csrc/projection.cpp``): CPU tensors of one float dtype
+    (float32 or float64), none recording autograd, and the kernels wanted
+    (:func:`clod_adapter.render.native.wanted`); else the torch code below, its twin."""
+    from .native import wanted
+
+    ts = [x for x in xs if x is not None]
+    dt = ts[0].dtype
+    if dt not in (torch.float32, torch.float64) or any(x.device.type != "cpu" or x.dtype != dt for x in ts):
+        return False
+    return not (torch.is_grad_enabled() and any(x.requires_grad for x in ts)) and wanted(True)
+
+
 class ProjectedGeometry(NamedTuple):
     """Stage 1 of the projection (:func:`project_geometry`): the Gaussians in front of the camera
     (``ids`` into the inputs) with their 2D means, depths and the raw 2D covariance terms
@@ -122,6 +135,17 @@ def project_geometry(
     ``keep``, when given: [N] bool, or [k] int64 indices, ascending). ``means`` [N, 3],
     ``quats`` [N, 4] wxyz, ``scales`` [N, 3] activated, ``viewmat`` [4, 4], ``K`` [3, 3]."""
     _check(means, quats, scales, None, viewmat, K)
+    if _kernel(means, quats, scales) and not (torch.is_grad_enabled() and (viewmat.requires_grad or K.requires_grad)):
+        from .native import load
+
+        vm, Kd = viewmat.detach().to(means.dtype).double(), K.detach().to(means.dtype).double()
+        rows = torch.zeros((), dtype=torch.int64) if keep is None else (
+            keep if keep.dtype == torch.long else keep.nonzero().squeeze(1)).contiguous()
+        out = load().project_geometry(means.contiguous(), quats.contiguous(), scales.contiguous(), rows,
+                                      vm[:3, :3].reshape(-1).tolist(), vm[:3, 3].tolist(), float(Kd[0, 0]),
+                                      float(Kd[0, 2]), float(Kd[1, 1]), float(Kd[1, 2]), int(width), int(height),
+                                      float(near_plane), float(far_plane))
+        return ProjectedGeometry(*out)
     dt = means.dtype
     viewmat = viewmat.to(dt)
     K = K.to(dt)
@@ -217,6 +241,17 @@ def finish_projection(
         the kept rows' positions in ``geom`` (ascending).
     """
     aa, ab, bb, axb2 = geom.aa, geom.ab, geom.bb, geom.axb2
+    if _kernel(geom.means2d, aa, ab, bb, axb2, opacities, cov_scale):
+        from .native import load
+
+        none = aa.new_zeros(0)
+        rows, radii, conics = load().finish_projection(
+            geom.means2d.contiguous(), aa.contiguous(), ab.contiguous(), bb.contiguous(), axb2.contiguous(),
+            none if opacities is None else opacities.to(aa.dtype).contiguous(),
+            none if cov_scale is None else cov_scale.to(aa.dtype).contiguous(), int(width), int(height),
+            float(eps2d), float(radius_clip))
+        return VisibleProjection(geom.ids.index_select(0, rows), radii, geom.means2d.index_select(0, rows),
+                                 geom.depths.index_select(0, rows), conics, rows)
     if cov_scale is not None:
         aa, ab, bb, axb2 = aa * cov_scale, ab * cov_scale, bb * cov_scale, axb2 * (cov_scale * cov_scale)
     c00 = aa + eps2d

@@ -334,8 +334,10 @@ void forward_impl(
                     const int64_t pix = static_cast<int64_t>(py0 + ly) * W + (px0 + lx);
                     const S Tp = T[p];
                     out_alpha[pix] = S(1) - Tp;
-                    out_T[pix] = Tp;
-                    out_last[pix] = last[p];
+                    if (out_T != nullptr) {  // the backward's state, not kept for a frame without gradients
+                        out_T[pix] = Tp;
+                        out_last[pix] = last[p];
+                    }
                     S* oc = out_col + pix * D;
                     const S* cp = col + p;
                     if (bg != nullptr) {
@@ -592,7 +594,7 @@ std::vector<torch::Tensor> composite_forward(
     torch::Tensor means2d, torch::Tensor conics, torch::Tensor colors,
     torch::Tensor opacities, c10::optional<torch::Tensor> backgrounds,
     int64_t width, int64_t height, int64_t tile_size,
-    torch::Tensor isect_offsets, torch::Tensor flatten_ids, int64_t num_threads) {
+    torch::Tensor isect_offsets, torch::Tensor flatten_ids, int64_t num_threads, bool with_state) {
     check_inputs(means2d, conics, colors, opacities, isect_offsets, flatten_ids);
     const int64_t N = means2d.size(0);
     const int D = static_cast<int>(colors.size(1));
@@ -601,8 +603,10 @@ std::vector<torch::Tensor> composite_forward(
     const auto opts = means2d.options();
     auto out_col = torch::empty({height, width, D}, opts);
     auto out_alpha = torch::empty({height, width, 1}, opts);
-    auto out_T = torch::empty({height, width}, opts);
-    auto out_last = torch::empty({height, width}, opts.dtype(torch::kInt32));
+    // the final transmittance and last index per pixel: the backward's state (empty without it)
+    const int64_t sh = with_state ? height : 0, sw = with_state ? width : 0;
+    auto out_T = torch::empty({sh, sw}, opts);
+    auto out_last = torch::empty({sh, sw}, opts.dtype(torch::kInt32));
     torch::Tensor bg;
     if (backgrounds.has_value() && backgrounds->defined()) {
         bg = backgrounds->contiguous();
@@ -618,8 +622,8 @@ std::vector<torch::Tensor> composite_forward(
                 opacities.data_ptr<S>(), bg.defined() ? bg.data_ptr<S>() : nullptr,
                 (int32_t)width, (int32_t)height, (int32_t)tile_size, th, tw,
                 isect_offsets.data_ptr<int64_t>(), flatten_ids.data_ptr<int64_t>(), flatten_ids.numel(),
-                out_col.data_ptr<S>(), out_alpha.data_ptr<S>(), out_T.data_ptr<S>(),
-                out_last.data_ptr<int32_t>(), nt);
+                out_col.data_ptr<S>(), out_alpha.data_ptr<S>(), with_state ? out_T.data_ptr<S>() : nullptr,
+                with_state ? out_last.data_ptr<int32_t>() : nullptr, nt);
         };
         switch (D) {
             case 1: run(std::integral_constant<int, 1>()); break;
@@ -709,7 +713,9 @@ torch::Tensor lod_critical_cpu(torch::Tensor opacities, torch::Tensor d_norm, to
                                double eps);
 
 // tree_cut.cpp (the merge tree's cut and drawn attributes)
-std::vector<torch::Tensor> tree_cut_cpu(std::vector<torch::Tensor> d_norm, std::vector<torch::Tensor> sigma_d,
+std::vector<torch::Tensor> tree_cut_cpu(std::vector<torch::Tensor> cols, std::vector<double> R, std::vector<double> t,
+                                        double fx, double cx, double fy, double cy, int64_t width, int64_t height,
+                                        double near_plane, std::vector<double> center, std::vector<torch::Tensor> sigma_d,
                                         std::vector<torch::Tensor> exits, std::vector<torch::Tensor> parents,
                                         std::vector<torch::Tensor> leads, double s, double F, double M);
 std::vector<torch::Tensor> tree_terms_cpu(std::vector<torch::Tensor> d_norm, std::vector<torch::Tensor> sigma_d,
@@ -735,8 +741,20 @@ torch::Tensor splat_cost_cpu(torch::Tensor means, torch::Tensor quats, torch::Te
                              std::vector<double> R, std::vector<double> t, double fx, double cx, double fy, double cy,
                              int64_t width, int64_t height, double near_plane, double far_plane, double eps2d);
 
+// projection.cpp (the EWA projection of a frame without gradients, render.projection's two stages)
+std::vector<torch::Tensor> project_geometry_cpu(torch::Tensor means, torch::Tensor quats, torch::Tensor scales,
+                                                torch::Tensor keep, std::vector<double> R, std::vector<double> t,
+                                                double fx, double cx, double fy, double cy, int64_t width,
+                                                int64_t height, double near_plane, double far_plane);
+std::vector<torch::Tensor> finish_projection_cpu(torch::Tensor means2d, torch::Tensor aa, torch::Tensor ab,
+                                                 torch::Tensor bb, torch::Tensor axb2, torch::Tensor opacities,
+                                                 torch::Tensor cov_scale, int64_t width, int64_t height, double eps2d,
+                                                 double radius_clip);
+
 // sh_colors.cpp (the rasteriser's colours from SH, render.cpu.sh_colors)
 torch::Tensor sh_colors_cpu(torch::Tensor means, torch::Tensor coeffs, std::vector<double> campos, int64_t degree);
+torch::Tensor sh_colors_rows_cpu(torch::Tensor means, torch::Tensor sh0, torch::Tensor shN, torch::Tensor ids,
+                                 std::vector<double> campos, int64_t degree);
 std::vector<torch::Tensor> sh_colors_backward_cpu(torch::Tensor means, torch::Tensor coeffs, std::vector<double> campos,
                                                   int64_t degree, torch::Tensor v_colors);
 
@@ -751,14 +769,17 @@ PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
     m.def("lod_keep", &lod_keep_cpu, "ids of Eq. 2's mask and the frustum counts (lod.lod_keep)");
     m.def("lod_window_opacities", &lod_window_opacities_cpu, "the window fade's drawn opacities (lod.window_opacities)");
     m.def("lod_critical", &lod_critical_cpu, "the critical s_v of each Gaussian (budget.critical_s_v)");
-    m.def("tree_cut", &tree_cut_cpu, "the merge tree's cut at one s_v (tree.terms + tree.cut)");
+    m.def("tree_cut", &tree_cut_cpu, "the merge tree's cut at one s_v, walked from the roots (tree.walk)");
     m.def("tree_terms", &tree_terms_cpu, "every node's entry, end and fade (tree.terms)");
     m.def("tree_budget", &tree_budget_cpu, "the level a budget draws (tree.budget_s_v)");
     m.def("tree_budget_events", &tree_budget_events_cpu, "a budget's interval ends sorted, coarsest first");
     m.def("tree_budget_walk", &tree_budget_walk_cpu, "a count budget's level and cut from cached terms and ends");
     m.def("tree_frame", &tree_frame_cpu, "every node's frustum test and d' (tree.frame)");
     m.def("tree_attributes", &tree_attributes_cpu, "a cut's drawn attributes (tree.cut_attributes)");
+    m.def("project_geometry", &project_geometry_cpu, "depth cull and raw 2D covariance terms (projection.project_geometry)");
+    m.def("finish_projection", &finish_projection_cpu, "eps2d blur, conics, radii and culls (projection.finish_projection)");
     m.def("sh_colors", &sh_colors_cpu, "colours of SH coefficients from a camera centre (render.cpu.sh_colors)");
+    m.def("sh_colors_rows", &sh_colors_rows_cpu, "colours of some rows of sh0 / shN, read in place (cpu.sh_colors_rows)");
     m.def("sh_colors_backward", &sh_colors_backward_cpu, "the gradients of sh_colors (means, coefficients)");
     m.def("splat_cost", &splat_cost_cpu, "every Gaussian's ellipse_px cost (lod.cost.splat_cost at level 0)");
 }

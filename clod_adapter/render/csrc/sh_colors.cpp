@@ -156,6 +156,45 @@ torch::Tensor sh_colors_cpu(torch::Tensor means, torch::Tensor coeffs, std::vect
     return out;
 }
 
+// sh_colors_cpu of the rows ids [V] of a model whose SH is stored as sh0 [N, 1, 3] and shN [N, K-1, 3]
+// (render.cpu.sh_colors_rows): each row's coefficients read in place, no [V, K, 3] gather
+torch::Tensor sh_colors_rows_cpu(torch::Tensor means, torch::Tensor sh0, torch::Tensor shN, torch::Tensor ids,
+                                 std::vector<double> campos, int64_t degree) {
+    const int64_t n = means.size(0), KR = shN.dim() == 3 ? shN.size(1) : -1;
+    TORCH_CHECK(means.dim() == 2 && means.size(1) == 3 && sh0.dim() == 3 && sh0.size(0) == n && sh0.size(1) == 1 &&
+                    sh0.size(2) == 3 && shN.dim() == 3 && shN.size(0) == n && shN.size(2) == 3 && KR <= 15 &&
+                    degree >= 0 && degree <= 3 && KR + 1 >= (degree + 1) * (degree + 1) && campos.size() == 3 &&
+                    ids.dim() == 1 && ids.scalar_type() == torch::kInt64 &&
+                    sh0.scalar_type() == means.scalar_type() && shN.scalar_type() == means.scalar_type(),
+                "sh_colors_rows: means [N, 3], sh0 [N, 1, 3], shN [N, K-1, 3] (K <= 16, >= (degree + 1)^2) of one "
+                "dtype, int64 ids [V], degree 0..3, campos 3 values");
+    auto m = means.contiguous();
+    auto c0 = sh0.contiguous();
+    auto cN = shN.contiguous();
+    auto id = ids.contiguous();
+    const int64_t v = id.numel();
+    auto out = torch::empty({v, 3}, m.options());
+    AT_DISPATCH_FLOATING_TYPES(m.scalar_type(), "sh_colors_rows", [&] {
+        using S = scalar_t;
+        const S *mp = m.data_ptr<S>(), *p0 = c0.data_ptr<S>(), *pN = cN.data_ptr<S>();
+        const int64_t* ip = id.data_ptr<int64_t>();
+        S* op = out.data_ptr<S>();
+        const S cx = static_cast<S>(campos[0]), cy = static_cast<S>(campos[1]), cz = static_cast<S>(campos[2]);
+        for (int64_t j = 0; j < v; ++j) TORCH_CHECK(ip[j] >= 0 && ip[j] < n, "sh_colors_rows: row ", ip[j], " outside [0, ", n, ")");
+        at::parallel_for(0, v, kGrainSh, [&](int64_t b, int64_t e) {
+            S row[48];
+            for (int64_t j = b; j < e; ++j) {
+                const int64_t i = ip[j];
+                std::copy(p0 + 3 * i, p0 + 3 * i + 3, row);
+                std::copy(pN + i * KR * 3, pN + (i + 1) * KR * 3, row + 3);
+                clod_sh::rgb<S>(static_cast<int>(degree), row, mp[3 * i] - cx, mp[3 * i + 1] - cy, mp[3 * i + 2] - cz,
+                                op + 3 * j);
+            }
+        });
+    });
+    return out;
+}
+
 // the backward of sh_colors_cpu: (v_means [V, 3], v_coeffs [V, K, 3]) from v_colors [V, 3]
 std::vector<torch::Tensor> sh_colors_backward_cpu(torch::Tensor means, torch::Tensor coeffs, std::vector<double> campos,
                                                   int64_t degree, torch::Tensor v_colors) {

@@ -1,7 +1,7 @@
-// The merge tree's per-frame cut and its drawn attributes (docs/lod_rule.md steps 1-5) in one
-// pass over the nodes each.
+// The merge tree's per-frame cut and its drawn attributes (docs/lod_rule.md steps 1-5): the cut
+// walked from the roots, the attributes in one pass over the drawn rows.
 //
-// Twins: clod_adapter.lod.tree.terms + cut (tree_cut) and clod_adapter.lod.tree.cut_attributes
+// Twins: clod_adapter.lod.tree.walk, and terms + cut (tree_cut) and clod_adapter.lod.tree.cut_attributes
 // (tree_attributes); tests/test_tree.py holds them together. As some 60 torch operations per
 // frame, most over every node or every drawn row (gathers of the SH, interpolation of the rows
 // in a hand-over, the concatenation of the tiers), the twins cost a fifth of a full-detail frame on
@@ -11,6 +11,7 @@
 #include <ATen/Parallel.h>
 
 #include <algorithm>
+#include <atomic>
 #include <cmath>
 #include <cstdint>
 #include <cstring>
@@ -112,13 +113,98 @@ void emit_cut(const std::vector<torch::Tensor>& E, const std::vector<torch::Tens
     }
 }
 
+// The cut at one s_v walked from the roots (tree.walk's twin; docs/lod_rule.md: a renderer need
+// not visit the children of a node that has entered): the roots' frustum and d' give D, then each
+// tier below visits only the children of nodes not yet entered (s < E), in row order, so the ids
+// come out ascending and a coarse frame does arithmetic for few nodes. A node not visited gets E =
+// U = -inf: never drawn, its children never visited (a child's end is at most its parent's entry).
+// Every visited node's terms are cut_tier's, rounded alike. Tier 0's frustum is counted over all
+// its nodes (the population of a share of the view). Returns per tier [ids, w, fade], then the
+// count as a 0-dim int64 tensor.
 template <typename S>
-std::vector<torch::Tensor> cut_impl(const std::vector<torch::Tensor>& d_norm, const std::vector<torch::Tensor>& sigma_d,
-                                    const std::vector<torch::Tensor>& exits, const std::vector<torch::Tensor>& parents,
-                                    const std::vector<torch::Tensor>& leads, double s, double F, double M) {
-    std::vector<torch::Tensor> E, U, fade, out;
-    terms_impl<S>(d_norm, sigma_d, exits, parents, leads, F, E, U, fade);
+std::vector<torch::Tensor> root_walk_impl(const std::vector<torch::Tensor>& cols, const double* R, const double* t,
+                                         double fx, double cx, double fy, double cy, double width, double height,
+                                         double near_plane, const double* c, const std::vector<torch::Tensor>& sigma_d,
+                                         const std::vector<torch::Tensor>& exits,
+                                         const std::vector<torch::Tensor>& parents,
+                                         const std::vector<torch::Tensor>& leads, double s, double F, double M) {
+    const int64_t T = static_cast<int64_t>(cols.size()) - 1;
+    auto inside = [&](double px, double py, double pz) {
+        const double cz = R[6] * px + R[7] * py + R[8] * pz + t[2];
+        const double cxs = R[0] * px + R[1] * py + R[2] * pz + t[0];
+        const double cys = R[3] * px + R[4] * py + R[5] * pz + t[1];
+        const double a = fx * cxs + cx * cz, bb = fy * cys + cy * cz;  // pixel * z
+        return (cz > near_plane) & (a >= 0.0) & (a < cz * width) & (bb >= 0.0) & (bb < cz * height);
+    };
+    auto dist = [&](const S* x, int64_t n, int64_t i) {  // in double, rounded to S (frame_impl)
+        const double dx = double(x[i]) - c[0], dy = double(x[n + i]) - c[1], dz = double(x[2 * n + i]) - c[2];
+        return static_cast<S>(std::sqrt(dx * dx + dy * dy + dz * dz));
+    };
+    // the roots: every one's d' (D is the largest distance of those in the frustum)
+    const int64_t nT = cols[T].size(1);
+    const S* xT = cols[T].data_ptr<S>();
+    std::vector<S> dT(nT);
+    std::vector<char> fT(nT);
+    at::parallel_for(0, nT, kGrainCut, [&](int64_t b, int64_t e) {
+        for (int64_t i = b; i < e; ++i) fT[i] = inside(xT[i], xT[nT + i], xT[2 * nT + i]), dT[i] = dist(xT, nT, i);
+    });
+    S D = S(0);
+    bool any = false;
+    for (int64_t i = 0; i < nT; ++i)
+        if (fT[i]) D = any ? std::max(D, dT[i]) : dT[i], any = true;
+    if (!any)
+        for (int64_t i = 0; i < nT; ++i) D = i ? std::max(D, dT[i]) : dT[i];
+    D = std::max(D, static_cast<S>(1e-12));
+    if (nT == 0) D = S(1);
+    for (int64_t i = 0; i < nT; ++i) dT[i] = dT[i] / D;
+    const S Fs = static_cast<S>(F), sv = static_cast<S>(s), ninf = -std::numeric_limits<S>::infinity();
+    std::vector<torch::Tensor> E(T + 1), U(T + 1), fade(T + 1);
+    auto opts = cols[0].options();
+    for (int64_t k = T; k >= 0; --k) {
+        const int64_t n = cols[k].size(1);
+        E[k] = torch::empty({n}, opts);
+        U[k] = torch::empty({n}, opts);
+        fade[k] = torch::empty({n}, opts.dtype(torch::kBool));
+    }
+    cut_tier<S>(nT, dT.data(), sigma_d[T].data_ptr<S>(), exits[T].data_ptr<S>(), nullptr, nullptr, nullptr, Fs,
+                static_cast<S>(std::pow(F, static_cast<double>(T))), T == 0, true, E[T].data_ptr<S>(),
+                U[T].data_ptr<S>(), fade[T].data_ptr<bool>());
+    std::atomic<int64_t> n_frustum{0};
+    if (T == 0)
+        for (int64_t i = 0; i < nT; ++i) n_frustum += fT[i];
+    for (int64_t k = T - 1; k >= 0; --k) {
+        const int64_t n = cols[k].size(1);
+        const S* x = cols[k].data_ptr<S>();
+        const S *sg = sigma_d[k].data_ptr<S>(), *ex = exits[k].data_ptr<S>(), *Eup = E[k + 1].data_ptr<S>();
+        const int64_t* par = parents[k].data_ptr<int64_t>();
+        const bool* ld = leads[k].data_ptr<bool>();
+        S *Ek = E[k].data_ptr<S>(), *Uk = U[k].data_ptr<S>();
+        bool* fk = fade[k].data_ptr<bool>();
+        const S Fk = static_cast<S>(std::pow(F, static_cast<double>(k)));
+        at::parallel_for(0, n, kGrainCut, [&](int64_t b, int64_t e) {
+            int64_t count = 0;
+            for (int64_t i = b; i < e; ++i) {
+                if (k == 0) count += inside(x[i], x[n + i], x[2 * n + i]);
+                const S Ep = Eup[par[i]];
+                if (!(sv < Ep)) {  // the parent was not visited or has entered: nothing below it is drawn
+                    Ek[i] = Uk[i] = ninf;
+                    fk[i] = false;
+                    continue;
+                }
+                const S d = std::max(dist(x, n, i) / D, S(1e-12));
+                const S En = k == 0 ? S(0) : std::max(std::min(sg[i] / d, Ep / Fs), Fk);  // cut_tier's
+                const S X = std::max(ex[i] / d, Fs * std::max(En, S(1)));
+                const bool f = !ld[i] && X < Ep;
+                Ek[i] = En;
+                Uk[i] = f ? X : Ep;
+                fk[i] = f;
+            }
+            if (k == 0) n_frustum += count;
+        });
+    }
+    std::vector<torch::Tensor> out;
     emit_cut<S>(E, U, fade, s, M, out);
+    out.push_back(torch::full({}, n_frustum.load(), torch::TensorOptions().dtype(torch::kInt64)));
     return out;
 }
 
@@ -473,16 +559,33 @@ double tree_budget_cpu(std::vector<torch::Tensor> E, std::vector<torch::Tensor> 
     return out;
 }
 
-// clod_adapter.lod.tree.cut at one s_v from every node's terms (d_norm: per tier [N_k] its d', as
-// tree.frame rounds it): per tier [ids (int64, ascending), w, fade]
-std::vector<torch::Tensor> tree_cut_cpu(std::vector<torch::Tensor> d_norm, std::vector<torch::Tensor> sigma_d,
+// clod_adapter.lod.tree.cut at one s_v, walked from the roots (root_walk_impl): cols per tier [3, N_k]
+// contiguous (lod.centre_columns) and the camera as tree_frame takes it, the centre c [3]; the nodes'
+// constants per tier. Returns per tier [ids (int64, ascending), w, fade], then tier 0's frustum count.
+std::vector<torch::Tensor> tree_cut_cpu(std::vector<torch::Tensor> cols, std::vector<double> R, std::vector<double> t,
+                                        double fx, double cx, double fy, double cy, int64_t width, int64_t height,
+                                        double near_plane, std::vector<double> center, std::vector<torch::Tensor> sigma_d,
                                         std::vector<torch::Tensor> exits, std::vector<torch::Tensor> parents,
                                         std::vector<torch::Tensor> leads, double s, double F, double M) {
-    TORCH_CHECK(!d_norm.empty() && sigma_d.size() == d_norm.size() && exits.size() == d_norm.size() &&
-                parents.size() + 1 == d_norm.size() && leads.size() + 1 == d_norm.size(), "tree_cut: one entry per tier");
+    TORCH_CHECK(!cols.empty() && sigma_d.size() == cols.size() && exits.size() == cols.size() &&
+                parents.size() + 1 == cols.size() && leads.size() + 1 == cols.size(), "tree_cut: one entry per tier");
+    TORCH_CHECK(R.size() == 9 && t.size() == 3 && center.size() == 3, "tree_cut: R [9], t [3], c [3]");
+    for (size_t k = 0; k < cols.size(); ++k) {
+        TORCH_CHECK(cols[k].dim() == 2 && cols[k].size(0) == 3 && cols[k].is_contiguous() && cols[k].device().is_cpu() &&
+                    cols[k].scalar_type() == cols[0].scalar_type(), "tree_cut: contiguous CPU [3, N] columns of one dtype");
+        TORCH_CHECK(sigma_d[k].numel() == cols[k].size(1) && exits[k].numel() == cols[k].size(1) &&
+                    sigma_d[k].scalar_type() == cols[0].scalar_type() && exits[k].scalar_type() == cols[0].scalar_type() &&
+                    sigma_d[k].is_contiguous() && exits[k].is_contiguous(), "tree_cut: [N_k] sigma_d and exits in the centres' dtype");
+        if (k + 1 < cols.size())
+            TORCH_CHECK(parents[k].numel() == cols[k].size(1) && leads[k].numel() == cols[k].size(1) &&
+                        parents[k].scalar_type() == torch::kInt64 && leads[k].scalar_type() == torch::kBool &&
+                        parents[k].is_contiguous() && leads[k].is_contiguous(), "tree_cut: [N_k] int64 parents and bool leads");
+    }
     std::vector<torch::Tensor> out;
-    AT_DISPATCH_FLOATING_TYPES(d_norm[0].scalar_type(), "tree_cut", [&] {
-        out = cut_impl<scalar_t>(d_norm, sigma_d, exits, parents, leads, s, F, M);
+    AT_DISPATCH_FLOATING_TYPES(cols[0].scalar_type(), "tree_cut", [&] {
+        out = root_walk_impl<scalar_t>(cols, R.data(), t.data(), fx, cx, fy, cy, static_cast<double>(width),
+                                      static_cast<double>(height), near_plane, center.data(), sigma_d, exits, parents,
+                                      leads, s, F, M);
     });
     return out;
 }

@@ -585,9 +585,9 @@ def _native_call(name: str, tiers: Sequence[Gaussians], ds: Sequence[Tensor], *a
 
 
 def _native_cut(tiers: Sequence[Gaussians], camera, s: float, F: float) -> TreeCut:
-    """:func:`cut` by :func:`walk`'s C++ twin (``tree_cut``): from the roots down, only the children
-    of nodes not yet entered computed, so a coarse frame's cut costs about its drawn nodes (and one
-    frustum test of tier 0's centres, for :attr:`TreeCut.n_frustum`)."""
+    """:func:`cut` by :func:`walk`'s C++ twin (``tree_cut``): from the roots down, the terms of the
+    children of nodes not yet entered only (every other node is one look at its parent's entry),
+    and tier 0's frustum counted in the same pass (:attr:`TreeCut.n_frustum`)."""
     out = native.load().tree_cut(*_camera_args(tiers, camera), _centre(camera), *_node_constants(tiers), s, F,
                                  _morph(F))
     return TreeCut(out[0:-1:3], out[1:-1:3], s, int(out[-1]), out[2:-1:3])

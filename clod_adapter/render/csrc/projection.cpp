@@ -19,12 +19,74 @@
 #include <cstdint>
 #include <vector>
 
+namespace clod_ewa {  // also splat_cost.cpp's (declared there)
+
+extern const double kAlphaThreshold = 1.0 / 255.0;  // projection.ALPHA_THRESHOLD
+extern const double kExtend = 3.33;                 // projection.GAUSSIAN_EXTEND
+extern const double kMaxRadius = 1073741824.0;      // projection.MAX_RADIUS (2^30)
+
+// the camera as terms() reads it: R [9] row-major, t [3], fx, cx, fy, cy, and the limits of x/z,
+// y/z for the Jacobian (gsplat's 1.3x the field of view): x_pos, x_neg, y_pos, y_neg (20 values)
+void camera(const double* R, const double* t, double fx, double cx, double fy, double cy, double width,
+            double height, double* cam) {
+    std::copy(R, R + 9, cam);
+    std::copy(t, t + 3, cam + 9);
+    cam[12] = fx, cam[13] = cx, cam[14] = fy, cam[15] = cy;
+    const double tan_fovx = 0.5 * width / fx, tan_fovy = 0.5 * height / fy;
+    cam[16] = (width - cx) / fx + 0.3 * tan_fovx, cam[17] = cx / fx + 0.3 * tan_fovx;
+    cam[18] = (height - cy) / fy + 0.3 * tan_fovy, cam[19] = cy / fy + 0.3 * tan_fovy;
+}
+
+// one Gaussian's EWA terms in double (mean m [3], wxyz quaternion q [4], activated scales s [3]):
+// out = [tz (camera depth), px, py (pixels, from the unclamped mean), aa, ab, bb (the rows A, B of
+// J R_view R_q S: cov2d before eps2d = [[aa, ab], [ab, bb]]), axb2 = |A x B|^2]
+template <typename S>
+void terms(const double* cam, const S* m, const S* q, const S* s, double* out) {
+    const double* R = cam;
+    const double* t = cam + 9;
+    const double fx = cam[12], cx = cam[13], fy = cam[14], cy = cam[15];
+    const double mx = m[0], my = m[1], mz = m[2];
+    const double tx = R[0] * mx + R[1] * my + R[2] * mz + t[0];
+    const double ty = R[3] * mx + R[4] * my + R[5] * mz + t[1];
+    const double tz = R[6] * mx + R[7] * my + R[8] * mz + t[2];
+    const double rz = 1.0 / tz;
+    out[0] = tz, out[1] = fx * tx * rz + cx, out[2] = fy * ty * rz + cy;
+    const double u = std::min(std::max(tx * rz, -cam[17]), cam[16]);
+    const double v = std::min(std::max(ty * rz, -cam[19]), cam[18]);
+    const double a0 = fx * rz, a2 = -fx * u * rz, b1 = fy * rz, b2 = -fy * v * rz;
+    const double J0[3] = {a0 * R[0] + a2 * R[6], a0 * R[1] + a2 * R[7], a0 * R[2] + a2 * R[8]};
+    const double J1[3] = {b1 * R[3] + b2 * R[6], b1 * R[4] + b2 * R[7], b1 * R[5] + b2 * R[8]};
+    // the rotation of the normalised wxyz quaternion (projection.quat_to_rotmat_rows)
+    double qw = q[0], qx = q[1], qy = q[2], qz = q[3];
+    const double qn = std::max(std::sqrt(qw * qw + qx * qx + qy * qy + qz * qz), 1e-12);
+    qw /= qn, qx /= qn, qy /= qn, qz /= qn;
+    const double Q[9] = {1 - 2 * (qy * qy + qz * qz), 2 * (qx * qy - qw * qz), 2 * (qx * qz + qw * qy),
+                         2 * (qx * qy + qw * qz), 1 - 2 * (qx * qx + qz * qz), 2 * (qy * qz - qw * qx),
+                         2 * (qx * qz - qw * qy), 2 * (qy * qz + qw * qx), 1 - 2 * (qx * qx + qy * qy)};
+    double A[3], B[3];
+    for (int c = 0; c < 3; ++c) {
+        const double sc = s[c];
+        A[c] = (J0[0] * Q[c] + J0[1] * Q[3 + c] + J0[2] * Q[6 + c]) * sc;
+        B[c] = (J1[0] * Q[c] + J1[1] * Q[3 + c] + J1[2] * Q[6 + c]) * sc;
+    }
+    const double x0 = A[1] * B[2] - A[2] * B[1], x1 = A[2] * B[0] - A[0] * B[2], x2 = A[0] * B[1] - A[1] * B[0];
+    out[3] = A[0] * A[0] + A[1] * A[1] + A[2] * A[2];
+    out[4] = A[0] * B[0] + A[1] * B[1] + A[2] * B[2];
+    out[5] = B[0] * B[0] + B[1] * B[1] + B[2] * B[2];
+    out[6] = x0 * x0 + x1 * x1 + x2 * x2;
+}
+
+template void terms<float>(const double*, const float*, const float*, const float*, double*);
+template void terms<double>(const double*, const double*, const double*, const double*, double*);
+
+}  // namespace clod_ewa
+
 namespace {
 
-constexpr int64_t kGrain = 4096;                 // ~50 ns an element
-constexpr double kAlphaThreshold = 1.0 / 255.0;  // projection.ALPHA_THRESHOLD
-constexpr double kExtend = 3.33;                 // projection.GAUSSIAN_EXTEND
-constexpr double kMaxRadius = 1073741824.0;      // projection.MAX_RADIUS (2^30)
+constexpr int64_t kGrain = 4096;  // ~50 ns an element
+using clod_ewa::kAlphaThreshold;
+using clod_ewa::kExtend;
+using clod_ewa::kMaxRadius;
 
 template <typename S>
 std::vector<torch::Tensor> geometry_impl(const torch::Tensor& means_t, const torch::Tensor& quats_t,
@@ -54,43 +116,16 @@ std::vector<torch::Tensor> geometry_impl(const torch::Tensor& means_t, const tor
     std::copy(ids.begin(), ids.end(), o_ids.data_ptr<int64_t>());
     S *m2 = o_m2.data_ptr<S>(), *zz = o_z.data_ptr<S>(), *aa = o_aa.data_ptr<S>(), *ab = o_ab.data_ptr<S>(),
       *bb = o_bb.data_ptr<S>(), *ax = o_x.data_ptr<S>();
-    const double tan_fovx = 0.5 * width / fx, tan_fovy = 0.5 * height / fy;
-    const double lim_x_pos = (width - cx) / fx + 0.3 * tan_fovx, lim_x_neg = cx / fx + 0.3 * tan_fovx;
-    const double lim_y_pos = (height - cy) / fy + 0.3 * tan_fovy, lim_y_neg = cy / fy + 0.3 * tan_fovy;
+    double cam[20];
+    clod_ewa::camera(R, t, fx, cx, fy, cy, width, height, cam);
     at::parallel_for(0, m, kGrain, [&](int64_t b, int64_t e) {
         for (int64_t j = b; j < e; ++j) {
             const int64_t i = ids[j];
-            const double mx = means[3 * i], my = means[3 * i + 1], mz = means[3 * i + 2];
-            const double tx = R[0] * mx + R[1] * my + R[2] * mz + t[0];
-            const double ty = R[3] * mx + R[4] * my + R[5] * mz + t[1];
-            const double tz = R[6] * mx + R[7] * my + R[8] * mz + t[2];
-            const double rz = 1.0 / tz;
-            m2[2 * j] = static_cast<S>(fx * tx * rz + cx);
-            m2[2 * j + 1] = static_cast<S>(fy * ty * rz + cy);
-            zz[j] = static_cast<S>(tz);
-            const double u = std::min(std::max(tx * rz, -lim_x_neg), lim_x_pos);
-            const double v = std::min(std::max(ty * rz, -lim_y_neg), lim_y_pos);
-            const double a0 = fx * rz, a2 = -fx * u * rz, b1 = fy * rz, b2 = -fy * v * rz;
-            const double J0[3] = {a0 * R[0] + a2 * R[6], a0 * R[1] + a2 * R[7], a0 * R[2] + a2 * R[8]};
-            const double J1[3] = {b1 * R[3] + b2 * R[6], b1 * R[4] + b2 * R[7], b1 * R[5] + b2 * R[8]};
-            // the rotation of the normalised wxyz quaternion (projection.quat_to_rotmat_rows)
-            double qw = quats[4 * i], qx = quats[4 * i + 1], qy = quats[4 * i + 2], qz = quats[4 * i + 3];
-            const double qn = std::max(std::sqrt(qw * qw + qx * qx + qy * qy + qz * qz), 1e-12);
-            qw /= qn, qx /= qn, qy /= qn, qz /= qn;
-            const double Q[9] = {1 - 2 * (qy * qy + qz * qz), 2 * (qx * qy - qw * qz), 2 * (qx * qz + qw * qy),
-                                 2 * (qx * qy + qw * qz), 1 - 2 * (qx * qx + qz * qz), 2 * (qy * qz - qw * qx),
-                                 2 * (qx * qz - qw * qy), 2 * (qy * qz + qw * qx), 1 - 2 * (qx * qx + qy * qy)};
-            double A[3], B[3];  // the rows of J R_view R_q S
-            for (int c = 0; c < 3; ++c) {
-                const double sc = scales[3 * i + c];
-                A[c] = (J0[0] * Q[c] + J0[1] * Q[3 + c] + J0[2] * Q[6 + c]) * sc;
-                B[c] = (J1[0] * Q[c] + J1[1] * Q[3 + c] + J1[2] * Q[6 + c]) * sc;
-            }
-            const double X0 = A[1] * B[2] - A[2] * B[1], X1 = A[2] * B[0] - A[0] * B[2], X2 = A[0] * B[1] - A[1] * B[0];
-            aa[j] = static_cast<S>(A[0] * A[0] + A[1] * A[1] + A[2] * A[2]);
-            ab[j] = static_cast<S>(A[0] * B[0] + A[1] * B[1] + A[2] * B[2]);
-            bb[j] = static_cast<S>(B[0] * B[0] + B[1] * B[1] + B[2] * B[2]);
-            ax[j] = static_cast<S>(X0 * X0 + X1 * X1 + X2 * X2);
+            double o[7];
+            clod_ewa::terms<S>(cam, means + 3 * i, quats + 4 * i, scales + 3 * i, o);
+            zz[j] = static_cast<S>(o[0]), m2[2 * j] = static_cast<S>(o[1]), m2[2 * j + 1] = static_cast<S>(o[2]);
+            aa[j] = static_cast<S>(o[3]), ab[j] = static_cast<S>(o[4]), bb[j] = static_cast<S>(o[5]);
+            ax[j] = static_cast<S>(o[6]);
         }
     });
     return {o_ids, o_m2, o_z, o_aa, o_ab, o_bb, o_x};

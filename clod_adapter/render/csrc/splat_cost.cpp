@@ -18,12 +18,20 @@
 #include <cstdint>
 #include <vector>
 
+namespace clod_ewa {  // projection.cpp
+extern const double kAlphaThreshold, kExtend, kMaxRadius;
+void camera(const double* R, const double* t, double fx, double cx, double fy, double cy, double width,
+            double height, double* cam);
+template <typename S>
+void terms(const double* cam, const S* m, const S* q, const S* s, double* out);
+}  // namespace clod_ewa
+
 namespace {
 
-constexpr int64_t kGrain = 8192;           // ~30 ns an element
-constexpr double kAlphaThreshold = 1.0 / 255.0;  // projection.ALPHA_THRESHOLD
-constexpr double kExtend = 3.33;            // projection.GAUSSIAN_EXTEND
-constexpr double kMaxRadius = 1073741824.0;  // projection.MAX_RADIUS (2^30)
+constexpr int64_t kGrain = 8192;  // ~30 ns an element
+using clod_ewa::kAlphaThreshold;
+using clod_ewa::kExtend;
+using clod_ewa::kMaxRadius;
 constexpr double kPi = 3.14159265358979323846;
 
 template <typename S>
@@ -33,42 +41,17 @@ void splat_cost_impl(int64_t n, const S* __restrict__ means, const S* __restrict
                      double far_plane, double eps2d, double* __restrict__ out) {
     const double R[9] = {R_[0], R_[1], R_[2], R_[3], R_[4], R_[5], R_[6], R_[7], R_[8]};
     const double t[3] = {t_[0], t_[1], t_[2]};
-    const double tan_fovx = 0.5 * width / fx, tan_fovy = 0.5 * height / fy;
-    const double lim_x_pos = (width - cx) / fx + 0.3 * tan_fovx, lim_x_neg = cx / fx + 0.3 * tan_fovx;
-    const double lim_y_pos = (height - cy) / fy + 0.3 * tan_fovy, lim_y_neg = cy / fy + 0.3 * tan_fovy;
+    double cam[20];
+    clod_ewa::camera(R, t, fx, cx, fy, cy, width, height, cam);
     at::parallel_for(0, n, kGrain, [&](int64_t begin, int64_t end) {
         for (int64_t i = begin; i < end; ++i) {
             out[i] = 0.0;
             const double mx = means[3 * i], my = means[3 * i + 1], mz = means[3 * i + 2];
             const double tz = R[6] * mx + R[7] * my + R[8] * mz + t[2];
             if (!(tz >= near_plane && tz <= far_plane)) continue;
-            const double tx = R[0] * mx + R[1] * my + R[2] * mz + t[0];
-            const double ty = R[3] * mx + R[4] * my + R[5] * mz + t[1];
-            const double rz = 1.0 / tz;
-            const double px = fx * tx * rz + cx, py = fy * ty * rz + cy;
-            const double u = std::min(std::max(tx * rz, -lim_x_neg), lim_x_pos);
-            const double v = std::min(std::max(ty * rz, -lim_y_neg), lim_y_pos);
-            const double a0 = fx * rz, a2 = -fx * u * rz, b1 = fy * rz, b2 = -fy * v * rz;
-            const double J0[3] = {a0 * R[0] + a2 * R[6], a0 * R[1] + a2 * R[7], a0 * R[2] + a2 * R[8]};
-            const double J1[3] = {b1 * R[3] + b2 * R[6], b1 * R[4] + b2 * R[7], b1 * R[5] + b2 * R[8]};
-            // the rotation of the normalised wxyz quaternion (projection.quat_to_rotmat_rows)
-            double qw = quats[4 * i], qx = quats[4 * i + 1], qy = quats[4 * i + 2], qz = quats[4 * i + 3];
-            const double qn = std::max(std::sqrt(qw * qw + qx * qx + qy * qy + qz * qz), 1e-12);
-            qw /= qn; qx /= qn; qy /= qn; qz /= qn;
-            const double Q[9] = {1 - 2 * (qy * qy + qz * qz), 2 * (qx * qy - qw * qz), 2 * (qx * qz + qw * qy),
-                                 2 * (qx * qy + qw * qz), 1 - 2 * (qx * qx + qz * qz), 2 * (qy * qz - qw * qx),
-                                 2 * (qx * qz - qw * qy), 2 * (qy * qz + qw * qx), 1 - 2 * (qx * qx + qy * qy)};
-            double A[3], B[3];
-            for (int c = 0; c < 3; ++c) {
-                const double s = scales[3 * i + c];
-                A[c] = (J0[0] * Q[c] + J0[1] * Q[3 + c] + J0[2] * Q[6 + c]) * s;
-                B[c] = (J1[0] * Q[c] + J1[1] * Q[3 + c] + J1[2] * Q[6 + c]) * s;
-            }
-            const double aa = A[0] * A[0] + A[1] * A[1] + A[2] * A[2];
-            const double bb = B[0] * B[0] + B[1] * B[1] + B[2] * B[2];
-            const double ab = A[0] * B[0] + A[1] * B[1] + A[2] * B[2];
-            const double x0 = A[1] * B[2] - A[2] * B[1], x1 = A[2] * B[0] - A[0] * B[2], x2 = A[0] * B[1] - A[1] * B[0];
-            const double axb2 = x0 * x0 + x1 * x1 + x2 * x2;
+            double o[7];
+            clod_ewa::terms<S>(cam, means + 3 * i, quats + 4 * i, scales + 3 * i, o);
+            const double px = o[1], py = o[2], aa = o[3], ab = o[4], bb = o[5], axb2 = o[6];
             const double c00 = aa + eps2d, c11 = bb + eps2d, c01 = ab;
             const double det = axb2 + eps2d * (aa + bb) + eps2d * eps2d;
             const double op = static_cast<double>(opac[i]);

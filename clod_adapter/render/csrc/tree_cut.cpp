@@ -113,6 +113,19 @@ void emit_cut(const std::vector<torch::Tensor>& E, const std::vector<torch::Tens
     }
 }
 
+// D of docs/lod_rule.md step 1: the largest distance d of the last tier's n nodes in the frustum f
+// (of all of them when none is), at least 1e-12; 1 for an empty tier
+template <typename S, typename B>
+S normaliser(const S* d, const B* f, int64_t n) {
+    S D = S(0);
+    bool any = false;
+    for (int64_t i = 0; i < n; ++i)
+        if (f[i]) D = any ? std::max(D, d[i]) : d[i], any = true;
+    if (!any)
+        for (int64_t i = 0; i < n; ++i) D = i ? std::max(D, d[i]) : d[i];
+    return n == 0 ? S(1) : std::max(D, static_cast<S>(1e-12));
+}
+
 // The cut at one s_v walked from the roots (tree.walk's twin; docs/lod_rule.md: a renderer need
 // not visit the children of a node that has entered): the roots' frustum and d' give D, then each
 // tier below visits only the children of nodes not yet entered (s < E), in row order, so the ids
@@ -148,14 +161,7 @@ std::vector<torch::Tensor> root_walk_impl(const std::vector<torch::Tensor>& cols
     at::parallel_for(0, nT, kGrainCut, [&](int64_t b, int64_t e) {
         for (int64_t i = b; i < e; ++i) fT[i] = inside(xT[i], xT[nT + i], xT[2 * nT + i]), dT[i] = dist(xT, nT, i);
     });
-    S D = S(0);
-    bool any = false;
-    for (int64_t i = 0; i < nT; ++i)
-        if (fT[i]) D = any ? std::max(D, dT[i]) : dT[i], any = true;
-    if (!any)
-        for (int64_t i = 0; i < nT; ++i) D = i ? std::max(D, dT[i]) : dT[i];
-    D = std::max(D, static_cast<S>(1e-12));
-    if (nT == 0) D = S(1);
+    const S D = normaliser(dT.data(), fT.data(), nT);
     for (int64_t i = 0; i < nT; ++i) dT[i] = dT[i] / D;
     const S Fs = static_cast<S>(F), sv = static_cast<S>(s), ninf = -std::numeric_limits<S>::infinity();
     std::vector<torch::Tensor> E(T + 1), U(T + 1), fade(T + 1);
@@ -506,14 +512,7 @@ std::vector<torch::Tensor> frame_impl(const std::vector<torch::Tensor>& cols, co
     const int64_t nT = cols[T - 1].size(1);
     const bool* fT = fr[T - 1].data_ptr<bool>();
     const S* dT = d[T - 1].data_ptr<S>();
-    S D = S(0);
-    bool any = false;
-    for (int64_t i = 0; i < nT; ++i)
-        if (fT[i]) D = any ? std::max(D, dT[i]) : dT[i], any = true;
-    if (!any)
-        for (int64_t i = 0; i < nT; ++i) D = i ? std::max(D, dT[i]) : dT[i];
-    D = std::max(D, static_cast<S>(1e-12));
-    if (nT == 0) D = S(1);
+    const S D = normaliser(dT, fT, nT);
     std::vector<torch::Tensor> out;
     for (size_t k = 0; k < T; ++k) {
         S* dd = d[k].data_ptr<S>();

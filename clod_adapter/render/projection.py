@@ -13,7 +13,10 @@ Per Gaussian (gsplat order of operations):
   6. cull if both radii ``<= radius_clip``, or the box ``mean2d +- radius`` misses the image.
 
 Everything is plain torch (autograd). The heavy math runs only on the Gaussians that survive
-the cheap depth/opacity tests.
+the cheap depth/opacity tests. A frame without gradients (nothing recording autograd, CPU,
+float32/64, the C++ kernels built) runs :func:`project_geometry` and :func:`finish_projection` as
+one C++ pass each (``csrc/projection.cpp``, arithmetic in double), these functions being its twin
+(``tests/test_rasterization.py``); ``python -m benchmarks.studies.cpu_frame`` times both.
 """
 from __future__ import annotations
 

@@ -253,6 +253,8 @@ def test_the_cpp_projection_equals_its_torch_twin(dtype):
             assert int(d.max()) <= 1 and (d == 0).all(-1).float().mean() >= (0.99 if dtype == torch.float32 else 1.0)
             for f in ("means2d", "depths", "conics"):
                 assert close(getattr(pa, f)[ia], getattr(pb, f)[ib], getattr(pr, f)[ir].double())
+    with native.use_impl("cpp"), torch.no_grad(), pytest.raises(RuntimeError, match="outside"):
+        project_geometry(means, quats, scales, V, K, W, H, 0.01, 1e10, torch.tensor([0, n]))
 
 
 # ------------------------------------------------------------------------------------------

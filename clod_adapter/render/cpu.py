@@ -78,14 +78,12 @@ def sh_colors_rows(sh_degree: int, means: Tensor, sh0: Tensor, shN: Tensor, ids:
     ``sh0`` [N, 1, 3] and ``shN`` [N, K-1, 3] (``means`` [N, 3], ``campos`` [3]): where the C++
     kernels run and nothing records autograd, each row's coefficients read in place
     (``csrc/sh_colors.cpp``), no [V, K, 3] gather; else :func:`sh_colors` of the gathered rows, its
-    twin (``tests/test_sh.py``). Raises ValueError as :func:`sh_colors`."""
-    from .native import load, wanted
+    twin (``tests/test_sh.py``). Raises ValueError as :func:`sh_colors`; a row outside ``[0, N)``:
+    RuntimeError (C++) or IndexError (torch)."""
+    from .native import load, no_grad_cpu
 
-    xs = (means, sh0, shN, campos)
-    if (not (torch.is_grad_enabled() and any(x.requires_grad for x in xs)) and 0 <= int(sh_degree) <= 3
-            and means.dtype in (torch.float32, torch.float64) and sh0.dtype == shN.dtype == means.dtype
-            and shN.ndim == 3 and sh0.shape[1] + shN.shape[1] >= (int(sh_degree) + 1) ** 2
-            and sh0.shape[1] + shN.shape[1] <= 16 and all(x.device.type == "cpu" for x in xs) and wanted(True)):
+    if (0 <= int(sh_degree) <= 3 and shN.ndim == 3 and (int(sh_degree) + 1) ** 2 <= sh0.shape[1] + shN.shape[1] <= 16
+            and not (torch.is_grad_enabled() and campos.requires_grad) and no_grad_cpu(means, sh0, shN)):
         centre = [float(v) for v in campos.detach().to(means.dtype).tolist()]
         return load().sh_colors_rows(means, sh0, shN, ids.to(torch.int64), centre, int(sh_degree))
     coeffs = torch.cat([sh0.index_select(0, ids), shN.index_select(0, ids)], dim=1)

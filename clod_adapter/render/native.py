@@ -25,7 +25,7 @@ import time
 from pathlib import Path
 from typing import Optional
 
-__all__ = ["load", "available", "error", "impl", "use_impl", "wanted"]
+__all__ = ["load", "available", "error", "impl", "use_impl", "wanted", "no_grad_cpu"]
 
 _CSRC = Path(__file__).resolve().parent / "csrc"
 SOURCES = (_CSRC / "composite.cpp", _CSRC / "composite_simd.cpp", _CSRC / "lod_terms.cpp", _CSRC / "tree_cut.cpp",
@@ -134,6 +134,18 @@ def available() -> bool:
 def error() -> Optional[BaseException]:
     """Why the extension could not be built (None when it was, or was not tried yet)."""
     return _EXT_ERROR
+
+
+def no_grad_cpu(*xs) -> bool:
+    """Whether a frame's kernel runs its C++ form on the tensors ``xs`` (None entries skipped):
+    CPU tensors of one dtype, float32 or float64, none recording autograd, and :func:`wanted`."""
+    import torch
+
+    ts = [x for x in xs if x is not None]
+    dt = ts[0].dtype
+    if dt not in (torch.float32, torch.float64) or any(x.device.type != "cpu" or x.dtype != dt for x in ts):
+        return False
+    return not (torch.is_grad_enabled() and any(x.requires_grad for x in ts)) and wanted(True)
 
 
 def wanted(on_cpu: bool) -> bool:

@@ -26,6 +26,7 @@ import torch
 from torch import Tensor
 
 from ._torch_impl import ALPHA_THRESHOLD  # gsplat 1.5.3's 1/255, one definition for both stages
+from .native import no_grad_cpu as _kernel  # whether a stage runs csrc/projection.cpp
 
 __all__ = ["fully_fused_projection", "project_visible", "project_geometry", "finish_projection",
            "ProjectedGeometry", "VisibleProjection", "ALPHA_THRESHOLD", "EPS2D", "quat_to_rotmat_rows"]
@@ -87,19 +88,6 @@ def _check(means: Tensor, quats: Tensor, scales: Tensor, opacities: Optional[Ten
         raise ValueError(f"viewmat must be [4, 4], got {tuple(viewmat.shape)}")
     if tuple(K.shape) != (3, 3):
         raise ValueError(f"K must be [3, 3], got {tuple(K.shape)}")
-
-
-def _kernel(*xs: Optional[Tensor]) -> bool:
-    """Whether a stage runs its C++ form (``csrc/projection.cpp``): CPU tensors of one float dtype
-    (float32 or float64), none recording autograd, and the kernels wanted
-    (:func:`clod_adapter.render.native.wanted`); else the torch code below, its twin."""
-    from .native import wanted
-
-    ts = [x for x in xs if x is not None]
-    dt = ts[0].dtype
-    if dt not in (torch.float32, torch.float64) or any(x.device.type != "cpu" or x.dtype != dt for x in ts):
-        return False
-    return not (torch.is_grad_enabled() and any(x.requires_grad for x in ts)) and wanted(True)
 
 
 class ProjectedGeometry(NamedTuple):

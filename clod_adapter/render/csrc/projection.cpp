@@ -79,13 +79,32 @@ void terms(const double* cam, const S* m, const S* q, const S* s, double* out) {
 template void terms<float>(const double*, const float*, const float*, const float*, double*);
 template void terms<double>(const double*, const double*, const double*, const double*, double*);
 
+// gsplat's steps 4-6 for one Gaussian's terms (terms(): aa, ab, bb, axb2 and its pixel centre px,
+// py): out = [c00, c01, c11 (cov2d + eps2d I), det (cancellation-free), rx, ry (ceil of the
+// extent times the standard deviations, not capped)]; returns whether it is kept: det > 0 and
+// finite, with an opacity (has_op) at least 1/255 (the extent then min(3.33, sqrt(2 log(255 op))),
+// else 3.33), a radius above radius_clip and the box touching the image
+bool footprint(double aa, double ab, double bb, double axb2, double px, double py, bool has_op, double op,
+               double eps2d, double radius_clip, double width, double height, double* out) {
+    out[0] = aa + eps2d, out[1] = ab, out[2] = bb + eps2d;
+    out[3] = axb2 + eps2d * (aa + bb) + eps2d * eps2d;
+    bool good = out[3] > 0 && std::isfinite(out[3]);  // an overflowing footprint is culled
+    double extend = kExtend;
+    if (has_op) {
+        good = good && op >= kAlphaThreshold;
+        extend = std::min(std::sqrt(2.0 * std::log(std::max(op, kAlphaThreshold) / kAlphaThreshold)), kExtend);
+    }
+    const double rx = std::ceil(extend * std::sqrt(out[0])), ry = std::ceil(extend * std::sqrt(out[2]));
+    out[4] = rx, out[5] = ry;
+    good = good && !(rx <= radius_clip && ry <= radius_clip);
+    return good && !(px + rx <= 0 || px - rx >= width || py + ry <= 0 || py - ry >= height);
+}
+
 }  // namespace clod_ewa
 
 namespace {
 
 constexpr int64_t kGrain = 4096;  // ~50 ns an element
-using clod_ewa::kAlphaThreshold;
-using clod_ewa::kExtend;
 using clod_ewa::kMaxRadius;
 
 template <typename S>
@@ -104,6 +123,7 @@ std::vector<torch::Tensor> geometry_impl(const torch::Tensor& means_t, const tor
     ids.reserve(n);
     for (int64_t j = 0; j < n; ++j) {
         const int64_t i = all ? j : kp[j];
+        TORCH_CHECK(i >= 0 && i < means_t.size(0), "project_geometry: keep row ", i, " outside [0, ", means_t.size(0), ")");
         const double tz = R[6] * double(means[3 * i]) + R[7] * double(means[3 * i + 1]) +
                           R[8] * double(means[3 * i + 2]) + t[2];
         if (tz >= near_plane && tz <= far_plane) ids.push_back(i);
@@ -142,30 +162,14 @@ std::vector<torch::Tensor> finish_impl(const torch::Tensor& m2_t, const torch::T
             *ax = ax_t.data_ptr<S>();
     const S* op = op_t.numel() ? op_t.data_ptr<S>() : nullptr;
     const S* cs = cs_t.numel() ? cs_t.data_ptr<S>() : nullptr;
-    std::vector<double> c00(m), c01(m), c11(m), det(m), rx(m), ry(m);
+    std::vector<double> fp(6 * m);  // per row: footprint()'s c00, c01, c11, det, rx, ry
     std::vector<char> ok(m);
     at::parallel_for(0, m, kGrain, [&](int64_t b, int64_t e) {
         for (int64_t j = b; j < e; ++j) {
-            double a = aa[j], o = ab[j], c = bb[j], x = ax[j];
-            if (cs) {
-                const double f = cs[j];
-                a *= f, o *= f, c *= f, x *= f * f;
-            }
-            c00[j] = a + eps, c01[j] = o, c11[j] = c + eps;
-            det[j] = x + eps * (a + c) + eps * eps;
-            bool good = det[j] > 0 && std::isfinite(det[j]);  // an overflowing footprint is culled
-            double extend = kExtend;
-            if (op) {
-                const double p = op[j];
-                good = good && p >= kAlphaThreshold;
-                extend = std::min(std::sqrt(2.0 * std::log(std::max(p, kAlphaThreshold) / kAlphaThreshold)), kExtend);
-            }
-            rx[j] = std::ceil(extend * std::sqrt(c00[j]));
-            ry[j] = std::ceil(extend * std::sqrt(c11[j]));
-            const double mx = m2[2 * j], my = m2[2 * j + 1];
-            good = good && !(rx[j] <= radius_clip && ry[j] <= radius_clip);
-            good = good && !(mx + rx[j] <= 0 || mx - rx[j] >= width || my + ry[j] <= 0 || my - ry[j] >= height);
-            ok[j] = good;
+            const double f = cs ? double(cs[j]) : 1.0;
+            ok[j] = clod_ewa::footprint(aa[j] * f, ab[j] * f, bb[j] * f, ax[j] * (f * f), m2[2 * j], m2[2 * j + 1],
+                                        op != nullptr, op ? double(op[j]) : 0.0, eps, radius_clip, width, height,
+                                        fp.data() + 6 * j);
         }
     });
     std::vector<int64_t> sel;
@@ -180,13 +184,13 @@ std::vector<torch::Tensor> finish_impl(const torch::Tensor& m2_t, const torch::T
     S* con = o_con.data_ptr<S>();
     at::parallel_for(0, v, kGrain, [&](int64_t b, int64_t e) {
         for (int64_t k = b; k < e; ++k) {
-            const int64_t j = sel[k];
-            rad[2 * k] = static_cast<int32_t>(std::min(rx[j], kMaxRadius));  // capped: a huge footprint cannot wrap
-            rad[2 * k + 1] = static_cast<int32_t>(std::min(ry[j], kMaxRadius));
-            const double inv = 1.0 / det[j];
-            con[3 * k] = static_cast<S>(c11[j] * inv);
-            con[3 * k + 1] = static_cast<S>(-c01[j] * inv);
-            con[3 * k + 2] = static_cast<S>(c00[j] * inv);
+            const double* q = fp.data() + 6 * sel[k];
+            rad[2 * k] = static_cast<int32_t>(std::min(q[4], kMaxRadius));  // capped: a huge footprint cannot wrap
+            rad[2 * k + 1] = static_cast<int32_t>(std::min(q[5], kMaxRadius));
+            const double inv = 1.0 / q[3];
+            con[3 * k] = static_cast<S>(q[2] * inv);
+            con[3 * k + 1] = static_cast<S>(-q[1] * inv);
+            con[3 * k + 2] = static_cast<S>(q[0] * inv);
         }
     });
     return {o_sel, o_rad, o_con};

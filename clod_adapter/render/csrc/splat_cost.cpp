@@ -24,6 +24,8 @@ void camera(const double* R, const double* t, double fx, double cx, double fy, d
             double height, double* cam);
 template <typename S>
 void terms(const double* cam, const S* m, const S* q, const S* s, double* out);
+bool footprint(double aa, double ab, double bb, double axb2, double px, double py, bool has_op, double op,
+               double eps2d, double radius_clip, double width, double height, double* out);
 }  // namespace clod_ewa
 
 namespace {
@@ -52,17 +54,12 @@ void splat_cost_impl(int64_t n, const S* __restrict__ means, const S* __restrict
             double o[7];
             clod_ewa::terms<S>(cam, means + 3 * i, quats + 4 * i, scales + 3 * i, o);
             const double px = o[1], py = o[2], aa = o[3], ab = o[4], bb = o[5], axb2 = o[6];
-            const double c00 = aa + eps2d, c11 = bb + eps2d, c01 = ab;
-            const double det = axb2 + eps2d * (aa + bb) + eps2d * eps2d;
             const double op = static_cast<double>(opac[i]);
-            if (!(det > 0.0) || !std::isfinite(det) || !(op >= kAlphaThreshold)) continue;
+            double f[6];  // c00, c01, c11, det, radii
+            if (!clod_ewa::footprint(aa, ab, bb, axb2, px, py, true, op, eps2d, 0.0, width, height, f)) continue;
+            const double c00 = f[0], c01 = f[1], c11 = f[2], det = f[3], rad_x = f[4], rad_y = f[5];
             const double e2 = std::min(std::max(2.0 * std::log(std::max(op, kAlphaThreshold) / kAlphaThreshold), 0.0),
                                        kExtend * kExtend);
-            const double extend = std::min(std::sqrt(2.0 * std::log(std::max(op, kAlphaThreshold) / kAlphaThreshold)),
-                                           kExtend);
-            const double rad_x = std::ceil(extend * std::sqrt(c00)), rad_y = std::ceil(extend * std::sqrt(c11));
-            if (rad_x <= 0.0 && rad_y <= 0.0) continue;
-            if (px + rad_x <= 0 || px - rad_x >= width || py + rad_y <= 0 || py - rad_y >= height) continue;
             const double rx = static_cast<double>(static_cast<int32_t>(std::min(rad_x, kMaxRadius)));
             const double ry = static_cast<double>(static_cast<int32_t>(std::min(rad_y, kMaxRadius)));
             const double bw = std::max(std::min(std::max(px + rx, 0.0), width) - std::min(std::max(px - rx, 0.0), width), 0.0);

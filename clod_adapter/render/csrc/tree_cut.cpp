@@ -113,6 +113,16 @@ void emit_cut(const std::vector<torch::Tensor>& E, const std::vector<torch::Tens
     }
 }
 
+// docs/lod_rule.md step 1's frustum test of one centre (world units; R [9] row-major, t [3]; pixels)
+inline bool in_frustum(const double* R, const double* t, double fx, double cx, double fy, double cy, double width,
+                       double height, double near_plane, double px, double py, double pz) {
+    const double cz = R[6] * px + R[7] * py + R[8] * pz + t[2];
+    const double cxs = R[0] * px + R[1] * py + R[2] * pz + t[0];
+    const double cys = R[3] * px + R[4] * py + R[5] * pz + t[1];
+    const double a = fx * cxs + cx * cz, bb = fy * cys + cy * cz;  // pixel * z
+    return (cz > near_plane) & (a >= 0.0) & (a < cz * width) & (bb >= 0.0) & (bb < cz * height);
+}
+
 // D of docs/lod_rule.md step 1: the largest distance d of the last tier's n nodes in the frustum f
 // (of all of them when none is), at least 1e-12; 1 for an empty tier
 template <typename S, typename B>
@@ -143,11 +153,7 @@ std::vector<torch::Tensor> root_walk_impl(const std::vector<torch::Tensor>& cols
                                          const std::vector<torch::Tensor>& leads, double s, double F, double M) {
     const int64_t T = static_cast<int64_t>(cols.size()) - 1;
     auto inside = [&](double px, double py, double pz) {
-        const double cz = R[6] * px + R[7] * py + R[8] * pz + t[2];
-        const double cxs = R[0] * px + R[1] * py + R[2] * pz + t[0];
-        const double cys = R[3] * px + R[4] * py + R[5] * pz + t[1];
-        const double a = fx * cxs + cx * cz, bb = fy * cys + cy * cz;  // pixel * z
-        return (cz > near_plane) & (a >= 0.0) & (a < cz * width) & (bb >= 0.0) & (bb < cz * height);
+        return in_frustum(R, t, fx, cx, fy, cy, width, height, near_plane, px, py, pz);
     };
     auto dist = [&](const S* x, int64_t n, int64_t i) {  // in double, rounded to S (frame_impl)
         const double dx = double(x[i]) - c[0], dy = double(x[n + i]) - c[1], dz = double(x[2 * n + i]) - c[2];
@@ -494,12 +500,7 @@ std::vector<torch::Tensor> frame_impl(const std::vector<torch::Tensor>& cols, co
         S* dd = c ? d[k].data_ptr<S>() : nullptr;
         at::parallel_for(0, n, kGrainCut, [&](int64_t b, int64_t e) {
             for (int64_t i = b; i < e; ++i) {
-                const double px = x[i], py = y[i], pz = z[i];
-                const double cz = R[6] * px + R[7] * py + R[8] * pz + t[2];
-                const double cxs = R[0] * px + R[1] * py + R[2] * pz + t[0];
-                const double cys = R[3] * px + R[4] * py + R[5] * pz + t[1];
-                const double a = fx * cxs + cx * cz, bb = fy * cys + cy * cz;  // pixel * z
-                f[i] = (cz > near_plane) & (a >= 0.0) & (a < cz * width) & (bb >= 0.0) & (bb < cz * height);
+                f[i] = in_frustum(R, t, fx, cx, fy, cy, width, height, near_plane, x[i], y[i], z[i]);
             }
             if (dd)
                 for (int64_t i = b; i < e; ++i) {

@@ -9,7 +9,7 @@ import pytest
 import torch
 
 from clod_adapter.train import tiers
-from clod_adapter.lod import tree
+from clod_adapter.lod import neighbours, tree
 from clod_adapter.lod.draw import lod_subset, render_lod
 from clod_adapter.lod.cut import tree_node_costs, tree_select
 from clod_adapter.io.ply import PlyFormatError, read_ply, write_ply
@@ -52,6 +52,32 @@ def test_the_tree_is_whole(model):
     assert "parent" not in ts[-1].extra
     # the tree draws no level gains, so it holds none (the tiers it was built from had them)
     assert _adapted(60, 3).has_gains and not any(t.has_gains for t in ts)
+
+
+def test_the_k_d_tree_neighbours_equal_every_distance_and_give_the_builds_parents(model, monkeypatch):
+    gen = torch.Generator().manual_seed(3)
+    pts, qs = torch.randn(3000, 3, generator=gen), torch.randn(5000, 3, generator=gen) * 1.5
+    dup = torch.cat([pts, pts[:100]])  # duplicate points: tied distances in any order, the same distances
+    for k in (1, 16):
+        a, b = neighbours.nearest(pts, qs, k), neighbours.nearest_torch(pts, qs, k)
+        assert a.shape == (5000, k) and a.dtype == torch.int64 and bool((a == b).all())
+        a, b = neighbours.nearest(dup, qs, k), neighbours.nearest_torch(dup, qs, k)
+        da, db = (torch.linalg.vector_norm(qs[:, None].double() - dup[i].double(), dim=-1) for i in (a, b))
+        torch.testing.assert_close(da, db, rtol=0, atol=1e-12)
+        assert bool((da[:, 1:] >= da[:, :-1]).all())  # nearest first
+    # the build's parents: the k-d tree's candidates give what every distance gives
+    ts = tree.tiers_of(model[0])
+    for below, above in zip(ts, ts[1:]):
+        parent = tree.assign_parents(below, above)
+        monkeypatch.setattr(tree, "nearest", neighbours.nearest_torch)
+        assert bool((tree.assign_parents(below, above) == parent).all())
+        monkeypatch.undo()
+    for bad in (dict(points=pts[:, :2], queries=qs, k=1), dict(points=pts, queries=qs, k=0),
+                dict(points=pts[:5], queries=qs, k=6)):
+        with pytest.raises(ValueError, match="nearest"):
+            neighbours.nearest(**bad)
+        with pytest.raises(ValueError, match="nearest"):
+            neighbours.nearest_torch(**bad)
 
 
 def _with_exits(g, fn):

@@ -25,7 +25,12 @@ Each size runs in a fresh subprocess (``--one N``), so sizes do not share caches
   first merge (:func:`clod_adapter.train.tiers.decimated` to half the model: splat-transform's
   ``--decimate`` in a child process, whose own peak is ``ru_maxrss`` of the children) and its
   fit (:func:`clod_adapter.train.tiers.finetuned`, ``--steps`` steps; seconds per step). The tier's own
-  adaptation is the same step on the smaller merged model.
+  adaptation is the same step on the smaller merged model. Then the merge tree of the adapted model
+  and that merge (its ``sigma_d`` initialised by ``prepare``, handing over at ``s_v`` 1.75): its
+  build (:func:`clod_adapter.lod.tree.build`: parents from a k-d tree, node constants on the
+  training views), its fit on its cuts (:func:`clod_adapter.train.tree_fit.finetune`, ``--steps``
+  steps; seconds per step) and a frame of it (:func:`clod_adapter.lod.draw.render_lod` at ``s_v`` 4
+  and at a count budget of 30 % of the Gaussians in view; the median of 3 after a warm-up).
 
 Peak memory is the process's resident high-water mark (``VmHWM`` of /proc/self/status), reset
 before each phase (``echo 5 > /proc/self/clear_refs``), so each phase's peak is its own.
@@ -255,16 +260,23 @@ def one(n: int, args) -> dict:
     row["eval_drawn"] = frames[-1]["drawn"]
     row["peak_reset"] = can_reset
     if args.tiers:
-        del state, g
-        tier_phases(row, model, train, train_imgs, args)
+        del state
+        tier_phases(row, model, g, train, train_imgs, test, cfg, args)
     return row
 
 
-def tier_phases(row: dict, model, train, train_imgs, args) -> None:
-    """The ``--tiers`` phases (module docstring) into ``row``."""
+def tier_phases(row: dict, model, adapted, train, train_imgs, test, cfg, args) -> None:
+    """The ``--tiers`` phases (module docstring) into ``row``: ``model`` the input, ``adapted`` it
+    after the steps (the tree's tier 0)."""
     import resource
 
-    from clod_adapter.train import tiers
+    import torch
+
+    from clod_adapter.lod import tree
+    from clod_adapter.lod.budget import Budget
+    from clod_adapter.lod.draw import render_lod
+    from clod_adapter.train import tiers, tree_fit
+    from clod_adapter.train.loop import prepare
     from clod_adapter.train.pruning import faint
 
     reset_peak()
@@ -280,9 +292,28 @@ def tier_phases(row: dict, model, train, train_imgs, args) -> None:
     imgs = [train_imgs[i] for i in range(len(train))]
     reset_peak()
     t0 = time.perf_counter()
-    tiers.finetuned(merged, train, imgs, args.steps)
+    merged = tiers.finetuned(merged, train, imgs, args.steps)
     row["tier_fit_s_per_step"] = (time.perf_counter() - t0) / args.steps
     row["tier_fit_peak_mb"] = vm_kib("VmHWM") / 1024
+    # the merge tree of the model and its merge (sigma_d initialised as the job's tier adaptation starts)
+    linked = tiers.attach(adapted, prepare(merged, train, cfg).gaussians().detach(), 1.75)
+    reset_peak()
+    t0 = time.perf_counter()
+    model_tree = tree.build(linked, train)
+    row["tree_build_s"], row["tree_build_peak_mb"] = time.perf_counter() - t0, vm_kib("VmHWM") / 1024
+    reset_peak()
+    t0 = time.perf_counter()
+    tree_fit.finetune(model_tree, train, imgs, args.steps)
+    row["tree_fit_s_per_step"] = (time.perf_counter() - t0) / args.steps
+    row["tree_fit_peak_mb"] = vm_kib("VmHWM") / 1024
+    for key, kw in (("tree_frame_s", {"s_v": 4.0}), ("tree_budget_frame_s", {"budget": Budget(in_view=0.3)})):
+        ts = []
+        with torch.no_grad():
+            for _ in range(4):
+                t0 = time.perf_counter()
+                render_lod(model_tree, test, **kw)
+                ts.append(time.perf_counter() - t0)
+        row[key] = sorted(ts[1:])[1]  # the median after a warm-up frame
 
 
 def fit_exponent(xs, ys) -> float:
@@ -345,11 +376,14 @@ def tier_markdown(rows: list) -> str:
     ns = [r["n"] for r in rows]
     cols = [("faint s", "faint_s"), ("faint peak MB", "faint_peak_mb"), ("merge s", "decimate_s"),
             ("merge child peak MB", "decimate_child_peak_mb"), ("tier fit s/step", "tier_fit_s_per_step"),
-            ("tier fit peak MB", "tier_fit_peak_mb")]
+            ("tier fit peak MB", "tier_fit_peak_mb"), ("tree build s", "tree_build_s"),
+            ("tree build peak MB", "tree_build_peak_mb"), ("tree fit s/step", "tree_fit_s_per_step"),
+            ("tree fit peak MB", "tree_fit_peak_mb"), ("tree frame s (s_v 4)", "tree_frame_s"),
+            ("tree frame s (30 % in view)", "tree_budget_frame_s")]
     out = ["| N | left out | " + " | ".join(c for c, _ in cols) + " |", "|" + "---:|" * (len(cols) + 2)]
     for r in rows:
         out.append(f"| {r['n']:,} | {r['faint_left_out']:,} | " + " | ".join(
-            f"{r[k]:.0f}" if k.endswith("_mb") else f"{r[k]:.2f}" for _, k in cols) + " |")
+            f"{r[k]:.0f}" if k.endswith("_mb") else f"{r[k]:.3f}" for _, k in cols) + " |")
     if len(rows) >= 2:
         base = [r["base_mb"] for r in rows]
         ex = [f"{c} {fit_exponent(ns, [r[k] - (b if k.endswith('_mb') and 'child' not in k else 0) for r, b in zip(rows, base)]):.2f}"

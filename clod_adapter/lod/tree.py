@@ -52,6 +52,7 @@ from torch import Tensor
 from . import rule as lod
 from ..render import native
 from .budget import critical_s_v
+from .neighbours import nearest
 from ..gaussians import GAIN_NAMES, TREE_NODE_KEYS, Gaussians
 
 __all__ = ["CPP_KERNELS", "HAND_OVER", "MORPH", "PARENT_KEY", "EXIT_KEY", "REFERENCE_KEY", "NODE_KEYS", "budget_frame",
@@ -156,9 +157,10 @@ def _covariance_factors(g: Gaussians) -> tuple[Tensor, Tensor]:
 @torch.no_grad()
 def assign_parents(children: Gaussians, parents: Gaussians, *, candidates: int = CANDIDATES,
                    chunk: int = 2048) -> Tensor:
-    """Each child's parent: among the ``candidates`` parent centres nearest to it (Euclidean),
-    the one under whose Gaussian it is most likely (the smallest squared Mahalanobis distance
-    plus the log-determinant of the parent's covariance).
+    """Each child's parent: among the ``candidates`` parent centres nearest to it (Euclidean, a k-d
+    tree: :func:`clod_adapter.lod.neighbours.nearest`), the one under whose Gaussian it is most
+    likely (the smallest squared Mahalanobis distance plus the log-determinant of the parent's
+    covariance).
 
     Args:
         children: [N] Gaussians (tier ``k``). parents: [M] Gaussians (tier ``k + 1``), M >= 1.
@@ -175,11 +177,10 @@ def assign_parents(children: Gaussians, parents: Gaussians, *, candidates: int =
     logdet = 2.0 * torch.log(1.0 / inv_s).sum(-1)
     pm = parents.means.detach().double()
     cm = children.means.detach().double()
-    k = min(int(candidates), len(parents))
+    nears = nearest(pm, cm, min(int(candidates), len(parents))).to(pm.device)  # [N, k]
     out = torch.empty(len(children), dtype=torch.long)
     for a in range(0, len(children), chunk):
-        c = cm[a:a + chunk]
-        near = torch.cdist(c, pm).topk(k, dim=1, largest=False).indices  # [c, k]
+        c, near = cm[a:a + chunk], nears[a:a + chunk]
         delta = c[:, None, :] - pm[near]  # [c, k, 3]
         local = torch.einsum("ckj,ckji->cki", delta, R[near])  # coordinates in the parent's axes
         score = ((local * inv_s[near]) ** 2).sum(-1) + logdet[near]

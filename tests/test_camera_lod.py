@@ -11,7 +11,7 @@ import torch
 from clod_adapter.lod import rule as lod
 from clod_adapter.train.config import AdaptConfig
 from clod_adapter.train.loop import weighted_count
-from clod_adapter.lod.cost import splat_cost
+from clod_adapter.lod.cost import base_costs
 from clod_adapter.io.synthetic import make_cameras, make_ground_truth
 from clod_adapter.lod.draw import render_lod
 from clod_adapter.lod.view import view_lod
@@ -37,7 +37,7 @@ def test_weighted_count_exponent_zero_is_the_count_and_monotone(scene):
     # with exponent 1 the prefix's cost share fits the budget
     order = torch.sort(-v.critical[v.visible].double(), stable=True).indices
     idx = torch.nonzero(v.visible).squeeze(1)[order]
-    c = splat_cost(v, idx)
+    c = base_costs(v, idx)  # the costs weighted_count weighs (splat_cost's, to rounding)
     k = weighted_count(v, 0.3, 1.0)
     assert float(c[:k].sum()) <= 0.3 * float(c.sum()) + 1e-6 < float(c[:k + 1].sum())
     with pytest.raises(ValueError):

@@ -243,3 +243,54 @@ def test_the_cost_kernel_equals_its_twin(dtype):
         same = torch.isclose(ours, twin, rtol=1e-5 if dtype == torch.float64 else 2e-3, atol=1e-9)
         assert int((~same).sum()) <= max(1, n // 500), (ours[~same][:5], twin[~same][:5])
         assert float(ours.sum()) == pytest.approx(float(twin.sum()), rel=1e-3)
+
+
+def test_the_ordered_prefix_by_selection_equals_the_sorted_prefix():
+    """``ordered_prefix_count``'s C++ selection and its twin (a stable sort of every score) give the
+    same prefix: ties by position, NaN last, zero weights, budgets halfway between two sorted prefix
+    sums at least 1e-3 apart (where the order of the sums' rounding cannot move the answer) and at
+    the ends."""
+    from clod_adapter.lod.cost import ordered_prefix_count, prefix_count
+    from clod_adapter.render.native import load, use_impl
+
+    if load() is None:
+        pytest.skip("the C++ kernels do not build here")
+    gen = torch.Generator().manual_seed(4)
+    for m in (1, 50, 3000, 40000):
+        s = torch.randn(m, generator=gen, dtype=torch.float64)
+        s[torch.rand(m, generator=gen) < 0.2] = 0.5  # ties: broken by position
+        s[torch.rand(m, generator=gen) < 0.01] = float("nan")  # last
+        s[torch.rand(m, generator=gen) < 0.01] = float("inf")
+        w = torch.rand(m, generator=gen, dtype=torch.float64) ** 3
+        w[torch.rand(m, generator=gen) < 0.1] = 0.0
+        ws = w[torch.sort(-s, stable=True).indices]
+        cum = torch.cumsum(ws, 0)
+        mids = ((torch.cat([cum.new_zeros(1), cum[:-1]]) + cum) / 2)[ws > 1e-3]  # half a weight from either sum
+        picks = mids[torch.randint(len(mids), (40,), generator=gen)].tolist()
+        for budget in picks + [-1.0, 0.0, float(cum[-1]) * 2]:
+            with use_impl("torch"):
+                twin = ordered_prefix_count(s, w, budget)
+            assert twin == prefix_count(w[torch.sort(-s, stable=True).indices], budget)
+            assert ordered_prefix_count(s, w, budget) == twin, (m, budget)
+    assert ordered_prefix_count(torch.zeros(0), torch.zeros(0), 1.0) == 0
+
+
+def test_base_costs_equal_their_twin():
+    """``base_costs`` (one C++ pass over the model) is ``splat_cost`` at level 0 with the base
+    opacities, to rounding, on the rows asked for."""
+    from clod_adapter.lod.cost import base_costs
+    from clod_adapter.render.native import load, use_impl
+
+    if load() is None:
+        pytest.skip("the C++ kernels do not build here")
+    g = _model(n=3000, seed=6, gains=True)
+    for cam in make_cameras(1, 2):
+        v = view_lod(g, cam)
+        idx = torch.nonzero(v.visible).squeeze(1).flip(0)  # any order
+        ours = base_costs(v, idx)
+        with use_impl("torch"):
+            twin = base_costs(v, idx)
+        torch.testing.assert_close(twin, splat_cost(v, idx))
+        assert ours.shape == idx.shape and ours.dtype == torch.float64 and int((ours > 0).sum()) > len(idx) // 2
+        same = torch.isclose(ours, twin, rtol=2e-3, atol=1e-9)
+        assert int((~same).sum()) <= max(1, len(idx) // 500)

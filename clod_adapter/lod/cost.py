@@ -30,11 +30,12 @@ import torch
 from torch import Tensor
 
 from . import rule as lod
-from ..render.projection import (ALPHA_THRESHOLD, EPS2D, GAUSSIAN_EXTEND, MAX_RADIUS, VisibleProjection,
-                                 finish_projection)
+from ..render.projection import (ALPHA_THRESHOLD, EPS2D, FAR_PLANE, GAUSSIAN_EXTEND, MAX_RADIUS, NEAR_PLANE,
+                                 VisibleProjection, finish_projection)
 from ..render.tiles import TILE_SIZE, tile_rects
 
-__all__ = ["splat_cost", "cost_units", "cost_prefix", "order_in_view", "prefix_count", "level_opacities",
+__all__ = ["splat_cost", "cost_units", "cost_prefix", "order_in_view", "prefix_count", "ordered_prefix_count",
+           "native_splat_costs", "base_costs", "level_opacities",
            "FrameTimeModel", "DEFAULT_FRAME_TIME_MODEL", "COST_UNIT"]
 
 #: the cost unit of :func:`splat_cost`
@@ -212,6 +213,65 @@ def prefix_count(cost_sorted: Tensor, budget: float) -> int:
     cum = torch.cumsum(cost_sorted.double(), 0)
     return int(torch.searchsorted(cum, torch.tensor([float(budget)], dtype=torch.float64, device=cum.device),
                                   right=True)[0])
+
+
+def ordered_prefix_count(scores: Tensor, weights: Tensor, budget: float) -> int:
+    """:func:`prefix_count` of ``weights`` [m] (non-negative) taken in the order of ``scores`` [m]
+    descending, ties by position, NaN last (the order :func:`order_in_view` gives): the largest k
+    whose first k weigh at most ``budget`` (0 for a negative budget). On the CPU, where the kernels
+    run, without sorting them all (C++ ``ordered_prefix_count`` in ``render/csrc/splat_cost.cpp``:
+    a weighted selection, O(m)); its twin, a stable sort of every score, otherwise. The two sum in
+    different orders, so they agree up to rounding (tests/test_cost.py)."""
+    from ..render.native import load, wanted
+
+    m = scores.numel()
+    if m == 0 or not budget >= 0:
+        return 0
+    s, w = scores.detach().double(), weights.detach().double()
+    if wanted(s.device.type == "cpu"):
+        return int(load().ordered_prefix_count(s.contiguous(), w.contiguous(), float(budget)))
+    return prefix_count(w.index_select(0, torch.sort(-s, stable=True).indices), budget)
+
+
+@torch.no_grad()
+def native_splat_costs(means: Tensor, quats: Tensor, scales: Tensor, opacities: Tensor, viewmat: Tensor, K: Tensor,
+                       width: int, height: int) -> Tensor:
+    """[N] float64 ``"ellipse_px"`` cost of every Gaussian (``scales`` [N, 3] and ``opacities`` [N]
+    activated, ``quats`` [N, 4] wxyz, ``means`` [N, 3] world units) from the camera ``viewmat``
+    [4, 4] (world-to-camera) / ``K`` [3, 3] (pixels) / ``width`` x ``height`` pixels, by the C++
+    kernel (``render/csrc/splat_cost.cpp``): what :func:`splat_cost` gives at level 0 with these
+    opacities, to rounding (gsplat 1.5.3's projection in double, ``eps2d`` 0.3, near plane 0.01;
+    ``tests/test_cost.py`` holds the two together).
+
+    Raises:
+        RuntimeError: the C++ kernels do not build here (:func:`clod_adapter.render.native.error`)."""
+    from ..render.native import load
+
+    if load() is None:
+        raise RuntimeError("native_splat_costs: the C++ kernels do not build here")
+    dt = means.dtype
+    vm = viewmat.detach().to(torch.float64).cpu()
+    K = K.detach().to(torch.float64).cpu()
+    R, tr = vm[:3, :3].reshape(-1).tolist(), vm[:3, 3].tolist()
+    return load().splat_cost(means.detach().contiguous(), quats.detach().to(dt).contiguous(),
+                             scales.detach().to(dt).contiguous(), opacities.detach().to(dt).contiguous(), R, tr,
+                             float(K[0, 0]), float(K[0, 2]), float(K[1, 1]), float(K[1, 2]), int(width),
+                             int(height), NEAR_PLANE, FAR_PLANE, EPS2D)
+
+
+@torch.no_grad()
+def base_costs(view, idx: Tensor) -> Tensor:
+    """[k] float64 ``"ellipse_px"`` cost of rows ``idx`` [k] (int64) of ``view`` (a
+    :class:`clod_adapter.lod.view.LodView`) at level 0 with the base opacities: one pass of the C++
+    kernel over the model (:func:`native_splat_costs`) where the kernels run on the CPU, else
+    :func:`splat_cost` (its twin, equal to rounding)."""
+    from ..render.native import no_grad_cpu
+
+    if not no_grad_cpu(view.means, view.quats, view.scales, view.opacity_logits):
+        return splat_cost(view, idx)
+    c = native_splat_costs(view.means, view.quats, view.scales, torch.sigmoid(view.opacity_logits.detach()),
+                           view.viewmat, view.K, view.width, view.height)
+    return c.index_select(0, idx.to(c.device))
 
 
 def order_in_view(order_scores: Tensor, visible: Tensor) -> Tensor:

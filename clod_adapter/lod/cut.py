@@ -14,8 +14,7 @@ from . import tree
 from .budget import Budget
 from ..gaussians import Gaussians
 from . import rule as lod
-from ..render.projection import EPS2D
-from .view import FAR_PLANE, NEAR_PLANE, view_lod
+from .view import view_lod
 
 
 def tree_node_costs(tiers: Sequence[Gaussians], camera, tt) -> list[Tensor]:
@@ -43,28 +42,19 @@ def tree_node_costs(tiers: Sequence[Gaussians], camera, tt) -> list[Tensor]:
 
 def node_costs_native(t: Gaussians, camera) -> Tensor:
     """[N] float64 ``"ellipse_px"`` cost of every Gaussian of ``t`` (activated scales, opacities
-    ``sigmoid(opacity_logits)``, no gains) from ``camera``, by the C++ kernel: what
-    :func:`clod_adapter.lod.cost.splat_cost` gives at level 0 (to rounding; gsplat 1.5.3's
-    projection, ``eps2d`` 0.3, near plane 0.01). ``camera``: ``viewmat`` [4, 4] world-to-camera,
-    ``K`` [3, 3] pixels, ``width``, ``height`` (pixels).
+    ``sigmoid(opacity_logits)``, no gains) from ``camera``, by the C++ kernel
+    (:func:`clod_adapter.lod.cost.native_splat_costs`): what :func:`clod_adapter.lod.cost.splat_cost`
+    gives at level 0 (to rounding). ``camera``: ``viewmat`` [4, 4] world-to-camera, ``K`` [3, 3]
+    pixels, ``width``, ``height`` (pixels).
 
     Raises:
         RuntimeError: the C++ kernels do not build here (:func:`clod_adapter.render.native.error`)."""
-    from ..render.native import load
+    from .cost import native_splat_costs
 
-    if load() is None:
-        raise RuntimeError("node_costs_native: the C++ kernels do not build here")
-
-    dt = t.means.dtype
-    vm = camera.viewmat.detach().to(torch.float64).cpu()
-    K = camera.K.detach().to(torch.float64).cpu()
-    R, tr = vm[:3, :3].reshape(-1).tolist(), vm[:3, 3].tolist()
     with torch.no_grad():
         scales, opacities = lod.activated(t.log_scales, "exp"), lod.activated(t.opacity_logits, "sigmoid")
-    return load().splat_cost(t.means.detach().contiguous(), t.quats.detach().to(dt).contiguous(),
-                             scales.detach().to(dt).contiguous(), opacities.detach().to(dt).contiguous(), R, tr,
-                             float(K[0, 0]), float(K[0, 2]), float(K[1, 1]), float(K[1, 2]), int(camera.width),
-                             int(camera.height), NEAR_PLANE, FAR_PLANE, EPS2D)
+    return native_splat_costs(t.means, t.quats, scales, opacities, camera.viewmat, camera.K, int(camera.width),
+                              int(camera.height))
 
 
 def tree_select(gaussians: Gaussians, camera, s_v: Optional[float] = None, *, budget: Optional[Budget] = None,

@@ -42,13 +42,11 @@ from ..render.dispatch import Backend
 from .budget import Budget, critical_s_v, select_budget
 from .cost import view_cost_count, view_full_cost
 from ..gaussians import Gaussians
-from ..render.projection import EPS2D, ProjectedGeometry, VisibleProjection, finish_projection, project_geometry
+# gsplat 1.5.3's near and far planes, eps2d and tile size, used by every LoD render
+from ..render.projection import (EPS2D, FAR_PLANE, NEAR_PLANE, ProjectedGeometry, VisibleProjection,
+                                 finish_projection, project_geometry)
 from ..render.tiles import TILE_SIZE
 
-
-#: gsplat 1.5.3's near and far planes, used by every LoD render (with its ``eps2d`` and tile size,
-#: :data:`clod_adapter.render.projection.EPS2D` and :data:`clod_adapter.render.tiles.TILE_SIZE`)
-NEAR_PLANE, FAR_PLANE = 0.01, 1e10
 #: how often a budget's prefix is cut further on before the whole model is projected
 #: (:meth:`LodView._visible_prefix`)
 PREFIX_TRIES = 3

@@ -8,7 +8,9 @@
 * the projection of a frame without gradients (``csrc/projection.cpp``;
   :func:`clod_adapter.render.projection.project_geometry`, :func:`clod_adapter.render.projection.finish_projection`);
 * every Gaussian's rasterisation cost (``csrc/splat_cost.cpp``; :func:`clod_adapter.lod.cost.splat_cost`
-  at level 0, behind :func:`clod_adapter.lod.cut.tree_node_costs`).
+  at level 0, behind :func:`clod_adapter.lod.cut.tree_node_costs` and
+  :func:`clod_adapter.lod.cost.base_costs`) and the prefix of an order that fits a budget
+  (:func:`clod_adapter.lod.cost.ordered_prefix_count`).
 
 Built with ``torch.utils.cpp_extension.load`` and cached (honours ``TORCH_EXTENSIONS_DIR``).
 Where it cannot be built every kernel falls back to its pure-PyTorch twin. :func:`use_impl`

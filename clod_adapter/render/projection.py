@@ -29,11 +29,14 @@ from ._torch_impl import ALPHA_THRESHOLD  # gsplat 1.5.3's 1/255, one definition
 from .native import no_grad_cpu as _kernel  # whether a stage runs csrc/projection.cpp
 
 __all__ = ["fully_fused_projection", "project_visible", "project_geometry", "finish_projection",
-           "ProjectedGeometry", "VisibleProjection", "ALPHA_THRESHOLD", "EPS2D", "quat_to_rotmat_rows"]
+           "ProjectedGeometry", "VisibleProjection", "ALPHA_THRESHOLD", "EPS2D", "NEAR_PLANE", "FAR_PLANE",
+           "quat_to_rotmat_rows"]
 
 #: gsplat 1.5.3's default ``eps2d`` (pixels squared, added to every 2D covariance's diagonal: step 4):
 #: what every level-of-detail render and cost projects with
 EPS2D = 0.3
+#: gsplat 1.5.3's near and far planes (world units of camera depth), used by every LoD render
+NEAR_PLANE, FAR_PLANE = 0.01, 1e10
 GAUSSIAN_EXTEND = 3.33
 #: cap of the int32 radii (pixels); larger footprints cover any image anyway
 MAX_RADIUS = float(2 ** 30)

@@ -289,14 +289,15 @@ def weighted_count(view, share: float, cost_exponent: float) -> int:
     """How many Gaussians a level of ``share`` of the view's weighted cost draws: the longest
     prefix of the Gaussians in view by critical ``s_v`` (descending, ties by index: the order
     every budget uses) whose ``sum cost^cost_exponent`` is at most ``share`` of the total
-    (``cost`` = :func:`clod_adapter.lod.cost.splat_cost` at the base level, clipped ellipse pixels)."""
-    from ..lod.cost import order_in_view, prefix_count, splat_cost
+    (``cost`` = :func:`clod_adapter.lod.cost.base_costs`, clipped ellipse pixels at the base level;
+    the prefix by :func:`clod_adapter.lod.cost.ordered_prefix_count`, without a full sort)."""
+    from ..lod.cost import base_costs, ordered_prefix_count
 
-    order = order_in_view(view.critical, view.visible)
-    if order.numel() == 0:
-        return 0
-    w = splat_cost(view, order).clamp_min(1e-12) ** float(cost_exponent)
-    return prefix_count(w, float(share) * float(w.sum()))
+    pool = torch.nonzero(view.visible, as_tuple=False).squeeze(1)
+    if pool.numel() == 0 or share >= 1.0:  # all of it (a sum in another order may round past the total)
+        return int(pool.numel())
+    w = base_costs(view, pool).clamp_min(1e-12) ** float(cost_exponent)
+    return ordered_prefix_count(view.critical.index_select(0, pool), w, float(share) * float(w.sum()))
 
 
 def view_loss(g: Gaussians, camera, gt: Tensor, s_v: float, cfg: AdaptConfig, backend: str = "auto"):

@@ -740,6 +740,7 @@ std::vector<torch::Tensor> tree_budget_walk_cpu(std::vector<torch::Tensor> E, st
 torch::Tensor splat_cost_cpu(torch::Tensor means, torch::Tensor quats, torch::Tensor scales, torch::Tensor opacities,
                              std::vector<double> R, std::vector<double> t, double fx, double cx, double fy, double cy,
                              int64_t width, int64_t height, double near_plane, double far_plane, double eps2d);
+int64_t ordered_prefix_count_cpu(torch::Tensor scores, torch::Tensor weights, double budget);
 
 // projection.cpp (the EWA projection of a frame without gradients, render.projection's two stages)
 std::vector<torch::Tensor> project_geometry_cpu(torch::Tensor means, torch::Tensor quats, torch::Tensor scales,
@@ -782,4 +783,6 @@ PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
     m.def("sh_colors_rows", &sh_colors_rows_cpu, "colours of some rows of sh0 / shN, read in place (cpu.sh_colors_rows)");
     m.def("sh_colors_backward", &sh_colors_backward_cpu, "the gradients of sh_colors (means, coefficients)");
     m.def("splat_cost", &splat_cost_cpu, "every Gaussian's ellipse_px cost (lod.cost.splat_cost at level 0)");
+    m.def("ordered_prefix_count", &ordered_prefix_count_cpu,
+          "the longest prefix of an order whose weights fit a budget (lod.cost.ordered_prefix_count)");
 }

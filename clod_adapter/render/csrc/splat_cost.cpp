@@ -6,9 +6,15 @@
 // opacity-aware extent, radius and box culling).
 //
 // Twin: clod_adapter.lod.cost.splat_cost at level 0 (clod_adapter.lod.cost.Footprints); the
-// merge tree's cost and time budgets cost every node with it (clod_adapter.lod.cut.tree_node_costs).
+// merge tree's cost and time budgets cost every node with it (clod_adapter.lod.cut.tree_node_costs),
+// the calibrated schedule each training view's level (clod_adapter.train.loop.weighted_count).
 // tests/test_cost.py holds the two together. Arithmetic in double (the twin projects in the
 // model's dtype, so a radius on an integer boundary may round to the other side).
+//
+// ordered_prefix_count: the longest prefix of an order (scores descending, ties by position, NaN
+// last) whose weights fit a budget, by a weighted selection (nth_element halving the range, then
+// a sort of the last few): O(m) where the twin, clod_adapter.lod.cost.ordered_prefix_count's
+// torch form, sorts all m. The sums are taken in another order, so the two agree up to rounding.
 #include <torch/extension.h>
 
 #include <ATen/Parallel.h>
@@ -16,6 +22,7 @@
 #include <algorithm>
 #include <cmath>
 #include <cstdint>
+#include <numeric>
 #include <vector>
 
 namespace clod_ewa {  // projection.cpp
@@ -99,4 +106,46 @@ torch::Tensor splat_cost_cpu(torch::Tensor means, torch::Tensor quats, torch::Te
                                   out.data_ptr<double>());
     });
     return out;
+}
+
+// scores [m] and weights [m] (>= 0): contiguous CPU float64. Returns the largest k such that the
+// first k of the order (scores descending, ties by lower position, NaN last) weigh at most budget
+// (0 for a negative budget).
+int64_t ordered_prefix_count_cpu(torch::Tensor scores, torch::Tensor weights, double budget) {
+    TORCH_CHECK(scores.dim() == 1 && weights.dim() == 1 && scores.size(0) == weights.size(0), "scores [m], weights [m]");
+    for (const auto& x : {scores, weights}) {
+        TORCH_CHECK(x.is_contiguous() && x.device().is_cpu() && x.scalar_type() == torch::kFloat64,
+                    "contiguous CPU float64 tensors");
+    }
+    const int64_t m = scores.size(0);
+    if (m == 0 || !(budget >= 0.0)) return 0;
+    const double* s = scores.data_ptr<double>();
+    const double* w = weights.data_ptr<double>();
+    std::vector<int64_t> idx(m);
+    std::iota(idx.begin(), idx.end(), int64_t{0});
+    const auto first = [s](int64_t a, int64_t b) {  // a strict weak order: descending, NaN last, ties by position
+        const bool na = std::isnan(s[a]), nb = std::isnan(s[b]);
+        if (na || nb) return na != nb ? nb : a < b;
+        return s[a] > s[b] || (s[a] == s[b] && a < b);
+    };
+    int64_t lo = 0, hi = m;  // idx[0, lo) is the order's first lo, weighing acc <= budget; the answer is in [lo, hi]
+    double acc = 0.0;
+    while (hi - lo > 64) {
+        const int64_t mid = lo + (hi - lo) / 2;
+        std::nth_element(idx.begin() + lo, idx.begin() + mid, idx.begin() + hi, first);
+        double sum = 0.0;
+        for (int64_t i = lo; i < mid; ++i) sum += w[idx[i]];
+        if (acc + sum <= budget) {
+            acc += sum;
+            lo = mid;
+        } else {
+            hi = mid;
+        }
+    }
+    std::sort(idx.begin() + lo, idx.begin() + hi, first);
+    for (int64_t i = lo; i < hi; ++i) {
+        acc += w[idx[i]];
+        if (!(acc <= budget)) return i;
+    }
+    return hi;
 }

@@ -476,6 +476,22 @@ def test_fitting_on_budget_cuts(model):
         finetune(g, cams, imgs, 3, budget_steps=1.5)
 
 
+def test_the_fits_level_cap_bounds_the_levels_it_draws(model, monkeypatch):
+    """tree_fit.LEVEL_CAP: capped at s_v = 1, every level step draws tier 0 alone, so a fit on
+    levels trains nothing; uncapped, the same fit moves the merged tiers."""
+    from clod_adapter.train import tree_fit
+
+    g, _ = model
+    cams = make_cameras(2, 3)
+    imgs = [render_lod(g, c, 1.0).image.clamp(0, 1) for c in cams]
+    moved = tree.tiers_of(tree_fit.finetune(g, cams, imgs, 5, budget_steps=0.0))
+    monkeypatch.setattr(tree_fit, "LEVEL_CAP", 1.0)
+    held = tree.tiers_of(tree_fit.finetune(g, cams, imgs, 5, budget_steps=0.0))
+    a = tree.tiers_of(g)
+    assert not torch.equal(moved[1].means, a[1].means)
+    assert all(torch.equal(x.means, y.means) and torch.equal(x.log_scales, y.log_scales) for x, y in zip(a, held))
+
+
 def test_fitting_on_cuts_bounds_the_growth_of_merged_nodes(model):
     """tree_fit.finetune with ``grow``: no merged node's scale ends above its start times
     ``grow`` (unbounded, the same fit grows some), tier 0 is untouched, the merged nodes still

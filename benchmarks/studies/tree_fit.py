@@ -36,6 +36,15 @@ printed for scale). No goal is enforced (a study: exit 0)::
     python -m benchmarks.studies.tree_fit --inputs skull fern maskgaussian --steps 1000 \\
         --budget-steps 0.5 --popping-views 7 --lead mass
     python -m benchmarks.studies.tree_fit --inputs skull --as-adapted --popping-views 7
+    python -m benchmarks.studies.tree_fit --inputs fern skull --steps 0 1000 --budget-steps 0.5 \\
+        --popping-views 0 --cut-range 0.01,1e4 0.05,20 0.1,10
+
+Every row ends with tier 1 drawn whole, as a plain model: its PSNR and its count over tier 0's.
+
+``--cut-range LOWEST,CAP ...`` fits the tree on count budgets from ``LOWEST`` of the Gaussians in
+view (:data:`clod_adapter.train.tree_fit.BUDGET_LOWEST`, 0.01) and on levels up to ``s_v = CAP``
+(:data:`clod_adapter.train.tree_fit.LEVEL_CAP`; the coarsest level the views draw where lower), one
+row per value: does a fit held to the middle of the range draw it better?
 
 ``--spread R ...`` builds the tree with each tier's hand-overs spread over a factor ``R`` of ``s_v``
 (:func:`clod_adapter.lod.tree.build`'s ``spread``; default the adaptation's ``tree_spread``),
@@ -111,7 +120,7 @@ from clod_adapter.lod.budget import Budget
 from clod_adapter.lod.draw import render_lod
 from clod_adapter.lod.rankings import lightgaussian_significance
 from clod_adapter.metrics import psnr
-from clod_adapter.train import tiers
+from clod_adapter.train import tiers, tree_fit
 from clod_adapter.train.config import AdaptConfig
 from clod_adapter.train.tree_fit import finetune
 
@@ -170,7 +179,19 @@ def scores(g, base, cams, gts, sig, n_pop: int) -> dict:
         out.update(zip(SHARES, shares_psnr(g, cams, gts)))
         out["coarse"] = [statistics.mean(psnr(render_lod(g, c, sv).image, gt, cap=True)
                                          for c, gt in zip(cams, gts)) for sv in COARSE_S_V]
+        out["tier1"] = tier_whole(g, cams, gts)
     return out
+
+
+def tier_whole(g, cams, gts, k: int = 1) -> str:
+    """Tier ``k`` of the tree ``g`` drawn whole as a plain model: its mean PSNR on the views and its
+    drawn count over tier 0's, as the cell ``"PSNR (share)"``."""
+    tiers = tree.tiers_of(g)
+    with torch.no_grad():
+        outs = [render_lod(tiers[k].with_sigma_d(None), c) for c in cams]
+        n0 = sum(render_lod(tiers[0].with_sigma_d(None), c).n_rendered for c in cams)
+    share = sum(o.n_rendered for o in outs) / max(n0, 1)
+    return f"{statistics.mean(psnr(o.image, gt, cap=True) for o, gt in zip(outs, gts)):.2f} ({share:.2f})"
 
 
 def shares_psnr(g, cams, gts) -> list[float]:
@@ -202,7 +223,7 @@ def study(name: str, args) -> list[list]:
                    fitted.get("steps", "-"), "1,1,0", f"{cfg.tree_budget_steps:g}", "full (job)",
                    bound(cfg.tree_grow, cfg.tree_free_roots), f"{fitted.get('seconds', 0):.0f}",
                    " / ".join(f"{x:.1f}" for x in r["budget_pop"]), " / ".join(f"{x:.1f}" for x in r["s_v_pop"]),
-                   *[f"{r[s]:.2f}" for s in SHARES], " / ".join(f"{x:.2f}" for x in r["coarse"])]
+                   *[f"{r[s]:.2f}" for s in SHARES], " / ".join(f"{x:.2f}" for x in r["coarse"]), r["tier1"]]
             print(" | ".join(map(str, row)), flush=True)
             rows.append(row)
         return rows
@@ -262,20 +283,28 @@ def fit_rows(name, tag, built, base, fit_views, val_views, sig, cfg: AdaptConfig
     (:func:`count_times`)."""
     (fit_cams, fit_imgs), (val, gts) = fit_views, val_views
     rows, fitted = [], []
-    for n, rate in ((n, r) for n in args.steps for r in args.rate or [(1.0, 1.0, 0.0)]):
+    for n, rate, (lowest, cap) in ((n, r, c) for n in args.steps for r in args.rate or [(1.0, 1.0, 0.0)]
+                                   for c in args.cut_range or [(tree_fit.BUDGET_LOWEST, tree_fit.LEVEL_CAP)]):
         for grow, free in dict.fromkeys((gr, fr if gr is not None else 0.0) for gr in args.grow or [cfg.tree_grow]
                                         for fr in args.free_roots or [cfg.tree_free_roots]):  # unbounded: none free
             t = time.perf_counter()
-            g = fit_at_rate(rate, built, fit_cams, fit_imgs, n, background=cfg.background, seed=cfg.seed,
-                            budget_steps=args.budget_steps, grow=grow, free_roots=free)
+            default_range = tree_fit.BUDGET_LOWEST, tree_fit.LEVEL_CAP
+            tree_fit.BUDGET_LOWEST, tree_fit.LEVEL_CAP = lowest, cap  # read by finetune at its call
+            try:
+                g = fit_at_rate(rate, built, fit_cams, fit_imgs, n, background=cfg.background, seed=cfg.seed,
+                                budget_steps=args.budget_steps, grow=grow, free_roots=free)
+            finally:
+                tree_fit.BUDGET_LOWEST, tree_fit.LEVEL_CAP = default_range
             sec = time.perf_counter() - t
             r = scores(g, base, val, gts, sig, args.popping_views)
             row = [name, tag, *(f"{x:g}" for x in built_with), f"{tree.HAND_OVER:g}", f"{tree.MORPH:g}",
-                   n, ",".join(f"{x:g}" for x in rate), f"{args.budget_steps:g}", "half" if args.half else "full",
+                   n, ",".join(f"{x:g}" for x in rate),
+                   f"{args.budget_steps:g}" + (f" (from {100 * lowest:g} %; s_v <= {cap:g})" if args.cut_range else ""),
+                   "half" if args.half else "full",
                    bound(grow, free),
                    f"{sec:.0f}", " / ".join(f"{x:.1f}" for x in r["budget_pop"]),
                    " / ".join(f"{x:.1f}" for x in r["s_v_pop"]), *[f"{r[s]:.2f}" for s in SHARES],
-                   " / ".join(f"{x:.2f}" for x in r["coarse"])]
+                   " / ".join(f"{x:.2f}" for x in r["coarse"]), r["tier1"]]
             if held:
                 row.append(" / ".join(f"{x:.2f}" for x in shares_psnr(g, *held)))
             print(" | ".join(map(str, row)), flush=True)
@@ -370,6 +399,18 @@ def lead_rule(lead: str):
         tree.choose_leads = rule
 
 
+def parse_range(v: str) -> tuple:
+    """``LOWEST,CAP`` as ``(float, float)``: the fit's smallest count budget (a share in (0, 1]) and
+    its coarsest level (``s_v`` >= 1). Raises argparse.ArgumentTypeError otherwise."""
+    try:
+        lowest, cap = (float(x) for x in v.split(","))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected LOWEST,CAP, got {v!r}") from None
+    if not (0.0 < lowest <= 1.0 and cap >= 1.0):
+        raise argparse.ArgumentTypeError(f"LOWEST must be in (0, 1] and CAP >= 1, got {v!r}")
+    return lowest, cap
+
+
 def parse_rate(v: str) -> tuple:
     """``SCALE[,FINAL[,EMA]]`` -> (scale, final, ema)."""
     x = [float(a) for a in v.split(",")]
@@ -435,6 +476,9 @@ def main(argv=None) -> int:
                          "the moving average EMA per step returned (default 1: the job's fit)")
     ap.add_argument("--lead", choices=("centre", "mass"), default="centre",
                     help="each parent's lead child: the nearest its family's centre (the rule) or the largest mass")
+    ap.add_argument("--cut-range", type=parse_range, nargs="+", metavar="LOWEST,CAP",
+                    help="fit on count budgets from LOWEST (a share in view) to 1 and on levels up to s_v CAP "
+                         "(default: the job's, 0.01 and the coarsest level drawn)")
     ap.add_argument("--held-out", type=int, default=0, metavar="K",
                     help="fit without every K-th fit view and score each row on those views too")
     ap.add_argument("--time", action="store_true",
@@ -448,7 +492,7 @@ def main(argv=None) -> int:
     head = ["input", "adaptation", "spread", "exit b", "F", "M", "steps", "rate, final, ema", "budget steps", "resolution",
             "grow", "fit s", "popping along budgets", "popping along s_v",
             *[f"PSNR {int(100 * s)} % in view" for s in SHARES],
-            "PSNR at s_v " + " / ".join(f"{x:g}" for x in COARSE_S_V)]
+            "PSNR at s_v " + " / ".join(f"{x:g}" for x in COARSE_S_V), "tier 1 whole: PSNR (its count over tier 0's)"]
     if args.held_out and not args.as_adapted:
         head.append("held-out training views: PSNR at " + " / ".join(f"{100 * s:g}" for s in SHARES) + " % in view")
     if args.time and not args.as_adapted:
@@ -465,6 +509,7 @@ def main(argv=None) -> int:
                + ("_grow" + "-".join("none" if x is None else f"{x:g}" for x in args.grow) if args.grow else "")
                + ("_free" + "-".join(f"{x:g}" for x in args.free_roots) if args.free_roots else "")
                + ("_rate" + "-".join(",".join(f"{x:g}" for x in r) for r in args.rate) if args.rate else "")
+               + ("_range" + "-".join(",".join(f"{x:g}" for x in r) for r in args.cut_range) if args.cut_range else "")
                + (f"_heldout{args.held_out}" if args.held_out else "")
                + ("_lead-mass" if args.lead == "mass" else "")))
     print(text)

@@ -36,6 +36,9 @@ MEANS_LR_SCALE = 0.1
 #: the smallest count budget a budget step of :func:`finetune` draws, a share of tier 0's centres
 #: in view (issue 62's budget sweep: 100 % to 1 %)
 BUDGET_LOWEST = 0.01
+#: the coarsest level a level step of :func:`finetune` draws: :func:`level_range` capped here (a
+#: study may lower it, docs/studies.md "The fit's cuts held to the middle of the range")
+LEVEL_CAP = 1e4
 
 
 def level_range(model: Gaussians, cameras: Sequence) -> float:
@@ -61,7 +64,7 @@ def finetune(model: Gaussians, cameras: Sequence, images: Sequence, steps: int =
     """``model`` (a merge tree, :func:`clod_adapter.lod.tree.is_tree`) with its merged tiers fitted on
     its cuts (module docstring) for ``steps`` steps on ``cameras`` (training views) and their
     ``images`` ([H, W, 3] float32 in [0, 1]). ``s_v`` is sampled log-uniformly in ``[1, top]``,
-    ``top`` the coarsest level the views draw (:func:`level_range`, capped at 1e4). A share
+    ``top`` the coarsest level the views draw (:func:`level_range`, capped at :data:`LEVEL_CAP`). A share
     ``budget_steps`` of the steps (default :data:`clod_adapter.train.config.TREE_BUDGET_STEPS`; 0:
     none, and no random number drawn for it) draws instead the cut of a count budget
     (:func:`clod_adapter.lod.tree.budget_cut`) of a share of tier 0's centres in view sampled
@@ -98,7 +101,7 @@ def finetune(model: Gaussians, cameras: Sequence, images: Sequence, steps: int =
         ex = tiers[-1].extra[tree.EXIT_KEY].double()
         last = ex >= torch.quantile(ex, 1.0 - free_roots, interpolation="lower")  # those that leave last
         caps[-1] = torch.where(last[:, None], torch.full_like(caps[-1], math.inf), caps[-1])
-    ln_top = math.log(min(level_range(model, cameras), 1e4))
+    ln_top = math.log(min(level_range(model, cameras), LEVEL_CAP))
     gen = torch.Generator().manual_seed(seed)
     bg = None if background is None else torch.as_tensor(background, dtype=model.means.dtype).reshape(1, -1)
     for it in range(int(steps)):

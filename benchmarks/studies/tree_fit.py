@@ -36,8 +36,9 @@ printed for scale). No goal is enforced (a study: exit 0)::
     python -m benchmarks.studies.tree_fit --inputs skull fern maskgaussian --steps 1000 \\
         --budget-steps 0.5 --popping-views 7 --lead mass
     python -m benchmarks.studies.tree_fit --inputs skull --as-adapted --popping-views 7
-    python -m benchmarks.studies.tree_fit --inputs fern skull --steps 0 1000 --budget-steps 0.5 \\
-        --popping-views 0 --cut-range 0.01,1e4 0.05,20 0.1,10
+    python -m benchmarks.studies.tree_fit --inputs fern skull --steps 0 --popping-views 0
+    python -m benchmarks.studies.tree_fit --inputs fern skull --steps 1000 --budget-steps 0.5 \\
+        --popping-views 2 --cut-range 0.01,1e4 0.05,20 0.1,10
 
 Every row ends with tier 1 drawn whole, as a plain model: its PSNR and its count over tier 0's.
 
@@ -186,10 +187,10 @@ def scores(g, base, cams, gts, sig, n_pop: int) -> dict:
 def tier_whole(g, cams, gts, k: int = 1) -> str:
     """Tier ``k`` of the tree ``g`` drawn whole as a plain model: its mean PSNR on the views and its
     drawn count over tier 0's, as the cell ``"PSNR (share)"``."""
-    tiers = tree.tiers_of(g)
+    ts = tree.tiers_of(g)
     with torch.no_grad():
-        outs = [render_lod(tiers[k].with_sigma_d(None), c) for c in cams]
-        n0 = sum(render_lod(tiers[0].with_sigma_d(None), c).n_rendered for c in cams)
+        outs = [render_lod(ts[k].with_sigma_d(None), c) for c in cams]
+        n0 = sum(render_lod(ts[0].with_sigma_d(None), c).n_rendered for c in cams)
     share = sum(o.n_rendered for o in outs) / max(n0, 1)
     return f"{statistics.mean(psnr(o.image, gt, cap=True) for o, gt in zip(outs, gts)):.2f} ({share:.2f})"
 

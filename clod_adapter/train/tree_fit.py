@@ -37,7 +37,8 @@ MEANS_LR_SCALE = 0.1
 #: in view (issue 62's budget sweep: 100 % to 1 %)
 BUDGET_LOWEST = 0.01
 #: the coarsest level a level step of :func:`finetune` draws: :func:`level_range` capped here (a
-#: study may lower it, docs/studies.md "The fit's cuts held to the middle of the range")
+#: study may lower it: docs/studies.md "The tree against its own first tier, and a fit held to the
+#: middle of the range")
 LEVEL_CAP = 1e4
 
 

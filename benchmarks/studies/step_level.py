@@ -69,6 +69,7 @@ def measure(name: str, model, scene, steps: int, rounds: int) -> dict:
     fit(state, train, imgs, cfg, progress=False, max_steps=steps)
     step_ms = (time.perf_counter() - t0) / steps * 1e3
     g = state.gaussians().detach()
+
     def torch_count(view, share, cost_exponent):  # the same function with every kernel's torch twin
         with use_impl("torch"):
             return weighted_count(view, share, cost_exponent)
@@ -95,8 +96,9 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     common.add_inputs_args(ap, ["fern"])
     ap.add_argument("--sizes", type=int, nargs="*", default=[])
-    ap.add_argument("--steps", type=int, default=10, help="steps per block")
-    ap.add_argument("--rounds", type=int, default=6, help="blocks per form, alternating")
+    ap.add_argument("--steps", type=int, default=10, help="training steps timed for the ms per step "
+                                                          "(a fifth of them on the synthetic models)")
+    ap.add_argument("--rounds", type=int, default=6, help="rounds of the level timed by each form, in shuffled order")
     ap.add_argument("--threads", type=int, default=2)
     args = ap.parse_args(argv)
     torch.set_num_threads(args.threads)

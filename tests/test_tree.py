@@ -492,6 +492,30 @@ def test_the_fits_level_cap_bounds_the_levels_it_draws(model, monkeypatch):
     assert all(torch.equal(x.means, y.means) and torch.equal(x.log_scales, y.log_scales) for x, y in zip(a, held))
 
 
+def test_the_fits_tier0_rate_fits_tier_0_held_at_its_size(model):
+    """tree_fit.finetune's ``tier0_rate``: 0 leaves tier 0 as it is (the job's fit); above 0 the
+    same steps move tier 0 too, its scales held at most at their start (``grow`` 1) and the tree
+    (parents, entries, exits) unchanged; a negative rate is refused."""
+    from clod_adapter.train import tree_fit
+
+    g, _ = model
+    cams = make_cameras(2, 3)
+    imgs = [render_lod(g, c, 1.0).image.clamp(0, 1) * 0.9 for c in cams]
+    a = tree.tiers_of(g)
+    kept = tree.tiers_of(tree_fit.finetune(g, cams, imgs, 8, budget_steps=0.5, tier0_rate=0.0))
+    fitted = tree.tiers_of(tree_fit.finetune(g, cams, imgs, 8, budget_steps=0.5, tier0_rate=1.0, grow=1.0))
+    assert torch.equal(kept[0].means, a[0].means) and torch.equal(kept[0].sh0, a[0].sh0)
+    assert not torch.equal(fitted[0].sh0, a[0].sh0)
+    assert bool((fitted[0].log_scales <= a[0].log_scales + 1e-6).all())
+    for x, y in zip(a, fitted):
+        assert torch.equal(x.sigma_d, y.sigma_d) and len(x) == len(y)
+        for key in (tree.PARENT_KEY, tree.EXIT_KEY):
+            if key in x.extra:
+                assert torch.equal(x.extra[key], y.extra[key])
+    with pytest.raises(ValueError, match="tier0_rate"):
+        tree_fit.finetune(g, cams, imgs, 2, tier0_rate=-1.0)
+
+
 def test_fitting_on_cuts_bounds_the_growth_of_merged_nodes(model):
     """tree_fit.finetune with ``grow``: no merged node's scale ends above its start times
     ``grow`` (unbounded, the same fit grows some), tier 0 is untouched, the merged nodes still

@@ -88,6 +88,12 @@ the first row) instead of the child nearest its family's mass-weighted centre
 (:func:`mass_leads`, installed as ``lod.tree.choose_leads``, the build's choice, for the run;
 default ``centre``, the rule).
 
+``--tier0-rate R ...`` fits tier 0 too, at its rates times ``R``
+(:func:`clod_adapter.train.tree_fit.finetune`'s ``tier0_rate``; 0, the job's: tier 0 unchanged), one
+row per value, each ending with tier 0 drawn whole (full detail). ``--train-nodes stable`` fits only
+the nodes a cut draws as themselves: the rows in a hand-over or fading out (``t < 1``) are drawn but
+pass no gradient (:func:`node_gradients`, installed for the run; default ``all``, the job's fit).
+
 ``--config KEY=VALUE ...`` takes the adaptation with those ``AdaptConfig`` settings (cached under
 their tag) instead of the defaults; ``--as-adapted`` scores it as the job fitted its tree (one row,
 no fit here) and prints, per tier, how many families would get another lead if it were chosen
@@ -181,6 +187,7 @@ def scores(g, base, cams, gts, sig, n_pop: int) -> dict:
         out["coarse"] = [statistics.mean(psnr(render_lod(g, c, sv).image, gt, cap=True)
                                          for c, gt in zip(cams, gts)) for sv in COARSE_S_V]
         out["tier1"] = tier_whole(g, cams, gts)
+        out["tier0"] = tier_whole(g, cams, gts, 0).split(" ")[0]
     return out
 
 
@@ -284,8 +291,9 @@ def fit_rows(name, tag, built, base, fit_views, val_views, sig, cfg: AdaptConfig
     (:func:`count_times`)."""
     (fit_cams, fit_imgs), (val, gts) = fit_views, val_views
     rows, fitted = [], []
-    for n, rate, (lowest, cap) in ((n, r, c) for n in args.steps for r in args.rate or [(1.0, 1.0, 0.0)]
-                                   for c in args.cut_range or [(tree_fit.BUDGET_LOWEST, tree_fit.LEVEL_CAP)]):
+    for n, rate, (lowest, cap), t0_rate in ((n, r, c, z) for n in args.steps for r in args.rate or [(1.0, 1.0, 0.0)]
+                                            for c in args.cut_range or [(tree_fit.BUDGET_LOWEST, tree_fit.LEVEL_CAP)]
+                                            for z in args.tier0_rate or [0.0]):
         for grow, free in dict.fromkeys((gr, fr if gr is not None else 0.0) for gr in args.grow or [cfg.tree_grow]
                                         for fr in args.free_roots or [cfg.tree_free_roots]):  # unbounded: none free
             t = time.perf_counter()
@@ -293,7 +301,7 @@ def fit_rows(name, tag, built, base, fit_views, val_views, sig, cfg: AdaptConfig
             tree_fit.BUDGET_LOWEST, tree_fit.LEVEL_CAP = lowest, cap  # read by finetune at its call
             try:
                 g = fit_at_rate(rate, built, fit_cams, fit_imgs, n, background=cfg.background, seed=cfg.seed,
-                                budget_steps=args.budget_steps, grow=grow, free_roots=free)
+                                budget_steps=args.budget_steps, grow=grow, free_roots=free, tier0_rate=t0_rate)
             finally:
                 tree_fit.BUDGET_LOWEST, tree_fit.LEVEL_CAP = default_range
             sec = time.perf_counter() - t
@@ -306,6 +314,8 @@ def fit_rows(name, tag, built, base, fit_views, val_views, sig, cfg: AdaptConfig
                    f"{sec:.0f}", " / ".join(f"{x:.1f}" for x in r["budget_pop"]),
                    " / ".join(f"{x:.1f}" for x in r["s_v_pop"]), *[f"{r[s]:.2f}" for s in SHARES],
                    " / ".join(f"{x:.2f}" for x in r["coarse"]), r["tier1"]]
+            if args.tier0_rate:
+                row += [f"{t0_rate:g}", r["tier0"]]
             if held:
                 row.append(" / ".join(f"{x:.2f}" for x in shares_psnr(g, *held)))
             print(" | ".join(map(str, row)), flush=True)
@@ -400,6 +410,28 @@ def lead_rule(lead: str):
         tree.choose_leads = rule
 
 
+@contextlib.contextmanager
+def node_gradients(which: str):
+    """``lod.tree.cut_attributes`` as ``--train-nodes`` says for the run (``all``: the rule's): with
+    ``stable``, while autograd records, the rows of a cut in a hand-over or fading out (``t < 1``)
+    are returned detached, so a fit trains only the nodes drawn as themselves. Restored on exit."""
+    rule = tree.cut_attributes
+
+    def stable_only(tiers, c, **kw):
+        out = rule(tiers, c, **kw)
+        if not torch.is_grad_enabled():
+            return out
+        moving = torch.cat([w < 1.0 for w in c.t])
+        return tuple(torch.where(moving.reshape(-1, *([1] * (x.dim() - 1))), x.detach(), x) for x in out)
+
+    if which == "stable":
+        tree.cut_attributes = stable_only
+    try:
+        yield
+    finally:
+        tree.cut_attributes = rule
+
+
 def parse_range(v: str) -> tuple:
     """``LOWEST,CAP`` as ``(float, float)``: the fit's smallest count budget (a share in (0, 1]) and
     its coarsest level (``s_v`` >= 1). Raises argparse.ArgumentTypeError otherwise."""
@@ -480,20 +512,28 @@ def main(argv=None) -> int:
     ap.add_argument("--cut-range", type=parse_range, nargs="+", metavar="LOWEST,CAP",
                     help="fit on count budgets from LOWEST (a share in view) to 1 and on levels up to s_v CAP "
                          "(default: the job's, 0.01 and the coarsest level drawn)")
+    ap.add_argument("--tier0-rate", type=float, nargs="+", metavar="R",
+                    help="fit tier 0 too, at its rates times R (0: not fitted, the job's)")
+    ap.add_argument("--train-nodes", choices=("all", "stable"), default="all",
+                    help="fit every drawn node (the job's) or only those drawn as themselves (t = 1)")
     ap.add_argument("--held-out", type=int, default=0, metavar="K",
                     help="fit without every K-th fit view and score each row on those views too")
     ap.add_argument("--time", action="store_true",
                     help="also time each fit at --decimate's counts against the decimated models")
     args = ap.parse_args(argv)
-    if args.as_adapted and (args.rate or args.held_out or args.lead != "centre"):
-        ap.error("--as-adapted scores the job's own tree and fit: --rate, --held-out and --lead refit or rebuild it")
+    if args.as_adapted and (args.rate or args.held_out or args.lead != "centre" or args.tier0_rate
+                            or args.train_nodes != "all"):
+        ap.error("--as-adapted scores the job's own tree and fit: --rate, --held-out, --lead, --tier0-rate and "
+                 "--train-nodes refit or rebuild it")
     setup_threads(args.threads)
-    with lead_rule(args.lead):
+    with lead_rule(args.lead), node_gradients(args.train_nodes):
         rows = [r for name in selected_inputs(args) for r in study(name, args)]
     head = ["input", "adaptation", "spread", "exit b", "F", "M", "steps", "rate, final, ema", "budget steps", "resolution",
             "grow", "fit s", "popping along budgets", "popping along s_v",
             *[f"PSNR {int(100 * s)} % in view" for s in SHARES],
             "PSNR at s_v " + " / ".join(f"{x:g}" for x in COARSE_S_V), "tier 1 whole: PSNR (its count over tier 0's)"]
+    if args.tier0_rate and not args.as_adapted:
+        head += ["tier 0 rate", "tier 0 whole (full detail): PSNR"]
     if args.held_out and not args.as_adapted:
         head.append("held-out training views: PSNR at " + " / ".join(f"{100 * s:g}" for s in SHARES) + " % in view")
     if args.time and not args.as_adapted:
@@ -512,7 +552,9 @@ def main(argv=None) -> int:
                + ("_rate" + "-".join(",".join(f"{x:g}" for x in r) for r in args.rate) if args.rate else "")
                + ("_range" + "-".join(",".join(f"{x:g}" for x in r) for r in args.cut_range) if args.cut_range else "")
                + (f"_heldout{args.held_out}" if args.held_out else "")
-               + ("_lead-mass" if args.lead == "mass" else "")))
+               + ("_tier0-" + "-".join(f"{x:g}" for x in args.tier0_rate) if args.tier0_rate else "")
+               + ("_lead-mass" if args.lead == "mass" else "")
+               + ("_stable-nodes" if args.train_nodes == "stable" else "")))
     print(text)
     print(write_summary(name, text))
     return 0

@@ -61,7 +61,7 @@ def _tiers_with(tiers: list, params: list) -> list:
 def finetune(model: Gaussians, cameras: Sequence, images: Sequence, steps: int = TREE_STEPS, *,
              background=None, seed: int = 0, log=None,
              budget_steps: float = TREE_BUDGET_STEPS, grow: Optional[float] = TREE_GROW,
-             free_roots: float = TREE_FREE_ROOTS) -> Gaussians:
+             free_roots: float = TREE_FREE_ROOTS, tier0_rate: float = 0.0) -> Gaussians:
     """``model`` (a merge tree, :func:`clod_adapter.lod.tree.is_tree`) with its merged tiers fitted on
     its cuts (module docstring) for ``steps`` steps on ``cameras`` (training views) and their
     ``images`` ([H, W, 3] float32 in [0, 1]). ``s_v`` is sampled log-uniformly in ``[1, top]``,
@@ -74,7 +74,10 @@ def finetune(model: Gaussians, cameras: Sequence, images: Sequence, steps: int =
     node's log-scales are clamped to at most their value at the start plus ``ln grow`` (1: no node
     ends larger than it entered the fit), but for the share ``free_roots`` of the roots (the last
     tier's nodes) with the largest exits, the ones the coarsest levels draw alone (default
-    :data:`clod_adapter.train.config.TREE_FREE_ROOTS`, 0.25). ``steps <= 0`` returns ``model``.
+    :data:`clod_adapter.train.config.TREE_FREE_ROOTS`, 0.25). With ``tier0_rate`` > 0 tier 0 (the
+    model at full detail) is fitted too, at its rates times ``tier0_rate`` and held at its size as the
+    merged nodes are (a study's knob: docs/studies.md "Tier 0 fitted on the cuts too"; default 0, tier 0
+    unchanged). ``steps <= 0`` returns ``model``.
     Returns a new :class:`~clod_adapter.gaussians.Gaussians` (the same nodes, tree and dtype).
 
     Raises:
@@ -91,13 +94,21 @@ def finetune(model: Gaussians, cameras: Sequence, images: Sequence, steps: int =
         raise ValueError(f"tree_fit.finetune: grow must be a factor >= 1 or None, got {grow}")
     if not 0.0 <= free_roots <= 1.0:
         raise ValueError(f"tree_fit.finetune: free_roots must be in [0, 1], got {free_roots}")
+    if not tier0_rate >= 0.0:
+        raise ValueError(f"tree_fit.finetune: tier0_rate must be >= 0, got {tier0_rate}")
     if steps <= 0 or not len(cameras):
         return model
     tiers = tree.tiers_of(model)
     params = [{k: torch.nn.Parameter(getattr(t, k).detach().clone()) for k in BASE_FIELDS} for t in tiers[1:]]
     means_lr = OFFICIAL_LR["means"][0] * MEANS_LR_SCALE
-    opt = torch.optim.Adam([grp for p in params for grp in official_groups(p, means_lr)], eps=ADAM_EPS)
+    groups = [grp for p in params for grp in official_groups(p, means_lr)]
+    own = None
+    if tier0_rate > 0.0:  # tier 0 fitted too, at a share of the rates
+        own = {k: torch.nn.Parameter(getattr(tiers[0], k).detach().clone()) for k in BASE_FIELDS}
+        groups += official_groups(own, means_lr * tier0_rate, tier0_rate)
+    opt = torch.optim.Adam(groups, eps=ADAM_EPS)
     caps = None if grow is None else [p["log_scales"].detach() + math.log(grow) for p in params]
+    own_cap = None if own is None or grow is None else own["log_scales"].detach() + math.log(grow)
     if caps is not None and free_roots > 0.0 and len(tiers[-1]):
         ex = tiers[-1].extra[tree.EXIT_KEY].double()
         last = ex >= torch.quantile(ex, 1.0 - free_roots, interpolation="lower")  # those that leave last
@@ -110,14 +121,14 @@ def finetune(model: Gaussians, cameras: Sequence, images: Sequence, steps: int =
         s = math.exp(float(torch.rand(1, generator=gen)) * ln_top)
         budget = budget_steps > 0 and float(torch.rand(1, generator=gen)) < budget_steps
         share = math.exp(float(torch.rand(1, generator=gen)) * math.log(BUDGET_LOWEST)) if budget else 1.0
-        cur = _tiers_with(tiers, params)
+        cur = _tiers_with(tiers if own is None else [replace(tiers[0], **own)] + tiers[1:], params)
         with torch.no_grad():
             if budget:  # one frame of terms: its frustum gives the count the share is of
                 at = tree.budget_frame(cur, cameras[i])
                 c = tree.budget_cut(cur, cameras[i], share * int(at[1][0].sum()), at=at)
             else:
                 c = tree.cut(cur, cameras[i], s)
-        if all(ids.numel() == 0 for ids in c.ids[1:]):
+        if own is None and all(ids.numel() == 0 for ids in c.ids[1:]):
             continue  # tier 0 alone: nothing trainable drawn
         with torch.enable_grad():
             m, q, sc, op, col = tree.cut_attributes(cur, c)
@@ -132,6 +143,10 @@ def finetune(model: Gaussians, cameras: Sequence, images: Sequence, steps: int =
             with torch.no_grad():
                 for p, cap in zip(params, caps):
                     p["log_scales"].clamp_(max=cap)
+                if own_cap is not None:
+                    own["log_scales"].clamp_(max=own_cap)
         if log is not None and (it + 1) % 250 == 0:
             log(f"tree: fitted on its cuts, step {it + 1} of {steps} (loss {float(loss.detach()):.4f})")
+    if own is not None:
+        tiers = [replace(tiers[0], **{k: v.detach() for k, v in own.items()})] + tiers[1:]
     return tree.linked(_tiers_with(tiers, [{k: v.detach() for k, v in p.items()} for p in params]))

@@ -75,14 +75,15 @@ def finetune(model: Gaussians, cameras: Sequence, images: Sequence, steps: int =
     ends larger than it entered the fit), but for the share ``free_roots`` of the roots (the last
     tier's nodes) with the largest exits, the ones the coarsest levels draw alone (default
     :data:`clod_adapter.train.config.TREE_FREE_ROOTS`, 0.25). With ``tier0_rate`` > 0 tier 0 (the
-    model at full detail) is fitted too, at its rates times ``tier0_rate`` and held at its size as the
-    merged nodes are (a study's knob: docs/studies.md "Tier 0 fitted on the cuts too"; default 0, tier 0
-    unchanged). ``steps <= 0`` returns ``model``.
+    model at full detail) is fitted too, at its rates times ``tier0_rate``, its scales bounded by
+    ``grow`` as the merged nodes' are (a study's knob: docs/studies.md "Where a cut loses, and three
+    fits that do not win it back"; default 0, tier 0 unchanged). ``steps <= 0`` returns ``model``.
     Returns a new :class:`~clod_adapter.gaussians.Gaussians` (the same nodes, tree and dtype).
 
     Raises:
         ValueError: ``model`` is not a tree, ``cameras`` and ``images`` differ in number,
-            ``budget_steps`` or ``free_roots`` is outside [0, 1], or ``grow`` is below 1.
+            ``budget_steps`` or ``free_roots`` is outside [0, 1], ``grow`` is below 1, or
+            ``tier0_rate`` is negative.
     """
     if not tree.is_tree(model):
         raise ValueError("tree_fit.finetune: the model is not a merge tree")

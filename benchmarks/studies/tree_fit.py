@@ -94,6 +94,9 @@ row per value, each ending with tier 0 drawn whole (full detail). ``--train-node
 the nodes a cut draws as themselves: the rows in a hand-over or fading out (``t < 1``) are drawn but
 pass no gradient (:func:`node_gradients`, installed for the run; default ``all``, the job's fit).
 
+``--tier1-rate S`` fits the first merged tier at its rates times ``S`` and the later tiers at
+theirs (:func:`first_tier_rate`, installed for the run; default 1, the job's fit).
+
 ``--config KEY=VALUE ...`` takes the adaptation with those ``AdaptConfig`` settings (cached under
 their tag) instead of the defaults; ``--as-adapted`` scores it as the job fitted its tree (one row,
 no fit here) and prints, per tier, how many families would get another lead if it were chosen
@@ -355,6 +358,33 @@ class RateAdam(torch.optim.Adam):
         return out
 
 
+@contextlib.contextmanager
+def first_tier_rate(scale: float):
+    """``clod_adapter.train.tree_fit.official_groups`` for the run with the first merged tier's
+    groups at ``scale`` times their rates (``--tier1-rate``): :func:`finetune` asks for the merged
+    tiers' groups in order, tier 1 first, so each fit's first call is scaled (the count restarts at
+    each fit: :func:`fit_at_rate`). Restored on exit; a scale of 1 installs nothing."""
+    import clod_adapter.train.tree_fit as tf
+
+    real = tf.official_groups
+
+    def scaled(params, means, scale_all=1.0):
+        first = first_tier_rate.calls == 0
+        first_tier_rate.calls += 1
+        f = scale if first else 1.0
+        return real(params, means * f, scale_all * f)
+
+    if scale != 1.0:
+        tf.official_groups = scaled
+    try:
+        yield
+    finally:
+        tf.official_groups = real
+
+
+first_tier_rate.calls = 0
+
+
 def fit_at_rate(rate: tuple, built, fit_cams, fit_imgs, n: int, **kw):
     """:func:`finetune` of ``built`` for ``n`` steps with :class:`RateAdam` at ``rate`` (scale,
     final, ema) in place of its Adam; with an ``ema``, the returned model holds the averages (the
@@ -364,6 +394,7 @@ def fit_at_rate(rate: tuple, built, fit_cams, fit_imgs, n: int, **kw):
     scale, final, ema = rate
     RateAdam.SCALE, RateAdam.FINAL, RateAdam.EMA, RateAdam.STEPS, RateAdam.last = scale, final, ema, n, None
     real, tf.torch.optim.Adam = tf.torch.optim.Adam, RateAdam
+    first_tier_rate.calls = 0
     try:
         g = finetune(built, fit_cams, fit_imgs, n, **kw)
     finally:
@@ -514,6 +545,8 @@ def main(argv=None) -> int:
                          "(default: the job's, 0.01 and the coarsest level drawn)")
     ap.add_argument("--tier0-rate", type=float, nargs="+", metavar="R",
                     help="fit tier 0 too, at its rates times R (0: not fitted, the job's)")
+    ap.add_argument("--tier1-rate", type=float, default=1.0, metavar="S",
+                    help="fit the first merged tier at its rates times S (default 1: the job's)")
     ap.add_argument("--train-nodes", choices=("all", "stable"), default="all",
                     help="fit every drawn node (the job's) or only those drawn as themselves (t = 1)")
     ap.add_argument("--held-out", type=int, default=0, metavar="K",
@@ -522,11 +555,11 @@ def main(argv=None) -> int:
                     help="also time each fit at --decimate's counts against the decimated models")
     args = ap.parse_args(argv)
     if args.as_adapted and (args.rate or args.held_out or args.lead != "centre" or args.tier0_rate
-                            or args.train_nodes != "all"):
-        ap.error("--as-adapted scores the job's own tree and fit: --rate, --held-out, --lead, --tier0-rate and "
-                 "--train-nodes refit or rebuild it")
+                            or args.train_nodes != "all" or args.tier1_rate != 1.0):
+        ap.error("--as-adapted scores the job's own tree and fit: --rate, --held-out, --lead, --tier0-rate, "
+                 "--tier1-rate and --train-nodes refit or rebuild it")
     setup_threads(args.threads)
-    with lead_rule(args.lead), node_gradients(args.train_nodes):
+    with lead_rule(args.lead), node_gradients(args.train_nodes), first_tier_rate(args.tier1_rate):
         rows = [r for name in selected_inputs(args) for r in study(name, args)]
     head = ["input", "adaptation", "spread", "exit b", "F", "M", "steps", "rate, final, ema", "budget steps", "resolution",
             "grow", "fit s", "popping along budgets", "popping along s_v",
@@ -554,7 +587,8 @@ def main(argv=None) -> int:
                + (f"_heldout{args.held_out}" if args.held_out else "")
                + ("_tier0-" + "-".join(f"{x:g}" for x in args.tier0_rate) if args.tier0_rate else "")
                + ("_lead-mass" if args.lead == "mass" else "")
-               + ("_stable-nodes" if args.train_nodes == "stable" else "")))
+               + ("_stable-nodes" if args.train_nodes == "stable" else "")
+               + (f"_tier1-rate{args.tier1_rate:g}" if args.tier1_rate != 1.0 else "")))
     print(text)
     print(write_summary(name, text))
     return 0

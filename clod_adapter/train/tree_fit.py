@@ -76,7 +76,7 @@ def finetune(model: Gaussians, cameras: Sequence, images: Sequence, steps: int =
     tier's nodes) with the largest exits, the ones the coarsest levels draw alone (default
     :data:`clod_adapter.train.config.TREE_FREE_ROOTS`, 0.25). With ``tier0_rate`` > 0 tier 0 (the
     model at full detail) is fitted too, at its rates times ``tier0_rate``, its scales bounded by
-    ``grow`` as the merged nodes' are (a study's knob: docs/studies.md "Where a cut loses, and three
+    ``grow`` as the merged nodes' are (a study's knob: docs/studies.md "Where a cut loses, and four
     fits that do not win it back"; default 0, tier 0 unchanged). ``steps <= 0`` returns ``model``.
     Returns a new :class:`~clod_adapter.gaussians.Gaussians` (the same nodes, tree and dtype).
 

@@ -85,13 +85,13 @@ def run_input(name: str, split: str, unfitted: bool = False) -> list[str]:
         g = load_model(ply)
     rows = []
     with torch.no_grad():
+        full_err = [((render_lod(g, cam, 1.0).image.clamp(0, 1) - gt) ** 2).mean(-1) for cam, gt in zip(cams, gts)]
         for share in SHARES:
             excess, cover, total, pixels = torch.zeros(len(KINDS)), torch.zeros(len(KINDS)), 0.0, 0
-            for cam, gt in zip(cams, gts):
-                full = render_lod(g, cam, 1.0).image.clamp(0, 1)
+            for cam, gt, err in zip(cams, gts, full_err):
                 img = render_lod(g, cam, budget=Budget(in_view=share)).image.clamp(0, 1)
                 w = kind_weights(g, cam, tree_cut(g, cam, budget=Budget(in_view=share)))
-                e = ((img - gt) ** 2).mean(-1) - ((full - gt) ** 2).mean(-1)
+                e = ((img - gt) ** 2).mean(-1) - err
                 excess += (e[..., None] * w).sum((0, 1)).float()
                 cover += w.sum((0, 1)).float()
                 total, pixels = total + float(e.sum()), pixels + e.numel()

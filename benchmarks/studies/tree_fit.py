@@ -189,20 +189,22 @@ def scores(g, base, cams, gts, sig, n_pop: int) -> dict:
         out.update(zip(SHARES, shares_psnr(g, cams, gts)))
         out["coarse"] = [statistics.mean(psnr(render_lod(g, c, sv).image, gt, cap=True)
                                          for c, gt in zip(cams, gts)) for sv in COARSE_S_V]
-        out["tier1"] = tier_whole(g, cams, gts)
-        out["tier0"] = tier_whole(g, cams, gts, 0).split(" ")[0]
+        (p0, n0), (p1, n1) = tiers_whole(g, cams, gts)
+        out["tier1"], out["tier0"] = f"{p1:.2f} ({n1 / max(n0, 1):.2f})", f"{p0:.2f}"
     return out
 
 
-def tier_whole(g, cams, gts, k: int = 1) -> str:
-    """Tier ``k`` of the tree ``g`` drawn whole as a plain model: its mean PSNR on the views and its
-    drawn count over tier 0's, as the cell ``"PSNR (share)"``."""
+def tiers_whole(g, cams, gts, ks=(0, 1)) -> list[tuple[float, int]]:
+    """Each tier ``k`` in ``ks`` of the tree ``g`` drawn whole as a plain model, once per view:
+    ``(mean PSNR on the views in dB, drawn count summed over the views)`` per tier."""
     ts = tree.tiers_of(g)
+    out = []
     with torch.no_grad():
-        outs = [render_lod(ts[k].with_sigma_d(None), c) for c in cams]
-        n0 = sum(render_lod(ts[0].with_sigma_d(None), c).n_rendered for c in cams)
-    share = sum(o.n_rendered for o in outs) / max(n0, 1)
-    return f"{statistics.mean(psnr(o.image, gt, cap=True) for o, gt in zip(outs, gts)):.2f} ({share:.2f})"
+        for k in ks:
+            outs = [render_lod(ts[k].with_sigma_d(None), c) for c in cams]
+            out.append((statistics.mean(psnr(o.image, gt, cap=True) for o, gt in zip(outs, gts)),
+                        sum(o.n_rendered for o in outs)))
+    return out
 
 
 def shares_psnr(g, cams, gts) -> list[float]:
